@@ -1,0 +1,39 @@
+# Fringescope — two commands: `make run` and `make test`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+export NUMBA_THREADING_LAYER ?= workqueue
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.venv/numba-cache
+
+.PHONY: run test lint bench clean system-deps
+
+# Re-install only when pyproject.toml changes (stamp files keep both targets idempotent).
+$(BIN)/python:
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+
+$(VENV)/.installed-run: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
+	$(BIN)/pip install -q -e '.[dev]'
+	touch $@
+
+run: $(VENV)/.installed-run
+	$(BIN)/fringescope serve
+
+# Debian packages the test suite drives for real: Chromium (browser tests) and podman (image build).
+system-deps:
+	@bash scripts/install-system-deps.sh
+
+test: $(VENV)/.installed-dev system-deps
+	$(BIN)/ruff check app tests benchmarks
+	$(BIN)/mypy
+	$(BIN)/python -m pytest -q
+
+bench: $(VENV)/.installed-dev
+	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache

@@ -1,0 +1,150 @@
+"""Capture sets on disk: ``capture.json`` plus one PNG per fringe frame (DESIGN.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from app.atomic import atomic_directory
+from app.recon.patterns import PatternSchedule
+
+FORMAT = "fringescope.capture/1"
+LEDS = ("red", "green", "blue")
+
+
+@dataclass
+class CaptureSet:
+    """One depth map's worth of fringe frames.
+
+    Attributes:
+        frames: (F, H, W) uint8 or uint16, frequency-major, shift-minor.
+        schedule: the pattern schedule the frames were taken with.
+        exposure_ms: camera exposure, ms.
+        led: projector LED colour.
+        extra: unknown keys of ``capture.json`` (kept, ignored).
+    """
+
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+    schedule: PatternSchedule = field(default_factory=PatternSchedule)
+    exposure_ms: float = 20.0
+    led: str = "green"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        validate_frames(self.frames, self.schedule)
+        if not (math.isfinite(self.exposure_ms) and self.exposure_ms > 0):
+            raise ValueError(f"exposure_ms: must be positive, got {self.exposure_ms}")
+        if self.led not in LEDS:
+            raise ValueError(f"led: must be one of {LEDS}, got {self.led!r}")
+
+
+def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
+    """Raise ``ValueError`` naming ``frames`` unless it is a (F, H, W) uint8/uint16 stack for ``schedule``."""
+    if not isinstance(frames, np.ndarray):
+        raise ValueError("frames: expected a numpy array")
+    if frames.ndim != 3:
+        raise ValueError(f"frames: expected shape (F, H, W), got {frames.shape}")
+    if frames.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"frames: dtype must be uint8 or uint16, got {frames.dtype}")
+    if frames.shape[0] != schedule.n_frames:
+        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
+
+
+def frame_names(n: int) -> list[str]:
+    return [f"frame_{i:02d}.png" for i in range(n)]
+
+
+def write_capture_set(
+    path: str | os.PathLike[str], capture: CaptureSet, *, overwrite: bool = False,
+    extra_files: dict[str, bytes] | None = None,
+) -> Path:
+    """Write ``capture`` as a capture-set folder, atomically (it appears whole or not at all).
+
+    ``extra_files`` (name → bytes) are written into the same folder, e.g. depth results.
+    """
+    names = frame_names(capture.frames.shape[0])
+    meta = {
+        **capture.extra,
+        "format": FORMAT,
+        "pattern": capture.schedule.to_dict(),
+        "exposure_ms": float(capture.exposure_ms),
+        "led": capture.led,
+        "frames": names,
+    }
+    with atomic_directory(path, overwrite=overwrite) as tmp:
+        for name, frame in zip(names, capture.frames, strict=True):
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            if not ok:
+                raise OSError(f"{name}: PNG encoding failed")
+            (tmp / name).write_bytes(buf.tobytes())
+        for name, data in (extra_files or {}).items():
+            (tmp / name).write_bytes(data)
+        (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    return Path(path)
+
+
+def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
+    """Read a capture-set folder; ``ValueError`` naming the offending file on any problem."""
+    folder = Path(path)
+    meta_path = folder / "capture.json"
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a capture-set folder")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{meta_path}: missing") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{meta_path}: unreadable ({exc})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object")
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{meta_path}: unsupported format {meta.get('format')!r} (expected {FORMAT!r})")
+    for key in ("pattern", "frames"):
+        if key not in meta:
+            raise ValueError(f"{meta_path}: missing key {key!r}")
+    try:
+        schedule = PatternSchedule.from_dict(meta["pattern"])
+    except ValueError as exc:
+        raise ValueError(f"{meta_path}: {exc}") from None
+    names = meta["frames"]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
+    if len(names) != schedule.n_frames:
+        raise ValueError(f"{meta_path}: schedule needs {schedule.n_frames} frames, lists {len(names)}")
+    frames = []
+    for name in names:
+        fpath = folder / name
+        if Path(name).name != name:
+            raise ValueError(f"{meta_path}: frame name {name!r} must be a plain file name")
+        img = cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{fpath}: missing or not a readable image")
+        if img.ndim != 2:
+            raise ValueError(f"{fpath}: expected a single-channel image, got shape {img.shape}")
+        if img.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"{fpath}: expected 8- or 16-bit pixels, got {img.dtype}")
+        if frames and (img.shape != frames[0].shape or img.dtype != frames[0].dtype):
+            raise ValueError(
+                f"{fpath}: {img.shape} {img.dtype} differs from the first frame's "
+                f"{frames[0].shape} {frames[0].dtype}"
+            )
+        frames.append(img)
+    known = {"format", "pattern", "exposure_ms", "led", "frames"}
+    try:
+        return CaptureSet(
+            frames=np.stack(frames),
+            schedule=schedule,
+            exposure_ms=float(meta.get("exposure_ms", 20.0)),
+            led=str(meta.get("led", "green")),
+            extra={k: v for k, v in meta.items() if k not in known},
+        )
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{meta_path}: {exc}") from None

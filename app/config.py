@@ -1,0 +1,79 @@
+"""Settings (pydantic-settings, env prefix ``FRINGESCOPE_``, optional TOML file).
+
+Built once by the entry point and passed down explicitly; nothing below the
+service layer imports settings.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="FRINGESCOPE_", extra="forbid")
+
+    # network
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    api_token: str | None = None
+    insecure: bool = False
+    cors_origins: list[str] = Field(default_factory=list)
+    max_upload_mb: float = Field(200.0, gt=0)
+
+    # storage
+    data_dir: Path = Path("data")
+    calibration_file: Path | None = None
+
+    # devices: "sim" is the built-in digital twin
+    camera: Literal["sim", "opencv", "genicam", "replay"] = "sim"
+    projector: Literal["sim", "lightcrafter", "none"] = "sim"
+    controller: Literal["sim", "serial", "none"] = "sim"
+    camera_source: str = ""  # OpenCV index/URL/file, GenTL .cti path, or replay folder
+    serial_port: str = ""  # device path, pyserial URL, or "usb:VID:PID[:SERIAL]"
+    lightcrafter_host: str = "192.168.1.100"
+    lightcrafter_port: int = 21845
+    sim_scene: str = "anastomosis"
+    sim_seed: int | None = None
+    sim_drop_rate: float = Field(0.0, ge=0, le=1)
+    sim_timeout_rate: float = Field(0.0, ge=0, le=1)
+    sim_disconnect_every_s: float = Field(0.0, ge=0)
+
+    # acquisition
+    exposure_ms: float = Field(30.0, ge=1, le=100)
+    led: Literal["red", "green", "blue"] = "green"
+    bit_depth: Literal[8, 12] = 8
+    rolling: bool = False
+    autostart: bool = True
+
+    # viewer
+    viewer: bool = True
+    viewer_port: int = Field(0, ge=0, le=65535)  # 0: pick a free loopback port
+    viewer_max_points: int = Field(300_000, ge=1000)
+
+
+def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Settings:
+    """Settings from a TOML file (optional), then the environment, then ``overrides``.
+
+    Environment variables win over the file; explicit overrides (command-line flags)
+    win over both.
+    """
+    file_values: dict[str, Any] = {}
+    if config_file is not None:
+        path = Path(config_file)
+        try:
+            file_values = tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ValueError(f"{path}: config file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{path}: invalid TOML ({exc})") from None
+        file_values = dict(file_values.get("fringescope", file_values))
+    env_settings = Settings()
+    env_set = {k for k in Settings.model_fields if k in env_settings.model_fields_set}
+    merged = {k: v for k, v in file_values.items() if k not in env_set}
+    merged.update({k: v for k, v in overrides.items() if v is not None})
+    return Settings(**merged)
