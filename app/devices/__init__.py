@@ -1,6 +1,14 @@
 """Hardware abstraction: cameras, projectors, LED/trigger controllers (sim and real)."""
 
-from app.devices.base import Camera, CameraCapabilities, CameraSettings, Controller, DeviceState, Frame, Projector
+from app.devices.base import (
+    Camera,
+    CameraCapabilities,
+    CameraSettings,
+    Controller,
+    DeviceState,
+    Frame,
+    Projector,
+)
 from app.devices.errors import (
     DeviceDisconnected,
     DeviceError,
