@@ -1,0 +1,31 @@
+"""Validation analytics: plane accuracy/precision, feature height, VDI/VDE 2634-2 figures."""
+
+from app.analysis.common import parse_roi, roi_mask, select_points
+from app.analysis.feature import FeatureHeight, feature_height
+from app.analysis.plane import (
+    PlaneAccuracy,
+    PlaneBin,
+    PlaneFit,
+    fit_plane_lsq,
+    fit_plane_mlesac,
+    plane_accuracy,
+)
+from app.analysis.sphere import SphereFigures, SphereFit, fit_sphere, sphere_figures
+
+__all__ = [
+    "FeatureHeight",
+    "PlaneAccuracy",
+    "PlaneBin",
+    "PlaneFit",
+    "SphereFigures",
+    "SphereFit",
+    "feature_height",
+    "fit_plane_lsq",
+    "fit_plane_mlesac",
+    "fit_sphere",
+    "parse_roi",
+    "plane_accuracy",
+    "roi_mask",
+    "select_points",
+    "sphere_figures",
+]

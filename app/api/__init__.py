@@ -1,0 +1,17 @@
+"""REST and stream routes (thin: every route calls the Instrument)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from app.api import analysis, calibration, control, results, stream
+
+
+def api_router() -> APIRouter:
+    router = APIRouter()
+    for module in (control, results, calibration, analysis, stream):
+        router.include_router(module.router)
+    return router
+
+
+__all__ = ["api_router"]

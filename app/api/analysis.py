@@ -1,0 +1,27 @@
+"""Measurements in a region of the latest depth map."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends
+from starlette.concurrency import run_in_threadpool
+
+from app.api.deps import get_instrument
+from app.api.schemas import FeatureOut, PlaneOut, RoiIn
+from app.service import analysis
+from app.service.instrument import Instrument
+
+router = APIRouter(prefix="/api/analysis", tags=["analysis"])
+
+
+@router.post("/plane", response_model=PlaneOut)
+async def plane(body: RoiIn, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Plane fit in the ROI: accuracy (mean distance), precision (std), flatness, point count."""
+    return await run_in_threadpool(analysis.plane, inst.latest_result(), body.roi)
+
+
+@router.post("/feature", response_model=FeatureOut)
+async def feature(body: RoiIn, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Height of a feature (e.g. a suture) above its surrounding baseline in the ROI."""
+    return await run_in_threadpool(analysis.feature, inst.latest_result(), body.roi)

@@ -1,0 +1,135 @@
+"""The calibration workflow: session with a board, poses, solve, activate; file up/download."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from fastapi import APIRouter, Body, Depends, HTTPException, Request
+from fastapi.responses import Response
+
+from app.api.deps import binary, get_instrument
+from app.api.schemas import (
+    ActivateIn,
+    BoardIn,
+    CalibrationSummary,
+    PoseOut,
+    SessionOut,
+    SolveIn,
+    SolveOut,
+)
+from app.api.upload import read_body
+from app.calib.calibration import Calibration
+from app.service.instrument import Instrument
+
+router = APIRouter(prefix="/api/calibration", tags=["calibration"])
+
+
+def _num(x: Any) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+@router.get("", response_model=CalibrationSummary)
+def active(inst: Instrument = Depends(get_instrument)) -> Any:
+    """The active calibration (404 if there is none)."""
+    summary = inst.calibration_summary()
+    if summary is None:
+        raise HTTPException(404, "no calibration is active")
+    return summary
+
+
+@router.post("/session", response_model=SessionOut)
+def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Start a session with a board spec (``board.json`` format); replaces any previous one."""
+    return inst.start_session(board.model_dump()).describe()
+
+
+@router.get("/session", response_model=SessionOut)
+def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
+    return inst.require_session().describe()
+
+
+@router.post("/session/poses")
+def capture_pose(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
+    """Capture the current view as a pose: {index, found, corners, preview_url, corner_points}."""
+    return inst.capture_pose()
+
+
+@router.get("/session/poses", response_model=list[PoseOut])
+def list_poses(inst: Instrument = Depends(get_instrument)) -> Any:
+    return inst.require_session().summaries()
+
+
+@router.get("/session/poses/{index}/preview.png", responses={200: {"content": {"image/png": {}}}})
+def pose_preview(index: int, inst: Instrument = Depends(get_instrument)) -> Response:
+    """The pose's texture with the detected board points drawn."""
+    return binary(inst.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
+
+
+@router.delete("/session/poses/{index}", response_model=list[PoseOut])
+def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Remove a pose; later poses move down one index."""
+    session = inst.require_session()
+    session.delete(index)
+    return session.summaries()
+
+
+@router.post("/session/solve", response_model=SolveOut)
+def solve(
+    body: SolveIn = Body(default_factory=SolveIn),  # type: ignore[arg-type]
+    inst: Instrument = Depends(get_instrument),
+) -> Any:
+    """Fit the calibration from the detected poses: per-pose table and totals."""
+    report = inst.solve_session(robust=body.robust)
+    return {
+        "poses": [
+            {"pose": p.pose, "name": p.name, "corners": p.corners, "reprojection_px": _num(p.reprojection_px),
+             "rms_mm": _num(p.rms_mm), "points": p.points, "dropped": p.dropped,
+             "height_mm": [_num(h) for h in p.height_mm]}
+            for p in report.poses
+        ],
+        "rms_mm": _num(report.rms_mm),
+        "reprojection_px": _num(report.reprojection_px),
+        "height_range_mm": list(report.calibration.height_range_mm),
+        "table": report.table(),
+    }
+
+
+@router.post("/session/activate", response_model=CalibrationSummary)
+def activate(
+    body: ActivateIn = Body(default_factory=ActivateIn),  # type: ignore[arg-type]
+    inst: Instrument = Depends(get_instrument),
+) -> Any:
+    """Make the solved calibration active (and saved in the data folder)."""
+    return inst.activate_session(body.name)
+
+
+@router.get("/file", responses={200: {"content": {"application/json": {}}}})
+def download(inst: Instrument = Depends(get_instrument)) -> Response:
+    """The active calibration file (``fringescope.calibration/1`` JSON)."""
+    cal = inst.calibration
+    if cal is None:
+        raise HTTPException(404, "no calibration is active")
+    data = (json.dumps(cal.to_dict(), indent=2) + "\n").encode()
+    name = inst.calibration_name or "calibration"
+    return binary(data, "application/json", None, f"{name}.json")
+
+
+@router.put(
+    "/file",
+    response_model=CalibrationSummary,
+    openapi_extra={"requestBody": {"content": {"application/json": {"schema": {"type": "object"}}}}},
+)
+async def upload(request: Request, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Upload a calibration file (JSON body); validated, then active. 422 with the reason if invalid."""
+    from starlette.concurrency import run_in_threadpool
+
+    body = await read_body(request, int(inst.settings.max_upload_mb * 1024 * 1024))
+    try:
+        data = json.loads(body)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"calibration: not valid JSON ({exc})") from None
+    cal = Calibration.from_dict(data)
+    await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True)
+    return inst.calibration_summary()

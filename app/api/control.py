@@ -1,0 +1,72 @@
+"""Status and control: exposure, LED, mode, acquisition start/stop."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+from fastapi import APIRouter, Body, Depends
+
+from app.api.deps import get_instrument
+from app.api.schemas import (
+    AcquisitionOut,
+    AutoExposureIn,
+    AutoExposureOut,
+    ExposureIn,
+    ExposureOut,
+    LedIn,
+    LedOut,
+    ModeIn,
+    ModeOut,
+    StatusOut,
+)
+from app.service.instrument import Instrument
+
+router = APIRouter(prefix="/api", tags=["control"])
+
+
+@router.get("/status", response_model=StatusOut)
+def status(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
+    """State, rates, latency, settings, calibration, devices and counters."""
+    return inst.status()
+
+
+@router.put("/exposure", response_model=ExposureOut)
+def put_exposure(body: ExposureIn, inst: Instrument = Depends(get_instrument)) -> ExposureOut:
+    """Camera exposure (1–100 ms), applied from the next whole fringe set."""
+    return ExposureOut(exposure_ms=inst.set_exposure(body.exposure_ms))
+
+
+@router.post("/exposure/auto", response_model=AutoExposureOut)
+def auto_exposure(
+    body: AutoExposureIn = Body(default_factory=AutoExposureIn),  # type: ignore[arg-type]
+    inst: Instrument = Depends(get_instrument),
+) -> Any:
+    """Longest exposure whose sets keep saturation under the limit (grabs a few real sets)."""
+    res = inst.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
+    return asdict(res)
+
+
+@router.put("/led", response_model=LedOut)
+def put_led(body: LedIn, inst: Instrument = Depends(get_instrument)) -> LedOut:
+    """Projector LED, applied from the next whole fringe set."""
+    return LedOut(led=inst.set_led(body.led))
+
+
+@router.put("/mode", response_model=ModeOut)
+def put_mode(body: ModeIn, inst: Instrument = Depends(get_instrument)) -> ModeOut:
+    """Rolling mode: a depth map after every frame from the last 16 (motion-masked)."""
+    inst.set_rolling(body.rolling)
+    return ModeOut(mode="rolling" if body.rolling else "set")
+
+
+@router.post("/acquisition/start", response_model=AcquisitionOut)
+def start(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
+    inst.set_acquiring(True)
+    return AcquisitionOut(acquiring=True, state=inst.state())
+
+
+@router.post("/acquisition/stop", response_model=AcquisitionOut)
+def stop(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
+    inst.set_acquiring(False)
+    return AcquisitionOut(acquiring=False, state=inst.state())

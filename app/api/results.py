@@ -1,0 +1,108 @@
+"""Latest results (depth, texture, reasons, point cloud) and reconstruction of uploads."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import Response
+
+from app.api.deps import binary, get_instrument, result_headers
+from app.api.schemas import ReconstructSummary, ResultMeta
+from app.api.upload import capture_from_request
+from app.service import encoding
+from app.service.instrument import Instrument
+
+router = APIRouter(prefix="/api", tags=["results"])
+
+
+@router.get("/result/latest", response_model=ResultMeta)
+def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
+    """Provenance of the latest depth map: frames, exposure, LED, mode, latency."""
+    return inst.latest_result().metadata()
+
+
+@router.get(
+    "/depth/latest",
+    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}}}},
+)
+def depth_latest(
+    format: Literal["npy", "png", "color"] = "npy",
+    min_mm: float | None = Query(None, allow_inf_nan=False),
+    max_mm: float | None = Query(None, allow_inf_nan=False),
+    inst: Instrument = Depends(get_instrument),
+) -> Response:
+    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar."""
+    res = inst.latest_result()
+    headers = result_headers(res.metadata())
+    if format == "npy":
+        data = res.cached("npy", lambda: encoding.npy_bytes(res.depth))
+        return binary(data, "application/octet-stream", headers, "depth.npy")
+    if format == "png":
+        data = res.cached("png", lambda: encoding.depth_png_um(res.depth))
+        return binary(data, "image/png", headers, "depth_um.png")
+    rng = encoding.check_range_mm(min_mm, max_mm)
+    data = res.cached(("color", rng), lambda: encoding.depth_color_png(res.depth, rng))
+    return binary(data, "image/png", headers, "depth_color.png")
+
+
+@router.get("/texture/latest.png", responses={200: {"content": {"image/png": {}}}})
+def texture_latest(inst: Instrument = Depends(get_instrument)) -> Response:
+    """Texture A + B, 8-bit, scaled by the sensor's full scale."""
+    res = inst.latest_result()
+    data = res.cached("texture", lambda: encoding.texture_png(res.texture, res.full_scale))
+    return binary(data, "image/png", result_headers(res.metadata()), "texture.png")
+
+
+@router.get("/reason/latest.png", responses={200: {"content": {"image/png": {}}}})
+def reason_latest(inst: Instrument = Depends(get_instrument)) -> Response:
+    """Why pixels are invalid, one colour per reason (legend in the X-Fringescope-Reasons header)."""
+    res = inst.latest_result()
+    data = res.cached("reason", lambda: encoding.reason_png(res.reason))
+    headers = {**result_headers(res.metadata()), "X-Fringescope-Reasons": encoding.legend_header()}
+    return binary(data, "image/png", headers, "reason.png")
+
+
+@router.get("/reason/legend")
+def reason_legend() -> dict[str, Any]:
+    return encoding.reason_legend()
+
+
+@router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}})
+def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
+    """Valid points (camera frame, mm) with texture intensity, binary PLY."""
+    res = inst.latest_result()
+    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture))
+    return binary(data, "application/octet-stream", result_headers(res.metadata()), "points.ply")
+
+
+@router.post(
+    "/reconstruct",
+    response_model=ReconstructSummary,
+    responses={200: {"content": {"application/octet-stream": {}}}, 413: {}, 415: {}},
+    openapi_extra={"requestBody": {"content": {
+        "multipart/form-data": {"schema": {"type": "object", "properties": {
+            "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
+        "application/zip": {"schema": {"type": "string", "format": "binary"}},
+    }}},
+)
+async def reconstruct(
+    request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
+) -> Any:
+    """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip)."""
+    from starlette.concurrency import run_in_threadpool
+
+    limit = int(inst.settings.max_upload_mb * 1024 * 1024)
+    capture = await capture_from_request(request, limit)
+    res = await run_in_threadpool(inst.reconstruct_capture, capture)
+    if format == "npy":
+        return binary(encoding.npy_bytes(res.depth), "application/octet-stream", None, "depth.npy")
+    finite = res.depth[np.isfinite(res.depth)]
+    return ReconstructSummary(
+        valid_fraction=float(res.valid.mean()),
+        height_min_mm=float(finite.min()) if finite.size else None,
+        height_max_mm=float(finite.max()) if finite.size else None,
+        elapsed_ms=float(res.elapsed_ms),
+        shape=list(res.depth.shape),
+    )

@@ -1,0 +1,200 @@
+"""Request and response bodies of the REST API (pydantic; out-of-range input → 422)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class ExposureIn(Strict):
+    exposure_ms: float = Field(..., ge=1.0, le=100.0, description="camera exposure, 1–100 ms")
+
+
+class ExposureOut(BaseModel):
+    exposure_ms: float
+    applies: str = "from the next whole fringe set"
+
+
+class AutoExposureIn(Strict):
+    saturation_limit: float = Field(0.005, ge=0.0, lt=1.0, description="allowed saturated fraction")
+    max_exposure_ms: float = Field(100.0, ge=1.0, le=100.0)
+
+
+class ExposureTrialOut(BaseModel):
+    exposure_ms: float
+    saturated_fraction: float
+    modulation: float
+
+
+class AutoExposureOut(BaseModel):
+    exposure_ms: float
+    saturated_fraction: float
+    modulation: float
+    saturation_limit: float
+    trials: list[ExposureTrialOut]
+    warning: str | None = None
+
+
+class LedIn(Strict):
+    led: Literal["red", "green", "blue"]
+
+
+class LedOut(BaseModel):
+    led: str
+    applies: str = "from the next whole fringe set"
+
+
+class ModeIn(Strict):
+    rolling: StrictBool
+
+
+class ModeOut(BaseModel):
+    mode: Literal["set", "rolling"]
+
+
+class AcquisitionOut(BaseModel):
+    acquiring: bool
+    state: str
+
+
+class DeviceOut(BaseModel):
+    name: str
+    kind: str
+    state: str
+    error: str = ""
+
+
+class CalibrationSummary(BaseModel):
+    name: str | None
+    created: str
+    height_range_mm: list[float]
+    image_size: list[int] = []
+    software_version: str = ""
+    poses: int = 0
+
+
+class StatusOut(BaseModel):
+    state: Literal["starting", "calibrating", "running", "stopped", "fault"]
+    camera_fps: float
+    depth_fps: float
+    latency_ms: float | None
+    exposure_ms: float
+    led: str
+    mode: Literal["set", "rolling"]
+    acquiring: bool
+    calibration: CalibrationSummary | None
+    devices: list[DeviceOut]
+    last_error: str | None
+    sets_completed: int
+    results_published: int
+    dropped_sets: int
+    incomplete_sets: int
+    mixed_sets: int
+    frames_received: int
+    frames_dropped: int
+    faults: int
+    warnings: list[str]
+
+
+class ResultMeta(BaseModel):
+    seq: int
+    mode: str
+    created: str
+    exposure_ms: float
+    led: str
+    frame_indices: list[int]
+    timestamps: list[float]
+    latency_ms: float
+    recon_ms: float
+    valid_fraction: float
+    shape: list[int]
+
+
+class ReconstructSummary(BaseModel):
+    valid_fraction: float
+    height_min_mm: float | None
+    height_max_mm: float | None
+    elapsed_ms: float
+    shape: list[int]
+
+
+class BoardIn(Strict):
+    """A ``board.json`` object: checkerboard (inner_corners, square_mm) or circles (grid, spacing_mm)."""
+
+    model_config = ConfigDict(extra="allow")
+    type: Literal["checkerboard", "circles", "asymmetric_circles"]
+
+
+class PoseOut(BaseModel):
+    index: int
+    found: bool
+    corners: int
+    created: str
+    exposure_ms: float
+    led: str
+    preview_url: str
+
+
+class SessionOut(BaseModel):
+    board: dict[str, Any]
+    created: str
+    poses: list[PoseOut]
+    solved: bool
+
+
+class SolveIn(Strict):
+    robust: StrictBool = False
+
+
+class PoseReportOut(BaseModel):
+    pose: int
+    name: str
+    corners: int
+    reprojection_px: float | None
+    rms_mm: float | None
+    points: int
+    dropped: bool
+    height_mm: list[float | None]
+
+
+class SolveOut(BaseModel):
+    poses: list[PoseReportOut]
+    rms_mm: float | None
+    reprojection_px: float | None
+    height_range_mm: list[float]
+    table: str
+
+
+class ActivateIn(Strict):
+    name: str = Field("session", pattern=r"^[A-Za-z0-9_-]{1,64}$")
+
+
+class RoiIn(Strict):
+    roi: tuple[int, int, int, int] = Field(..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RoiIn:
+        x0, y0, x1, y1 = self.roi
+        if x0 < 0 or y0 < 0 or x1 <= x0 or y1 <= y0:
+            raise ValueError(f"roi: need 0 <= x0 < x1 and 0 <= y0 < y1, got {list(self.roi)}")
+        return self
+
+
+class PlaneOut(BaseModel):
+    accuracy_mm: float | None
+    precision_mm: float | None
+    flatness_mm: float | None
+    points: int
+    extra: dict[str, Any] = {}
+
+
+class FeatureOut(BaseModel):
+    height_mm: float | None
+    height_std_mm: float | None
+    count: int
+    extra: dict[str, Any] = {}

@@ -1,0 +1,305 @@
+"""The calibration procedure: board poses → camera model, reference plane, Eq. (5) fit.
+
+``calibrate_folder`` reads a calibration folder (``board.json`` + ``pose_NN/`` capture
+sets); ``calibrate_sets`` does the same for in-memory capture sets; both end in
+``fit_observations``, which takes detected board points and phase maps and can be
+driven directly with synthetic data.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from app.calib.board import BoardSpec, detect_board, load_board, texture_to_u8
+from app.calib.calibration import Calibration
+from app.calib.model import choose_normalization, fit_eq5, normalize
+from app.capture.captureset import CaptureSet, read_capture_set
+from app.recon.patterns import PatternSchedule
+
+MIN_POSES = 3
+MIN_HEIGHT_SPAN_MM = 1.0
+MIN_TILT_SPREAD_DEG = 2.0
+ROBUST_POINT_SIGMAS = 4.0
+ROBUST_POSE_FACTOR = 3.0
+
+
+@dataclass
+class PoseObservation:
+    """One board pose: detected points and the unwrapped finest-frequency phase map.
+
+    Attributes:
+        image_points: (n, 2) float32 pixel coordinates (u, v) of the board points.
+        object_points: (n, 3) float32 board coordinates, mm.
+        phase: (H, W) float32 unwrapped phase, radians, NaN where invalid.
+        name: label for reports (e.g. ``pose_03``).
+    """
+
+    image_points: npt.NDArray[np.float32]
+    object_points: npt.NDArray[np.float32]
+    phase: npt.NDArray[np.float32]
+    name: str = ""
+
+
+@dataclass
+class PoseReport:
+    """Per-pose figures of a calibration.
+
+    Attributes:
+        pose: index; name: label; corners: board points detected; reprojection_px: RMS
+        reprojection error of the camera model, px; rms_mm: RMS Eq. (5) residual of the
+        pose's points used in the fit, mm; points: points used; dropped_points: points
+        rejected (invalid phase or robust outliers); dropped: the whole pose rejected.
+        height_mm: (min, max) height of the pose's control points, mm.
+    """
+
+    pose: int
+    name: str
+    corners: int
+    reprojection_px: float
+    rms_mm: float
+    points: int
+    dropped_points: int = 0
+    dropped: bool = False
+    height_mm: tuple[float, float] = (math.nan, math.nan)
+
+
+@dataclass
+class CalibrationReport:
+    """The calibration and how well each pose fitted."""
+
+    calibration: Calibration
+    poses: list[PoseReport] = field(default_factory=list)
+    rms_mm: float = math.nan
+    reprojection_px: float = math.nan
+
+    def table(self) -> str:
+        """Human-readable per-pose table with totals."""
+        head = f"{'pose':>4}  {'name':<10} {'corners':>7} {'reproj_px':>9} {'fit_rms_mm':>10} {'points':>6}  {'height_mm':>15}"
+        lines = [head, "-" * len(head)]
+        for p in self.poses:
+            flag = "  DROPPED" if p.dropped else ""
+            lines.append(
+                f"{p.pose:>4}  {p.name:<10} {p.corners:>7} {p.reprojection_px:>9.3f} {p.rms_mm:>10.4f} "
+                f"{p.points:>6}  {p.height_mm[0]:>7.2f}..{p.height_mm[1]:<6.2f}{flag}"
+            )
+        lo, hi = self.calibration.height_range_mm
+        lines.append("-" * len(head))
+        lines.append(
+            f"{'all':>4}  {'':<10} {sum(p.corners for p in self.poses):>7} {self.reprojection_px:>9.3f} "
+            f"{self.rms_mm:>10.4f} {sum(p.points for p in self.poses):>6}  {lo:>7.2f}..{hi:<6.2f}"
+        )
+        return "\n".join(lines)
+
+
+def sample_phase(phase: npt.NDArray[np.floating], points: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Bilinear phase at sub-pixel points; NaN where any of the 2×2 neighbours is invalid.
+
+    Args:
+        phase: (H, W) float phase map, radians, NaN invalid.
+        points: (n, 2) pixel coordinates (u = column, v = row).
+
+    Returns:
+        (n,) float64 radians.
+    """
+    ph = np.asarray(phase)
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    if ph.ndim != 2:
+        raise ValueError(f"phase: expected (H, W), got shape {ph.shape}")
+    h, w = ph.shape
+    u, v = pts[:, 0], pts[:, 1]
+    u0 = np.floor(u).astype(np.int64)
+    v0 = np.floor(v).astype(np.int64)
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < w) & (v0 + 1 < h)
+    out = np.full(len(pts), np.nan)
+    i0, j0 = v0[inside], u0[inside]
+    fu, fv = u[inside] - j0, v[inside] - i0
+    p = ph.astype(np.float64)
+    q00, q01, q10, q11 = p[i0, j0], p[i0, j0 + 1], p[i0 + 1, j0], p[i0 + 1, j0 + 1]
+    # NaN in any neighbour propagates: those points are refused, not extrapolated.
+    out[inside] = (q00 * (1 - fu) + q01 * fu) * (1 - fv) + (q10 * (1 - fu) + q11 * fu) * fv
+    return out
+
+
+def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False) -> CalibrationReport:
+    """Calibrate from a folder with ``board.json`` and capture sets ``pose_00/``, ``pose_01/``, …"""
+    folder = Path(calib_dir)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: calibration folder not found")
+    board = load_board(folder / "board.json")
+    pose_dirs = sorted(p for p in folder.glob("pose_*") if p.is_dir())
+    if not pose_dirs:
+        raise ValueError(f"{folder}: no pose_NN/ capture sets")
+    if pose_dirs[0].name != "pose_00":
+        raise ValueError(f"{folder}: pose_00/ (the reference plane) is missing")
+    sets = [read_capture_set(p) for p in pose_dirs]
+    return calibrate_sets(board, sets, robust=robust, names=[p.name for p in pose_dirs])
+
+
+def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = False,
+                   names: list[str] | None = None) -> CalibrationReport:
+    """Calibrate from capture sets of the board, ``sets[0]`` being the reference plane.
+
+    Raises:
+        ValueError: too few poses, board not found (naming the pose), mismatched sets,
+            too little depth span or degenerate tilts.
+    """
+    from app.recon import compute_phase  # the engine; imported late so I/O stays optional
+
+    if len(sets) < MIN_POSES:
+        raise ValueError(f"poses: need at least {MIN_POSES} board poses, got {len(sets)}")
+    names = names or [f"pose_{i:02d}" for i in range(len(sets))]
+    schedule = sets[0].schedule
+    shape = sets[0].frames.shape
+    observations: list[PoseObservation | None] = []
+    for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
+        if cs.schedule != schedule or cs.frames.shape != shape:
+            raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
+        res = compute_phase(cs.frames, cs.schedule)
+        det = detect_board(texture_to_u8(res.texture), board)
+        if not det.found:
+            if not robust or i == 0:
+                raise ValueError(f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})")
+            observations.append(None)
+            continue
+        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name))
+    image_size = (shape[2], shape[1])
+    return fit_observations(observations, image_size, schedule, robust=robust, names=names)
+
+
+def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
+                     schedule: PatternSchedule, *, robust: bool = False,
+                     names: list[str] | None = None) -> CalibrationReport:
+    """Camera calibration, reference plane and Eq. (5) fit from detected poses.
+
+    Args:
+        observations: per pose, or None for a pose whose board was not found (robust mode);
+            index 0 is the reference plane.
+        image_size: (width, height) of the frames, pixels.
+        schedule: the fringe schedule the phase maps came from.
+        robust: drop outlier points (> 4σ by MAD) and outlier poses (RMS > 3× median), and refit.
+    """
+    names = names or [f"pose_{i:02d}" for i in range(len(observations))]
+    found = [i for i, o in enumerate(observations) if o is not None]
+    if not observations or observations[0] is None:
+        raise ValueError("pose 0: board not found (pose 0 defines the reference plane)")
+    if len(found) < MIN_POSES:
+        raise ValueError(f"poses: need at least {MIN_POSES} poses with the board found, got {len(found)}")
+    obs = [observations[i] for i in found]
+    obj = [np.ascontiguousarray(o.object_points, np.float32) for o in obs]  # type: ignore[union-attr]
+    img = [np.ascontiguousarray(o.image_points, np.float32).reshape(-1, 1, 2) for o in obs]  # type: ignore[union-attr]
+    rms_px, cam, dist, rvecs, tvecs = cv2.calibrateCamera(
+        obj, img, image_size, None, None, flags=cv2.CALIB_FIX_K3,
+        criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12),
+    )
+    rots = [cv2.Rodrigues(r)[0] for r in rvecs]
+    normals = np.array([r[:, 2] for r in rots])
+    tilt = max(
+        math.degrees(math.acos(min(1.0, abs(float(a @ b))))) for a in normals for b in normals
+    )
+    if tilt < MIN_TILT_SPREAD_DEG:
+        raise ValueError(
+            f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; tilt the board "
+            f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses so the camera model is determined"
+        )
+    # Reference plane: pose 0's board plane, unit normal toward the camera centre.
+    normal = rots[0][:, 2].astype(np.float64)
+    if float(normal @ tvecs[0].ravel()) > 0:
+        normal = -normal
+    offset = -float(normal @ tvecs[0].ravel())
+
+    per_pose = []
+    for k, o in enumerate(obs):
+        cam_pts = (rots[k] @ obj[k].T.astype(np.float64)).T + tvecs[k].ravel()
+        height = cam_pts @ normal + offset
+        proj, _ = cv2.projectPoints(obj[k], rvecs[k], tvecs[k], cam, dist)
+        reproj = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[k].reshape(-1, 2)) ** 2, axis=1))))
+        phi = sample_phase(o.phase, o.image_points)  # type: ignore[union-attr]
+        per_pose.append((height, phi, reproj))
+
+    u = np.concatenate([o.image_points[:, 0] for o in obs]).astype(np.float64)  # type: ignore[union-attr]
+    v = np.concatenate([o.image_points[:, 1] for o in obs]).astype(np.float64)  # type: ignore[union-attr]
+    z = np.concatenate([p[0] for p in per_pose])
+    phi = np.concatenate([p[1] for p in per_pose])
+    pose_of = np.concatenate([np.full(len(p[0]), k) for k, p in enumerate(per_pose)])
+    use = np.isfinite(phi)
+    dropped_pose = np.zeros(len(obs), bool)
+    for k in range(len(obs)):
+        if not np.any(use[pose_of == k]):
+            if k == 0 or not robust:
+                raise ValueError(f"pose {found[k]} ({names[found[k]]}): no control point has a valid phase")
+            dropped_pose[k] = True
+
+    for _ in range(4 if robust else 1):
+        _check_span(z[use])
+        norm = choose_normalization(u[use], v[use], phi[use], z[use], image_size)
+        un, vn, pn = normalize(norm, u, v, phi)
+        fit = fit_eq5(un[use], vn[use], pn[use], z[use])
+        res_all = np.full(len(z), np.nan)
+        res_all[use] = fit.residuals_mm
+        if not robust:
+            break
+        new_use = use.copy()
+        sigma = 1.4826 * float(np.median(np.abs(fit.residuals_mm)))
+        new_use &= np.abs(np.nan_to_num(res_all, nan=np.inf)) <= max(ROBUST_POINT_SIGMAS * sigma, 1e-6)
+        pose_rms = np.array([_rms(res_all[(pose_of == k) & use]) for k in range(len(obs))])
+        med = float(np.nanmedian(pose_rms))
+        for k in range(1, len(obs)):
+            if pose_rms[k] > ROBUST_POSE_FACTOR * med and pose_rms[k] > 1e-3:
+                dropped_pose[k] = True
+        new_use &= ~dropped_pose[pose_of]
+        if np.array_equal(new_use, use):
+            break
+        use = new_use
+
+    reports: list[PoseReport] = []
+    k_of = {i: k for k, i in enumerate(found)}
+    for i in range(len(observations)):
+        if i not in k_of:
+            reports.append(PoseReport(i, names[i], 0, math.nan, math.nan, 0, 0, True))
+            continue
+        k = k_of[i]
+        sel = pose_of == k
+        hz = z[sel]
+        reports.append(PoseReport(
+            pose=i, name=names[i], corners=int(sel.sum()), reprojection_px=per_pose[k][2],
+            rms_mm=_rms(res_all[sel & use]), points=int((sel & use).sum()),
+            dropped_points=int((sel & ~use).sum()), dropped=bool(dropped_pose[k]),
+            height_mm=(float(hz.min()), float(hz.max())),
+        ))
+    calibration = Calibration(
+        camera_matrix=cam, dist_coeffs=dist.ravel(), image_size=image_size, plane_normal=normal,
+        plane_offset_mm=offset, numerator=fit.numerator, denominator=fit.denominator,
+        normalization=norm, pattern=schedule,
+        height_range_mm=(float(z[use].min()), float(z[use].max())),
+        pose_residuals=[
+            {"pose": r.pose, "name": r.name, "corners": r.corners, "reprojection_px": _num(r.reprojection_px),
+             "rms_mm": _num(r.rms_mm), "points": r.points, "dropped": r.dropped}
+            for r in reports
+        ],
+    )
+    return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px))
+
+
+def _check_span(z: npt.NDArray[np.float64]) -> None:
+    span = float(np.ptp(z)) if z.size else 0.0
+    if span < MIN_HEIGHT_SPAN_MM:
+        raise ValueError(
+            f"poses: control points span only {span:.2f} mm in height; move the board through the "
+            f"working volume (need at least {MIN_HEIGHT_SPAN_MM:.0f} mm)"
+        )
+
+
+def _rms(x: npt.NDArray[np.float64]) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else math.nan
+
+
+def _num(x: float) -> float | None:
+    return None if not math.isfinite(x) else round(float(x), 6)

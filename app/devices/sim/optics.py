@@ -1,0 +1,199 @@
+"""Geometry of the simulated rig: pinhole camera with radial distortion, pinhole projector.
+
+Camera frame as in DESIGN.md: x right, y down, z along the optical axis, millimetres.
+The projector sits ``baseline_mm`` to the right of the camera, its axis turned by
+``convergence_deg`` toward the camera axis, so the two axes cross at
+``baseline / tan(convergence)`` (≈ 28 mm, inside the 25–50 mm working distance).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+
+def rotation_y(angle_deg: float) -> F64:
+    """Rotation about the camera y axis (right-handed), (3, 3)."""
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rotation_x(angle_deg: float) -> F64:
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _undistort(xy_d: F64, dist: F64) -> F64:
+    """Invert OpenCV's k1, k2, p1, p2, k3 model on normalised coordinates (N, 2)."""
+    k1, k2, p1, p2, k3 = (list(dist) + [0.0] * 5)[:5]
+    x, y = xy_d[:, 0].copy(), xy_d[:, 1].copy()
+    for _ in range(100):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        nx, ny = (xy_d[:, 0] - dx) / radial, (xy_d[:, 1] - dy) / radial
+        done = max(np.abs(nx - x).max(initial=0.0), np.abs(ny - y).max(initial=0.0)) < 1e-13
+        x, y = nx, ny
+        if done:
+            break
+    return np.stack([x, y], -1)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3), pixel centres at integers."""
+
+    K: F64
+    dist: F64
+    image_size: tuple[int, int]  # (width, height)
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+    def rays(self, u: F64, v: F64) -> F64:
+        """Unit-free ray directions (x, y, 1) for pixel coordinates ``u``, ``v`` (any equal shapes).
+
+        Distortion (OpenCV model) is inverted by fixed-point iteration to < 1e-9 (normalised units).
+        """
+        pts = np.stack([np.asarray(u, np.float64).ravel(), np.asarray(v, np.float64).ravel()], -1)
+        xy = np.empty_like(pts)
+        xy[:, 0] = (pts[:, 0] - self.K[0, 2]) / self.K[0, 0]
+        xy[:, 1] = (pts[:, 1] - self.K[1, 2]) / self.K[1, 1]
+        if np.any(self.dist != 0):
+            xy = _undistort(xy, self.dist)
+        out = np.ones((pts.shape[0], 3))
+        out[:, :2] = xy
+        return out.reshape(*np.shape(u), 3)
+
+    def pixel_rays(self) -> F64:
+        """Rays of every pixel centre, (H, W, 3) float64, z component 1."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        return self.rays(u, v)
+
+    def project(self, points: F64) -> F64:
+        """Pixel coordinates (…, 2) of camera-frame points (…, 3), with distortion."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return uv.reshape(*np.shape(points)[:-1], 2)
+
+
+@dataclass(frozen=True)
+class ProjectorModel:
+    """Pinhole projector: ``R`` maps projector-frame vectors to the camera frame, ``centre`` in mm."""
+
+    K: F64
+    R: F64
+    centre: F64
+    size: tuple[int, int] = (608, 684)  # (width, height) of the DMD
+
+    def to_projector(self, points: F64) -> F64:
+        """Camera-frame points (…, 3) in the projector frame."""
+        return (np.asarray(points, np.float64) - self.centre) @ self.R
+
+    def column(self, points: F64) -> F64:
+        """Continuous projector column x_p (pixel centres at integers) of points (…, 3)."""
+        q = self.to_projector(points)
+        return self.K[0, 0] * q[..., 0] / q[..., 2] + self.K[0, 2]
+
+    def row(self, points: F64) -> F64:
+        q = self.to_projector(points)
+        return self.K[1, 1] * q[..., 1] / q[..., 2] + self.K[1, 2]
+
+    def column_coefficients(self) -> tuple[F64, float, F64, float]:
+        """(α, α·C, γ, γ·C) with x_p = (α·X − α·C) / (γ·X − γ·C) for a camera-frame point X."""
+        a = self.K[0, 0] * self.R[:, 0] + self.K[0, 2] * self.R[:, 2]
+        g = self.R[:, 2].copy()
+        return a, float(a @ self.centre), g, float(g @ self.centre)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """``normal · X + offset_mm = height``; unit normal toward the scope (camera centre height = offset)."""
+
+    normal: F64
+    offset_mm: float
+
+    def height(self, points: F64) -> F64:
+        return np.asarray(points, np.float64) @ self.normal + self.offset_mm
+
+
+def plane_through(point: F64, normal_toward_scope: F64) -> Plane:
+    n = np.asarray(normal_toward_scope, np.float64)
+    n = n / np.linalg.norm(n)
+    return Plane(n, float(-n @ np.asarray(point, np.float64)))
+
+
+@dataclass(frozen=True)
+class SimRig:
+    """The simulated laparoscope: camera, projector and the default reference plane.
+
+    Attributes:
+        camera: intrinsics ``K`` (3×3), ``dist`` (5,), ``image_size`` (1384, 1032).
+        projector: DLP3000 pinhole model and pose in the camera frame.
+        reference: the reference plane (calibration pose 0) in the camera frame.
+        reference_point_mm: where the camera axis meets the reference plane.
+        focus_mm, blur_per_inv_mm: thin-lens defocus, blur diameter (px) = blur_per_inv_mm·|1/z − 1/focus|.
+    """
+
+    camera: CameraModel
+    projector: ProjectorModel
+    reference: Plane
+    reference_point_mm: F64
+    focus_mm: float = 33.5
+    blur_per_inv_mm: float = 200.0
+    projector_focus_mm: float = 35.0
+    projector_blur_per_inv_mm: float = 60.0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def K(self) -> F64:
+        return self.camera.K
+
+    @property
+    def dist(self) -> F64:
+        return self.camera.dist
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.camera.image_size
+
+    def without_distortion(self) -> SimRig:
+        cam = CameraModel(self.camera.K, np.zeros(5), self.camera.image_size)
+        return SimRig(cam, self.projector, self.reference, self.reference_point_mm, self.focus_mm,
+                      self.blur_per_inv_mm, self.projector_focus_mm, self.projector_blur_per_inv_mm, self.extra)
+
+    def ideal_calibration(self, schedule=None):  # noqa: ANN001, ANN201 - avoids an import cycle in the signature
+        """The exact Eq. (5) calibration of this pinhole geometry (oracle for tests; see ideal.py)."""
+        from app.devices.sim.ideal import ideal_calibration
+
+        return ideal_calibration(self, schedule)
+
+
+def default_rig(*, distortion: bool = True) -> SimRig:
+    """The rig used by every scene: ~56° diagonal camera field, 12° / 6 mm stereo geometry."""
+    f_px = 1650.0
+    K = np.array([[f_px, 0.0, 691.5], [0.0, f_px, 515.5], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.05, 0.0, 0.0, 0.0, 0.0]) if distortion else np.zeros(5)
+    camera = CameraModel(K, dist, (1384, 1032))
+    # Projector: 500 px focal length (≈ 63° across its 608 columns) so its field covers the
+    # camera's over the whole working distance; square DMD pixels, centred principal point.
+    Kp = np.array([[500.0, 0.0, 303.5], [0.0, 500.0, 341.5], [0.0, 0.0, 1.0]])
+    projector = ProjectorModel(Kp, rotation_y(-12.0), np.array([6.0, 0.0, 0.0]))
+    # Reference plane (pose 0): 45 mm along the axis, tilted a little as a hand-placed board is.
+    normal = rotation_x(4.0) @ rotation_y(-3.0) @ np.array([0.0, 0.0, -1.0])
+    point = np.array([0.0, 0.0, 45.0])
+    return SimRig(camera, projector, plane_through(point, normal), point)

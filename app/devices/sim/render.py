@@ -1,0 +1,253 @@
+"""The per-scene renderer: geometry and shading precomputed once, per frame only
+fringes, motion and noise (see kernels.py). Also the ground truth of any instant."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import numpy.typing as npt
+from scipy.ndimage import gaussian_filter
+
+from app.devices.sim import kernels
+from app.devices.sim.optics import SimRig
+from app.devices.sim.radiometry import (
+    MATERIALS,
+    REFLECTANCE,
+    SPECULAR,
+    SSS_MM,
+    SensorModel,
+    defocus_sigma_px,
+    gaussian_quantile_table,
+    projector_response_lut,
+)
+from app.devices.sim.scenes.base import F64, Scene
+from app.devices.sim.trace import integrate_print, trace
+from app.recon.patterns import PatternSchedule
+
+F32 = npt.NDArray[np.float32]
+_TABLE = gaussian_quantile_table()
+
+
+def blur_varying(img: F64, sigma_px: F64, levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
+    """Spatially varying Gaussian blur by interpolating between a few pre-blurred copies."""
+    sig = np.clip(np.nan_to_num(sigma_px, nan=0.0), levels[0], levels[-1])
+    stack = [img if s == 0 else gaussian_filter(img, s, mode="nearest") for s in levels]
+    out = np.array(stack[0], copy=True)
+    for lo in range(len(levels) - 1):
+        sel = (sig > levels[lo]) & (sig <= levels[lo + 1])
+        a = (sig[sel] - levels[lo]) / (levels[lo + 1] - levels[lo])
+        out[sel] = (1 - a) * stack[lo][sel] + a * stack[lo + 1][sel]
+    return out
+
+
+class Renderer:
+    """Renders frames of ``scene`` as seen by ``rig`` under the fringe ``schedule``.
+
+    Args:
+        projector_gamma: DMD response exponent (1 = linear, as the LightCrafter in pattern mode).
+    """
+
+    def __init__(self, scene: Scene, rig: SimRig, *, schedule: PatternSchedule | None = None,
+                 sensor: SensorModel | None = None, projector_gamma: float = 1.0) -> None:
+        self.scene, self.rig = scene, rig
+        self.schedule = schedule or PatternSchedule()
+        self.sensor = sensor or SensorModel()
+        self.lut = projector_response_lut(projector_gamma)
+        theta = np.linspace(0, 2 * math.pi, 4096, endpoint=False)
+        self.qbar = float(self.lut[np.rint(255 * (0.5 + 0.5 * np.cos(theta))).astype(int)].mean())
+        w, h = rig.camera.image_size
+        self.shape = (h, w)
+        self.rays = rig.camera.pixel_rays().reshape(-1, 3)
+        rest = replace(scene, motion=None, tool=None)
+        hits = trace(rest, self.rays, 0.0)
+        self.points = hits.points.reshape(h, w, 3)
+        self._normals, self._material = hits.normals, hits.material
+        alb = hits.albedo.reshape(h, w) * integrate_print(scene.surface, hits.st, hits.material, (h, w))
+        z = self.points[..., 2]
+        self.sigma_cam = defocus_sigma_px(np.nan_to_num(z, nan=rig.focus_mm), rig.focus_mm, rig.blur_per_inv_mm)
+        self.albedo = blur_varying(alb, self.sigma_cam).ravel()
+        self.xp = rig.projector.column(self.points)  # (H, W) continuous projector column
+        gu, gv = np.gradient(self.xp, axis=1), np.gradient(self.xp, axis=0)
+        grad = np.hypot(gu, gv)
+        self.grad_xp = np.where(np.isfinite(grad), grad, np.nanmedian(grad)).ravel()
+        self._led_cache: dict[str, tuple[F32, F32, F32, F32]] = {}
+        self._trig: tuple[F32, F32] | None = None
+        self._truth_static: tuple[F32, F32] | None = None
+        self._mean_buf = np.empty((h, w), np.float32)
+
+    # -- shading ---------------------------------------------------------------------------
+    def shade(self, points: F64, normals: F64, material: npt.NDArray[np.uint8], albedo: F64,
+              sigma_cam: F64, grad_xp: F64, led: str) -> tuple[F64, F64]:
+        """(base, fringe) for points (N, 3): base = reflected fraction of the projector light
+        (diffuse + specular, inverse square, mm⁻²); fringe (F, N) = the part that keeps the
+        fringe modulation of frequency k after defocus and subsurface blur."""
+        proj = self.rig.projector
+        k = np.asarray(self.schedule.frequencies, np.float64)
+        wp = self.schedule.width
+        to_p = proj.centre - points
+        d_p = np.linalg.norm(to_p, axis=1)
+        light = to_p / d_p[:, None]
+        nrm = np.array(normals, copy=True)
+        flip = np.einsum("ij,ij->i", nrm, points) > 0  # normals face the camera
+        nrm[flip] *= -1
+        cos_i = np.clip(np.einsum("ij,ij->i", nrm, light), 0.0, None)
+        view = -points / np.linalg.norm(points, axis=1, keepdims=True)
+        half = light + view
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        cos_h = np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None)
+        names = [MATERIALS[m] for m in range(len(MATERIALS))]
+        refl = np.array([REFLECTANCE[n][led] for n in names])[material] * albedo
+        ks = np.array([SPECULAR.get(n, (0.0, 1.0))[0] for n in names])[material]
+        shin = np.array([SPECULAR.get(n, (0.0, 1.0))[1] for n in names])[material]
+        sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
+        g_d = refl * cos_i / d_p**2
+        g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
+        xp, yp = proj.column(points), proj.row(points)
+        front = proj.to_projector(points)[:, 2] > 0
+        lit = front & (xp >= -0.5) & (xp <= wp - 0.5) & (yp >= -0.5) & (yp <= proj.size[1] - 0.5)
+        lit &= np.isfinite(points).all(axis=1)
+        g_d = np.where(lit, g_d, 0.0)
+        g_s = np.where(lit, g_s, 0.0)
+        z = points[:, 2]
+        f_px = self.rig.camera.K[0, 0]
+        sig_p = defocus_sigma_px(d_p, self.rig.projector_focus_mm, self.rig.projector_blur_per_inv_mm)
+        sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
+        var_s = sigma_cam**2 + sig_p_cam**2
+        var_d = var_s + (sss * f_px / z) ** 2
+        ang = (2 * math.pi * k[:, None] * grad_xp[None] / wp) ** 2 / 2.0  # σ² → attenuation exponent
+        fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
+        base = g_d + g_s
+        return np.nan_to_num(base), np.nan_to_num(fringe)
+
+    def _led_arrays(self, led: str) -> tuple[F32, F32]:
+        if led not in self._led_cache:
+            pts = self.points.reshape(-1, 3)
+            safe = np.where(np.isfinite(pts), pts, np.array([0.0, 0.0, 1e6]))
+            base, fringe = self.shade(safe, np.nan_to_num(self._normals), self._material, self.albedo,
+                                      self.sigma_cam.ravel(), self.grad_xp, led)
+            self._led_cache[led] = (base.astype(np.float32), fringe.astype(np.float32), None, None)  # type: ignore[assignment]
+        b, f, _, _ = self._led_cache[led]
+        return b, f
+
+    def _phase_tables(self) -> tuple[F32, F32]:
+        if self._trig is None:
+            k = np.asarray(self.schedule.frequencies, np.float64)[:, None]
+            phi = 2 * math.pi * k * np.nan_to_num(self.xp.ravel())[None] / self.schedule.width
+            self._trig = (np.cos(phi).astype(np.float32), np.sin(phi).astype(np.float32))
+        return self._trig
+
+    # -- frames ----------------------------------------------------------------------------
+    def scales(self, *, exposure_ms: float, gain: float, led: str, current: float, bits: int
+               ) -> tuple[float, float, float, float, int]:
+        """(DN per unit base, ambient DN, DN per electron, read variance DN², max DN)."""
+        s = self.sensor
+        g = s.dn_per_electron(bits, gain)
+        return (g * s.light_scale(exposure_ms=exposure_ms, current=current, led=led),
+                g * s.ambient_e_per_ms * exposure_ms, g, (g * s.read_noise_e) ** 2, 2**bits - 1)
+
+    def mean_frame(self, pattern_index: int, t_s: float, *, exposure_ms: float, gain: float = 1.0,
+                   led: str = "green", current: float = 0.5, bits: int = 8) -> F32:
+        """Noise-free expected frame (H, W) float32 DN, before clipping (projector dark if index < 0)."""
+        scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led, current=current, bits=bits)
+        mean = np.empty(self.shape, np.float32)
+        self._mean_into(mean, pattern_index, t_s, scale, amb, led)
+        return mean
+
+    def _mean_into(self, mean: F32, pattern_index: int, t_s: float, scale: float, amb: float, led: str) -> None:
+        if pattern_index < 0:
+            mean.fill(amb)
+            return
+        fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
+        shift = 2 * math.pi * n / self.schedule.steps
+        base, fringe = self._led_arrays(led)
+        if self.scene.is_static:
+            ck, sk = self._phase_tables()
+            kernels.mean_static(mean.reshape(-1), base, fringe[fi], ck[fi], sk[fi], math.cos(shift), math.sin(shift),
+                                self.lut, self.qbar, scale, amb)
+            return
+        h, w = self.shape
+        proj = self.rig.projector
+        alpha, a_c, gam, g_c = proj.column_coefficients()
+        k = self.schedule.frequencies[fi]
+        kernels.mean_moving(mean, self.points, base.reshape(h, w), fringe[fi].reshape(h, w), self.scene.offset(t_s),
+                            self.rig.camera.K, alpha, a_c, gam, g_c, 2 * math.pi * k / self.schedule.width, shift,
+                            float(self.schedule.width), self.lut, self.qbar, scale, amb)
+        if self.scene.tool is not None:
+            self._draw_tool(mean, fi, shift, t_s, scale, amb, led)
+
+    def _draw_tool(self, mean: F32, fi: int, shift: float, t_s: float, scale: float, amb: float, led: str) -> None:
+        tool = self.scene.tool
+        assert tool is not None
+        p0, p1 = tool.path(t_s)
+        from app.devices.sim.raycast import raycast_capsule
+
+        cam = self.rig.camera
+        ends = np.stack([p0, p1])
+        if np.all(ends[:, 2] <= 0):
+            return
+        uv = cam.project(np.where(ends[:, 2:3] > 1.0, ends, ends + np.array([0, 0, 1.0])))
+        rad_px = cam.K[0, 0] * tool.radius_mm / max(min(ends[:, 2].min(), 60.0), 5.0) + 3
+        h, w = self.shape
+        u0, u1 = int(max(uv[:, 0].min() - rad_px, 0)), int(min(uv[:, 0].max() + rad_px, w - 1))
+        v0, v1 = int(max(uv[:, 1].min() - rad_px, 0)), int(min(uv[:, 1].max() + rad_px, h - 1))
+        if u1 < u0 or v1 < v0:
+            return
+        rays = self.rays.reshape(h, w, 3)[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3)
+        tt, nn = raycast_capsule(np.zeros(3), rays, p0, p1, tool.radius_mm)
+        z_scene = self.points[v0 : v1 + 1, u0 : u1 + 1, 2].ravel() + self.scene.offset(t_s)[2]
+        hit = np.isfinite(tt) & ~(tt >= np.nan_to_num(z_scene, nan=np.inf))
+        if not hit.any():
+            return
+        pts = tt[hit, None] * rays[hit]
+        idx = np.flatnonzero(hit)
+        sig = self.sigma_cam[v0 : v1 + 1, u0 : u1 + 1].ravel()[idx]
+        grad = self.grad_xp.reshape(h, w)[v0 : v1 + 1, u0 : u1 + 1].ravel()[idx]
+        mat = np.full(idx.size, MATERIALS.index(tool.material), np.uint8)
+        base, fringe = self.shade(pts, nn[hit], mat, np.ones(idx.size), sig, grad, led)
+        k = self.schedule.frequencies[fi]
+        p = 0.5 + 0.5 * np.cos(2 * math.pi * k * self.rig.projector.column(pts) / self.schedule.width + shift)
+        q = self.lut[np.rint(255 * p).astype(int)]
+        vals = scale * (base * self.qbar + fringe[fi] * (q - self.qbar)) + amb
+        sub = mean[v0 : v1 + 1, u0 : u1 + 1].reshape(-1).copy()
+        sub[idx] = vals
+        mean[v0 : v1 + 1, u0 : u1 + 1] = sub.reshape(v1 - v0 + 1, u1 - u0 + 1)
+
+    def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *, exposure_ms: float,
+               gain: float = 1.0, led: str = "green", current: float = 0.5, bits: int = 8
+               ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+        """One noisy frame (H, W), uint8 for 8 bits or uint16 0..4095 for 12 bits.
+
+        ``state``: (1,) uint64 generator state (non-zero), advanced in place.
+        """
+        scale, amb, g, read2, maxv = self.scales(exposure_ms=exposure_ms, gain=gain, led=led,
+                                                 current=current, bits=bits)
+        out = np.empty(self.shape, np.uint8 if bits <= 8 else np.uint16)
+        flat = out.reshape(-1)
+        if self.scene.is_static and pattern_index >= 0:
+            fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
+            shift = 2 * math.pi * n / self.schedule.steps
+            base, fringe = self._led_arrays(led)
+            ck, sk = self._phase_tables()
+            kernels.render_static(flat, base, fringe[fi], ck[fi], sk[fi], math.cos(shift), math.sin(shift),
+                                  self.lut, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+            return out
+        self._mean_into(self._mean_buf, pattern_index, t_s, scale, amb, led)
+        kernels.add_noise(flat, self._mean_buf.reshape(-1), g, read2, maxv, _TABLE, state)
+        return out
+
+    # -- truth -----------------------------------------------------------------------------
+    def truth(self, t_s: float = 0.0) -> tuple[F32, F32]:
+        """True depth (H, W) float32 mm above the reference plane (NaN off-object) and true
+        points (H, W, 3) float32 mm in the camera frame, for the instant ``t_s``."""
+        if self.scene.is_static:
+            if self._truth_static is None:
+                self._truth_static = self._truth_from(self.points)
+            return self._truth_static
+        hits = trace(self.scene, self.rays, t_s)
+        return self._truth_from(hits.points.reshape(*self.shape, 3))
+
+    def _truth_from(self, points: F64) -> tuple[F32, F32]:
+        depth = self.rig.reference.height(points)
+        return depth.astype(np.float32), points.astype(np.float32)

@@ -1,0 +1,36 @@
+"""The simulator's scenes, by name."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from app.devices.sim.optics import SimRig
+from app.devices.sim.scenes.base import HeightField, Scene, Sphere, Tool
+from app.devices.sim.scenes.targets import BoardSpec, board_poses, board_scene, dof_target_scene, plane_scene, sphere_scene
+from app.devices.sim.scenes.tissue import anastomosis_scene, flap_scene, pile_scene
+
+SCENES: dict[str, Callable[[SimRig], Scene]] = {
+    "plane": plane_scene,
+    "dof_target": dof_target_scene,
+    "skin_flap": lambda rig: flap_scene(rig, "skin"),
+    "intestine_flap": lambda rig: flap_scene(rig, "intestine"),
+    "intestine_pile": pile_scene,
+    "anastomosis": anastomosis_scene,
+    "sphere": sphere_scene,
+}
+
+
+def list_scenes() -> list[str]:
+    """Names accepted by :func:`build_scene` (calibration boards are made by ``board_scene``)."""
+    return list(SCENES)
+
+
+def build_scene(name: str, rig: SimRig) -> Scene:
+    try:
+        return SCENES[name](rig)
+    except KeyError:
+        raise ValueError(f"scene: unknown {name!r}; choose from {', '.join(SCENES)}") from None
+
+
+__all__ = ["BoardSpec", "HeightField", "SCENES", "Scene", "Sphere", "Tool", "board_poses", "board_scene",
+           "build_scene", "list_scenes"]

@@ -1,0 +1,141 @@
+"""Printed and metrology scenes: calibration boards, the 45° depth-of-field target, plane, spheres."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.devices.sim.optics import SimRig, rotation_x, rotation_y
+from app.devices.sim.scenes.base import F64, HeightField, PrintFn, Scene, Sphere, flat_field, frame_from_normal
+
+BLACK = 0.07  # printed black relative to the paper's white
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A calibration board as written to ``board.json`` (DESIGN.md)."""
+
+    type: str = "checkerboard"  # or "circles" (symmetric grid of dark dots)
+    inner_corners: tuple[int, int] = (8, 6)  # (cols, rows) of corners / circle centres
+    pitch_mm: float = 2.0  # square size or circle spacing
+
+    def to_json(self) -> dict[str, object]:
+        if self.type == "checkerboard":
+            return {"type": "checkerboard", "inner_corners": list(self.inner_corners), "square_mm": self.pitch_mm}
+        return {"type": "circles", "inner_corners": list(self.inner_corners), "pattern_size": list(self.inner_corners),
+                "spacing_mm": self.pitch_mm, "circle_diameter_mm": 0.5 * self.pitch_mm}
+
+    def object_points(self) -> F64:
+        """(cols·rows, 3) control points in board coordinates (s, t, 0), row-major from the top-left."""
+        cols, rows = self.inner_corners
+        s = (np.arange(cols) - (cols - 1) / 2) * self.pitch_mm
+        t = (np.arange(rows) - (rows - 1) / 2) * self.pitch_mm
+        ss, tt = np.meshgrid(s, t)
+        return np.stack([ss.ravel(), tt.ravel(), np.zeros(ss.size)], -1)
+
+    def printer(self) -> PrintFn:
+        cols, rows = self.inner_corners
+        p = self.pitch_mm
+        if self.type == "checkerboard":
+            half_s, half_t = (cols + 1) * p / 2, (rows + 1) * p / 2
+
+            def checker(s: F64, t: F64) -> F64:
+                inside = (np.abs(s) < half_s) & (np.abs(t) < half_t)
+                parity = (np.floor((s + half_s) / p) + np.floor((t + half_t) / p)) % 2
+                return np.where(inside & (parity == 0), BLACK, 1.0)
+
+            return checker
+        if self.type != "circles":
+            raise ValueError(f"board: unknown type {self.type!r}")
+        r = 0.25 * p
+
+        def circles(s: F64, t: F64) -> F64:
+            i = np.clip(np.rint(s / p + (cols - 1) / 2), 0, cols - 1)
+            j = np.clip(np.rint(t / p + (rows - 1) / 2), 0, rows - 1)
+            cs, ct = (i - (cols - 1) / 2) * p, (j - (rows - 1) / 2) * p
+            return np.where((s - cs) ** 2 + (t - ct) ** 2 < r * r, BLACK, 1.0)
+
+        return circles
+
+
+def board_poses(rig: SimRig, poses: int, seed: int | None = 0) -> list[tuple[F64, F64]]:
+    """(origin, axes) of each board pose; pose 0 is the rig's reference plane itself.
+
+    Later poses step toward the scope up to ~18 mm above the reference, tilted up to ±15°
+    and shifted a little, so the corners stay in view.
+    """
+    if poses < 2:
+        raise ValueError(f"poses: need at least 2, got {poses}")
+    rng = np.random.default_rng(seed)
+    ref = rig.reference
+    out = [frame_from_normal(rig.reference_point_mm, ref.normal)]
+    heights = np.linspace(3.0, 18.0, poses - 1)
+    for k, h in enumerate(heights):
+        tilt_x = (10.0 if k % 2 == 0 else -10.0) + rng.uniform(-4, 4)
+        tilt_y = (-12.0 if (k // 2) % 2 == 0 else 12.0) + rng.uniform(-3, 3)
+        normal = rotation_x(tilt_x) @ rotation_y(tilt_y) @ ref.normal
+        axis = np.array([0.0, 0.0, 1.0])
+        t_ax = (h - ref.offset_mm) / (ref.normal @ axis)
+        shift = np.array([rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), 0.0])
+        out.append(frame_from_normal(t_ax * axis + shift, normal))
+    return out
+
+
+def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64]) -> Scene:
+    origin, axes = pose
+    return Scene(f"board_{spec.type}", flat_field(origin, axes, 11.0, "white", spec.printer(), ds=1.0),
+                 description="calibration board")
+
+
+def plane_scene(rig: SimRig) -> Scene:
+    """A matte grey plane 10 mm above the reference, tilted 15° about the camera x axis."""
+    ref = rig.reference
+    normal = rotation_x(15.0) @ ref.normal
+    z = (10.0 - ref.offset_mm) / ref.normal[2]
+    origin, axes = frame_from_normal(np.array([0.0, 0.0, z]), normal)
+    return Scene("plane", flat_field(origin, axes, 25.0, "grey", ds=1.0), description="metrology plane")
+
+
+def ruler_printer() -> PrintFn:
+    """Line-pair groups (0.5–4 lp/mm) in a strip and mm ticks along the incline (s)."""
+    freqs = np.array([0.5, 1.0, 2.0, 3.0, 4.0])
+
+    def ruler(s: F64, t: F64) -> F64:
+        out = np.ones(np.broadcast(s, t).shape)
+        group = np.floor((s + 20.0) / 4.0).astype(int) % len(freqs)
+        f = freqs[group]
+        bars = (t > 6.0) & (t < 9.0) & (((s + 20.0) * f) % 1.0 < 0.5)
+        ticks = (t > 9.5) & (t < np.where(np.abs(s - np.rint(s / 5) * 5) < 0.5, 11.5, 10.5)) & \
+            (np.abs(s - np.rint(s)) < 0.075)
+        out[bars | ticks] = BLACK
+        return out
+
+    return ruler
+
+
+def dof_target_field(rig: SimRig) -> tuple[F64, F64]:
+    """Frame of the 45° incline: heights 0–20 mm above the reference across the view."""
+    ref = rig.reference
+    normal = rotation_y(-45.0) @ ref.normal
+    z = (10.0 - ref.offset_mm) / ref.normal[2]
+    return frame_from_normal(np.array([0.0, 0.0, z]), normal)
+
+
+def dof_target_surface(rig: SimRig, ds: float = 0.1) -> HeightField:
+    origin, axes = dof_target_field(rig)
+    hf = flat_field(origin, axes, 16.0, "white", ruler_printer(), ds=ds)
+    return hf
+
+
+def dof_target_scene(rig: SimRig) -> Scene:
+    return Scene("dof_target", dof_target_surface(rig, ds=1.0), description="45° depth-of-field target with ruler")
+
+
+def sphere_scene(rig: SimRig) -> Scene:
+    """Two matte spheres (r = 4 mm, 12 mm apart) resting on a grey plate at the reference plane."""
+    ref = rig.reference
+    origin, axes = frame_from_normal(rig.reference_point_mm, ref.normal)
+    spheres = [Sphere(origin + axes @ np.array([sx, 0.0, 4.0]), 4.0, "grey") for sx in (-6.0, 6.0)]
+    return Scene("sphere", flat_field(origin, axes, 25.0, "white", ds=1.0), spheres,
+                 description="ball bar: two spheres on a plate")

@@ -1,0 +1,90 @@
+"""The FastAPI application: ``create_app(settings)`` and its lifespan.
+
+Sections: (1) the Instrument, (2) the REST/stream routes, (3) the 3-D viewer relay under
+``/viser/`` (when enabled and installed), (4) the dashboard from ``static/`` at ``/``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+import app as app_package
+from app import __version__
+from app.api import api_router
+from app.api.deps import install_error_handlers
+from app.config import Settings
+from app.service.instrument import Instrument
+
+log = logging.getLogger("fringescope.main")
+
+STATIC_DIR = Path(app_package.__file__).resolve().parent.parent / "static"
+
+
+def _make_viewer(settings: Settings, instrument: Instrument) -> tuple[Any, Any]:
+    """(viewer, router) or (None, None) when disabled or the viewer package is absent."""
+    if not settings.viewer:
+        return None, None
+    try:
+        from app.viewer.relay import viewer_router
+        from app.viewer.viewer import Viewer
+    except ImportError as exc:
+        log.warning("3-D viewer unavailable: %s", exc)
+        return None, None
+    viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points)
+    return viewer, viewer_router(viewer)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The Fringescope web application (the Instrument starts and stops with its lifespan)."""
+    settings = settings or Settings()
+    # (1) the Instrument — built now (cheap), started in the lifespan.
+    instrument = Instrument(settings)
+    viewer, viewer_routes = _make_viewer(settings, instrument)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        instrument.start()
+        if viewer is not None:
+            try:
+                viewer.start()
+            except Exception as exc:  # the 3-D view is optional; the instrument is not
+                log.warning("3-D viewer failed to start: %s", exc)
+                instrument.warnings.append(f"3-D viewer failed to start: {exc}")
+        try:
+            yield
+        finally:
+            if viewer is not None:
+                viewer.stop()
+            instrument.close()
+
+    app = FastAPI(title="Fringescope", version=__version__, lifespan=lifespan,
+                  description="Structured-illumination 3-D laparoscope: live metric depth.")
+    app.state.settings = settings
+    app.state.instrument = instrument
+    app.state.viewer = viewer
+    install_error_handlers(app)
+
+    # (2) REST and streams
+    app.include_router(api_router())
+
+    # (3) the 3-D viewer relay
+    if viewer_routes is not None:
+        app.include_router(viewer_routes)
+
+    # (4) the dashboard
+    if (STATIC_DIR / "index.html").is_file():
+        app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="static")
+    else:
+        @app.get("/", include_in_schema=False)
+        def no_dashboard() -> JSONResponse:
+            return JSONResponse({"detail": "dashboard not installed; the API is at /docs"}, status_code=404)
+
+    return app

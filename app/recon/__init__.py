@@ -1,0 +1,40 @@
+"""Pure numerics: patterns, phase, unwrapping, the Eq. (5) model, points, the fast path.
+
+Imports numpy/numba/cv2 only; no I/O, no threads, no settings.
+"""
+
+from app.recon.colormap import depth_colormap, reason_png, render_depth_png
+from app.recon.model import ModelTables, evaluate_height, model_tables
+from app.recon.patterns import PatternSchedule, fringe_profile, generate_patterns
+from app.recon.phase import WrappedPhase, default_max_code, wrapped_phase
+from app.recon.points import RayTables, points_from_height, ray_tables
+from app.recon.reasons import PRECEDENCE, Reason
+from app.recon.reconstructor import PhaseResult, ReconResult, Reconstructor, compute_phase
+from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, combine_frequencies, unwrap_hierarchical
+
+__all__ = [
+    "DEFAULT_CONSISTENCY_RAD",
+    "PRECEDENCE",
+    "ModelTables",
+    "PatternSchedule",
+    "PhaseResult",
+    "RayTables",
+    "Reason",
+    "ReconResult",
+    "Reconstructor",
+    "WrappedPhase",
+    "combine_frequencies",
+    "compute_phase",
+    "default_max_code",
+    "depth_colormap",
+    "evaluate_height",
+    "fringe_profile",
+    "generate_patterns",
+    "model_tables",
+    "points_from_height",
+    "ray_tables",
+    "reason_png",
+    "render_depth_png",
+    "unwrap_hierarchical",
+    "wrapped_phase",
+]

@@ -1,0 +1,137 @@
+"""The Eq. (5) rational phase-to-height model, precomputed per pixel.
+
+For a fixed pixel (u', v') the numerator and denominator of Eq. (5) are linear in φ':
+
+    height = (a0 + a1·φ') / (b0 + b1·φ'),   φ' = (φ − φ0) / sφ
+
+with
+    a0 = 1  + c2 u' + c4 v' + c6 u'² + c8 v'² + c10 u'v'     a1 = c1 + c3 u' + ... + c11 u'v'
+    b0 = d0 + d2 u' + d4 v' + d6 u'² + d8 v'² + d10 u'v'     b1 = d1 + d3 u' + ... + d11 u'v'
+
+so :func:`model_tables` evaluates the four quadratic polynomials once per image size
+and a depth costs two multiply-adds and one division per pixel.
+
+A denominator is *singular* when |b0 + b1φ'| ≤ ``SINGULAR_RTOL``·(|b0| + |b1φ'|): it is
+then below a few tens of float32 rounding steps of its own terms, so its sign and
+size — hence the height — are noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from app.calib.calibration import Calibration
+
+SINGULAR_RTOL = 1e-5
+
+
+@dataclass(frozen=True)
+class ModelTables:
+    """Per-pixel Eq. (5) coefficients for one image size.
+
+    Attributes:
+        a0, a1, b0, b1: (H, W) arrays (float32 or float64).
+        phi0, inv_sphi: phase normalisation, ``φ' = (φ − phi0)·inv_sphi``.
+    """
+
+    a0: npt.NDArray[Any]
+    a1: npt.NDArray[Any]
+    b0: npt.NDArray[Any]
+    b1: npt.NDArray[Any]
+    phi0: float
+    inv_sphi: float
+
+
+def model_tables(
+    numerator: npt.ArrayLike,
+    denominator: npt.ArrayLike,
+    normalization: dict[str, tuple[float, float]],
+    image_size: tuple[int, int],
+    *,
+    dtype: Any = np.float64,
+) -> ModelTables:
+    """Evaluate the u/v parts of Eq. (5) for every pixel of a ``(width, height)`` image.
+
+    Args:
+        numerator: c1..c11 (11 values); the constant term is fixed at 1.
+        denominator: d0..d11 (12 values).
+        normalization: ``{"u": (u0, su), "v": (v0, sv), "phi": (φ0, sφ)}``.
+        image_size: (width, height) pixels; u is the column, v the row index.
+        dtype: float dtype of the tables.
+
+    Returns:
+        :class:`ModelTables` with (height, width) arrays.
+    """
+    c = np.asarray(numerator, dtype=np.float64).ravel()
+    d = np.asarray(denominator, dtype=np.float64).ravel()
+    if c.shape != (11,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"numerator: need 11 finite values, got shape {c.shape}")
+    if d.shape != (12,) or not np.all(np.isfinite(d)):
+        raise ValueError(f"denominator: need 12 finite values, got shape {d.shape}")
+    w, h = (int(x) for x in image_size)
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image_size: invalid {image_size}")
+    (u0, su), (v0, sv), (p0, sp) = (normalization[k] for k in ("u", "v", "phi"))
+    if su == 0 or sv == 0 or sp == 0 or not all(math.isfinite(x) for x in (u0, su, v0, sv, p0, sp)):
+        raise ValueError("normalization: needs finite offsets and non-zero scales")
+    up, vp = np.meshgrid((np.arange(w) - u0) / su, (np.arange(h) - v0) / sv)
+    # basis terms shared by all four polynomials: 1, u', v', u'², v'², u'v'
+    basis = (np.ones((h, w)), up, vp, up**2, vp**2, up * vp)
+
+    def poly(coefs: list[float]) -> npt.NDArray[Any]:
+        return np.asarray(sum(k * b for k, b in zip(coefs, basis, strict=True)), dtype=dtype)
+
+    a0 = poly([1.0, c[1], c[3], c[5], c[7], c[9]])
+    a1 = poly([c[0], c[2], c[4], c[6], c[8], c[10]])
+    b0 = poly([d[0], d[2], d[4], d[6], d[8], d[10]])
+    b1 = poly([d[1], d[3], d[5], d[7], d[9], d[11]])
+    return ModelTables(a0, a1, b0, b1, float(p0), 1.0 / float(sp))
+
+
+def calibration_model_tables(calibration: Calibration, *, dtype: Any = np.float64) -> ModelTables:
+    """:func:`model_tables` for a :class:`~app.calib.calibration.Calibration`."""
+    return model_tables(
+        calibration.numerator, calibration.denominator, calibration.normalization,
+        calibration.image_size, dtype=dtype,
+    )
+
+
+def evaluate_height(
+    tables: ModelTables, phase: npt.ArrayLike
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]:
+    """Height above the reference plane from the unwrapped finest phase.
+
+    Args:
+        tables: per-pixel model tables of the image size.
+        phase: (H, W) unwrapped finest-frequency phase, radians (NaN allowed).
+
+    Returns:
+        ``(height_mm, singular)``: (H, W) float64 height (inf/NaN where singular) and
+        the (H, W) bool singular-denominator mask.
+    """
+    phi = np.asarray(phase, dtype=np.float64)
+    if phi.shape != tables.a0.shape:
+        raise ValueError(f"phase: shape {phi.shape} does not match the tables' {tables.a0.shape}")
+    pp = (phi - tables.phi0) * tables.inv_sphi
+    b1p = tables.b1 * pp
+    den = tables.b0 + b1p
+    num = tables.a0 + tables.a1 * pp
+    singular = np.abs(den) <= SINGULAR_RTOL * (np.abs(tables.b0) + np.abs(b1p))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        height = num / den
+    return height, singular
+
+
+def outside_volume(
+    height_mm: npt.ArrayLike, height_range_mm: tuple[float, float], margin_mm: float
+) -> npt.NDArray[np.bool_]:
+    """Heights outside ``[min − margin, max + margin]`` (NaN counts as outside)."""
+    h = np.asarray(height_mm)
+    lo, hi = height_range_mm
+    return ~((h >= lo - margin_mm) & (h <= hi + margin_mm))

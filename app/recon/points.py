@@ -1,0 +1,101 @@
+"""Camera rays and 3-D points from heights above the reference plane.
+
+Every pixel's ray ``r = (x, y, 1)`` comes from undistorting its pixel coordinate
+(``cv2.undistortPoints`` with the calibration's camera matrix and distortion). The
+point of height ``h`` on it lies on the plane parallel to the reference plane,
+``n·X + offset = h``: ``X = t·r`` with ``t = (h − offset) / (n·r)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from app.calib.calibration import Calibration
+
+
+@dataclass(frozen=True)
+class RayTables:
+    """Per-pixel undistorted rays for one image size.
+
+    Attributes:
+        rx, ry: (H, W) normalised ray direction components (the z component is 1).
+        inv_m: (H, W) 1 / (n·r) for the reference-plane normal n (NaN if the ray is
+            parallel to the plane).
+    """
+
+    rx: npt.NDArray[Any]
+    ry: npt.NDArray[Any]
+    inv_m: npt.NDArray[Any]
+
+
+def ray_tables(
+    camera_matrix: npt.ArrayLike,
+    dist_coeffs: npt.ArrayLike,
+    image_size: tuple[int, int],
+    plane_normal: npt.ArrayLike,
+    *,
+    dtype: Any = np.float64,
+) -> RayTables:
+    """Undistorted ray of every pixel of a ``(width, height)`` image.
+
+    Args:
+        camera_matrix: (3, 3) intrinsics, pixels.
+        dist_coeffs: OpenCV distortion coefficients (may be empty).
+        image_size: (width, height) pixels.
+        plane_normal: (3,) unit normal of the reference plane, camera frame.
+        dtype: float dtype of the tables.
+    """
+    k = np.asarray(camera_matrix, dtype=np.float64)
+    dist = np.asarray(dist_coeffs, dtype=np.float64).ravel()
+    n = np.asarray(plane_normal, dtype=np.float64).ravel()
+    if k.shape != (3, 3) or not np.all(np.isfinite(k)):
+        raise ValueError(f"camera_matrix: need a finite (3, 3) matrix, got shape {k.shape}")
+    if not np.all(np.isfinite(dist)):
+        raise ValueError("dist_coeffs: contains NaN or infinity")
+    if n.shape != (3,) or not np.all(np.isfinite(n)):
+        raise ValueError(f"plane_normal: need 3 finite values, got shape {n.shape}")
+    w, h = (int(x) for x in image_size)
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image_size: invalid {image_size}")
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pix = np.stack([uu.ravel(), vv.ravel()], axis=1)[:, None, :]
+    und = cv2.undistortPoints(pix, k, dist if dist.size else None).reshape(h, w, 2)
+    rx, ry = und[..., 0], und[..., 1]
+    m = n[0] * rx + n[1] * ry + n[2]
+    with np.errstate(divide="ignore"):
+        inv_m = np.where(np.abs(m) > 1e-12, 1.0 / np.where(m == 0, 1.0, m), np.nan)
+    return RayTables(*(np.ascontiguousarray(a, dtype=dtype) for a in (rx, ry, inv_m)))
+
+
+def calibration_ray_tables(calibration: Calibration, *, dtype: Any = np.float64) -> RayTables:
+    """:func:`ray_tables` for a :class:`~app.calib.calibration.Calibration`."""
+    return ray_tables(
+        calibration.camera_matrix, calibration.dist_coeffs, calibration.image_size,
+        calibration.plane_normal, dtype=dtype,
+    )
+
+
+def points_from_height(
+    height_mm: npt.ArrayLike, rays: RayTables, plane_offset_mm: float
+) -> npt.NDArray[np.float64]:
+    """3-D camera-frame points of pixels with known heights.
+
+    Args:
+        height_mm: (H, W) heights above the reference plane, mm (NaN → NaN point).
+        rays: ray tables of the image size.
+        plane_offset_mm: the reference plane's offset (camera-centre height), mm.
+
+    Returns:
+        (H, W, 3) float64 points (x right, y down, z along the optical axis), mm.
+    """
+    h = np.asarray(height_mm, dtype=np.float64)
+    if h.shape != rays.rx.shape:
+        raise ValueError(f"height_mm: shape {h.shape} does not match the ray tables' {rays.rx.shape}")
+    t = (h - plane_offset_mm) * rays.inv_m
+    return np.stack([t * rays.rx, t * rays.ry, t], axis=-1)

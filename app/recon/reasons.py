@@ -1,0 +1,64 @@
+"""Per-pixel reason codes: why a pixel has no depth.
+
+When several apply, the reported code follows the chain of causes, first match wins:
+
+    SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
+
+A clipped pixel has a meaningless phase and so usually also low modulation or a bad
+unwrap; a pixel without fringe contrast usually also unwraps badly; a singular model
+yields a height far outside the volume. Reporting the earliest cause tells the user
+what to change (exposure, focus/LED power, calibration).
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+import numpy as np
+import numpy.typing as npt
+
+
+class Reason(IntEnum):
+    """``uint8`` code stored per pixel in ``ReconResult.reason``."""
+
+    OK = 0
+    LOW_MODULATION = 1
+    SATURATED = 2
+    UNWRAP_INCONSISTENT = 3
+    OUTSIDE_VOLUME = 4
+    MODEL_SINGULAR = 5
+
+
+#: Codes ordered from highest to lowest precedence (OK last).
+PRECEDENCE: tuple[Reason, ...] = (
+    Reason.SATURATED,
+    Reason.LOW_MODULATION,
+    Reason.UNWRAP_INCONSISTENT,
+    Reason.MODEL_SINGULAR,
+    Reason.OUTSIDE_VOLUME,
+    Reason.OK,
+)
+
+
+def assign_reasons(
+    shape: tuple[int, ...],
+    *,
+    saturated: npt.ArrayLike | None = None,
+    low_modulation: npt.ArrayLike | None = None,
+    inconsistent: npt.ArrayLike | None = None,
+    singular: npt.ArrayLike | None = None,
+    outside: npt.ArrayLike | None = None,
+) -> npt.NDArray[np.uint8]:
+    """Combine boolean masks into one uint8 reason map, honouring :data:`PRECEDENCE`."""
+    out = np.zeros(shape, dtype=np.uint8)
+    # lowest precedence first, so higher ones overwrite
+    for mask, code in (
+        (outside, Reason.OUTSIDE_VOLUME),
+        (singular, Reason.MODEL_SINGULAR),
+        (inconsistent, Reason.UNWRAP_INCONSISTENT),
+        (low_modulation, Reason.LOW_MODULATION),
+        (saturated, Reason.SATURATED),
+    ):
+        if mask is not None:
+            out[np.broadcast_to(np.asarray(mask, dtype=bool), shape)] = code
+    return out

@@ -1,0 +1,307 @@
+"""Fringe frames → metric depth and points: the :class:`Reconstructor` and ``compute_phase``."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from functools import cached_property
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app.recon.model import (
+    SINGULAR_RTOL,
+    ModelTables,
+    calibration_model_tables,
+    evaluate_height,
+    outside_volume,
+)
+from app.recon.patterns import PatternSchedule
+from app.recon.phase import check_stack, resolve_levels, wrapped_phase
+from app.recon.points import RayTables, calibration_ray_tables, points_from_height
+from app.recon.reasons import assign_reasons
+from app.recon.unwrap import (
+    DEFAULT_CONSISTENCY_RAD,
+    check_consistency_rad,
+    combine_frequencies as combine_phases,
+    unwrap_hierarchical,
+)
+
+if TYPE_CHECKING:
+    from app.calib.calibration import Calibration
+
+log = logging.getLogger(__name__)
+
+F32 = npt.NDArray[np.float32]
+
+_fast: ModuleType | None
+try:
+    from app.recon import fast as _fast
+except ImportError as exc:  # numba missing or broken: the numpy oracle still works
+    log.warning("numba fast path unavailable (%s); using the numpy path", exc)
+    _fast = None
+
+
+@dataclass
+class PhaseResult:
+    """Calibration-free phase of one fringe set (all (H, W)).
+
+    Attributes:
+        phase: float32 unwrapped finest-frequency phase, radians, NaN where invalid.
+        modulation: float32 finest-frequency modulation B, codes.
+        background: float32 A, the mean of all frames, codes.
+        texture: float32 A + B (finest frequency), codes, for display.
+        reason: uint8 :class:`~app.recon.reasons.Reason` (OK, SATURATED,
+            LOW_MODULATION or UNWRAP_INCONSISTENT).
+    """
+
+    phase: F32
+    modulation: F32
+    background: F32
+    texture: F32
+    reason: npt.NDArray[np.uint8]
+
+
+@dataclass
+class ReconResult:
+    """One reconstructed fringe set (all (H, W) unless noted).
+
+    Attributes:
+        depth: float32 height above the reference plane, mm, NaN invalid.
+        points: (H, W, 3) float32 camera-frame points, mm, NaN invalid.
+        valid: bool, ``reason == Reason.OK``.
+        reason: uint8 :class:`~app.recon.reasons.Reason` code.
+        modulation: float32 finest-frequency modulation B, codes.
+        texture: float32 A + B, codes, for display.
+        phase: float32 unwrapped finest phase used for depth, radians, NaN invalid.
+        elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
+    """
+
+    depth: F32
+    points: F32
+    valid: npt.NDArray[np.bool_]
+    reason: npt.NDArray[np.uint8]
+    modulation: F32
+    texture: F32
+    phase: F32
+    elapsed_ms: float
+
+
+def _phase_numpy(
+    frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
+    consistency_rad: float, combine: bool,
+) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
+    """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
+    wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
+    unwrapped, consistent = unwrap_hierarchical(
+        wp.phase, schedule.frequencies, consistency_rad=consistency_rad
+    )
+    if combine:
+        phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
+    else:
+        phi = unwrapped[-1]
+    reason = assign_reasons(
+        phi.shape,
+        saturated=wp.saturated,
+        low_modulation=wp.modulation.min(axis=0) < min_modulation,
+        inconsistent=~consistent,
+    )
+    return phi, wp, reason
+
+
+def compute_phase(
+    frames: Any,
+    schedule: PatternSchedule,
+    *,
+    max_code: int | None = None,
+    min_modulation: float | None = None,
+    consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
+    combine_frequencies: bool = False,
+) -> PhaseResult:
+    """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
+
+    Args:
+        frames: (F, H, W) uint8/uint16 (or a sequence of equal 2-D frames),
+            F = ``schedule.n_frames``, frequency-major, shift-minor.
+        schedule: the pattern schedule.
+        max_code, min_modulation: sensor maximum code and modulation threshold
+            (see :func:`app.recon.phase.resolve_levels`).
+        consistency_rad: unwrapping consistency threshold, radians.
+        combine_frequencies: use the noise-optimal combination of all frequencies.
+
+    Returns:
+        :class:`PhaseResult`.
+    """
+    frames = check_stack(frames)
+    if not isinstance(schedule, PatternSchedule):
+        raise ValueError("schedule: expected a PatternSchedule")
+    if frames.shape[0] != schedule.n_frames:
+        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
+    max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
+    consistency_rad = check_consistency_rad(consistency_rad)
+    phi, wp, reason = _phase_numpy(
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies
+    )
+    mod = wp.modulation[-1]
+    return PhaseResult(
+        phase=np.where(reason == 0, phi, np.nan).astype(np.float32),
+        modulation=mod.astype(np.float32),
+        background=wp.background.astype(np.float32),
+        texture=(wp.background + mod).astype(np.float32),
+        reason=reason,
+    )
+
+
+class Reconstructor:
+    """Turns fringe sets into depth maps and point clouds for one calibration.
+
+    Args:
+        calibration: a :class:`~app.calib.calibration.Calibration`.
+        max_code: sensor maximum code; None → 255 (uint8) / 65535 (uint16). Pass 4095
+            for 12-bit data delivered in uint16.
+        min_modulation: minimum modulation B (codes) over all frequencies; None → 2 %
+            of ``max_code``.
+        consistency_rad: unwrapping consistency threshold, radians (default π/2).
+        height_margin_mm: heights beyond the calibrated range by more than this are
+            OUTSIDE_VOLUME, mm.
+        combine_frequencies: noise-optimal phase from all frequencies.
+        fast: use the fused numba kernel (falls back to numpy if numba is missing).
+
+    Per-pixel model and ray tables are computed once here for the calibration's
+    image size.
+    """
+
+    def __init__(
+        self,
+        calibration: Calibration,
+        *,
+        max_code: int | None = None,
+        min_modulation: float | None = None,
+        consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
+        height_margin_mm: float = 2.0,
+        combine_frequencies: bool = False,
+        fast: bool = True,
+    ) -> None:
+        if not all(hasattr(calibration, a) for a in ("check_frames", "numerator", "pattern")):
+            raise ValueError("calibration: expected a Calibration")
+        if not (math.isfinite(height_margin_mm) and height_margin_mm >= 0.0):
+            raise ValueError(f"height_margin_mm: must be finite and >= 0, got {height_margin_mm}")
+        if min_modulation is not None and not (math.isfinite(min_modulation) and min_modulation >= 0):
+            raise ValueError(f"min_modulation: must be finite and >= 0, got {min_modulation}")
+        if max_code is not None and (int(max_code) != max_code or not 1 <= max_code <= 65535):
+            raise ValueError(f"max_code: must be an integer in 1..65535, got {max_code}")
+        self.calibration = calibration
+        self.max_code = max_code
+        self.min_modulation = min_modulation
+        self.consistency_rad = check_consistency_rad(consistency_rad)
+        self.height_margin_mm = float(height_margin_mm)
+        self.combine_frequencies = bool(combine_frequencies)
+        self.fast = bool(fast) and _fast is not None
+        if fast and _fast is None:
+            log.warning("fast=True requested but numba is unavailable; using numpy")
+        lo, hi = calibration.height_range_mm
+        self._bounds_mm = (lo - self.height_margin_mm, hi + self.height_margin_mm)
+        if self.fast:
+            _ = self._tables32
+
+    @cached_property
+    def _tables32(self) -> tuple[ModelTables, RayTables]:
+        return (
+            calibration_model_tables(self.calibration, dtype=np.float32),
+            calibration_ray_tables(self.calibration, dtype=np.float32),
+        )
+
+    @cached_property
+    def _tables64(self) -> tuple[ModelTables, RayTables]:
+        return calibration_model_tables(self.calibration), calibration_ray_tables(self.calibration)
+
+    def run(self, frames: Any, *, fast: bool | None = None) -> ReconResult:
+        """Reconstruct one fringe set.
+
+        Args:
+            frames: (F, H, W) uint8/uint16 in capture-set order (F = the calibration's
+                ``pattern.n_frames``, H×W its image size), or a sequence of 2-D frames.
+            fast: override the constructor's choice of path for this call.
+
+        Returns:
+            :class:`ReconResult`.
+        """
+        frames = check_stack(frames)
+        self.calibration.check_frames(frames.shape)
+        max_code, min_mod = resolve_levels(frames.dtype, self.max_code, self.min_modulation)
+        use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
+        if use_fast:
+            return self._run_fast(frames, max_code, min_mod)
+        return self._run_numpy(frames, max_code, min_mod)
+
+    def _run_numpy(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
+        t0 = time.perf_counter()
+        cal = self.calibration
+        model, rays = self._tables64
+        phi, wp, reason = _phase_numpy(
+            frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies
+        )
+        height, singular = evaluate_height(model, phi)
+        lo, hi = self._bounds_mm
+        outside = outside_volume(height, (lo, hi), 0.0)
+        reason = assign_reasons(
+            phi.shape,
+            saturated=reason == 2,
+            low_modulation=reason == 1,
+            inconsistent=reason == 3,
+            singular=singular,
+            outside=outside,
+        )
+        valid = reason == 0
+        depth = np.where(valid, height, np.nan)
+        points = points_from_height(depth, rays, cal.plane_offset_mm)
+        mod = wp.modulation[-1]
+        return ReconResult(
+            depth=depth.astype(np.float32),
+            points=points.astype(np.float32),
+            valid=valid,
+            reason=reason,
+            modulation=mod.astype(np.float32),
+            texture=(wp.background + mod).astype(np.float32),
+            phase=np.where(valid, phi, np.nan).astype(np.float32),
+            elapsed_ms=(time.perf_counter() - t0) * 1e3,
+        )
+
+    def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
+        assert _fast is not None
+        _fast.warmup(frames.dtype)  # JIT (or cache load) outside the timed region
+        t0 = time.perf_counter()
+        cal = self.calibration
+        model, rays = self._tables32
+        sched = cal.pattern
+        _, h, w = frames.shape
+        delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        out = ReconResult(
+            depth=np.empty((h, w), np.float32),
+            points=np.empty((h, w, 3), np.float32),
+            valid=np.empty((h, w), np.bool_),
+            reason=np.empty((h, w), np.uint8),
+            modulation=np.empty((h, w), np.float32),
+            texture=np.empty((h, w), np.float32),
+            phase=np.empty((h, w), np.float32),
+            elapsed_ms=0.0,
+        )
+        lo, hi = self._bounds_mm
+        _fast.fused_kernel(
+            np.ascontiguousarray(frames),
+            np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
+            np.asarray(sched.frequencies, np.float32),
+            np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
+            self.combine_frequencies,
+            model.a0, model.a1, model.b0, model.b1,
+            np.float32(model.phi0), np.float32(model.inv_sphi),
+            np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL),
+            rays.rx, rays.ry, rays.inv_m, np.float32(cal.plane_offset_mm),
+            out.depth, out.points, out.reason, out.valid, out.modulation, out.texture, out.phase,
+        )
+        out.elapsed_ms = (time.perf_counter() - t0) * 1e3
+        return out

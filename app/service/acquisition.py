@@ -1,0 +1,226 @@
+"""The acquisition thread: grab frames, group them into sets, survive device faults.
+
+Settings changes (exposure, LED) are applied between sets, so every reconstructed set
+was taken with one setting. A device that times out or disconnects puts the thread in
+a fault state (visible in status); the devices are re-opened with back-off until they
+answer again. The thread never dies of a device error.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+from app.devices.base import Frame
+from app.devices.errors import DeviceError, DeviceTimeout
+from app.recon.patterns import PatternSchedule
+from app.service.devices import (
+    DeviceBundle,
+    apply_settings,
+    close_devices,
+    start_devices,
+    stop_devices,
+)
+from app.service.framesets import FrameSet, RollingWindow, SetAssembler
+from app.service.store import LatestSlot, NewestQueue, RateMeter
+
+log = logging.getLogger("fringescope.service.acquisition")
+
+BACKOFF_START_S = 0.2
+BACKOFF_MAX_S = 3.0
+HEARTBEAT_S = 0.5
+TIMEOUTS_BEFORE_RESTART = 3
+
+
+class Acquisition:
+    """Owns the grab loop. Whole sets go to ``sets`` (latest) and, in set mode, ``queue``;
+    in rolling mode the queue gets a set after every frame."""
+
+    def __init__(
+        self,
+        devices: DeviceBundle,
+        schedule: PatternSchedule,
+        queue: NewestQueue[FrameSet],
+        *,
+        exposure_ms: float,
+        led: str,
+        bit_depth: int,
+        rolling: bool = False,
+        on_frame: Callable[[Frame], None] | None = None,
+    ) -> None:
+        self.devices = devices
+        self.schedule = schedule
+        self.queue = queue
+        self.sets: LatestSlot[FrameSet] = LatestSlot()
+        self.bit_depth = bit_depth
+        self.exposure_ms = float(exposure_ms)
+        self.led = led
+        self.rolling = rolling
+        self.on_frame = on_frame
+        self.assembler = SetAssembler(schedule.n_frames)
+        self.window = RollingWindow(schedule.n_frames)
+        self.camera_rate = RateMeter()
+        self.frames_received = 0
+        self.frames_dropped = 0
+        self.faults = 0
+        self.fault: str | None = None
+        self.last_error: str | None = None
+        self._last_index: int | None = None
+        self._pending: dict[str, object] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._want_running = threading.Event()
+        self._started = False
+        self._thread = threading.Thread(target=self._run, name="fringescope-acquisition", daemon=True)
+
+    # -- control (any thread) ------------------------------------------------------
+    def start_thread(self, *, acquire: bool = True) -> None:
+        if acquire:
+            self._want_running.set()
+        self._thread.start()
+
+    def shutdown(self, timeout_s: float = 10.0) -> None:
+        """Stop the loop, stop and close the devices, join the thread."""
+        self._stop.set()
+        self._want_running.clear()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+        close_devices(self.devices)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    @property
+    def acquiring(self) -> bool:
+        return self._want_running.is_set()
+
+    def set_acquiring(self, on: bool) -> None:
+        if on:
+            self._want_running.set()
+        else:
+            self._want_running.clear()
+
+    def request(self, *, exposure_ms: float | None = None, led: str | None = None) -> None:
+        """Ask for new settings; applied before the next whole set."""
+        with self._lock:
+            if exposure_ms is not None:
+                self.exposure_ms = float(exposure_ms)
+                self._pending["exposure_ms"] = float(exposure_ms)
+            if led is not None:
+                self.led = led
+                self._pending["led"] = led
+
+    def set_rolling(self, rolling: bool) -> None:
+        with self._lock:
+            self.rolling = bool(rolling)
+        self.window.clear()
+
+    # -- the loop ----------------------------------------------------------------------
+    def _run(self) -> None:
+        backoff = BACKOFF_START_S
+        timeouts = 0
+        last_beat = 0.0
+        while not self._stop.is_set():
+            if not self._want_running.is_set():
+                if self._started:
+                    stop_devices(self.devices)
+                    self._started = False
+                    self._reset_sets()
+                self._stop.wait(0.05)
+                continue
+            if not self._started:
+                try:
+                    self._start_devices()
+                    backoff = BACKOFF_START_S
+                except Exception as exc:  # any failure: report, back off, retry
+                    self._record_fault(exc)
+                    close_devices(self.devices)
+                    self._stop.wait(backoff)
+                    backoff = min(2 * backoff, BACKOFF_MAX_S)
+                    continue
+            try:
+                now = time.monotonic()
+                if self.devices.controller is not None and now - last_beat > HEARTBEAT_S:
+                    self.devices.controller.heartbeat()
+                    last_beat = now
+                if self.assembler.in_progress == 0:
+                    self._apply_pending()
+                frame = self.devices.camera.grab(timeout_s=self._grab_timeout_s())
+            except DeviceTimeout as exc:
+                self._reset_sets()
+                self._record_fault(exc)
+                timeouts += 1
+                if timeouts >= TIMEOUTS_BEFORE_RESTART:  # a stuck link: restart it
+                    timeouts = 0
+                    close_devices(self.devices)
+                    self._started = False
+                continue
+            except Exception as exc:  # disconnects and anything unexpected
+                if not isinstance(exc, DeviceError):
+                    log.exception("acquisition error")
+                self._reset_sets()
+                self._record_fault(exc)
+                close_devices(self.devices)
+                self._started = False
+                self._stop.wait(backoff)
+                backoff = min(2 * backoff, BACKOFF_MAX_S)
+                continue
+            timeouts = 0
+            backoff = BACKOFF_START_S
+            self.fault = None
+            self._on_frame(frame, time.monotonic())
+
+    def _start_devices(self) -> None:
+        with self._lock:
+            exposure_ms, led = self.exposure_ms, self.led
+            self._pending.clear()
+        start_devices(self.devices, self.schedule, exposure_ms=exposure_ms, led=led, bit_depth=self.bit_depth)
+        self._started = True
+        self._last_index = None
+        self._reset_sets()
+
+    def _apply_pending(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, {}
+        if pending:
+            apply_settings(
+                self.devices, self.schedule,
+                exposure_ms=pending.get("exposure_ms"),  # type: ignore[arg-type]
+                led=pending.get("led"),  # type: ignore[arg-type]
+            )
+
+    def _grab_timeout_s(self) -> float:
+        return max(1.0, 4.0 * self.exposure_ms / 1000.0)
+
+    def _reset_sets(self) -> None:
+        self.assembler.abort()
+        self.window.clear()
+
+    def _record_fault(self, exc: BaseException) -> None:
+        msg = str(exc) or type(exc).__name__
+        if self.fault != msg:
+            log.warning("device fault: %s", msg)
+        self.fault = msg
+        self.last_error = msg
+        self.faults += 1
+
+    def _on_frame(self, frame: Frame, received_s: float) -> None:
+        self.frames_received += 1
+        if self._last_index is not None and frame.index > self._last_index + 1:
+            self.frames_dropped += frame.index - self._last_index - 1
+        self._last_index = frame.index
+        self.camera_rate.tick(received_s)
+        if self.on_frame is not None:
+            self.on_frame(frame)
+        whole = self.assembler.feed(frame, received_s)
+        if whole is not None:
+            self.sets.publish(whole)
+        if self.rolling:
+            rolled = self.window.feed(frame, received_s)
+            if rolled is not None:
+                self.queue.put(rolled)
+        elif whole is not None:
+            self.queue.put(whole)

@@ -1,0 +1,37 @@
+"""ROI measurements on the latest result (delegating to :mod:`app.analysis`)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from app.service.reconstruction import LiveResult
+
+
+def _f(x: Any) -> float | None:
+    """JSON has no NaN: undefined figures are None."""
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
+    """Plane accuracy/precision/flatness of the points in ``roi`` (paper's DOF-target method)."""
+    from app.analysis.plane import plane_accuracy
+
+    acc = plane_accuracy(result.points, result.valid, roi=roi)
+    return {
+        "accuracy_mm": _f(acc.accuracy_mm), "precision_mm": _f(acc.precision_mm),
+        "flatness_mm": _f(acc.flatness_mm), "points": int(acc.n_points),
+        "extra": {"inlier_fraction": _f(acc.inlier_fraction), "seq": result.seq,
+                  "mean_distance_mm": _f(acc.mean_distance_mm), "bins": len(acc.bins)},
+    }
+
+
+def feature(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
+    """Height of a raised feature (e.g. a suture) over the fitted baseline in ``roi``."""
+    from app.analysis import feature as feat
+
+    res = feat.feature_height(result.depth, result.texture, roi=roi)
+    return {
+        "height_mm": _f(res.height_mm), "height_std_mm": _f(res.height_std_mm),
+        "count": int(res.count), "extra": {"seq": result.seq},
+    }

@@ -1,0 +1,128 @@
+"""Auto-exposure: the longest exposure whose sets keep saturation under a limit.
+
+Modulation grows with exposure until pixels clip, so the best exposure is the longest
+one below the saturation limit. Saturation is monotonic in exposure, so a bisection over
+a ladder of exposures finds it with a handful of real grabbed sets.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from app.recon.patterns import PatternSchedule
+from app.recon.phase import wrapped_phase
+
+#: candidate exposures, ms (roughly geometric: each step ≈ 1.25–1.5×)
+LADDER_MS = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 40.0,
+             50.0, 65.0, 80.0, 100.0)
+
+
+@dataclass(frozen=True)
+class ExposureTrial:
+    exposure_ms: float
+    saturated_fraction: float
+    modulation: float
+
+
+@dataclass
+class AutoExposureResult:
+    exposure_ms: float
+    saturated_fraction: float
+    modulation: float
+    saturation_limit: float
+    trials: list[ExposureTrial] = field(default_factory=list)
+    warning: str | None = None
+
+
+def set_statistics(
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], schedule: PatternSchedule, full_scale: int
+) -> tuple[float, float]:
+    """(saturated fraction, median modulation) of one fringe set.
+
+    Args:
+        frames: (F, H, W) uint8/uint16 in capture-set order.
+        schedule: its pattern schedule.
+        full_scale: the sensor's saturation code (255, 4095, …).
+
+    Returns:
+        Fraction of pixels at ``full_scale`` in any frame, and the median modulation B of
+        the finest frequency over the pixels with any signal, in sensor codes.
+    """
+    if frames.ndim != 3 or frames.shape[0] != schedule.n_frames:
+        raise ValueError(f"frames: expected ({schedule.n_frames}, H, W), got {frames.shape}")
+    saturated = float((frames.max(axis=0) >= full_scale).mean())
+    n = schedule.steps
+    finest = frames[-n:]
+    wp = wrapped_phase(finest, n, max_code=int(full_scale))
+    b = wp.modulation[0]
+    lit = wp.background > 0.02 * full_scale
+    modulation = float(np.median(b[lit])) if lit.any() else 0.0
+    return saturated, modulation
+
+
+def choose_exposure(
+    measure: Callable[[float], tuple[float, float]],
+    *,
+    saturation_limit: float = 0.005,
+    min_exposure_ms: float = 1.0,
+    max_exposure_ms: float = 100.0,
+    ladder_ms: tuple[float, ...] = LADDER_MS,
+) -> AutoExposureResult:
+    """Bisect ``ladder_ms`` for the longest exposure with saturation ≤ ``saturation_limit``.
+
+    Args:
+        measure: exposure_ms → (saturated fraction, modulation) from a real grabbed set.
+        saturation_limit: allowed fraction of saturated pixels (0.005 = 0.5 %).
+        min_exposure_ms, max_exposure_ms: bounds of the search, ms.
+
+    Returns:
+        The chosen exposure and every trial. Among the trials under the limit the one with
+        the highest modulation wins (ties → the longer exposure).
+    """
+    if not (0.0 <= saturation_limit < 1.0):
+        raise ValueError(f"saturation_limit: must be within [0, 1), got {saturation_limit}")
+    if not (math.isfinite(min_exposure_ms) and math.isfinite(max_exposure_ms)
+            and 0 < min_exposure_ms <= max_exposure_ms):
+        raise ValueError(f"max_exposure_ms: need 0 < min <= max, got {min_exposure_ms}, {max_exposure_ms}")
+    ladder = [e for e in ladder_ms if min_exposure_ms <= e <= max_exposure_ms]
+    if not ladder or ladder[-1] != max_exposure_ms:
+        ladder.append(max_exposure_ms)
+    if ladder[0] != min_exposure_ms:
+        ladder.insert(0, min_exposure_ms)
+    trials: dict[float, ExposureTrial] = {}
+
+    def trial(e: float) -> ExposureTrial:
+        if e not in trials:
+            sat, mod = measure(e)
+            trials[e] = ExposureTrial(e, sat, mod)
+        return trials[e]
+
+    # Invariant: ladder[lo] is under the limit (or is the shortest), ladder[hi] is over it.
+    lo, hi = 0, len(ladder) - 1
+    if trial(ladder[hi]).saturated_fraction <= saturation_limit:
+        lo = hi
+    else:
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if trial(ladder[mid]).saturated_fraction <= saturation_limit:
+                lo = mid
+            else:
+                hi = mid
+    first = trial(ladder[lo])
+    ok = [t for t in trials.values() if t.saturated_fraction <= saturation_limit]
+    warning = None
+    if ok:
+        best = max(ok, key=lambda t: (t.modulation, t.exposure_ms))
+    else:
+        best = first
+        warning = f"saturation above {saturation_limit:.2%} even at {first.exposure_ms} ms"
+    return AutoExposureResult(
+        exposure_ms=best.exposure_ms, saturated_fraction=best.saturated_fraction,
+        modulation=best.modulation, saturation_limit=saturation_limit,
+        trials=sorted(trials.values(), key=lambda t: t.exposure_ms), warning=warning,
+    )

@@ -1,0 +1,117 @@
+"""The interactive calibration: a board spec, captured poses, solve, activate.
+
+Each pose is one whole fringe set of the board; its texture is searched for the board
+right away so the user sees whether it will count. Pose 0 (the first detected pose)
+is the reference plane.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+import cv2
+import numpy as np
+
+from app.calib.board import BoardSpec, Detection, detect_board, texture_to_u8
+from app.capture.captureset import CaptureSet
+
+
+@dataclass
+class Pose:
+    capture: CaptureSet
+    detection: Detection
+    preview_png: bytes
+    created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="seconds"))
+
+    @property
+    def found(self) -> bool:
+        return bool(self.detection.found)
+
+    def summary(self, index: int) -> dict[str, Any]:
+        return {
+            "index": index,
+            "found": self.found,
+            "corners": int(len(self.detection.image_points)),
+            "created": self.created,
+            "exposure_ms": self.capture.exposure_ms,
+            "led": self.capture.led,
+            "preview_url": f"/api/calibration/session/poses/{index}/preview.png",
+        }
+
+
+def preview_png(texture_u8: np.ndarray, board: BoardSpec, detection: Detection) -> bytes:
+    """The texture with the detected board points drawn (OpenCV's coloured corner chain)."""
+    img = cv2.cvtColor(texture_u8, cv2.COLOR_GRAY2BGR)
+    if detection.found:
+        pts = detection.image_points.reshape(-1, 1, 2).astype(np.float32)
+        cv2.drawChessboardCorners(img, board.pattern_size, pts, True)
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise OSError("preview encoding failed")
+    return buf.tobytes()
+
+
+class CalibrationSession:
+    """Poses of one board; ``solve()`` fits a calibration from the detected ones."""
+
+    def __init__(self, board: BoardSpec) -> None:
+        self.board = board
+        self.poses: list[Pose] = []
+        self.report: Any = None  # app.calib CalibrationReport once solved
+        self.created = datetime.now(UTC).isoformat(timespec="seconds")
+        self.lock = threading.Lock()
+
+    def add(self, capture: CaptureSet) -> tuple[int, Pose]:
+        """Detect the board in ``capture`` and keep it as the next pose."""
+        from app.recon import compute_phase
+
+        res = compute_phase(capture.frames, capture.schedule)
+        tex = texture_to_u8(res.texture)
+        det = detect_board(tex, self.board)
+        pose = Pose(capture, det, preview_png(tex, self.board, det))
+        with self.lock:
+            self.poses.append(pose)
+            self.report = None
+            return len(self.poses) - 1, pose
+
+    def pose(self, index: int) -> Pose:
+        with self.lock:
+            if not 0 <= index < len(self.poses):
+                raise IndexError(f"pose {index}: no such pose (have {len(self.poses)})")
+            return self.poses[index]
+
+    def delete(self, index: int) -> None:
+        with self.lock:
+            if not 0 <= index < len(self.poses):
+                raise IndexError(f"pose {index}: no such pose (have {len(self.poses)})")
+            del self.poses[index]
+            self.report = None
+
+    def summaries(self) -> list[dict[str, Any]]:
+        with self.lock:
+            return [p.summary(i) for i, p in enumerate(self.poses)]
+
+    def solve(self, *, robust: bool = False) -> Any:
+        """Fit from the detected poses (the first one is the reference plane)."""
+        from app.calib.fitting import calibrate_sets
+
+        with self.lock:
+            used = [(i, p) for i, p in enumerate(self.poses) if p.found]
+        if not used:
+            raise ValueError("poses: no pose with the board detected")
+        names = [f"pose_{i:02d}" for i, _ in used]
+        report = calibrate_sets(self.board, [p.capture for _, p in used], robust=robust, names=names)
+        with self.lock:
+            self.report = report
+        return report
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "board": self.board.to_dict(),
+            "created": self.created,
+            "poses": self.summaries(),
+            "solved": self.report is not None,
+        }

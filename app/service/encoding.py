@@ -1,0 +1,124 @@
+"""Result images and files as bytes (NPY, 16-bit PNG in µm, colormap PNG/JPEG, PLY).
+
+Encodings are cached on the :class:`LiveResult`, so any number of clients share one.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from app.service.motion import MOTION
+
+DEFAULT_RANGE_MM = (0.0, 35.0)
+
+#: motion (rolling mode) is not an engine code; it gets its own colour
+MOTION_RGB = (0, 230, 255)
+
+
+def reason_colors() -> dict[int, tuple[str, tuple[int, int, int]]]:
+    """reason code → (name, RGB): the engine's colours plus motion."""
+    from app.recon.colormap import REASON_COLORS
+
+    out = {int(code): (code.name.lower(), tuple(int(c) for c in rgb)) for code, rgb in REASON_COLORS.items()}
+    out[MOTION] = ("motion", MOTION_RGB)
+    return out  # type: ignore[return-value]
+
+
+def reason_legend() -> dict[str, Any]:
+    return {str(code): {"name": name, "rgb": list(rgb)} for code, (name, rgb) in reason_colors().items()}
+
+
+def _png(img: npt.NDArray[Any], compression: int = 1) -> bytes:
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise OSError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def npy_bytes(array: npt.NDArray[Any]) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def depth_png_um(depth_mm: npt.NDArray[np.float32]) -> bytes:
+    """16-bit PNG of depth in micrometres, 0 = invalid.
+
+    Valid heights are clipped to 1–65535 µm (0.001–65.535 mm): heights at or below the
+    reference plane show as 1 µm, so a valid pixel is never confused with an invalid one.
+    """
+    d = np.asarray(depth_mm, np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth_mm: expected (H, W), got shape {d.shape}")
+    finite = np.isfinite(d)
+    um = np.zeros(d.shape, np.uint16)
+    um[finite] = np.clip(np.rint(d[finite] * 1000.0), 1, 65535).astype(np.uint16)
+    return _png(um)
+
+
+def check_range_mm(min_mm: float | None, max_mm: float | None) -> tuple[float, float]:
+    """The colormap range from optional bounds; ``ValueError`` if not min < max."""
+    lo = DEFAULT_RANGE_MM[0] if min_mm is None else float(min_mm)
+    hi = DEFAULT_RANGE_MM[1] if max_mm is None else float(max_mm)
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ValueError(f"min_mm/max_mm: need finite min < max, got {lo}, {hi}")
+    return lo, hi
+
+
+def depth_color_png(depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, float]) -> bytes:
+    """Turbo colormap with colour bar (the engine's renderer), PNG."""
+    from app.recon.colormap import render_depth_png
+
+    return bytes(render_depth_png(depth_mm, range_mm=range_mm))
+
+
+def depth_color_jpeg(
+    depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, float], *, max_width: int = 960, quality: int = 80
+) -> bytes:
+    """The colormap PNG re-encoded as a (down-scaled) JPEG for live streams."""
+    png = depth_color_png(depth_mm, range_mm)
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise OSError("colormap decoding failed")
+    if img.shape[1] > max_width:
+        scale = max_width / img.shape[1]
+        img = cv2.resize(img, (max_width, round(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise OSError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def texture_u8(texture: npt.NDArray[np.float32], full_scale: float) -> npt.NDArray[np.uint8]:
+    """Texture A + B scaled by the sensor's full scale to uint8 (fixed scale: no flicker)."""
+    t = np.nan_to_num(np.asarray(texture, np.float32), nan=0.0) * (255.0 / float(full_scale))
+    return np.clip(t, 0, 255).astype(np.uint8)
+
+
+def texture_png(texture: npt.NDArray[np.float32], full_scale: float) -> bytes:
+    return _png(texture_u8(texture, full_scale))
+
+
+def reason_png(reason: npt.NDArray[np.uint8]) -> bytes:
+    """Reason codes as colours (see :func:`reason_legend`; unknown codes magenta), PNG."""
+    lut = np.zeros((256, 3), np.uint8)
+    lut[:] = (255, 0, 255)
+    for code, (_, rgb) in reason_colors().items():
+        lut[code] = rgb[::-1]  # OpenCV writes BGR
+    return _png(lut[np.asarray(reason, np.uint8)])
+
+
+def ply_bytes(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_], intensity: Any) -> bytes:
+    from app.capture.ply import ply_bytes as encode
+
+    return bytes(encode(points, valid, intensity))
+
+
+def legend_header() -> str:
+    return json.dumps({k: v["name"] for k, v in reason_legend().items()})

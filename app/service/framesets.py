@@ -1,0 +1,156 @@
+"""Grouping camera frames into fringe sets (whole sets, or a rolling window of the last F).
+
+A set is reconstructed only if its frames carry pattern indices 0..F-1 in order, with
+consecutive frame counters (a gap is a dropped frame) and one exposure/LED setting;
+anything else is discarded and counted, never reconstructed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from app.devices.base import Frame
+
+
+@dataclass(frozen=True)
+class FrameSet:
+    """F frames in capture-set order (pattern index 0..F-1), ready to reconstruct.
+
+    Attributes:
+        frames: the F :class:`Frame` objects, ordered by pattern index.
+        received_s: ``time.monotonic()`` when the newest frame arrived (latency origin).
+        mode: ``"set"`` (a whole projected sequence) or ``"rolling"`` (the last F frames).
+    """
+
+    frames: tuple[Frame, ...]
+    received_s: float
+    mode: str = "set"
+
+    @property
+    def exposure_ms(self) -> float:
+        return self.frames[0].exposure_ms
+
+    @property
+    def led(self) -> str:
+        return self.frames[0].led
+
+    @property
+    def frame_indices(self) -> list[int]:
+        return [f.index for f in self.frames]
+
+    @property
+    def timestamps(self) -> list[float]:
+        return [f.timestamp for f in self.frames]
+
+    @property
+    def last_index(self) -> int:
+        return max(f.index for f in self.frames)
+
+    def stack(self) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+        """(F, H, W) frames in capture-set order, the camera's dtype."""
+        return np.stack([f.data for f in self.frames])
+
+
+def _same_settings(frames: list[Frame] | tuple[Frame, ...]) -> bool:
+    first = frames[0]
+    for f in frames[1:]:
+        if f.led != first.led:
+            return False
+        a, b = f.exposure_ms, first.exposure_ms
+        if not (a == b or (math.isnan(a) and math.isnan(b))):
+            return False
+    return True
+
+
+class SetAssembler:
+    """Collects consecutive frames with pattern indices 0..F-1 into :class:`FrameSet` objects.
+
+    Counters: ``completed`` sets emitted, ``incomplete`` sets discarded for a missing,
+    duplicated or out-of-order frame, ``mixed`` sets discarded because a setting changed
+    inside them, ``skipped_frames`` frames seen while waiting for the start of a set.
+    """
+
+    def __init__(self, n_frames: int) -> None:
+        if n_frames < 1:
+            raise ValueError(f"n_frames: must be >= 1, got {n_frames}")
+        self.n_frames = n_frames
+        self._pending: list[Frame] = []
+        self.completed = 0
+        self.incomplete = 0
+        self.mixed = 0
+        self.skipped_frames = 0
+
+    @property
+    def in_progress(self) -> int:
+        """Frames collected toward the current set (0 at a set boundary)."""
+        return len(self._pending)
+
+    def abort(self) -> None:
+        """Discard the set in progress (after a timeout or a fault), counting it."""
+        if self._pending:
+            self.incomplete += 1
+            self._pending = []
+
+    def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
+        """Add one frame; returns a complete set when ``frame`` finishes one."""
+        p = frame.pattern_index
+        if p == 0:
+            self.abort()  # a new sequence starts: whatever was pending is short
+            self._pending = [frame]
+        elif not self._pending:
+            self.skipped_frames += 1  # mid-sequence: wait for pattern 0
+            return None
+        else:
+            prev = self._pending[-1]
+            if p != prev.pattern_index + 1 or frame.index != prev.index + 1:
+                self.abort()
+                self.skipped_frames += 1
+                return None
+            self._pending.append(frame)
+        if len(self._pending) < self.n_frames:
+            return None
+        frames, self._pending = tuple(self._pending), []
+        if not _same_settings(frames):
+            self.mixed += 1
+            return None
+        self.completed += 1
+        return FrameSet(frames, received_s, "set")
+
+
+class RollingWindow:
+    """The last F frames, re-ordered into a set after every frame (rolling mode).
+
+    The window yields a set only when its F frames have consecutive frame counters, a
+    cyclic run of pattern indices covering 0..F-1 once each, and one setting.
+    """
+
+    def __init__(self, n_frames: int) -> None:
+        if n_frames < 1:
+            raise ValueError(f"n_frames: must be >= 1, got {n_frames}")
+        self.n_frames = n_frames
+        self._window: deque[Frame] = deque(maxlen=n_frames)
+
+    def clear(self) -> None:
+        self._window.clear()
+
+    def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
+        self._window.append(frame)
+        n = self.n_frames
+        if len(self._window) < n:
+            return None
+        w = list(self._window)
+        first = w[0]
+        if first.pattern_index < 0:
+            return None
+        for i, f in enumerate(w):
+            if f.index != first.index + i or f.pattern_index != (first.pattern_index + i) % n:
+                return None
+        if not _same_settings(w):
+            return None
+        ordered = tuple(sorted(w, key=lambda f: f.pattern_index))
+        return FrameSet(ordered, received_s, "rolling")

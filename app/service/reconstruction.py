@@ -1,0 +1,173 @@
+"""The reconstruction thread: sets from a newest-wins queue → depth results in a slot.
+
+Pipelined with acquisition: while the camera exposes the next set, the last one is
+reconstructed, so the depth rate is bounded by the camera as long as one
+reconstruction takes less than one set's acquisition.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app.service.framesets import FrameSet
+from app.service.motion import MOTION, motion_mask
+from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
+
+log = logging.getLogger("fringescope.service.reconstruction")
+
+
+@dataclass
+class LiveResult:
+    """One published depth map with its provenance.
+
+    Arrays as ``ReconResult``: depth (H, W) f32 mm NaN-invalid, points (H, W, 3) f32 mm,
+    valid (H, W) bool, reason (H, W) uint8, texture/modulation (H, W) f32 in sensor units.
+    ``motion`` is the rolling-mode motion mask (None in set mode). Times: ``received_s``
+    is when the newest frame arrived, ``published_s`` when the result was ready
+    (``time.monotonic``); ``latency_ms`` their difference.
+    """
+
+    depth: npt.NDArray[np.float32]
+    points: npt.NDArray[np.float32]
+    valid: npt.NDArray[np.bool_]
+    reason: npt.NDArray[np.uint8]
+    texture: npt.NDArray[np.float32]
+    modulation: npt.NDArray[np.float32]
+    motion: npt.NDArray[np.bool_] | None
+    mode: str
+    frame_indices: list[int]
+    timestamps: list[float]
+    exposure_ms: float
+    led: str
+    full_scale: float
+    received_s: float
+    published_s: float
+    recon_ms: float
+    created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
+    seq: int = 0
+    _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
+    _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def latency_ms(self) -> float:
+        return 1000.0 * (self.published_s - self.received_s)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.depth.shape[0]), int(self.depth.shape[1]))
+
+    def cached(self, key: Any, make: Callable[[], bytes]) -> bytes:
+        """Encode once per result and key, however many clients ask (streams share it)."""
+        with self._cache_lock:
+            hit = self._cache.get(key)
+            if hit is None:
+                hit = make()
+                self._cache[key] = hit
+            return hit
+
+    def metadata(self) -> dict[str, Any]:
+        return {
+            "seq": self.seq, "mode": self.mode, "created": self.created,
+            "exposure_ms": self.exposure_ms, "led": self.led,
+            "frame_indices": self.frame_indices, "timestamps": self.timestamps,
+            "latency_ms": round(self.latency_ms, 3), "recon_ms": round(self.recon_ms, 3),
+            "valid_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
+            "shape": list(self.shape),
+        }
+
+
+class Reconstruction:
+    """The reconstruction thread. ``reconstructor()`` returns the engine to use now (or None)."""
+
+    def __init__(
+        self,
+        queue: NewestQueue[FrameSet],
+        reconstructor: Callable[[], Any],
+        *,
+        n_frequencies: int,
+        bit_depth: int = 8,
+    ) -> None:
+        self.queue = queue
+        self.reconstructor = reconstructor
+        self.n_frequencies = n_frequencies
+        self.bit_depth = bit_depth
+        self.results: LatestSlot[LiveResult] = LatestSlot()
+        self.depth_rate = RateMeter()
+        self.latencies = RecentValues(100)
+        self.recon_times = RecentValues(100)
+        self.completed = 0
+        self.errors = 0
+        self.last_error: str | None = None
+        self.idle_without_calibration = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fringescope-reconstruction", daemon=True)
+
+    def start_thread(self) -> None:
+        self._thread.start()
+
+    def shutdown(self, timeout_s: float = 10.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+        self.results.close()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            fs = self.queue.get(timeout_s=0.1)
+            if fs is None:
+                continue
+            engine = self.reconstructor()
+            if engine is None:
+                self.idle_without_calibration += 1
+                continue
+            try:
+                result = self.process(engine, fs)
+            except Exception as exc:  # a bad set must not kill the thread
+                self.errors += 1
+                self.last_error = f"reconstruction: {exc}"
+                log.warning("reconstruction failed: %s", exc, exc_info=True)
+                continue
+            result.seq = self.results.publish(result)
+            self.completed += 1
+            self.depth_rate.tick(result.published_s)
+            self.latencies.add(result.latency_ms)
+            self.recon_times.add(result.recon_ms)
+
+    def process(self, engine: Any, fs: FrameSet) -> LiveResult:
+        """Reconstruct one set (motion-masked in rolling mode) into a :class:`LiveResult`."""
+        t0 = time.perf_counter()
+        frames = fs.stack()
+        full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
+        res = engine.run(frames)
+        depth, points, valid, reason = res.depth, res.points, res.valid, res.reason
+        motion = None
+        if fs.mode == "rolling":
+            motion = motion_mask(frames, self.n_frequencies, full_scale=full_scale)
+            moving = motion & valid
+            if moving.any():
+                depth, points, valid, reason = depth.copy(), points.copy(), valid.copy(), reason.copy()
+                depth[moving] = np.nan
+                points[moving] = np.nan
+                valid[moving] = False
+                reason[moving] = MOTION
+        recon_ms = 1000.0 * (time.perf_counter() - t0)
+        return LiveResult(
+            depth=depth, points=points, valid=valid, reason=reason,
+            texture=res.texture, modulation=res.modulation, motion=motion, mode=fs.mode,
+            frame_indices=fs.frame_indices, timestamps=fs.timestamps,
+            exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
+            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms,
+        )

@@ -1,0 +1,385 @@
+"""The live 3-D view: a viser server on loopback fed from the Instrument's latest result.
+
+viser runs its own thread and port; :mod:`app.viewer.relay` relays it under ``/viser/``
+so the browser needs one port. One update thread waits for new results and pushes the
+decimated point cloud (float32, coloured by height with the dashboard's TURBO table or
+by texture), the depth colormap and the texture, each update grouped in
+``server.atomic()`` and handles updated in place. It is paced: at most ``max_rate_hz``
+updates a second (rolling mode makes depth maps faster than any browser draws them),
+always showing the newest result.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import viser
+
+from app.recon.colormap import depth_colormap
+from app.service.encoding import DEFAULT_RANGE_MM
+from app.service.encoding import texture_u8 as _texture_u8
+
+log = logging.getLogger(__name__)
+
+LEDS = ("red", "green", "blue")
+COLOR_MODES = ("height", "texture")
+PANEL_WIDTH_PX = 360  # GUI images are downscaled to this width: they are previews
+
+
+def decimation_step(height: int, width: int, max_points: int) -> int:
+    """Smallest grid stride ``s`` with ``ceil(H/s)·ceil(W/s) <= max_points``."""
+    if max_points < 1:
+        raise ValueError(f"max_points: must be >= 1, got {max_points}")
+    step = max(1, math.isqrt(max(0, height * width - 1) // max_points))
+    while math.ceil(height / step) * math.ceil(width / step) > max_points:
+        step += 1
+    return step
+
+
+def cloud_arrays(
+    result: Any,
+    max_points: int,
+    color_mode: str = "height",
+    range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8], int]:
+    """Decimated valid points of a result and their colours.
+
+    Parameters
+    ----------
+    result
+        Has ``points`` (H, W, 3) float mm, ``valid`` (H, W) bool, ``depth`` (H, W) float mm,
+        ``texture`` (H, W) float and ``full_scale`` (the sensor's, for the texture), like
+        :class:`app.service.reconstruction.LiveResult`.
+    max_points : int
+        Upper bound on the returned count (a regular grid stride, so the cloud keeps
+        the image's sampling pattern).
+    color_mode : {"height", "texture"}
+    range_mm : (float, float)
+        Height colour range.
+
+    Returns
+    -------
+    points : (N, 3) float32 mm, N <= max_points
+    colors : (N, 3) uint8 RGB
+    step : int, the grid stride used
+    """
+    if color_mode not in COLOR_MODES:
+        raise ValueError(f"color_mode: must be one of {COLOR_MODES}, got {color_mode!r}")
+    points = np.asarray(result.points)
+    if points.ndim != 3 or points.shape[2] != 3:
+        raise ValueError(f"result.points: expected (H, W, 3), got {points.shape}")
+    h, w = points.shape[:2]
+    step = decimation_step(h, w, max_points)
+    sub = points[::step, ::step]
+    keep = np.asarray(result.valid)[::step, ::step] & np.isfinite(sub).all(axis=2)
+    xyz = np.ascontiguousarray(sub[keep], dtype=np.float32)
+    if color_mode == "height":
+        colors = depth_colormap(np.asarray(result.depth)[::step, ::step], range_mm)[keep]
+    else:
+        gray = texture_u8(result)[::step, ::step][keep]
+        colors = np.repeat(gray[:, None], 3, axis=1)
+    return xyz, np.ascontiguousarray(colors), step
+
+
+def texture_u8(result: Any) -> npt.NDArray[np.uint8]:
+    """The result's texture as uint8, scaled as the REST texture PNG is."""
+    return _texture_u8(np.asarray(result.texture), float(result.full_scale))
+
+
+def _preview(rgb: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    h, w = rgb.shape[:2]
+    if w <= PANEL_WIDTH_PX:
+        return rgb
+    size = (PANEL_WIDTH_PX, max(1, round(h * PANEL_WIDTH_PX / w)))
+    return np.asarray(cv2.resize(rgb, size, interpolation=cv2.INTER_AREA))
+
+
+def _point_size_mm(xyz: npt.NDArray[np.float32], step: int, points: npt.NDArray[Any]) -> float:
+    """About the spacing of neighbouring decimated points, so the surface looks closed."""
+    row = points[points.shape[0] // 2]
+    gaps = np.linalg.norm(np.diff(row, axis=0), axis=1)
+    gaps = gaps[np.isfinite(gaps)]
+    if gaps.size == 0 or xyz.size == 0:
+        return 0.2
+    return float(np.clip(np.median(gaps) * step * 1.2, 0.01, 5.0))
+
+
+class Viewer:
+    """viser 3-D view of the Instrument's latest result, with exposure/LED controls.
+
+    Parameters
+    ----------
+    instrument
+        Has ``store`` (an :class:`app.service.store.LatestSlot` of results),
+        ``status() -> dict``, ``set_exposure(exposure_ms)`` and ``set_led(led)``.
+    host : str
+        Bind address; loopback by default (the browser reaches it through the relay).
+    port : int
+        0 picks a free port; read :attr:`port` after :meth:`start`.
+    max_points : int
+        Upper bound on the points sent per update.
+    max_rate_hz : float
+        Upper bound on updates per second.
+    """
+
+    def __init__(
+        self,
+        instrument: Any,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        max_points: int = 300_000,
+        max_rate_hz: float = 15.0,
+        range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
+    ) -> None:
+        if max_points < 1:
+            raise ValueError(f"max_points: must be >= 1, got {max_points}")
+        if not max_rate_hz > 0:
+            raise ValueError(f"max_rate_hz: must be > 0, got {max_rate_hz}")
+        self._instrument = instrument
+        self._store = instrument.store
+        self._host = host
+        self._requested_port = port
+        self.max_points = max_points
+        self._min_interval_s = 1.0 / max_rate_hz
+        self._range_mm = (float(range_mm[0]), float(range_mm[1]))
+        self._color_mode = "height"
+        self._server: viser.ViserServer | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._redraw = threading.Event()
+        self._lock = threading.Lock()
+        self._cloud: Any = None
+        self._depth_image: Any = None
+        self._texture_image: Any = None
+        self._camera_placed = False
+        self._gui: dict[str, Any] = {}
+        self.updates = 0  # results pushed to viser
+        self.last_seq = 0
+        self.last_point_count = 0
+
+    # -- lifecycle -----------------------------------------------------------------
+    @property
+    def port(self) -> int:
+        if self._server is None:
+            raise RuntimeError("Viewer.port: not started")
+        return int(self._server.get_port())
+
+    @property
+    def server(self) -> viser.ViserServer:
+        if self._server is None:
+            raise RuntimeError("Viewer.server: not started")
+        return self._server
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self._server is not None:
+            raise RuntimeError("Viewer.start: already started")
+        server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
+        self._server = server
+        try:
+            server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False)
+            # Camera frame: x right, y down, z along the optical axis.
+            server.scene.set_up_direction("-y")
+            self._build_gui(server)
+        except Exception:
+            server.stop()
+            self._server = None
+            raise
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="viewer-update", daemon=True)
+        self._thread.start()
+        log.info("viser 3-D view on %s:%d", self._host, self.port)
+
+    def stop(self) -> None:
+        """Stop the update thread and the viser server (its port is free afterwards)."""
+        self._stop.set()
+        self._redraw.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            if self._thread.is_alive():
+                log.error("viewer update thread did not stop within 10 s")
+            self._thread = None
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+        self._cloud = self._depth_image = self._texture_image = None
+        self._gui.clear()
+
+    def __enter__(self) -> Viewer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- GUI -------------------------------------------------------------------------
+    def _build_gui(self, server: viser.ViserServer) -> None:
+        gui = server.gui
+        status = self._safe_status()
+        with gui.add_folder("Acquisition"):
+            exposure = gui.add_slider(
+                "Exposure (ms)", min=1.0, max=100.0, step=1.0,
+                initial_value=float(np.clip(status.get("exposure_ms", 30.0), 1.0, 100.0)),
+            )
+            led0 = status.get("led", "green")
+            led = gui.add_dropdown("LED", LEDS, initial_value=led0 if led0 in LEDS else "green")
+            info = gui.add_markdown("waiting for depth…")
+        with gui.add_folder("Display"):
+            color = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=self._color_mode)
+            lo = gui.add_number("Height min (mm)", self._range_mm[0], step=0.5)
+            hi = gui.add_number("Height max (mm)", self._range_mm[1], step=0.5)
+        with gui.add_folder("Images"):
+            blank = np.zeros((8, 8, 3), dtype=np.uint8)
+            self._depth_image = gui.add_image(blank, label="Depth (colormap)", format="jpeg")
+            self._texture_image = gui.add_image(blank, label="Texture", format="jpeg")
+        self._gui = {"exposure": exposure, "led": led, "info": info, "color": color,
+                     "min": lo, "max": hi}
+
+        # A value assigned here (client None) mirrors the instrument: don't echo it back.
+        @exposure.on_update
+        def _(event: Any) -> None:
+            if event.client is not None:
+                self._call("set_exposure", float(event.target.value))
+
+        @led.on_update
+        def _(event: Any) -> None:
+            if event.client is not None:
+                self._call("set_led", str(event.target.value))
+
+        @color.on_update
+        def _(event: Any) -> None:
+            self._color_mode = str(event.target.value)
+            self._redraw.set()
+
+        def set_range(_: Any) -> None:
+            lo_mm, hi_mm = float(lo.value), float(hi.value)
+            if hi_mm > lo_mm:
+                self._range_mm = (lo_mm, hi_mm)
+                self._redraw.set()
+
+        lo.on_update(set_range)
+        hi.on_update(set_range)
+
+    def _call(self, method: str, value: Any) -> None:
+        try:
+            getattr(self._instrument, method)(value)
+        except Exception as exc:  # a rejected value must not kill viser's callback thread
+            log.warning("viewer: %s(%r) failed: %s", method, value, exc)
+            if self._server is not None:
+                self._server.add_notification(
+                    "Rejected", f"{method}({value!r}): {exc}", color="red", auto_close_seconds=5.0
+                )
+
+    def _safe_status(self) -> dict[str, Any]:
+        try:
+            return dict(self._instrument.status())
+        except Exception as exc:
+            log.debug("viewer: status() failed: %s", exc)
+            return {}
+
+    def _mirror_status(self) -> None:
+        status = self._safe_status()
+        gui = self._gui
+        if not status or not gui:
+            return
+        exposure_ms = status.get("exposure_ms")
+        if isinstance(exposure_ms, int | float) and math.isfinite(exposure_ms):
+            gui["exposure"].value = float(np.clip(round(exposure_ms), 1.0, 100.0))
+        if status.get("led") in LEDS:
+            gui["led"].value = status["led"]
+
+        def fmt(key: str, spec: str) -> str:
+            value = status.get(key)
+            return format(value, spec) if isinstance(value, int | float) else "–"
+
+        gui["info"].content = (
+            f"**{status.get('state', '?')}** · depth {fmt('depth_fps', '.2f')}/s · "
+            f"camera {fmt('camera_fps', '.1f')}/s · latency {fmt('latency_ms', '.0f')} ms · "
+            f"{self.last_point_count:,} points"
+        )
+
+    # -- updates ---------------------------------------------------------------------
+    def _run(self) -> None:
+        last_push = -math.inf
+        last_status = -math.inf
+        shown: Any = None
+        while not self._stop.is_set():
+            seq, result = self._store.wait_newer(self.last_seq, 0.25)
+            if result is None and self._store.closed:
+                self._stop.wait(0.25)  # the instrument shut down first: don't spin
+            now = time.monotonic()
+            if now - last_status >= 0.5:
+                last_status = now
+                self._mirror_status()
+            redraw = self._redraw.is_set()
+            if result is None and not (redraw and shown is not None):
+                continue
+            if result is not None:
+                # Pacing: wait out the interval, then show the newest result there is.
+                wait_s = last_push + self._min_interval_s - now
+                if wait_s > 0 and self._stop.wait(wait_s):
+                    break
+                seq2, newest = self._store.latest()
+                if newest is not None and seq2 >= seq:
+                    seq, result = seq2, newest
+                self.last_seq = seq
+                shown = result
+            self._redraw.clear()
+            try:
+                self._show(shown)
+            except Exception:
+                log.exception("viewer: update failed")
+            last_push = time.monotonic()
+
+    def _show(self, result: Any) -> None:
+        server = self._server
+        if server is None:
+            return
+        xyz, colors, step = cloud_arrays(result, self.max_points, self._color_mode, self._range_mm)
+        depth_rgb = _preview(depth_colormap(np.asarray(result.depth), self._range_mm))
+        texture = _preview(np.repeat(texture_u8(result)[..., None], 3, axis=2))
+        size_mm = _point_size_mm(xyz, step, np.asarray(result.points))
+        with self._lock, server.atomic():
+            if self._cloud is None:
+                self._cloud = server.scene.add_point_cloud(
+                    "/depth/points", xyz, colors, point_size=size_mm,
+                    precision="float32", point_shading="flat",
+                )
+            else:
+                self._cloud.points = xyz
+                self._cloud.colors = colors
+                self._cloud.point_size = size_mm
+            self._cloud.visible = len(xyz) > 0
+            if self._depth_image is not None:
+                self._depth_image.image = depth_rgb
+                self._texture_image.image = texture
+            if not self._camera_placed and len(xyz) > 0:
+                self._place_camera(server, xyz)
+        self.updates += 1
+        self.last_point_count = len(xyz)
+
+    def _place_camera(self, server: viser.ViserServer, xyz: npt.NDArray[np.float32]) -> None:
+        """Start every browser at the scope's own viewpoint, looking at the tissue."""
+        centre = np.median(xyz, axis=0).astype(np.float64)
+        distance = float(np.linalg.norm(centre)) or 50.0
+        position = np.array([0.0, -0.15 * distance, 0.0])
+        up = np.array([0.0, -1.0, 0.0])
+        server.initial_camera.position = position
+        server.initial_camera.look_at = centre
+        server.initial_camera.up = up
+        for client in server.get_clients().values():
+            client.camera.position = position
+            client.camera.look_at = centre
+            client.camera.up_direction = up
+        self._camera_placed = True

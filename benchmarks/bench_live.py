@@ -1,0 +1,153 @@
+"""Live pipeline on the simulator behind a real uvicorn server (issue 5's speed targets).
+
+At 30 ms exposure: camera fps, depth rate and its ratio to camera fps / 16 (target
+≥ 0.97), median latency last frame → result (target ≤ 20 ms), p99 of GET /api/status
+while 4 WebSocket clients stream the depth colormap (target < 50 ms), and the rate each
+stream client receives compared with the depth rate (target ≥ 0.97).
+
+    python benchmarks/bench_live.py [--seconds 20] [--exposure-ms 30] [--data-dir data]
+
+The first run creates the simulator's calibration in DATA_DIR (a minute or two).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import httpx  # noqa: E402
+import numpy as np  # noqa: E402
+import uvicorn  # noqa: E402
+from websockets.sync.client import connect  # noqa: E402
+
+from app.config import Settings  # noqa: E402
+from app.main import create_app  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread]:
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=settings.port,
+                                           log_level="warning", ws="websockets"))
+    thread = threading.Thread(target=server.run, name="bench-uvicorn", daemon=True)
+    thread.start()
+    while not server.started:
+        if not thread.is_alive():
+            raise SystemExit("server failed to start")
+        time.sleep(0.05)
+    return server, thread
+
+
+def wait_running(base: str, timeout_s: float) -> dict:
+    deadline = time.monotonic() + timeout_s
+    st: dict = {}
+    while time.monotonic() < deadline:
+        st = httpx.get(base + "/api/status", timeout=5).json()
+        if st["state"] == "running" and st["results_published"] >= 2:
+            return st
+        time.sleep(0.5)
+    raise SystemExit(f"instrument not running after {timeout_s:.0f} s: {st.get('state')} {st.get('last_error')}")
+
+
+def stream_client(url: str, stop: threading.Event, arrivals: list[float], sizes: list[int]) -> None:
+    with connect(url, max_size=None, open_timeout=10) as ws:
+        while not stop.is_set():
+            try:
+                msg = ws.recv(timeout=1.0)
+            except TimeoutError:
+                continue
+            arrivals.append(time.monotonic())
+            sizes.append(len(msg))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--exposure-ms", type=float, default=30.0)
+    ap.add_argument("--clients", type=int, default=4)
+    ap.add_argument("--data-dir", default="data")
+    ap.add_argument("--viewer", action="store_true", help="also run the viser 3-D viewer")
+    args = ap.parse_args()
+
+    settings = Settings(port=free_port(), data_dir=Path(args.data_dir), exposure_ms=args.exposure_ms,
+                        viewer=args.viewer, sim_seed=1)
+    base = f"http://127.0.0.1:{settings.port}"
+    server, thread = start_server(settings)
+    try:
+        wait_running(base, timeout_s=600)
+        time.sleep(2.0)  # warm-up: JIT, first encodings
+        stop = threading.Event()
+        arrivals: list[list[float]] = [[] for _ in range(args.clients)]
+        sizes: list[int] = []
+        ws_url = f"ws://127.0.0.1:{settings.port}/api/stream/depth"
+        clients = [threading.Thread(target=stream_client, args=(ws_url, stop, arrivals[i], sizes), daemon=True)
+                   for i in range(args.clients)]
+        for c in clients:
+            c.start()
+        time.sleep(1.0)
+        status_ms: list[float] = []
+        with httpx.Client(base_url=base, timeout=5) as http:
+            s0 = http.get("/api/status").json()
+            t0 = time.monotonic()
+            lat_start = len(arrivals[0])
+            arr_start = [len(a) for a in arrivals]
+            while time.monotonic() - t0 < args.seconds:
+                t = time.perf_counter()
+                r = http.get("/api/status")
+                status_ms.append(1000 * (time.perf_counter() - t))
+                r.raise_for_status()
+                time.sleep(0.02)
+            t1 = time.monotonic()
+            s1 = http.get("/api/status").json()
+        stop.set()
+        for c in clients:
+            c.join(5)
+        del lat_start
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+    span = t1 - t0
+    camera_fps = (s1["frames_received"] - s0["frames_received"]) / span
+    depth_fps = (s1["results_published"] - s0["results_published"]) / span
+    ideal = camera_fps / 16.0
+    ratio = depth_fps / ideal if ideal else 0.0
+    latency = s1["latency_ms"]
+    p50, p99 = np.percentile(status_ms, [50, 99])
+    stream_rates = [sum(1 for x in a[n0:] if t0 <= x <= t1) / span for a, n0 in zip(arrivals, arr_start, strict=True)]
+    stream_ratio = min(stream_rates) / depth_fps if depth_fps else 0.0
+
+    def verdict(ok: bool) -> str:
+        return "ok" if ok else "MISSED"
+
+    print(f"bench_live: {span:.1f} s at {args.exposure_ms:g} ms exposure, {args.clients} WebSocket clients"
+          f"{' + viewer' if args.viewer else ''}")
+    print(f"  camera fps            {camera_fps:8.2f}")
+    print(f"  depth rate            {depth_fps:8.3f} /s   ideal camera/16 = {ideal:.3f} /s   "
+          f"ratio {ratio:.3f} (target >= 0.97: {verdict(ratio >= 0.97)})")
+    print(f"  latency median        {latency:8.2f} ms  (last frame -> result; target <= 20: "
+          f"{verdict(latency is not None and latency <= 20)})")
+    print(f"  GET /api/status       p50 {p50:.2f} ms  p99 {p99:.2f} ms  n={len(status_ms)} "
+          f"(target p99 < 50: {verdict(p99 < 50)})")
+    print(f"  stream rate / client  {', '.join(f'{r:.3f}' for r in stream_rates)} /s   "
+          f"min/depth ratio {stream_ratio:.3f} (target >= 0.97: {verdict(stream_ratio >= 0.97)})  "
+          f"mean JPEG {np.mean(sizes) / 1024 if sizes else 0:.0f} KiB")
+    print(f"  sets dropped (newest wins) {s1['dropped_sets'] - s0['dropped_sets']}, incomplete "
+          f"{s1['incomplete_sets'] - s0['incomplete_sets']}, frames dropped {s1['frames_dropped'] - s0['frames_dropped']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

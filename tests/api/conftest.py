@@ -1,0 +1,82 @@
+"""Live-app fixtures: the real app with its lifespan on the simulator.
+
+The calibration is made once per session the way a user would make it (simulated board
+poses → ``calibrate_folder``) and handed to every app through ``calibration_file``, so
+no app spends its start-up calibrating.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+
+from app.config import Settings  # noqa: E402
+from app.main import create_app  # noqa: E402
+
+FAST_EXPOSURE_MS = 10.0  # short sets keep the tests quick (the simulator runs in real time)
+
+
+@pytest.fixture(scope="session")
+def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from app.calib.calibration import save_calibration
+    from app.calib.fitting import calibrate_folder
+    from app.devices.sim import simulate_calibration_folder
+
+    root = tmp_path_factory.mktemp("simcal")
+    simulate_calibration_folder(root / "poses", seed=0)
+    report = calibrate_folder(root / "poses")
+    return save_calibration(report.calibration, root / "sim.json")
+
+
+def live_settings(tmp_path: Path, calibration_file: Path | None, **overrides: Any) -> Settings:
+    values: dict[str, Any] = {
+        "data_dir": tmp_path / "data", "calibration_file": calibration_file, "viewer": False,
+        "sim_seed": 1, "exposure_ms": FAST_EXPOSURE_MS,
+    }
+    values.update(overrides)
+    return Settings(**values)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:
+    """One running app shared by a module's tests (they restore what they change)."""
+    settings = live_settings(tmp_path_factory.mktemp("live"), sim_calibration_file)
+    with TestClient(create_app(settings)) as client:
+        wait_for(client, lambda st: st["results_published"] >= 1, 120)
+        yield client
+
+
+def wait_for(client: TestClient, predicate: Callable[[dict[str, Any]], bool], timeout_s: float,
+             what: str = "condition") -> dict[str, Any]:
+    """Poll /api/status until ``predicate(status)`` holds; fail with the last status."""
+    deadline = time.monotonic() + timeout_s
+    st: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        st = client.get("/api/status").json()
+        if predicate(st):
+            return st
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}; last status: {st}")
+
+
+def wait_result(client: TestClient, predicate: Callable[[dict[str, Any]], bool], timeout_s: float,
+                what: str = "result") -> dict[str, Any]:
+    """Poll /api/result/latest until ``predicate(meta)`` holds."""
+    deadline = time.monotonic() + timeout_s
+    meta: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        r = client.get("/api/result/latest")
+        if r.status_code == 200:
+            meta = r.json()
+            if predicate(meta):
+                return meta
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}; last result: {meta}")

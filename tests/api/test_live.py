@@ -1,0 +1,211 @@
+"""The running app on the simulator: status, controls reaching the frames, results, streams."""
+
+from __future__ import annotations
+
+import io
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from tests.api.conftest import FAST_EXPOSURE_MS, wait_for, wait_result
+
+STATUS_KEYS = {
+    "state", "camera_fps", "depth_fps", "latency_ms", "exposure_ms", "led", "mode", "calibration",
+    "devices", "last_error", "sets_completed", "dropped_sets", "incomplete_sets", "frames_dropped",
+    "faults", "warnings",
+}
+
+
+def test_status_reports_a_running_instrument(live: TestClient) -> None:
+    st = wait_for(live, lambda s: s["state"] == "running" and s["depth_fps"] > 0, 30, "running")
+    assert STATUS_KEYS <= st.keys()
+    assert st["mode"] == "set" and st["exposure_ms"] == FAST_EXPOSURE_MS and st["led"] == "green"
+    assert st["camera_fps"] > 5 and st["latency_ms"] is not None and st["latency_ms"] > 0
+    assert st["calibration"]["name"] == "sim" and st["calibration"]["height_range_mm"][1] > 10
+    assert {d["kind"] for d in st["devices"]} >= {"camera", "projector"}
+    assert all(d["state"] in ("open", "running") for d in st["devices"])
+    # the depth rate is bounded by the camera: one map per 16 frames at most
+    assert st["depth_fps"] <= st["camera_fps"] / 16 * 1.3
+
+
+def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:
+    try:
+        r = live.put("/api/exposure", json={"exposure_ms": 14.5})
+        assert r.status_code == 200 and r.json()["exposure_ms"] == 14.5
+        meta = wait_result(live, lambda m: m["exposure_ms"] == 14.5, 20, "exposure 14.5 in the frames")
+        assert len(meta["frame_indices"]) == 16
+        r = live.put("/api/led", json={"led": "red"})
+        assert r.status_code == 200
+        wait_result(live, lambda m: m["led"] == "red", 20, "red LED in the frames")
+        st = live.get("/api/status").json()
+        assert st["led"] == "red" and st["exposure_ms"] == 14.5
+    finally:
+        live.put("/api/exposure", json={"exposure_ms": FAST_EXPOSURE_MS})
+        live.put("/api/led", json={"led": "green"})
+    wait_result(live, lambda m: m["led"] == "green" and m["exposure_ms"] == FAST_EXPOSURE_MS, 20)
+
+
+@pytest.mark.parametrize(
+    "method, path, body",
+    [
+        ("put", "/api/exposure", {"exposure_ms": 0.5}),
+        ("put", "/api/exposure", {"exposure_ms": 100.5}),
+        ("put", "/api/exposure", {"exposure_ms": "fast"}),
+        ("put", "/api/exposure", {}),
+        ("put", "/api/exposure", {"exposure_ms": 20, "gain": 2}),
+        ("put", "/api/led", {"led": "purple"}),
+        ("put", "/api/led", {"led": 1}),
+        ("put", "/api/mode", {"rolling": "yes"}),
+        ("post", "/api/exposure/auto", {"saturation_limit": 2}),
+        ("post", "/api/analysis/plane", {"roi": [10, 10, 5, 20]}),
+        ("post", "/api/analysis/plane", {"roi": [1, 2, 3]}),
+        ("post", "/api/analysis/feature", {"roi": "all"}),
+        ("post", "/api/calibration/session", {"type": "hexagons"}),
+        ("post", "/api/calibration/session", {"type": "checkerboard", "inner_corners": [1, 6], "square_mm": 2}),
+        ("post", "/api/calibration/session", {"type": "checkerboard", "inner_corners": [8, 6]}),
+    ],
+)
+def test_bad_input_is_422_with_a_reason(live: TestClient, method: str, path: str, body: object) -> None:
+    r = getattr(live, method)(path, json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"]
+
+
+def test_malformed_json_is_422(live: TestClient) -> None:
+    r = live.put("/api/exposure", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422 and r.json()["detail"]
+
+
+@pytest.mark.parametrize("query", ["format=bmp", "format=color&min_mm=10&max_mm=5", "format=color&min_mm=nan"])
+def test_bad_depth_query_is_422(live: TestClient, query: str) -> None:
+    r = live.get(f"/api/depth/latest?{query}")
+    assert r.status_code == 422 and r.json()["detail"]
+
+
+def test_depth_formats_agree(live: TestClient) -> None:
+    r = live.get("/api/depth/latest?format=npy")
+    assert r.status_code == 200
+    depth = np.load(io.BytesIO(r.content))
+    seq = int(r.headers["x-fringescope-seq"])
+    assert depth.dtype == np.float32 and depth.ndim == 2
+    valid = np.isfinite(depth)
+    assert valid.mean() > 0.3
+    # the same result again (pinned by seq) as a 16-bit µm PNG
+    for _ in range(50):
+        r = live.get("/api/depth/latest?format=png")
+        if int(r.headers["x-fringescope-seq"]) == seq:
+            break
+        r = live.get("/api/depth/latest?format=npy")
+        depth, seq = np.load(io.BytesIO(r.content)), int(r.headers["x-fringescope-seq"])
+        valid = np.isfinite(depth)
+    png = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint16 and png.shape == depth.shape
+    assert np.array_equal(png == 0, ~valid)
+    expect = np.clip(np.rint(depth[valid] * 1000), 1, 65535)
+    assert np.abs(png[valid].astype(np.int64) - expect).max() <= 1
+    r = live.get("/api/depth/latest?format=color&min_mm=0&max_mm=20")
+    color = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    assert color.shape[0] >= depth.shape[0] and color.shape[1] > depth.shape[1]  # image + colour bar
+
+
+def test_texture_reason_and_pointcloud(live: TestClient) -> None:
+    tex = live.get("/api/texture/latest.png")
+    assert tex.status_code == 200 and tex.headers["content-type"] == "image/png"
+    img = cv2.imdecode(np.frombuffer(tex.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint8 and img.ndim == 2 and img.std() > 5
+    reason = live.get("/api/reason/latest.png")
+    assert reason.status_code == 200 and "ok" in reason.headers["x-fringescope-reasons"]
+    ply = live.get("/api/pointcloud/latest.ply")
+    assert ply.status_code == 200
+    head = ply.content[:400].decode("ascii", "replace")
+    assert head.startswith("ply") and "element vertex" in head
+    n = int(head.split("element vertex")[1].split()[0])
+    meta = live.get("/api/result/latest").json()
+    h, w = meta["shape"]
+    assert 0 < n <= h * w
+    assert n == pytest.approx(meta["valid_fraction"] * h * w, rel=0.2)
+
+
+def test_websocket_stream_delivers_new_jpegs(live: TestClient) -> None:
+    with live.websocket_connect("/api/stream/depth?min_mm=0&max_mm=30") as ws:
+        first = ws.receive_bytes()
+        second = ws.receive_bytes()
+    for data in (first, second):
+        assert data[:2] == b"\xff\xd8"  # JPEG
+        assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is not None
+
+
+def test_mjpeg_stream_parts(live: TestClient) -> None:
+    with live.stream("GET", "/api/stream/depth.mjpeg") as r:
+        assert r.headers["content-type"].startswith("multipart/x-mixed-replace")
+        buf = b""
+        for chunk in r.iter_bytes():
+            buf += chunk
+            if buf.count(b"--frame") >= 2:
+                break
+    assert b"Content-Type: image/jpeg" in buf and b"\xff\xd8" in buf
+
+
+def test_rolling_mode_labels_results(live: TestClient) -> None:
+    try:
+        assert live.put("/api/mode", json={"rolling": True}).json() == {"mode": "rolling"}
+        meta = wait_result(live, lambda m: m["mode"] == "rolling", 20, "a rolling result")
+        idx = meta["frame_indices"]
+        assert sorted(idx) == list(range(min(idx), min(idx) + 16))  # the last 16 frames
+        st = wait_for(live, lambda s: s["depth_fps"] > 0, 10)
+        assert st["mode"] == "rolling"
+        seqs = {wait_result(live, lambda m: m["mode"] == "rolling", 5)["seq"] for _ in range(3)}
+        assert len(seqs) >= 2
+    finally:
+        live.put("/api/mode", json={"rolling": False})
+    wait_result(live, lambda m: m["mode"] == "set", 20)
+
+
+def test_acquisition_stop_and_start(live: TestClient) -> None:
+    assert live.post("/api/acquisition/stop").json()["acquiring"] is False
+    st = wait_for(live, lambda s: s["state"] == "stopped", 10, "stopped")
+    frames = st["frames_received"]
+    wait_for(live, lambda s: s["camera_fps"] == 0 or s["frames_received"] == frames, 5)
+    assert live.post("/api/acquisition/start").json()["acquiring"] is True
+    wait_for(live, lambda s: s["state"] == "running" and s["frames_received"] > frames + 16, 30, "running again")
+
+
+def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
+    r = live.get("/api/calibration/file")
+    assert r.status_code == 200
+    data = r.json()
+    assert data["format"] == "fringescope.calibration/1"
+    bad = dict(data, format="something/9")
+    r = live.put("/api/calibration/file", json=bad)
+    assert r.status_code == 422 and "format" in r.json()["detail"]
+    wrong_size = dict(data, image_size=[640, 480])
+    r = live.put("/api/calibration/file", json=wrong_size)
+    assert r.status_code == 422 and "image size" in r.json()["detail"]
+    r = live.put("/api/calibration/file", content=b"[1, 2", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    r = live.put("/api/calibration/file", json=data)
+    assert r.status_code == 200 and r.json()["name"] == "uploaded"
+    assert live.get("/api/calibration").json()["name"] == "uploaded"
+    wait_for(live, lambda s: s["results_published"] > 0 and s["state"] == "running", 20)
+
+
+def test_plane_analysis_in_an_roi(live: TestClient) -> None:
+    meta = live.get("/api/result/latest").json()
+    h, w = meta["shape"]
+    r = live.post("/api/analysis/plane", json={"roi": [w // 3, h // 3, 2 * w // 3, 2 * h // 3]})
+    assert r.status_code in (200, 422), r.text
+    if r.status_code == 200:
+        body = r.json()
+        assert body["points"] > 10 and body["precision_mm"] is not None and body["precision_mm"] >= 0
+    r = live.post("/api/analysis/plane", json={"roi": [0, 0, w + 10, h + 10]})
+    assert r.status_code == 422 and "roi" in r.json()["detail"]
+
+
+def test_openapi_lists_the_fixed_routes(live: TestClient) -> None:
+    paths = live.get("/openapi.json").json()["paths"]
+    for p in ("/api/status", "/api/exposure", "/api/led", "/api/acquisition/start", "/api/acquisition/stop",
+              "/api/depth/latest", "/api/pointcloud/latest.ply", "/api/reconstruct", "/api/calibration/file"):
+        assert p in paths
+    assert live.get("/docs").status_code == 200

@@ -1,0 +1,97 @@
+"""An analytic pinhole camera + pinhole projector rig for calibration tests.
+
+Along a camera ray X = t·r the projector column is linear-fractional in t, and the height
+above any plane is linear in t, so the phase → height map is exactly Eq. (5) (zero
+quadratic terms): a fit must reproduce it to numerical precision.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from app.calib.board import BoardSpec
+from app.calib.fitting import PoseObservation
+from app.recon.patterns import PatternSchedule
+
+
+def rot(ax_deg: float, ay_deg: float, az_deg: float = 0.0) -> np.ndarray:
+    rv = np.radians([ax_deg, ay_deg, az_deg])
+    rx = cv2.Rodrigues(np.array([rv[0], 0, 0]))[0]
+    ry = cv2.Rodrigues(np.array([0, rv[1], 0]))[0]
+    rz = cv2.Rodrigues(np.array([0, 0, rv[2]]))[0]
+    return rz @ ry @ rx
+
+
+@dataclass
+class Rig:
+    width: int = 640
+    height: int = 480
+    f_px: float = 800.0
+    schedule: PatternSchedule = PatternSchedule()
+    proj_center_mm: tuple[float, float, float] = (20.0, 0.0, 0.0)
+    proj_yaw_deg: float = -12.0
+    proj_f_px: float = 900.0
+
+    @property
+    def camera_matrix(self) -> np.ndarray:
+        return np.array([[self.f_px, 0, (self.width - 1) / 2], [0, self.f_px, (self.height - 1) / 2], [0, 0, 1.0]])
+
+    def rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        k = self.camera_matrix
+        return np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], axis=-1)
+
+    def phase_of_points(self, x: np.ndarray) -> np.ndarray:
+        """Finest-frequency phase (rad) lighting camera-frame points x (..., 3) mm."""
+        r = rot(0, self.proj_yaw_deg)
+        xp = (x - np.array(self.proj_center_mm)) @ r.T
+        col = self.proj_f_px * xp[..., 0] / xp[..., 2] + self.schedule.width / 2
+        return 2 * math.pi * self.schedule.frequencies[-1] * col / self.schedule.width
+
+    def plane_phase_map(self, normal: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """(H, W) phase over the image for an infinite plane through ``point``."""
+        vv, uu = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        r = self.rays(uu, vv)
+        t = (normal @ point) / (r @ normal)
+        return self.phase_of_points(r * t[..., None]).astype(np.float32)
+
+    def observe(self, board: BoardSpec, rmat: np.ndarray, tvec: np.ndarray, name: str = "",
+                noise_px: float = 0.0, rng: np.random.Generator | None = None) -> PoseObservation:
+        obj = board.object_points()
+        img, _ = cv2.projectPoints(obj, cv2.Rodrigues(rmat)[0], tvec, self.camera_matrix, np.zeros(5))
+        img = img.reshape(-1, 2)
+        if noise_px:
+            img = img + (rng or np.random.default_rng(0)).normal(0, noise_px, img.shape)
+        phase = self.plane_phase_map(rmat[:, 2], np.asarray(tvec, np.float64))
+        return PoseObservation(img.astype(np.float32), obj, phase, name)
+
+
+def board_pose(board: BoardSpec, depth_mm: float, ax: float, ay: float, az: float = 0.0,
+               shift: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation putting the board centre at (shift, depth) facing the camera."""
+    obj = board.object_points()
+    centre = obj.mean(axis=0).astype(np.float64)
+    r = rot(ax, ay, az)
+    t = np.array([shift[0], shift[1], depth_mm]) - r @ centre
+    return r, t
+
+
+STANDARD_POSES = [  # (depth, tilt x, tilt y, spin z, shift) — pose 0 farthest
+    (100.0, 4.0, -3.0, 0.0, (0.0, 0.0)),
+    (96.0, -12.0, 8.0, 5.0, (3.0, -2.0)),
+    (92.0, 10.0, 12.0, -4.0, (-4.0, 2.0)),
+    (88.0, -6.0, -14.0, 8.0, (2.0, 3.0)),
+    (84.0, 15.0, -5.0, -6.0, (-2.0, -3.0)),
+    (80.0, -9.0, 10.0, 3.0, (0.0, 1.0)),
+]
+
+
+def true_height(rig: Rig, ref_r: np.ndarray, ref_t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Height of camera-frame points above the reference board plane, toward the camera."""
+    n = ref_r[:, 2]
+    if n @ ref_t > 0:
+        n = -n
+    return x @ n - n @ ref_t

@@ -1,0 +1,179 @@
+"""LightCrafter 3000 client against the fake TCP server on 127.0.0.1: framing, uploads, faults."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from app.devices import DeviceDisconnected, DeviceNotFound, DeviceState, DeviceTimeout, ProtocolError
+from app.devices.lightcrafter import (
+    CMD_PATTERN_DEF,
+    CMD_VERSION,
+    FIRST,
+    LAST,
+    MIDDLE,
+    READ,
+    WRITE,
+    LightCrafterClient,
+    LightCrafterError,
+    LightCrafterProjector,
+    checksum,
+    encode_bmp,
+    encode_packet,
+    sequence_bit_depth,
+    split_packets,
+)
+from app.devices.lightcrafter_emulator import LightCrafterEmulator, decode_bmp
+from app.recon.patterns import PatternSchedule, generate_patterns
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def emu():
+    e = LightCrafterEmulator().start()
+    yield e
+    e.stop()
+
+
+def _raw(emu: LightCrafterEmulator, data: bytes) -> bytes:
+    """Send raw bytes, return the raw reply packet."""
+    with socket.create_connection((emu.host, emu.port), timeout=2) as s:
+        s.sendall(data)
+        head = s.recv(6, socket.MSG_WAITALL)
+        return head + s.recv(head[4] + 256 * head[5] + 1, socket.MSG_WAITALL)
+
+
+def test_packet_bytes_match_known_lightcrafter_commands():
+    # version read (DM365 software) and "display mode = static image", as sent to real units
+    assert encode_packet(READ, CMD_VERSION, b"\x00") == bytes.fromhex("0401000001000006")
+    assert encode_packet(WRITE, 0x0101, b"\x00") == bytes.fromhex("0201010001000005")
+    assert checksum(bytes(range(256))) == (255 * 256 // 2) % 256
+
+
+def test_large_payload_is_split_with_continuation_flags():
+    payload = bytes(range(256)) * 700  # 179 200 bytes → 65535 + 65535 + 48130
+    packets = split_packets(WRITE, CMD_PATTERN_DEF, payload)
+    assert [p[3] for p in packets] == [FIRST, MIDDLE, LAST]
+    assert [p[4] | p[5] << 8 for p in packets] == [65535, 65535, 48130]
+    assert b"".join(p[6:-1] for p in packets) == payload
+    assert all(p[-1] == sum(p[:-1]) % 256 for p in packets)
+
+
+@pytest.mark.parametrize("bits", [1, 8])
+def test_bmp_encoding_is_read_back_by_opencv_and_the_fake_server(bits):
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (684, 608), dtype=np.uint8)
+    expected = img if bits == 8 else np.where(img >= 128, 255, 0).astype(np.uint8)
+    bmp = encode_bmp(img, bits)
+    assert np.array_equal(cv2.imdecode(np.frombuffer(bmp, np.uint8), cv2.IMREAD_GRAYSCALE), expected)
+    assert np.array_equal(decode_bmp(bmp), expected)
+
+
+def test_bit_depth_fits_the_96_bit_planes():
+    assert [sequence_bit_depth(n) for n in (1, 12, 16, 24, 96)] == [8, 8, 6, 4, 1]
+    with pytest.raises(ValueError, match="n_patterns"):
+        sequence_bit_depth(97)
+
+
+def test_server_answers_bad_checksum_and_continuation_errors_byte_exactly(emu):
+    good = encode_packet(READ, CMD_VERSION, b"\x00")
+    bad = good[:-1] + bytes([(good[-1] + 1) % 256])
+    assert _raw(emu, bad) == bytes([0x01, 0x01, 0x00, 0x00, 0x01, 0x00, 0x09, 0x0C])
+    middle = encode_packet(WRITE, CMD_PATTERN_DEF, b"\x00" * 8, MIDDLE)
+    assert _raw(emu, middle)[6] == 0x0B
+    reply = _raw(emu, good)
+    assert reply[0] == 0x05 and reply[-1] == sum(reply[:-1]) % 256 and reply[6:-1].startswith(b"5.0.0")
+
+
+def test_projector_uploads_the_fringe_sequence(emu):
+    schedule = PatternSchedule()
+    proj = LightCrafterProjector(emu.host, emu.port)
+    proj.open()
+    assert proj.firmware.startswith("5.0.0") and emu.state.display_mode == 0x04
+    proj.load_schedule(schedule, exposure_ms=25.0)
+    seq = emu.state.sequence
+    assert seq == {"bit_depth": 6, "count": 16, "inverted": 0, "trigger": 0x01, "delay_us": 0,
+                   "period_us": 27000, "exposure_us": 25000, "led": 1}
+    expected = generate_patterns(schedule) & np.uint8(0xFC)
+    assert sorted(emu.state.patterns) == list(range(16))
+    assert all(np.array_equal(emu.state.patterns[i], expected[i]) for i in range(16))
+    assert emu.state.trigger_out == {"enable": 1, "falling": 0, "delay_us": 0, "width_us": 100}
+    proj.set_led("blue", current=0.5)
+    assert emu.state.led_current == (0, 0, 512) and emu.state.sequence["led"] == 2
+    proj.set_trigger_mode("external")
+    assert emu.state.sequence["trigger"] == 0x02
+    proj.start()
+    assert emu.state.running
+    proj.stop()
+    assert not emu.state.running
+    proj.start()
+    proj.close()
+    assert not emu.state.running and emu.state.led_current == (0, 0, 0)  # lights off on close
+
+
+def test_busy_replies_are_retried_then_time_out(emu):
+    client = LightCrafterClient(emu.host, emu.port, busy_retries=5, busy_wait_s=0.001)
+    client.connect()
+    emu.busy_next = 3
+    assert client.version().startswith("5.0.0")
+    emu.busy_next = 10
+    with pytest.raises(DeviceTimeout, match="busy"):
+        client.version()
+    client.close()
+
+
+def test_error_packets_become_protocol_errors(emu):
+    proj = LightCrafterProjector(emu.host, emu.port)
+    proj.open()
+    emu.fail_next = 0x05
+    with pytest.raises(LightCrafterError, match="hardware device failure") as info:
+        proj.set_led("green", current=0.2)
+    assert info.value.code == 0x05 and isinstance(info.value, ProtocolError)
+    assert proj.state is DeviceState.OPEN
+    proj.close()
+
+
+def test_unplug_faults_and_replug_reuploads(emu):
+    proj = LightCrafterProjector(emu.host, emu.port, timeout_s=1.0)
+    proj.open()
+    proj.load_schedule(PatternSchedule(), exposure_ms=20.0)
+    proj.start()
+    emu.stop()
+    with pytest.raises(DeviceDisconnected):
+        proj.set_led("red")
+    assert proj.state is DeviceState.FAULT and "link lost" in proj.last_error
+    with pytest.raises(DeviceNotFound):
+        proj.open()
+    emu.start()
+    assert len(emu.state.patterns) == 0  # a power cycle forgot the patterns
+    t0 = time.monotonic()
+    proj.open()
+    assert time.monotonic() - t0 < 2.0
+    assert len(emu.state.patterns) == 16 and emu.state.sequence["count"] == 16
+    proj.start()
+    assert emu.state.running
+    proj.close()
+
+
+def test_cli_emulate_lightcrafter():
+    proc = subprocess.Popen([sys.executable, "-m", "app", "emulate", "lightcrafter", "--port", "0"],
+                            stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert proc.stdout is not None
+        host, port = proc.stdout.readline().strip().rsplit(":", 1)
+        client = LightCrafterClient(host, int(port))
+        client.connect()
+        assert client.version().startswith("5.0.0")
+        client.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0

@@ -1,0 +1,58 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.recon.patterns import PatternSchedule, fringe_profile
+from app.service.autoexposure import choose_exposure, set_statistics
+
+
+def synthetic_set(gain: float, schedule: PatternSchedule, shape=(40, 60)) -> np.ndarray:
+    """Fringes whose brightness is proportional to ``gain`` (exposure), clipped at 255."""
+    h, w = shape
+    cols = np.linspace(0, schedule.width - 1, w)
+    albedo = np.linspace(0.5, 1.0, h)[:, None]  # brighter rows saturate first
+    out = []
+    for fi in range(len(schedule.frequencies)):
+        for n in range(schedule.steps):
+            prof = fringe_profile(schedule, fi, n, columns=cols)[None, :]
+            out.append(np.clip(np.rint(gain * albedo * (0.1 + 0.8 * prof)), 0, 255))
+    return np.stack(out).astype(np.uint8)
+
+
+def test_statistics_of_a_known_set():
+    s = PatternSchedule()
+    sat, mod = set_statistics(synthetic_set(100.0, s), s, 255)
+    assert sat == 0.0
+    # B = 0.4 * gain * albedo; the median albedo is 0.75
+    assert mod == pytest.approx(0.4 * 100 * 0.75, rel=0.05)
+    sat, _ = set_statistics(synthetic_set(400.0, s), s, 255)
+    assert 0.2 < sat < 1.0
+
+
+def test_bisection_finds_the_longest_unsaturated_exposure():
+    s = PatternSchedule()
+    calls: list[float] = []
+
+    def measure(exposure_ms: float) -> tuple[float, float]:
+        calls.append(exposure_ms)
+        return set_statistics(synthetic_set(10.0 * exposure_ms, s), s, 255)
+
+    res = choose_exposure(measure, saturation_limit=0.005)
+    # Saturation starts when 10·e·1.0·0.9 > 254.5, i.e. e > 28.3 ms: 25 ms is the longest below.
+    assert res.exposure_ms == 25.0
+    assert res.saturated_fraction <= 0.005 and res.warning is None
+    assert len(calls) <= 6  # a bisection, not a sweep
+    assert all(t.saturated_fraction > 0.005 for t in res.trials if t.exposure_ms > 25.0)
+
+
+def test_never_unsaturated_warns_and_keeps_the_shortest():
+    res = choose_exposure(lambda e: (0.5, 10.0), saturation_limit=0.01, max_exposure_ms=8.0)
+    assert res.exposure_ms == 1.0 and res.warning
+
+
+def test_invalid_arguments():
+    with pytest.raises(ValueError, match="saturation_limit"):
+        choose_exposure(lambda e: (0.0, 0.0), saturation_limit=1.5)
+    with pytest.raises(ValueError, match="max_exposure_ms"):
+        choose_exposure(lambda e: (0.0, 0.0), max_exposure_ms=0.5)

@@ -1,0 +1,100 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.devices.base import Frame
+from app.service.framesets import RollingWindow, SetAssembler
+
+N = 16
+
+
+def frames(indices, patterns, exposure_ms=20.0, led="green"):
+    return [
+        Frame(np.full((2, 3), p, np.uint8), index=i, timestamp=0.01 * i, pattern_index=p,
+              exposure_ms=exposure_ms, led=led)
+        for i, p in zip(indices, patterns, strict=True)
+    ]
+
+
+def feed_all(asm, fs):
+    return [s for f in fs if (s := asm.feed(f, 0.0)) is not None]
+
+
+def test_whole_sets_in_pattern_order():
+    asm = SetAssembler(N)
+    out = feed_all(asm, frames(range(40), [i % N for i in range(40)]))
+    assert len(out) == 2 and asm.completed == 2 and asm.incomplete == 0
+    assert out[1].frame_indices == list(range(16, 32))
+    stack = out[0].stack()
+    assert stack.shape == (16, 2, 3) and list(stack[:, 0, 0]) == list(range(16))
+
+
+def test_starting_mid_sequence_waits_for_pattern_zero():
+    asm = SetAssembler(N)
+    out = feed_all(asm, frames(range(5, 37), [i % N for i in range(5, 37)]))
+    assert len(out) == 1 and out[0].frame_indices == list(range(16, 32))
+    assert asm.incomplete == 0 and asm.skipped_frames == 11
+
+
+@pytest.mark.parametrize(
+    "patterns, indices",
+    [
+        ([p for p in range(N) if p != 7], [i for i in range(N) if i != 7]),  # dropped frame
+        (list(range(8)) + [7] + list(range(8, N)), list(range(N + 1))),  # duplicated pattern
+        (list(range(5)) + [6, 5] + list(range(7, N)), list(range(N))),  # out of order
+        (list(range(N)), list(range(8)) + [9] + list(range(10, N + 2))[: N - 9]),  # counter gap only
+    ],
+)
+def test_broken_sets_are_discarded_and_counted(patterns, indices):
+    asm = SetAssembler(N)
+    fs = frames(indices[: len(patterns)], patterns[: len(indices)])
+    # Follow with one clean set: it must still be found.
+    start = fs[-1].index + 1
+    fs += frames(range(start, start + N), range(N))
+    out = feed_all(asm, fs)
+    assert asm.incomplete == 1
+    assert len(out) == 1 and out[0].frame_indices == list(range(start, start + N))
+
+
+def test_settings_change_inside_a_set_discards_it():
+    asm = SetAssembler(N)
+    fs = frames(range(8), range(8), exposure_ms=20.0) + frames(range(8, 16), range(8, 16), exposure_ms=30.0)
+    fs += frames(range(16, 32), range(16), exposure_ms=30.0)
+    out = feed_all(asm, fs)
+    assert asm.mixed == 1 and asm.incomplete == 0
+    assert len(out) == 1 and out[0].exposure_ms == 30.0
+
+
+def test_abort_counts_only_a_started_set():
+    asm = SetAssembler(N)
+    asm.abort()
+    assert asm.incomplete == 0
+    feed_all(asm, frames(range(3), range(3)))
+    asm.abort()
+    assert asm.incomplete == 1 and asm.in_progress == 0
+
+
+def test_rolling_window_after_every_frame_in_capture_order():
+    win = RollingWindow(N)
+    out = [(i, s) for i, f in enumerate(frames(range(40), [i % N for i in range(40)]))
+           if (s := win.feed(f, 0.0)) is not None]
+    assert [i for i, _ in out] == list(range(15, 40))
+    _, s = out[5]  # window of frames 5..20: patterns 5..15 then 0..4
+    assert s.mode == "rolling"
+    assert [f.pattern_index for f in s.frames] == list(range(N))
+    assert s.frame_indices == list(range(16, 21)) + list(range(5, 16))
+
+
+def test_rolling_window_skips_windows_with_a_drop():
+    win = RollingWindow(N)
+    idx = [i for i in range(40) if i != 20]
+    out = [f.index for f in frames(idx, [i % N for i in idx]) if win.feed(f, 0.0) is not None]
+    assert out == list(range(15, 20)) + list(range(36, 40))
+
+
+def test_invalid_sizes():
+    with pytest.raises(ValueError, match="n_frames"):
+        SetAssembler(0)
+    with pytest.raises(ValueError, match="n_frames"):
+        RollingWindow(0)
