@@ -1,13 +1,14 @@
 # Fringescope: the live service on the built-in simulator (or real devices via FRINGESCOPE_*).
 #
 #   docker build -t fringescope .
-#   docker run -p 8000:8000 -e FRINGESCOPE_API_TOKEN=secret -v fs-data:/data fringescope
+#   docker run -p 8000:8000 -e FRINGESCOPE_API_TOKEN=secret -v fringescope-data:/data fringescope
 #   → http://HOST:8000/  (state-changing routes and /viser/ need the token)
 #
-# The server listens on 0.0.0.0 inside the container, so it refuses to start
+# Inside the container the server listens on 0.0.0.0, so it refuses to start
 # without FRINGESCOPE_API_TOKEN unless FRINGESCOPE_INSECURE=1 is given (trusted
 # networks only). Every setting of app/config.py is an environment variable
 # FRINGESCOPE_<NAME>, e.g. FRINGESCOPE_CAMERA=opencv FRINGESCOPE_CAMERA_SOURCE=0.
+# Calibrations and recordings live in the volume /data.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -16,29 +17,29 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     NUMBA_THREADING_LAYER=workqueue \
     NUMBA_CACHE_DIR=/tmp/numba-cache \
-    MPLCONFIGDIR=/tmp/matplotlib \
     FRINGESCOPE_HOST=0.0.0.0 \
     FRINGESCOPE_PORT=8000 \
     FRINGESCOPE_DATA_DIR=/data
 
-WORKDIR /opt/fringescope
-# Dependencies change less often than the code: install them in their own layer.
-COPY pyproject.toml README.md ./
-RUN mkdir -p app && touch app/__init__.py \
-    && pip install --no-cache-dir . \
-    && pip uninstall -y fringescope \
-    && rm -rf app build *.egg-info
-COPY app ./app
-COPY static ./static
-RUN pip install --no-cache-dir --no-deps . \
-    && rm -rf build *.egg-info \
-    && useradd --system --create-home --uid 10001 --home-dir /home/fringescope fringescope \
-    && mkdir -p /data "$NUMBA_CACHE_DIR" \
-    && chown fringescope:fringescope /data "$NUMBA_CACHE_DIR"
-
-USER fringescope
+# Metadata first, while the image is small (cheap layers on copy-based storage).
+RUN useradd --system --create-home --uid 10001 --home-dir /home/fringescope fringescope \
+    && mkdir -p /data /tmp/numba-cache \
+    && chown fringescope:fringescope /data /tmp/numba-cache
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
     CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/status' % os.environ.get('FRINGESCOPE_PORT', '8000'), timeout=4)"]
 CMD ["fringescope", "serve"]
+WORKDIR /opt/fringescope
+
+# Dependencies change less often than the code: their own layer, reused on rebuilds.
+COPY pyproject.toml README.md ./
+RUN mkdir app && touch app/__init__.py \
+    && pip install --no-cache-dir . \
+    && pip uninstall -y fringescope \
+    && rm -rf app build ./*.egg-info
+COPY app ./app
+COPY static ./static
+RUN pip install --no-cache-dir --no-deps . && rm -rf build ./*.egg-info
+
+USER fringescope

@@ -333,8 +333,8 @@ function setupRoi() {
     drawRoi();
     $("roi-result").textContent = "no region selected";
   });
-  for (const radio of document.querySelectorAll('input[name="roi-kind"]')) {
-    radio.addEventListener("change", () => { if (ui.roi) analyse(); });
+  for (const input of [...document.querySelectorAll('input[name="roi-kind"]'), $("roi-polarity")]) {
+    input.addEventListener("change", () => { if (ui.roi) analyse(); });
   }
 }
 
@@ -345,7 +345,8 @@ async function analyse() {
   out.textContent = `measuring [${roi.join(", ")}]…`;
   out.className = "roi-result muted";
   try {
-    const r = await api(`/api/analysis/${kind}`, { method: "POST", json: { roi } });
+    const body = kind === "feature" ? { roi, polarity: $("roi-polarity").value } : { roi };
+    const r = await api(`/api/analysis/${kind}`, { method: "POST", json: body });
     out.className = "roi-result";
     if (kind === "plane") {
       out.innerHTML =
@@ -373,7 +374,11 @@ async function pollTexture() {
     const img = $("texture");
     const old = ui.textureUrl;
     ui.textureUrl = url;
-    img.onload = () => { if (old) URL.revokeObjectURL(old); };
+    img.onload = () => {
+      if (old) URL.revokeObjectURL(old);
+      img.hidden = false;
+      $("texture-wait").hidden = true;
+    };
     img.src = url;
   } catch (_) { /* next time */ }
 }

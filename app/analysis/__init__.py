@@ -2,6 +2,7 @@
 
 from app.analysis.common import parse_roi, roi_mask, select_points
 from app.analysis.feature import FeatureHeight, feature_height
+from app.analysis.noise import dz_dphi, height_noise_mm, phase_noise_rad
 from app.analysis.plane import (
     PlaneAccuracy,
     PlaneBin,
@@ -19,7 +20,10 @@ __all__ = [
     "PlaneFit",
     "SphereFigures",
     "SphereFit",
+    "dz_dphi",
     "feature_height",
+    "height_noise_mm",
+    "phase_noise_rad",
     "fit_plane_lsq",
     "fit_plane_mlesac",
     "fit_sphere",

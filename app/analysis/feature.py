@@ -44,7 +44,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
                    roi: tuple[int, int, int, int] | None = None, threshold: float | None = None,
                    polarity: str = "bright", height_threshold_mm: float | None = None,
                    ring_px: tuple[int, int] = (4, 16), min_area_px: int = 30,
-                   min_section_px: int = 3) -> FeatureHeight:
+                   min_section_px: int = 3, slab_px: float = 3.0) -> FeatureHeight:
     """Crest height of a feature over a fitted baseline.
 
     Args:
@@ -59,6 +59,8 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         ring_px: (inner, outer) distance in pixels of the baseline ring from the feature.
         min_area_px: connected segments smaller than this are ignored.
         min_section_px: cross-sections with fewer feature pixels are skipped.
+        slab_px: half-length along the feature of the flank pixels used for each
+            cross-section's local baseline line.
 
     Returns:
         A :class:`FeatureHeight`.
@@ -102,7 +104,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     resid = z - baseline
     crests: list[float] = []
     for c in comps:
-        crests += _crest_heights(resid, (labels == c) & ok, min_section_px)
+        crests += _crest_heights(resid, (labels == c) & ok, ring, min_section_px, slab_px)
     if not crests:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
     arr = np.asarray(crests)
@@ -116,8 +118,14 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     )
 
 
-def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], min_px: int) -> list[float]:
-    """Crest per 1-px cross-section across the segment's long axis (parabola apex at the top)."""
+def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
+                   slab_px: float) -> list[float]:
+    """Crest per 1-px cross-section across the segment's long axis.
+
+    In each cross-section the baseline is refined by a line through the ring pixels on
+    both flanks (within ``slab_px`` along the axis), as a caliper rests on both sides;
+    the crest is the apex of a parabola through the upper half of the profile.
+    """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
         return []
@@ -126,7 +134,15 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], min_px: int) -> list[
     _, _, vt = np.linalg.svd(xy - centre, full_matrices=False)
     along = (xy - centre) @ vt[0]
     across = (xy - centre) @ vt[1]
+    width = float(np.ptp(across))
     r = resid[ys, xs]
+    ry, rx = np.nonzero(ring)
+    rxy = np.stack([rx, ry], axis=1).astype(np.float64) - centre
+    r_along, r_across = rxy @ vt[0], rxy @ vt[1]
+    near = np.abs(r_across) <= width  # flanks of this segment, not of a neighbour
+    r_along, r_across, r_val = r_along[near], r_across[near], resid[ry, rx][near]
+    r_order = np.argsort(r_along)
+    r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]
     section = np.rint(along).astype(np.int64)
     out = []
     order = np.argsort(section, kind="stable")
@@ -134,7 +150,13 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], min_px: int) -> list[
     for idx in np.split(order, bounds):
         if len(idx) < min_px:
             continue
-        t, h = across[idx], r[idx]
+        s0 = float(section[idx[0]])
+        lo, hi = np.searchsorted(r_along, [s0 - slab_px, s0 + slab_px])
+        fa, fv = r_across[lo:hi], r_val[lo:hi]
+        if (fa < across[idx].min()).sum() < 2 or (fa > across[idx].max()).sum() < 2:
+            continue  # a caliper needs ground on both sides
+        slope, inter = np.polyfit(fa, fv, 1)
+        t, h = across[idx], r[idx] - (slope * across[idx] + inter)
         top = h >= h.max() - 0.5 * (h.max() - h.min())  # the upper half of the profile
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
             a, b, c = np.polyfit(t[top], h[top], 2)

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import get_instrument
-from app.api.schemas import FeatureOut, PlaneOut, RoiIn
+from app.api.schemas import FeatureIn, FeatureOut, PlaneOut, RoiIn
 from app.service import analysis
 from app.service.instrument import Instrument
 
@@ -22,6 +22,6 @@ async def plane(body: RoiIn, inst: Instrument = Depends(get_instrument)) -> Any:
 
 
 @router.post("/feature", response_model=FeatureOut)
-async def feature(body: RoiIn, inst: Instrument = Depends(get_instrument)) -> Any:
-    """Height of a feature (e.g. a suture) above its surrounding baseline in the ROI."""
-    return await run_in_threadpool(analysis.feature, inst.latest_result(), body.roi)
+async def feature(body: FeatureIn, inst: Instrument = Depends(get_instrument)) -> Any:
+    """Height of a feature (e.g. a suture, bright or dark) above its surrounding baseline in the ROI."""
+    return await run_in_threadpool(analysis.feature, inst.latest_result(), body.roi, body.polarity)

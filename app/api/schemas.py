@@ -185,6 +185,10 @@ class RoiIn(Strict):
         return self
 
 
+class FeatureIn(RoiIn):
+    polarity: Literal["bright", "dark"] = "bright"
+
+
 class PlaneOut(BaseModel):
     accuracy_mm: float | None
     precision_mm: float | None

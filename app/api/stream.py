@@ -61,15 +61,21 @@ async def depth_ws(
 async def depth_mjpeg(
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),
+    frames: int | None = Query(None, ge=1, description="end after this many images (default: never)"),
     inst: Instrument = Depends(get_instrument),
 ) -> StreamingResponse:
     """The same images as a ``multipart/x-mixed-replace`` MJPEG stream (an <img> can show it)."""
     rng = encoding.check_range_mm(min_mm, max_mm)
 
     async def body() -> AsyncIterator[bytes]:
+        sent = 0
         async for _, data in _frames(inst, rng):
             yield (b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                    + str(len(data)).encode() + b"\r\n\r\n" + data + b"\r\n")
+            sent += 1
+            if frames is not None and sent >= frames:
+                break
+        yield b"--frame--\r\n"
 
     return StreamingResponse(body(), media_type="multipart/x-mixed-replace; boundary=frame",
                              headers={"Cache-Control": "no-store"})

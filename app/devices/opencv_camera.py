@@ -98,8 +98,13 @@ class OpenCVCamera(Camera):
 
     def _do_configure(self, settings: CameraSettings) -> None:
         cap = self._cap
-        if cap is not None and not self.is_file:
-            # UVC exposure units are driver specific (often log2 s); best effort, files ignore it
+        if cap is None or self.is_file or (isinstance(self.source, str) and "://" in self.source):
+            return  # files and streams have no exposure control
+        # exposure units are backend specific: V4L2 counts 100 µs, DirectShow/MSMF take log2(seconds)
+        if cap.getBackendName() == "V4L2":
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # 1 = manual in V4L2's menu
+            cap.set(cv2.CAP_PROP_EXPOSURE, settings.exposure_ms * 10.0)
+        else:
             cap.set(cv2.CAP_PROP_EXPOSURE, float(np.log2(settings.exposure_ms / 1000.0)))
 
     def _do_start(self) -> None:

@@ -163,7 +163,7 @@ class ReplayCamera(Camera):
                     t = t - t[0] + self._last_t + float(np.median(np.diff(t))) if n > 1 else t + self._last_t + step
                 return t
         start = self._last_t + step if self._count else 0.0
-        return start + step * np.arange(n)
+        return start + step * np.arange(n, dtype=np.float64)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "folder": str(self.folder), "sets": len(self._sets)}

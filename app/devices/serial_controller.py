@@ -280,7 +280,7 @@ class SerialController(Controller):
         """Heartbeat while healthy; after a fault, reopen with exponential backoff."""
         period_s = self.watchdog_ms / 4000.0
         misses, backoff, next_try = 0, self.backoff_s[0], 0.0
-        while not self._stop.wait(period_s if self._state is not DeviceState.FAULT else 0.02):
+        while not self._stop.wait(0.02 if self._state is DeviceState.FAULT and self.auto_reconnect else period_s):
             if not self._lock.acquire(timeout=period_s):
                 continue  # a long command holds the link; it restarts the watchdog anyway
             try:

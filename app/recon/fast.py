@@ -53,7 +53,7 @@ _A6 = np.float32(0.021862953185210254)
 _A7 = np.float32(-0.004054562176639915)
 
 
-@njit(fastmath=FASTMATH, cache=True)
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def atan2_0_2pi(y: float, x: float) -> float:  # pragma: no cover - compiled
     """Branch-free float32 atan2 mapped to [0, 2π)."""
     ax = abs(x)
@@ -70,7 +70,7 @@ def atan2_0_2pi(y: float, x: float) -> float:  # pragma: no cover - compiled
     return _F0 if r >= _TWO_PI else r
 
 
-@njit(fastmath=FASTMATH, cache=True)
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:  # pragma: no cover
     """Elementwise :func:`atan2_0_2pi` (for tests): 1-D float32 in, float32 in [0, 2π) out."""
     out = np.empty(y.shape[0], np.float32)
@@ -79,7 +79,105 @@ def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.N
     return out
 
 
-@njit(parallel=True, fastmath=FASTMATH, cache=True)
+# Row helpers: each is compiled (and vectorised by LLVM) as its own function on 1-D
+# arguments; inside one big parallel body LLVM could not prove the row buffers distinct.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _accumulate(row, s_acc, c_acc, total, top, sn, cn):  # pragma: no cover
+    for u in range(row.shape[0]):
+        x = np.float32(row[u])
+        s_acc[u] += x * sn
+        c_acc[u] += x * cn
+    for u in range(row.shape[0]):
+        x = np.float32(row[u])
+        total[u] += x
+        top[u] = max(top[u], x)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrapped_row(s_acc, c_acc, mod, phw, bmin, mod_scale):  # pragma: no cover
+    for u in range(s_acc.shape[0]):
+        yy = -s_acc[u]
+        xx = c_acc[u]
+        mod[u] = mod_scale * np.sqrt(xx * xx + yy * yy)
+        phw[u] = atan2_0_2pi(yy, xx)
+    for u in range(s_acc.shape[0]):
+        bmin[u] = min(bmin[u], mod[u])
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _unwrap_row(prev, phw, bad, ratio, cons_rad):  # pragma: no cover
+    for u in range(prev.shape[0]):
+        e = ratio * prev[u] - phw[u]
+        # floor(e/2π + 1/2) by truncating a shifted, positive value (vectorises)
+        order = np.float32(np.int32(e * _INV_TWO_PI + _ROUND_SHIFT)) - _SHIFT
+        d = e - order * _TWO_PI
+        bad[u] = max(bad[u], _F1 if abs(d) >= cons_rad else _F0)
+        prev[u] = phw[u] + order * _TWO_PI
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _weigh_row(wsum, wphi, mod, prev, wk, scale_fine):  # pragma: no cover
+    for u in range(prev.shape[0]):
+        w = wk * mod[u] * mod[u]
+        wsum[u] += w
+        wphi[u] += w * scale_fine * prev[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _combined_row(prev, wsum, wphi):  # pragma: no cover
+    for u in range(prev.shape[0]):
+        prev[u] = wphi[u] / wsum[u] if wsum[u] > _F0 else _NAN
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _height_row(prev, a0, a1, b0, b1, phi0, inv_sphi, sing_rtol, den, hbuf, code):  # pragma: no cover
+    for u in range(prev.shape[0]):
+        pp = (prev[u] - phi0) * inv_sphi
+        b1p = b1[u] * pp
+        dd = b0[u] + b1p
+        den[u] = dd
+        code[u] = np.uint8(5) if abs(dd) <= sing_rtol * (abs(b0[u]) + abs(b1p)) else np.uint8(0)
+    for u in range(prev.shape[0]):
+        pp = (prev[u] - phi0) * inv_sphi
+        hbuf[u] = (a0[u] + a1[u] * pp) / den[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _code_row(hbuf, code, bad, bmin, top, lo, hi, min_mod, top_code):  # pragma: no cover
+    # precedence SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
+    for u in range(hbuf.shape[0]):
+        h = hbuf[u]
+        c = code[u]
+        inside = (h >= lo) & (h <= hi)
+        c = c if inside or c != 0 else np.uint8(4)
+        c = np.uint8(3) if bad[u] > _F0 else c
+        c = np.uint8(1) if bmin[u] < min_mod else c
+        c = np.uint8(2) if top[u] >= top_code else c
+        code[u] = c
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _select_row(out, values, code):  # pragma: no cover
+    for u in range(out.shape[0]):
+        out[u] = values[u] if code[u] == 0 else _NAN
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _texture_row(out, total, mod, inv_frames):  # pragma: no cover
+    for u in range(out.shape[0]):
+        out[u] = total[u] * inv_frames + mod[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _points_row(pts, hbuf, code, rx, ry, inv_m, offset):  # pragma: no cover
+    for u in range(hbuf.shape[0]):
+        t = (hbuf[u] - offset) * inv_m[u] if code[u] == 0 else _NAN
+        pts[u, 0] = t * rx[u]
+        pts[u, 1] = t * ry[u]
+        pts[u, 2] = t
+
+
+@njit(parallel=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(  # one call carries every table to keep the kernel fused
     frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
     a0, a1, b0, b1, phi0, inv_sphi, lo, hi, sing_rtol, rx, ry, inv_m, offset,
@@ -87,8 +185,8 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
 ):  # pragma: no cover - compiled
     """Raw frames → all per-pixel outputs (see module docstring). Writes into the outputs.
 
-    Each inner loop touches few arrays so that LLVM's runtime alias checks stay below
-    its limit and the loop vectorises; numba cannot tell LLVM that arrays do not alias.
+    Rows are processed in blocks (``prange``), each row entirely in cache-resident
+    float32 buffers: the frames and the tables are read once, the outputs written once.
     """
     n_frames, height, width = frames.shape
     n_steps = cos_t.shape[0]
@@ -99,19 +197,9 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
     top_code = np.float32(max_code)
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     for blk in prange(n_blocks):
-        s_acc = np.empty(width, np.float32)
-        c_acc = np.empty(width, np.float32)
-        total = np.empty(width, np.float32)
-        top = np.empty(width, np.float32)
-        phw = np.empty(width, np.float32)
-        mod = np.empty(width, np.float32)
-        prev = np.empty(width, np.float32)
-        bmin = np.empty(width, np.float32)
-        bad = np.empty(width, np.float32)
-        wsum = np.empty(width, np.float32)
-        wphi = np.empty(width, np.float32)
-        hbuf = np.empty(width, np.float32)
-        den = np.empty(width, np.float32)
+        buf = np.empty((13, width), np.float32)
+        s_acc, c_acc, total, top, phw, mod, prev = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6]
+        bmin, bad, wsum, wphi, hbuf, den = buf[7], buf[8], buf[9], buf[10], buf[11], buf[12]
         code = np.empty(width, np.uint8)
         for v in range(blk * ROWS_PER_BLOCK, min(height, (blk + 1) * ROWS_PER_BLOCK)):
             total[:] = _F0
@@ -124,96 +212,26 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
                 s_acc[:] = _F0
                 c_acc[:] = _F0
                 for n in range(n_steps):
-                    row = frames[ki * n_steps + n, v]
-                    cn = cos_t[n]
-                    sn = sin_t[n]
-                    for u in range(width):
-                        x = np.float32(row[u])
-                        s_acc[u] += x * sn
-                        c_acc[u] += x * cn
-                    for u in range(width):
-                        x = np.float32(row[u])
-                        total[u] += x
-                        top[u] = max(top[u], x)
-                for u in range(width):
-                    yy = -s_acc[u]
-                    xx = c_acc[u]
-                    mod[u] = mod_scale * np.sqrt(xx * xx + yy * yy)
-                    phw[u] = atan2_0_2pi(yy, xx)
-                for u in range(width):
-                    bmin[u] = min(bmin[u], mod[u])
+                    _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n])
+                _wrapped_row(s_acc, c_acc, mod, phw, bmin, mod_scale)
                 if ki == 0:
-                    for u in range(width):
-                        prev[u] = phw[u]
+                    prev[:] = phw
                 else:
-                    ratio = freqs[ki] / freqs[ki - 1]
-                    for u in range(width):
-                        e = ratio * prev[u] - phw[u]
-                        # floor(e/2π + 1/2) by truncation of a shifted positive value
-                        order = np.float32(np.int32(e * _INV_TWO_PI + _ROUND_SHIFT)) - _SHIFT
-                        d = e - order * _TWO_PI
-                        bad[u] = max(bad[u], _F1 if abs(d) >= cons_rad else _F0)
-                        prev[u] = phw[u] + order * _TWO_PI
+                    _unwrap_row(prev, phw, bad, freqs[ki] / freqs[ki - 1], cons_rad)
                 if combine:
                     k = freqs[ki]
-                    wk = np.float32(n_steps) * k * k
-                    scale_fine = k_max / k
-                    for u in range(width):
-                        w = wk * mod[u] * mod[u]
-                        wsum[u] += w
-                        wphi[u] += w * scale_fine * prev[u]
+                    _weigh_row(wsum, wphi, mod, prev, np.float32(n_steps) * k * k, k_max / k)
             if combine:
-                for u in range(width):
-                    prev[u] = wphi[u] / wsum[u] if wsum[u] > _F0 else _NAN
-            rb0 = b0[v]
-            rb1 = b1[v]
-            for u in range(width):
-                pp = (prev[u] - phi0) * inv_sphi
-                b1p = rb1[u] * pp
-                dd = rb0[u] + b1p
-                den[u] = dd
-                code[u] = np.uint8(5) if abs(dd) <= sing_rtol * (abs(rb0[u]) + abs(b1p)) else np.uint8(0)
-            ra0 = a0[v]
-            ra1 = a1[v]
-            for u in range(width):
-                pp = (prev[u] - phi0) * inv_sphi
-                hbuf[u] = (ra0[u] + ra1[u] * pp) / den[u]
-            for u in range(width):
-                h = hbuf[u]
-                c = code[u]
-                c = c if (h >= lo and h <= hi) or c != 0 else np.uint8(4)
-                c = np.uint8(3) if bad[u] > _F0 else c
-                c = np.uint8(1) if bmin[u] < min_mod else c
-                c = np.uint8(2) if top[u] >= top_code else c
-                code[u] = c
-            rdepth = depth[v]
-            for u in range(width):
-                rdepth[u] = hbuf[u] if code[u] == 0 else _NAN
-            rphase = phase[v]
-            for u in range(width):
-                rphase[u] = prev[u] if code[u] == 0 else _NAN
-            rreason = reason[v]
-            for u in range(width):
-                rreason[u] = code[u]
-            rvalid = valid[v]
-            for u in range(width):
-                rvalid[u] = code[u] == 0
-            rmod = modulation[v]
-            for u in range(width):
-                rmod[u] = mod[u]
-            rtex = texture[v]
-            for u in range(width):
-                rtex[u] = total[u] * inv_frames + mod[u]
-            rpts = points[v]
-            rrx = rx[v]
-            rry = ry[v]
-            rinv = inv_m[v]
-            for u in range(width):
-                ok = code[u] == 0
-                t = (hbuf[u] - offset) * rinv[u] if ok else _NAN
-                rpts[u, 0] = t * rrx[u]
-                rpts[u, 1] = t * rry[u]
-                rpts[u, 2] = t
+                _combined_row(prev, wsum, wphi)
+            _height_row(prev, a0[v], a1[v], b0[v], b1[v], phi0, inv_sphi, sing_rtol, den, hbuf, code)
+            _code_row(hbuf, code, bad, bmin, top, lo, hi, min_mod, top_code)
+            _select_row(depth[v], hbuf, code)
+            _select_row(phase[v], prev, code)
+            reason[v] = code
+            valid[v] = code == 0
+            modulation[v] = mod
+            _texture_row(texture[v], total, mod, inv_frames)
+            _points_row(points[v], hbuf, code, rx[v], ry[v], inv_m[v], offset)
 
 
 NUMBA_VERSION = numba.__version__

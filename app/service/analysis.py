@@ -26,12 +26,14 @@ def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
     }
 
 
-def feature(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
-    """Height of a raised feature (e.g. a suture) over the fitted baseline in ``roi``."""
-    from app.analysis import feature as feat
+def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = "bright") -> dict[str, Any]:
+    """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``."""
+    from app.analysis.feature import feature_height
 
-    res = feat.feature_height(result.depth, result.texture, roi=roi)
+    res = feature_height(result.depth, result.texture, result.valid, roi=roi, polarity=polarity)
     return {
         "height_mm": _f(res.height_mm), "height_std_mm": _f(res.height_std_mm),
-        "count": int(res.count), "extra": {"seq": result.seq},
+        "count": int(res.count),
+        "extra": {"seq": result.seq, "baseline_rms_mm": _f(res.baseline_rms_mm),
+                  "feature_pixels": int(res.mask.sum())},
     }

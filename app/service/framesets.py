@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -51,8 +52,8 @@ class FrameSet:
     def last_index(self) -> int:
         return max(f.index for f in self.frames)
 
-    def stack(self) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
-        """(F, H, W) frames in capture-set order, the camera's dtype."""
+    def stack(self) -> npt.NDArray[Any]:
+        """(F, H, W) frames in capture-set order, the camera's dtype (uint8/uint16)."""
         return np.stack([f.data for f in self.frames])
 
 

@@ -56,6 +56,7 @@ class Instrument:
         self.last_error: str | None = None
         self._engine: Any = None
         self._upload_engine: Any = None
+        self._upload_engine_cal: Calibration | None = None
         self._upload_lock = threading.Lock()
         self._control_lock = threading.Lock()
         self._calibrating: threading.Thread | None = None
@@ -257,8 +258,6 @@ class Instrument:
                 self._upload_engine_cal = cal
             return self._upload_engine.run(capture.frames)
 
-    _upload_engine_cal: Calibration | None = None
-
     def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
         acq = self._acq()
@@ -283,17 +282,18 @@ class Instrument:
 
     # -- status ----------------------------------------------------------------------------------
     def state(self) -> str:
+        """starting | calibrating | running | stopped | fault (a fault outranks the rest)."""
         acq = self.acquisition
         if self._closed:
             return "stopped"
         if acq is None:
             return "starting"
-        if not acq.acquiring:
-            return "stopped"
-        if acq.fault or (self.devices is not None and self.devices.faulted()):
+        if acq.acquiring and (acq.fault or (self.devices is not None and self.devices.faulted())):
             return "fault"
         if self.calibrating:
             return "calibrating"
+        if not acq.acquiring:
+            return "stopped"
         if acq.frames_received == 0 or (self.calibration is not None and self.results.seq == 0):
             return "starting"
         return "running"

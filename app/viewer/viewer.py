@@ -127,6 +127,11 @@ class Viewer:
         Upper bound on the points sent per update.
     max_rate_hz : float
         Upper bound on updates per second.
+    range_mm : (float, float)
+        Initial height colour range (the dashboard's default, 0–35 mm).
+    only_when_watched : bool
+        Skip the encoding work while no browser is connected; the newest result is sent
+        as soon as one connects (viser replays the scene to later clients anyway).
     """
 
     def __init__(
@@ -138,6 +143,7 @@ class Viewer:
         max_points: int = 300_000,
         max_rate_hz: float = 15.0,
         range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
+        only_when_watched: bool = True,
     ) -> None:
         if max_points < 1:
             raise ValueError(f"max_points: must be >= 1, got {max_points}")
@@ -151,6 +157,7 @@ class Viewer:
         self._min_interval_s = 1.0 / max_rate_hz
         self._range_mm = (float(range_mm[0]), float(range_mm[1]))
         self._color_mode = "height"
+        self.only_when_watched = only_when_watched
         self._server: viser.ViserServer | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -214,6 +221,7 @@ class Viewer:
             self._server.stop()
             self._server = None
         self._cloud = self._depth_image = self._texture_image = None
+        self._camera_placed = False
         self._gui.clear()
 
     def __enter__(self) -> Viewer:
@@ -239,7 +247,8 @@ class Viewer:
             color = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=self._color_mode)
             lo = gui.add_number("Height min (mm)", self._range_mm[0], step=0.5)
             hi = gui.add_number("Height max (mm)", self._range_mm[1], step=0.5)
-        with gui.add_folder("Images"):
+        # Collapsed: the dashboard shows both images large; here they are on demand.
+        with gui.add_folder("Images", expand_by_default=False):
             blank = np.zeros((8, 8, 3), dtype=np.uint8)
             self._depth_image = gui.add_image(blank, label="Depth (colormap)", format="jpeg")
             self._texture_image = gui.add_image(blank, label="Texture", format="jpeg")
@@ -314,6 +323,7 @@ class Viewer:
         last_push = -math.inf
         last_status = -math.inf
         shown: Any = None
+        dirty = False  # `shown` differs from what the browsers have
         while not self._stop.is_set():
             seq, result = self._store.wait_newer(self.last_seq, 0.25)
             if result is None and self._store.closed:
@@ -322,11 +332,8 @@ class Viewer:
             if now - last_status >= 0.5:
                 last_status = now
                 self._mirror_status()
-            redraw = self._redraw.is_set()
-            if result is None and not (redraw and shown is not None):
-                continue
             if result is not None:
-                # Pacing: wait out the interval, then show the newest result there is.
+                # Pacing: wait out the interval, then take the newest result there is.
                 wait_s = last_push + self._min_interval_s - now
                 if wait_s > 0 and self._stop.wait(wait_s):
                     break
@@ -334,21 +341,34 @@ class Viewer:
                 if newest is not None and seq2 >= seq:
                     seq, result = seq2, newest
                 self.last_seq = seq
-                shown = result
-            self._redraw.clear()
+                shown, dirty = result, True
+            if self._redraw.is_set():
+                self._redraw.clear()
+                dirty = shown is not None
+            # Nobody watching: keep the newest and send it when a browser connects.
+            if not dirty or (self.only_when_watched and not self._watched()):
+                continue
             try:
                 self._show(shown)
             except Exception:
                 log.exception("viewer: update failed")
+            dirty = False
             last_push = time.monotonic()
+
+    def _watched(self) -> bool:
+        server = self._server
+        return server is not None and len(server.get_clients()) > 0
 
     def _show(self, result: Any) -> None:
         server = self._server
         if server is None:
             return
         xyz, colors, step = cloud_arrays(result, self.max_points, self._color_mode, self._range_mm)
-        depth_rgb = _preview(depth_colormap(np.asarray(result.depth), self._range_mm))
-        texture = _preview(np.repeat(texture_u8(result)[..., None], 3, axis=2))
+        # Previews from a strided copy: colouring all 1.4 Mpx for a 360 px panel is waste.
+        k = max(1, np.asarray(result.depth).shape[1] // (2 * PANEL_WIDTH_PX))
+        depth_rgb = _preview(depth_colormap(np.asarray(result.depth)[::k, ::k], self._range_mm))
+        gray = _texture_u8(np.asarray(result.texture)[::k, ::k], float(result.full_scale))
+        texture = _preview(np.repeat(gray[..., None], 3, axis=2))
         size_mm = _point_size_mm(xyz, step, np.asarray(result.points))
         with self._lock, server.atomic():
             if self._cloud is None:

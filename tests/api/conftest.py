@@ -26,14 +26,30 @@ FAST_EXPOSURE_MS = 10.0  # short sets keep the tests quick (the simulator runs i
 
 @pytest.fixture(scope="session")
 def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from app.calib.calibration import save_calibration
-    from app.calib.fitting import calibrate_folder
-    from app.devices.sim import simulate_calibration_folder
+    """The simulator's calibration, made the way a first start makes it (and checked on the way).
 
-    root = tmp_path_factory.mktemp("simcal")
-    simulate_calibration_folder(root / "poses", seed=0)
-    report = calibrate_folder(root / "poses")
-    return save_calibration(report.calibration, root / "sim.json")
+    An instrument started on an empty data folder shows "calibrating", simulates board
+    poses, calibrates, and stores ``calibrations/sim.json``; every other test reuses it.
+    """
+    from app.service.instrument import Instrument
+
+    data = tmp_path_factory.mktemp("simcal")
+    inst = Instrument(Settings(data_dir=data, viewer=False, autostart=False, sim_seed=0))
+    try:
+        inst.start()
+        assert inst.state() == "calibrating"
+        assert inst.status()["calibration"] is None
+        deadline = time.monotonic() + 900
+        while inst.calibrating and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert not inst.calibrating, "simulator calibration took more than 15 minutes"
+        assert inst.calibration is not None, inst.status()["last_error"]
+        assert inst.calibration_summary()["name"] == "sim"  # type: ignore[index]
+    finally:
+        inst.close()
+    path = data / "calibrations" / "sim.json"
+    assert path.is_file()
+    return path
 
 
 def live_settings(tmp_path: Path, calibration_file: Path | None, **overrides: Any) -> Settings:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import time
 
 import cv2
 import numpy as np
@@ -20,7 +21,7 @@ STATUS_KEYS = {
 
 def test_status_reports_a_running_instrument(live: TestClient) -> None:
     st = wait_for(live, lambda s: s["state"] == "running" and s["depth_fps"] > 0, 30, "running")
-    assert STATUS_KEYS <= st.keys()
+    assert st.keys() >= STATUS_KEYS
     assert st["mode"] == "set" and st["exposure_ms"] == FAST_EXPOSURE_MS and st["led"] == "green"
     assert st["camera_fps"] > 5 and st["latency_ms"] is not None and st["latency_ms"] > 0
     assert st["calibration"]["name"] == "sim" and st["calibration"]["height_range_mm"][1] > 10
@@ -138,14 +139,12 @@ def test_websocket_stream_delivers_new_jpegs(live: TestClient) -> None:
 
 
 def test_mjpeg_stream_parts(live: TestClient) -> None:
-    with live.stream("GET", "/api/stream/depth.mjpeg") as r:
-        assert r.headers["content-type"].startswith("multipart/x-mixed-replace")
-        buf = b""
-        for chunk in r.iter_bytes():
-            buf += chunk
-            if buf.count(b"--frame") >= 2:
-                break
-    assert b"Content-Type: image/jpeg" in buf and b"\xff\xd8" in buf
+    r = live.get("/api/stream/depth.mjpeg?frames=2")
+    assert r.headers["content-type"].startswith("multipart/x-mixed-replace")
+    parts = [p for p in r.content.split(b"--frame") if b"Content-Type: image/jpeg" in p]
+    assert len(parts) == 2
+    jpegs = [p.split(b"\r\n\r\n", 1)[1] for p in parts]
+    assert all(j.startswith(b"\xff\xd8") for j in jpegs)
 
 
 def test_rolling_mode_labels_results(live: TestClient) -> None:
@@ -165,9 +164,11 @@ def test_rolling_mode_labels_results(live: TestClient) -> None:
 
 def test_acquisition_stop_and_start(live: TestClient) -> None:
     assert live.post("/api/acquisition/stop").json()["acquiring"] is False
-    st = wait_for(live, lambda s: s["state"] == "stopped", 10, "stopped")
-    frames = st["frames_received"]
-    wait_for(live, lambda s: s["camera_fps"] == 0 or s["frames_received"] == frames, 5)
+    wait_for(live, lambda s: s["state"] == "stopped", 10, "stopped")
+    time.sleep(0.5)
+    frames = live.get("/api/status").json()["frames_received"]
+    time.sleep(0.5)
+    assert live.get("/api/status").json()["frames_received"] == frames  # the camera really stopped
     assert live.post("/api/acquisition/start").json()["acquiring"] is True
     wait_for(live, lambda s: s["state"] == "running" and s["frames_received"] > frames + 16, 30, "running again")
 

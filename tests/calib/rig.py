@@ -33,8 +33,8 @@ class Rig:
     f_px: float = 800.0
     schedule: PatternSchedule = PatternSchedule()
     proj_center_mm: tuple[float, float, float] = (20.0, 0.0, 0.0)
-    proj_yaw_deg: float = -12.0
-    proj_f_px: float = 900.0
+    proj_yaw_deg: float = 12.0
+    proj_f_px: float = 600.0
 
     @property
     def camera_matrix(self) -> np.ndarray:

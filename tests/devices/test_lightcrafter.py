@@ -13,7 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
-from app.devices import DeviceDisconnected, DeviceNotFound, DeviceState, DeviceTimeout, ProtocolError
+from app.devices import (
+    DeviceDisconnected,
+    DeviceNotFound,
+    DeviceState,
+    DeviceTimeout,
+    ProtocolError,
+)
 from app.devices.lightcrafter import (
     CMD_PATTERN_DEF,
     CMD_VERSION,
@@ -176,4 +182,4 @@ def test_cli_emulate_lightcrafter():
         client.close()
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10) == 0
+        assert proc.wait(timeout=30) == 0

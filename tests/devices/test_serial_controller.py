@@ -311,5 +311,5 @@ def test_cli_emulate_controller_prints_a_working_device(tmp_path):
         ctl.close()
     finally:
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10) == 0
+        assert proc.wait(timeout=30) == 0
     assert not link.exists()

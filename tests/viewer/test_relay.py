@@ -15,7 +15,7 @@ from fastapi import FastAPI
 from viser import _messages
 
 from app.viewer.relay import viewer_router
-from app.viewer.viewer import Viewer
+from app.viewer.viewer import Viewer, cloud_arrays
 from tests.viewer.helpers import SurfaceSource, port_is_free, serve, surface_result, wait_for
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
@@ -58,11 +58,22 @@ def test_relay_serves_the_client_page(rig: tuple[SurfaceSource, Viewer, FastAPI,
     assert httpx.get(f"http://{host}/viser/no-such-file.js").status_code == 404
 
 
+def _camera_message() -> bytes:
+    """What the viser client sends first (it counts as connected from then on)."""
+    camera = _messages.ViewerCameraMessage(
+        wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0), fov=1.0, near=0.01, far=1000.0,
+        image_height=480, image_width=640, look_at=(0.0, 0.0, 60.0), up_direction=(0.0, -1.0, 0.0))
+    return bytes(msgspec.msgpack.encode(camera.as_serializable_dict()))
+
+
 def test_relay_websocket_both_ways(rig: tuple[SurfaceSource, Viewer, FastAPI, str]) -> None:
     source, viewer, _, host = rig
-    source.publish(surface_result(120, 160))
-    assert wait_for(lambda: viewer.updates >= 1, 10)
-    n_points = viewer.last_point_count
+    result = surface_result(120, 160)
+    n_points = len(cloud_arrays(result, viewer.max_points)[0])
+    source.publish(result)
+    # Nobody watching: the viewer keeps the result but does no encoding work.
+    assert not wait_for(lambda: viewer.updates > 0, 1.0)
+    assert viewer.last_seq == 1
     uuid = viewer._gui["exposure"]._impl.uuid
 
     async def session() -> int:
@@ -71,17 +82,14 @@ def test_relay_websocket_both_ways(rig: tuple[SurfaceSource, Viewer, FastAPI, st
         async with websockets.connect(f"ws://{host}/viser", subprotocols=[SUBPROTOCOL],
                                       max_size=None) as ws:
             assert ws.subprotocol == SUBPROTOCOL
-            deadline = time.monotonic() + 5
+            await ws.send(_camera_message())
+            deadline = time.monotonic() + 10
             while time.monotonic() < deadline and received < n_points * 15:
                 try:
                     received += len(await asyncio.wait_for(ws.recv(), 1.0))
                 except TimeoutError:
-                    break
+                    continue
             # Browser → server: what the viser client sends when the slider is dragged.
-            camera = _messages.ViewerCameraMessage(
-                wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0), fov=1.0, near=0.01, far=1000.0,
-                image_height=480, image_width=640, look_at=(0.0, 0.0, 60.0), up_direction=(0.0, -1.0, 0.0))
-            await ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
             update = _messages.GuiUpdateMessage(uuid, {"value": 42.0})
             await ws.send(msgspec.msgpack.encode(update.as_serializable_dict()))
             ok = await asyncio.to_thread(wait_for, lambda: ("set_exposure", 42.0) in source.calls, 5.0)
@@ -89,7 +97,8 @@ def test_relay_websocket_both_ways(rig: tuple[SurfaceSource, Viewer, FastAPI, st
         return received
 
     received = asyncio.run(session())
-    # Point cloud (12 B/point) and colours (3 B/point) came through.
+    assert viewer.updates == 1 and viewer.last_point_count == n_points
+    # Point cloud (12 B/point) and colours (3 B/point) came through the relay.
     assert received >= n_points * 15
     assert wait_for(lambda: _clients(viewer) == 0, 5)
 

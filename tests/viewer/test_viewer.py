@@ -64,7 +64,7 @@ def source() -> SurfaceSource:
 
 def test_viewer_serves_on_loopback_updates_in_place_and_stops(source: SurfaceSource) -> None:
     before = set(threading.enumerate())
-    viewer = Viewer(source, max_points=2000, max_rate_hz=50.0)
+    viewer = Viewer(source, max_points=2000, max_rate_hz=50.0, only_when_watched=False)
     viewer.start()
     try:
         port = viewer.port
@@ -93,7 +93,7 @@ def test_viewer_serves_on_loopback_updates_in_place_and_stops(source: SurfaceSou
 
 
 def test_viewer_paces_updates(source: SurfaceSource) -> None:
-    viewer = Viewer(source, max_points=500, max_rate_hz=4.0)
+    viewer = Viewer(source, max_points=500, max_rate_hz=4.0, only_when_watched=False)
     viewer.start()
     try:
         stop = threading.Event()

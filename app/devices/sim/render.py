@@ -28,6 +28,7 @@ from app.recon.patterns import PatternSchedule
 
 F32 = npt.NDArray[np.float32]
 _TABLE = gaussian_quantile_table()
+BLOCK = 8  # tile size (px) of the per-tile motion flow
 
 
 def blur_varying(img: F64, sigma_px: F64, levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
@@ -76,6 +77,10 @@ class Renderer:
         self._trig: tuple[F32, F32] | None = None
         self._truth_static: tuple[F32, F32] | None = None
         self._mean_buf = np.empty((h, w), np.float32)
+        self._nd: F32 | None = None
+        # Projector output over one fringe period: cosine → 8-bit DMD level → response.
+        frac = (np.arange(4096) + 0.5) / 4096
+        self.qtab = self.lut[np.rint(255 * (0.5 + 0.5 * np.cos(2 * math.pi * frac))).astype(int)]
 
     # -- shading ---------------------------------------------------------------------------
     def shade(self, points: F64, normals: F64, material: npt.NDArray[np.uint8], albedo: F64,
@@ -171,48 +176,78 @@ class Renderer:
         proj = self.rig.projector
         alpha, a_c, gam, g_c = proj.column_coefficients()
         k = self.schedule.frequencies[fi]
-        kernels.mean_moving(mean, self.points, base.reshape(h, w), fringe[fi].reshape(h, w), self.scene.offset(t_s),
-                            self.rig.camera.K, alpha, a_c, gam, g_c, 2 * math.pi * k / self.schedule.width, shift,
-                            float(self.schedule.width), self.lut, self.qbar, scale, amb)
+        delta = self.scene.offset(t_s)
+        nd = self._nd_table()
+        kernels.mean_moving(mean, nd, base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta),
+                            BLOCK, float(alpha @ delta), float(gam @ delta), k / self.schedule.width,
+                            shift / (2 * math.pi), float(self.schedule.width), self.qtab, self.qbar, scale, amb)
         if self.scene.tool is not None:
             self._draw_tool(mean, fi, shift, t_s, scale, amb, led)
 
+    def _nd_table(self) -> F32:
+        if self._nd is None:
+            alpha, a_c, gam, g_c = self.rig.projector.column_coefficients()
+            self._nd = np.stack([self.points @ alpha - a_c, self.points @ gam - g_c], -1).astype(np.float32)
+        return self._nd
+
+    def _block_flow(self, delta: F64) -> npt.NDArray[np.int64]:
+        """Integer pinhole image flow of each BLOCK×BLOCK tile for a translation ``delta`` (mm)."""
+        h, w = self.shape
+        c = self.points[BLOCK // 2 :: BLOCK, BLOCK // 2 :: BLOCK]
+        ty, tx = -(-h // BLOCK), -(-w // BLOCK)
+        pad = np.full((ty, tx, 3), np.nan)
+        pad[: c.shape[0], : c.shape[1]] = c
+        fx, fy = self.rig.camera.K[0, 0], self.rig.camera.K[1, 1]
+        with np.errstate(invalid="ignore"):
+            z1 = pad[..., 2] + delta[2]
+            fu = fx * ((pad[..., 0] + delta[0]) / z1 - pad[..., 0] / pad[..., 2])
+            fv = fy * ((pad[..., 1] + delta[1]) / z1 - pad[..., 1] / pad[..., 2])
+        flow = np.stack([fu, fv], -1)
+        if np.isnan(flow).any():  # tiles with no surface at their centre take the mean flow
+            fill = np.nanmean(flow.reshape(-1, 2), axis=0) if np.isfinite(flow).any() else np.zeros(2)
+            flow = np.where(np.isnan(flow), fill, flow)
+        return np.rint(flow).astype(np.int64)
+
     def _draw_tool(self, mean: F32, fi: int, shift: float, t_s: float, scale: float, amb: float, led: str) -> None:
+        """Overlay the tool (exact ray–capsule test per pixel of its image bounding box)."""
         tool = self.scene.tool
         assert tool is not None
-        p0, p1 = tool.path(t_s)
-        from app.devices.sim.raycast import raycast_capsule
-
-        cam = self.rig.camera
+        p0, p1 = (np.asarray(p, np.float64) for p in tool.path(t_s))
+        cam, proj = self.rig.camera, self.rig.projector
         ends = np.stack([p0, p1])
-        if np.all(ends[:, 2] <= 0):
+        if np.all(ends[:, 2] <= 1.0):
             return
-        uv = cam.project(np.where(ends[:, 2:3] > 1.0, ends, ends + np.array([0, 0, 1.0])))
-        rad_px = cam.K[0, 0] * tool.radius_mm / max(min(ends[:, 2].min(), 60.0), 5.0) + 3
+        ends = ends[ends[:, 2] > 1.0]
+        uv = cam.project(ends)
+        # Row spans of the stadium swept by the end discs along the image of the axis.
+        rad_px = cam.K[0, 0] * tool.radius_mm / ends[:, 2].min() + 4
         h, w = self.shape
-        u0, u1 = int(max(uv[:, 0].min() - rad_px, 0)), int(min(uv[:, 0].max() + rad_px, w - 1))
-        v0, v1 = int(max(uv[:, 1].min() - rad_px, 0)), int(min(uv[:, 1].max() + rad_px, h - 1))
-        if u1 < u0 or v1 < v0:
+        samples = uv[0] + np.linspace(0, 1, 96)[:, None] * (uv[-1] - uv[0])
+        v0, v1 = int(max(samples[:, 1].min() - rad_px, 0)), int(min(samples[:, 1].max() + rad_px, h - 1))
+        if v1 < v0 or samples[:, 0].max() + rad_px < 0 or samples[:, 0].min() - rad_px > w - 1:
             return
-        rays = self.rays.reshape(h, w, 3)[v0 : v1 + 1, u0 : u1 + 1].reshape(-1, 3)
-        tt, nn = raycast_capsule(np.zeros(3), rays, p0, p1, tool.radius_mm)
-        z_scene = self.points[v0 : v1 + 1, u0 : u1 + 1, 2].ravel() + self.scene.offset(t_s)[2]
-        hit = np.isfinite(tt) & ~(tt >= np.nan_to_num(z_scene, nan=np.inf))
-        if not hit.any():
-            return
-        pts = tt[hit, None] * rays[hit]
-        idx = np.flatnonzero(hit)
-        sig = self.sigma_cam[v0 : v1 + 1, u0 : u1 + 1].ravel()[idx]
-        grad = self.grad_xp.reshape(h, w)[v0 : v1 + 1, u0 : u1 + 1].ravel()[idx]
-        mat = np.full(idx.size, MATERIALS.index(tool.material), np.uint8)
-        base, fringe = self.shade(pts, nn[hit], mat, np.ones(idx.size), sig, grad, led)
+        rows = np.arange(v0, v1 + 1)[:, None]
+        half = np.sqrt(np.clip(rad_px**2 - (rows - samples[None, :, 1]) ** 2, 0, None))
+        inside = half > 0
+        lo = np.where(inside, samples[None, :, 0] - half, np.inf).min(axis=1)
+        hi = np.where(inside, samples[None, :, 0] + half, -np.inf).max(axis=1)
+        spans = np.stack([np.clip(np.floor(lo), 0, w - 1), np.clip(np.ceil(hi), -1, w - 1)], -1)
+        spans = np.where(np.isfinite(spans), spans, np.array([0, -1])).astype(np.int64)
+        axis = p1 - p0
+        length = float(np.linalg.norm(axis))
+        alpha, a_c, gam, g_c = proj.column_coefficients()
         k = self.schedule.frequencies[fi]
-        p = 0.5 + 0.5 * np.cos(2 * math.pi * k * self.rig.projector.column(pts) / self.schedule.width + shift)
-        q = self.lut[np.rint(255 * p).astype(int)]
-        vals = scale * (base * self.qbar + fringe[fi] * (q - self.qbar)) + amb
-        sub = mean[v0 : v1 + 1, u0 : u1 + 1].reshape(-1).copy()
-        sub[idx] = vals
-        mean[v0 : v1 + 1, u0 : u1 + 1] = sub.reshape(v1 - v0 + 1, u1 - u0 + 1)
+        ks, shin = SPECULAR.get(tool.material, (0.0, 1.0))
+        # Fringe attenuation on the tool from camera defocus at its mean depth.
+        z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0))
+        sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
+        grad = float(np.nanmedian(self.grad_xp))
+        atten = math.exp(-((2 * math.pi * k * grad / self.schedule.width) ** 2) * sig**2 / 2)
+        kernels.draw_tool(mean, self.rays.reshape(h, w, 3), self.points, float(self.scene.offset(t_s)[2]),
+                          v0, spans, p0, axis / length, length, tool.radius_mm,
+                          REFLECTANCE[tool.material][led], ks, shin, proj.centre, alpha, a_c, gam, g_c,
+                          float(self.schedule.width), float(proj.size[1]), proj.K[1, 1], proj.K[1, 2],
+                          2 * math.pi * k / self.schedule.width, shift, atten, self.lut, self.qbar, scale, amb)
 
     def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *, exposure_ms: float,
                gain: float = 1.0, led: str = "green", current: float = 0.5, bits: int = 8

@@ -71,6 +71,7 @@ static void resetDefaults() {
   passMode = false;
   periodUs = 20000; delayUs = 0; widthUs = 100; pulseCount = 16; wdtMs = 2000;
   tripped = false;
+  pulsesDone = 0;
   applyLeds();
 }
 

@@ -1,0 +1,160 @@
+"""The dashboard in headless Chromium against the real app on the simulator.
+
+One uvicorn server (create_app on the simulator) and one page for the module: the page
+loads without console errors, the depth image changes, the exposure slider reaches
+/api/status, the 3-D view draws the point cloud; a screenshot is kept in
+test-artifacts/dashboard.png.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from app.config import Settings
+from app.recon.colormap import depth_colormap
+from tests.viewer.helpers import serve, wait_for
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+# Console messages that are not errors of ours: none so far (keep this list short).
+IGNORED_CONSOLE: tuple[str, ...] = ()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    if not CHROMIUM.exists():
+        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
+    from app.main import create_app
+
+    data_dir = tmp_path_factory.mktemp("fringescope-data")
+    settings = Settings(data_dir=data_dir, sim_seed=7, exposure_ms=20.0, viewer_max_points=100_000)
+    with serve(create_app(settings)) as host:
+        base = f"http://{host}"
+        # First start on the simulator creates its calibration: wait for live depth.
+        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 2, 600, 0.5)
+        assert ok, httpx.get(f"{base}/api/status").json()
+        yield base
+
+
+@pytest.fixture(scope="module")
+def page(server: str) -> Iterator[tuple[Any, list[str]]]:
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            pg = browser.new_page(viewport={"width": 1600, "height": 1000})
+
+            def on_console(msg: Any) -> None:
+                if msg.type == "error" and not any(s in msg.text for s in IGNORED_CONSOLE):
+                    errors.append(f"console: {msg.text} @ {msg.location}")
+
+            pg.on("console", on_console)
+            pg.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
+            pg.goto(server + "/", wait_until="load")
+            pg.wait_for_function("window.fringescope && window.fringescope.framesShown >= 1", timeout=60_000)
+            yield pg, errors
+        finally:
+            browser.close()
+
+
+def _canvas_png(pg: Any, selector: str) -> bytes:
+    url = pg.evaluate(f"document.querySelector('{selector}').toDataURL('image/png')")
+    import base64
+
+    return base64.b64decode(url.split(",", 1)[1])
+
+
+def test_page_loads_without_console_errors(page: tuple[Any, list[str]], server: str) -> None:
+    pg, errors = page
+    assert pg.title() == "Fringescope"
+    pg.wait_for_function("document.querySelector('#state').textContent === 'running'", timeout=30_000)
+    # The status bar shows live figures from /api/status.
+    depth_fps = float(pg.text_content("#m-depth") or "nan")
+    assert depth_fps > 0
+    assert pg.is_hidden("#fault")
+    assert errors == []
+
+
+def test_depth_image_changes_over_time(page: tuple[Any, list[str]]) -> None:
+    pg, errors = page
+    shown0 = pg.evaluate("window.fringescope.framesShown")
+    img0 = _canvas_png(pg, "#depth")
+    pg.wait_for_function(f"window.fringescope.framesShown >= {shown0 + 2}", timeout=30_000)
+    img1 = _canvas_png(pg, "#depth")
+    assert img0 != img1
+    assert pg.evaluate("window.fringescope.streamKind") == "stream"  # the WebSocket, not polling
+    # The canvas holds the depth part only, at the sensor's aspect ratio, TURBO-coloured.
+    w, h = pg.evaluate("[document.querySelector('#depth').width, document.querySelector('#depth').height]")
+    sw, sh = pg.evaluate("window.fringescope.sensor")
+    assert abs(w / h - sw / sh) < 0.02
+    rgb = cv2.imdecode(np.frombuffer(img1, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].reshape(-1, 3)
+    lut = depth_colormap(np.arange(256, dtype=np.float32)[None, :], (0.0, 255.0))[0].astype(int)
+    colored = rgb[rgb.max(axis=1) > 40].astype(int)
+    assert len(colored) > 0.2 * len(rgb)
+    sample = colored[:: max(1, len(colored) // 2000)]
+    dist = np.abs(sample[:, None, :] - lut[None, :, :]).sum(axis=2).min(axis=1)
+    assert np.median(dist) < 25  # JPEG-compressed TURBO colours
+    assert errors == []
+
+
+def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str) -> None:
+    pg, errors = page
+    before = httpx.get(f"{server}/api/status").json()["exposure_ms"]
+    target = 37 if round(before) != 37 else 41
+    pg.locator("#exposure").fill(str(target))
+    assert pg.text_content("#exposure-value") == str(target)
+    ok = wait_for(lambda: httpx.get(f"{server}/api/status").json()["exposure_ms"] == target, 10, 0.2)
+    assert ok, httpx.get(f"{server}/api/status").json()["exposure_ms"]
+    assert errors == []
+
+
+def test_3d_view_renders_points(page: tuple[Any, list[str]], server: str) -> None:
+    pg, errors = page
+    frame = pg.frame_locator("#viewer3d")
+    canvas = frame.locator("canvas").first
+    canvas.wait_for(state="visible", timeout=60_000)
+    lut = depth_colormap(np.arange(256, dtype=np.float32)[None, :], (0.0, 255.0))[0].astype(int)
+
+    def turbo_fraction() -> float:
+        png = canvas.screenshot()
+        rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].reshape(-1, 3)
+        rgb = rgb[:: max(1, len(rgb) // 20000)].astype(int)
+        saturated = rgb[(rgb.max(axis=1) - rgb.min(axis=1)) > 60]
+        if len(saturated) == 0:
+            return 0.0
+        dist = np.abs(saturated[:, None, :] - lut[None, :, :]).sum(axis=2).min(axis=1)
+        return float((dist < 40).sum()) / len(rgb)
+
+    # Points arrive over the relayed WebSocket and are drawn with the TURBO colours.
+    deadline = time.monotonic() + 60
+    fraction = turbo_fraction()
+    while fraction < 0.02 and time.monotonic() < deadline:
+        pg.wait_for_timeout(1000)
+        fraction = turbo_fraction()
+    assert fraction >= 0.02, f"only {fraction:.3%} of the 3-D view is point-cloud coloured"
+    assert errors == []
+
+
+def test_screenshot_artifact(page: tuple[Any, list[str]]) -> None:
+    pg, errors = page
+    ARTIFACTS.mkdir(exist_ok=True)
+    pg.wait_for_timeout(1500)
+    path = ARTIFACTS / "dashboard.png"
+    pg.screenshot(path=str(path), full_page=True)
+    img = cv2.imread(str(path))
+    assert img is not None and img.shape[1] == 1600
+    assert errors == []

@@ -1,0 +1,87 @@
+"""``calibrate_folder`` and ``fringescope calibrate`` on rendered fringe sets of the analytic rig."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from app.calib import BoardSpec, calibrate_folder, calibrate_sets, height_mm, load_calibration
+from app.capture.captureset import CaptureSet, write_capture_set
+from app.cli import main
+from tests.calib.rig import STANDARD_POSES, Rig, board_pose
+from tests.calib.test_board import _render
+
+BOARD = BoardSpec("checkerboard", 9, 6, 3.0)
+
+
+def _fringe_set(rig: Rig, rmat, tvec, seed: int) -> CaptureSet:
+    """16 uint8 frames: board albedo × (110 + 100 cos(k/k_max · φ + δ)) + noise."""
+    albedo = _render(BOARD, rmat, tvec, rig).astype(np.float64) / 240.0
+    phi = rig.plane_phase_map(rmat[:, 2], tvec).astype(np.float64)
+    sched = rig.schedule
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in sched.frequencies:
+        for d in sched.shifts_rad:
+            img = albedo * (110.0 + 100.0 * np.cos(phi * k / sched.frequencies[-1] + d))
+            frames.append(np.clip(np.rint(img + rng.normal(0, 0.5, img.shape)), 0, 255).astype(np.uint8))
+    return CaptureSet(np.stack(frames), sched)
+
+
+@pytest.fixture(scope="module")
+def calib_dir(tmp_path_factory):
+    rig = Rig()
+    d = tmp_path_factory.mktemp("calib")
+    (d / "board.json").write_text(json.dumps(BOARD.to_dict()))
+    truth = []
+    for i, (depth, ax, ay, az, sh) in enumerate(STANDARD_POSES):
+        r, t = board_pose(BOARD, depth, ax, ay, az, sh)
+        truth.append((r, t))
+        write_capture_set(d / f"pose_{i:02d}", _fringe_set(rig, r, t, i))
+    return d, rig, truth
+
+
+def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
+    d, rig, truth = calib_dir
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(d), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "pose_05" in text and "reproj_px" in text and "fit_rms_mm" in text and "wrote" in text
+    cal = load_calibration(out)
+    assert len(cal.pose_residuals) == len(STANDARD_POSES)
+    assert all(p["corners"] == BOARD.n_points for p in cal.pose_residuals)
+    # Heights of a fresh plane 10 mm above the reference, from its exact phase.
+    r0, t0 = truth[0]
+    n = r0[:, 2] if r0[:, 2] @ t0 < 0 else -r0[:, 2]
+    point = t0 + 10.0 * n
+    phase = rig.plane_phase_map(n, point)
+    vv, uu = np.mgrid[150:330, 220:420]
+    z = height_mm(cal, uu, vv, phase[150:330, 220:420])
+    assert abs(np.mean(z) - 10.0) < 0.05 and np.abs(z - 10.0).max() < 0.2
+
+
+def test_calibrate_sets_errors_name_the_pose(calib_dir):
+    d, rig, truth = calib_dir
+    from app.capture.captureset import read_capture_set
+
+    sets = [read_capture_set(d / f"pose_{i:02d}") for i in range(4)]
+    blank = CaptureSet(np.full_like(sets[2].frames, 100), sets[2].schedule)
+    with pytest.raises(ValueError, match=r"^pose 2 \(pose_02\): board not found"):
+        calibrate_sets(BOARD, [sets[0], sets[1], blank, sets[3]])
+    rep = calibrate_sets(BOARD, [sets[0], sets[1], blank, sets[3]], robust=True)
+    assert rep.poses[2].dropped and rep.poses[2].corners == 0
+    assert math.isfinite(rep.rms_mm)
+    with pytest.raises(ValueError, match="^poses: need at least 3"):
+        calibrate_sets(BOARD, sets[:2])
+
+
+def test_cli_calibrate_bad_folder_is_one_line(tmp_path, capsys):
+    assert main(["calibrate", str(tmp_path / "nope"), "-o", str(tmp_path / "c.json")]) == 2
+    err = capsys.readouterr().err
+    assert "calibration folder not found" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "c").mkdir()
+    assert main(["calibrate", str(tmp_path / "c"), "-o", str(tmp_path / "c.json")]) == 2
+    assert "board.json" in capsys.readouterr().err

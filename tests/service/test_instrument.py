@@ -1,0 +1,83 @@
+"""The Instrument on the simulator without HTTP: calibration reuse, auto-exposure, threads."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from app.config import Settings
+from app.service.instrument import Instrument, NotReady
+from tests.api.conftest import sim_calibration_file  # noqa: F401 - the shared session fixture
+
+
+@pytest.fixture
+def instrument(tmp_path: Path, sim_calibration_file: Path) -> Iterator[Instrument]:  # noqa: F811
+    # The simulator's calibration sits in the data folder, as a first start leaves it.
+    cal_dir = tmp_path / "calibrations"
+    cal_dir.mkdir()
+    shutil.copy(sim_calibration_file, cal_dir / "sim.json")
+    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, sim_seed=2, exposure_ms=10.0))
+    inst.start()
+    try:
+        yield inst
+    finally:
+        inst.close()
+
+
+def wait_until(cond, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out: {what}")
+
+
+def test_stored_sim_calibration_is_reused(instrument: Instrument) -> None:
+    assert not instrument.calibrating
+    assert instrument.calibration_summary()["name"] == "sim"  # type: ignore[index]
+    wait_until(lambda: instrument.results.seq >= 1, 120, "a first result")
+    res = instrument.latest_result()
+    assert res.mode == "set" and res.depth.shape == res.texture.shape
+    assert res.latency_ms > 0 and len(res.frame_indices) == 16
+
+
+def test_auto_exposure_measures_real_sets(instrument: Instrument) -> None:
+    wait_until(lambda: instrument.results.seq >= 1, 120, "a first result")
+    res = instrument.auto_exposure(saturation_limit=0.005, max_exposure_ms=12.0)
+    assert 1.0 <= res.exposure_ms <= 12.0
+    assert len(res.trials) >= 2 and all(0 <= t.saturated_fraction <= 1 for t in res.trials)
+    assert res.saturated_fraction <= 0.005 or res.warning
+    # modulation grows with exposure while nothing clips
+    ok = [t for t in res.trials if t.saturated_fraction <= 0.005]
+    if len(ok) >= 2:
+        assert ok[-1].modulation > ok[0].modulation
+    assert instrument.status()["exposure_ms"] == res.exposure_ms
+    cap = instrument.next_capture(20.0, exposure_ms=res.exposure_ms)
+    assert cap.exposure_ms == pytest.approx(res.exposure_ms)
+
+
+def test_controls_validate_and_status_explains(instrument: Instrument) -> None:
+    with pytest.raises(ValueError, match="exposure_ms"):
+        instrument.set_exposure(0.5)
+    with pytest.raises(ValueError, match="led"):
+        instrument.set_led("white")
+    instrument.set_acquiring(False)
+    wait_until(lambda: instrument.state() == "stopped", 10, "stopped")
+    with pytest.raises(NotReady, match="stopped"):
+        instrument.next_capture(1.0)
+
+
+def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_file: Path) -> None:  # noqa: F811
+    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, calibration_file=sim_calibration_file))
+    inst.start()
+    wait_until(lambda: inst.acquisition.frames_received > 0, 120, "frames")
+    threads = inst.threads()
+    inst.close()
+    inst.close()
+    assert not any(t.is_alive() for t in threads)
+    assert inst.state() == "stopped"
