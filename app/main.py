@@ -20,8 +20,11 @@ import app as app_package
 from app import __version__
 from app.api import api_router
 from app.api.deps import install_error_handlers
+from app.api.recordings import router as recordings_router  # issue 7
+from app.api.security import install_security  # issue 7
 from app.config import Settings
 from app.service.instrument import Instrument
+from app.service.recorder import Recorder  # issue 7
 
 log = logging.getLogger("fringescope.main")
 
@@ -47,6 +50,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     # (1) the Instrument — built now (cheap), started in the lifespan.
     instrument = Instrument(settings)
+    recorder = Recorder(instrument)  # issue 7: recordings of the live sets
+    instrument.recorder = recorder  # issue 7: status shows `recording`
     viewer, viewer_routes = _make_viewer(settings, instrument)
 
     @asynccontextmanager
@@ -61,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            recorder.close()  # issue 7: finish a running recording before the devices stop
             if viewer is not None:
                 viewer.stop()
             instrument.close()
@@ -71,9 +77,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.instrument = instrument
     app.state.viewer = viewer
     install_error_handlers(app)
+    install_security(app, settings)  # issue 7: token, CORS, WebSocket Origin, upload limit
+    app.state.recorder = recorder  # issue 7
 
     # (2) REST and streams
     app.include_router(api_router())
+    app.include_router(recordings_router)  # issue 7
 
     # (3) the 3-D viewer relay
     if viewer_routes is not None:

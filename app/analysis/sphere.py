@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
 from app.analysis.common import select_points
 
@@ -136,20 +137,36 @@ def sphere_figures(points: npt.ArrayLike, diameter_mm: float, valid: npt.ArrayLi
 
 
 def _ransac_sphere(pts: F64, radius_mm: float, band_mm: float, seed: int,
-                   iterations: int = 400) -> npt.NDArray[np.bool_]:
+                   iterations: int = 400, score_size: int = 20000) -> npt.NDArray[np.bool_]:
+    """Inliers of the best sphere with radius within ±10 % of ``radius_mm``.
+
+    Samples are local (a random seed point and three points within one diameter of it),
+    so a sphere covering a few per cent of the view is still hit; hypotheses are scored
+    on a random subset.
+    """
     rng = np.random.default_rng(seed)
-    best = np.zeros(len(pts), bool)
+    tree = cKDTree(pts)
+    score = pts if len(pts) <= score_size else pts[rng.choice(len(pts), score_size, replace=False)]
+    best_count, best = 0, None
     for _ in range(iterations):
-        sample = pts[rng.choice(len(pts), 4, replace=False)]
+        i = int(rng.integers(len(pts)))
+        near = tree.query_ball_point(pts[i], 2.0 * radius_mm)
+        if len(near) < 4:
+            continue
+        sample = pts[rng.choice(near, 4, replace=False)]
         try:
             c, r = _algebraic_sphere(sample)
         except ValueError:
             continue
         if not (0.9 * radius_mm <= r <= 1.1 * radius_mm):
             continue
-        inl = np.abs(np.linalg.norm(pts - c, axis=1) - r) <= band_mm
-        if inl.sum() > best.sum():
-            best = inl
-    if best.sum() < 10:
+        count = int(np.sum(np.abs(np.linalg.norm(score - c, axis=1) - r) <= band_mm))
+        if count > best_count:
+            best_count, best = count, (c, r)
+    if best is None:
         raise ValueError(f"points: no sphere of diameter ≈ {2 * radius_mm:g} mm found")
-    return best
+    c, r = best
+    inl = np.abs(np.linalg.norm(pts - c, axis=1) - r) <= band_mm
+    if inl.sum() < 10:
+        raise ValueError(f"points: no sphere of diameter ≈ {2 * radius_mm:g} mm found")
+    return inl

@@ -25,10 +25,10 @@ def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
 
 @router.get(
     "/depth/latest",
-    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}}}},
+    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}},
 )
 def depth_latest(
-    format: Literal["npy", "png", "color"] = "npy",
+    format: Literal["npy", "png", "color", "tiff"] = "npy",
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),
     inst: Instrument = Depends(get_instrument),
@@ -42,6 +42,11 @@ def depth_latest(
     if format == "png":
         data = res.cached("png", lambda: encoding.depth_png_um(res.depth))
         return binary(data, "image/png", headers, "depth_um.png")
+    if format == "tiff":  # issue 7: 32-bit float TIFF, mm, NaN invalid
+        from app.capture.recording import depth_tiff_bytes
+
+        data = res.cached("tiff", lambda: depth_tiff_bytes(res.depth))
+        return binary(data, "image/tiff", headers, "depth.tiff")
     rng = encoding.check_range_mm(min_mm, max_mm)
     data = res.cached(("color", rng), lambda: encoding.depth_color_png(res.depth, rng))
     return binary(data, "image/png", headers, "depth_color.png")

@@ -98,6 +98,7 @@ class StatusOut(BaseModel):
     frames_received: int
     frames_dropped: int
     faults: int
+    recording: str | None = None  # issue 7: name of the running recording
     warnings: list[str]
 
 

@@ -275,8 +275,12 @@ class PtyControllerEmulator:
         self.stop()
 
     def vanish(self) -> None:
-        """Unplug: close both pty ends; an open pyserial port now fails with EIO."""
+        """Unplug: close both pty ends (an open pyserial port now fails with EIO) and remove the link,
+        as udev removes /dev/ttyACM0 — so nobody reopens a recycled /dev/pts number meanwhile."""
         self._close_pty()
+        if self.link_path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.link_path.unlink()
 
     def reappear(self) -> None:
         """Replug: a fresh pty (new device name), symlink re-pointed, firmware rebooted."""

@@ -34,6 +34,7 @@ fake server in lightcrafter_emulator.py accepts this layout).
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 import threading
@@ -274,7 +275,8 @@ class LightCrafterProjector(Projector):
         client.connect()
         try:
             self.firmware = client.version(0x00)
-            client.start_sequence(False)
+            with contextlib.suppress(LightCrafterError):  # some modes refuse "stop" when nothing runs
+                client.start_sequence(False)
             client.set_display_mode(MODE_PATTERN_SEQUENCE)
             client.set_led_current(*self._currents(self.led, self.led_current))
         except BaseException:

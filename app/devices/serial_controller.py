@@ -306,7 +306,7 @@ class SerialController(Controller):
                         if self._want_armed:
                             self.arm()
                         misses, backoff = 0, self.backoff_s[0]
-                    except DeviceError as exc:
+                    except Exception as exc:  # keep retrying whatever the port does meanwhile
                         self.log.debug("reconnect failed: %s", exc)
                         next_try = time.monotonic() + backoff
                         backoff = min(backoff * 2, self.backoff_s[1])

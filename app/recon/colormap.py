@@ -55,7 +55,7 @@ def depth_colormap(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 3
     bgr = cv2.applyColorMap(np.rint(scaled).astype(np.uint8), cv2.COLORMAP_TURBO)
     rgb = np.ascontiguousarray(bgr[..., ::-1])
     rgb[~finite] = 0
-    return rgb
+    return np.asarray(rgb, dtype=np.uint8)
 
 
 def _nice_step(span: float, max_ticks: int) -> float:

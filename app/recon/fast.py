@@ -54,7 +54,7 @@ _A7 = np.float32(-0.004054562176639915)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_0_2pi(y: float, x: float) -> float:  # pragma: no cover - compiled
+def atan2_0_2pi(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled (float32 in and out)
     """Branch-free float32 atan2 mapped to [0, 2π)."""
     ax = abs(x)
     ay = abs(y)

@@ -27,8 +27,10 @@ from app.recon.reasons import assign_reasons
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     check_consistency_rad,
-    combine_frequencies as combine_phases,
     unwrap_hierarchical,
+)
+from app.recon.unwrap import (
+    combine_frequencies as combine_phases,
 )
 
 if TYPE_CHECKING:

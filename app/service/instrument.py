@@ -328,6 +328,7 @@ class Instrument:
             "frames_received": acq.frames_received if acq else 0,
             "frames_dropped": acq.frames_dropped if acq else 0,
             "faults": acq.faults if acq else 0,
+            "recording": getattr(getattr(self, "recorder", None), "active_name", None),  # issue 7
             "warnings": warnings,
         }
 

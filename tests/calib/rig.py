@@ -95,3 +95,51 @@ def true_height(rig: Rig, ref_r: np.ndarray, ref_t: np.ndarray, x: np.ndarray) -
     if n @ ref_t > 0:
         n = -n
     return x @ n - n @ ref_t
+
+
+def raycast_scene(rig: Rig, plane: tuple[np.ndarray, np.ndarray], *,
+                  sphere: tuple[np.ndarray, float] | None = None,
+                  cylinder: tuple[np.ndarray, np.ndarray, float] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (H, W, 3) of the nearest surface, and a surface id map (0 plane, 1 sphere,
+    2 cylinder). ``plane`` = (unit normal, point); ``sphere`` = (centre, radius);
+    ``cylinder`` = (axis point, unit axis direction, radius)."""
+    vv, uu = np.mgrid[0 : rig.height, 0 : rig.width].astype(np.float64)
+    r = rig.rays(uu, vv)
+    n, p = plane
+    t_best = (n @ p) / (r @ n)
+    sid = np.zeros(t_best.shape, np.uint8)
+    if sphere is not None:
+        c, rad = sphere
+        b = r @ c
+        rr = np.sum(r * r, axis=-1)
+        disc = b * b - rr * (c @ c - rad * rad)
+        t = np.where(disc >= 0, (b - np.sqrt(np.clip(disc, 0, None))) / rr, np.inf)
+        hit = t < t_best
+        t_best, sid = np.where(hit, t, t_best), np.where(hit, 1, sid).astype(np.uint8)
+    if cylinder is not None:
+        p0, a, rad = cylinder
+        d = r - (r @ a)[..., None] * a
+        m = -p0 - (-p0 @ a) * a
+        qa = np.sum(d * d, axis=-1)
+        qb = 2 * (d @ m)
+        qc = m @ m - rad * rad
+        disc = qb * qb - 4 * qa * qc
+        t = np.where(disc >= 0, (-qb - np.sqrt(np.clip(disc, 0, None))) / (2 * qa), np.inf)
+        hit = t < t_best
+        t_best, sid = np.where(hit, t, t_best), np.where(hit, 2, sid).astype(np.uint8)
+    return r * t_best[..., None], sid
+
+
+def fringe_frames(rig: Rig, points: np.ndarray, albedo: np.ndarray, *, noise_dn: float = 0.5,
+                  seed: int = 0) -> np.ndarray:
+    """(16, H, W) uint8 fringe frames of camera-frame points with the given albedo (0..1)."""
+    phi = rig.phase_of_points(points)
+    sched = rig.schedule
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in sched.frequencies:
+        for d in sched.shifts_rad:
+            img = albedo * (110.0 + 100.0 * np.cos(phi * k / sched.frequencies[-1] + d))
+            frames.append(np.clip(np.rint(img + rng.normal(0, noise_dn, img.shape)), 0, 255).astype(np.uint8))
+    return np.stack(frames)

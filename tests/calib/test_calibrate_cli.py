@@ -11,7 +11,7 @@ import pytest
 from app.calib import BoardSpec, calibrate_folder, calibrate_sets, height_mm, load_calibration
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
-from tests.calib.rig import STANDARD_POSES, Rig, board_pose
+from tests.calib.rig import STANDARD_POSES, Rig, board_pose, fringe_frames, raycast_scene
 from tests.calib.test_board import _render
 
 BOARD = BoardSpec("checkerboard", 9, 6, 3.0)
@@ -85,3 +85,60 @@ def test_cli_calibrate_bad_folder_is_one_line(tmp_path, capsys):
     (tmp_path / "c").mkdir()
     assert main(["calibrate", str(tmp_path / "c"), "-o", str(tmp_path / "c.json")]) == 2
     assert "board.json" in capsys.readouterr().err
+
+
+def _reference(truth):
+    r0, t0 = truth[0]
+    n = r0[:, 2] if r0[:, 2] @ t0 < 0 else -r0[:, 2]
+    return n, t0
+
+
+def _write_scene(path, rig, pts, albedo, seed=11):
+    write_capture_set(path, CaptureSet(fringe_frames(rig, pts, albedo, seed=seed), rig.schedule))
+
+
+def test_cli_validate_plane_sphere_feature(calib_dir, tmp_path, capsys):
+    d, rig, truth = calib_dir
+    cal_path = tmp_path / "cal.json"
+    assert main(["calibrate", str(d), "-o", str(cal_path)]) == 0
+    n, t0 = _reference(truth)
+    # A plane 10 mm up, tilted 30° about the camera's y axis.
+    tilt = np.array([[np.cos(0.52), 0, np.sin(0.52)], [0, 1, 0], [-np.sin(0.52), 0, np.cos(0.52)]])
+    normal = tilt @ n
+    pts, _ = raycast_scene(rig, (normal, t0 + 10.0 * n))
+    _write_scene(tmp_path / "plane", rig, pts, np.full(pts.shape[:2], 0.8))
+    out = tmp_path / "plane.json"
+    roi = "200,150,440,330"
+    assert main(["validate", str(tmp_path / "plane"), "-c", str(cal_path), "--plane", "--roi", roi,
+                 "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "accuracy_mm" in text and "precision_mm" in text and "flatness_mm" in text
+    fig = json.loads(out.read_text())
+    assert fig["valid_fraction"] > 0.99 and fig["roi"] == [200, 150, 440, 330]
+    assert fig["accuracy_mm"] < 0.02 and fig["precision_mm"] < 0.05 and fig["flatness_mm"] < 0.5
+    assert len(fig["bins"]) > 10
+    # A sphere of 8 mm diameter resting on the reference plane.
+    centre = t0 + 4.0 * n
+    pts, sid = raycast_scene(rig, (n, t0), sphere=(centre, 4.0))
+    _write_scene(tmp_path / "sphere", rig, pts, np.where(sid == 1, 0.6, 0.9))
+    out = tmp_path / "sphere.json"
+    assert main(["validate", str(tmp_path / "sphere"), "-c", str(cal_path), "--sphere", "8",
+                 "--json", str(out)]) == 0
+    fig = json.loads(out.read_text())
+    assert abs(fig["ps_mm"]) < 0.05 and fig["diameter_mm"] == pytest.approx(8.0 + fig["ps_mm"])
+    assert fig["pf_mm"] < 0.5
+    # A dark thread (0.8 mm) lying on a plane 8 mm up.
+    base = t0 + 8.0 * n
+    axis = np.cross(n, [0.0, 0.0, 1.0]) + np.cross(n, [1.0, 0.0, 0.0]) * 0.3
+    axis /= np.linalg.norm(axis)
+    pts, sid = raycast_scene(rig, (n, base), cylinder=(base + 0.4 * n, axis, 0.4))
+    _write_scene(tmp_path / "thread", rig, pts, np.where(sid == 2, 0.35, 0.9))
+    out = tmp_path / "thread.json"
+    assert main(["validate", str(tmp_path / "thread"), "-c", str(cal_path), "--feature", "--polarity",
+                 "dark", "--roi", "200,140,440,340", "--json", str(out)]) == 0
+    fig = json.loads(out.read_text())
+    assert fig["height_mm"] == pytest.approx(0.8, abs=0.05) and fig["count"] > 50
+    assert fig["height_std_mm"] < 0.1
+    # Bad input: one line, exit 2.
+    assert main(["validate", str(tmp_path / "plane"), "-c", str(cal_path), "--plane", "--roi", "1,2,3"]) == 2
+    assert "roi" in capsys.readouterr().err

@@ -4,6 +4,7 @@ with a small Arduino shim, on a pty: same replies as the Python emulator, and th
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import time
@@ -16,6 +17,7 @@ import serial
 from app.devices import DeviceState
 from app.devices.controller_emulator import ControllerProtocol
 from app.devices.serial_controller import ControllerError, SerialController
+from tests.devices.test_serial_controller import _table
 
 ROOT = Path(__file__).resolve().parents[2]
 FIRMWARE_DIR = ROOT / "hardware" / "firmware"
@@ -63,10 +65,24 @@ SCRIPT = [
 ]
 
 
+def _boundary_lines() -> list[str]:
+    """Each documented numeric range at lo-1, lo, hi, hi+1 (from hardware/PROTOCOL.md)."""
+    lines = []
+    for cmd, _args, rng, _example, _reply in _table("Commands"):
+        m = re.search(r"(\d+)–(\d+)", rng)
+        if m:
+            prefix = "CUR B " if cmd == "`CUR`" else cmd.strip("`") + " "
+            lo, hi = int(m.group(1)), int(m.group(2))
+            lines += [f"{prefix}{v}" for v in (lo - 1, lo, hi, hi + 1) if v >= 0]
+    return lines
+
+
 def test_firmware_and_emulator_reply_identically(firmware):
     proto = ControllerProtocol(serial="FS0001")
+    script = SCRIPT + _boundary_lines()
+    assert len(script) > len(SCRIPT) + 20
     with serial.serial_for_url(firmware.port, baudrate=115200, timeout=2.0) as port:
-        for line in SCRIPT:
+        for line in script:
             port.write(line.encode() + b"\n")
             got = port.readline().decode().strip()
             want = proto.handle_line(line)

@@ -70,6 +70,23 @@ def test_every_documented_command_example_is_accepted_by_the_emulator():
             assert out == documented, f"{line!r} -> {out!r}, documented {documented!r}"
 
 
+def test_documented_numeric_ranges_are_enforced():
+    checked = 0
+    for cmd, _args, rng, _example, _reply in _table("Commands"):
+        m = re.search(r"(\d+)–(\d+)", rng)
+        if not m:
+            continue
+        name, lo, hi = cmd.strip("`"), int(m.group(1)), int(m.group(2))
+        prefix = f"{name} G " if name == "CUR" else f"{name} "
+        p = ControllerProtocol()
+        assert p.handle_line(f"{prefix}{lo}") == "OK" and p.handle_line(f"{prefix}{hi}") == "OK"
+        assert p.handle_line(f"{prefix}{hi + 1}").startswith("ERR 3")
+        if lo > 0:
+            assert p.handle_line(f"{prefix}{lo - 1}").startswith("ERR 3")
+        checked += 1
+    assert checked == 6  # CUR TPER TDLY TWID TCNT WDT
+
+
 def test_every_documented_command_is_in_the_firmware():
     source = FIRMWARE.read_text(encoding="utf-8")
     for row in _table("Commands"):

@@ -72,7 +72,8 @@ class Renderer:
         self.xp = rig.projector.column(self.points)  # (H, W) continuous projector column
         gu, gv = np.gradient(self.xp, axis=1), np.gradient(self.xp, axis=0)
         grad = np.hypot(gu, gv)
-        self.grad_xp = np.where(np.isfinite(grad), grad, np.nanmedian(grad)).ravel()
+        self.grad_median = float(np.nanmedian(grad))
+        self.grad_xp = np.where(np.isfinite(grad), grad, self.grad_median).ravel()
         self._led_cache: dict[str, tuple[F32, F32, F32, F32]] = {}
         self._trig: tuple[F32, F32] | None = None
         self._truth_static: tuple[F32, F32] | None = None
@@ -241,7 +242,7 @@ class Renderer:
         # Fringe attenuation on the tool from camera defocus at its mean depth.
         z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0))
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
-        grad = float(np.nanmedian(self.grad_xp))
+        grad = self.grad_median
         atten = math.exp(-((2 * math.pi * k * grad / self.schedule.width) ** 2) * sig**2 / 2)
         kernels.draw_tool(mean, self.rays.reshape(h, w, 3), self.points, float(self.scene.offset(t_s)[2]),
                           v0, spans, p0, axis / length, length, tool.radius_mm,

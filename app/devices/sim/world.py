@@ -1,0 +1,90 @@
+"""The simulated world the three sim devices share: scene, rig, light and projector sequence."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import numpy.typing as npt
+
+from app.devices.sim.optics import SimRig, default_rig
+from app.devices.sim.radiometry import SensorModel
+from app.devices.sim.render import Renderer
+from app.devices.sim.scenes import Scene, build_scene
+from app.recon.patterns import PatternSchedule
+
+READOUT_MS = 1000.0 / 45.0  # sensor readout: frame period = max(exposure, readout)
+
+
+class SimulatedWorld:
+    """One scene seen by one rig; the projector's state decides what light falls on it.
+
+    Attributes:
+        epoch: ``time.monotonic()`` origin of scene time (scene time = timestamp − epoch).
+        projector_on: whether the projector sequence runs (it then triggers the camera).
+        led, current: the projector's LED and its current fraction.
+    """
+
+    def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | None = None,
+                 schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
+                 seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0) -> None:
+        self.rig = rig or default_rig(distortion=distortion)
+        self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
+        self.schedule = schedule or PatternSchedule()
+        self.sensor = sensor or SensorModel()
+        self._projector_gamma = projector_gamma
+        self._renderer: Renderer | None = None
+        self._lock = threading.Lock()
+        seed_seq = np.random.SeedSequence(seed)
+        self.seed_seq = seed_seq
+        state = int(np.random.default_rng(seed_seq).integers(1, 2**63))
+        self.rng_state = np.array([state], np.uint64)
+        self.epoch = time.monotonic()
+        self.projector_on = False
+        self.led = "green"
+        self.current = 0.5
+        self._position = 0
+
+    @property
+    def renderer(self) -> Renderer:
+        """Built on first use (the geometry precompute takes a few seconds)."""
+        with self._lock:
+            if self._renderer is None:
+                self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
+                                          projector_gamma=self._projector_gamma)
+            return self._renderer
+
+    def set_schedule(self, schedule: PatternSchedule) -> None:
+        if schedule != self.schedule:
+            self.schedule = schedule
+            with self._lock:
+                self._renderer = None
+
+    def start_sequence(self) -> None:
+        self._position = 0
+        self.projector_on = True
+
+    def stop_sequence(self) -> None:
+        self.projector_on = False
+
+    def trigger(self) -> int:
+        """The projector shows its next pattern and triggers the camera; -1 if it is not running."""
+        if not self.projector_on:
+            return -1
+        idx = self._position
+        self._position = (self._position + 1) % self.schedule.n_frames
+        return idx
+
+    def render(self, pattern_index: int, t_s: float, *, exposure_ms: float, gain: float, bits: int
+               ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+        return self.renderer.render(pattern_index, t_s, self.rng_state, exposure_ms=exposure_ms, gain=gain,
+                                    led=self.led, current=self.current, bits=bits)
+
+    def truth(self, t_s: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """True depth (H, W) and points (H, W, 3) at scene time ``t_s`` (see Renderer.truth)."""
+        return self.renderer.truth(t_s)
+
+    def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8, gain: float = 1.0) -> npt.NDArray[np.float64]:
+        """Predicted temporal noise σ (DN) of a pixel with noise-free mean ``mean_dn`` (DN)."""
+        return self.sensor.noise_sigma(mean_dn, bits=bits, gain=gain)

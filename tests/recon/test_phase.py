@@ -1,0 +1,80 @@
+"""N-step wrapped phase, modulation, background and saturation against closed forms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.recon.patterns import PatternSchedule, fringe_profile
+from app.recon.phase import resolve_levels, wrapped_phase
+
+
+def _frames(phi, a, b, steps, noise, rng, dtype=np.uint16):
+    delta = 2 * math.pi * np.arange(steps) / steps
+    img = a + b * np.cos(phi[None] + delta[:, None, None])
+    img = img + rng.normal(0.0, noise, img.shape)
+    return np.clip(np.rint(img), 0, np.iinfo(dtype).max).astype(dtype)
+
+
+@pytest.mark.parametrize("steps", [3, 4, 5, 8])
+def test_phase_noise_matches_theory(steps):
+    rng = np.random.default_rng(steps)
+    phi = rng.uniform(0, 2 * math.pi, (256, 256))
+    a, b, sigma = 20000.0, 2000.0, 20.0
+    wp = wrapped_phase(_frames(phi, a, b, steps, sigma, rng), steps)
+    err = np.angle(np.exp(1j * (wp.phase[0] - phi)))
+    theory = sigma * math.sqrt(2.0 / steps) / b
+    rms = float(np.sqrt(np.mean(err**2)))
+    assert abs(rms / theory - 1.0) < 0.10, (rms, theory)
+    assert abs(float(np.mean(err))) < 3 * theory / 256  # unbiased
+    assert np.allclose(wp.modulation[0].mean(), b, rtol=2e-3)
+    assert np.allclose(wp.background.mean(), a, rtol=1e-4)
+    assert wp.phase.min() >= 0.0 and wp.phase.max() < 2 * math.pi
+
+
+def test_k1_phase_is_absolute_projector_column():
+    sched = PatternSchedule(frequencies=(1,), steps=4, width=608)
+    x = np.linspace(0.0, 607.9, 500)
+    frames = np.stack([
+        np.rint(1000 + 30000 * fringe_profile(sched, 0, n, columns=x)).astype(np.uint16)[None, :]
+        for n in range(4)
+    ])
+    wp = wrapped_phase(frames, 4)
+    expected = 2 * math.pi * x / 608
+    assert np.max(np.abs(wp.phase[0, 0] - expected)) < 1e-4
+
+
+def test_saturation_uint8_and_12bit():
+    f8 = np.full((4, 3, 3), 100, np.uint8)
+    f8[2, 1, 1] = 255
+    assert wrapped_phase(f8, 4).saturated.tolist() == [[0, 0, 0], [0, 1, 0], [0, 0, 0]]
+    f16 = np.full((4, 2, 2), 1000, np.uint16)
+    f16[0, 0, 0] = 4095
+    f16[1, 1, 1] = 4094
+    sat = wrapped_phase(f16, 4, max_code=4095).saturated
+    assert sat.tolist() == [[True, False], [False, False]]
+    assert not wrapped_phase(f16, 4).saturated.any()  # default 65535
+
+
+def test_default_levels():
+    assert resolve_levels(np.uint8, None, None) == (255, pytest.approx(5.1))
+    assert resolve_levels(np.uint16, 4095, None) == (4095, pytest.approx(81.9))
+    assert resolve_levels(np.uint16, None, 3.0) == (65535, 3.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        (dict(frames=np.zeros((4, 2, 2), np.float32), steps=4), "frames"),
+        (dict(frames=np.zeros((2, 2), np.uint8), steps=4), "frames"),
+        (dict(frames=np.zeros((6, 2, 2), np.uint8), steps=4), "frames"),
+        (dict(frames=np.zeros((4, 2, 2), np.uint8), steps=2), "steps"),
+        (dict(frames=np.zeros((4, 2, 2), np.uint8), steps=4, max_code=300), "max_code"),
+        (dict(frames=[np.zeros((2, 2), np.uint8)] * 3 + [np.zeros((2, 2), np.uint16)], steps=4), "frames"),
+    ],
+)
+def test_bad_input_names_argument(kwargs, name):
+    with pytest.raises(ValueError, match=f"^{name}"):
+        wrapped_phase(**kwargs)
