@@ -2,6 +2,7 @@
 
 from app.analysis.common import parse_roi, roi_mask, select_points
 from app.analysis.feature import FeatureHeight, feature_height
+from app.analysis.groundtruth import DepthErrors, depth_errors, perpendicular_noise_mm
 from app.analysis.noise import dz_dphi, height_noise_mm, phase_noise_rad
 from app.analysis.plane import (
     PlaneAccuracy,
@@ -14,12 +15,14 @@ from app.analysis.plane import (
 from app.analysis.sphere import SphereFigures, SphereFit, fit_sphere, sphere_figures
 
 __all__ = [
+    "DepthErrors",
     "FeatureHeight",
     "PlaneAccuracy",
     "PlaneBin",
     "PlaneFit",
     "SphereFigures",
     "SphereFit",
+    "depth_errors",
     "dz_dphi",
     "feature_height",
     "height_noise_mm",
@@ -28,6 +31,7 @@ __all__ = [
     "fit_plane_mlesac",
     "fit_sphere",
     "parse_roi",
+    "perpendicular_noise_mm",
     "plane_accuracy",
     "roi_mask",
     "select_points",

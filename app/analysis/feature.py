@@ -104,7 +104,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     resid = z - baseline
     crests: list[float] = []
     for c in comps:
-        crests += _crest_heights(resid, (labels == c) & ok, ring, min_section_px, slab_px)
+        crests += _crest_heights(resid, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1)
     if not crests:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
     arr = np.asarray(crests)
@@ -119,7 +119,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
 
 
 def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-                   slab_px: float) -> list[float]:
+                   slab_px: float, reach_px: float) -> list[float]:
     """Crest per 1-px cross-section across the segment's long axis.
 
     In each cross-section the baseline is refined by a line through the ring pixels on
@@ -139,7 +139,7 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
     ry, rx = np.nonzero(ring)
     rxy = np.stack([rx, ry], axis=1).astype(np.float64) - centre
     r_along, r_across = rxy @ vt[0], rxy @ vt[1]
-    near = np.abs(r_across) <= width  # flanks of this segment, not of a neighbour
+    near = np.abs(r_across) <= 0.5 * width + reach_px  # flanks of this segment, not of a neighbour
     r_along, r_across, r_val = r_along[near], r_across[near], resid[ry, rx][near]
     r_order = np.argsort(r_along)
     r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]

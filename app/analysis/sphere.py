@@ -102,7 +102,8 @@ def sphere_figures(points: npt.ArrayLike, diameter_mm: float, valid: npt.ArrayLi
         exclude_fraction: share of points with the largest |residual| left out of PF.
         segment: find the sphere among other surfaces first (RANSAC with radii within
             ±10 % of the nominal), then fit only its points.
-        band_mm: RANSAC inlier band, mm; default 5 % of the diameter.
+        band_mm: RANSAC inlier band, mm; default min(0.1 mm, 2 % of the diameter) — narrow
+            enough that the rim where a sphere meets its support does not outscore the sphere.
         seed: RANSAC seed.
     """
     if not (math.isfinite(diameter_mm) and diameter_mm > 0):
@@ -114,7 +115,7 @@ def sphere_figures(points: npt.ArrayLike, diameter_mm: float, valid: npt.ArrayLi
         raise ValueError(f"points: need at least 10 valid points, got {len(pts)}")
     inliers = np.ones(len(pts), bool)
     if segment:
-        inliers = _ransac_sphere(pts, diameter_mm / 2, band_mm or 0.05 * diameter_mm, seed)
+        inliers = _ransac_sphere(pts, diameter_mm / 2, band_mm or min(0.1, 0.02 * diameter_mm), seed)
     fit = fit_sphere(pts[inliers])
     if segment:  # refit once with the points near the least-squares sphere
         d = np.abs(np.linalg.norm(pts - fit.center, axis=1) - fit.radius_mm)
@@ -145,15 +146,15 @@ def _ransac_sphere(pts: F64, radius_mm: float, band_mm: float, seed: int,
     on a random subset.
     """
     rng = np.random.default_rng(seed)
-    tree = cKDTree(pts)
     score = pts if len(pts) <= score_size else pts[rng.choice(len(pts), score_size, replace=False)]
+    tree = cKDTree(score)
     best_count, best = 0, None
     for _ in range(iterations):
-        i = int(rng.integers(len(pts)))
-        near = tree.query_ball_point(pts[i], 2.0 * radius_mm)
+        i = int(rng.integers(len(score)))
+        near = tree.query_ball_point(score[i], 2.0 * radius_mm)
         if len(near) < 4:
             continue
-        sample = pts[rng.choice(near, 4, replace=False)]
+        sample = score[rng.choice(near, 4, replace=False)]
         try:
             c, r = _algebraic_sphere(sample)
         except ValueError:

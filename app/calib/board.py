@@ -166,16 +166,17 @@ def detect_board(texture_u8: npt.NDArray[np.uint8], board: BoardSpec) -> Detecti
 
 
 def _find_checkerboard(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[np.float32] | None:
-    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
-    found, corners = cv2.findChessboardCornersSB(img, board.pattern_size, flags=flags)
+    # The classic detector is ~100x faster on megapixel images; the exhaustive sector-based
+    # one (findChessboardCornersSB) is the fallback for blurred or low-contrast boards.
+    found, corners = cv2.findChessboardCorners(
+        img, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    )
     if not (found and corners is not None and len(corners) == board.n_points):
-        # The classic detector copes with some images the sector-based one rejects.
-        found, corners = cv2.findChessboardCorners(
-            img, board.pattern_size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        )
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
+        found, corners = cv2.findChessboardCornersSB(img, board.pattern_size, flags=flags)
         if not found or corners is None or len(corners) != board.n_points:
             return None
-    # Gradient-based refinement: on rendered boards it cuts the sector detector's
+    # Gradient-based refinement: on rendered boards it brings either detector's
     # 0.05-0.15 px error to ~0.03 px. Window ~0.3 of the corner spacing keeps it on its corner.
     c = np.asarray(corners, np.float32).reshape(board.rows, board.cols, 2)
     spacing = min(

@@ -223,18 +223,23 @@ class PtyControllerEmulator:
     """Serve :class:`ControllerProtocol` on a pty; ``link_path`` follows the current slave.
 
     Fault knobs (change any time): ``drop_rate`` (fraction of replies never sent),
-    ``reply_delay_s`` (answer late), :meth:`vanish` / :meth:`reappear` (unplug/replug).
+    ``reply_delay_s`` (answer late), :meth:`vanish` / :meth:`reappear` (unplug/replug);
+    ``auto_reset_s`` emulates the reboot-on-open of Arduino boards.
     """
 
     def __init__(
         self, link_path: str | os.PathLike[str] | None = None, *, protocol: ControllerProtocol | None = None,
         drop_rate: float = 0.0, reply_delay_s: float = 0.0, banner: bool = True, seed: int | None = None,
+        auto_reset_s: float = 0.0,
     ) -> None:
         self.protocol = protocol or ControllerProtocol()
         self.link_path = Path(link_path) if link_path is not None else None
         self.drop_rate = drop_rate
         self.reply_delay_s = reply_delay_s
         self.banner = banner
+        # > 0: like an Arduino, reboot whenever the host opens the port (silent for this long,
+        # then the banner); the emulator then holds no slave fd, so it can see opens and closes
+        self.auto_reset_s = auto_reset_s
         self._rng = random.Random(seed)
         self._master = self._slave = -1
         self.slave_name = ""
@@ -291,17 +296,31 @@ class PtyControllerEmulator:
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo, no line editing: bytes pass as on a UART
         self.slave_name = os.ttyname(slave)
+        if self.auto_reset_s > 0:
+            os.close(slave)  # hung-up master = no host; the raw settings stay with the pty
+            slave = -1
         with self._fd_lock:
-            self._master, self._slave = master, slave  # keep slave open so master never reads EIO
+            self._master, self._slave = master, slave  # a held slave keeps master reads from EIO
         if self.link_path is not None:
             tmp = self.link_path.with_name(self.link_path.name + ".tmp")
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
             os.symlink(self.slave_name, tmp)
             os.replace(tmp, self.link_path)
-        if self.banner:
+        if self.banner and self.auto_reset_s <= 0:
             self._write("# FRINGESCOPE LEDCTRL ready")
         log.info("controller emulator on %s", self.port)
+
+    def _reboot(self) -> None:
+        """DTR reset on open: state lost, deaf while booting, then the banner."""
+        self.protocol.reset()
+        self._stop.wait(self.auto_reset_s)
+        with self._fd_lock, contextlib.suppress(OSError):
+            if self._master >= 0:
+                while select.select([self._master], [], [], 0)[0] and os.read(self._master, 1024):
+                    pass  # bytes sent to a booting board are lost
+        if self.banner:
+            self._write("# FRINGESCOPE LEDCTRL ready")
 
     def _close_pty(self) -> None:
         with self._fd_lock:
@@ -318,17 +337,29 @@ class PtyControllerEmulator:
                     os.write(self._master, (line + "\n").encode("ascii"))
 
     def _serve(self) -> None:
-        buf = b""
+        buf, host_open = b"", False
         while not self._stop.is_set():
             master = self._master
             if master < 0:
-                buf = b""
+                buf, host_open = b"", False
                 time.sleep(0.02)
                 continue
             try:
-                ready, _, _ = select.select([master], [], [], 0.02)
-                chunk = os.read(master, 1024) if ready else b""
+                poller = select.poll()
+                poller.register(master, select.POLLIN)
+                events = poller.poll(20)
+                hung_up = bool(events) and bool(events[0][1] & select.POLLHUP)
+                chunk = os.read(master, 1024) if events and not hung_up else b""
             except (OSError, ValueError):  # closed under us by vanish()
+                time.sleep(0.01)
+                continue
+            if hung_up:  # no host has the port open (auto-reset mode only)
+                host_open = False
+                time.sleep(0.01)
+                continue
+            if self.auto_reset_s > 0 and not host_open:
+                host_open = True
+                self._reboot()
                 continue
             self.protocol.tick()
             while self.protocol.notices:

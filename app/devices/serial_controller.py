@@ -36,6 +36,7 @@ except ImportError:  # pragma: no cover - Windows
 LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
 PROTOCOL_MAJOR = 1
 IDN_PREFIX = "FRINGESCOPE,LEDCTRL,"
+BOOT_BANNER = b"# FRINGESCOPE LEDCTRL ready"
 LED_CODES = {"red": "R", "green": "G", "blue": "B"}
 
 
@@ -104,6 +105,26 @@ class SerialLink:
         except (OSError, ValueError) as exc:
             raise DeviceNotFound(f"{url}: cannot open ({exc})") from None
 
+    def wait_for_banner(self, timeout_s: float) -> bool:
+        """Read notices until the boot banner (True) or ``timeout_s`` passes (False).
+
+        A board that reboots on open announces itself when ready, so there is no need
+        to sit out the whole worst-case reset time.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            try:
+                while (left := deadline - time.monotonic()) > 0:
+                    self._port.timeout = min(left, self.timeout_s)
+                    if self._port.readline().strip() == BOOT_BANNER:
+                        return True
+            except LINK_ERRORS as exc:
+                raise DeviceDisconnected(f"{self.url}: link lost ({exc})") from None
+            finally:
+                with contextlib.suppress(*LINK_ERRORS):
+                    self._port.timeout = self.timeout_s
+        return False
+
     def discard_input(self) -> None:
         with self._lock:
             try:
@@ -155,7 +176,8 @@ class SerialController(Controller):
     """LED/trigger controller on ``port`` (path, pyserial URL or ``usb:VID:PID[:SERIAL]``).
 
     Args:
-        reset_wait_s: pause after opening for boards that reboot on open (Arduino: ~2 s).
+        reset_wait_s: longest wait after opening for boards that reboot on open (Arduino: ~2 s);
+            the wait ends early when the firmware's boot banner arrives.
         timeout_s: reply timeout per command.
         watchdog_ms: device watchdog; heartbeats go out every ``watchdog_ms / 4``.
         auto_reconnect: reopen by itself after an unplug, retrying with backoff
@@ -166,7 +188,7 @@ class SerialController(Controller):
 
     def __init__(
         self, port: str, *, baudrate: int = 115200, reset_wait_s: float = 2.0, timeout_s: float = 0.5,
-        watchdog_ms: int = 2000, auto_reconnect: bool = True, backoff_s: tuple[float, float] = (0.05, 1.0),
+        watchdog_ms: int = 2000, auto_reconnect: bool = True, backoff_s: tuple[float, float] = (0.05, 0.5),
         trigger_mode: str = "INT", pulses_per_set: int = 16, name: str | None = None,
         list_ports_fn: Callable[[], Iterable[Any]] | None = None,
     ) -> None:
@@ -194,7 +216,7 @@ class SerialController(Controller):
         link = SerialLink(resolve_port(self.port, ports), baudrate=self.baudrate, timeout_s=self.timeout_s)
         try:
             if self.reset_wait_s > 0:
-                time.sleep(self.reset_wait_s)
+                link.wait_for_banner(self.reset_wait_s)
             link.discard_input()
             ident = link.command("*IDN?")
             if not ident.startswith(IDN_PREFIX):

@@ -100,9 +100,16 @@ def test_firmware_counts_internal_trigger_pulses(firmware):
         for line in (b"TPER 2000", b"TCNT 16", b"ARM"):
             port.write(line + b"\n")
             assert port.readline().strip() == b"OK"
-        time.sleep(0.2)  # 16 pulses need 30 ms
+        counts = []
+        deadline = time.monotonic() + 5.0  # 16 pulses need 30 ms; a loaded host runs the loop late
+        while not counts or (counts[-1] < 16 and time.monotonic() < deadline):
+            time.sleep(0.05)
+            port.write(b"STAT?\n")
+            counts.append(int(port.readline().strip().rsplit(b"pulses=", 1)[1]))
+        time.sleep(0.1)
         port.write(b"STAT?\n")
-        assert port.readline().strip().endswith(b"pulses=16")
+        counts.append(int(port.readline().strip().rsplit(b"pulses=", 1)[1]))
+        assert counts[-2:] == [16, 16] and counts == sorted(counts)  # counts up to TCNT and stops
 
 
 def test_driver_runs_the_real_firmware_and_its_safety(firmware, tmp_path):

@@ -273,6 +273,30 @@ def test_unplug_faults_and_replug_resumes_within_2_s(emu):
     ctl.close()
 
 
+def test_reboot_on_open_the_banner_ends_the_reset_wait(tmp_path):
+    """Arduino-like board: deaf for 0.3 s after each open, then the banner."""
+    emu = PtyControllerEmulator(tmp_path / "ttyUNO", auto_reset_s=0.3).start()
+    try:
+        with pytest.raises(DeviceTimeout):  # talking at once: the booting board loses the bytes
+            _ctl(emu.port, reset_wait_s=0.0).open()
+        time.sleep(0.5)  # let the emulator see the port closed (it polls for the hang-up)
+        ctl = _ctl(emu.port, reset_wait_s=2.0)
+        t0 = time.monotonic()
+        ctl.open()
+        took = time.monotonic() - t0
+        assert 0.3 <= took < 1.5  # waited for the boot, not the full 2 s
+        ctl.set_led("green")
+        ctl.arm()
+        emu.vanish()
+        _wait_until(lambda: ctl.state is DeviceState.FAULT, 2.0)
+        emu.reappear()
+        assert _wait_until(lambda: ctl.state is DeviceState.RUNNING, 2.0) < 2.0
+        assert emu.protocol.armed and emu.protocol.led == "G"
+        ctl.close()
+    finally:
+        emu.stop()
+
+
 def test_usb_identity_finds_the_port_again_after_replug():
     emu = PtyControllerEmulator().start()  # no symlink: the device name changes on replug
 

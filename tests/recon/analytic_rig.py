@@ -178,3 +178,35 @@ def bump_surface(rig: Rig, base_mm: float = 6.0, peak_mm: float = 18.0, tilt_mm:
     uu, vv = np.meshgrid(np.arange(rig.width, dtype=np.float64), np.arange(rig.height, dtype=np.float64))
     r2 = ((uu - rig.width * 0.55) ** 2 + (vv - rig.height * 0.45) ** 2) / (0.25 * rig.width) ** 2
     return base_mm + tilt_mm * uu / rig.width + peak_mm * np.exp(-r2)
+
+
+def reason_scene(
+    rig: Rig, *, dtype: type = np.uint8, noise: float = 1.0, seed: int = 0
+) -> tuple[npt.NDArray[np.generic], F64, dict[str, tuple[slice, slice]]]:
+    """Noisy frames of :func:`bump_surface` with one patch per failure cause.
+
+    Returns ``(frames, height_mm, patches)``; ``patches`` maps a Reason name to the
+    (rows, cols) slice where that reason must be reported. Intensities scale with the
+    dtype (×16 for uint16, i.e. 12-bit data, ``max_code`` 4095).
+    """
+    scale = 1.0 if dtype == np.uint8 else 16.0
+    top = 255 if dtype == np.uint8 else 4095
+    h = bump_surface(rig)
+    patches = {
+        "OUTSIDE_VOLUME": (slice(5, 25), slice(5, 30)),
+        "SATURATED": (slice(5, 25), slice(40, 60)),
+        "LOW_MODULATION": (slice(40, 60), slice(5, 30)),
+        "UNWRAP_INCONSISTENT": (slice(80, 100), slice(5, 30)),
+    }
+    h[patches["OUTSIDE_VOLUME"]] = 36.0  # calibrated range is (0, 30) + 2 mm margin
+    rng = np.random.default_rng(seed)
+    frames = rig.render(h, background=110 * scale, amplitude=90 * scale, noise=noise * scale,
+                        dtype=dtype, rng=rng, max_code=top)
+    frames[5, patches["SATURATED"][0], patches["SATURATED"][1]] = top
+    flat = np.clip(np.rint(100 * scale + rng.normal(0, noise * scale, (rig.schedule.n_frames, 20, 25))), 0, top)
+    frames[:, patches["LOW_MODULATION"][0], patches["LOW_MODULATION"][1]] = flat.astype(dtype)
+    # shift the k = 4 fringes by π (N = 4: frame n ↔ n + 2): the 1 → 4 residual becomes ≈ π
+    rows, cols = patches["UNWRAP_INCONSISTENT"]
+    k4 = frames[4:8, rows, cols].copy()
+    frames[4:8, rows, cols] = k4[[2, 3, 0, 1]]
+    return frames, h, patches

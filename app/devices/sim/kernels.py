@@ -39,28 +39,6 @@ def _adc(mean, g, read2, maxv, z):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST)
-def render_static(out, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
-    """out[i] = ADC(scale·(base·q̄ + fringe·(lut[p] − q̄)) + amb + noise), p the 8-bit pattern level.
-
-    base, fringe, ck, sk: (N,) float32 per pixel (fringe attenuated by blur; ck/sk = cos/sin φ_k).
-    scale: DN per unit of base; amb: DN of ambient light; g: DN per electron; read2: read variance DN².
-    """
-    n = out.shape[0]
-    i = 0
-    while i < n:
-        r = _next(state)
-        for j in range(4):
-            if i >= n:
-                break
-            z = table[(r >> np.uint64(16 * j)) & np.uint64(0xFFFF)]
-            p = 0.5 + 0.5 * (ck[i] * cosd - sk[i] * sind)
-            q = lut[int(p * 255.0 + 0.5)]
-            m = scale * (base[i] * qbar + fringe[i] * (q - qbar)) + amb
-            out[i] = _adc(m, g, read2, maxv, z)
-            i += 1
-
-
-@nb.njit(cache=True, fastmath=FAST)
 def add_noise(out, mean, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
     """out[i] = ADC(mean[i] + noise) for a precomputed noise-free mean (DN)."""
     n = out.shape[0]
@@ -82,9 +60,10 @@ def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb): 
 
 
 @nb.njit(cache=True, fastmath=FAST)
-def mean_moving(mean, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
-                width_p, qtab, qbar, scale, amb):  # noqa: ANN001, ANN201
-    """Noise-free frame of a rigidly translated scene.
+def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
+                 width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
+    """A frame of a rigidly translated scene: the noise-free mean (``noisy`` False, ``out``
+    float32) or the noisy, quantised frame (``noisy`` True, ``out`` uint8/uint16), in one pass.
 
     Each ``block``×``block`` tile takes the rest-pose samples it now sees through one backward
     step of its (integer, per-tile) image flow ``block_flow`` (tiles_y, tiles_x, 2); the
@@ -95,6 +74,8 @@ def mean_moving(mean, nd, base, fringe, block_flow, block, n_add, d_add, k_over_
     h, w = base.shape
     nq = qtab.shape[0]
     ty, tx = block_flow.shape[0], block_flow.shape[1]
+    r = np.uint64(0)
+    j = 4
     for by in range(ty):
         for bx in range(tx):
             fu = block_flow[by, bx, 0]
@@ -104,17 +85,23 @@ def mean_moving(mean, nd, base, fringe, block_flow, block, n_add, d_add, k_over_
                 for u in range(bx * block, min((bx + 1) * block, w)):
                     su = min(max(u - fu, 0), w - 1)
                     b = base[sv, su]
-                    if b <= 0.0:
-                        mean[v, u] = amb
-                        continue
-                    xp = (nd[sv, su, 0] + n_add) / (nd[sv, su, 1] + d_add)
-                    if xp < -0.5 or xp > width_p - 0.5:
-                        mean[v, u] = amb
-                        continue
-                    f = xp * k_over_w + shift_frac + 1.0
-                    f -= int(f)
-                    q = qtab[min(int(f * nq), nq - 1)]
-                    mean[v, u] = scale * (b * qbar + fringe[sv, su] * (q - qbar)) + amb
+                    m = amb
+                    if b > 0.0:
+                        xp = (nd[sv, su, 0] + n_add) / (nd[sv, su, 1] + d_add)
+                        if -0.5 <= xp <= width_p - 0.5:
+                            f = xp * k_over_w + shift_frac + 1.0
+                            f -= int(f)
+                            q = qtab[min(int(f * nq), nq - 1)]
+                            m = scale * (b * qbar + fringe[sv, su] * (q - qbar)) + amb
+                    if noisy:
+                        if j == 4:
+                            r = _next(state)
+                            j = 0
+                        z = table[(r >> np.uint64(16 * j)) & np.uint64(0xFFFF)]
+                        j += 1
+                        out[v, u] = _adc(m, g, read2, maxv, z)
+                    else:
+                        out[v, u] = m
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")

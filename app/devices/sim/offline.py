@@ -20,16 +20,18 @@ from app.recon.patterns import PatternSchedule
 F32 = npt.NDArray[np.float32]
 
 
-def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0) -> npt.NDArray[np.float64]:
-    """Exposure mid-points (s) of consecutive frames starting at ``t0_s``, period max(exposure, readout)."""
-    period = max(exposure_ms, READOUT_MS) / 1000.0
+def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0,
+                frame_period_ms: float | None = None) -> npt.NDArray[np.float64]:
+    """Exposure mid-points (s) of consecutive frames from ``t0_s``; period default max(exposure, readout)."""
+    period = (frame_period_ms or max(exposure_ms, READOUT_MS)) / 1000.0
     return t0_s + period * np.arange(n_frames) + exposure_ms / 2000.0
 
 
 def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: str = "green", bit_depth: int = 8,
                        seed: int | None = None, t0_s: float = 0.0, distortion: bool = True,
                        schedule: PatternSchedule | None = None, current: float = 0.5,
-                       world: SimulatedWorld | None = None) -> tuple[CaptureSet, F32, F32]:
+                       world: SimulatedWorld | None = None, frame_period_ms: float | None = None
+                       ) -> tuple[CaptureSet, F32, F32]:
     """One capture set of ``scene``, each frame rendered at its own time, plus ground truth.
 
     Returns:
@@ -46,7 +48,7 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
         world = SimulatedWorld(scene, seed=seed, distortion=distortion, schedule=schedule)
     world.led, world.current = led, current
     sched = world.schedule
-    times = frame_times(sched.n_frames, exposure_ms, t0_s)
+    times = frame_times(sched.n_frames, exposure_ms, t0_s, frame_period_ms)
     frames = np.stack([world.render(i, float(t), exposure_ms=exposure_ms, gain=1.0, bits=bit_depth)
                        for i, t in enumerate(times)])
     t_truth = 0.5 * (times[0] + times[-1])

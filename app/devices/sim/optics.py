@@ -31,6 +31,21 @@ def rotation_x(angle_deg: float) -> F64:
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
+def mat3(points: F64, M: F64) -> F64:
+    """``points @ M`` for (…, 3) points and a (3, k) matrix, as explicit sums.
+
+    Small-matrix BLAS calls on millions of rows are slow (and spin threads on a busy machine).
+    """
+    p = np.asarray(points, np.float64)
+    M = np.asarray(M, np.float64)
+    if M.ndim == 1:
+        return p[..., 0] * M[0] + p[..., 1] * M[1] + p[..., 2] * M[2]
+    return p[..., 0, None] * M[0] + p[..., 1, None] * M[1] + p[..., 2, None] * M[2]
+
+
+_RAY_CACHE: dict[bytes, F64] = {}
+
+
 def _undistort(xy_d: F64, dist: F64) -> F64:
     """Invert OpenCV's k1, k2, p1, p2, k3 model on normalised coordinates (N, 2)."""
     k1, k2, p1, p2, k3 = (list(dist) + [0.0] * 5)[:5]
@@ -41,7 +56,7 @@ def _undistort(xy_d: F64, dist: F64) -> F64:
         dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         nx, ny = (xy_d[:, 0] - dx) / radial, (xy_d[:, 1] - dy) / radial
-        done = max(np.abs(nx - x).max(initial=0.0), np.abs(ny - y).max(initial=0.0)) < 1e-13
+        done = max(np.abs(nx - x).max(initial=0.0), np.abs(ny - y).max(initial=0.0)) < 1e-12
         x, y = nx, ny
         if done:
             break
@@ -81,8 +96,13 @@ class CameraModel:
 
     def pixel_rays(self) -> F64:
         """Rays of every pixel centre, (H, W, 3) float64, z component 1."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        return self.rays(u, v)
+        key = self.K.tobytes() + self.dist.tobytes() + bytes(str(self.image_size), "ascii")
+        if key not in _RAY_CACHE:
+            v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+            _RAY_CACHE.clear()  # keep one camera's rays (34 MB)
+            _RAY_CACHE[key] = self.rays(u, v)
+            _RAY_CACHE[key].setflags(write=False)
+        return _RAY_CACHE[key]
 
     def project(self, points: F64) -> F64:
         """Pixel coordinates (…, 2) of camera-frame points (…, 3), with distortion."""
@@ -102,7 +122,7 @@ class ProjectorModel:
 
     def to_projector(self, points: F64) -> F64:
         """Camera-frame points (…, 3) in the projector frame."""
-        return (np.asarray(points, np.float64) - self.centre) @ self.R
+        return mat3(np.asarray(points, np.float64) - self.centre, self.R)
 
     def column(self, points: F64) -> F64:
         """Continuous projector column x_p (pixel centres at integers) of points (…, 3)."""
@@ -128,7 +148,7 @@ class Plane:
     offset_mm: float
 
     def height(self, points: F64) -> F64:
-        return np.asarray(points, np.float64) @ self.normal + self.offset_mm
+        return mat3(points, self.normal) + self.offset_mm
 
 
 def plane_through(point: F64, normal_toward_scope: F64) -> Plane:

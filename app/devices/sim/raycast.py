@@ -71,12 +71,11 @@ def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, h
                     out[i] = tt
                     break
                 lo, hi = prev_t, tt
-                flo = prev_f
                 for _ in range(40):  # bisection-secant refinement to ~1e-9 mm
                     mid = 0.5 * (lo + hi)
                     fm = ow + mid * dw - _bilinear(heights, s0, t0, ds, os_ + mid * ds_, ot + mid * dt)
                     if fm > 0.0:
-                        lo, flo = mid, fm
+                        lo = mid
                     else:
                         hi = mid
                     if hi - lo < 1e-10:

@@ -4,6 +4,7 @@ fringes, motion and noise (see kernels.py). Also the ground truth of any instant
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -11,7 +12,7 @@ import numpy.typing as npt
 from scipy.ndimage import gaussian_filter
 
 from app.devices.sim import kernels
-from app.devices.sim.optics import SimRig
+from app.devices.sim.optics import SimRig, mat3
 from app.devices.sim.radiometry import (
     MATERIALS,
     REFLECTANCE,
@@ -76,8 +77,11 @@ class Renderer:
         self.grad_xp = np.where(np.isfinite(grad), grad, self.grad_median).ravel()
         self._led_cache: dict[str, tuple[F32, F32, F32, F32]] = {}
         self._trig: tuple[F32, F32] | None = None
+        self._cache_lock = threading.RLock()
+        self._means: F32 | None = None
+        self._means_key: tuple[object, ...] | None = None
         self._truth_static: tuple[F32, F32] | None = None
-        self._mean_buf = np.empty((h, w), np.float32)
+        self._scratch = threading.local()  # per-thread mean buffer (worlds may share a renderer)
         self._nd: F32 | None = None
         # Projector output over one fringe period: cosine → 8-bit DMD level → response.
         frac = (np.arange(4096) + 0.5) / 4096
@@ -93,15 +97,15 @@ class Renderer:
         k = np.asarray(self.schedule.frequencies, np.float64)
         wp = self.schedule.width
         to_p = proj.centre - points
-        d_p = np.linalg.norm(to_p, axis=1)
+        d_p = np.sqrt(np.einsum("ij,ij->i", to_p, to_p))
         light = to_p / d_p[:, None]
         nrm = np.array(normals, copy=True)
         flip = np.einsum("ij,ij->i", nrm, points) > 0  # normals face the camera
         nrm[flip] *= -1
         cos_i = np.clip(np.einsum("ij,ij->i", nrm, light), 0.0, None)
-        view = -points / np.linalg.norm(points, axis=1, keepdims=True)
+        view = -points / np.sqrt(np.einsum("ij,ij->i", points, points))[:, None]
         half = light + view
-        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        half /= np.sqrt(np.einsum("ij,ij->i", half, half))[:, None]
         cos_h = np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None)
         names = [MATERIALS[m] for m in range(len(MATERIALS))]
         refl = np.array([REFLECTANCE[n][led] for n in names])[material] * albedo
@@ -110,8 +114,11 @@ class Renderer:
         sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
         g_d = refl * cos_i / d_p**2
         g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
-        xp, yp = proj.column(points), proj.row(points)
-        front = proj.to_projector(points)[:, 2] > 0
+        q = proj.to_projector(points)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xp = proj.K[0, 0] * q[:, 0] / q[:, 2] + proj.K[0, 2]
+            yp = proj.K[1, 1] * q[:, 1] / q[:, 2] + proj.K[1, 2]
+        front = q[:, 2] > 0
         lit = front & (xp >= -0.5) & (xp <= wp - 0.5) & (yp >= -0.5) & (yp <= proj.size[1] - 0.5)
         lit &= np.isfinite(points).all(axis=1)
         g_d = np.where(lit, g_d, 0.0)
@@ -128,6 +135,10 @@ class Renderer:
         return np.nan_to_num(base), np.nan_to_num(fringe)
 
     def _led_arrays(self, led: str) -> tuple[F32, F32]:
+        with self._cache_lock:
+            return self._led_arrays_locked(led)
+
+    def _led_arrays_locked(self, led: str) -> tuple[F32, F32]:
         if led not in self._led_cache:
             pts = self.points.reshape(-1, 3)
             safe = np.where(np.isfinite(pts), pts, np.array([0.0, 0.0, 1e6]))
@@ -138,6 +149,10 @@ class Renderer:
         return b, f
 
     def _phase_tables(self) -> tuple[F32, F32]:
+        with self._cache_lock:
+            return self._phase_tables_locked()
+
+    def _phase_tables_locked(self) -> tuple[F32, F32]:
         if self._trig is None:
             k = np.asarray(self.schedule.frequencies, np.float64)[:, None]
             phi = 2 * math.pi * k * np.nan_to_num(self.xp.ravel())[None] / self.schedule.width
@@ -173,22 +188,30 @@ class Renderer:
             kernels.mean_static(mean.reshape(-1), base, fringe[fi], ck[fi], sk[fi], math.cos(shift), math.sin(shift),
                                 self.lut, self.qbar, scale, amb)
             return
-        h, w = self.shape
-        proj = self.rig.projector
-        alpha, a_c, gam, g_c = proj.column_coefficients()
-        k = self.schedule.frequencies[fi]
-        delta = self.scene.offset(t_s)
-        nd = self._nd_table()
-        kernels.mean_moving(mean, nd, base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta),
-                            BLOCK, float(alpha @ delta), float(gam @ delta), k / self.schedule.width,
-                            shift / (2 * math.pi), float(self.schedule.width), self.qtab, self.qbar, scale, amb)
+        self._moving(mean, False, fi, shift, t_s, scale, amb, led, 0.0, 0.0, 0, np.zeros(1, np.uint64))
         if self.scene.tool is not None:
             self._draw_tool(mean, fi, shift, t_s, scale, amb, led)
 
+    def _moving(self, out: np.ndarray, noisy: bool, fi: int, shift: float, t_s: float, scale: float, amb: float,
+                led: str, g: float, read2: float, maxv: int, state: npt.NDArray[np.uint64]) -> None:
+        h, w = self.shape
+        base, fringe = self._led_arrays(led)
+        alpha, _, gam, _ = self.rig.projector.column_coefficients()
+        k = self.schedule.frequencies[fi]
+        delta = self.scene.offset(t_s)
+        kernels.moving_frame(out, noisy, self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w),
+                             self._block_flow(delta), BLOCK, float(alpha @ delta), float(gam @ delta),
+                             k / self.schedule.width, shift / (2 * math.pi), float(self.schedule.width),
+                             self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+
     def _nd_table(self) -> F32:
+        with self._cache_lock:
+            return self._nd_table_locked()
+
+    def _nd_table_locked(self) -> F32:
         if self._nd is None:
             alpha, a_c, gam, g_c = self.rig.projector.column_coefficients()
-            self._nd = np.stack([self.points @ alpha - a_c, self.points @ gam - g_c], -1).astype(np.float32)
+            self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c], -1).astype(np.float32)
         return self._nd
 
     def _block_flow(self, delta: F64) -> npt.NDArray[np.int64]:
@@ -250,6 +273,21 @@ class Renderer:
                           float(self.schedule.width), float(proj.size[1]), proj.K[1, 1], proj.K[1, 2],
                           2 * math.pi * k / self.schedule.width, shift, atten, self.lut, self.qbar, scale, amb)
 
+    def _static_means(self, exposure_ms: float, gain: float, led: str, current: float, bits: int) -> F32:
+        """Noise-free frames of every pattern for these settings (static scenes; one cached set)."""
+        key = (exposure_ms, gain, led, current, bits)
+        with self._cache_lock:
+            if self._means_key != key:
+                scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led, current=current,
+                                                  bits=bits)
+                # a fresh array: a world sharing this renderer may still be reading the old one
+                means = np.empty((self.schedule.n_frames, *self.shape), np.float32)
+                for i in range(self.schedule.n_frames):
+                    self._mean_into(means[i], i, 0.0, scale, amb, led)
+                self._means, self._means_key = means, key
+            assert self._means is not None
+            return self._means
+
     def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *, exposure_ms: float,
                gain: float = 1.0, led: str = "green", current: float = 0.5, bits: int = 8
                ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
@@ -262,15 +300,20 @@ class Renderer:
         out = np.empty(self.shape, np.uint8 if bits <= 8 else np.uint16)
         flat = out.reshape(-1)
         if self.scene.is_static and pattern_index >= 0:
-            fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
-            shift = 2 * math.pi * n / self.schedule.steps
-            base, fringe = self._led_arrays(led)
-            ck, sk = self._phase_tables()
-            kernels.render_static(flat, base, fringe[fi], ck[fi], sk[fi], math.cos(shift), math.sin(shift),
-                                  self.lut, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+            means = self._static_means(exposure_ms, gain, led, current, bits)
+            kernels.add_noise(flat, means[pattern_index % self.schedule.n_frames].reshape(-1), g, read2, maxv,
+                              _TABLE, state)
             return out
-        self._mean_into(self._mean_buf, pattern_index, t_s, scale, amb, led)
-        kernels.add_noise(flat, self._mean_buf.reshape(-1), g, read2, maxv, _TABLE, state)
+        if pattern_index >= 0 and self.scene.tool is None:  # rigid motion only: one fused pass
+            fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
+            self._moving(out, True, fi, 2 * math.pi * n / self.schedule.steps, t_s, scale, amb, led, g, read2,
+                         maxv, state)
+            return out
+        buf = getattr(self._scratch, "mean", None)
+        if buf is None:
+            buf = self._scratch.mean = np.empty(self.shape, np.float32)
+        self._mean_into(buf, pattern_index, t_s, scale, amb, led)
+        kernels.add_noise(flat, buf.reshape(-1), g, read2, maxv, _TABLE, state)
         return out
 
     # -- truth -----------------------------------------------------------------------------

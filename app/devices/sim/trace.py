@@ -7,8 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from app.devices.sim.raycast import raycast_capsule, raycast_heightfield, raycast_sphere
+from app.devices.sim.optics import mat3
 from app.devices.sim.radiometry import material_id
+from app.devices.sim.raycast import raycast_capsule, raycast_heightfield, raycast_sphere
 from app.devices.sim.scenes.base import F64, HeightField, Scene
 
 WHITE = material_id("white")
@@ -62,7 +63,7 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
         ht = _bilinear_np(dh_dt, hf.s0, hf.t0, hf.ds, s[ok], t[ok])
         nl = np.stack([-hs, -ht, np.ones_like(hs)], -1)
         nl /= np.linalg.norm(nl, axis=1, keepdims=True)
-        normals[ok] = nl @ hf.axes.T
+        normals[ok] = mat3(nl, hf.axes.T)
     else:
         normals[ok] = hf.axes[:, 2]
     ny, nx = hf.heights.shape

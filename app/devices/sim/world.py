@@ -16,6 +16,24 @@ from app.recon.patterns import PatternSchedule
 
 READOUT_MS = 1000.0 / 45.0  # sensor readout: frame period = max(exposure, readout)
 
+# Renderers of named scenes are read-only after their precompute: worlds share them.
+_RENDERERS: dict[tuple[object, ...], Renderer] = {}
+_RENDERERS_LOCK = threading.Lock()
+_MAX_RENDERERS = 3
+
+
+def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: SensorModel, gamma: float,
+                    distortion: bool) -> Renderer:
+    key = (name, distortion, schedule, sensor, gamma)
+    with _RENDERERS_LOCK:
+        r = _RENDERERS.get(key)
+        if r is None:
+            r = Renderer(build_scene(name, rig), rig, schedule=schedule, sensor=sensor, projector_gamma=gamma)
+            if len(_RENDERERS) >= _MAX_RENDERERS:
+                _RENDERERS.pop(next(iter(_RENDERERS)))
+            _RENDERERS[key] = r
+        return r
+
 
 class SimulatedWorld:
     """One scene seen by one rig; the projector's state decides what light falls on it.
@@ -29,6 +47,8 @@ class SimulatedWorld:
     def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | None = None,
                  schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
                  seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0) -> None:
+        self._named = scene if isinstance(scene, str) and rig is None else None
+        self._distortion = distortion
         self.rig = rig or default_rig(distortion=distortion)
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
         self.schedule = schedule or PatternSchedule()
@@ -36,10 +56,9 @@ class SimulatedWorld:
         self._projector_gamma = projector_gamma
         self._renderer: Renderer | None = None
         self._lock = threading.Lock()
-        seed_seq = np.random.SeedSequence(seed)
-        self.seed_seq = seed_seq
-        state = int(np.random.default_rng(seed_seq).integers(1, 2**63))
-        self.rng_state = np.array([state], np.uint64)
+        self.seed_seq = np.random.SeedSequence(seed)
+        self.rng_state = np.zeros(1, np.uint64)
+        self.reseed(seed)
         self.epoch = time.monotonic()
         self.projector_on = False
         self.led = "green"
@@ -51,9 +70,18 @@ class SimulatedWorld:
         """Built on first use (the geometry precompute takes a few seconds)."""
         with self._lock:
             if self._renderer is None:
-                self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
-                                          projector_gamma=self._projector_gamma)
+                if self._named is not None:
+                    self._renderer = shared_renderer(self._named, self.rig, self.schedule, self.sensor,
+                                                     self._projector_gamma, self._distortion)
+                else:
+                    self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
+                                              projector_gamma=self._projector_gamma)
             return self._renderer
+
+    def reseed(self, seed: int | None) -> None:
+        """Restart the sensor-noise generator (same seed → same noise)."""
+        state = int(np.random.default_rng(np.random.SeedSequence(seed)).integers(1, 2**63))
+        self.rng_state[0] = np.uint64(state)
 
     def set_schedule(self, schedule: PatternSchedule) -> None:
         if schedule != self.schedule:

@@ -6,7 +6,14 @@ from collections.abc import Callable
 
 from app.devices.sim.optics import SimRig
 from app.devices.sim.scenes.base import HeightField, Scene, Sphere, Tool
-from app.devices.sim.scenes.targets import BoardSpec, board_poses, board_scene, dof_target_scene, plane_scene, sphere_scene
+from app.devices.sim.scenes.targets import (
+    BoardSpec,
+    board_poses,
+    board_scene,
+    dof_target_scene,
+    plane_scene,
+    sphere_scene,
+)
 from app.devices.sim.scenes.tissue import anastomosis_scene, flap_scene, pile_scene
 
 SCENES: dict[str, Callable[[SimRig], Scene]] = {

@@ -56,7 +56,9 @@ class HeightField:
 
     def local(self, points: F64) -> F64:
         """(s, t, w) of camera-frame points (…, 3)."""
-        return (np.asarray(points) - self.origin) @ self.axes
+        from app.devices.sim.optics import mat3
+
+        return mat3(np.asarray(points) - self.origin, self.axes)
 
 
 @dataclass

@@ -7,7 +7,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.devices.sim.optics import SimRig, rotation_x, rotation_y
-from app.devices.sim.scenes.base import F64, HeightField, PrintFn, Scene, Sphere, flat_field, frame_from_normal
+from app.devices.sim.scenes.base import (
+    F64,
+    HeightField,
+    PrintFn,
+    Scene,
+    Sphere,
+    flat_field,
+    frame_from_normal,
+)
 
 BLACK = 0.07  # printed black relative to the paper's white
 

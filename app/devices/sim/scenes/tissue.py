@@ -9,7 +9,14 @@ from scipy.ndimage import distance_transform_edt
 
 from app.devices.sim.optics import SimRig
 from app.devices.sim.radiometry import material_id
-from app.devices.sim.scenes.base import F64, HeightField, Scene, Tool, frame_from_normal, smooth_noise
+from app.devices.sim.scenes.base import (
+    F64,
+    HeightField,
+    Scene,
+    Tool,
+    frame_from_normal,
+    smooth_noise,
+)
 from app.devices.sim.scenes.targets import dof_target_field, ruler_printer
 
 

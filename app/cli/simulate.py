@@ -1,0 +1,96 @@
+"""``fringescope simulate``: capture sets with ground truth, or calibration folders, from the twin."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from app.devices.base import LEDS
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "simulate", help="render capture sets (with truth_depth.npy/truth_points.npy) or a calibration folder",
+        description="SCENE -o DIR writes set_0000/, set_0001/ … (capture.json, frames, truth_depth.npy, "
+                    "truth_points.npy); 'calibration -o DIR' writes board.json and pose_00/ …",
+    )
+    p.add_argument("scene", nargs="?", help="scene name, or 'calibration' (see --list)")
+    p.add_argument("-o", "--output", type=Path, help="output folder")
+    p.add_argument("--list", action="store_true", help="list the scenes and exit")
+    p.add_argument("--exposure-ms", type=float, default=20.0, help="camera exposure per frame (default 20)")
+    p.add_argument("--led", choices=LEDS, default="green", help="projector LED (default green)")
+    p.add_argument("--bits", type=int, choices=(8, 12), default=8, help="ADC bit depth (default 8)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (noise, faults) for reproducible output")
+    p.add_argument("--frames-per-second", type=float, default=None,
+                   help="camera frame rate (default: as fast as the exposure and readout allow)")
+    p.add_argument("--duration-s", type=float, default=None,
+                   help="simulated time to cover; one capture set per 16 frames (default: one set)")
+    p.add_argument("--board", choices=("checkerboard", "circles"), default="checkerboard",
+                   help="calibration board type (calibration only)")
+    p.add_argument("--poses", type=int, default=8, help="number of board poses (calibration only, default 8)")
+    p.add_argument("--no-distortion", action="store_true", help="ideal pinhole camera (no lens distortion)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from app.devices.sim import list_scenes
+
+    if args.list:
+        for name in list_scenes():
+            print(name)
+        print("calibration")
+        return 0
+    if not args.scene:
+        raise ValueError("scene: give a scene name (see --list) or 'calibration'")
+    if args.output is None:
+        raise ValueError("-o/--output: an output folder is required")
+    if args.scene == "calibration":
+        return _calibration(args)
+    if args.scene not in list_scenes():
+        raise ValueError(f"scene: unknown {args.scene!r}; choose from {', '.join(list_scenes())} or calibration")
+    return _scene(args)
+
+
+def _calibration(args: argparse.Namespace) -> int:
+    from app.devices.sim import simulate_calibration_folder
+
+    if args.poses < 2:
+        raise ValueError(f"--poses: need at least 2, got {args.poses}")
+    out = simulate_calibration_folder(args.output, board=args.board, poses=args.poses, seed=args.seed,
+                                      bit_depth=args.bits, distortion=not args.no_distortion)
+    print(f"wrote {out}/board.json and {args.poses} poses")
+    return 0
+
+
+def _scene(args: argparse.Namespace) -> int:
+    from app.capture.captureset import write_capture_set
+    from app.devices.sim.offline import npy_bytes, render_capture_set
+    from app.devices.sim.world import READOUT_MS, SimulatedWorld
+
+    if not (1.0 <= args.exposure_ms <= 100.0):
+        raise ValueError(f"--exposure-ms: must be within 1–100 ms, got {args.exposure_ms}")
+    min_period_ms = max(args.exposure_ms, READOUT_MS)
+    if args.frames_per_second is None:
+        period_ms = min_period_ms
+    else:
+        if not (args.frames_per_second > 0 and math.isfinite(args.frames_per_second)):
+            raise ValueError(f"--frames-per-second: must be positive, got {args.frames_per_second}")
+        period_ms = 1000.0 / args.frames_per_second
+        if period_ms < min_period_ms - 1e-9:
+            raise ValueError(f"--frames-per-second: at most {1000.0 / min_period_ms:.1f} at this exposure")
+    world = SimulatedWorld(args.scene, seed=args.seed, distortion=not args.no_distortion)
+    n_frames = world.schedule.n_frames
+    set_s = n_frames * period_ms / 1000.0
+    if args.duration_s is not None and not (args.duration_s > 0):
+        raise ValueError(f"--duration-s: must be positive, got {args.duration_s}")
+    n_sets = 1 if args.duration_s is None else max(1, int(args.duration_s / set_s))
+    args.output.mkdir(parents=True, exist_ok=True)
+    for k in range(n_sets):
+        cap, depth, points = render_capture_set(world.scene, exposure_ms=args.exposure_ms, led=args.led,
+                                                bit_depth=args.bits, seed=args.seed, t0_s=k * set_s, world=world,
+                                                frame_period_ms=period_ms)
+        write_capture_set(args.output / f"set_{k:04d}", cap,
+                          extra_files={"truth_depth.npy": npy_bytes(depth), "truth_points.npy": npy_bytes(points)})
+    print(f"wrote {n_sets} capture set(s) of {args.scene} to {args.output}")
+    return 0

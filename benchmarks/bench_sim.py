@@ -1,0 +1,65 @@
+"""Frame rate of the simulated camera at 1384×1032 on one core (target ≥ 45 frames/s).
+
+Prints frames/s (wall clock and per CPU second of this process), the ratio to the 45 fps
+target and to a plain baseline measured in the same process: generating one uint8 noise
+frame of the same size with numpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+
+import numpy as np  # noqa: E402
+
+TARGET_FPS = 45.0
+
+
+def bench(scene: str, frames: int) -> None:
+    from app.devices.sim import create_sim_devices
+    from app.recon.patterns import PatternSchedule
+
+    dev = create_sim_devices(scene=scene, seed=1, realtime=False)
+    cam, proj = dev.camera, dev.projector
+    cam.open()
+    proj.open()
+    proj.load_schedule(PatternSchedule(), exposure_ms=20.0)
+    proj.start()
+    cam.start()
+    for _ in range(16):  # warm-up: compile, LED tables
+        cam.grab(timeout_s=5.0)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(frames):
+        cam.grab(timeout_s=5.0)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    cam.close()
+    proj.close()
+
+    rng = np.random.default_rng(0)
+    h, w = 1032, 1384
+    b0, bc0 = time.perf_counter(), time.process_time()
+    for _ in range(frames):
+        rng.integers(0, 256, size=(h, w), dtype=np.uint8)
+    bwall, bcpu = time.perf_counter() - b0, time.process_time() - bc0
+    fps, fps_cpu = frames / wall, frames / cpu
+    print(f"{scene:16s} {fps:7.1f} frames/s wall ({fps / TARGET_FPS:4.2f}x target), "
+          f"{fps_cpu:7.1f} per CPU-s ({fps_cpu / TARGET_FPS:4.2f}x target); "
+          f"numpy uint8 noise baseline {frames / bwall:7.1f}/s wall, {frames / bcpu:7.1f}/CPU-s; "
+          f"sim/baseline {fps / (frames / bwall):4.2f} wall, {fps_cpu / (frames / bcpu):4.2f} CPU")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--scenes", nargs="*", default=["plane", "dof_target", "intestine_pile", "anastomosis"])
+    ap.add_argument("--frames", type=int, default=64)
+    args = ap.parse_args()
+    for s in args.scenes:
+        bench(s, args.frames)
+
+
+if __name__ == "__main__":
+    main()

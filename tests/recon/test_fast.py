@@ -1,0 +1,74 @@
+"""The fused numba kernel: its atan2, its agreement with the numpy oracle, its disk cache."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.recon import Reconstructor, fast
+from tests.recon.analytic_rig import Rig, reason_scene
+
+
+def test_polynomial_atan2_error():
+    rng = np.random.default_rng(0)
+    y = rng.normal(size=400_000).astype(np.float32)
+    x = rng.normal(size=400_000).astype(np.float32)
+    # axes, diagonals, signed zeros and tiny values
+    edge = np.array([0, 1, -1, 1e-30, -1e-30, 3, -3, 0.0, -0.0], np.float32)
+    ey, ex = (a.ravel() for a in np.meshgrid(edge, edge))
+    y, x = np.concatenate([y, ey]), np.concatenate([x, ex])
+    got = fast.atan2_array(y, x).astype(np.float64)
+    ref = np.mod(np.arctan2(y.astype(np.float64), x.astype(np.float64)), 2 * math.pi)
+    diff = np.abs(np.angle(np.exp(1j * (got - ref))))
+    assert diff.max() < 1e-6  # ≪ 1e-4 rad
+    assert got.min() >= 0.0 and got.max() < 2 * math.pi
+
+
+@pytest.mark.parametrize("combine", [False, True])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_fast_agrees_with_numpy(dtype, combine):
+    rig = Rig()
+    frames, _, _ = reason_scene(rig, dtype=dtype, noise=2.0, seed=11)
+    rec = Reconstructor(rig.calibration(), max_code=None if dtype == np.uint8 else 4095,
+                        combine_frequencies=combine)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    assert np.array_equal(a.reason, b.reason)
+    assert np.array_equal(a.valid, b.valid)
+    ok = a.valid
+    assert ok.mean() > 0.7
+    assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
+    assert np.max(np.abs(a.points[ok] - b.points[ok])) < 1e-3
+    assert np.isnan(b.depth[~ok]).all() and np.isnan(b.points[~ok]).all() and np.isnan(b.phase[~ok]).all()
+    assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
+    assert np.allclose(a.modulation, b.modulation, rtol=1e-5, atol=1e-3)
+    assert np.allclose(a.texture, b.texture, rtol=1e-5, atol=1e-3)
+    for r in (a, b):
+        assert r.depth.dtype == r.points.dtype == r.modulation.dtype == r.texture.dtype == np.float32
+        assert r.reason.dtype == np.uint8 and r.valid.dtype == np.bool_
+
+
+def test_kernel_is_cached_on_disk():
+    from numba.core.caching import NullCache
+
+    assert not isinstance(fast.fused_kernel._cache, NullCache)
+    fast.warmup(np.uint8)
+    fast.warmup(np.uint16)
+    dtypes = {str(sig[0].dtype) for sig in fast.fused_kernel.signatures}
+    assert {"uint8", "uint16"} <= dtypes
+
+
+def test_numpy_fallback_when_numba_missing(monkeypatch):
+    import app.recon.reconstructor as mod
+
+    rig = Rig()
+    frames, _, _ = reason_scene(rig)
+    expected = Reconstructor(rig.calibration(), fast=False).run(frames)
+    monkeypatch.setattr(mod, "_fast", None)
+    rec = Reconstructor(rig.calibration(), fast=True)
+    assert rec.fast is False
+    got = rec.run(frames)
+    assert np.array_equal(got.reason, expected.reason)
+    assert np.array_equal(got.depth, expected.depth, equal_nan=True)
