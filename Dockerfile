@@ -11,7 +11,9 @@
 # Calibrations and recordings live in the volume /data.
 FROM python:3.11-slim
 
-ENV PYTHONDONTWRITEBYTECODE=1 \
+# PATH spelled out: the official image sets the same, an imported stand-in sets none.
+ENV PATH=/usr/local/bin:/usr/local/sbin:/usr/sbin:/usr/bin:/sbin:/bin \
+    PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PIP_NO_CACHE_DIR=1 \
@@ -30,16 +32,19 @@ EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
     CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/status' % os.environ.get('FRINGESCOPE_PORT', '8000'), timeout=4)"]
 CMD ["fringescope", "serve"]
-WORKDIR /opt/fringescope
 
 # Dependencies change less often than the code: their own layer, reused on rebuilds.
-COPY pyproject.toml README.md ./
-RUN mkdir app && touch app/__init__.py \
-    && pip install --no-cache-dir . \
-    && pip uninstall -y fringescope \
-    && rm -rf app build ./*.egg-info
-COPY app ./app
-COPY static ./static
-RUN pip install --no-cache-dir --no-deps . && rm -rf build ./*.egg-info
+COPY pyproject.toml README.md /tmp/src/
+RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('/tmp/src/pyproject.toml', 'rb'))['project']['dependencies']))" > /tmp/requirements.txt \
+    && pip install --no-cache-dir -r /tmp/requirements.txt \
+    && rm /tmp/requirements.txt
+COPY app /tmp/src/app
+COPY static /tmp/src/static
+# app.main serves the dashboard from static/ beside the installed package.
+RUN pip install --no-cache-dir --no-deps /tmp/src \
+    && site="$(cd / && python -c 'import app, pathlib; print(pathlib.Path(app.__file__).resolve().parent.parent)')" \
+    && cp -r /tmp/src/static "$site/static" \
+    && rm -rf /tmp/src
 
+WORKDIR /home/fringescope
 USER fringescope

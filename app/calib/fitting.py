@@ -28,6 +28,7 @@ MIN_HEIGHT_SPAN_MM = 1.0
 MIN_TILT_SPREAD_DEG = 2.0
 ROBUST_POINT_SIGMAS = 4.0
 ROBUST_POSE_FACTOR = 3.0
+DENSE_POINTS_PER_POSE = 1500
 
 
 @dataclass
@@ -127,7 +128,8 @@ def sample_phase(phase: npt.NDArray[np.floating], points: npt.ArrayLike) -> npt.
     return out
 
 
-def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False) -> CalibrationReport:
+def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False,
+                     dense: bool = True) -> CalibrationReport:
     """Calibrate from a folder with ``board.json`` and capture sets ``pose_00/``, ``pose_01/``, …"""
     folder = Path(calib_dir)
     if not folder.is_dir():
@@ -139,10 +141,10 @@ def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False)
     if pose_dirs[0].name != "pose_00":
         raise ValueError(f"{folder}: pose_00/ (the reference plane) is missing")
     sets = [read_capture_set(p) for p in pose_dirs]
-    return calibrate_sets(board, sets, robust=robust, names=[p.name for p in pose_dirs])
+    return calibrate_sets(board, sets, robust=robust, dense=dense, names=[p.name for p in pose_dirs])
 
 
-def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = False,
+def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = False, dense: bool = True,
                    names: list[str] | None = None) -> CalibrationReport:
     """Calibrate from capture sets of the board, ``sets[0]`` being the reference plane.
 
@@ -170,11 +172,11 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
             continue
         observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name))
     image_size = (shape[2], shape[1])
-    return fit_observations(observations, image_size, schedule, robust=robust, names=names)
+    return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names)
 
 
 def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
-                     schedule: PatternSchedule, *, robust: bool = False,
+                     schedule: PatternSchedule, *, robust: bool = False, dense: bool = True,
                      names: list[str] | None = None) -> CalibrationReport:
     """Camera calibration, reference plane and Eq. (5) fit from detected poses.
 
@@ -184,6 +186,11 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         image_size: (width, height) of the frames, pixels.
         schedule: the fringe schedule the phase maps came from.
         robust: drop outlier points (> 4σ by MAD) and outlier poses (RMS > 3× median), and refit.
+        dense: besides the corners (which give the camera model and the board planes), use
+            a grid of pixels over each board (its control grid plus half a pitch) as phase
+            control points: their heights come from the board plane and the calibrated
+            camera rays. Many more, better spread points than the corners alone (the
+            paper's choice, ``dense=False``), hence a better conditioned Eq. (5) fit.
     """
     names = names or [f"pose_{i:02d}" for i in range(len(observations))]
     found = [i for i, o in enumerate(observations) if o is not None]
@@ -216,15 +223,19 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
 
     per_pose = []
     for k, o in enumerate(obs):
-        cam_pts = (rots[k] @ obj[k].T.astype(np.float64)).T + tvecs[k].ravel()
-        height = cam_pts @ normal + offset
         proj, _ = cv2.projectPoints(obj[k], rvecs[k], tvecs[k], cam, dist)
         reproj = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[k].reshape(-1, 2)) ** 2, axis=1))))
-        phi = sample_phase(o.phase, o.image_points)  # type: ignore[union-attr]
-        per_pose.append((height, phi, reproj))
+        if dense:
+            uv, z_k, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, normal, offset)  # type: ignore[arg-type]
+        else:
+            cam_pts = (rots[k] @ obj[k].T.astype(np.float64)).T + tvecs[k].ravel()
+            uv = o.image_points.astype(np.float64)  # type: ignore[union-attr]
+            z_k = cam_pts @ normal + offset
+            phi_k = sample_phase(o.phase, o.image_points)  # type: ignore[union-attr]
+        per_pose.append((z_k, phi_k, reproj, uv, len(o.image_points)))  # type: ignore[union-attr]
 
-    u = np.concatenate([o.image_points[:, 0] for o in obs]).astype(np.float64)  # type: ignore[union-attr]
-    v = np.concatenate([o.image_points[:, 1] for o in obs]).astype(np.float64)  # type: ignore[union-attr]
+    u = np.concatenate([p[3][:, 0] for p in per_pose])
+    v = np.concatenate([p[3][:, 1] for p in per_pose])
     z = np.concatenate([p[0] for p in per_pose])
     phi = np.concatenate([p[1] for p in per_pose])
     pose_of = np.concatenate([np.full(len(p[0]), k) for k, p in enumerate(per_pose)])
@@ -268,7 +279,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         sel = pose_of == k
         hz = z[sel]
         reports.append(PoseReport(
-            pose=i, name=names[i], corners=int(sel.sum()), reprojection_px=per_pose[k][2],
+            pose=i, name=names[i], corners=per_pose[k][4], reprojection_px=per_pose[k][2],
             rms_mm=_rms(res_all[sel & use]), points=int((sel & use).sum()),
             dropped_points=int((sel & ~use).sum()), dropped=bool(dropped_pose[k]),
             height_mm=(float(hz.min()), float(hz.max())),
@@ -285,6 +296,42 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         ],
     )
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px))
+
+
+def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64],
+                   cam: npt.NDArray[np.float64], dist: npt.NDArray[np.float64], normal: npt.NDArray[np.float64],
+                   offset: float, target: int = DENSE_POINTS_PER_POSE
+                   ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Pixels on a grid over the board: (n, 2) pixel coordinates, heights (mm), phases (rad, NaN invalid)."""
+    obj = o.object_points.astype(np.float64)
+    d = np.linalg.norm(obj[:, None, :2] - obj[None, :, :2], axis=2)
+    d[d == 0] = np.inf
+    margin = 0.5 * float(np.median(d.min(axis=1)))
+    lo, hi = obj[:, :2].min(axis=0) - margin, obj[:, :2].max(axis=0) + margin
+    edge = np.linspace(0.0, 1.0, 16)
+    outline = np.concatenate([
+        np.stack([lo[0] + edge * (hi[0] - lo[0]), np.full(16, lo[1])], 1),
+        np.stack([np.full(16, hi[0]), lo[1] + edge * (hi[1] - lo[1])], 1),
+        np.stack([hi[0] - edge * (hi[0] - lo[0]), np.full(16, hi[1])], 1),
+        np.stack([np.full(16, lo[0]), hi[1] - edge * (hi[1] - lo[1])], 1),
+    ])
+    outline3 = np.concatenate([outline, np.zeros((len(outline), 1))], axis=1)
+    poly, _ = cv2.projectPoints(outline3, rvec, tvec, cam, dist)
+    h, w = o.phase.shape
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillPoly(mask, [np.rint(poly.reshape(-1, 2)).astype(np.int32)], 1)
+    step = max(1, round(math.sqrt(max(1, int(mask.sum())) / target)))
+    ys, xs = np.mgrid[step // 2 : h - 1 : step, step // 2 : w - 1 : step]
+    keep = mask[ys, xs] > 0
+    xs, ys = xs[keep].astype(np.float64), ys[keep].astype(np.float64)
+    phi = o.phase[ys.astype(np.int64), xs.astype(np.int64)].astype(np.float64)
+    uv = np.stack([xs, ys], axis=1)
+    rays = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam, dist).reshape(-1, 2)
+    rays = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
+    rmat = cv2.Rodrigues(rvec)[0]
+    n_k, t_k = rmat[:, 2], np.asarray(tvec, np.float64).ravel()
+    pts = rays * ((n_k @ t_k) / (rays @ n_k))[:, None]
+    return uv, pts @ normal + offset, phi
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

@@ -16,7 +16,7 @@ VERTEX_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity",
 def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
     """uint8 as is; other types scaled so the largest finite value among ``mask`` maps to 255."""
     if intensity.dtype == np.uint8:
-        return intensity[mask]
+        return np.asarray(intensity[mask], dtype=np.uint8)
     vals = intensity[mask].astype(np.float64)
     finite = np.isfinite(vals)
     top = float(vals[finite].max()) if finite.any() else 0.0

@@ -120,8 +120,11 @@ class ControllerProtocol:
 
     # --- the serial line ---------------------------------------------------------
     def handle_line(self, line: str) -> str:
-        """Reply (without newline) to one received line (without newline)."""
-        self.tick()
+        """Reply (without newline) to one received line (without newline).
+
+        Like the firmware's loop (serial first, then safety), a command that arrives
+        late still counts; the watchdog is checked by :meth:`tick` afterwards.
+        """
         line = line.rstrip("\r")
         self.log.append(line)
         if len(line) > MAX_LINE:
@@ -361,9 +364,6 @@ class PtyControllerEmulator:
                 host_open = True
                 self._reboot()
                 continue
-            self.protocol.tick()
-            while self.protocol.notices:
-                self._write(self.protocol.notices.pop(0))
             buf += chunk
             while b"\n" in buf:
                 raw, buf = buf.split(b"\n", 1)
@@ -373,6 +373,8 @@ class PtyControllerEmulator:
                 if self.reply_delay_s:
                     time.sleep(self.reply_delay_s)
                 self._write(reply)
-            if len(buf) > 4 * MAX_LINE:  # a line that never ends: discard like the firmware
-                buf = b""
-                self._write("ERR 6 line too long")
+            if len(buf) > MAX_LINE:  # overlong: keep only "too long" until its newline (ERR 6 then)
+                buf = b"?" * (MAX_LINE + 1)
+            self.protocol.tick()
+            while self.protocol.notices:
+                self._write(self.protocol.notices.pop(0))

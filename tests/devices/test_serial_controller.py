@@ -188,10 +188,10 @@ def test_open_identify_led_arm_over_pty(emu):
 
 
 def test_heartbeat_thread_keeps_the_watchdog_fed(emu):
-    ctl = _ctl(emu.port, watchdog_ms=200)
+    ctl = _ctl(emu.port, watchdog_ms=300)
     ctl.open()
     ctl.set_led("green", current=0.5)
-    time.sleep(0.7)  # > 3 watchdog periods
+    time.sleep(1.0)  # > 3 watchdog periods
     assert emu.protocol.led == "G" and not emu.protocol.tripped
     ctl.close()
 

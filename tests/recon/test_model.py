@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.recon.model import SINGULAR_RTOL, calibration_model_tables, evaluate_height, model_tables, outside_volume
+from app.recon.model import (
+    SINGULAR_RTOL,
+    calibration_model_tables,
+    evaluate_height,
+    model_tables,
+    outside_volume,
+)
 from tests.recon.analytic_rig import Rig, bump_surface
 
 

@@ -107,7 +107,7 @@ def test_nan_calibration_rejected(rig):
 
 
 def test_12bit_saturation_needs_max_code(rig):
-    frames = rig.render(bump_surface(rig), background=2000, amplitude=1500, dtype=np.uint16, max_code=4095)
+    frames = rig.render(bump_surface(rig), background=2000, amplitude=1200, dtype=np.uint16, max_code=4095)
     frames[3, 50, 60] = 4095
     assert Reconstructor(rig.calibration(), max_code=4095).run(frames).reason[50, 60] == Reason.SATURATED
     # default 65535: the clipped pixel is not flagged, and min_modulation defaults to 2 % of 65535

@@ -43,9 +43,9 @@ def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, h
     n = dirs.shape[0]
     out = np.full(n, np.nan)
     ox = origin - frame_origin
-    os_ = ox @ axes[:, 0]
-    ot = ox @ axes[:, 1]
-    ow = ox @ axes[:, 2]
+    os_ = ox[0] * axes[0, 0] + ox[1] * axes[1, 0] + ox[2] * axes[2, 0]
+    ot = ox[0] * axes[0, 1] + ox[1] * axes[1, 1] + ox[2] * axes[2, 1]
+    ow = ox[0] * axes[0, 2] + ox[1] * axes[1, 2] + ox[2] * axes[2, 2]
     for i in range(n):
         d = dirs[i]
         ds_ = d[0] * axes[0, 0] + d[1] * axes[1, 0] + d[2] * axes[2, 0]

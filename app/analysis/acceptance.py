@@ -1,0 +1,119 @@
+"""Acceptance figures of a reconstruction against ground truth (used by the end-to-end test
+and ``benchmarks/bench_accuracy.py``): plane target, sphere target, feature height.
+
+Callers supply the truth (e.g. from the simulator) and the per-pixel intensity noise σ_I
+predicted by their noise model; nothing here knows where they came from.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from app.analysis.groundtruth import depth_errors, perpendicular_noise_mm
+from app.analysis.noise import height_noise_mm
+from app.analysis.plane import plane_accuracy
+from app.analysis.sphere import sphere_figures
+from app.calib.calibration import Calibration
+
+
+def background_codes(result: Any) -> npt.NDArray[np.float64]:
+    """Background A (codes) of a reconstruction: texture (A + B) minus modulation B."""
+    return np.asarray(result.texture, np.float64) - np.asarray(result.modulation, np.float64)
+
+
+def noise_floor_mm(calibration: Calibration, result: Any, sigma_i_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Per-pixel predicted height noise σ_z (mm) of a reconstruction for intensity noise σ_I (codes)."""
+    return height_noise_mm(calibration, result.phase, sigma_i_dn, result.modulation)
+
+
+def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
+                        sigma_i_dn: npt.ArrayLike, *, exclude: npt.ArrayLike | None = None) -> dict[str, Any]:
+    """Figures of a flat target (e.g. the 45° DOF target) against its true depth.
+
+    Args:
+        calibration: the calibration used.
+        result: a ``ReconResult`` (depth, points, valid, phase, modulation).
+        truth_depth: (H, W) true height, mm, NaN off-object.
+        sigma_i_dn: (H, W) or scalar intensity noise σ_I, codes.
+        exclude: optional (H, W) bool pixels left out of the valid-fraction figure
+            (e.g. black print, where low modulation is the correct answer).
+
+    Returns:
+        dict with ``valid_fraction`` (inside the calibrated volume, after ``exclude``),
+        ``valid_fraction_all``, ``mean_error_mm``, ``max_abs_error_mm``, ``rms_error_mm``,
+        ``outside_valid``, ``outside_max_abs_error_mm``, the paper's ``accuracy_mm``,
+        ``precision_mm`` and ``flatness_mm``, the predicted ``noise_floor_mm`` for that
+        precision and ``precision_ratio``; ``depth_precision_mm`` (pooled std of depth
+        error in bins of true height) with its ``depth_noise_floor_mm``.
+    """
+    truth = np.asarray(truth_depth, np.float64)
+    errs = depth_errors(result.depth, truth, calibration.height_range_mm)
+    lo, hi = calibration.height_range_mm
+    inside = np.isfinite(truth) & (truth >= lo) & (truth <= hi)
+    keep = inside if exclude is None else inside & ~np.asarray(exclude, bool)
+    sz = noise_floor_mm(calibration, result, sigma_i_dn)
+    valid_in = np.asarray(result.valid, bool) & inside
+    pa = plane_accuracy(result.points, valid_in)
+    sp = perpendicular_noise_mm(sz, result.points, pa.plane.normal, calibration.plane_normal)
+    floor = float(np.sqrt(np.nanmean(sp[valid_in] ** 2)))
+    depth_floor = float(np.sqrt(np.nanmean(sz[valid_in] ** 2)))
+    return {
+        "valid_fraction": float(np.asarray(result.valid, bool)[keep].mean()) if keep.any() else math.nan,
+        "valid_fraction_all": errs.valid_fraction,
+        "inside_pixels": errs.inside_pixels,
+        "mean_error_mm": errs.mean_error_mm,
+        "max_abs_error_mm": errs.max_abs_error_mm,
+        "rms_error_mm": errs.rms_error_mm,
+        "outside_pixels": errs.outside_pixels,
+        "outside_valid": errs.outside_valid,
+        "outside_max_abs_error_mm": errs.outside_max_abs_error_mm,
+        "accuracy_mm": pa.accuracy_mm,
+        "precision_mm": pa.precision_mm,
+        "flatness_mm": pa.flatness_mm,
+        "noise_floor_mm": floor,
+        "precision_ratio": pa.precision_mm / floor,
+        "depth_precision_mm": errs.within_bin_std_mm,
+        "depth_noise_floor_mm": depth_floor,
+        "depth_precision_ratio": errs.within_bin_std_mm / depth_floor,
+    }
+
+
+def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
+                         truth_points: npt.ArrayLike, centres: list[npt.ArrayLike], radius_mm: float,
+                         *, surface_tol_mm: float = 0.02) -> dict[str, Any]:
+    """Figures of sphere targets: validity and error on sphere pixels, then PS/PF per sphere.
+
+    Args:
+        centres: true sphere centres (3,) mm, camera frame; radius_mm: their true radius.
+        surface_tol_mm: a pixel belongs to a sphere if its true point is this close to it.
+
+    Returns:
+        dict with ``valid_fraction`` and error figures over sphere pixels inside the
+        calibrated volume, and ``spheres``: per sphere ``diameter_mm``, ``ps_mm``, ``pf_mm``,
+        ``rms_mm``, ``n_points``.
+    """
+    tp = np.asarray(truth_points, np.float64)
+    on_any = np.zeros(tp.shape[:2], bool)
+    masks = []
+    for c in centres:
+        m = np.abs(np.linalg.norm(tp - np.asarray(c, np.float64), axis=-1) - radius_mm) <= surface_tol_mm
+        masks.append(m)
+        on_any |= m
+    errs = depth_errors(result.depth, truth_depth, calibration.height_range_mm, mask=on_any)
+    spheres = []
+    for m in masks:
+        sel = m & np.asarray(result.valid, bool)
+        f = sphere_figures(result.points, 2 * radius_mm, sel, segment=False)
+        spheres.append({"diameter_mm": f.diameter_mm, "ps_mm": f.ps_mm, "pf_mm": f.pf_mm, "rms_mm": f.rms_mm,
+                        "n_points": f.n_points})
+    return {
+        "valid_fraction": errs.valid_fraction,
+        "inside_pixels": errs.inside_pixels,
+        "mean_error_mm": errs.mean_error_mm,
+        "max_abs_error_mm": errs.max_abs_error_mm,
+        "spheres": spheres,
+    }

@@ -1,0 +1,122 @@
+"""The calibration wizard over REST on the simulator, end to end.
+
+The simulated world is shown a checkerboard at several poses (as a user would hold
+it); each pose is captured through the API, the fit is solved and activated, and the
+new calibration must measure the simulated 45° depth-of-field target accurately.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from tests.api.conftest import live_settings, wait_for
+
+
+def show(world: Any, scene: Any) -> None:
+    """Put ``scene`` in front of the simulated scope (the world rebuilds its renderer lazily)."""
+    world.scene = scene
+    with world._lock:  # SimulatedWorld has no public scene setter yet
+        world._renderer = None
+
+
+def capture_after_change(client: TestClient) -> dict[str, Any]:
+    """Let two whole sets pass (frames in flight may predate the change), then capture a pose."""
+    done = client.get("/api/status").json()["sets_completed"]
+    wait_for(client, lambda s: s["sets_completed"] >= done + 2, 60, "two sets after the change")
+    r = client.post("/api/calibration/session/poses")
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+@pytest.mark.slow
+def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: Path) -> None:
+    from app.devices.sim import BoardSpec, render_capture_set
+    from app.devices.sim.offline import auto_exposure_ms
+    from app.devices.sim.scenes import board_poses, board_scene, build_scene
+
+    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=11)
+    app = create_app(settings)
+    with TestClient(app) as client:
+        world = app.state.instrument.devices.world
+        wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
+        assert client.post("/api/calibration/session/poses").status_code == 503  # no session yet
+
+        spec = BoardSpec()  # checkerboard, 8 × 6 inner corners, 2 mm squares
+        r = client.post("/api/calibration/session", json=spec.to_json())
+        assert r.status_code == 200 and r.json()["poses"] == []
+
+        # a view without the board: captured, but not found
+        pose = capture_after_change(client)
+        assert pose["found"] is False and pose["corners"] == 0
+
+        for k, board_pose in enumerate(board_poses(world.rig, 7, seed=4)):
+            show(world, board_scene(world.rig, spec, board_pose))
+            client.put("/api/exposure", json={"exposure_ms": round(auto_exposure_ms(world), 2)})
+            pose = capture_after_change(client)
+            assert pose["index"] == k + 1
+            assert pose["found"] is True and pose["corners"] == 48, pose
+            assert len(pose["corner_points"]) == 48
+
+        preview = client.get("/api/calibration/session/poses/1/preview.png")
+        img = cv2.imdecode(np.frombuffer(preview.content, np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.shape[:2] == (1032, 1384)
+        assert client.get("/api/calibration/session/poses/99/preview.png").status_code == 404
+
+        r = client.delete("/api/calibration/session/poses/0")  # drop the board-less view
+        assert r.status_code == 200 and len(r.json()) == 7 and all(p["found"] for p in r.json())
+
+        r = client.post("/api/calibration/session/activate")
+        assert r.status_code == 503 and "solve" in r.json()["detail"]
+        r = client.post("/api/calibration/session/solve", json={})
+        assert r.status_code == 200, r.text
+        report = r.json()
+        assert len(report["poses"]) == 7 and "all" in report["table"]
+        assert report["rms_mm"] < 0.1 and report["reprojection_px"] < 1.0
+        assert report["height_range_mm"][1] > 10
+
+        r = client.post("/api/calibration/session/activate", json={"name": "wizard"})
+        assert r.status_code == 200 and r.json()["name"] == "wizard"
+        assert client.get("/api/status").json()["calibration"]["name"] == "wizard"
+        assert (tmp_path / "data" / "calibrations" / "wizard.json").is_file()
+        assert (tmp_path / "data" / "calibrations" / "active.json").is_file()
+
+        # the new calibration on the 45° depth-of-field target: an uploaded set ...
+        cap, truth, _ = render_capture_set("dof_target", seed=5, exposure_ms=20.0)
+        files = [("files", ("capture.json", _capture_json(cap), "application/json"))]
+        for i, frame in enumerate(cap.frames):
+            files.append(("files", (f"frame_{i:02d}.png", cv2.imencode(".png", frame)[1].tobytes(), "image/png")))
+        r = client.post("/api/reconstruct?format=npy", files=files)
+        assert r.status_code == 200, r.text
+        _assert_accurate(np.load(io.BytesIO(r.content)), truth)
+
+        # ... and the live view of it
+        show(world, build_scene("dof_target", world.rig))
+        client.put("/api/exposure", json={"exposure_ms": 20.0})
+        done = client.get("/api/status").json()["results_published"]
+        wait_for(client, lambda s: s["results_published"] >= done + 3, 60, "live results of the target")
+        live_depth = np.load(io.BytesIO(client.get("/api/depth/latest?format=npy").content))
+        _assert_accurate(live_depth, world.truth(0.0)[0])
+
+
+def _capture_json(cap: Any) -> bytes:
+    import json
+
+    meta = {"format": "fringescope.capture/1", "pattern": cap.schedule.to_dict(), "exposure_ms": cap.exposure_ms,
+            "led": cap.led, "frames": [f"frame_{i:02d}.png" for i in range(len(cap.frames))]}
+    return json.dumps(meta).encode()
+
+
+def _assert_accurate(depth: np.ndarray, truth: np.ndarray) -> None:
+    both = np.isfinite(depth) & np.isfinite(truth)
+    assert both.mean() > 0.3, f"only {both.mean():.1%} of pixels measured"
+    err = depth[both] - truth[both]
+    assert abs(float(np.mean(err))) < 0.05, f"bias {np.mean(err):.4f} mm"
+    assert float(np.mean(np.abs(err))) < 0.1, f"mean |error| {np.mean(np.abs(err)):.4f} mm"

@@ -1,0 +1,80 @@
+"""Capture-set folders: round trip, missing and mismatched frames, unknown keys."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from app.capture import CaptureSet, read_capture_set, write_capture_set
+from app.recon import PatternSchedule
+
+
+def _frames(dtype, f=16):
+    rng = np.random.default_rng(2)
+    return rng.integers(0, np.iinfo(dtype).max, (f, 12, 17), dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_round_trip(tmp_path, dtype):
+    cap = CaptureSet(_frames(dtype), exposure_ms=12.5, led="red", extra={"note": "x"})
+    write_capture_set(tmp_path / "s", cap)
+    back = read_capture_set(tmp_path / "s")
+    assert back.frames.dtype == dtype and np.array_equal(back.frames, cap.frames)
+    assert back.schedule == cap.schedule and back.exposure_ms == 12.5 and back.led == "red"
+    assert back.extra == {"note": "x"}
+    meta = json.loads((tmp_path / "s" / "capture.json").read_text())
+    assert meta["format"] == "fringescope.capture/1" and len(meta["frames"]) == 16
+
+
+def test_unknown_keys_kept(tmp_path):
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8)))
+    meta_path = tmp_path / "s" / "capture.json"
+    meta = json.loads(meta_path.read_text())
+    meta["operator"] = {"name": "A"}
+    meta["pattern"]["gamma"] = 2.2
+    meta_path.write_text(json.dumps(meta))
+    back = read_capture_set(tmp_path / "s")
+    assert back.extra == {"operator": {"name": "A"}}
+    assert back.schedule.extra == {"gamma": 2.2}
+    write_capture_set(tmp_path / "t", back)
+    again = json.loads((tmp_path / "t" / "capture.json").read_text())
+    assert again["operator"] == {"name": "A"} and again["pattern"]["gamma"] == 2.2
+
+
+def test_missing_frame_file(tmp_path):
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8)))
+    (tmp_path / "s" / "frame_07.png").unlink()
+    with pytest.raises(ValueError, match="frame_07.png"):
+        read_capture_set(tmp_path / "s")
+
+
+def test_mismatched_shapes_and_dtypes(tmp_path):
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8)))
+    cv2.imwrite(str(tmp_path / "s" / "frame_03.png"), np.zeros((12, 16), np.uint8))
+    with pytest.raises(ValueError, match="frame_03.png"):
+        read_capture_set(tmp_path / "s")
+    cv2.imwrite(str(tmp_path / "s" / "frame_03.png"), np.zeros((12, 17), np.uint16))
+    with pytest.raises(ValueError, match="frame_03.png"):
+        read_capture_set(tmp_path / "s")
+
+
+def test_frame_count_and_format_checked(tmp_path):
+    with pytest.raises(ValueError, match="^frames"):
+        CaptureSet(_frames(np.uint8, f=15))
+    assert CaptureSet(_frames(np.uint8, f=12), PatternSchedule(frequencies=(1, 4, 16))).frames.shape[0] == 12
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8)))
+    meta_path = tmp_path / "s" / "capture.json"
+    meta = json.loads(meta_path.read_text())
+    meta["frames"] = meta["frames"][:-1]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="capture.json"):
+        read_capture_set(tmp_path / "s")
+    meta["format"] = "fringescope.capture/2"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="unsupported format"):
+        read_capture_set(tmp_path / "s")
+    with pytest.raises(ValueError, match="not a capture-set folder"):
+        read_capture_set(tmp_path / "nope")

@@ -1,0 +1,72 @@
+"""``fringescope reconstruct`` end to end on a synthetic capture set."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from app.calib import save_calibration
+from app.capture import CaptureSet, write_capture_set
+from app.capture.ply import read_ply
+from app.cli import main
+from tests.recon.analytic_rig import Rig, bump_surface
+
+
+def _setup(tmp_path):
+    rig = Rig()
+    h = bump_surface(rig)
+    frames = rig.render(h, noise=0.5, rng=np.random.default_rng(4))
+    frames[:, :8, :8] = 90  # a patch without fringes → invalid
+    write_capture_set(tmp_path / "set", CaptureSet(frames, rig.schedule))
+    save_calibration(rig.calibration(), tmp_path / "calibration.json")
+    return h
+
+
+def test_reconstruct_writes_outputs(tmp_path, capsys):
+    h = _setup(tmp_path)
+    out = tmp_path / "out"
+    rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(out), "--range", "0,30"])
+    assert rc == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1 and "valid" in lines[0] and "mm" in lines[0] and "ms" in lines[0]
+    depth = np.load(out / "depth.npy")
+    assert depth.dtype == np.float32 and depth.shape == h.shape
+    assert np.isnan(depth[:8, :8]).all()
+    ok = np.isfinite(depth)
+    assert ok.mean() > 0.95
+    assert np.max(np.abs(depth[ok] - h[ok])) < 0.1
+    cloud = read_ply(out / "points.ply")
+    assert cloud.size == ok.sum()
+    for name in ("depth.png", "reason.png"):
+        img = cv2.imread(str(out / name))
+        assert img is not None and img.shape[0] >= h.shape[0]
+
+
+def test_reconstruct_numpy_path_matches(tmp_path, capsys):
+    _setup(tmp_path)
+    for flag, sub in (([], "a"), (["--numpy"], "b")):
+        assert main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
+                     "-o", str(tmp_path / sub), *flag]) == 0
+    a, b = np.load(tmp_path / "a" / "depth.npy"), np.load(tmp_path / "b" / "depth.npy")
+    assert np.array_equal(np.isnan(a), np.isnan(b))
+    assert np.nanmax(np.abs(a - b)) < 1e-3
+    assert "(numpy)" in capsys.readouterr().out
+
+
+def test_missing_folder_is_one_line_error(tmp_path, capsys):
+    _setup(tmp_path)
+    rc = main(["reconstruct", str(tmp_path / "nope"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "nope" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_calibration_is_one_line_error(tmp_path, capsys):
+    _setup(tmp_path)
+    (tmp_path / "calibration.json").write_text("{}")
+    rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "calibration" in err[0]
