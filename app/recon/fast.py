@@ -170,11 +170,13 @@ def _texture_row(out, total, mod, inv_frames):  # pragma: no cover
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _points_row(pts, hbuf, code, rx, ry, inv_m, offset):  # pragma: no cover
+    # pts: the row's (W·3,) flat view, so the interleaved stores have a known stride
     for u in range(hbuf.shape[0]):
-        t = (hbuf[u] - offset) * inv_m[u] if code[u] == 0 else _NAN
-        pts[u, 0] = t * rx[u]
-        pts[u, 1] = t * ry[u]
-        pts[u, 2] = t
+        t = (hbuf[u] - offset) * inv_m[u]
+        t = t if code[u] == 0 else _NAN
+        pts[3 * u] = t * rx[u]
+        pts[3 * u + 1] = t * ry[u]
+        pts[3 * u + 2] = t
 
 
 @njit(parallel=True, fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -231,7 +233,7 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
             valid[v] = code == 0
             modulation[v] = mod
             _texture_row(texture[v], total, mod, inv_frames)
-            _points_row(points[v], hbuf, code, rx[v], ry[v], inv_m[v], offset)
+            _points_row(points[v].reshape(3 * width), hbuf, code, rx[v], ry[v], inv_m[v], offset)
 
 
 NUMBA_VERSION = numba.__version__

@@ -21,7 +21,8 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 from app.config import Settings  # noqa: E402
 from app.main import create_app  # noqa: E402
 
-FAST_EXPOSURE_MS = 10.0  # short sets keep the tests quick (the simulator runs in real time)
+LIVE_EXPOSURE_MS = 30.0  # the paper's range; the simulator renders each frame well within the period
+LIVE_SCENE = "dof_target"  # static: cheap to render, and has a known truth
 
 
 @pytest.fixture(scope="session")
@@ -34,6 +35,10 @@ def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from app.service.instrument import Instrument
 
     data = tmp_path_factory.mktemp("simcal")
+    if os.environ.get("DEVONLY_SIMCAL"):  # DEVONLY: remove
+        import shutil
+        (data / "calibrations").mkdir()
+        return Path(shutil.copy(os.environ["DEVONLY_SIMCAL"], data / "calibrations" / "sim.json"))
     inst = Instrument(Settings(data_dir=data, viewer=False, autostart=False, sim_seed=0))
     try:
         inst.start()
@@ -55,7 +60,7 @@ def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def live_settings(tmp_path: Path, calibration_file: Path | None, **overrides: Any) -> Settings:
     values: dict[str, Any] = {
         "data_dir": tmp_path / "data", "calibration_file": calibration_file, "viewer": False,
-        "sim_seed": 1, "exposure_ms": FAST_EXPOSURE_MS,
+        "sim_seed": 1, "exposure_ms": LIVE_EXPOSURE_MS, "sim_scene": LIVE_SCENE,
     }
     values.update(overrides)
     return Settings(**values)

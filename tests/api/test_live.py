@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.api.conftest import FAST_EXPOSURE_MS, wait_for, wait_result
+from tests.api.conftest import LIVE_EXPOSURE_MS, wait_for, wait_result
 
 STATUS_KEYS = {
     "state", "camera_fps", "depth_fps", "latency_ms", "exposure_ms", "led", "mode", "calibration",
@@ -22,7 +22,7 @@ STATUS_KEYS = {
 def test_status_reports_a_running_instrument(live: TestClient) -> None:
     st = wait_for(live, lambda s: s["state"] == "running" and s["depth_fps"] > 0, 30, "running")
     assert st.keys() >= STATUS_KEYS
-    assert st["mode"] == "set" and st["exposure_ms"] == FAST_EXPOSURE_MS and st["led"] == "green"
+    assert st["mode"] == "set" and st["exposure_ms"] == LIVE_EXPOSURE_MS and st["led"] == "green"
     assert st["camera_fps"] > 5 and st["latency_ms"] is not None and st["latency_ms"] > 0
     assert st["calibration"]["name"] == "sim" and st["calibration"]["height_range_mm"][1] > 10
     assert {d["kind"] for d in st["devices"]} >= {"camera", "projector"}
@@ -43,9 +43,9 @@ def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:
         st = live.get("/api/status").json()
         assert st["led"] == "red" and st["exposure_ms"] == 14.5
     finally:
-        live.put("/api/exposure", json={"exposure_ms": FAST_EXPOSURE_MS})
+        live.put("/api/exposure", json={"exposure_ms": LIVE_EXPOSURE_MS})
         live.put("/api/led", json={"led": "green"})
-    wait_result(live, lambda m: m["led"] == "green" and m["exposure_ms"] == FAST_EXPOSURE_MS, 20)
+    wait_result(live, lambda m: m["led"] == "green" and m["exposure_ms"] == LIVE_EXPOSURE_MS, 20)
 
 
 @pytest.mark.parametrize(

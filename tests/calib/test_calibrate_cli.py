@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from app.calib import BoardSpec, calibrate_folder, calibrate_sets, height_mm, load_calibration
+from app.calib import BoardSpec, calibrate_sets, height_mm, load_calibration
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
 from tests.calib.rig import STANDARD_POSES, Rig, board_pose, fringe_frames, raycast_scene

@@ -36,10 +36,11 @@ def _height_error(rig: Rig, cal: Calibration, ref: tuple[np.ndarray, np.ndarray]
     return np.abs(height_mm(cal, u, v, rig.phase_of_points(x)) - hz)
 
 
-def test_fit_reproduces_exact_rig():
+@pytest.mark.parametrize("dense", [True, False])
+def test_fit_reproduces_exact_rig(dense):
     rig = Rig()
     obs, truth = _observations(rig)
-    rep = fit_observations(obs, (rig.width, rig.height), rig.schedule)
+    rep = fit_observations(obs, (rig.width, rig.height), rig.schedule, dense=dense)
     cal = rep.calibration
     np.testing.assert_allclose(cal.camera_matrix, rig.camera_matrix, atol=1e-3)
     r0, t0 = truth[0]
@@ -52,6 +53,8 @@ def test_fit_reproduces_exact_rig():
     err = _height_error(rig, cal, truth[0], lo, hi)
     assert np.percentile(err, 99) < 2e-4 and err.max() < 5e-3  # max: extrapolated image corners
     assert [p["pose"] for p in cal.pose_residuals] == list(range(len(obs)))
+    assert all(p.corners == BOARD.n_points for p in rep.poses)
+    assert all((p.points > 500) if dense else (p.points == BOARD.n_points) for p in rep.poses)
     assert {"pose", "corners", "reprojection_px", "rms_mm", "points"} <= set(cal.pose_residuals[0])
     table = rep.table()
     assert "pose_05" in table and "reproj_px" in table and "all" in table

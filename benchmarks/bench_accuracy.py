@@ -1,0 +1,133 @@
+"""Accuracy on the simulator, beside the paper's figures (Le et al. 2018).
+
+simulate a calibration → calibrate → simulate the 45° DOF target, spheres and a suture →
+reconstruct → validate against the simulator's ground truth.
+
+    python benchmarks/bench_accuracy.py [--poses 8] [--board checkerboard] [--keep DIR] [--strict]
+
+Prints one table: figure, measured, paper, acceptance target, PASS/MISS. Exit code 0
+(with ``--strict``: 1 if any acceptance target is missed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from app.analysis import feature_height, sphere_figures  # noqa: E402
+from app.analysis.acceptance import background_codes, plane_target_report, sphere_target_report  # noqa: E402
+from app.calib import calibrate_folder  # noqa: E402
+from app.devices.sim import default_rig, render_capture_set, simulate_calibration_folder  # noqa: E402
+from app.devices.sim.scenes import build_scene  # noqa: E402
+from app.devices.sim.scenes.base import frame_from_normal  # noqa: E402
+from app.devices.sim.scenes.targets import dof_target_field, ruler_printer  # noqa: E402
+from app.devices.sim.world import READOUT_MS, SimulatedWorld  # noqa: E402
+from app.recon import Reconstructor  # noqa: E402
+
+SUTURE_TRUTH_MM = 0.72
+
+
+def _capture(scene, seed, **kw):  # noqa: ANN001, ANN003, ANN202
+    world = SimulatedWorld(scene, seed=seed)
+    cs, depth, points = render_capture_set(world.scene, seed=seed, world=world, **kw)
+    return world, cs, depth, points
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=8)
+    ap.add_argument("--board", choices=("checkerboard", "circles"), default="checkerboard")
+    ap.add_argument("--corners-only", action="store_true", help="fit Eq. (5) on corners only (the paper)")
+    ap.add_argument("--keep", metavar="DIR", help="keep the simulated calibration folder here")
+    ap.add_argument("--strict", action="store_true", help="exit 1 if an acceptance target is missed")
+    args = ap.parse_args(argv)
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench_accuracy_")
+    base = Path(args.keep) if args.keep else Path(tmp.name)
+    t0 = time.perf_counter()
+    folder = simulate_calibration_folder(base / "calib", board=args.board, poses=args.poses, seed=1, overwrite=True)
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    report = calibrate_folder(folder, dense=not args.corners_only)
+    t_cal = time.perf_counter() - t0
+    cal = report.calibration
+    print(report.table())
+    print(f"simulated {args.poses} poses in {t_sim:.0f} s, calibrated in {t_cal:.0f} s\n")
+    rec = Reconstructor(cal)
+
+    world, cs, truth, points = _capture("dof_target", seed=3)
+    res = rec.run(cs.frames)
+    origin, axes = dof_target_field(world.rig)
+    st = (points.astype(np.float64) - origin) @ axes
+    black = ruler_printer()(st[..., 0], st[..., 1]) < 0.5
+    dof = plane_target_report(cal, res, truth, world.noise_sigma(background_codes(res)), exclude=black)
+
+    world, cs, truth, points = _capture("sphere", seed=5)
+    res = rec.run(cs.frames)
+    spheres = world.scene.spheres
+    sph = sphere_target_report(cal, res, truth, points, [s.centre for s in spheres], spheres[0].radius_mm)
+    seg = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)
+
+    rig = default_rig()
+    scene = build_scene("anastomosis", rig)
+    t_start = 1.0 - 7.5 * max(20.0, READOUT_MS) / 1000.0 - 0.01  # centred on a breathing extremum
+    world, cs, truth, points = _capture(scene, seed=7, t0_s=t_start)
+    res = rec.run(cs.frames)
+    origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
+    st = (points.astype(np.float64) - origin) @ axes
+    ys, xs = np.nonzero((st[..., 0] > -15.0) & (st[..., 0] < -9.0) & (np.abs(st[..., 1]) < 1.5))
+    roi = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    fh = feature_height(res.depth, res.texture, res.valid, roi=roi, polarity="dark")
+
+    ps_worst = max(abs(s["ps_mm"]) for s in sph["spheres"])
+    rows = [
+        # figure, measured, paper, target text, pass
+        ("DOF plane accuracy (mm)", f"{dof['accuracy_mm']:.4f}", "0.008", "", None),
+        ("DOF plane precision (mm)", f"{dof['precision_mm']:.4f}", "0.25", "", None),
+        ("  noise floor predicted (mm)", f"{dof['noise_floor_mm']:.4f}", "", "", None),
+        ("  precision / noise floor", f"{dof['precision_ratio']:.3f}", "", "<= 1.15", dof["precision_ratio"] <= 1.15),
+        ("DOF flatness F (mm)", f"{dof['flatness_mm']:.4f}", "", "", None),
+        ("DOF valid, in volume, excl. black print", f"{dof['valid_fraction']:.4f}", "", ">= 0.99",
+         dof["valid_fraction"] >= 0.99),
+        ("DOF valid, in volume, all pixels", f"{dof['valid_fraction_all']:.4f}", "", "", None),
+        ("DOF mean error vs truth (mm)", f"{dof['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
+         abs(dof["mean_error_mm"]) <= 0.005),
+        ("DOF max |error| (mm)", f"{dof['max_abs_error_mm']:.4f}", "", "<= 0.5", dof["max_abs_error_mm"] <= 0.5),
+        ("DOF depth precision / floor", f"{dof['depth_precision_ratio']:.3f}", "", "", None),
+        ("outside volume: valid px / max |error| (mm)",
+         f"{dof['outside_valid']} / {dof['outside_max_abs_error_mm']:.4f}", "", "<= 0.5",
+         dof["outside_valid"] == 0 or dof["outside_max_abs_error_mm"] <= 0.5),
+        ("sphere valid fraction", f"{sph['valid_fraction']:.4f}", "", ">= 0.99", sph["valid_fraction"] >= 0.99),
+        ("sphere mean error (mm)", f"{sph['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
+         abs(sph["mean_error_mm"]) <= 0.005),
+        ("sphere max |error| (mm)", f"{sph['max_abs_error_mm']:.4f}", "", "<= 0.5", sph["max_abs_error_mm"] <= 0.5),
+        ("sphere PS worst (mm)", f"{ps_worst:.4f}", "", "<= 0.02", ps_worst <= 0.02),
+        ("sphere PF (mm)", " / ".join(f"{s['pf_mm']:.3f}" for s in sph["spheres"]), "", "", None),
+        ("sphere PS, RANSAC-segmented (mm)", f"{seg.ps_mm:+.4f}", "", "", None),
+        ("suture height (mm)", f"{fh.height_mm:.4f} ± {fh.height_std_mm:.4f}", "0.726 ± 0.0075",
+         f"{SUTURE_TRUTH_MM} ± 0.02", abs(fh.height_mm - SUTURE_TRUTH_MM) <= 0.02),
+        ("  cross-sections", str(fh.count), "", "", None),
+    ]
+    w = max(len(r[0]) for r in rows)
+    print(f"{'figure':<{w}}  {'measured':>18}  {'paper':>14}  {'target':>13}  result")
+    missed = 0
+    for name, val, paper, target, ok in rows:
+        verdict = "" if ok is None else ("PASS" if ok else "MISS")
+        missed += ok is False
+        print(f"{name:<{w}}  {val:>18}  {paper:>14}  {target:>13}  {verdict}")
+    print(f"\nacceptance targets missed: {missed}")
+    tmp.cleanup()
+    return 1 if (args.strict and missed) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""End to end on the simulator: simulate a calibration → calibrate → simulate targets →
+reconstruct → validate, compared with the simulator's ground truth (issue 4 acceptance).
+
+One calibration (6 checkerboard poses) is shared by the module. Targets:
+- the 45° DOF target (heights −2…21 mm: both inside and outside the calibrated volume);
+- two spheres (r = 4 mm) on a plate;
+- the anastomosis scene's left stay suture (0.72 mm thread), captured at a breathing
+  extremum so the tissue is still during the set.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.analysis import feature_height, sphere_figures
+from app.analysis.acceptance import background_codes, plane_target_report, sphere_target_report
+from app.calib import calibrate_folder
+from app.devices.sim import default_rig, render_capture_set, simulate_calibration_folder
+from app.devices.sim.scenes import build_scene
+from app.devices.sim.scenes.base import frame_from_normal
+from app.devices.sim.scenes.targets import dof_target_field, ruler_printer
+from app.devices.sim.world import READOUT_MS, SimulatedWorld
+from app.recon import Reconstructor
+
+pytestmark = pytest.mark.slow
+
+POSES = 6
+SUTURE_TRUTH_MM = 0.72  # anastomosis scene: suture radius 0.36 mm
+
+
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory):
+    folder = simulate_calibration_folder(tmp_path_factory.mktemp("sim") / "calib", board="checkerboard",
+                                         poses=POSES, seed=1)
+    return calibrate_folder(folder).calibration
+
+
+@pytest.fixture(scope="module")
+def reconstructor(calibration):
+    return Reconstructor(calibration)
+
+
+def _capture(scene, seed, **kw):
+    world = SimulatedWorld(scene, seed=seed)
+    cs, depth, points = render_capture_set(world.scene, seed=seed, world=world, **kw)
+    return world, cs, depth, points
+
+
+def test_calibration_against_simulator(calibration):
+    rig = default_rig()
+    np.testing.assert_allclose(calibration.camera_matrix, rig.K, rtol=2e-3, atol=1.0)
+    assert math.degrees(math.acos(min(1.0, calibration.plane_normal @ rig.reference.normal))) < 0.1
+    assert calibration.plane_offset_mm == pytest.approx(rig.reference.offset_mm, abs=0.1)
+    lo, hi = calibration.height_range_mm
+    assert lo < 0.5 and hi > 17.0
+    assert all(p["rms_mm"] < 0.1 for p in calibration.pose_residuals)
+
+
+def test_dof_target(calibration, reconstructor):
+    world, cs, truth, points = _capture("dof_target", seed=3)
+    res = reconstructor.run(cs.frames)
+    origin, axes = dof_target_field(world.rig)
+    st = (points.astype(np.float64) - origin) @ axes
+    black = ruler_printer()(st[..., 0], st[..., 1]) < 0.5  # printed marks: low modulation by design
+    rep = plane_target_report(calibration, res, truth, world.noise_sigma(background_codes(res)), exclude=black)
+    print({k: round(v, 5) if isinstance(v, float) else v for k, v in rep.items()})
+    assert rep["valid_fraction"] >= 0.99
+    assert abs(rep["mean_error_mm"]) <= 0.005
+    assert rep["max_abs_error_mm"] <= 0.5
+    assert rep["precision_ratio"] <= 1.15
+    assert rep["outside_pixels"] > 10000  # the target leaves the calibrated volume
+    assert rep["outside_valid"] == 0 or rep["outside_max_abs_error_mm"] <= 0.5
+
+
+def test_sphere(calibration, reconstructor):
+    world, cs, truth, points = _capture("sphere", seed=5)
+    res = reconstructor.run(cs.frames)
+    spheres = world.scene.spheres
+    rep = sphere_target_report(calibration, res, truth, points, [s.centre for s in spheres], spheres[0].radius_mm)
+    print(rep)
+    assert rep["valid_fraction"] >= 0.99
+    assert abs(rep["mean_error_mm"]) <= 0.005 and rep["max_abs_error_mm"] <= 0.5
+    for s in rep["spheres"]:
+        assert abs(s["ps_mm"]) <= 0.02
+    found = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)  # segmentation, as the CLI does
+    assert abs(found.ps_mm) <= 0.02
+
+
+def test_suture_height(calibration, reconstructor):
+    rig = default_rig()
+    scene = build_scene("anastomosis", rig)
+    period_s = max(20.0, READOUT_MS) / 1000.0
+    t0 = 1.0 - 7.5 * period_s - 0.01  # set centred on the breathing extremum (t = 1 s)
+    world, cs, truth, points = _capture(scene, seed=7, t0_s=t0)
+    res = reconstructor.run(cs.frames)
+    origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
+    st = (points.astype(np.float64) - origin) @ axes
+    along = (st[..., 0] > -15.0) & (st[..., 0] < -9.0) & (np.abs(st[..., 1]) < 1.5)
+    ys, xs = np.nonzero(along)
+    roi = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    fh = feature_height(res.depth, res.texture, res.valid, roi=roi, polarity="dark")
+    print(roi, fh.height_mm, fh.height_std_mm, fh.count)
+    assert fh.count > 50
+    assert abs(fh.height_mm - SUTURE_TRUTH_MM) <= 0.02
