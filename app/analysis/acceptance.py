@@ -110,8 +110,13 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
         f = sphere_figures(result.points, 2 * radius_mm, sel, segment=False)
         spheres.append({"diameter_mm": f.diameter_mm, "ps_mm": f.ps_mm, "pf_mm": f.pf_mm, "rms_mm": f.rms_mm,
                         "n_points": f.n_points})
+    lo, hi = calibration.height_range_mm
+    t = np.asarray(truth_depth, np.float64)
+    bad = on_any & np.isfinite(t) & (t >= lo) & (t <= hi) & ~np.asarray(result.valid, bool)
+    codes, counts = np.unique(np.asarray(result.reason)[bad], return_counts=True)
     return {
         "valid_fraction": errs.valid_fraction,
+        "invalid_reasons": {int(c): int(n) for c, n in zip(codes, counts, strict=True)},
         "inside_pixels": errs.inside_pixels,
         "mean_error_mm": errs.mean_error_mm,
         "max_abs_error_mm": errs.max_abs_error_mm,

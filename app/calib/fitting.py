@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from app.calib.board import BoardSpec, detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
-from app.calib.model import choose_normalization, fit_eq5, normalize
+from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.recon.patterns import PatternSchedule
 
@@ -247,6 +247,14 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
                 raise ValueError(f"pose {found[k]} ({names[found[k]]}): no control point has a valid phase")
             dropped_pose[k] = True
 
+    if robust and len(obs) >= 4:
+        held_bad = _held_out_outliers(u, v, phi, z, pose_of, use, image_size)
+        for k in range(1, len(obs)):
+            sel = (pose_of == k) & use
+            if sel.any() and held_bad[sel].mean() > 0.5:
+                dropped_pose[k] = True
+        use &= ~held_bad & ~dropped_pose[pose_of]
+
     for _ in range(4 if robust else 1):
         _check_span(z[use])
         norm = choose_normalization(u[use], v[use], phi[use], z[use], image_size)
@@ -296,6 +304,35 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         ],
     )
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px))
+
+
+def _held_out_outliers(u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], phi: npt.NDArray[np.float64],
+                       z: npt.NDArray[np.float64], pose_of: npt.NDArray[np.int64], use: npt.NDArray[np.bool_],
+                       image_size: tuple[int, int]) -> npt.NDArray[np.bool_]:
+    """Points far off a fit of the *other* poses (leave one pose out), e.g. a fringe-order slip.
+
+    A corrupted pose pulls an in-sample fit toward itself, hiding its own residuals; held
+    out, its points are judged by the rest. Far = more than 10 robust σ of the in-sample
+    residuals and 0.05 mm.
+    """
+    bad = np.zeros(len(z), bool)
+    for k in np.unique(pose_of[use]):
+        if k == 0:
+            continue  # the reference pose defines the plane; never judged out
+        train = use & (pose_of != k)
+        test = use & (pose_of == k)
+        try:
+            _check_span(z[train])
+            norm = choose_normalization(u[train], v[train], phi[train], z[train], image_size)
+            un, vn, pn = normalize(norm, u, v, phi)
+            fit = fit_eq5(un[train], vn[train], pn[train], z[train])
+        except ValueError:
+            continue  # the others alone do not determine the model: no verdict
+        sigma = 1.4826 * float(np.median(np.abs(fit.residuals_mm)))
+        r = evaluate(fit.numerator, fit.denominator, un[test], vn[test], pn[test]) - z[test]
+        idx = np.flatnonzero(test)
+        bad[idx] = ~(np.abs(r) <= max(10.0 * sigma, 0.05))
+    return bad
 
 
 def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64],

@@ -22,9 +22,11 @@ from tests.api.conftest import live_settings, wait_for
 
 def show(world: Any, scene: Any) -> None:
     """Put ``scene`` in front of the simulated scope (the world rebuilds its renderer lazily)."""
-    world.scene = scene
+    if hasattr(world, "set_scene"):
+        world.set_scene(scene)
+        return
     with world._lock:  # SimulatedWorld has no public scene setter yet
-        world._renderer = None
+        world.scene, world._named, world._renderer = scene, None, None
 
 
 def capture_after_change(client: TestClient) -> dict[str, Any]:

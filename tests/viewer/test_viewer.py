@@ -142,3 +142,21 @@ def test_viewer_rejects_bad_arguments(source: SurfaceSource) -> None:
         Viewer(source, max_rate_hz=0)
     with pytest.raises(RuntimeError):
         _ = Viewer(source).port
+
+
+def test_initial_view_tilts_up_about_the_cloud_centre() -> None:
+    from app.viewer.viewer import initial_view
+
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(-10, 10, 5000), rng.uniform(-10, 10, 5000),
+                           np.full(5000, 60.0)]).astype(np.float32)
+    position, look_at, fov = initial_view(xyz, tilt_deg=30.0)
+    np.testing.assert_allclose(look_at, [0, 0, 60], atol=0.5)
+    # Same distance as the scope's camera centre, 30° upward (−y is up in the camera frame).
+    np.testing.assert_allclose(np.linalg.norm(position - look_at), np.linalg.norm(look_at), rtol=1e-6)
+    np.testing.assert_allclose(position, look_at + [0, -60 * np.sin(np.pi / 6), -60 * np.cos(np.pi / 6)],
+                               atol=0.5)
+    # Half extent 9.6 mm at 60 mm: 2.4·atan(9.6/60) ≈ 21.8°.
+    assert np.deg2rad(20) <= fov <= np.deg2rad(25)
+    with pytest.raises(ValueError, match="^xyz"):
+        initial_view(np.zeros((0, 3), np.float32))
