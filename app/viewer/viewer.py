@@ -196,9 +196,6 @@ class Viewer:
         self._server = server
         try:
             server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False)
-            # The dashboard embeds this view and has the same controls: start with the
-            # panel folded to a bar so the tissue gets the space (one click unfolds it).
-            server.gui.main_panel.minimize()
             # Camera frame: x right, y down, z along the optical axis.
             server.scene.set_up_direction("-y")
             self._build_gui(server)
