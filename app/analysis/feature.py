@@ -124,7 +124,7 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
 
     In each cross-section the baseline is refined by a line through the ring pixels on
     both flanks (within ``slab_px`` along the axis), as a caliper rests on both sides;
-    the crest is the apex of a parabola through the upper half of the profile.
+    the crest is the apex of a parabola through the central part of the profile.
     """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
@@ -157,7 +157,10 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
             continue  # a caliper needs ground on both sides
         slope, inter = np.polyfit(fa, fv, 1)
         t, h = across[idx], r[idx] - (slope * across[idx] + inter)
-        top = h >= h.max() - 0.5 * (h.max() - h.min())  # the upper half of the profile
+        # The central 60 % of the cross-section, chosen by position (not by value, which
+        # would favour upward noise) — the part of a round thread a parabola fits well.
+        t_c, half = 0.5 * (t.max() + t.min()), 0.5 * float(np.ptp(t))
+        top = np.abs(t - t_c) <= 0.6 * half
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
             a, b, c = np.polyfit(t[top], h[top], 2)
             if a < 0:

@@ -82,7 +82,8 @@ class StatusOut(BaseModel):
     state: Literal["starting", "calibrating", "running", "stopped", "fault"]
     camera_fps: float
     depth_fps: float
-    latency_ms: float | None
+    latency_ms: float | None = Field(None, description="median, newest frame arrival → result published")
+    recon_ms: float | None = Field(None, description="median reconstruction time per set")
     exposure_ms: float
     led: str
     mode: Literal["set", "rolling"]

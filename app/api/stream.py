@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 
 from fastapi import APIRouter, Depends, Query, WebSocket, WebSocketDisconnect
@@ -50,11 +51,26 @@ async def depth_ws(
     if inst is None:
         await websocket.close(code=1011, reason="instrument not started")
         return
-    try:
+    async def pump() -> None:
         async for _, data in _frames(inst, rng):
             await websocket.send_bytes(data)
-    except (WebSocketDisconnect, RuntimeError):
-        return  # the client went away
+
+    async def until_disconnect() -> None:
+        # issue 7: notice a client leaving (or the server shutting down) even while no result
+        # arrives — otherwise the handler waits forever and blocks uvicorn's graceful shutdown
+        while (await websocket.receive())["type"] != "websocket.disconnect":
+            pass
+
+    tasks = {asyncio.ensure_future(pump()), asyncio.ensure_future(until_disconnect())}
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for task in done:
+            if not task.cancelled() and isinstance(task.exception(), (WebSocketDisconnect, RuntimeError)):
+                return  # the client went away
+            task.result()
+    finally:
+        for task in tasks:
+            task.cancel()
 
 
 @router.get("/depth.mjpeg", responses={200: {"content": {"multipart/x-mixed-replace": {}}}})

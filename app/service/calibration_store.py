@@ -16,6 +16,9 @@ from app.config import Settings
 
 log = logging.getLogger("fringescope.service.calibration")
 
+#: extra key of a calibration file remembering the name it was activated under
+NAME_KEY = "instrument_name"
+
 
 def folder(settings: Settings) -> Path:
     return Path(settings.data_dir) / "calibrations"
@@ -43,6 +46,7 @@ def save_active(settings: Settings, cal: Calibration, name: str) -> Path:
     """Keep ``cal`` as ``<name>.json`` and as ``active.json`` (atomic writes)."""
     if not name.replace("-", "").replace("_", "").isalnum():
         raise ValueError(f"name: only letters, digits, '-' and '_' allowed, got {name!r}")
+    cal.extra[NAME_KEY] = name
     save_calibration(cal, folder(settings) / f"{name}.json")
     return save_calibration(cal, folder(settings) / "active.json")
 

@@ -81,15 +81,18 @@ def depth_color_png(depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, fl
 def depth_color_jpeg(
     depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, float], *, max_width: int = 960, quality: int = 80
 ) -> bytes:
-    """The colormap PNG re-encoded as a (down-scaled) JPEG for live streams."""
-    png = depth_color_png(depth_mm, range_mm)
-    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise OSError("colormap decoding failed")
-    if img.shape[1] > max_width:
-        scale = max_width / img.shape[1]
-        img = cv2.resize(img, (max_width, round(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    """Turbo colormap of the depth, down-scaled to ``max_width`` pixels, JPEG (no colour bar:
+    the page draws its own). Scaled before colouring, nearest-neighbour, so invalid stays black."""
+    from app.recon.colormap import depth_colormap
+
+    d: npt.NDArray[Any] = np.asarray(depth_mm, np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth_mm: expected (H, W), got shape {d.shape}")
+    if d.shape[1] > max_width:
+        size = (max_width, max(1, round(d.shape[0] * max_width / d.shape[1])))
+        d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
+    bgr = np.ascontiguousarray(depth_colormap(d, range_mm)[..., ::-1])
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise OSError("JPEG encoding failed")
     return buf.tobytes()

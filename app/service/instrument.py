@@ -51,7 +51,6 @@ class Instrument:
         self.calibration: Calibration | None = None
         self.calibration_name: str | None = None
         self.session: CalibrationSession | None = None
-        self.state_detail = "starting"
         self.warnings: list[str] = []
         self.last_error: str | None = None
         self._engine: Any = None
@@ -115,7 +114,8 @@ class Instrument:
         if path is not None:
             try:
                 cal = calibration_store.load(path)
-                self.set_calibration(cal, name=path.stem, persist=False)
+                name = str(cal.extra.get(calibration_store.NAME_KEY, path.stem))
+                self.set_calibration(cal, name=name, persist=False)
                 return
             except ValueError as exc:
                 self._error(str(exc))
@@ -302,8 +302,8 @@ class Instrument:
         acq, rec = self.acquisition, self.reconstruction
         latency = rec.latencies.median()
         warnings = list(self.warnings)
-        if acq is not None and acq.assembler.skipped_frames and acq.frames_received and not acq.assembler.completed:
-            warnings.append("no complete fringe set yet (frames without pattern indices?)")
+        if acq is not None and not acq.assembler.completed and acq.frames_received > 3 * self.schedule.n_frames:
+            warnings.append("no complete fringe set in the frames so far (missing pattern indices or drops)")
         last_error = self.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:
@@ -313,6 +313,7 @@ class Instrument:
             "camera_fps": round(acq.camera_rate.rate(), 3) if acq else 0.0,
             "depth_fps": round(rec.depth_rate.rate(), 3),
             "latency_ms": None if latency is None else round(latency, 3),
+            "recon_ms": None if (recon := rec.recon_times.median()) is None else round(recon, 3),
             "exposure_ms": acq.exposure_ms if acq else self.settings.exposure_ms,
             "led": acq.led if acq else self.settings.led,
             "mode": "rolling" if (acq.rolling if acq else self.settings.rolling) else "set",

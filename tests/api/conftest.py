@@ -35,10 +35,6 @@ def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from app.service.instrument import Instrument
 
     data = tmp_path_factory.mktemp("simcal")
-    if os.environ.get("DEVONLY_SIMCAL"):  # DEVONLY: remove
-        import shutil
-        (data / "calibrations").mkdir()
-        return Path(shutil.copy(os.environ["DEVONLY_SIMCAL"], data / "calibrations" / "sim.json"))
     inst = Instrument(Settings(data_dir=data, viewer=False, autostart=False, sim_seed=0))
     try:
         inst.start()
