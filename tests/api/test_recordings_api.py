@@ -19,7 +19,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
 def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None:
-    settings = live_settings(tmp_path, sim_calibration_file, api_token=TOKEN)
+    # 40 ms: sets stay whole on a busy 2-core machine (the camera buffer outlasts a reconstruction)
+    settings = live_settings(tmp_path, sim_calibration_file, api_token=TOKEN, exposure_ms=40.0)
     with TestClient(create_app(settings)) as client:
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/recording/start", json={"name": "op-1"}).status_code == 401
@@ -52,7 +53,7 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
             assert idx == list(range(idx[0], idx[0] + 16)) and cap.frames.dtype == np.uint8
             depth = np.load(root / s["folder"] / "depth.npy")
             assert depth.shape == cap.frames.shape[1:] and depth.dtype == np.float32
-            assert 0.2 < np.isfinite(depth).mean() and np.nanmax(depth) < 40
+            assert np.isfinite(depth).mean() > 0.2 and np.nanmax(depth) < 40
 
         listed = client.get("/api/recordings").json()
         assert [x["name"] for x in listed] == ["op-1"] and listed[0]["n_sets"] == len(sets)
