@@ -37,7 +37,9 @@ class Settings(BaseSettings):
     serial_port: str = ""  # device path, pyserial URL, or "usb:VID:PID[:SERIAL]"
     lightcrafter_host: str = "192.168.1.100"
     lightcrafter_port: int = 21845
-    sim_scene: str = "anastomosis"
+    # a static tissue scene: the simulator renders it faster than the camera rate, so every
+    # set is complete; "anastomosis" (breathing + moving forceps) renders below 30 frames/s here
+    sim_scene: str = "intestine_flap"
     sim_seed: int | None = None
     sim_drop_rate: float = Field(0.0, ge=0, le=1)
     sim_timeout_rate: float = Field(0.0, ge=0, le=1)

@@ -119,7 +119,7 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
         raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
     if len(names) != schedule.n_frames:
         raise ValueError(f"{meta_path}: schedule needs {schedule.n_frames} frames, lists {len(names)}")
-    frames = []
+    frames: list[npt.NDArray[Any]] = []
     for name in names:
         fpath = folder / name
         if Path(name).name != name:
@@ -139,8 +139,9 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
         frames.append(img)
     known = {"format", "pattern", "exposure_ms", "led", "frames"}
     try:
+        stack: Any = np.stack(frames)  # uint8 or uint16, checked per file above
         return CaptureSet(
-            frames=np.stack(frames),
+            frames=stack,
             schedule=schedule,
             exposure_ms=float(meta.get("exposure_ms", 20.0)),
             led=str(meta.get("led", "green")),

@@ -19,6 +19,7 @@ import os
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP threads: 8× slower on 2 cores
 
 import math  # noqa: E402
+import threading  # noqa: E402
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
@@ -28,6 +29,9 @@ from numba import njit, prange  # noqa: E402
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
+# numba's workqueue threading layer aborts the process when two threads launch parallel
+# kernels at once: every launch holds this lock (the kernel itself releases the GIL).
+KERNEL_LOCK = threading.Lock()
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -179,7 +183,7 @@ def _points_row(pts, hbuf, code, rx, ry, inv_m, offset):  # pragma: no cover
         pts[3 * u + 2] = t
 
 
-@njit(parallel=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+@njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(  # one call carries every table to keep the kernel fused
     frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
     a0, a1, b0, b1, phi0, inv_sphi, lo, hi, sing_rtol, rx, ry, inv_m, offset,
@@ -244,6 +248,13 @@ _warm: set[str] = set()
 def warmup(dtype: object = np.uint8) -> None:
     """Compile (or load from the disk cache) the kernel for ``dtype`` frames once per process."""
     dt = np.dtype(dtype)  # type: ignore[call-overload]
+    if dt.name in _warm:
+        return
+    with KERNEL_LOCK:
+        _warmup_locked(dt)
+
+
+def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     if dt.name in _warm:
         return
     f32 = np.zeros((2, 3), np.float32)

@@ -293,6 +293,16 @@ class Reconstructor:
             elapsed_ms=0.0,
         )
         lo, hi = self._bounds_mm
+        with _fast.KERNEL_LOCK:
+            self._launch(frames, delta, max_code, min_mod, model, rays, lo, hi, out)
+        out.elapsed_ms = (time.perf_counter() - t0) * 1e3
+        return out
+
+    def _launch(self, frames: Any, delta: Any, max_code: int, min_mod: float, model: Any, rays: Any,
+                lo: float, hi: float, out: ReconResult) -> None:
+        assert _fast is not None
+        cal = self.calibration
+        sched = cal.pattern
         _fast.fused_kernel(
             np.ascontiguousarray(frames),
             np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
@@ -305,5 +315,3 @@ class Reconstructor:
             rays.rx, rays.ry, rays.inv_m, np.float32(cal.plane_offset_mm),
             out.depth, out.points, out.reason, out.valid, out.modulation, out.texture, out.phase,
         )
-        out.elapsed_ms = (time.perf_counter() - t0) * 1e3
-        return out

@@ -23,7 +23,7 @@ from app.service.autoexposure import AutoExposureResult, choose_exposure, set_st
 from app.service.calibration_session import CalibrationSession
 from app.service.devices import DeviceBundle, create_devices
 from app.service.framesets import FrameSet
-from app.service.reconstruction import LiveResult, Reconstruction
+from app.service.reconstruction import LiveResult, Reconstruction, run_engine
 from app.service.store import NewestQueue
 
 log = logging.getLogger("fringescope.service")
@@ -49,6 +49,7 @@ class Instrument:
         self.results = self.reconstruction.results
         self.store = self.results  # the viewer's name for the latest-result slot
         self.calibration: Calibration | None = None
+        self.recorder: Any = None  # the Recorder of live sets, attached by create_app
         self.calibration_name: str | None = None
         self.session: CalibrationSession | None = None
         self.warnings: list[str] = []
@@ -256,7 +257,7 @@ class Instrument:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames)
+            return run_engine(self._upload_engine, capture.frames)
 
     def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
@@ -329,7 +330,7 @@ class Instrument:
             "frames_received": acq.frames_received if acq else 0,
             "frames_dropped": acq.frames_dropped if acq else 0,
             "faults": acq.faults if acq else 0,
-            "recording": getattr(getattr(self, "recorder", None), "active_name", None),  # issue 7
+            "recording": getattr(self.recorder, "active_name", None),
             "warnings": warnings,
         }
 

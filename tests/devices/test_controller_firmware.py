@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import select
 import shutil
 import subprocess
 import time
@@ -43,6 +44,21 @@ class FirmwareOnPty:
         env = {**os.environ, "FIRMWARE_INTERLOCK_FILE": str(interlock_file)}
         self.proc = subprocess.Popen([str(binary)], stdin=master, stdout=master, env=env)
         os.close(master)
+        self._await_banner()
+
+    def _await_banner(self, timeout_s: float = 10.0) -> None:
+        # the boot banner comes when the process has started, which a loaded host delays:
+        # consume it here, as the driver does, so every test starts at a quiet prompt
+        seen = b""
+        deadline = time.monotonic() + timeout_s
+        while b"ready" not in seen:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"firmware printed no boot banner in {timeout_s} s (got {seen!r})")
+            readable, _, _ = select.select([self._slave], [], [], 0.1)
+            if readable:
+                seen += os.read(self._slave, 256)
+        while select.select([self._slave], [], [], 0.05)[0]:  # the rest of the banner line
+            os.read(self._slave, 256)
 
     def close(self) -> None:
         self.proc.kill()

@@ -38,7 +38,7 @@ def _adc(mean, g, read2, maxv, z):  # noqa: ANN001, ANN202
     return int(val)
 
 
-@nb.njit(cache=True, fastmath=FAST)
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
 def add_noise(out, mean, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
     """out[i] = ADC(mean[i] + noise) for a precomputed noise-free mean (DN)."""
     n = out.shape[0]
@@ -52,14 +52,14 @@ def add_noise(out, mean, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
             i += 1
 
 
-@nb.njit(cache=True, fastmath=FAST)
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
 def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb):  # noqa: ANN001, ANN201
     for i in range(mean.shape[0]):
         p = 0.5 + 0.5 * (ck[i] * cosd - sk[i] * sind)
         mean[i] = scale * (base[i] * qbar + fringe[i] * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
 
 
-@nb.njit(cache=True, fastmath=FAST)
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
 def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
                  width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
     """A frame of a rigidly translated scene: the noise-free mean (``noisy`` False, ``out``
@@ -140,7 +140,7 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
     return best, bx / radius, by / radius, bz / radius
 
 
-@nb.njit(cache=True, fastmath=FAST)
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
 def draw_tool(mean, rays, points, dz, v0, spans, p0, a_hat, length, radius, refl, ks, shin,
               proj_c, alpha, a_c, gam, g_c, width_p, height_p, proj_fy, proj_cy, two_pi_k_over_w, shift,
               atten, lut, qbar, scale, amb):  # noqa: ANN001, ANN201

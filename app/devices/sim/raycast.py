@@ -28,7 +28,7 @@ def _bilinear(grid, s0, t0, ds, s, t):  # noqa: ANN001, ANN202
             + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, hmin, hmax):  # noqa: ANN001, ANN201
     """First intersection of each ray with a height field over a plane frame.
 
