@@ -428,6 +428,14 @@ function showStatus(st) {
   if (document.activeElement !== $("led")) $("led").value = st.led;
   $("rolling").checked = st.mode === "rolling";
 
+  const rec = $("btn-record");
+  if (ui.recording !== (st.recording ?? null)) {
+    ui.recording = st.recording ?? null;
+    refreshRecordings();
+  }
+  rec.textContent = ui.recording ? `Stop recording (${ui.recording})` : "Record";
+  rec.classList.toggle("recording", Boolean(ui.recording));
+
   const cal = st.calibration;
   $("calib-line").textContent = cal
     ? `calibration: ${cal.name ?? "?"} · ${cal.poses} poses · ` +
@@ -500,6 +508,37 @@ function setupControls() {
     pollStatus();
   }));
   for (const id of ["range-min", "range-max"]) $(id).addEventListener("change", onRangeChange);
+  $("btn-record").addEventListener("click", (ev) => act(ev.target, "recording", async () => {
+    if (ui.recording) {
+      await api("/api/recording/stop", { method: "POST" });
+      say(`recording ${ui.recording} stopped`);
+    } else {
+      const name = $("record-name").value.trim();
+      await api("/api/recording/start", { method: "POST", json: name ? { name } : {} });
+      say("recording started");
+    }
+    pollStatus();
+  }));
+}
+
+// ---------------------------------------------------------------- recordings
+async function refreshRecordings() {
+  try {
+    const data = await api("/api/recordings");
+    const list = $("recordings");
+    list.replaceChildren();
+    const items = Array.isArray(data) ? data : [];
+    for (const r of items.slice(0, 8)) {
+      const li = el("li");
+      const a = el("a", `${r.name} (${r.n_sets ?? "?"} sets)`);
+      a.href = `/api/recordings/${encodeURIComponent(r.name)}.zip`;
+      a.download = `${r.name}.zip`;
+      li.append(a);
+      list.append(li);
+    }
+  } catch (err) {
+    say(`recordings: ${err.message}`);
+  }
 }
 
 // ---------------------------------------------------------------- calibration wizard

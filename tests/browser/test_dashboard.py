@@ -158,6 +158,7 @@ def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str
 
 def test_roi_drag_maps_to_sensor_pixels_and_measures(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
+    pg.evaluate("window.scrollTo(0, 0)")  # earlier tests may have scrolled to the controls
     box = pg.locator("#roi").bounding_box()
     assert box is not None
     sw, sh = pg.evaluate("window.fringescope.sensor")
@@ -177,6 +178,24 @@ def test_roi_drag_maps_to_sensor_pixels_and_measures(page: tuple[Any, list[str]]
                          timeout=60_000)
     text = pg.text_content("#roi-result") or ""
     assert "accuracy" in text and "precision" in text and "points" in text, text
+    assert errors == []
+
+
+def test_record_button_records_and_lists(page: tuple[Any, list[str]], server: str) -> None:
+    pg, errors = page
+    pg.fill("#record-name", "browser_take")
+    pg.click("#btn-record")
+    assert wait_for(lambda: httpx.get(f"{server}/api/status").json().get("recording") == "browser_take", 15, 0.2)
+    pg.wait_for_function("document.querySelector('#btn-record').textContent.includes('Stop')", timeout=15_000)
+    pg.wait_for_timeout(3000)  # let at least one set be written
+    pg.click("#btn-record")
+    assert wait_for(lambda: httpx.get(f"{server}/api/status").json().get("recording") is None, 30, 0.2)
+    pg.wait_for_function(
+        "[...document.querySelectorAll('#recordings a')].some(a => a.textContent.startsWith('browser_take'))",
+        timeout=15_000,
+    )
+    names = [r["name"] for r in httpx.get(f"{server}/api/recordings").json()]
+    assert "browser_take" in names
     assert errors == []
 
 
