@@ -78,7 +78,7 @@ def main() -> int:
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--clients", type=int, default=4)
     ap.add_argument("--data-dir", default="data")
-    ap.add_argument("--scene", default="anastomosis", help="simulator scene (dof_target renders fastest)")
+    ap.add_argument("--scene", default="intestine_flap", help="simulator scene (the serve default)")
     ap.add_argument("--viewer", action="store_true", help="also run the viser 3-D viewer")
     args = ap.parse_args()
 
