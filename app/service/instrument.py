@@ -23,7 +23,7 @@ from app.service.autoexposure import AutoExposureResult, choose_exposure, set_st
 from app.service.calibration_session import CalibrationSession
 from app.service.devices import DeviceBundle, create_devices
 from app.service.framesets import FrameSet
-from app.service.reconstruction import LiveResult, Reconstruction, run_engine
+from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import NewestQueue
 
 log = logging.getLogger("fringescope.service")
@@ -257,7 +257,7 @@ class Instrument:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = cal
-            return run_engine(self._upload_engine, capture.frames)
+            return self._upload_engine.run(capture.frames)
 
     def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""

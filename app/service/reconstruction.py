@@ -24,18 +24,6 @@ from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.reconstruction")
 
-#: numba's workqueue threading layer aborts the whole process when two threads launch a
-#: parallel kernel at once, so every engine run in the service (live sets and uploads)
-#: goes through this lock.
-ENGINE_LOCK = threading.Lock()
-
-
-def run_engine(engine: Any, frames: Any) -> Any:
-    """``engine.run(frames)``, one at a time process-wide (see :data:`ENGINE_LOCK`)."""
-    with ENGINE_LOCK:
-        return engine.run(frames)
-
-
 @dataclass
 class LiveResult:
     """One published depth map with its provenance.
@@ -162,7 +150,7 @@ class Reconstruction:
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
-        res = run_engine(engine, frames)
+        res = engine.run(frames)  # the engine serialises its parallel kernel itself
         depth, points, valid, reason = res.depth, res.points, res.valid, res.reason
         motion = None
         if fs.mode == "rolling":

@@ -74,3 +74,29 @@ def test_numpy_fallback_when_numba_missing(monkeypatch):
     got = rec.run(frames)
     assert np.array_equal(got.reason, expected.reason)
     assert np.array_equal(got.depth, expected.depth, equal_nan=True)
+
+
+def test_concurrent_runs_from_two_threads():
+    # numba's workqueue layer aborts the process on concurrent parallel launches; the
+    # engine serialises its kernel, so the service's threads may call run() freely
+    import threading
+
+    rig = Rig()
+    frames, _, _ = reason_scene(rig, dtype=np.uint8, noise=2.0, seed=3)
+    rec = Reconstructor(rig.calibration())
+    expected = rec.run(frames, fast=True)
+    mismatches: list[int] = []
+
+    def worker() -> None:
+        for _ in range(20):
+            res = rec.run(frames, fast=True)
+            if not np.array_equal(res.reason, expected.reason):
+                mismatches.append(1)
+
+    threads = [threading.Thread(target=worker) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not any(t.is_alive() for t in threads)
+    assert mismatches == []
