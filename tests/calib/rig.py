@@ -134,7 +134,12 @@ def raycast_scene(rig: Rig, plane: tuple[np.ndarray, np.ndarray], *,
 def fringe_frames(rig: Rig, points: np.ndarray, albedo: np.ndarray, *, noise_dn: float = 0.5,
                   seed: int = 0) -> np.ndarray:
     """(16, H, W) uint8 fringe frames of camera-frame points with the given albedo (0..1)."""
-    phi = rig.phase_of_points(points)
+    return fringe_stack(rig, rig.phase_of_points(points), albedo, noise_dn=noise_dn, seed=seed)
+
+
+def fringe_stack(rig: Rig, phi: np.ndarray, albedo: np.ndarray, *, noise_dn: float = 0.5,
+                 seed: int = 0) -> np.ndarray:
+    """(16, H, W) uint8 frames: albedo × (110 + 100 cos(k/k_max · φ + δ)) + Gaussian noise."""
     sched = rig.schedule
     rng = np.random.default_rng(seed)
     frames = []

@@ -11,7 +11,14 @@ import pytest
 from app.calib import BoardSpec, calibrate_sets, height_mm, load_calibration
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
-from tests.calib.rig import STANDARD_POSES, Rig, board_pose, fringe_frames, raycast_scene
+from tests.calib.rig import (
+    STANDARD_POSES,
+    Rig,
+    board_pose,
+    fringe_frames,
+    fringe_stack,
+    raycast_scene,
+)
 from tests.calib.test_board import _render
 
 BOARD = BoardSpec("checkerboard", 9, 6, 3.0)
@@ -21,14 +28,7 @@ def _fringe_set(rig: Rig, rmat, tvec, seed: int) -> CaptureSet:
     """16 uint8 frames: board albedo × (110 + 100 cos(k/k_max · φ + δ)) + noise."""
     albedo = _render(BOARD, rmat, tvec, rig).astype(np.float64) / 240.0
     phi = rig.plane_phase_map(rmat[:, 2], tvec).astype(np.float64)
-    sched = rig.schedule
-    rng = np.random.default_rng(seed)
-    frames = []
-    for k in sched.frequencies:
-        for d in sched.shifts_rad:
-            img = albedo * (110.0 + 100.0 * np.cos(phi * k / sched.frequencies[-1] + d))
-            frames.append(np.clip(np.rint(img + rng.normal(0, 0.5, img.shape)), 0, 255).astype(np.uint8))
-    return CaptureSet(np.stack(frames), sched)
+    return CaptureSet(fringe_stack(rig, phi, albedo, noise_dn=0.5, seed=seed), rig.schedule)
 
 
 @pytest.fixture(scope="module")

@@ -57,8 +57,9 @@ def flap_scene(rig: SimRig, kind: str, seed: int = 3) -> Scene:
     return Scene(f"{kind}_flap", hf, description=f"{kind} flap on the 45° target")
 
 
-def _tube_heights(ss: F64, tt: F64, ds: float, curve: F64, radius: float, lift: float) -> F64:
-    """Height of a tube of ``radius`` lying along ``curve`` ((n, 2) s/t points), resting at ``lift``."""
+def _tube_heights(ss: F64, tt: F64, ds: float, curve: F64, radius: float, lift: float | F64) -> F64:
+    """Height of a tube of ``radius`` lying along ``curve`` ((n, 2) s/t points), resting at ``lift``
+    (a height or a per-cell height map); ``-inf`` off the tube."""
     ny, nx = ss.shape
     mask = np.ones((ny, nx), bool)
     ix = np.clip(np.rint((curve[:, 0] - ss[0, 0]) / ds).astype(int), 0, nx - 1)
@@ -124,14 +125,9 @@ def anastomosis_scene(rig: SimRig, seed: int = 7) -> Scene:
         stitches.append(np.linspace(c, c * 3.0, 400))
     base = h.copy()
     for curve in stitches:
-        ny, nx = ss.shape
-        mask = np.ones((ny, nx), bool)
-        ix = np.clip(np.rint((curve[:, 0] - ss[0, 0]) / ds).astype(int), 0, nx - 1)
-        iy = np.clip(np.rint((curve[:, 1] - tt[0, 0]) / ds).astype(int), 0, ny - 1)
-        mask[iy, ix] = False
-        d = distance_transform_edt(mask) * ds
-        on = d < r
-        h = np.where(on, np.maximum(h, base + r + np.sqrt(np.clip(r * r - d * d, 0, None))), h)
+        tube = _tube_heights(ss, tt, ds, curve, r, base)
+        on = np.isfinite(tube)
+        h = np.maximum(h, tube)
         mat[on] = material_id("suture")
     tex = np.where(mat == material_id("suture"), 1.0, _vessels(ss.shape, rng, ds)).astype(np.float32)
     hf = HeightField(origin, axes, h, float(ss[0, 0]), float(tt[0, 0]), ds, mat, tex)
