@@ -101,7 +101,12 @@ def test_depth_image_changes_over_time(page: tuple[Any, list[str]]) -> None:
     img0 = _canvas_png(pg, "#depth")
     # The next depth map (the simulator is real-time: slow on a busy machine).
     pg.wait_for_function(f"window.fringescope.framesShown >= {shown0 + 1}", timeout=180_000)
+    # the counter moves when an image arrives; the canvas is painted once it has decoded
+    deadline = time.monotonic() + 60.0
     img1 = _canvas_png(pg, "#depth")
+    while img1 == img0 and time.monotonic() < deadline:
+        pg.wait_for_timeout(250)
+        img1 = _canvas_png(pg, "#depth")
     assert img0 != img1
     assert pg.evaluate("window.fringescope.streamKind") == "stream"  # the WebSocket, not polling
     # The canvas holds the depth part only, at the sensor's aspect ratio, TURBO-coloured.
