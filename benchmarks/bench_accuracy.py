@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     cal = report.calibration
     print(report.table())
     print(f"simulated {args.poses} poses in {t_sim:.0f} s, calibrated in {t_cal:.0f} s\n")
-    rec = Reconstructor(cal)
+    rec = Reconstructor(cal, with_phase=True)
 
     world, cs, truth, points = _capture("dof_target", seed=3)
     res = rec.run(cs.frames)

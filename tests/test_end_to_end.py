@@ -40,7 +40,7 @@ def calibration(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def reconstructor(calibration):
-    return Reconstructor(calibration)
+    return Reconstructor(calibration, with_phase=True)
 
 
 def _capture(scene, seed, **kw):

@@ -27,6 +27,8 @@ def background_codes(result: Any) -> npt.NDArray[np.float64]:
 
 def noise_floor_mm(calibration: Calibration, result: Any, sigma_i_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """Per-pixel predicted height noise σ_z (mm) of a reconstruction for intensity noise σ_I (codes)."""
+    if result.phase is None:
+        raise ValueError("result: has no phase; make the Reconstructor with with_phase=True")
     return height_noise_mm(calibration, result.phase, sigma_i_dn, result.modulation)
 
 

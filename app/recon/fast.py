@@ -1,15 +1,23 @@
 """The fast path: one fused, parallel numba kernel from raw frames to depth and points.
 
-Per block of rows (``prange``) the kernel keeps row-long float32 buffers so that every
-inner loop runs along a contiguous row and LLVM can vectorise it: accumulate Σ I sinδ,
-Σ I cosδ, Σ I and max I per frequency; a branch-free polynomial atan2; the hierarchical
-unwrapping with its consistency test; then Eq. (5) from precomputed per-pixel tables,
-the ray intersection and the reason code. Frames are read once, outputs written once:
-the kernel is memory bound.
+Rows are processed in blocks (``prange``), in two phases per block so that each phase
+streams few arrays at a time:
 
-Semantics are those of the numpy oracle (``phase``/``unwrap``/``model``/``points``);
-only the arithmetic is float32. ``fastmath`` excludes ``nnan``/``ninf`` because NaN
-marks invalid pixels. The JIT result is cached on disk (``cache=True``).
+1. Phase and height, into block-local buffers: for the paper's schedule (4 frequencies
+   × 4 steps) one loop per row reads all 16 frames of a pixel and keeps everything in
+   registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse levels with
+   a cheaper atan2 (they only pick fringe orders), the finest with the precise one, the
+   hierarchical unwrapping with its consistency test, Eq. (5) from per-row
+   polynomial coefficients (no per-pixel model tables to read) and the reason code.
+   Any other schedule, and the noise-optimal combination of frequencies, takes a
+   general row-by-row path with the same semantics.
+2. Outputs: reason/valid, depth, modulation/texture, optional phase and the points.
+
+Each helper is compiled (and vectorised by LLVM) as its own function over 1-D rows;
+inside one big parallel body LLVM could not prove the buffers distinct. Semantics are
+those of the numpy oracle (``phase``/``unwrap``/``model``/``points``); only the
+arithmetic is float32. ``fastmath`` excludes ``nnan``/``ninf`` because NaN marks
+invalid pixels. The JIT result is cached on disk (``cache=True``).
 """
 
 from __future__ import annotations
@@ -55,6 +63,12 @@ _A4 = np.float32(0.09642201479625472)
 _A5 = np.float32(-0.05591234645397164)
 _A6 = np.float32(0.021862953185210254)
 _A7 = np.float32(-0.004054562176639915)
+# The coarse levels' atan: 5 terms fitted the same way, max error 1.2e-5 rad (orders need ≪ π/ratio).
+_C0 = np.float32(0.9998663502225011)
+_C1 = np.float32(-0.3303051326177987)
+_C2 = np.float32(0.1801607941668026)
+_C3 = np.float32(-0.08515867977071649)
+_C4 = np.float32(0.020846294370275874)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -83,14 +97,127 @@ def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.N
     return out
 
 
-# Row helpers: each is compiled (and vectorised by LLVM) as its own function on 1-D
-# arguments; inside one big parallel body LLVM could not prove the row buffers distinct.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _accumulate(row, s_acc, c_acc, total, top, sn, cn):  # pragma: no cover
-    for u in range(row.shape[0]):
-        x = np.float32(row[u])
-        s_acc[u] += x * sn
-        c_acc[u] += x * cn
+def atan2_coarse(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Branch-free float32 atan2 in [0, 2π), error ≤ 1.2e-5 rad: enough to pick fringe orders."""
+    ax = abs(x)
+    ay = abs(y)
+    mn = min(ax, ay)
+    mx = max(max(ax, ay), _TINY)
+    a = mn / mx
+    s = a * a
+    r = ((((_C4 * s + _C3) * s + _C2) * s + _C1) * s + _C0) * a
+    r = _HALF_PI - r if ay > ax else r
+    r = _PI - r if x < _F0 else r
+    r = _TWO_PI - r if y < _F0 else r
+    return _F0 if r >= _TWO_PI else r
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def atan2_coarse_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:  # pragma: no cover
+    """Elementwise :func:`atan2_coarse` (for tests)."""
+    out = np.empty(y.shape[0], np.float32)
+    for i in range(y.shape[0]):
+        out[i] = atan2_coarse(y[i], x[i])
+    return out
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _order_step(prev, phw, ratio):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """One hierarchical step: (unwrapped phase, |residual| before rounding)."""
+    e = ratio * prev - phw
+    # floor(e/2π + 1/2) by truncating a shifted, positive value (vectorises)
+    order = np.float32(np.int32(e * _INV_TWO_PI + _ROUND_SHIFT)) - _SHIFT
+    return phw + order * _TWO_PI, abs(e - order * _TWO_PI)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _height_code(p, x, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,  # type: ignore[no-untyped-def]
+                 phi0, inv_sphi, sing_rtol, lo, hi):  # pragma: no cover - compiled
+    """Eq. (5) at normalised column ``x`` with the row's (α, β, γ) of a0, a1, b0, b1:
+    (height, 0 | OUTSIDE_VOLUME 4 | MODEL_SINGULAR 5)."""
+    a0 = (k2 * x + k1) * x + k0
+    a1 = (k5 * x + k4) * x + k3
+    b0 = (k8 * x + k7) * x + k6
+    b1 = (k11 * x + k10) * x + k9
+    pp = (p - phi0) * inv_sphi
+    b1p = b1 * pp
+    dd = b0 + b1p
+    h = (a0 + a1 * pp) / dd
+    singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
+    inside = (h >= lo) & (h <= hi)
+    return h, np.uint8(5) if singular else (np.uint8(0) if inside else np.uint8(4))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover
+    # precedence SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
+    c = np.uint8(3) if dev >= cons_rad else c
+    c = np.uint8(1) if m2min < m2_min else c
+    return np.uint8(2) if top >= top_code else c
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """N = 4 at pixel (v, u) from frame b on (δ = 0, π/2, π, 3π/2, so −Σ I sinδ = I3 − I1
+    and Σ I cosδ = I0 − I2): (y, x, x² + y², Σ I, max I).
+
+    ``frames`` is the whole C-contiguous stack: a (16, W) row view would have a run-time
+    stride, and LLVM only vectorises such loads for bytes."""
+    i0 = np.float32(frames[b, v, u])
+    i1 = np.float32(frames[b + 1, v, u])
+    i2 = np.float32(frames[b + 2, v, u])
+    i3 = np.float32(frames[b + 3, v, u])
+    yy = i3 - i1
+    xx = i0 - i2
+    return yy, xx, xx * xx + yy * yy, (i0 + i1) + (i2 + i3), max(max(i0, i1), max(i2, i3))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,
+               total, m2, prev, hbuf, code):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for 4 frequencies × 4 steps."""
+    # hoisted: LLVM cannot tell that the stores below leave k alone
+    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
+    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
+    for u in range(frames.shape[2]):
+        yy, xx, q, tt, mx = _px4(frames, 0, v, u)
+        qmin = q
+        p = atan2_coarse(yy, xx)
+        yy, xx, q, t1, m1 = _px4(frames, 4, v, u)
+        qmin = min(qmin, q)
+        p, d1 = _order_step(p, atan2_coarse(yy, xx), r1)
+        yy, xx, q, t2, m2_ = _px4(frames, 8, v, u)
+        qmin = min(qmin, q)
+        p, d2 = _order_step(p, atan2_coarse(yy, xx), r2)
+        yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
+        qmin = min(qmin, q)
+        p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
+        # stored early: fewer values live across the height (no register spills)
+        total[u] = (tt + t1) + (t2 + t3)
+        prev[u] = p
+        m2[u] = q
+        top = max(max(mx, m1), max(m2_, m3))
+        h, c = _height_code(p, un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
+                            phi0, inv_sphi, sing_rtol, lo, hi)
+        hbuf[u] = h
+        code[u] = _mask(c, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
+
+
+# The general path, row by row through buffers: any N, any number of frequencies, and
+# the noise-optimal combination.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # pragma: no cover
+    if first:
+        for u in range(row.shape[0]):
+            x = np.float32(row[u])
+            s_acc[u] = x * sn
+            c_acc[u] = x * cn
+    else:
+        for u in range(row.shape[0]):
+            x = np.float32(row[u])
+            s_acc[u] += x * sn
+            c_acc[u] += x * cn
     for u in range(row.shape[0]):
         x = np.float32(row[u])
         total[u] += x
@@ -98,31 +225,26 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _wrapped_row(s_acc, c_acc, mod, phw, bmin, mod_scale):  # pragma: no cover
+def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # pragma: no cover
     for u in range(s_acc.shape[0]):
         yy = -s_acc[u]
         xx = c_acc[u]
-        mod[u] = mod_scale * np.sqrt(xx * xx + yy * yy)
-        phw[u] = atan2_0_2pi(yy, xx)
-    for u in range(s_acc.shape[0]):
-        bmin[u] = min(bmin[u], mod[u])
+        q = xx * xx + yy * yy
+        m2[u] = q
+        m2min[u] = min(m2min[u], q)
+        phw = atan2_0_2pi(yy, xx)
+        if first:
+            prev[u] = phw
+        else:
+            p, d = _order_step(prev[u], phw, ratio)
+            prev[u] = p
+            dev[u] = max(dev[u], d)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _unwrap_row(prev, phw, bad, ratio, cons_rad):  # pragma: no cover
+def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # pragma: no cover
     for u in range(prev.shape[0]):
-        e = ratio * prev[u] - phw[u]
-        # floor(e/2π + 1/2) by truncating a shifted, positive value (vectorises)
-        order = np.float32(np.int32(e * _INV_TWO_PI + _ROUND_SHIFT)) - _SHIFT
-        d = e - order * _TWO_PI
-        bad[u] = max(bad[u], _F1 if abs(d) >= cons_rad else _F0)
-        prev[u] = phw[u] + order * _TWO_PI
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _weigh_row(wsum, wphi, mod, prev, wk, scale_fine):  # pragma: no cover
-    for u in range(prev.shape[0]):
-        w = wk * mod[u] * mod[u]
+        w = wk * m2[u]  # ∝ N·B²·k²
         wsum[u] += w
         wphi[u] += w * scale_fine * prev[u]
 
@@ -134,30 +256,51 @@ def _combined_row(prev, wsum, wphi):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(prev, a0, a1, b0, b1, phi0, inv_sphi, sing_rtol, den, hbuf, code):  # pragma: no cover
+def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
+                hbuf, code):  # pragma: no cover
+    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
+    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
     for u in range(prev.shape[0]):
-        pp = (prev[u] - phi0) * inv_sphi
-        b1p = b1[u] * pp
-        dd = b0[u] + b1p
-        den[u] = dd
-        code[u] = np.uint8(5) if abs(dd) <= sing_rtol * (abs(b0[u]) + abs(b1p)) else np.uint8(0)
-    for u in range(prev.shape[0]):
-        pp = (prev[u] - phi0) * inv_sphi
-        hbuf[u] = (a0[u] + a1[u] * pp) / den[u]
+        h, c = _height_code(prev[u], un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
+                            phi0, inv_sphi, sing_rtol, lo, hi)
+        hbuf[u] = h
+        code[u] = _mask(c, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _code_row(hbuf, code, bad, bmin, top, lo, hi, min_mod, top_code):  # pragma: no cover
-    # precedence SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
-    for u in range(hbuf.shape[0]):
-        h = hbuf[u]
-        c = code[u]
-        inside = (h >= lo) & (h <= hi)
-        c = c if inside or c != 0 else np.uint8(4)
-        c = np.uint8(3) if bad[u] > _F0 else c
-        c = np.uint8(1) if bmin[u] < min_mod else c
-        c = np.uint8(2) if top[u] >= top_code else c
-        code[u] = c
+def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,
+                 m2_min, top_code, scratch, total, m2, prev, hbuf, code):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for any schedule."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
+                                                 scratch[4], scratch[5], scratch[6])
+    total[:] = _F0
+    top[:] = _F0
+    m2min[:] = _INF
+    dev[:] = _F0
+    wsum[:] = _F0
+    wphi[:] = _F0
+    for ki in range(n_freq):
+        for n in range(n_steps):
+            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+        _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+        if combine:
+            kk = freqs[ki]
+            _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
+    if combine:
+        _combined_row(prev, wsum, wphi)
+    _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
+                hbuf, code)
+
+
+# Phase 2: outputs from the block buffers.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _reason_row(reason, valid, code):  # pragma: no cover
+    for u in range(code.shape[0]):
+        reason[u] = code[u]
+        valid[u] = code[u] == 0
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -167,77 +310,72 @@ def _select_row(out, values, code):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _texture_row(out, total, mod, inv_frames):  # pragma: no cover
-    for u in range(out.shape[0]):
-        out[u] = total[u] * inv_frames + mod[u]
+def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # pragma: no cover
+    for u in range(total.shape[0]):
+        b = mod_scale * np.sqrt(m2[u])
+        modulation[u] = b
+        texture[u] = total[u] * inv_frames + b
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _points_row(pts, hbuf, code, rx, ry, inv_m, offset):  # pragma: no cover
-    # pts: the row's (W·3,) flat view, so the interleaved stores have a known stride
+def _points_row(pts, hbuf, code, q, offset):  # pragma: no cover
+    # pts, q: the row's (W·3,) flat views; q = (x, y, 1)/(n·r), so a point is (h − offset)·q
     for u in range(hbuf.shape[0]):
-        t = (hbuf[u] - offset) * inv_m[u]
-        t = t if code[u] == 0 else _NAN
-        pts[3 * u] = t * rx[u]
-        pts[3 * u + 1] = t * ry[u]
-        pts[3 * u + 2] = t
+        t = hbuf[u] - offset if code[u] == 0 else _NAN
+        pts[3 * u] = t * q[3 * u]
+        pts[3 * u + 1] = t * q[3 * u + 1]
+        pts[3 * u + 2] = t * q[3 * u + 2]
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(  # one call carries every table to keep the kernel fused
     frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
-    a0, a1, b0, b1, phi0, inv_sphi, lo, hi, sing_rtol, rx, ry, inv_m, offset,
+    un, row_coefs, phi0, inv_sphi, lo, hi, sing_rtol, ray_q, offset,
     depth, points, reason, valid, modulation, texture, phase,
 ):  # pragma: no cover - compiled
-    """Raw frames → all per-pixel outputs (see module docstring). Writes into the outputs.
+    """Raw frames → all per-pixel outputs (see the module docstring). Writes into the outputs.
 
-    Rows are processed in blocks (``prange``), each row entirely in cache-resident
-    float32 buffers: the frames and the tables are read once, the outputs written once.
+    ``un``: (W,) normalised column u'; ``row_coefs``: (H, 12) per-row quadratic
+    coefficients of a0, a1, b0, b1 in u'; ``ray_q``: (H, W, 3) rays over n·r. ``phase``
+    is skipped when it has zero rows.
     """
     n_frames, height, width = frames.shape
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
-    k_max = freqs[n_freq - 1]
     mod_scale = np.float32(2.0) / np.float32(n_steps)
+    m2_min = (min_mod / mod_scale) * (min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
     inv_frames = _F1 / np.float32(n_frames)
     top_code = np.float32(max_code)
+    paper = n_steps == 4 and n_freq == 4 and not combine
+    want_phase = phase.shape[0] == height
+    r1 = freqs[min(1, n_freq - 1)] / freqs[0]
+    r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
+    r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     for blk in prange(n_blocks):
-        buf = np.empty((13, width), np.float32)
-        s_acc, c_acc, total, top, phw, mod, prev = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6]
-        bmin, bad, wsum, wphi, hbuf, den = buf[7], buf[8], buf[9], buf[10], buf[11], buf[12]
-        code = np.empty(width, np.uint8)
-        for v in range(blk * ROWS_PER_BLOCK, min(height, (blk + 1) * ROWS_PER_BLOCK)):
-            total[:] = _F0
-            top[:] = _F0
-            bmin[:] = _INF
-            bad[:] = _F0
-            wsum[:] = _F0
-            wphi[:] = _F0
-            for ki in range(n_freq):
-                s_acc[:] = _F0
-                c_acc[:] = _F0
-                for n in range(n_steps):
-                    _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n])
-                _wrapped_row(s_acc, c_acc, mod, phw, bmin, mod_scale)
-                if ki == 0:
-                    prev[:] = phw
-                else:
-                    _unwrap_row(prev, phw, bad, freqs[ki] / freqs[ki - 1], cons_rad)
-                if combine:
-                    k = freqs[ki]
-                    _weigh_row(wsum, wphi, mod, prev, np.float32(n_steps) * k * k, k_max / k)
-            if combine:
-                _combined_row(prev, wsum, wphi)
-            _height_row(prev, a0[v], a1[v], b0[v], b1[v], phi0, inv_sphi, sing_rtol, den, hbuf, code)
-            _code_row(hbuf, code, bad, bmin, top, lo, hi, min_mod, top_code)
-            _select_row(depth[v], hbuf, code)
-            _select_row(phase[v], prev, code)
-            reason[v] = code
-            valid[v] = code == 0
-            modulation[v] = mod
-            _texture_row(texture[v], total, mod, inv_frames)
-            _points_row(points[v].reshape(3 * width), hbuf, code, rx[v], ry[v], inv_m[v], offset)
+        v0 = blk * ROWS_PER_BLOCK
+        n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
+        buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
+        total, m2, prev, hbuf = buf[0], buf[1], buf[2], buf[3]
+        code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
+        scratch = np.empty((0 if paper else 7, width), np.float32)
+        for r in range(n_rows):
+            v = v0 + r
+            if paper:
+                _paper_row(frames, v, r1, r2, r3, un, row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi,
+                           cons_rad, m2_min, top_code, total[r], m2[r], prev[r], hbuf[r], code[r])
+            else:
+                _general_row(frames, v, cos_t, sin_t, freqs, combine, un, row_coefs[v], phi0, inv_sphi,
+                             sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
+                             total[r], m2[r], prev[r], hbuf[r], code[r])
+        for r in range(n_rows):
+            v = v0 + r
+            _reason_row(reason[v], valid[v], code[r])
+            _select_row(depth[v], hbuf[r], code[r])
+            if want_phase:
+                _select_row(phase[v], prev[r], code[r])
+            _shade_row(modulation[v], texture[v], m2[r], total[r], mod_scale, inv_frames)
+            _points_row(points[v].reshape(3 * width), hbuf[r], code[r], ray_q[v].reshape(3 * width), offset)
 
 
 NUMBA_VERSION = numba.__version__
@@ -258,14 +396,13 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     if dt.name in _warm:
         return
     f32 = np.zeros((2, 3), np.float32)
-    frames = np.zeros((3, 2, 3), dt)
-    trig = np.ones(3, np.float32)
+    frames = np.zeros((4, 2, 3), dt)
+    trig = np.ones(4, np.float32)
     fused_kernel(
         frames, trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1), False,
-        f32, f32, f32, f32, np.float32(0), np.float32(1), np.float32(0), np.float32(1),
-        np.float32(1e-5), f32, f32, f32, np.float32(0),
+        np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.float32(0), np.float32(1),
+        np.float32(0), np.float32(1), np.float32(1e-5), np.zeros((2, 3, 3), np.float32), np.float32(0),
         np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-        np.empty((2, 3), np.bool_), np.empty((2, 3), np.float32), np.empty((2, 3), np.float32),
-        np.empty((2, 3), np.float32),
+        np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),
     )
     _warm.add(dt.name)

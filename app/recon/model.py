@@ -68,6 +68,32 @@ def model_tables(
     Returns:
         :class:`ModelTables` with (height, width) arrays.
     """
+    polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator, normalization, image_size)
+    up, vp = np.meshgrid((np.arange(w) - u0) / su, (np.arange(h) - v0) / sv)
+    # basis terms shared by all four polynomials: 1, u', v', u'², v'², u'v'
+    basis = (np.ones((h, w)), up, vp, up**2, vp**2, up * vp)
+
+    def poly(coefs: tuple[float, ...]) -> npt.NDArray[Any]:
+        return np.asarray(sum(k * b for k, b in zip(coefs, basis, strict=True)), dtype=dtype)
+
+    a0, a1, b0, b1 = (poly(p) for p in polys)
+    return ModelTables(a0, a1, b0, b1, float(p0), 1.0 / float(sp))
+
+
+def calibration_model_tables(calibration: Calibration, *, dtype: Any = np.float64) -> ModelTables:
+    """:func:`model_tables` for a :class:`~app.calib.calibration.Calibration`."""
+    return model_tables(
+        calibration.numerator, calibration.denominator, calibration.normalization,
+        calibration.image_size, dtype=dtype,
+    )
+
+
+def _checked_model(
+    numerator: npt.ArrayLike, denominator: npt.ArrayLike,
+    normalization: dict[str, tuple[float, float]], image_size: tuple[int, int],
+) -> tuple[list[tuple[float, ...]], tuple[float, float], tuple[float, float], tuple[float, float], tuple[int, int]]:
+    """Validated Eq. (5) parts: the coefficients of a0, a1, b0, b1 on the basis
+    (1, u', v', u'², v'², u'v'), the u, v and φ normalisations and (width, height)."""
     c = np.asarray(numerator, dtype=np.float64).ravel()
     d = np.asarray(denominator, dtype=np.float64).ravel()
     if c.shape != (11,) or not np.all(np.isfinite(c)):
@@ -80,25 +106,58 @@ def model_tables(
     (u0, su), (v0, sv), (p0, sp) = (normalization[k] for k in ("u", "v", "phi"))
     if su == 0 or sv == 0 or sp == 0 or not all(math.isfinite(x) for x in (u0, su, v0, sv, p0, sp)):
         raise ValueError("normalization: needs finite offsets and non-zero scales")
-    up, vp = np.meshgrid((np.arange(w) - u0) / su, (np.arange(h) - v0) / sv)
-    # basis terms shared by all four polynomials: 1, u', v', u'², v'², u'v'
-    basis = (np.ones((h, w)), up, vp, up**2, vp**2, up * vp)
-
-    def poly(coefs: list[float]) -> npt.NDArray[Any]:
-        return np.asarray(sum(k * b for k, b in zip(coefs, basis, strict=True)), dtype=dtype)
-
-    a0 = poly([1.0, c[1], c[3], c[5], c[7], c[9]])
-    a1 = poly([c[0], c[2], c[4], c[6], c[8], c[10]])
-    b0 = poly([d[0], d[2], d[4], d[6], d[8], d[10]])
-    b1 = poly([d[1], d[3], d[5], d[7], d[9], d[11]])
-    return ModelTables(a0, a1, b0, b1, float(p0), 1.0 / float(sp))
+    polys = [
+        (1.0, *(float(x) for x in c[1:10:2])),
+        tuple(float(x) for x in c[0:11:2]),
+        tuple(float(x) for x in d[0:12:2]),
+        tuple(float(x) for x in d[1:12:2]),
+    ]
+    return polys, (u0, su), (v0, sv), (p0, sp), (w, h)
 
 
-def calibration_model_tables(calibration: Calibration, *, dtype: Any = np.float64) -> ModelTables:
-    """:func:`model_tables` for a :class:`~app.calib.calibration.Calibration`."""
-    return model_tables(
-        calibration.numerator, calibration.denominator, calibration.normalization,
-        calibration.image_size, dtype=dtype,
+@dataclass(frozen=True)
+class RowCoefficients:
+    """Eq. (5) for one image size as per-row quadratics in the normalised column u'.
+
+    For row v each of a0, a1, b0, b1 is ``α + β·u' + γ·u'²``; evaluating that costs
+    two multiply-adds, where a table would cost a memory read per pixel.
+
+    Attributes:
+        u_norm: (W,) float32 u' of every column.
+        coefs: (H, 12) float32 (α, β, γ) of a0, a1, b0, b1 per row.
+        phi0, inv_sphi: phase normalisation, ``φ' = (φ − phi0)·inv_sphi``.
+    """
+
+    u_norm: npt.NDArray[np.float32]
+    coefs: npt.NDArray[np.float32]
+    phi0: float
+    inv_sphi: float
+
+
+def row_coefficients(
+    numerator: npt.ArrayLike,
+    denominator: npt.ArrayLike,
+    normalization: dict[str, tuple[float, float]],
+    image_size: tuple[int, int],
+) -> RowCoefficients:
+    """The Eq. (5) u/v parts of a ``(width, height)`` image as per-row quadratics in u'
+    (same arguments as :func:`model_tables`)."""
+    polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator, normalization, image_size)
+    vp = (np.arange(h) - v0) / sv
+    cols: list[npt.NDArray[np.float64]] = []
+    for k1, ku, kv, kuu, kvv, kuv in polys:
+        cols += [k1 + kv * vp + kvv * vp**2, ku + kuv * vp, np.full(h, kuu)]
+    return RowCoefficients(
+        u_norm=((np.arange(w) - u0) / su).astype(np.float32),
+        coefs=np.ascontiguousarray(np.stack(cols, axis=1), dtype=np.float32),
+        phi0=float(p0), inv_sphi=1.0 / float(sp),
+    )
+
+
+def calibration_row_coefficients(calibration: Calibration) -> RowCoefficients:
+    """:func:`row_coefficients` for a :class:`~app.calib.calibration.Calibration`."""
+    return row_coefficients(
+        calibration.numerator, calibration.denominator, calibration.normalization, calibration.image_size,
     )
 
 

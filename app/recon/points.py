@@ -90,6 +90,13 @@ def calibration_ray_tables(calibration: Calibration, *, dtype: Any = np.float64)
     )
 
 
+def ray_quotients(rays: RayTables) -> npt.NDArray[np.float32]:
+    """(H, W, 3) float32 ``(x, y, 1)/(n·r)`` per pixel: a point is ``(h − offset)`` times it."""
+    inv_m = np.asarray(rays.inv_m, np.float64)
+    q = np.stack([np.asarray(rays.rx, np.float64) * inv_m, np.asarray(rays.ry, np.float64) * inv_m, inv_m], axis=-1)
+    return np.ascontiguousarray(q, dtype=np.float32)
+
+
 def points_from_height(
     height_mm: npt.ArrayLike, rays: RayTables, plane_offset_mm: float
 ) -> npt.NDArray[np.float64]:

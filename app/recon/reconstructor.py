@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -16,13 +18,15 @@ import numpy.typing as npt
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
+    RowCoefficients,
     calibration_model_tables,
+    calibration_row_coefficients,
     evaluate_height,
     outside_volume,
 )
 from app.recon.patterns import PatternSchedule
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
-from app.recon.points import RayTables, calibration_ray_tables, points_from_height
+from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
 from app.recon.reasons import assign_reasons
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
@@ -79,7 +83,8 @@ class ReconResult:
         reason: uint8 :class:`~app.recon.reasons.Reason` code.
         modulation: float32 finest-frequency modulation B, codes.
         texture: float32 A + B, codes, for display.
-        phase: float32 unwrapped finest phase used for depth, radians, NaN invalid.
+        phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;
+            None unless the reconstructor was made with ``with_phase=True``.
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
     """
 
@@ -89,7 +94,7 @@ class ReconResult:
     reason: npt.NDArray[np.uint8]
     modulation: F32
     texture: F32
-    phase: F32
+    phase: F32 | None
     elapsed_ms: float
 
 
@@ -172,6 +177,8 @@ class Reconstructor:
             OUTSIDE_VOLUME, mm.
         combine_frequencies: noise-optimal phase from all frequencies.
         fast: use the fused numba kernel (falls back to numpy if numba is missing).
+        with_phase: also return the unwrapped phase (calibration and noise analysis
+            need it; live depth does not, and it costs a full-frame write).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -187,6 +194,7 @@ class Reconstructor:
         height_margin_mm: float = 2.0,
         combine_frequencies: bool = False,
         fast: bool = True,
+        with_phase: bool = False,
     ) -> None:
         if not all(hasattr(calibration, a) for a in ("check_frames", "numerator", "pattern")):
             raise ValueError("calibration: expected a Calibration")
@@ -202,20 +210,19 @@ class Reconstructor:
         self.consistency_rad = check_consistency_rad(consistency_rad)
         self.height_margin_mm = float(height_margin_mm)
         self.combine_frequencies = bool(combine_frequencies)
+        self.with_phase = bool(with_phase)
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
         lo, hi = calibration.height_range_mm
         self._bounds_mm = (lo - self.height_margin_mm, hi + self.height_margin_mm)
+        self._outputs = _OutputPool()
         if self.fast:
-            _ = self._tables32
+            _ = self._fast_tables
 
     @cached_property
-    def _tables32(self) -> tuple[ModelTables, RayTables]:
-        return (
-            calibration_model_tables(self.calibration, dtype=np.float32),
-            calibration_ray_tables(self.calibration, dtype=np.float32),
-        )
+    def _fast_tables(self) -> tuple[RowCoefficients, npt.NDArray[np.float32]]:
+        return calibration_row_coefficients(self.calibration), ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -269,7 +276,7 @@ class Reconstructor:
             reason=reason,
             modulation=mod.astype(np.float32),
             texture=(wp.background + mod).astype(np.float32),
-            phase=np.where(valid, phi, np.nan).astype(np.float32),
+            phase=np.where(valid, phi, np.nan).astype(np.float32) if self.with_phase else None,
             elapsed_ms=(time.perf_counter() - t0) * 1e3,
         )
 
@@ -277,41 +284,86 @@ class Reconstructor:
         assert _fast is not None
         _fast.warmup(frames.dtype)  # JIT (or cache load) outside the timed region
         t0 = time.perf_counter()
-        cal = self.calibration
-        model, rays = self._tables32
-        sched = cal.pattern
-        _, h, w = frames.shape
-        delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
-        out = ReconResult(
-            depth=np.empty((h, w), np.float32),
-            points=np.empty((h, w, 3), np.float32),
-            valid=np.empty((h, w), np.bool_),
-            reason=np.empty((h, w), np.uint8),
-            modulation=np.empty((h, w), np.float32),
-            texture=np.empty((h, w), np.float32),
-            phase=np.empty((h, w), np.float32),
-            elapsed_ms=0.0,
-        )
-        lo, hi = self._bounds_mm
+        out = self._outputs.take(frames.shape[1:], self.with_phase)
         with _fast.KERNEL_LOCK:
-            self._launch(frames, delta, max_code, min_mod, model, rays, lo, hi, out)
+            self._launch(frames, max_code, min_mod, out)
         out.elapsed_ms = (time.perf_counter() - t0) * 1e3
         return out
 
-    def _launch(self, frames: Any, delta: Any, max_code: int, min_mod: float, model: Any, rays: Any,
-                lo: float, hi: float, out: ReconResult) -> None:
+    def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult) -> None:
         assert _fast is not None
         cal = self.calibration
         sched = cal.pattern
+        rows, ray_q = self._fast_tables
+        delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        lo, hi = self._bounds_mm
         _fast.fused_kernel(
             np.ascontiguousarray(frames),
             np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
             np.asarray(sched.frequencies, np.float32),
             np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
             self.combine_frequencies,
-            model.a0, model.a1, model.b0, model.b1,
-            np.float32(model.phi0), np.float32(model.inv_sphi),
-            np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL),
-            rays.rx, rays.ry, rays.inv_m, np.float32(cal.plane_offset_mm),
-            out.depth, out.points, out.reason, out.valid, out.modulation, out.texture, out.phase,
+            rows.u_norm, rows.coefs, np.float32(rows.phi0), np.float32(rows.inv_sphi),
+            np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL), ray_q, np.float32(cal.plane_offset_mm),
+            out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
+            out.phase if out.phase is not None else _NO_PHASE,
         )
+
+
+_NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows
+
+
+class _OutputPool:
+    """Recycles the arrays of results that nobody references any more.
+
+    Fresh output arrays cost a page fault per 4 KiB on first write, a large part of the
+    fast path's time. A recent result is reused only when its object and every array
+    are referenced by this pool alone (the check ``ndarray.resize(refcheck=True)``
+    makes): a caller that keeps the result, an array, a view of one or an exported
+    buffer keeps it out of reuse.
+    """
+
+    def __init__(self, size: int = 4) -> None:
+        self._recent: list[ReconResult] = []
+        self._size = size
+        self._lock = threading.Lock()
+
+    def take(self, shape: tuple[int, ...], with_phase: bool) -> ReconResult:
+        h, w = shape
+        with self._lock:
+            for i in range(len(self._recent)):
+                if _reference_counts(self._recent[i]) == _UNREFERENCED:
+                    res = self._recent.pop(i)
+                    if res.depth.shape == (h, w) and (res.phase is not None) == with_phase:
+                        break
+            else:
+                res = _new_result(h, w, with_phase)
+            self._recent = [res, *self._recent][: self._size]
+            return res
+
+
+def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
+    return ReconResult(
+        depth=np.empty((h, w), np.float32),
+        points=np.empty((h, w, 3), np.float32),
+        valid=np.empty((h, w), np.bool_),
+        reason=np.empty((h, w), np.uint8),
+        modulation=np.empty((h, w), np.float32),
+        texture=np.empty((h, w), np.float32),
+        phase=np.empty((h, w), np.float32) if with_phase else None,
+        elapsed_ms=0.0,
+    )
+
+
+def _reference_counts(res: ReconResult) -> tuple[int, int]:
+    """(references to ``res``, most references to any of its arrays)."""
+    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase)
+              if a is not None]
+    return sys.getrefcount(res), max(sys.getrefcount(a) for a in arrays)
+
+
+# The counts of a result held by a list alone, measured the way take() measures them
+# (reference counting details differ between Python versions).
+_probe = [_new_result(1, 1, True)]
+_UNREFERENCED = _reference_counts(_probe[0])
+del _probe

@@ -33,7 +33,7 @@ def test_polynomial_atan2_error():
 def test_fast_agrees_with_numpy(dtype, combine):
     rig = Rig()
     frames, _, _ = reason_scene(rig, dtype=dtype, noise=2.0, seed=11)
-    rec = Reconstructor(rig.calibration(), max_code=None if dtype == np.uint8 else 4095,
+    rec = Reconstructor(rig.calibration(), max_code=None if dtype == np.uint8 else 4095, with_phase=True,
                         combine_frequencies=combine)
     a = rec.run(frames, fast=False)
     b = rec.run(frames, fast=True)
@@ -100,3 +100,40 @@ def test_concurrent_runs_from_two_threads():
         t.join(timeout=120)
     assert not any(t.is_alive() for t in threads)
     assert mismatches == []
+
+
+def test_coarse_atan2_error():
+    rng = np.random.default_rng(1)
+    y = rng.normal(size=400_000).astype(np.float32)
+    x = rng.normal(size=400_000).astype(np.float32)
+    got = fast.atan2_coarse_array(y, x).astype(np.float64)
+    ref = np.mod(np.arctan2(y.astype(np.float64), x.astype(np.float64)), 2 * math.pi)
+    diff = np.abs(np.angle(np.exp(1j * (got - ref))))
+    assert diff.max() < 2e-5  # orders need ≪ π / ratio
+    assert got.min() >= 0.0 and got.max() < 2 * math.pi
+
+
+@pytest.mark.parametrize("steps, frequencies", [(3, (1, 6, 36)), (5, (1, 4, 12, 36)), (4, (1, 8, 40))])
+def test_fast_agrees_with_numpy_on_other_schedules(steps, frequencies):
+    # the general (row-by-row) path of the kernel; the paper's 4 × 4 has its own
+    from app.recon import PatternSchedule
+
+    rig = Rig(schedule=PatternSchedule(frequencies=frequencies, steps=steps))
+    frames, _, _ = reason_scene(rig, noise=1.0, seed=3)
+    rec = Reconstructor(rig.calibration(), with_phase=True)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    assert np.array_equal(a.reason, b.reason)
+    ok = a.valid
+    assert ok.mean() > 0.7
+    assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
+    assert np.max(np.abs(a.points[ok] - b.points[ok])) < 1e-3
+    assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
+    assert np.allclose(a.texture, b.texture, rtol=1e-5, atol=1e-3)
+
+
+def test_phase_is_optional():
+    rig = Rig()
+    frames, _, _ = reason_scene(rig)
+    for fast_path in (True, False):
+        assert Reconstructor(rig.calibration(), fast=fast_path).run(frames).phase is None

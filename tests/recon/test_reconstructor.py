@@ -21,7 +21,7 @@ def rig():
 def test_depth_and_points_on_the_rig(rig, fast):
     h = bump_surface(rig)
     frames = rig.render(h, background=30000, amplitude=25000, dtype=np.uint16)
-    res = Reconstructor(rig.calibration(), fast=fast).run(frames)
+    res = Reconstructor(rig.calibration(), fast=fast, with_phase=True).run(frames)
     assert isinstance(res, ReconResult)
     assert res.valid.all()
     assert np.max(np.abs(res.depth - h)) < 1e-3  # mm
@@ -112,3 +112,25 @@ def test_12bit_saturation_needs_max_code(rig):
     assert Reconstructor(rig.calibration(), max_code=4095).run(frames).reason[50, 60] == Reason.SATURATED
     # default 65535: the clipped pixel is not flagged, and min_modulation defaults to 2 % of 65535
     assert (Reconstructor(rig.calibration()).run(frames).reason == Reason.LOW_MODULATION).all()
+
+
+def test_outputs_are_recycled_only_when_nobody_holds_them(rig):
+    frames = rig.render(bump_surface(rig))
+    rec = Reconstructor(rig.calibration())
+    first = rec.run(frames)
+    depth_id = id(first.depth)
+    expected = first.depth.copy()
+    held = rec.run(frames)  # `first` is still held: new arrays
+    assert held.depth is not first.depth
+    view = first.depth[::2]  # a view keeps its base out of reuse
+    del first
+    assert all(id(rec.run(frames).depth) != depth_id for _ in range(3))
+    del view
+    for _ in range(4):  # now the first result's arrays come back, rewritten
+        again = rec.run(frames)
+        if id(again.depth) == depth_id:
+            break
+    else:
+        raise AssertionError("a result nobody holds was never reused")
+    assert np.array_equal(again.depth, expected, equal_nan=True)
+    assert again is not held and held.depth is not again.depth
