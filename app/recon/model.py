@@ -144,7 +144,7 @@ def row_coefficients(
     (same arguments as :func:`model_tables`)."""
     polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator, normalization, image_size)
     vp = (np.arange(h) - v0) / sv
-    cols: list[npt.NDArray[np.float64]] = []
+    cols: list[npt.NDArray[Any]] = []
     for k1, ku, kv, kuu, kvv, kuv in polys:
         cols += [k1 + kv * vp + kvv * vp**2, ku + kuv * vp, np.full(h, kuu)]
     return RowCoefficients(
