@@ -10,6 +10,7 @@ from app.recon.model import (
     evaluate_height,
     model_tables,
     outside_volume,
+    row_coefficients,
 )
 from tests.recon.analytic_rig import Rig, bump_surface
 
@@ -60,3 +61,18 @@ def test_singular_denominator_flagged():
 def test_outside_volume_with_margin_and_nan():
     h = np.array([-2.5, -1.5, 0.0, 31.9, 32.1, np.nan, np.inf])
     assert outside_volume(h, (0.0, 30.0), 2.0).tolist() == [True, False, False, False, True, True, True]
+
+
+def test_row_coefficients_reproduce_the_tables():
+    rng = np.random.default_rng(4)
+    c, d = rng.normal(size=11), rng.normal(size=12)
+    norm = {"u": (10.0, 7.0), "v": (5.0, 4.0), "phi": (100.0, 50.0)}
+    t = model_tables(c, d, norm, (21, 11))
+    rows = row_coefficients(c, d, norm, (21, 11))
+    assert rows.u_norm.shape == (21,) and rows.coefs.shape == (11, 12) and rows.coefs.dtype == np.float32
+    x = rows.u_norm.astype(np.float64)
+    k = rows.coefs.astype(np.float64)
+    for i, table in enumerate((t.a0, t.a1, t.b0, t.b1)):
+        alpha, beta, gamma = (k[:, 3 * i + j, None] for j in range(3))
+        assert np.allclose(alpha + beta * x + gamma * x**2, table, rtol=1e-6, atol=1e-6)
+    assert (rows.phi0, rows.inv_sphi) == (t.phi0, t.inv_sphi)
