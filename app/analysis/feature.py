@@ -124,7 +124,8 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
 
     In each cross-section the baseline is refined by a line through the ring pixels on
     both flanks (within ``slab_px`` along the axis), as a caliper rests on both sides;
-    the crest is the apex of a parabola through the central part of the profile.
+    the crest is a parabola through the central part of the profile, evaluated on the
+    feature's axis (:func:`_crests_on_axis`).
     """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
@@ -144,7 +145,7 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
     r_order = np.argsort(r_along)
     r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]
     section = np.rint(along).astype(np.int64)
-    out = []
+    fits: list[tuple[float, npt.NDArray[np.float64] | None, float, float, float]] = []
     order = np.argsort(section, kind="stable")
     bounds = np.flatnonzero(np.diff(section[order])) + 1
     for idx in np.split(order, bounds):
@@ -161,14 +162,40 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
         # would favour upward noise) — the part of a round thread a parabola fits well.
         t_c, half = 0.5 * (t.max() + t.min()), 0.5 * float(np.ptp(t))
         top = np.abs(t - t_c) <= 0.6 * half
+        coef = None
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
-            a, b, c = np.polyfit(t[top], h[top], 2)
-            if a < 0:
-                t_apex = -b / (2 * a)
-                if t[top].min() <= t_apex <= t[top].max():
-                    out.append(float(c - b * b / (4 * a)))
-                    continue
-        out.append(float(np.median(np.sort(h)[-3:])))
+            coef = np.polyfit(t[top], h[top], 2)
+            coef = coef if coef[0] < 0 else None
+        fits.append((s0, coef, float(t[top].min()), float(t[top].max()), float(np.median(np.sort(h)[-3:]))))
+    return _crests_on_axis(fits)
+
+
+def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, float, float, float]]) -> list[float]:
+    """Each cross-section's parabola evaluated on the feature's axis.
+
+    The apex of a noisy parabola, c + b²/4|a|, is biased upward by var(b)/4|a|; the
+    value at a fixed position is linear in the coefficients, hence unbiased. The axis
+    (the crest's position across the feature, a line along it) comes from all the
+    sections' apexes at once, robustly. Sections without a usable parabola give the
+    median of their three highest points.
+    """
+    apex = [(s0, -c[1] / (2 * c[0])) for s0, c, lo, hi, _ in fits if c is not None and lo <= -c[1] / (2 * c[0]) <= hi]
+    axis = None
+    if len(apex) >= 5:
+        s_a, t_a = np.asarray(apex).T
+        keep = np.ones(len(s_a), bool)
+        for _ in range(3):  # clip apexes far from the line: neighbours' knots, bad sections
+            axis = np.polyfit(s_a[keep], t_a[keep], 1)
+            e = t_a - np.polyval(axis, s_a)
+            keep = np.abs(e) <= max(3.0 * 1.4826 * float(np.median(np.abs(e[keep]))), 0.5)
+    out = []
+    for s0, c, lo, hi, fallback in fits:
+        if c is not None and axis is not None and lo <= np.polyval(axis, s0) <= hi:
+            out.append(float(np.polyval(c, np.polyval(axis, s0))))
+        elif c is not None and axis is None and lo <= -c[1] / (2 * c[0]) <= hi:
+            out.append(float(c[2] - c[1] ** 2 / (4 * c[0])))
+        else:
+            out.append(fallback)
     return out
 
 
