@@ -115,12 +115,6 @@ def test_sphere_valid_fraction(sphere_report):
     assert sphere_report["valid_fraction"] >= 0.99
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "target missed: measured 0.743 ± 0.064 mm vs 0.72 ± 0.02 (30 ms, LED current 1.0). The analysis on "
-    "the true depth gives 0.717, so the bias is in the reconstruction: against the truth, depth on the "
-    "thread's centre reads 0.018 mm higher than on the tissue ring around it. The dark violet suture "
-    "(8 % reflectance in green) has modulation ~14 codes; at the default 20 ms / 0.5 current only 4 % "
-    "of its pixels pass the engine's modulation threshold"))
 def test_suture_height(calibration, reconstructor):
     rig = default_rig()
     scene = build_scene("anastomosis", rig)

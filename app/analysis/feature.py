@@ -164,8 +164,9 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
         top = np.abs(t - t_c) <= 0.6 * half
         coef = None
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
+            # kept whatever its curvature: dropping the noisy ones that curve up would
+            # keep a biased (upward) sample
             coef = np.polyfit(t[top], h[top], 2)
-            coef = coef if coef[0] < 0 else None
         fits.append((s0, coef, float(t[top].min()), float(t[top].max()), float(np.median(np.sort(h)[-3:]))))
     return _crests_on_axis(fits)
 
@@ -179,7 +180,8 @@ def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, floa
     sections' apexes at once, robustly. Sections without a usable parabola give the
     median of their three highest points.
     """
-    apex = [(s0, -c[1] / (2 * c[0])) for s0, c, lo, hi, _ in fits if c is not None and lo <= -c[1] / (2 * c[0]) <= hi]
+    apex = [(s0, -c[1] / (2 * c[0])) for s0, c, lo, hi, _ in fits
+            if c is not None and c[0] < 0 and lo <= -c[1] / (2 * c[0]) <= hi]
     axis = None
     if len(apex) >= 5:
         s_a, t_a = np.asarray(apex).T
@@ -192,7 +194,7 @@ def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, floa
     for s0, c, lo, hi, fallback in fits:
         if c is not None and axis is not None and lo <= np.polyval(axis, s0) <= hi:
             out.append(float(np.polyval(c, np.polyval(axis, s0))))
-        elif c is not None and axis is None and lo <= -c[1] / (2 * c[0]) <= hi:
+        elif c is not None and axis is None and c[0] < 0 and lo <= -c[1] / (2 * c[0]) <= hi:
             out.append(float(c[2] - c[1] ** 2 / (4 * c[0])))
         else:
             out.append(fallback)
