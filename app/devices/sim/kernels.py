@@ -8,9 +8,11 @@ Gaussian deviates per draw, a real RNG whose statistics match N(0, 1) to 1/65536
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
+import numpy.typing as npt
 
 # fast-math without the no-NaN/no-Inf assumptions (the kernels test for NaN).
 FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
@@ -59,6 +61,23 @@ def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb): 
         mean[i] = scale * (base[i] * qbar + fringe[i] * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
 
 
+@nb.njit(cache=True, fastmath=FAST, inline="always")
+def _scene_px(nd, base, fringe, sv, su, n_add, d_add, k_over_w, shift_frac, width_p, qtab, qbar, scale,
+              amb):  # noqa: ANN001, ANN202
+    """Noise-free DN of the moved scene at the rest-pose sample (sv, su) (see moving_frame)."""
+    b = base[sv, su]
+    if b <= 0.0:
+        return amb
+    xp = (nd[sv, su, 0] + n_add) / (nd[sv, su, 1] + d_add)
+    if not -0.5 <= xp <= width_p - 0.5:
+        return amb
+    nq = qtab.shape[0]
+    f = xp * k_over_w + shift_frac + 1.0
+    f -= int(f)
+    q = qtab[min(int(f * nq), nq - 1)]
+    return scale * (b * qbar + fringe[sv, su] * (q - qbar)) + amb
+
+
 @nb.njit(cache=True, nogil=True, fastmath=FAST)
 def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
                  width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
@@ -72,7 +91,6 @@ def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, 
     base, fringe: (H, W) float32 (0 where unlit); qtab: projector output over one period.
     """
     h, w = base.shape
-    nq = qtab.shape[0]
     ty, tx = block_flow.shape[0], block_flow.shape[1]
     r = np.uint64(0)
     j = 4
@@ -84,15 +102,8 @@ def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, 
                 sv = min(max(v - fv, 0), h - 1)
                 for u in range(bx * block, min((bx + 1) * block, w)):
                     su = min(max(u - fu, 0), w - 1)
-                    b = base[sv, su]
-                    m = amb
-                    if b > 0.0:
-                        xp = (nd[sv, su, 0] + n_add) / (nd[sv, su, 1] + d_add)
-                        if -0.5 <= xp <= width_p - 0.5:
-                            f = xp * k_over_w + shift_frac + 1.0
-                            f -= int(f)
-                            q = qtab[min(int(f * nq), nq - 1)]
-                            m = scale * (b * qbar + fringe[sv, su] * (q - qbar)) + amb
+                    m = _scene_px(nd, base, fringe, sv, su, n_add, d_add, k_over_w, shift_frac, width_p, qtab,
+                                  qbar, scale, amb)
                     if noisy:
                         if j == 4:
                             r = _next(state)
@@ -104,11 +115,46 @@ def moving_frame(out, noisy, nd, base, fringe, block_flow, block, n_add, d_add, 
                         out[v, u] = m
 
 
+class ToolFrame(NamedTuple):
+    """The capsule tool at one instant, for :func:`tool_frame` (camera frame, mm).
+
+    p0: (3,) first end; a_hat: (3,) unit axis; proj_c: (3,) projector centre;
+    alpha, a_c, gam, g_c: projector column coefficients (optics.ProjectorModel.column_coefficients);
+    refl, ks, shin: diffuse reflectance, specular weight and exponent of its material;
+    two_pi_k_over_w, shift: fringe phase per projector column (rad) and phase shift (rad);
+    atten: fringe contrast left after camera defocus; dz: depth offset (mm) of the scene
+    behind it (the occlusion test uses the rest-pose depth of the same pixel + dz);
+    rows_lit: whether the projector row of the tool lies on the DMD.
+    """
+
+    p0: npt.NDArray[np.float64]
+    a_hat: npt.NDArray[np.float64]
+    length: float
+    radius: float
+    refl: float
+    ks: float
+    shin: float
+    proj_c: npt.NDArray[np.float64]
+    alpha: npt.NDArray[np.float64]
+    a_c: float
+    gam: npt.NDArray[np.float64]
+    g_c: float
+    width_p: float
+    rows_lit: bool
+    two_pi_k_over_w: float
+    shift: float
+    atten: float
+    dz: float
+
+
 @nb.njit(cache=True, fastmath=FAST, inline="always")
 def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
-    """Ray (from the origin, direction r) against a capsule; returns (t, nx, ny, nz) or t = inf."""
-    best = math.inf
-    bx = by = bz = 0.0
+    """Ray (from the origin, direction r) against a capsule; returns (t, nx, ny, nz) or t = inf.
+
+    The capsule lies inside the infinite cylinder around its axis, so a ray that misses the
+    cylinder misses it (no square root: most pixels of the tool's bounding box), and a
+    cylinder entry point between the end discs is its first hit (the end spheres need no test).
+    """
     ox, oy, oz = -p0[0], -p0[1], -p0[2]
     da = rx * a_hat[0] + ry * a_hat[1] + rz * a_hat[2]
     oa = ox * a_hat[0] + oy * a_hat[1] + oz * a_hat[2]
@@ -118,12 +164,15 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
     b = 2.0 * (dpx * opx + dpy * opy + dpz * opz)
     c = opx * opx + opy * opy + opz * opz - radius * radius
     disc = b * b - 4 * a * c
-    if disc >= 0.0 and a > 0.0:
+    if a > 0.0:
+        if disc < 0.0:
+            return math.inf, 0.0, 0.0, 0.0
         t = (-b - math.sqrt(disc)) / (2 * a)
         ax = oa + t * da
         if t > 0.0 and 0.0 <= ax <= length:
-            best = t
-            bx, by, bz = opx + t * dpx, opy + t * dpy, opz + t * dpz
+            return t, (opx + t * dpx) / radius, (opy + t * dpy) / radius, (opz + t * dpz) / radius
+    best = math.inf
+    bx = by = bz = 0.0
     for e in range(2):
         cx = p0[0] + e * length * a_hat[0]
         cy = p0[1] + e * length * a_hat[1]
@@ -140,36 +189,85 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
     return best, bx / radius, by / radius, bz / radius
 
 
-@nb.njit(cache=True, nogil=True, fastmath=FAST)
-def draw_tool(mean, rays, points, dz, v0, spans, p0, a_hat, length, radius, refl, ks, shin,
-              proj_c, alpha, a_c, gam, g_c, width_p, height_p, proj_fy, proj_cy, two_pi_k_over_w, shift,
-              atten, lut, qbar, scale, amb):  # noqa: ANN001, ANN201
-    """Overwrite ``mean`` where the capsule tool is in front of the scene.
+@nb.njit(cache=True, fastmath=FAST, inline="always")
+def _pow(x, e):  # noqa: ANN001, ANN202
+    """x**e for x ≥ 0; by repeated squaring for a small whole e (specular exponents: ~7× faster than pow)."""
+    if e == int(e) and 0 <= e < 1024:
+        n = int(e)
+        y = 1.0
+        while n:
+            if n & 1:
+                y *= x
+            x *= x
+            n >>= 1
+        return y
+    return x**e
 
-    spans: (n, 2) int first/last column to test in rows v0 .. v0 + n − 1 (the tool's image).
+
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
+def _tool_span(row, v, u0, u1, rays, points, tool, lut, qbar, scale, amb):  # noqa: ANN001, ANN201
+    """Overwrite row[u0 .. u1] (row ``v`` of the mean frame) where the tool is in front of the scene
+    (its rest-pose depth + tool.dz, NaN off-object)."""
+    # Fields as locals: LLVM keeps them in registers (field access in the loop is 2× slower).
+    (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit, two_pi_k_over_w,
+     shift, atten, dz) = tool
+    for u in range(u0, u1 + 1):
+        rx, ry, rz = rays[v, u, 0], rays[v, u, 1], rays[v, u, 2]
+        t, nx, ny, nz = _capsule_t(rx, ry, rz, p0, a_hat, length, radius)
+        zs = points[v, u, 2] + dz
+        if t == math.inf or (zs == zs and t * rz >= zs):
+            continue
+        X, Y, Z = t * rx, t * ry, t * rz
+        lx, ly, lz = pc[0] - X, pc[1] - Y, pc[2] - Z
+        d = math.sqrt(lx * lx + ly * ly + lz * lz)
+        lx, ly, lz = lx / d, ly / d, lz / d
+        cos_i = nx * lx + ny * ly + nz * lz
+        xp = (al[0] * X + al[1] * Y + al[2] * Z - a_c) / (ga[0] * X + ga[1] * Y + ga[2] * Z - g_c)
+        if cos_i <= 0.0 or xp < -0.5 or xp > width_p - 0.5 or not rows_lit:
+            row[u] = amb
+            continue
+        nv = math.sqrt(X * X + Y * Y + Z * Z)
+        hx, hy, hz = lx - X / nv, ly - Y / nv, lz - Z / nv
+        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+        cos_h = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
+        base = (refl * cos_i + 0.05 * ks * _pow(cos_h, shin)) / (d * d)
+        p = 0.5 + 0.5 * math.cos(two_pi_k_over_w * xp + shift)
+        row[u] = scale * (base * qbar + atten * base * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
+
+
+@nb.njit(cache=True, nogil=True, fastmath=FAST)
+def tool_frame(out, noisy, row, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
+               width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state, rays, points, v0, spans, tool,
+               lut):  # noqa: ANN001, ANN201
+    """moving_frame with the capsule ``tool`` in front, row by row in raster order (the noise
+    sequence of add_noise over the mean frame), so the mean frame is never stored.
+
+    row: (W,) float32 scratch; rays, points: (H, W, 3) float64 unit pixel rays and rest-pose
+    scene points (NaN off-object); spans: (n, 2) int first/last column to test in rows
+    v0 .. v0 + n − 1 (the tool's image); tool: a ToolFrame; lut: projector response (256,).
+    Other arguments as in moving_frame.
     """
-    for r in range(spans.shape[0]):
-        v = v0 + r
-        for u in range(spans[r, 0], spans[r, 1] + 1):
-            rx, ry, rz = rays[v, u, 0], rays[v, u, 1], rays[v, u, 2]
-            t, nx, ny, nz = _capsule_t(rx, ry, rz, p0, a_hat, length, radius)
-            zs = points[v, u, 2] + dz
-            if t == math.inf or (zs == zs and t * rz >= zs):
-                continue
-            X, Y, Z = t * rx, t * ry, t * rz
-            lx, ly, lz = proj_c[0] - X, proj_c[1] - Y, proj_c[2] - Z
-            d = math.sqrt(lx * lx + ly * ly + lz * lz)
-            lx, ly, lz = lx / d, ly / d, lz / d
-            cos_i = nx * lx + ny * ly + nz * lz
-            xp = (alpha[0] * X + alpha[1] * Y + alpha[2] * Z - a_c) / (gam[0] * X + gam[1] * Y + gam[2] * Z - g_c)
-            yp = proj_fy * (0.0) + proj_cy  # rows: checked loosely below via the projector frame
-            if cos_i <= 0.0 or xp < -0.5 or xp > width_p - 0.5 or yp < -0.5 or yp > height_p:
-                mean[v, u] = amb
-                continue
-            nv = math.sqrt(X * X + Y * Y + Z * Z)
-            hx, hy, hz = lx - X / nv, ly - Y / nv, lz - Z / nv
-            hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-            cos_h = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
-            base = (refl * cos_i + 0.05 * ks * cos_h**shin) / (d * d)
-            p = 0.5 + 0.5 * math.cos(two_pi_k_over_w * xp + shift)
-            mean[v, u] = scale * (base * qbar + atten * base * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
+    h, w = base.shape
+    r = np.uint64(0)
+    j = 4
+    for v in range(h):
+        by = v // block
+        for bx in range(block_flow.shape[1]):
+            fu = block_flow[by, bx, 0]
+            sv = min(max(v - block_flow[by, bx, 1], 0), h - 1)
+            for u in range(bx * block, min((bx + 1) * block, w)):
+                su = min(max(u - fu, 0), w - 1)
+                row[u] = _scene_px(nd, base, fringe, sv, su, n_add, d_add, k_over_w, shift_frac, width_p, qtab,
+                                   qbar, scale, amb)
+        if v0 <= v < v0 + spans.shape[0]:
+            _tool_span(row, v, spans[v - v0, 0], spans[v - v0, 1], rays, points, tool, lut, qbar, scale, amb)
+        for u in range(w):
+            if noisy:
+                if j == 4:
+                    r = _next(state)
+                    j = 0
+                z = table[(r >> np.uint64(16 * j)) & np.uint64(0xFFFF)]
+                j += 1
+                out[v, u] = _adc(row[u], g, read2, maxv, z)
+            else:
+                out[v, u] = row[u]

@@ -83,6 +83,7 @@ class Renderer:
         self._truth_static: tuple[F32, F32] | None = None
         self._scratch = threading.local()  # per-thread mean buffer (worlds may share a renderer)
         self._nd: F32 | None = None
+        self._tiles: tuple[F64, F64, F64] | None = None
         # Projector output over one fringe period: cosine → 8-bit DMD level → response.
         frac = (np.arange(4096) + 0.5) / 4096
         self.qtab = self.lut[np.rint(255 * (0.5 + 0.5 * np.cos(2 * math.pi * frac))).astype(int)]
@@ -189,20 +190,28 @@ class Renderer:
                                 self.lut, self.qbar, scale, amb)
             return
         self._moving(mean, False, fi, shift, t_s, scale, amb, led, 0.0, 0.0, 0, np.zeros(1, np.uint64))
-        if self.scene.tool is not None:
-            self._draw_tool(mean, fi, shift, t_s, scale, amb, led)
 
     def _moving(self, out: np.ndarray, noisy: bool, fi: int, shift: float, t_s: float, scale: float, amb: float,
                 led: str, g: float, read2: float, maxv: int, state: npt.NDArray[np.uint64]) -> None:
+        """Mean (``noisy`` False, float32 ``out``) or noisy frame of the moving scene and its tool, one pass."""
         h, w = self.shape
         base, fringe = self._led_arrays(led)
         alpha, _, gam, _ = self.rig.projector.column_coefficients()
         k = self.schedule.frequencies[fi]
         delta = self.scene.offset(t_s)
-        kernels.moving_frame(out, noisy, self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w),
-                             self._block_flow(delta), BLOCK, float(alpha @ delta), float(gam @ delta),
-                             k / self.schedule.width, shift / (2 * math.pi), float(self.schedule.width),
-                             self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+        scene = (self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta), BLOCK,
+                 float(alpha @ delta), float(gam @ delta), k / self.schedule.width, shift / (2 * math.pi),
+                 float(self.schedule.width), self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+        if self.scene.tool is None:
+            kernels.moving_frame(out, noisy, *scene)
+            return
+        # With a tool: raster order (the noise sequence of add_noise over the mean frame).
+        v0, spans, tool = self._tool_frame(fi, shift, t_s, led, float(delta[2]))
+        row = getattr(self._scratch, "row", None)
+        if row is None:
+            row = self._scratch.row = np.empty(w, np.float32)
+        kernels.tool_frame(out, noisy, row, *scene, self.rays.reshape(h, w, 3), self.points, v0, spans, tool,
+                           self.lut)
 
     def _nd_table(self) -> F32:
         with self._cache_lock:
@@ -214,64 +223,77 @@ class Renderer:
             self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c], -1).astype(np.float32)
         return self._nd
 
+    def _tile_centres(self) -> tuple[F64, F64, F64]:
+        """Rest-pose centre points (tiles_y, tiles_x, 3) mm of the BLOCK×BLOCK tiles (NaN where the
+        image ends or no surface) and their normalised image coordinates x/z, y/z."""
+        with self._cache_lock:
+            if self._tiles is None:
+                h, w = self.shape
+                c = self.points[BLOCK // 2 :: BLOCK, BLOCK // 2 :: BLOCK]
+                pad = np.full((-(-h // BLOCK), -(-w // BLOCK), 3), np.nan)
+                pad[: c.shape[0], : c.shape[1]] = c
+                with np.errstate(invalid="ignore"):
+                    self._tiles = (pad, pad[..., 0] / pad[..., 2], pad[..., 1] / pad[..., 2])
+            return self._tiles
+
     def _block_flow(self, delta: F64) -> npt.NDArray[np.int64]:
         """Integer pinhole image flow of each BLOCK×BLOCK tile for a translation ``delta`` (mm)."""
-        h, w = self.shape
-        c = self.points[BLOCK // 2 :: BLOCK, BLOCK // 2 :: BLOCK]
-        ty, tx = -(-h // BLOCK), -(-w // BLOCK)
-        pad = np.full((ty, tx, 3), np.nan)
-        pad[: c.shape[0], : c.shape[1]] = c
+        pad, x0, y0 = self._tile_centres()
         fx, fy = self.rig.camera.K[0, 0], self.rig.camera.K[1, 1]
         with np.errstate(invalid="ignore"):
             z1 = pad[..., 2] + delta[2]
-            fu = fx * ((pad[..., 0] + delta[0]) / z1 - pad[..., 0] / pad[..., 2])
-            fv = fy * ((pad[..., 1] + delta[1]) / z1 - pad[..., 1] / pad[..., 2])
+            fu = fx * ((pad[..., 0] + delta[0]) / z1 - x0)
+            fv = fy * ((pad[..., 1] + delta[1]) / z1 - y0)
         flow = np.stack([fu, fv], -1)
         if np.isnan(flow).any():  # tiles with no surface at their centre take the mean flow
             fill = np.nanmean(flow.reshape(-1, 2), axis=0) if np.isfinite(flow).any() else np.zeros(2)
             flow = np.where(np.isnan(flow), fill, flow)
         return np.rint(flow).astype(np.int64)
 
-    def _draw_tool(self, mean: F32, fi: int, shift: float, t_s: float, scale: float, amb: float, led: str) -> None:
-        """Overlay the tool (exact ray–capsule test per pixel of its image bounding box)."""
+    def _tool_frame(self, fi: int, shift: float, t_s: float, led: str, dz: float
+                    ) -> tuple[int, npt.NDArray[np.int64], kernels.ToolFrame]:
+        """The tool at ``t_s`` for kernels.tool_frame: (v0, spans, tool) with spans (n, 2) the first/last
+        column to ray-test in rows v0 .. v0 + n − 1 (its image; n = 0 when it is out of view)."""
         tool = self.scene.tool
         assert tool is not None
         p0, p1 = (np.asarray(p, np.float64) for p in tool.path(t_s))
         cam, proj = self.rig.camera, self.rig.projector
         ends = np.stack([p0, p1])
-        if np.all(ends[:, 2] <= 1.0):
-            return
         ends = ends[ends[:, 2] > 1.0]
-        uv = cam.project(ends)
-        # Row spans of the stadium swept by the end discs along the image of the axis.
-        rad_px = cam.K[0, 0] * tool.radius_mm / ends[:, 2].min() + 4
-        h, w = self.shape
-        samples = uv[0] + np.linspace(0, 1, 96)[:, None] * (uv[-1] - uv[0])
-        v0, v1 = int(max(samples[:, 1].min() - rad_px, 0)), int(min(samples[:, 1].max() + rad_px, h - 1))
-        if v1 < v0 or samples[:, 0].max() + rad_px < 0 or samples[:, 0].min() - rad_px > w - 1:
-            return
-        rows = np.arange(v0, v1 + 1)[:, None]
-        half = np.sqrt(np.clip(rad_px**2 - (rows - samples[None, :, 1]) ** 2, 0, None))
-        inside = half > 0
-        lo = np.where(inside, samples[None, :, 0] - half, np.inf).min(axis=1)
-        hi = np.where(inside, samples[None, :, 0] + half, -np.inf).max(axis=1)
-        spans = np.stack([np.clip(np.floor(lo), 0, w - 1), np.clip(np.ceil(hi), -1, w - 1)], -1)
-        spans = np.where(np.isfinite(spans), spans, np.array([0, -1])).astype(np.int64)
+        v0, spans = self._tool_spans(cam.project(ends), cam.K[0, 0] * tool.radius_mm / ends[:, 2].min() + 4
+                                     ) if len(ends) else (0, np.zeros((0, 2), np.int64))
         axis = p1 - p0
         length = float(np.linalg.norm(axis))
         alpha, a_c, gam, g_c = proj.column_coefficients()
         k = self.schedule.frequencies[fi]
         ks, shin = SPECULAR.get(tool.material, (0.0, 1.0))
         # Fringe attenuation on the tool from camera defocus at its mean depth.
-        z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0))
+        z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0)) if len(ends) else self.rig.focus_mm
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
-        grad = self.grad_median
-        atten = math.exp(-((2 * math.pi * k * grad / self.schedule.width) ** 2) * sig**2 / 2)
-        kernels.draw_tool(mean, self.rays.reshape(h, w, 3), self.points, float(self.scene.offset(t_s)[2]),
-                          v0, spans, p0, axis / length, length, tool.radius_mm,
-                          REFLECTANCE[tool.material][led], ks, shin, proj.centre, alpha, a_c, gam, g_c,
-                          float(self.schedule.width), float(proj.size[1]), proj.K[1, 1], proj.K[1, 2],
-                          2 * math.pi * k / self.schedule.width, shift, atten, self.lut, self.qbar, scale, amb)
+        atten = math.exp(-((2 * math.pi * k * self.grad_median / self.schedule.width) ** 2) * sig**2 / 2)
+        # The projector row is not traced (the tool stays inside the DMD's rows); only its centre row is tested.
+        rows_lit = -0.5 <= proj.K[1, 2] <= float(proj.size[1])
+        return v0, spans, kernels.ToolFrame(
+            p0, axis / length, length, float(tool.radius_mm), float(REFLECTANCE[tool.material][led]), float(ks),
+            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(self.schedule.width),
+            bool(rows_lit), 2 * math.pi * k / self.schedule.width, shift, atten, dz)
+
+    def _tool_spans(self, uv: F64, rad_px: float) -> tuple[int, npt.NDArray[np.int64]]:
+        """Row spans (v0, (n, 2) first/last column) of the stadium of radius ``rad_px`` swept by a disc
+        along the image segment ``uv`` ((1 or 2, 2) px), clipped to the image (n = 0 if outside)."""
+        h, w = self.shape
+        none = (0, np.zeros((0, 2), np.int64))
+        samples = uv[0] + np.linspace(0, 1, 96)[:, None] * (uv[-1] - uv[0])
+        v0, v1 = int(max(samples[:, 1].min() - rad_px, 0)), int(min(samples[:, 1].max() + rad_px, h - 1))
+        if v1 < v0 or samples[:, 0].max() + rad_px < 0 or samples[:, 0].min() - rad_px > w - 1:
+            return none
+        rows = np.arange(v0, v1 + 1)[:, None]
+        half = np.sqrt(np.clip(rad_px**2 - (rows - samples[None, :, 1]) ** 2, 0, None))
+        inside = half > 0
+        lo = np.where(inside, samples[None, :, 0] - half, np.inf).min(axis=1)
+        hi = np.where(inside, samples[None, :, 0] + half, -np.inf).max(axis=1)
+        spans = np.stack([np.clip(np.floor(lo), 0, w - 1), np.clip(np.ceil(hi), -1, w - 1)], -1)
+        return v0, np.where(np.isfinite(spans), spans, np.array([0, -1])).astype(np.int64)
 
     def _static_means(self, exposure_ms: float, gain: float, led: str, current: float, bits: int) -> F32:
         """Noise-free frames of every pattern for these settings (static scenes; one cached set)."""
@@ -304,7 +326,7 @@ class Renderer:
             kernels.add_noise(flat, means[pattern_index % self.schedule.n_frames].reshape(-1), g, read2, maxv,
                               _TABLE, state)
             return out
-        if pattern_index >= 0 and self.scene.tool is None:  # rigid motion only: one fused pass
+        if pattern_index >= 0:  # rigid motion (and the tool): one fused pass
             fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
             self._moving(out, True, fi, 2 * math.pi * n / self.schedule.steps, t_s, scale, amb, led, g, read2,
                          maxv, state)
