@@ -202,16 +202,24 @@ class Renderer:
         scene = (self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta), BLOCK,
                  float(alpha @ delta), float(gam @ delta), k / self.schedule.width, shift / (2 * math.pi),
                  float(self.schedule.width), self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+        band, zbuf, kk, qv = self._scratch_rows()
         if self.scene.tool is None:
-            kernels.moving_frame(out, noisy, *scene)
+            kernels.moving_frame(out, noisy, band, zbuf, kk, qv, *scene)
             return
         # With a tool: raster order (the noise sequence of add_noise over the mean frame).
         v0, spans, tool = self._tool_frame(fi, shift, t_s, led, float(delta[2]))
-        row = getattr(self._scratch, "row", None)
-        if row is None:
-            row = self._scratch.row = np.empty(w, np.float32)
-        kernels.tool_frame(out, noisy, row, *scene, self.rays.reshape(h, w, 3), self.points, v0, spans, tool,
-                           self.lut)
+        kernels.tool_frame(out, noisy, band[0], zbuf, kk, qv, *scene, self.rays.reshape(h, w, 3), self.points, v0, spans,
+                           tool, self.lut)
+
+    def _scratch_rows(self) -> tuple[F32, F32, npt.NDArray[np.int32], F32]:
+        """This thread's scratch for the frame kernels (allocated once): a (BLOCK, W) float32 band of
+        mean rows, (W,) float32 deviates, (W,) int32 projector-table indices, (W,) float32 table values."""
+        rows = getattr(self._scratch, "rows", None)
+        if rows is None:
+            w = self.shape[1]
+            rows = self._scratch.rows = (np.empty((BLOCK, w), np.float32), np.empty(w, np.float32),
+                                         np.empty(w, np.int32), np.empty(w, np.float32))
+        return rows
 
     def _nd_table(self) -> F32:
         with self._cache_lock:
@@ -220,7 +228,8 @@ class Renderer:
     def _nd_table_locked(self) -> F32:
         if self._nd is None:
             alpha, a_c, gam, g_c = self.rig.projector.column_coefficients()
-            self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c], -1).astype(np.float32)
+            # (2, H, W): numerator and denominator planes, contiguous rows for the vectorised kernels
+            self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c]).astype(np.float32)
         return self._nd
 
     def _tile_centres(self) -> tuple[F64, F64, F64]:
