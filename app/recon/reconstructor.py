@@ -323,7 +323,7 @@ class _OutputPool:
     buffer keeps it out of reuse.
     """
 
-    def __init__(self, size: int = 4) -> None:
+    def __init__(self, size: int = 2) -> None:  # the result in use and the one before
         self._recent: list[ReconResult] = []
         self._size = size
         self._lock = threading.Lock()
