@@ -51,7 +51,8 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/calibration/session/poses").status_code == 503  # no session yet
 
-        spec = BoardSpec()  # checkerboard, 8 × 6 inner corners, 2 mm squares
+        spec = BoardSpec()  # the simulator's checkerboard
+        n_corners = spec.inner_corners[0] * spec.inner_corners[1]
         r = client.post("/api/calibration/session", json=spec.to_json())
         assert r.status_code == 200 and r.json()["poses"] == []
 
@@ -64,8 +65,8 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
             client.put("/api/exposure", json={"exposure_ms": round(auto_exposure_ms(world), 2)})
             pose = capture_after_change(client)
             assert pose["index"] == k + 1
-            assert pose["found"] is True and pose["corners"] == 48, pose
-            assert len(pose["corner_points"]) == 48
+            assert pose["found"] is True and pose["corners"] == n_corners, pose
+            assert len(pose["corner_points"]) == n_corners
 
         preview = client.get("/api/calibration/session/poses/1/preview.png")
         img = cv2.imdecode(np.frombuffer(preview.content, np.uint8), cv2.IMREAD_COLOR)
