@@ -11,6 +11,7 @@ from app.devices.sim.scenes.targets import (
     board_poses,
     board_scene,
     dof_target_scene,
+    far_plane_scene,
     plane_scene,
     sphere_scene,
 )
@@ -18,6 +19,7 @@ from app.devices.sim.scenes.tissue import anastomosis_scene, flap_scene, pile_sc
 
 SCENES: dict[str, Callable[[SimRig], Scene]] = {
     "plane": plane_scene,
+    "far_plane": far_plane_scene,
     "dof_target": dof_target_scene,
     "skin_flap": lambda rig: flap_scene(rig, "skin"),
     "intestine_flap": lambda rig: flap_scene(rig, "intestine"),

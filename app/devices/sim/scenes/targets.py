@@ -103,11 +103,22 @@ def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64]) -> Scene:
 
 def plane_scene(rig: SimRig) -> Scene:
     """A matte grey plane 10 mm above the reference, tilted 15° about the camera x axis."""
+    return _tilted_plane(rig, "plane", 10.0, 15.0, 25.0, "metrology plane")
+
+
+def far_plane_scene(rig: SimRig) -> Scene:
+    """A matte grey plane 6 mm below the reference (≈ 46 mm from the scope), tilted 30°:
+    it crosses the far end of the calibrated volume, for the out-of-volume checks."""
+    return _tilted_plane(rig, "far_plane", -6.0, 30.0, 30.0, "plane beyond the calibrated volume")
+
+
+def _tilted_plane(rig: SimRig, name: str, height_mm: float, tilt_deg: float, half_size_mm: float,
+                  description: str) -> Scene:
     ref = rig.reference
-    normal = rotation_x(15.0) @ ref.normal
-    z = (10.0 - ref.offset_mm) / ref.normal[2]
+    normal = rotation_x(tilt_deg) @ ref.normal
+    z = (height_mm - ref.offset_mm) / ref.normal[2]
     origin, axes = frame_from_normal(np.array([0.0, 0.0, z]), normal)
-    return Scene("plane", flat_field(origin, axes, 25.0, "grey", ds=1.0), description="metrology plane")
+    return Scene(name, flat_field(origin, axes, half_size_mm, "grey", ds=1.0), description=description)
 
 
 def ruler_printer() -> PrintFn:
