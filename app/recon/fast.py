@@ -72,53 +72,47 @@ _C4 = np.float32(0.020846294370275874)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_0_2pi(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled (float32 in and out)
-    """Branch-free float32 atan2 mapped to [0, 2π)."""
+def _octant(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """atan2's reduction: (a = min/max of |x|, |y| in [0, 1], and the three folds)."""
     ax = abs(x)
     ay = abs(y)
-    mn = min(ax, ay)
-    mx = max(max(ax, ay), _TINY)
-    a = mn / mx
-    s = a * a
-    p = ((((((_A7 * s + _A6) * s + _A5) * s + _A4) * s + _A3) * s + _A2) * s + _A1) * s + _A0
-    r = p * a
-    r = _HALF_PI - r if ay > ax else r
-    r = _PI - r if x < _F0 else r
-    r = _TWO_PI - r if y < _F0 else r
+    return min(ax, ay) / max(max(ax, ay), _TINY), ay > ax, x < _F0, y < _F0
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _unfold(r, steep, left, below):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """atan(a) in [0, π/4] back to the full angle in [0, 2π), branch-free."""
+    r = _HALF_PI - r if steep else r
+    r = _PI - r if left else r
+    r = _TWO_PI - r if below else r
     return _F0 if r >= _TWO_PI else r
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:  # pragma: no cover
-    """Elementwise :func:`atan2_0_2pi` (for tests): 1-D float32 in, float32 in [0, 2π) out."""
-    out = np.empty(y.shape[0], np.float32)
-    for i in range(y.shape[0]):
-        out[i] = atan2_0_2pi(y[i], x[i])
-    return out
+def atan2_0_2pi(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled (float32 in and out)
+    """Branch-free float32 atan2 mapped to [0, 2π)."""
+    a, steep, left, below = _octant(y, x)
+    s = a * a
+    p = ((((((_A7 * s + _A6) * s + _A5) * s + _A4) * s + _A3) * s + _A2) * s + _A1) * s + _A0
+    return _unfold(p * a, steep, left, below)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def atan2_coarse(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
     """Branch-free float32 atan2 in [0, 2π), error ≤ 1.2e-5 rad: enough to pick fringe orders."""
-    ax = abs(x)
-    ay = abs(y)
-    mn = min(ax, ay)
-    mx = max(max(ax, ay), _TINY)
-    a = mn / mx
+    a, steep, left, below = _octant(y, x)
     s = a * a
-    r = ((((_C4 * s + _C3) * s + _C2) * s + _C1) * s + _C0) * a
-    r = _HALF_PI - r if ay > ax else r
-    r = _PI - r if x < _F0 else r
-    r = _TWO_PI - r if y < _F0 else r
-    return _F0 if r >= _TWO_PI else r
+    return _unfold(((((_C4 * s + _C3) * s + _C2) * s + _C1) * s + _C0) * a, steep, left, below)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_coarse_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:  # pragma: no cover
-    """Elementwise :func:`atan2_coarse` (for tests)."""
+def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32], coarse: bool = False,
+                ) -> npt.NDArray[np.float32]:  # pragma: no cover
+    """Elementwise :func:`atan2_0_2pi` (or :func:`atan2_coarse`), for tests: 1-D float32 in,
+    float32 in [0, 2π) out."""
     out = np.empty(y.shape[0], np.float32)
     for i in range(y.shape[0]):
-        out[i] = atan2_coarse(y[i], x[i])
+        out[i] = atan2_coarse(y[i], x[i]) if coarse else atan2_0_2pi(y[i], x[i])
     return out
 
 
