@@ -103,3 +103,12 @@ def test_noisy_frame_is_mean_plus_raster_noise(anastomosis: Renderer, bits: int)
     diff = np.abs(frame.astype(int) - ref.astype(int))
     assert diff.max() <= 1 and np.mean(diff > 0) < 1e-4  # rounding of a few vectorised pixels at most
     assert frame.std() > 5 and math.isfinite(float(frame.mean()))
+
+
+def test_vectorisable_cos_and_pow_match_scalar():
+    """The tool passes' branch-free cos and whole power against math.cos and _pow."""
+    x = np.random.default_rng(0).uniform(-600.0, 600.0, 20_000)
+    assert max(abs(kernels._cos(v) - math.cos(v)) for v in x) < 1e-12
+    for e in (0, 1, 30, 60, 120, 1023):
+        for v in x[:200] / 600.0 + 0.5:
+            assert kernels._pow_bits(v, e) == kernels._pow(v, float(e))
