@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter
 
-from app.devices.sim import kernels
+from app.devices.sim import kernels, tool_kernels
 from app.devices.sim.optics import SimRig, mat3
 from app.devices.sim.radiometry import (
     MATERIALS,
@@ -210,7 +210,7 @@ class Renderer:
         # With a tool: raster order (the noise sequence of add_noise over the mean frame).
         v0, spans, tool = self._tool_frame(fi, shift, t_s, led, float(delta[2]))
         rays, zs = self._tool_planes()
-        kernels.tool_frame(out, noisy, band[0], zbuf, kk, qv, *scene, rays, zs, v0, spans, tool, self.lut)
+        tool_kernels.tool_frame(out, noisy, band[0], zbuf, kk, qv, *scene, rays, zs, v0, spans, tool, self.lut)
 
     def _scratch_rows(self) -> tuple[F32, F32, npt.NDArray[np.int32], F32]:
         """This thread's scratch for the frame kernels (allocated once): a (BLOCK, W) float32 band of
@@ -224,7 +224,7 @@ class Renderer:
 
     def _tool_planes(self) -> tuple[F64, F64]:
         """Unit pixel rays as (3, H, W) float64 planes and the rest-pose depth (H, W) float64 mm (NaN
-        off-object), for kernels.tool_frame: contiguous rows let its loops vectorise (built once)."""
+        off-object), for tool_kernels.tool_frame: contiguous rows let its loops vectorise (built once)."""
         with self._cache_lock:
             if self._planes is None:
                 h, w = self.shape
@@ -271,8 +271,8 @@ class Renderer:
         return np.rint(flow).astype(np.int64)
 
     def _tool_frame(self, fi: int, shift: float, t_s: float, led: str, dz: float
-                    ) -> tuple[int, npt.NDArray[np.int64], kernels.ToolFrame]:
-        """The tool at ``t_s`` for kernels.tool_frame: (v0, spans, tool) with spans (n, 2) the first/last
+                    ) -> tuple[int, npt.NDArray[np.int64], tool_kernels.ToolFrame]:
+        """The tool at ``t_s`` for tool_kernels.tool_frame: (v0, spans, tool) with spans (n, 2) the first/last
         column to ray-test in rows v0 .. v0 + n − 1 (its image; n = 0 when it is out of view)."""
         tool = self.scene.tool
         assert tool is not None
@@ -287,14 +287,14 @@ class Renderer:
         alpha, a_c, gam, g_c = proj.column_coefficients()
         k = self.schedule.frequencies[fi]
         ks, shin = SPECULAR.get(tool.material, (0.0, 1.0))
-        assert shin == int(shin) and 0 <= shin < 1024, "kernels._tool_dn_run takes a whole specular exponent"
+        assert shin == int(shin) and 0 <= shin < 1024, "tool_kernels._tool_dn_run takes a whole specular exponent"
         # Fringe attenuation on the tool from camera defocus at its mean depth.
         z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0)) if len(ends) else self.rig.focus_mm
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
         atten = math.exp(-((2 * math.pi * k * self.grad_median / self.schedule.width) ** 2) * sig**2 / 2)
         # The projector row is not traced (the tool stays inside the DMD's rows); only its centre row is tested.
         rows_lit = -0.5 <= proj.K[1, 2] <= float(proj.size[1])
-        return v0, spans, kernels.ToolFrame(
+        return v0, spans, tool_kernels.ToolFrame(
             p0, axis / length, length, float(tool.radius_mm), float(REFLECTANCE[tool.material][led]), float(ks),
             float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(self.schedule.width),
             bool(rows_lit), 2 * math.pi * k / self.schedule.width, shift, atten, dz)
@@ -309,7 +309,7 @@ class Renderer:
         if v1 < v0 or samples[:, 0].max() + rad_px < 0 or samples[:, 0].min() - rad_px > w - 1:
             return none
         # per row: numba (the numpy (rows, samples) version cost 0.6 ms per frame)
-        return v0, kernels.tool_spans(samples[:, 0].copy(), samples[:, 1].copy(), v0, v1, float(rad_px), w)
+        return v0, tool_kernels.tool_spans(samples[:, 0].copy(), samples[:, 1].copy(), v0, v1, float(rad_px), w)
 
     def _static_means(self, exposure_ms: float, gain: float, led: str, current: float, bits: int) -> F32:
         """Noise-free frames of every pattern for these settings (static scenes; one cached set)."""
