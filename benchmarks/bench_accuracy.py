@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     world, cs, truth, points = _capture("sphere", seed=5)
     res = rec.run(cs.frames)
     spheres = world.scene.spheres
-    sph = sphere_target_report(cal, res, truth, points, [s.centre for s in spheres], spheres[0].radius_mm)
+    sph = sphere_target_report(cal, res, truth, points, [s.centre for s in spheres], spheres[0].radius_mm,
+                               projector_centre_mm=world.rig.projector.centre)
     seg = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)
 
     rig = default_rig()
@@ -113,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
          f"{far['outside_valid']} / {far['outside_max_abs_error_mm']:.4f}", "", "<= 0.5",
          far["outside_pixels"] > 0 and (far["outside_valid"] == 0 or far["outside_max_abs_error_mm"] <= 0.5)),
         ("sphere valid fraction", f"{sph['valid_fraction']:.4f}", "", ">= 0.99", sph["valid_fraction"] >= 0.99),
+        ("  sphere px unlit / lit beyond 87 deg (projector)",
+         f"{sph['unlit_fraction']:.4f} / {1 - sph['incidence'][87.0]['pixels_fraction']:.4f}", "", "", None),
+        ("  sphere valid where lit at <= 80 deg", f"{sph['incidence'][80.0]['valid_fraction']:.4f}", "", "", None),
         ("sphere mean error (mm)", f"{sph['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
          abs(sph["mean_error_mm"]) <= 0.005),
         ("sphere max |error| (mm)", f"{sph['max_abs_error_mm']:.4f}", "", "<= 0.5", sph["max_abs_error_mm"] <= 0.5),

@@ -86,25 +86,35 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
 
 def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
                          truth_points: npt.ArrayLike, centres: list[npt.ArrayLike], radius_mm: float,
-                         *, surface_tol_mm: float = 0.02) -> dict[str, Any]:
+                         *, surface_tol_mm: float = 0.02, projector_centre_mm: npt.ArrayLike | None = None,
+                         incidence_limits_deg: tuple[float, ...] = (80.0, 87.0)) -> dict[str, Any]:
     """Figures of sphere targets: validity and error on sphere pixels, then PS/PF per sphere.
 
     Args:
         centres: true sphere centres (3,) mm, camera frame; radius_mm: their true radius.
         surface_tol_mm: a pixel belongs to a sphere if its true point is this close to it.
+        projector_centre_mm: optional (3,) projector centre, camera frame, mm: adds the
+            ``incidence`` breakdown (how obliquely the fringes light each sphere pixel).
+        incidence_limits_deg: the incidence angles of that breakdown, degrees.
 
     Returns:
         dict with ``valid_fraction`` and error figures over sphere pixels inside the
         calibrated volume, and ``spheres``: per sphere ``diameter_mm``, ``ps_mm``, ``pf_mm``,
-        ``rms_mm``, ``n_points``.
+        ``rms_mm``, ``n_points``. With ``projector_centre_mm``, ``incidence``: per limit
+        ``{"pixels_fraction", "valid_fraction"}`` of the in-volume sphere pixels the
+        projector lights at or below that angle, and ``unlit_fraction`` (at or beyond 90°:
+        in the sphere's own shadow).
     """
     tp = np.asarray(truth_points, np.float64)
     on_any = np.zeros(tp.shape[:2], bool)
+    normals = np.zeros(tp.shape)
     masks = []
     for c in centres:
-        m = np.abs(np.linalg.norm(tp - np.asarray(c, np.float64), axis=-1) - radius_mm) <= surface_tol_mm
+        c = np.asarray(c, np.float64)
+        m = np.abs(np.linalg.norm(tp - c, axis=-1) - radius_mm) <= surface_tol_mm
         masks.append(m)
         on_any |= m
+        normals[m] = (tp[m] - c) / radius_mm
     errs = depth_errors(result.depth, truth_depth, calibration.height_range_mm, mask=on_any)
     spheres = []
     for m in masks:
@@ -114,9 +124,10 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
                         "n_points": f.n_points})
     lo, hi = calibration.height_range_mm
     t = np.asarray(truth_depth, np.float64)
-    bad = on_any & np.isfinite(t) & (t >= lo) & (t <= hi) & ~np.asarray(result.valid, bool)
+    inside = on_any & np.isfinite(t) & (t >= lo) & (t <= hi)
+    bad = inside & ~np.asarray(result.valid, bool)
     codes, counts = np.unique(np.asarray(result.reason)[bad], return_counts=True)
-    return {
+    report: dict[str, Any] = {
         "valid_fraction": errs.valid_fraction,
         "invalid_reasons": {int(c): int(n) for c, n in zip(codes, counts, strict=True)},
         "inside_pixels": errs.inside_pixels,
@@ -124,3 +135,38 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
         "max_abs_error_mm": errs.max_abs_error_mm,
         "spheres": spheres,
     }
+    if projector_centre_mm is not None:
+        cos_inc = projector_incidence_cos(tp, normals, projector_centre_mm)
+        report["unlit_fraction"] = float((cos_inc[inside] <= 0.0).mean()) if inside.any() else math.nan
+        report["incidence"] = {}
+        for deg in incidence_limits_deg:
+            lit = inside & (cos_inc >= math.cos(math.radians(deg)))
+            report["incidence"][float(deg)] = {
+                "pixels_fraction": float(lit.sum() / max(1, inside.sum())),
+                "valid_fraction": float(np.asarray(result.valid, bool)[lit].mean()) if lit.any() else math.nan,
+            }
+    return report
+
+
+def projector_incidence_cos(points: npt.ArrayLike, normals: npt.ArrayLike,
+                            projector_centre_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Cosine of the angle between surface normals and the rays from the projector.
+
+    Args:
+        points: (..., 3) surface points, mm; normals: (..., 3) unit outward normals;
+        projector_centre_mm: (3,) projector centre, mm, same frame.
+
+    Returns:
+        (...) float64 cos of the incidence angle: 1 face-on, ≤ 0 unlit (facing away).
+    """
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    c = np.asarray(projector_centre_mm, np.float64)
+    if p.shape[-1] != 3 or n.shape != p.shape:
+        raise ValueError(f"normals: shape {n.shape} must equal points {p.shape} (..., 3)")
+    if c.shape != (3,) or not np.isfinite(c).all():
+        raise ValueError(f"projector_centre_mm: expected 3 finite numbers, got {c.tolist()}")
+    to_projector = c - p
+    dist = np.linalg.norm(to_projector, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.asarray((n * to_projector).sum(-1) / dist, np.float64)
