@@ -127,7 +127,8 @@ def ruler_printer() -> PrintFn:
 
     def ruler(s: F64, t: F64) -> F64:
         out = np.ones(np.broadcast(s, t).shape)
-        group = np.floor((s + 20.0) / 4.0).astype(int) % len(freqs)
+        # NaN s (no surface there) prints nothing; nan_to_num only keeps the cast defined
+        group = np.floor((np.nan_to_num(s) + 20.0) / 4.0).astype(int) % len(freqs)
         f = freqs[group]
         bars = (t > 6.0) & (t < 9.0) & (((s + 20.0) * f) % 1.0 < 0.5)
         ticks = (t > 9.5) & (t < np.where(np.abs(s - np.rint(s / 5) * 5) < 0.5, 11.5, 10.5)) & \
