@@ -180,8 +180,7 @@ def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, floa
     sections' apexes at once, robustly. Sections without a usable parabola give the
     median of their three highest points.
     """
-    apex = [(s0, -c[1] / (2 * c[0])) for s0, c, lo, hi, _ in fits
-            if c is not None and c[0] < 0 and lo <= -c[1] / (2 * c[0]) <= hi]
+    apex = [(s0, t) for s0, c, lo, hi, _ in fits if (t := _apex(c, lo, hi)) is not None]
     axis = None
     if len(apex) >= 5:
         s_a, t_a = np.asarray(apex).T
@@ -194,11 +193,19 @@ def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, floa
     for s0, c, lo, hi, fallback in fits:
         if c is not None and axis is not None and lo <= np.polyval(axis, s0) <= hi:
             out.append(float(np.polyval(c, np.polyval(axis, s0))))
-        elif c is not None and axis is None and c[0] < 0 and lo <= -c[1] / (2 * c[0]) <= hi:
-            out.append(float(c[2] - c[1] ** 2 / (4 * c[0])))
+        elif c is not None and axis is None and (t := _apex(c, lo, hi)) is not None:
+            out.append(float(np.polyval(c, t)))
         else:
             out.append(fallback)
     return out
+
+
+def _apex(coef: npt.NDArray[np.float64] | None, lo: float, hi: float) -> float | None:
+    """Position of a downward parabola's apex when it lies within [lo, hi], else None."""
+    if coef is None or coef[0] >= 0:
+        return None
+    t = -coef[1] / (2 * coef[0])
+    return float(t) if lo <= t <= hi else None
 
 
 def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:

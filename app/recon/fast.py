@@ -29,7 +29,6 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP t
 import math  # noqa: E402
 import threading  # noqa: E402
 
-import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
 from numba import njit, prange  # noqa: E402
@@ -43,7 +42,6 @@ KERNEL_LOCK = threading.Lock()
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
-_HALF = np.float32(0.5)
 _PI = np.float32(math.pi)
 _HALF_PI = np.float32(0.5 * math.pi)
 _TWO_PI = np.float32(2.0 * math.pi)
@@ -371,8 +369,6 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
             _shade_row(modulation[v], texture[v], m2[r], total[r], mod_scale, inv_frames)
             _points_row(points[v].reshape(3 * width), hbuf[r], code[r], ray_q[v].reshape(3 * width), offset)
 
-
-NUMBA_VERSION = numba.__version__
 
 _warm: set[str] = set()
 

@@ -225,6 +225,14 @@ class Reconstructor:
         return calibration_row_coefficients(self.calibration), ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
+    def _fast_schedule(self) -> tuple[F32, F32, F32]:
+        """float32 (cos δ_n, sin δ_n, frequencies) of the calibration's pattern."""
+        sched = self.calibration.pattern
+        delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
+                np.asarray(sched.frequencies, np.float32))
+
+    @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
         return calibration_model_tables(self.calibration), calibration_ray_tables(self.calibration)
 
@@ -293,14 +301,11 @@ class Reconstructor:
     def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult) -> None:
         assert _fast is not None
         cal = self.calibration
-        sched = cal.pattern
         rows, ray_q = self._fast_tables
-        delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        cos_d, sin_d, freqs = self._fast_schedule
         lo, hi = self._bounds_mm
         _fast.fused_kernel(
-            np.ascontiguousarray(frames),
-            np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-            np.asarray(sched.frequencies, np.float32),
+            np.ascontiguousarray(frames), cos_d, sin_d, freqs,
             np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
             self.combine_frequencies,
             rows.u_norm, rows.coefs, np.float32(rows.phi0), np.float32(rows.inv_sphi),
@@ -331,11 +336,12 @@ class _OutputPool:
     def take(self, shape: tuple[int, ...], with_phase: bool) -> ReconResult:
         h, w = shape
         with self._lock:
+            # indexed, not iterated: a loop variable would itself count as a reference
             for i in range(len(self._recent)):
-                if _reference_counts(self._recent[i]) == _UNREFERENCED:
+                if (_reference_counts(self._recent[i]) == _UNREFERENCED and self._recent[i].depth.shape == (h, w)
+                        and (self._recent[i].phase is not None) == with_phase):
                     res = self._recent.pop(i)
-                    if res.depth.shape == (h, w) and (res.phase is not None) == with_phase:
-                        break
+                    break
             else:
                 res = _new_result(h, w, with_phase)
             self._recent = [res, *self._recent][: self._size]
