@@ -30,7 +30,7 @@ RUN useradd --system --create-home --uid 10001 --home-dir /home/fringescope frin
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
-    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/status' % os.environ.get('FRINGESCOPE_PORT', '8000'), timeout=4)"]
+    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('FRINGESCOPE_PORT', '8000'), timeout=4)"]
 CMD ["fringescope", "serve"]
 
 # Dependencies change less often than the code: their own layer, reused on rebuilds.

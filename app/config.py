@@ -57,6 +57,14 @@ class Settings(BaseSettings):
     viewer_port: int = Field(0, ge=0, le=65535)  # 0: pick a free loopback port
     viewer_max_points: int = Field(300_000, ge=1000)
 
+    # OpenIGTLink (3D Slicer, navigation): off unless a port is set (18944 is the convention;
+    # 0 picks a free port). The protocol has no authentication: a host other than loopback
+    # also needs igtl_allow_remote.
+    igtl_port: int | None = Field(None, ge=0, le=65535)
+    igtl_host: str = "127.0.0.1"
+    igtl_allow_remote: bool = False
+    igtl_max_points: int = Field(100_000, ge=1)
+
 
 def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Settings:
     """Settings from a TOML file (optional), then the environment, then ``overrides``.

@@ -19,6 +19,7 @@ from fastapi.staticfiles import StaticFiles
 import app as app_package
 from app import __version__
 from app.api import api_router
+from app.api.auth import router as auth_router  # issue 16
 from app.api.deps import install_error_handlers
 from app.api.recordings import router as recordings_router  # issue 7
 from app.api.security import install_security  # issue 7
@@ -45,6 +46,27 @@ def _make_viewer(settings: Settings, instrument: Instrument) -> tuple[Any, Any]:
     return viewer, viewer_router(viewer)
 
 
+def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
+    """The OpenIGTLink server (issue 16), or None when ``igtl_port`` is unset."""
+    if settings.igtl_port is None:
+        return None
+    from app.service.igtl import IgtlServer, check_igtl_settings, image_placement
+
+    check_igtl_settings(settings.igtl_host, settings.igtl_port, settings.igtl_allow_remote)
+
+    def placement() -> Any:
+        cal = instrument.calibration
+        if cal is None:
+            return None
+        try:
+            return image_placement(cal.camera_matrix, cal.plane_normal, cal.plane_offset_mm)
+        except ValueError:
+            return None
+
+    return IgtlServer(instrument.results, host=settings.igtl_host, port=settings.igtl_port,
+                      max_points=settings.igtl_max_points, status=instrument.status, placement=placement)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The Fringescope web application (the Instrument starts and stops with its lifespan)."""
     settings = settings or Settings()
@@ -53,10 +75,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     recorder = Recorder(instrument)  # issue 7: recordings of the live sets
     instrument.recorder = recorder  # issue 7: status shows `recording`
     viewer, viewer_routes = _make_viewer(settings, instrument)
+    igtl = _make_igtl(settings, instrument)  # issue 16
+    if igtl is not None:
+        recorder.pose_source = igtl.latest_transforms
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         instrument.start()
+        if igtl is not None:
+            try:
+                igtl.start()  # issue 16: a taken port fails the startup, like the HTTP port
+            except OSError:
+                instrument.close()
+                raise
         if viewer is not None:
             try:
                 viewer.start()
@@ -69,6 +100,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             recorder.close()  # issue 7: finish a running recording before the devices stop
             if viewer is not None:
                 viewer.stop()
+            if igtl is not None:
+                igtl.stop()
             instrument.close()
 
     app = FastAPI(title="Fringescope", version=__version__, lifespan=lifespan,
@@ -76,6 +109,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.instrument = instrument
     app.state.viewer = viewer
+    app.state.igtl = igtl
     install_error_handlers(app)
     install_security(app, settings)  # issue 7: token, CORS, WebSocket Origin, upload limit
     app.state.recorder = recorder  # issue 7
@@ -83,6 +117,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # (2) REST and streams
     app.include_router(api_router())
     app.include_router(recordings_router)  # issue 7
+    app.include_router(auth_router)  # issue 16: /healthz, /api/auth, /api/login, /api/logout
 
     # (3) the 3-D viewer relay
     if viewer_routes is not None:

@@ -33,8 +33,8 @@ const $ = (id) => document.getElementById(id);
 
 // ---------------------------------------------------------------- requests
 function storedToken() {
-  try {
-    return localStorage.getItem(TOKEN_KEY) || "";
+  try {  // issue 16: auth.js keeps the token for the browser session
+    return sessionStorage.getItem(TOKEN_KEY) || localStorage.getItem(TOKEN_KEY) || "";
   } catch (_) {
     return "";
   }
@@ -656,4 +656,7 @@ function start() {
   connectStream();
 }
 
-document.addEventListener("DOMContentLoaded", start);
+// issue 16: static/auth.js (a module, run before DOMContentLoaded) signs in first
+document.addEventListener("DOMContentLoaded", () => {
+  (window.fringescopeSignIn || Promise.resolve()).then(start, (err) => say(String(err.message || err), "error"));
+});

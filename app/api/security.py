@@ -5,17 +5,21 @@ Rules (issue 7):
 - Loopback by default. On any other address a token (``FRINGESCOPE_API_TOKEN``) is
   required, and :func:`check_startup_security` refuses to start without one unless
   ``insecure`` is set (``--insecure`` / ``FRINGESCOPE_INSECURE=1``).
-- When a token is configured (on any address) it guards every state-changing request
-  (POST, PUT, PATCH, DELETE) and everything under the viewer relay ``/viser``
-  (HTTP and WebSocket). Reads (``GET``) of the REST API stay open, ``/api/status``
-  in particular (the container health check uses it).
-- How to pass the token: ``Authorization: Bearer <token>`` always. Browsers cannot
-  set headers on a WebSocket or an iframe, so the viewer relay and WebSockets also
-  accept the cookie ``fringescope_token`` or the query ``?token=<token>`` (after a
-  valid query token the response sets that cookie — ``HttpOnly; SameSite=Strict`` —
-  so the page's scripts and its WebSocket follow). Cookies and queries are never
-  accepted for state-changing requests (no cross-site request forgery); a query token
-  may end up in proxy logs, prefer the cookie.
+- When a token is configured (on any address; off loopback one is required) it guards
+  every route that returns or changes data (issue 16): everything under ``/api`` (depth,
+  points, texture, reasons, results, status, recordings and their files, calibrations,
+  streams incl. WebSockets and MJPEG), the viewer relay ``/viser`` (HTTP and WebSocket) and
+  every WebSocket. Open without a token: ``/healthz`` (liveness only, nothing
+  patient-related), ``GET /api/auth`` (is a token needed, is this request authenticated),
+  ``POST /api/logout``, the dashboard's static files (no data in them) and the API
+  description (``/docs``, ``/redoc``, ``/openapi.json``).
+- How to pass the token: ``Authorization: Bearer <token>`` always. Browsers cannot set
+  headers on ``<img>``, a WebSocket or an iframe, so reads (GET/HEAD) and WebSockets also
+  accept the cookie ``fringescope_token`` — ``HttpOnly; SameSite=Strict``, set by
+  ``POST /api/login`` (bearer header) — and the viewer relay and WebSockets the query
+  ``?token=<token>`` (after a valid query token the response sets that cookie). Cookies and
+  queries are never accepted for state-changing requests (no cross-site request forgery);
+  a query token may end up in proxy logs, prefer the cookie.
 - CORS is closed unless ``cors_origins`` lists origins. A WebSocket whose ``Origin``
   is neither the server's own host nor a listed origin is refused (HTTP 403).
 - Request bodies above ``max_upload_mb`` get 413 with a reason, whether announced by
@@ -43,7 +47,10 @@ from app.config import Settings
 TOKEN_COOKIE = "fringescope_token"
 TOKEN_QUERY = "token"
 STATE_CHANGING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-PROTECTED_PREFIXES = ("/viser",)
+PROTECTED_PREFIXES = ("/api", "/viser")  # everything here needs the token when one is set
+VIEWER_PREFIXES = ("/viser",)  # also accepts ?token= (an iframe cannot send a header)
+OPEN_PATHS = frozenset({"/healthz", "/api/auth", "/api/logout"})  # no data in them
+SAFE_METHODS = frozenset({"GET", "HEAD"})
 _TOKEN_PATTERN = re.compile(r'[!#-+\--:<-\[\]-~]{1,512}')  # cookie-safe: no space " , ; \\
 
 Scope = MutableMapping[str, Any]
@@ -91,8 +98,13 @@ def _headers(scope: Scope) -> dict[str, str]:
     return {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
 
 
-def supplied_tokens(scope: Scope, *, allow_cookie: bool) -> list[str]:
-    """Tokens a request carries: the bearer header, plus cookie and query if allowed."""
+def supplied_tokens(scope: Scope, *, allow_cookie: bool, allow_query: bool | None = None) -> list[str]:
+    """Tokens a request carries: the bearer header, plus cookie and query if allowed.
+
+    ``allow_query`` defaults to ``allow_cookie``.
+    """
+    if allow_query is None:
+        allow_query = allow_cookie
     headers = _headers(scope)
     found: list[str] = []
     scheme, _, value = headers.get("authorization", "").partition(" ")
@@ -106,9 +118,37 @@ def supplied_tokens(scope: Scope, *, allow_cookie: bool) -> list[str]:
             cookie = SimpleCookie()
         if TOKEN_COOKIE in cookie:
             found.append(cookie[TOKEN_COOKIE].value)
+    if allow_query:
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
         found.extend(query.get(TOKEN_QUERY, [])[:1])
     return found
+
+
+def _under(path: str, prefixes: tuple[str, ...]) -> bool:
+    return any(path == p or path.startswith(p + "/") for p in prefixes)
+
+
+def token_rule(scope: Scope) -> tuple[bool, bool, bool]:
+    """(needs the token, cookie accepted, query accepted) for a request when a token is set."""
+    path = scope.get("path", "")
+    viewer = _under(path, VIEWER_PREFIXES)
+    if scope["type"] == "websocket":
+        return True, True, True
+    method = scope.get("method", "GET")
+    if path in OPEN_PATHS:
+        return False, False, False
+    if method in STATE_CHANGING:
+        return True, False, False
+    needs = _under(path, PROTECTED_PREFIXES)
+    safe = method in SAFE_METHODS
+    return needs, needs and safe, needs and safe and viewer
+
+
+def request_authenticated(scope: Scope, token: str | None) -> bool:
+    """True if no token is configured or the request carries it (header or cookie)."""
+    if not token:
+        return True
+    return token_matches(token, supplied_tokens(scope, allow_cookie=True, allow_query=False))
 
 
 def token_matches(expected: str, supplied: list[str]) -> bool:
@@ -134,6 +174,11 @@ def origin_allowed(scope: Scope, allowed_origins: list[str]) -> bool:
     except ValueError:
         return False
     return bool(host) and netloc.lower() == host.lower()
+
+
+def token_cookie(token: str, *, secure: bool) -> str:
+    """``Set-Cookie`` value carrying the token for this browser session (no expiry)."""
+    return f"{TOKEN_COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if secure else "")
 
 
 class UploadTooLarge(HTTPException):
@@ -163,35 +208,27 @@ class SecurityMiddleware:
         else:
             await self.app(scope, receive, send)
 
-    def _protected(self, scope: Scope) -> tuple[bool, bool]:
-        """(needs a token, cookie/query accepted) for this request."""
-        path = scope.get("path", "")
-        viewer = any(path == p or path.startswith(p + "/") for p in PROTECTED_PREFIXES)
-        if scope["type"] == "websocket":
-            return viewer, True
-        changing = scope.get("method", "GET") in STATE_CHANGING
-        return viewer or changing, viewer and not changing
-
     async def _websocket(self, scope: Scope, receive: Receive, send: Send) -> None:
         if not origin_allowed(scope, self.allowed_origins):
             await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})
             return
-        needs, lenient = self._protected(scope)
-        if needs and self.token and not token_matches(self.token, supplied_tokens(scope, allow_cookie=lenient)):
+        needs, cookie, query = token_rule(scope)
+        if needs and self.token and not token_matches(
+                self.token, supplied_tokens(scope, allow_cookie=cookie, allow_query=query)):
             await send({"type": "websocket.close", "code": 1008, "reason": "missing or invalid token"})
             return
         await self.app(scope, receive, send)
 
     async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
-        needs, lenient = self._protected(scope)
+        needs, cookie, query = token_rule(scope)
         set_cookie = False
         if needs and self.token:
-            if not token_matches(self.token, supplied_tokens(scope, allow_cookie=lenient)):
+            if not token_matches(self.token, supplied_tokens(scope, allow_cookie=cookie, allow_query=query)):
                 await _json(send, 401, "missing or invalid token: send 'Authorization: Bearer "
                             "<FRINGESCOPE_API_TOKEN>'", {"www-authenticate": "Bearer"})
                 return
-            query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
-            set_cookie = lenient and bool(query.get(TOKEN_QUERY))
+            params = parse_qs(scope.get("query_string", b"").decode("latin-1"))
+            set_cookie = query and bool(params.get(TOKEN_QUERY))
         length = _headers(scope).get("content-length")
         if length is not None:
             try:
@@ -219,9 +256,9 @@ class SecurityMiddleware:
             if message["type"] == "http.response.start":
                 started = True
                 if set_cookie and self.token:
-                    cookie = (f"{TOKEN_COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict")
+                    value = token_cookie(self.token, secure=scope.get("scheme") == "https")
                     message = {**message, "headers": [*message.get("headers", []),
-                                                      (b"set-cookie", cookie.encode("latin-1"))]}
+                                                      (b"set-cookie", value.encode("latin-1"))]}
             await send(message)
 
         try:
@@ -266,11 +303,14 @@ def _document_bearer(app: FastAPI) -> None:
                                  description=app.description)
             schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearer"] = {
                 "type": "http", "scheme": "bearer",
-                "description": "FRINGESCOPE_API_TOKEN; required for POST/PUT/DELETE and /viser",
+                "description": "FRINGESCOPE_API_TOKEN; required for every route under /api "
+                               "except /api/auth and /api/logout (the cookie set by "
+                               "POST /api/login also works for GET)",
             }
-            for item in schema.get("paths", {}).values():
+            for path, item in schema.get("paths", {}).items():
                 for method, op in item.items():
-                    if method.upper() in STATE_CHANGING and isinstance(op, dict):
+                    scope = {"type": "http", "path": path, "method": method.upper()}
+                    if isinstance(op, dict) and token_rule(scope)[0]:
                         op.setdefault("security", [{"bearer": []}])
                         op.setdefault("responses", {}).setdefault(
                             "401", {"description": "missing or invalid token"})

@@ -18,6 +18,7 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 from app.capture.captureset import CaptureSet
@@ -64,6 +65,8 @@ class Recorder:
         self.errors = 0
         self.last_error: str | None = None
         self._cleaned = False
+        # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
+        self.pose_source: Callable[[], dict[str, Any]] | None = None
 
     # -- control (any thread) --------------------------------------------------------------
     @property
@@ -202,6 +205,10 @@ class Recorder:
                 led=fs.led or "green", extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}
+            poses = self.pose_source() if self.pose_source is not None else None
+            if poses:  # issue 16: stored in capture.json and session.json
+                capture.extra["igtl_transforms"] = poses
+                info["igtl_transforms"] = poses
             if res is not None:
                 info.update(result_seq=res.seq, latency_ms=round(res.latency_ms, 3),
                             valid_fraction=round(float(res.valid.mean()), 6))

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 import numpy as np
 
 T = TypeVar("T")
+log = logging.getLogger("fringescope.service.store")
 
 
 class NewestQueue(Generic[T]):
@@ -55,6 +58,9 @@ class LatestSlot(Generic[T]):
 
     ``publish`` numbers values 1, 2, …; ``wait_newer(after_seq)`` returns the first value
     with a higher number (or ``None`` on timeout or after ``close()``).
+    ``subscribe(callback)`` calls ``callback(seq, value)`` on every publish, on the
+    publisher's thread after the value is visible: callbacks must only hand over (e.g. to a
+    :class:`NewestQueue`), never block; an exception in one is logged and ignored.
     """
 
     def __init__(self) -> None:
@@ -62,6 +68,7 @@ class LatestSlot(Generic[T]):
         self._value: T | None = None
         self._seq = 0
         self._closed = False
+        self._subscribers: list[Callable[[int, T], None]] = []
 
     @property
     def seq(self) -> int:
@@ -74,9 +81,28 @@ class LatestSlot(Generic[T]):
     def publish(self, value: T) -> int:
         with self._cond:
             self._seq += 1
+            seq = self._seq
             self._value = value
             self._cond.notify_all()
-            return self._seq
+            subscribers = list(self._subscribers)
+        for callback in subscribers:
+            try:
+                callback(seq, value)
+            except Exception:
+                log.exception("result subscriber %r failed", callback)
+        return seq
+
+    def subscribe(self, callback: Callable[[int, T], None]) -> Callable[[], None]:
+        """Call ``callback(seq, value)`` on every publish; returns the unsubscribe function."""
+        with self._cond:
+            self._subscribers.append(callback)
+
+        def unsubscribe() -> None:
+            with self._cond:
+                if callback in self._subscribers:
+                    self._subscribers.remove(callback)
+
+        return unsubscribe
 
     def latest(self) -> tuple[int, T | None]:
         with self._cond:

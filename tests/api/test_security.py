@@ -100,7 +100,9 @@ def test_no_token_on_loopback_leaves_routes_open() -> None:
 
 def test_token_guards_state_changing_routes() -> None:
     client = TestClient(make_app(api_token=TOKEN))
-    assert client.get("/api/status").status_code == 200  # health check stays open
+    # issue 16: reads need the token too (the open health check is /healthz, see test_access.py)
+    assert client.get("/api/status").status_code == 401
+    assert client.get("/api/status", headers=AUTH).status_code == 200
     for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"},
                     {"Authorization": f"Bearer {TOKEN}x"}):
         r = client.put("/api/exposure", json={"exposure_ms": 20}, headers=headers)
@@ -131,8 +133,12 @@ def test_viewer_relay_needs_token_by_header_cookie_or_query() -> None:
     assert client.get("/viser/").status_code == 200  # the cookie now travels
     with client.websocket_connect("/viser/ws") as ws:
         assert ws.receive_text() == "hello"
-    # read-only streams do not need the token
-    with TestClient(make_app(api_token=TOKEN)).websocket_connect("/api/stream") as ws:
+    # issue 16: read-only streams need the token as well (header, cookie or query)
+    fresh = TestClient(make_app(api_token=TOKEN))
+    with pytest.raises(WebSocketDisconnect) as err, fresh.websocket_connect("/api/stream"):
+        pass
+    assert err.value.code == 1008
+    with fresh.websocket_connect("/api/stream", headers=AUTH) as ws:
         assert ws.receive_text() == "frame"
 
 
@@ -145,7 +151,7 @@ def test_websocket_origin_checked() -> None:
                 pass
             assert err.value.code == 1008
     for origin in ("http://testserver", "https://ok.example"):
-        with client.websocket_connect("/api/stream", headers={"origin": origin}) as ws:
+        with client.websocket_connect(f"/api/stream?token={TOKEN}", headers={"origin": origin}) as ws:
             assert ws.receive_text() == "frame"
 
 
@@ -202,4 +208,4 @@ def test_checked_name_and_openapi() -> None:
     spec = client.get("/openapi.json").json()
     assert spec["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
     assert spec["paths"]["/api/exposure"]["put"]["security"] == [{"bearer": []}]
-    assert "security" not in spec["paths"]["/api/status"]["get"]
+    assert spec["paths"]["/api/status"]["get"]["security"] == [{"bearer": []}]  # issue 16

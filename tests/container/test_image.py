@@ -137,7 +137,7 @@ def test_image_serves_dashboard_viewer_and_api(built_image: str, tmp_path: Path)
         status: dict[str, object] = {}
         while time.monotonic() < deadline:
             try:
-                code, _, body = http("GET", f"{base}/api/status", timeout=5)
+                code, _, body = http("GET", f"{base}/api/status", token=TOKEN, timeout=5)
                 if code == 200:
                     status = json.loads(body)
                     break
@@ -150,6 +150,9 @@ def test_image_serves_dashboard_viewer_and_api(built_image: str, tmp_path: Path)
         assert status["state"] in ("starting", "calibrating", "running", "fault")
         assert any(d["kind"] == "camera" and d["name"].startswith("sim") for d in status["devices"])  # type: ignore[attr-defined]
 
+        # issue 16: off loopback the data routes need the token; /healthz stays open
+        assert http("GET", f"{base}/api/status")[0] == 401
+        assert http("GET", f"{base}/healthz")[0] == 200
         code, headers, body = http("GET", f"{base}/")
         assert code == 200 and headers["content-type"].startswith("text/html")
         assert b"<html" in body.lower() and b"fringescope" in body.lower()
