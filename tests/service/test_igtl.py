@@ -276,3 +276,23 @@ def test_live_image_equals_rest_depth_bit_for_bit(live_igtl: TestClient) -> None
             client.stop()
     finally:
         assert live_igtl.post("/api/acquisition/start").status_code == 200
+
+
+def test_live_received_transform_is_recorded_with_the_sets(live_igtl: TestClient) -> None:
+    server: IgtlServer = live_igtl.app.state.igtl  # type: ignore[attr-defined]
+    client = client_for(server)
+    try:
+        pose = np.array([[1, 0, 0, 5], [0, 1, 0, -3], [0, 0, 1, 120], [0, 0, 0, 1]], np.float32)
+        wait_until(lambda: server.clients() >= 1)
+        client.send_message(pyigtl.TransformMessage(pose, device_name="ScopeToRef"), wait=True)
+        wait_until(lambda: "ScopeToRef" in server.latest_transforms())
+        assert live_igtl.post("/api/recording/start", json={"name": "igt-1"}).status_code == 200
+        wait_until(lambda: live_igtl.get("/api/recording").json()["sets"] >= 1, 60)
+        stopped = live_igtl.post("/api/recording/stop").json()["stopped"]
+    finally:
+        client.stop()
+    first = stopped["sets"][0]
+    assert first["igtl_transforms"]["ScopeToRef"]["matrix"] == pose.tolist()
+    root = Path(live_igtl.app.state.settings.data_dir) / "recordings" / "igt-1"  # type: ignore[attr-defined]
+    capture = json.loads((root / first["folder"] / "capture.json").read_text())
+    assert capture["igtl_transforms"]["ScopeToRef"]["matrix"] == pose.tolist()
