@@ -19,8 +19,7 @@ from fastapi.staticfiles import StaticFiles
 import app as app_package
 from app import __version__
 from app.api import api_router
-from app.api.deps import install_error_handlers
-from app.api.recordings import router as recordings_router  # issue 7
+from app.api.errors import install_error_handlers
 from app.api.security import install_security  # issue 7
 from app.config import Settings
 from app.service.instrument import Instrument
@@ -82,7 +81,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     # (2) REST and streams
     app.include_router(api_router())
-    app.include_router(recordings_router)  # issue 7
 
     # (3) the 3-D viewer relay
     if viewer_routes is not None:

@@ -6,6 +6,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
+from app.capture.recording import NAME_PATTERN
+
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -204,3 +206,49 @@ class FeatureOut(BaseModel):
     height_std_mm: float | None
     count: int
     extra: dict[str, Any] = {}
+
+
+# -- recordings ------------------------------------------------------------------------------------
+#: a recording's name: one plain path component (the folder under data/recordings)
+RECORDING_NAME_REGEX = NAME_PATTERN.pattern
+
+
+class RecordingStartIn(Strict):
+    name: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
+                             description="folder name under data/recordings (default: rec_<UTC time>)")
+
+
+class RecorderStatus(BaseModel):
+    recording: str | None
+    sets: int
+    sets_with_depth: int
+    skipped_sets: int
+    errors: int
+    last_error: str | None
+
+
+class RecordingSummary(BaseModel):
+    name: str
+    started: str | None
+    stopped: str | None
+    n_sets: int
+    bytes: int
+
+
+class RecordingStopOut(BaseModel):
+    recording: None = None
+    stopped: dict[str, Any] | None = Field(None, description="session.json of the recording just stopped")
+
+
+class RecordingDeletedOut(BaseModel):
+    deleted: str
+
+
+# -- limits ----------------------------------------------------------------------------------------
+class LimitsOut(BaseModel):
+    """The instrument's fixed ranges, for clients (the dashboard reads them from here)."""
+
+    leds: list[str]
+    exposure_ms: tuple[float, float] = Field(..., description="[min, max] camera exposure, ms")
+    bit_depths: list[int] = Field(..., description="sensor bit depths the camera offers")
+    depth_range_mm: tuple[float, float] = Field(..., description="default colormap range, mm")
