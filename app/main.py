@@ -19,7 +19,7 @@ from fastapi.staticfiles import StaticFiles
 import app as app_package
 from app import __version__
 from app.api import api_router
-from app.api.errors import install_error_handlers
+from app.api.errors import install_api_fallback, install_error_handlers
 from app.api.security import install_security  # issue 7
 from app.config import Settings
 from app.service.instrument import Instrument
@@ -85,6 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # (3) the 3-D viewer relay
     if viewer_routes is not None:
         app.include_router(viewer_routes)
+    install_api_fallback(app)  # after every API route: unknown /api paths 404, wrong methods 405
 
     # (4) the dashboard
     if (STATIC_DIR / "index.html").is_file():

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument
-from app.api.errors import COMMON, R404, R409, R413, R422
+from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
 from app.api.schemas import (
     ActivateIn,
     BoardIn,
@@ -27,6 +27,17 @@ from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
 
+# OpenAPI links (followed by clients and by the stateful schemathesis run)
+_INDEX_LINK = {"parameters": {"index": "$response.body#/index"}}
+POSE_LINKS: Responses = {200: {"description": "Successful Response", "links": {
+    "PosePreview": {"operationId": "pose_preview", **_INDEX_LINK},
+    "PoseDelete": {"operationId": "delete_pose", **_INDEX_LINK},
+}}}
+SESSION_LINKS: Responses = {200: {"description": "Successful Response", "links": {
+    "Session": {"operationId": "get_session"}, "Poses": {"operationId": "list_poses"},
+    "CapturePose": {"operationId": "capture_pose"},
+}}}
+
 
 def _num(x: Any) -> float | None:
     return float(x) if x is not None and math.isfinite(float(x)) else None
@@ -41,36 +52,36 @@ def active(inst: Instrument = Depends(get_instrument)) -> Any:
     return summary
 
 
-@router.post("/session", response_model=SessionOut, responses={**R422, **COMMON})
+@router.post("/session", response_model=SessionOut, responses={**SESSION_LINKS, **R400, **R422, **COMMON})
 def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> Any:
     """Start a session with a board spec (``board.json`` format); replaces any previous one."""
     return inst.start_session(board.model_dump()).describe()
 
 
-@router.get("/session", response_model=SessionOut, responses={**R409, **COMMON})
+@router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
 def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
     return inst.require_session().describe()
 
 
-@router.post("/session/poses", responses={**R409, **COMMON})
+@router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})
 def capture_pose(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
     """Capture the current view as a pose: {index, found, corners, preview_url, corner_points}."""
     return inst.capture_pose()
 
 
-@router.get("/session/poses", response_model=list[PoseOut], responses={**R409, **COMMON})
+@router.get("/session/poses", response_model=list[PoseOut], operation_id="list_poses", responses={**R409, **COMMON})
 def list_poses(inst: Instrument = Depends(get_instrument)) -> Any:
     return inst.require_session().summaries()
 
 
-@router.get("/session/poses/{index}/preview.png",
+@router.get("/session/poses/{index}/preview.png", operation_id="pose_preview",
             responses={200: {"content": {"image/png": {}}}, **R404, **R409, **R422, **COMMON})
 def pose_preview(index: int, inst: Instrument = Depends(get_instrument)) -> Response:
     """The pose's texture with the detected board points drawn."""
     return binary(inst.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
 
 
-@router.delete("/session/poses/{index}", response_model=list[PoseOut],
+@router.delete("/session/poses/{index}", response_model=list[PoseOut], operation_id="delete_pose",
                responses={**R404, **R409, **R422, **COMMON})
 def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
     """Remove a pose; later poses move down one index."""
@@ -79,7 +90,7 @@ def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
     return session.summaries()
 
 
-@router.post("/session/solve", response_model=SolveOut, responses={**R409, **R422, **COMMON})
+@router.post("/session/solve", response_model=SolveOut, responses={**R409, **R400, **R422, **COMMON})
 def solve(
     body: SolveIn = Body(default_factory=SolveIn),  # type: ignore[arg-type]
     inst: Instrument = Depends(get_instrument),
@@ -100,7 +111,7 @@ def solve(
     }
 
 
-@router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R422, **COMMON})
+@router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R400, **R422, **COMMON})
 def activate(
     body: ActivateIn = Body(default_factory=ActivateIn),  # type: ignore[arg-type]
     inst: Instrument = Depends(get_instrument),

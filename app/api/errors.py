@@ -13,12 +13,15 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
+from starlette.routing import Match, Mount
 
 from app.core.errors import Conflict, DeviceUnavailable, DomainError, InvalidRequest, NotFound
 from app.devices.errors import DeviceError
 from app.service.recorder import InsufficientDisk
 
 log = logging.getLogger("fringescope.api")
+
+METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE")
 
 STATUS: dict[type[DomainError], int] = {
     InvalidRequest: 422, Conflict: 409, NotFound: 404, DeviceUnavailable: 503,
@@ -54,6 +57,34 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(DeviceError, device)
     app.add_exception_handler(InsufficientDisk, disk)
     app.add_exception_handler(Exception, internal)
+
+
+def install_api_fallback(app: FastAPI) -> None:
+    """Unknown ``/api`` paths are 404 and wrong methods 405 listing every allowed method.
+
+    Without it the dashboard mounted at ``/`` would answer them (405 ``Allow: GET, HEAD``).
+    Call after every API route is included and before the dashboard is mounted.
+    """
+
+    async def fallback(request: Request) -> JSONResponse:
+        path = request.url.path
+        allowed = set()
+        for method in METHODS:
+            scope = {**request.scope, "method": method}
+            for route in app.router.routes:
+                if route is fallback_route or isinstance(route, Mount):
+                    continue
+                if route.matches(scope)[0] is Match.FULL:
+                    allowed.add(method)
+                    break
+        if not allowed:
+            return JSONResponse({"detail": f"no such API route: {path}"}, status_code=404)
+        allow = ", ".join(sorted(allowed - {"HEAD"}))
+        return JSONResponse({"detail": f"{request.method} not allowed on {path} (allowed: {allow})"},
+                            status_code=405, headers={"Allow": allow})
+
+    app.add_api_route("/api/{rest:path}", fallback, include_in_schema=False, methods=list(METHODS))
+    fallback_route = app.router.routes[-1]
 
 
 # -- OpenAPI: the answers a route can give besides its 200 -----------------------------------------

@@ -27,5 +27,5 @@ def limits(inst: Instrument = Depends(get_instrument)) -> LimitsOut:
         bit_depths = [int(b) for b in inst.devices.camera.capabilities.bit_depths]
     else:
         bit_depths = [int(b) for b in get_args(Settings.model_fields["bit_depth"].annotation)]
-    return LimitsOut(leds=list(LEDS), exposure_ms=EXPOSURE_RANGE_MS, bit_depths=bit_depths,
-                     depth_range_mm=DEFAULT_RANGE_MM)
+    return LimitsOut(leds=list(LEDS), exposure_ms=list(EXPOSURE_RANGE_MS), bit_depths=bit_depths,
+                     depth_range_mm=list(DEFAULT_RANGE_MM))

@@ -7,9 +7,10 @@ from typing import Any, Literal
 from fastapi import APIRouter, Body, Depends
 from fastapi import Path as PathParam
 from fastapi.responses import Response, StreamingResponse
+from starlette.convertors import StringConvertor, register_url_convertor
 
 from app.api.deps import binary, get_recorder
-from app.api.errors import COMMON, R404, R409, R422, R507
+from app.api.errors import COMMON, R400, R404, R409, R422, R507, Responses
 from app.api.schemas import (
     RECORDING_NAME_REGEX,
     RecorderStatus,
@@ -23,6 +24,15 @@ from app.service.recorder import Recorder
 
 router = APIRouter(prefix="/api", tags=["recording"])
 
+
+class _RecordingName(StringConvertor):
+    """A recording name in a route path; never ``*.zip``, which is the download route's path."""
+
+    regex = r"[^/]+(?<!\.zip)"
+
+
+register_url_convertor("recording", _RecordingName())
+
 Name = PathParam(..., pattern=RECORDING_NAME_REGEX, max_length=64, description="recording name")
 
 
@@ -32,8 +42,16 @@ def recording_status(recorder: Recorder = Depends(get_recorder)) -> dict[str, An
     return recorder.status()
 
 
+_NAME_LINK = {"parameters": {"name": "$response.body#/recording"}}
+START_LINKS: Responses = {200: {"description": "Successful Response", "links": {
+    "RecordingMeta": {"operationId": "recording_meta", **_NAME_LINK},
+    "RecordingZip": {"operationId": "recording_zip", **_NAME_LINK},
+    "RecordingDelete": {"operationId": "recording_delete", **_NAME_LINK},
+}}}
+
+
 @router.post("/recording/start", response_model=RecorderStatus,
-             responses={**R409, **R422, **R507, **COMMON})
+             responses={**START_LINKS, **R409, **R400, **R422, **R507, **COMMON})
 def recording_start(
     body: RecordingStartIn = Body(default_factory=RecordingStartIn),  # type: ignore[arg-type]
     recorder: Recorder = Depends(get_recorder),
@@ -54,7 +72,7 @@ def recordings_list(recorder: Recorder = Depends(get_recorder)) -> list[dict[str
     return recorder.recordings()
 
 
-@router.get("/recordings/{name}.zip",
+@router.get("/recordings/{name}.zip", operation_id="recording_zip",
             responses={200: {"content": {"application/zip": {}}}, **R404, **R422, **COMMON})
 def recording_zip(name: str = Name, recorder: Recorder = Depends(get_recorder)) -> StreamingResponse:
     """The whole recording as one zip, streamed (session.json + set folders)."""
@@ -62,13 +80,13 @@ def recording_zip(name: str = Name, recorder: Recorder = Depends(get_recorder)) 
         "Content-Disposition": f'attachment; filename="{name}.zip"', "Cache-Control": "no-store"})
 
 
-@router.get("/recordings/{name}", responses={**R404, **R422, **COMMON})
+@router.get("/recordings/{name:recording}", operation_id="recording_meta", responses={**R404, **R422, **COMMON})
 def recording_meta(name: str = Name, recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]:
     """``session.json`` of a recording (start, stop, settings, sets with time stamps)."""
     return recorder.session(name)
 
 
-@router.delete("/recordings/{name}", response_model=RecordingDeletedOut,
+@router.delete("/recordings/{name:recording}", response_model=RecordingDeletedOut, operation_id="recording_delete",
                responses={**R404, **R409, **R422, **COMMON})
 def recording_delete(name: str = Name, recorder: Recorder = Depends(get_recorder)) -> RecordingDeletedOut:
     """Delete a recording (not the one being written)."""

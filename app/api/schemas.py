@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
@@ -127,11 +127,27 @@ class ReconstructSummary(BaseModel):
     shape: list[int]
 
 
-class BoardIn(Strict):
-    """A ``board.json`` object: checkerboard (inner_corners, square_mm) or circles (grid, spacing_mm)."""
+PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
+BoardSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
 
-    model_config = ConfigDict(extra="allow")
-    type: Literal["checkerboard", "circles", "asymmetric_circles"]
+
+class CheckerboardIn(Strict):
+    """A checkerboard ``board.json``: inner corners [cols, rows] and square size, mm."""
+
+    type: Literal["checkerboard"]
+    inner_corners: BoardSize
+    square_mm: PositiveMm
+
+
+class CirclesIn(Strict):
+    """A (symmetric or asymmetric) circle grid ``board.json``: grid [cols, rows] and spacing, mm."""
+
+    type: Literal["circles", "asymmetric_circles"]
+    grid: BoardSize
+    spacing_mm: PositiveMm
+
+
+BoardIn = Annotated[CheckerboardIn | CirclesIn, Field(discriminator="type")]
 
 
 class PoseOut(BaseModel):
@@ -179,14 +195,20 @@ class ActivateIn(Strict):
 
 
 class RoiIn(Strict):
-    roi: tuple[int, int, int, int] = Field(..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive")
+    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]], Field(min_length=4, max_length=4)] = Field(
+        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive; x0 < x1, y0 < y1, inside the image")
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiIn:
         x0, y0, x1, y1 = self.roi
-        if x0 < 0 or y0 < 0 or x1 <= x0 or y1 <= y0:
-            raise ValueError(f"roi: need 0 <= x0 < x1 and 0 <= y0 < y1, got {list(self.roi)}")
+        if x1 <= x0 or y1 <= y0:
+            raise ValueError(f"roi: need x0 < x1 and y0 < y1, got {list(self.roi)}")
         return self
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        x0, y0, x1, y1 = self.roi
+        return x0, y0, x1, y1
 
 
 class FeatureIn(RoiIn):
@@ -249,6 +271,6 @@ class LimitsOut(BaseModel):
     """The instrument's fixed ranges, for clients (the dashboard reads them from here)."""
 
     leds: list[str]
-    exposure_ms: tuple[float, float] = Field(..., description="[min, max] camera exposure, ms")
+    exposure_ms: list[float] = Field(..., min_length=2, max_length=2, description="[min, max] camera exposure, ms")
     bit_depths: list[int] = Field(..., description="sensor bit depths the camera offers")
-    depth_range_mm: tuple[float, float] = Field(..., description="default colormap range, mm")
+    depth_range_mm: list[float] = Field(..., min_length=2, max_length=2, description="default colormap [min, max], mm")
