@@ -2,8 +2,9 @@
 
 Domain errors (:mod:`app.core.errors`) carry their reason to the client: InvalidRequest
 422, Conflict 409, NotFound 404, DeviceUnavailable 503 (as do device errors: the
-hardware failed); a nearly full disk when recording is 507. Request validation is 422 with pydantic's detail. Anything else is a
-programming error: 500 with a generic reason, its traceback logged.
+hardware failed); a nearly full disk when recording is 507. Request validation is 422
+with pydantic's detail. Anything else is a programming error: 500 with a generic
+reason, its traceback logged.
 """
 
 from __future__ import annotations
