@@ -7,6 +7,9 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
 from app.capture.recording import NAME_PATTERN
+from app.devices.base import EXPOSURE_RANGE_MS
+
+EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
 
 
 class Strict(BaseModel):
@@ -14,7 +17,8 @@ class Strict(BaseModel):
 
 
 class ExposureIn(Strict):
-    exposure_ms: float = Field(..., ge=1.0, le=100.0, description="camera exposure, 1–100 ms")
+    exposure_ms: float = Field(..., ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS,
+                               description=f"camera exposure, {EXPOSURE_MIN_MS:g}–{EXPOSURE_MAX_MS:g} ms")
 
 
 class ExposureOut(BaseModel):
@@ -24,7 +28,7 @@ class ExposureOut(BaseModel):
 
 class AutoExposureIn(Strict):
     saturation_limit: float = Field(0.005, ge=0.0, lt=1.0, description="allowed saturated fraction")
-    max_exposure_ms: float = Field(100.0, ge=1.0, le=100.0)
+    max_exposure_ms: float = Field(EXPOSURE_MAX_MS, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS)
 
 
 class ExposureTrialOut(BaseModel):
