@@ -184,7 +184,7 @@ class Instrument:
 
     def set_led(self, led: str) -> str:
         if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+            raise InvalidRequest(f"led: must be one of {LEDS}, got {led!r}")
         self._acq().request(led=led)
         return led
 
