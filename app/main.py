@@ -20,8 +20,7 @@ import app as app_package
 from app import __version__
 from app.api import api_router
 from app.api.auth import router as auth_router  # issue 16
-from app.api.deps import install_error_handlers
-from app.api.recordings import router as recordings_router  # issue 7
+from app.api.errors import install_api_fallback, install_error_handlers
 from app.api.security import install_security  # issue 7
 from app.config import Settings
 from app.service.instrument import Instrument
@@ -116,12 +115,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     # (2) REST and streams
     app.include_router(api_router())
-    app.include_router(recordings_router)  # issue 7
     app.include_router(auth_router)  # issue 16: /healthz, /api/auth, /api/login, /api/logout
 
     # (3) the 3-D viewer relay
     if viewer_routes is not None:
         app.include_router(viewer_routes)
+    install_api_fallback(app)  # after every API route: unknown /api paths 404, wrong methods 405
 
     # (4) the dashboard
     if (STATIC_DIR / "index.html").is_file():

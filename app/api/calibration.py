@@ -6,10 +6,11 @@ import json
 import math
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends, HTTPException, Request
+from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument
+from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
 from app.api.schemas import (
     ActivateIn,
     BoardIn,
@@ -21,53 +22,67 @@ from app.api.schemas import (
 )
 from app.api.upload import read_body
 from app.calib.calibration import Calibration
+from app.core.errors import InvalidRequest, NotFound
 from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
+
+# OpenAPI links (followed by clients and by the stateful schemathesis run)
+_INDEX_LINK = {"parameters": {"index": "$response.body#/index"}}
+POSE_LINKS: Responses = {200: {"description": "Successful Response", "links": {
+    "PosePreview": {"operationId": "pose_preview", **_INDEX_LINK},
+    "PoseDelete": {"operationId": "delete_pose", **_INDEX_LINK},
+}}}
+SESSION_LINKS: Responses = {200: {"description": "Successful Response", "links": {
+    "Session": {"operationId": "get_session"}, "Poses": {"operationId": "list_poses"},
+    "CapturePose": {"operationId": "capture_pose"},
+}}}
 
 
 def _num(x: Any) -> float | None:
     return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
-@router.get("", response_model=CalibrationSummary)
+@router.get("", response_model=CalibrationSummary, responses={**R404, **COMMON})
 def active(inst: Instrument = Depends(get_instrument)) -> Any:
     """The active calibration (404 if there is none)."""
     summary = inst.calibration_summary()
     if summary is None:
-        raise HTTPException(404, "no calibration is active")
+        raise NotFound("no calibration is active")
     return summary
 
 
-@router.post("/session", response_model=SessionOut)
+@router.post("/session", response_model=SessionOut, responses={**SESSION_LINKS, **R400, **R422, **COMMON})
 def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> Any:
     """Start a session with a board spec (``board.json`` format); replaces any previous one."""
     return inst.start_session(board.model_dump()).describe()
 
 
-@router.get("/session", response_model=SessionOut)
+@router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
 def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
     return inst.require_session().describe()
 
 
-@router.post("/session/poses")
+@router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})
 def capture_pose(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
     """Capture the current view as a pose: {index, found, corners, preview_url, corner_points}."""
     return inst.capture_pose()
 
 
-@router.get("/session/poses", response_model=list[PoseOut])
+@router.get("/session/poses", response_model=list[PoseOut], operation_id="list_poses", responses={**R409, **COMMON})
 def list_poses(inst: Instrument = Depends(get_instrument)) -> Any:
     return inst.require_session().summaries()
 
 
-@router.get("/session/poses/{index}/preview.png", responses={200: {"content": {"image/png": {}}}})
+@router.get("/session/poses/{index}/preview.png", operation_id="pose_preview",
+            responses={200: {"content": {"image/png": {}}}, **R404, **R409, **R422, **COMMON})
 def pose_preview(index: int, inst: Instrument = Depends(get_instrument)) -> Response:
     """The pose's texture with the detected board points drawn."""
     return binary(inst.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
 
 
-@router.delete("/session/poses/{index}", response_model=list[PoseOut])
+@router.delete("/session/poses/{index}", response_model=list[PoseOut], operation_id="delete_pose",
+               responses={**R404, **R409, **R422, **COMMON})
 def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
     """Remove a pose; later poses move down one index."""
     session = inst.require_session()
@@ -75,7 +90,7 @@ def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
     return session.summaries()
 
 
-@router.post("/session/solve", response_model=SolveOut)
+@router.post("/session/solve", response_model=SolveOut, responses={**R409, **R400, **R422, **COMMON})
 def solve(
     body: SolveIn = Body(default_factory=SolveIn),  # type: ignore[arg-type]
     inst: Instrument = Depends(get_instrument),
@@ -96,7 +111,7 @@ def solve(
     }
 
 
-@router.post("/session/activate", response_model=CalibrationSummary)
+@router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R400, **R422, **COMMON})
 def activate(
     body: ActivateIn = Body(default_factory=ActivateIn),  # type: ignore[arg-type]
     inst: Instrument = Depends(get_instrument),
@@ -105,12 +120,12 @@ def activate(
     return inst.activate_session(body.name)
 
 
-@router.get("/file", responses={200: {"content": {"application/json": {}}}})
+@router.get("/file", responses={200: {"content": {"application/json": {}}}, **R404, **COMMON})
 def download(inst: Instrument = Depends(get_instrument)) -> Response:
     """The active calibration file (``fringescope.calibration/1`` JSON)."""
     cal = inst.calibration
     if cal is None:
-        raise HTTPException(404, "no calibration is active")
+        raise NotFound("no calibration is active")
     data = (json.dumps(cal.to_dict(), indent=2) + "\n").encode()
     name = inst.calibration_name or "calibration"
     return binary(data, "application/json", None, f"{name}.json")
@@ -119,6 +134,7 @@ def download(inst: Instrument = Depends(get_instrument)) -> Response:
 @router.put(
     "/file",
     response_model=CalibrationSummary,
+    responses={**R413, **R422, **COMMON},
     openapi_extra={"requestBody": {"content": {"application/json": {"schema": {"type": "object"}}}}},
 )
 async def upload(request: Request, inst: Instrument = Depends(get_instrument)) -> Any:
@@ -129,7 +145,12 @@ async def upload(request: Request, inst: Instrument = Depends(get_instrument)) -
     try:
         data = json.loads(body)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"calibration: not valid JSON ({exc})") from None
-    cal = Calibration.from_dict(data)
-    await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True)
+        raise InvalidRequest(f"calibration: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise InvalidRequest("calibration: expected a JSON object")
+    try:  # the file is the user's input: whatever does not fit it is their error
+        cal = Calibration.from_dict(data)
+        await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InvalidRequest(f"calibration: {exc}") from None
     return inst.calibration_summary()

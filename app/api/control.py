@@ -8,6 +8,7 @@ from typing import Any
 from fastapi import APIRouter, Body, Depends
 
 from app.api.deps import get_instrument
+from app.api.errors import COMMON, R400, R409, R422
 from app.api.schemas import (
     AcquisitionOut,
     AutoExposureIn,
@@ -25,19 +26,19 @@ from app.service.instrument import Instrument
 router = APIRouter(prefix="/api", tags=["control"])
 
 
-@router.get("/status", response_model=StatusOut)
+@router.get("/status", response_model=StatusOut, responses=COMMON)
 def status(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
     """State, rates, latency, settings, calibration, devices and counters."""
     return inst.status()
 
 
-@router.put("/exposure", response_model=ExposureOut)
+@router.put("/exposure", response_model=ExposureOut, responses={**R400, **R422, **COMMON})
 def put_exposure(body: ExposureIn, inst: Instrument = Depends(get_instrument)) -> ExposureOut:
     """Camera exposure (1–100 ms), applied from the next whole fringe set."""
     return ExposureOut(exposure_ms=inst.set_exposure(body.exposure_ms))
 
 
-@router.post("/exposure/auto", response_model=AutoExposureOut)
+@router.post("/exposure/auto", response_model=AutoExposureOut, responses={**R409, **R400, **R422, **COMMON})
 def auto_exposure(
     body: AutoExposureIn = Body(default_factory=AutoExposureIn),  # type: ignore[arg-type]
     inst: Instrument = Depends(get_instrument),
@@ -47,26 +48,26 @@ def auto_exposure(
     return asdict(res)
 
 
-@router.put("/led", response_model=LedOut)
+@router.put("/led", response_model=LedOut, responses={**R400, **R422, **COMMON})
 def put_led(body: LedIn, inst: Instrument = Depends(get_instrument)) -> LedOut:
     """Projector LED, applied from the next whole fringe set."""
     return LedOut(led=inst.set_led(body.led))
 
 
-@router.put("/mode", response_model=ModeOut)
+@router.put("/mode", response_model=ModeOut, responses={**R400, **R422, **COMMON})
 def put_mode(body: ModeIn, inst: Instrument = Depends(get_instrument)) -> ModeOut:
     """Rolling mode: a depth map after every frame from the last 16 (motion-masked)."""
     inst.set_rolling(body.rolling)
     return ModeOut(mode="rolling" if body.rolling else "set")
 
 
-@router.post("/acquisition/start", response_model=AcquisitionOut)
+@router.post("/acquisition/start", response_model=AcquisitionOut, responses=COMMON)
 def start(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
     inst.set_acquiring(True)
     return AcquisitionOut(acquiring=True, state=inst.state())
 
 
-@router.post("/acquisition/stop", response_model=AcquisitionOut)
+@router.post("/acquisition/stop", response_model=AcquisitionOut, responses=COMMON)
 def stop(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
     inst.set_acquiring(False)
     return AcquisitionOut(acquiring=False, state=inst.state())

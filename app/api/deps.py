@@ -1,39 +1,29 @@
-"""Shared route helpers: the Instrument from the app, error mapping, binary responses."""
+"""Shared route helpers: the Instrument (and Recorder) from the app, binary responses."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from fastapi import FastAPI, HTTPException, Request
-from fastapi.responses import JSONResponse, Response
+from fastapi import Request
+from fastapi.responses import Response
 
-from app.devices.errors import DeviceError
-from app.service.instrument import Instrument, NotReady
+from app.core.errors import DeviceUnavailable
+from app.service.instrument import Instrument
+from app.service.recorder import Recorder
 
 
 def get_instrument(request: Request) -> Instrument:
     inst = getattr(request.app.state, "instrument", None)
     if inst is None:
-        raise HTTPException(503, "instrument not started")
+        raise DeviceUnavailable("instrument not started")
     return inst  # type: ignore[no-any-return]
 
 
-def install_error_handlers(app: FastAPI) -> None:
-    """Service exceptions → HTTP: NotReady 503, ValueError 422, IndexError 404, DeviceError 503."""
-
-    async def not_ready(_: Request, exc: Exception) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=503)
-
-    async def invalid(_: Request, exc: Exception) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=422)
-
-    async def missing(_: Request, exc: Exception) -> JSONResponse:
-        return JSONResponse({"detail": str(exc).strip("'\"")}, status_code=404)
-
-    app.add_exception_handler(NotReady, not_ready)
-    app.add_exception_handler(DeviceError, not_ready)
-    app.add_exception_handler(ValueError, invalid)
-    app.add_exception_handler(IndexError, missing)
+def get_recorder(request: Request) -> Recorder:
+    rec = getattr(request.app.state, "recorder", None)
+    if rec is None:
+        raise DeviceUnavailable("recorder not available")
+    return rec  # type: ignore[no-any-return]
 
 
 def binary(data: bytes, media_type: str, headers: dict[str, Any] | None = None,

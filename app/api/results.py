@@ -9,6 +9,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument, result_headers
+from app.api.errors import COMMON, R400, R409, R413, R415, R422
 from app.api.schemas import ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.service import encoding
@@ -17,7 +18,7 @@ from app.service.instrument import Instrument
 router = APIRouter(prefix="/api", tags=["results"])
 
 
-@router.get("/result/latest", response_model=ResultMeta)
+@router.get("/result/latest", response_model=ResultMeta, responses={**R409, **COMMON})
 def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
     """Provenance of the latest depth map: frames, exposure, LED, mode, latency."""
     return inst.latest_result().metadata()
@@ -25,7 +26,8 @@ def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
 
 @router.get(
     "/depth/latest",
-    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}}},
+    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}},
+               **R409, **R422, **COMMON},
 )
 def depth_latest(
     format: Literal["npy", "png", "color", "tiff"] = "npy",
@@ -52,7 +54,7 @@ def depth_latest(
     return binary(data, "image/png", headers, "depth_color.png")
 
 
-@router.get("/texture/latest.png", responses={200: {"content": {"image/png": {}}}})
+@router.get("/texture/latest.png", responses={200: {"content": {"image/png": {}}}, **R409, **COMMON})
 def texture_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Texture A + B, 8-bit, scaled by the sensor's full scale."""
     res = inst.latest_result()
@@ -60,7 +62,7 @@ def texture_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     return binary(data, "image/png", result_headers(res.metadata()), "texture.png")
 
 
-@router.get("/reason/latest.png", responses={200: {"content": {"image/png": {}}}})
+@router.get("/reason/latest.png", responses={200: {"content": {"image/png": {}}}, **R409, **COMMON})
 def reason_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Why pixels are invalid, one colour per reason (legend in the X-Fringescope-Reasons header)."""
     res = inst.latest_result()
@@ -74,7 +76,7 @@ def reason_legend() -> dict[str, Any]:
     return encoding.reason_legend()
 
 
-@router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}})
+@router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}, **R409, **COMMON})
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Valid points (camera frame, mm) with texture intensity, binary PLY."""
     res = inst.latest_result()
@@ -85,7 +87,7 @@ def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
 @router.post(
     "/reconstruct",
     response_model=ReconstructSummary,
-    responses={200: {"content": {"application/octet-stream": {}}}, 413: {}, 415: {}},
+    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R409, **R413, **R415, **R422, **COMMON},
     openapi_extra={"requestBody": {"content": {
         "multipart/form-data": {"schema": {"type": "object", "properties": {
             "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
+
+from app.capture.recording import NAME_PATTERN
+from app.devices.base import EXPOSURE_RANGE_MS
+
+EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
 
 
 class Strict(BaseModel):
@@ -12,7 +17,8 @@ class Strict(BaseModel):
 
 
 class ExposureIn(Strict):
-    exposure_ms: float = Field(..., ge=1.0, le=100.0, description="camera exposure, 1–100 ms")
+    exposure_ms: float = Field(..., ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS,
+                               description=f"camera exposure, {EXPOSURE_MIN_MS:g}–{EXPOSURE_MAX_MS:g} ms")
 
 
 class ExposureOut(BaseModel):
@@ -22,7 +28,7 @@ class ExposureOut(BaseModel):
 
 class AutoExposureIn(Strict):
     saturation_limit: float = Field(0.005, ge=0.0, lt=1.0, description="allowed saturated fraction")
-    max_exposure_ms: float = Field(100.0, ge=1.0, le=100.0)
+    max_exposure_ms: float = Field(EXPOSURE_MAX_MS, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS)
 
 
 class ExposureTrialOut(BaseModel):
@@ -125,11 +131,27 @@ class ReconstructSummary(BaseModel):
     shape: list[int]
 
 
-class BoardIn(Strict):
-    """A ``board.json`` object: checkerboard (inner_corners, square_mm) or circles (grid, spacing_mm)."""
+PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
+BoardSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
 
-    model_config = ConfigDict(extra="allow")
-    type: Literal["checkerboard", "circles", "asymmetric_circles"]
+
+class CheckerboardIn(Strict):
+    """A checkerboard ``board.json``: inner corners [cols, rows] and square size, mm."""
+
+    type: Literal["checkerboard"]
+    inner_corners: BoardSize
+    square_mm: PositiveMm
+
+
+class CirclesIn(Strict):
+    """A (symmetric or asymmetric) circle grid ``board.json``: grid [cols, rows] and spacing, mm."""
+
+    type: Literal["circles", "asymmetric_circles"]
+    grid: BoardSize
+    spacing_mm: PositiveMm
+
+
+BoardIn = Annotated[CheckerboardIn | CirclesIn, Field(discriminator="type")]
 
 
 class PoseOut(BaseModel):
@@ -177,14 +199,20 @@ class ActivateIn(Strict):
 
 
 class RoiIn(Strict):
-    roi: tuple[int, int, int, int] = Field(..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive")
+    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]], Field(min_length=4, max_length=4)] = Field(
+        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive; x0 < x1, y0 < y1, inside the image")
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiIn:
         x0, y0, x1, y1 = self.roi
-        if x0 < 0 or y0 < 0 or x1 <= x0 or y1 <= y0:
-            raise ValueError(f"roi: need 0 <= x0 < x1 and 0 <= y0 < y1, got {list(self.roi)}")
+        if x1 <= x0 or y1 <= y0:
+            raise ValueError(f"roi: need x0 < x1 and y0 < y1, got {list(self.roi)}")
         return self
+
+    @property
+    def box(self) -> tuple[int, int, int, int]:
+        x0, y0, x1, y1 = self.roi
+        return x0, y0, x1, y1
 
 
 class FeatureIn(RoiIn):
@@ -204,3 +232,49 @@ class FeatureOut(BaseModel):
     height_std_mm: float | None
     count: int
     extra: dict[str, Any] = {}
+
+
+# -- recordings ------------------------------------------------------------------------------------
+#: a recording's name: one plain path component (the folder under data/recordings)
+RECORDING_NAME_REGEX = NAME_PATTERN.pattern
+
+
+class RecordingStartIn(Strict):
+    name: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
+                             description="folder name under data/recordings (default: rec_<UTC time>)")
+
+
+class RecorderStatus(BaseModel):
+    recording: str | None
+    sets: int
+    sets_with_depth: int
+    skipped_sets: int
+    errors: int
+    last_error: str | None
+
+
+class RecordingSummary(BaseModel):
+    name: str
+    started: str | None
+    stopped: str | None
+    n_sets: int
+    bytes: int
+
+
+class RecordingStopOut(BaseModel):
+    recording: None = None
+    stopped: dict[str, Any] | None = Field(None, description="session.json of the recording just stopped")
+
+
+class RecordingDeletedOut(BaseModel):
+    deleted: str
+
+
+# -- limits ----------------------------------------------------------------------------------------
+class LimitsOut(BaseModel):
+    """The instrument's fixed ranges, for clients (the dashboard reads them from here)."""
+
+    leds: list[str]
+    exposure_ms: list[float] = Field(..., min_length=2, max_length=2, description="[min, max] camera exposure, ms")
+    bit_depths: list[int] = Field(..., description="sensor bit depths the camera offers")
+    depth_range_mm: list[float] = Field(..., min_length=2, max_length=2, description="default colormap [min, max], mm")

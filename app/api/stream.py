@@ -10,6 +10,8 @@ from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import get_instrument
+from app.api.errors import COMMON, R422
+from app.core.errors import InvalidRequest
 from app.service import encoding
 from app.service.instrument import Instrument
 from app.service.reconstruction import LiveResult
@@ -44,8 +46,8 @@ async def depth_ws(
     inst: Instrument | None = getattr(websocket.app.state, "instrument", None)
     try:
         rng = encoding.check_range_mm(min_mm, max_mm)
-    except ValueError as exc:
-        await websocket.close(code=1008, reason=str(exc)[:120])
+    except InvalidRequest as exc:
+        await websocket.close(code=1008, reason=exc.detail[:120])
         return
     await websocket.accept()
     if inst is None:
@@ -73,7 +75,7 @@ async def depth_ws(
             task.cancel()
 
 
-@router.get("/depth.mjpeg", responses={200: {"content": {"multipart/x-mixed-replace": {}}}})
+@router.get("/depth.mjpeg", responses={200: {"content": {"multipart/x-mixed-replace": {}}}, **R422, **COMMON})
 async def depth_mjpeg(
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),

@@ -3,16 +3,22 @@
 from __future__ import annotations
 
 import io
+import struct
 import tempfile
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 
 from fastapi import HTTPException, Request
 from starlette.datastructures import UploadFile
 
 from app.capture.captureset import CaptureSet, read_capture_set
+from app.core.errors import InvalidRequest
 
 MAX_FILES = 200
+SUPPORTED_COMPRESSION = frozenset({zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED})
+MAX_RATIO = 100  # a larger expansion of a member is refused as a zip bomb ...
+RATIO_FLOOR_BYTES = 1 << 16  # ... once it unpacks to more than this (PNG frames barely compress)
 
 
 async def read_body(request: Request, limit_bytes: int) -> bytes:
@@ -34,35 +40,74 @@ async def read_body(request: Request, limit_bytes: int) -> bytes:
 def _safe_name(name: str) -> str:
     base = PurePosixPath(name.replace("\\", "/")).name
     if not base or base in (".", ".."):
-        raise ValueError(f"upload: invalid file name {name!r}")
+        raise InvalidRequest(f"upload: invalid file name {name!r}")
     return base
 
 
+def _member_path(name: str) -> PurePosixPath:
+    """A zip member's path, refusing absolute paths and ``..`` (path traversal)."""
+    p = PurePosixPath(name.replace("\\", "/"))
+    if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]):
+        raise InvalidRequest(f"upload: zip member {name!r} points outside the archive")
+    return p
+
+
+def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, budget: int) -> bytes:
+    """A member's bytes, never more than it declares nor than ``budget`` (zip bombs, lying headers)."""
+    if info.flag_bits & 0x1:
+        raise InvalidRequest(f"upload: zip member {info.filename!r} is encrypted")
+    if info.compress_type not in SUPPORTED_COMPRESSION:
+        raise InvalidRequest(f"upload: zip member {info.filename!r} uses compression method "
+                             f"{info.compress_type}; use stored or deflated")
+    if info.file_size > MAX_RATIO * max(info.compress_size, 1) and info.file_size > RATIO_FLOOR_BYTES:
+        raise InvalidRequest(f"upload: zip member {info.filename!r} expands {info.file_size} bytes from "
+                             f"{info.compress_size} (more than {MAX_RATIO}x): refused as a zip bomb")
+    if info.file_size > budget:
+        raise HTTPException(413, f"upload: unpacked zip exceeds the limit of {budget} bytes")
+    with zf.open(info) as f:
+        data = f.read(info.file_size + 1)
+    if len(data) != info.file_size:
+        raise InvalidRequest(f"upload: zip member {info.filename!r} does not hold its declared size")
+    return data
+
+
 def _extract_zip(data: bytes, dest: Path, limit_bytes: int) -> Path:
-    """Unpack a zip (plain files only) and return the folder holding capture.json."""
+    """Unpack a zip (plain files only) and return the folder holding capture.json.
+
+    Every malformed archive is an ``InvalidRequest`` naming the fault (not a zip, truncated,
+    bad CRC, encrypted, unknown compression, path traversal, zip bomb); too much data is 413.
+    """
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
-    except zipfile.BadZipFile:
-        raise ValueError("upload: not a valid zip file") from None
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, struct.error):
+        raise InvalidRequest("upload: not a valid zip file") from None
     with zf:
         infos = [i for i in zf.infolist() if not i.is_dir()]
         if len(infos) > MAX_FILES:
-            raise ValueError(f"upload: zip holds {len(infos)} files, at most {MAX_FILES} allowed")
+            raise InvalidRequest(f"upload: zip holds {len(infos)} files, at most {MAX_FILES} allowed")
+        paths = [_member_path(i.filename) for i in infos]
         if sum(i.file_size for i in infos) > limit_bytes:
             raise HTTPException(413, f"upload: unpacked zip exceeds the limit of {limit_bytes} bytes")
-        metas = [i for i in infos if PurePosixPath(i.filename).name == "capture.json"]
+        metas = [p for p in paths if p.name == "capture.json"]
         if len(metas) != 1:
-            raise ValueError(f"upload: the zip must hold exactly one capture.json, found {len(metas)}")
-        folder = str(PurePosixPath(metas[0].filename).parent)
-        for info in infos:
-            p = PurePosixPath(info.filename)
-            if str(p.parent) == folder:  # only the set's own folder; names are plain
-                (dest / _safe_name(p.name)).write_bytes(zf.read(info))
+            raise InvalidRequest(f"upload: the zip must hold exactly one capture.json, found {len(metas)}")
+        folder = metas[0].parent
+        budget = limit_bytes
+        for info, p in zip(infos, paths, strict=True):
+            if p.parent != folder:  # only the set's own folder; names are plain
+                continue
+            try:
+                content = _read_member(zf, info, budget)
+            except (zipfile.BadZipFile, EOFError, zlib.error, struct.error, OSError, ValueError,
+                    NotImplementedError, RuntimeError) as exc:
+                raise InvalidRequest(f"upload: zip member {info.filename!r} is corrupt ({exc})") from None
+            budget -= len(content)
+            (dest / _safe_name(p.name)).write_bytes(content)
     return dest
 
 
 async def capture_from_request(request: Request, limit_bytes: int) -> CaptureSet:
-    """Parse the upload into a :class:`CaptureSet`; ValueError (→ 422) names what is wrong."""
+    """Parse the upload into a :class:`CaptureSet`; ``InvalidRequest`` (422) names what is wrong."""
     body = await read_body(request, limit_bytes)
     ctype = request.headers.get("content-type", "")
     with tempfile.TemporaryDirectory(prefix="fringescope-upload-") as tmp:
@@ -71,7 +116,7 @@ async def capture_from_request(request: Request, limit_bytes: int) -> CaptureSet
             form = await request.form(max_files=MAX_FILES, max_fields=MAX_FILES, max_part_size=limit_bytes)
             files = [v for _, v in form.multi_items() if isinstance(v, UploadFile)]
             if not files:
-                raise ValueError("upload: no files in the form (send capture.json + frames, or a .zip)")
+                raise InvalidRequest("upload: no files in the form (send capture.json + frames, or a .zip)")
             if len(files) == 1 and (files[0].filename or "").lower().endswith(".zip"):
                 _extract_zip(await files[0].read(), dest, limit_bytes)
             else:
@@ -82,9 +127,9 @@ async def capture_from_request(request: Request, limit_bytes: int) -> CaptureSet
         else:
             raise HTTPException(415, "upload: send multipart/form-data or application/zip")
         if not (dest / "capture.json").is_file():
-            raise ValueError("upload: capture.json is missing")
+            raise InvalidRequest("upload: capture.json is missing")
         try:
             return read_capture_set(dest)
-        except ValueError as exc:
+        except (ValueError, KeyError, TypeError) as exc:  # the uploaded files are the user's input
             # Messages name the temporary folder; keep only the file name for the user.
-            raise ValueError(str(exc).replace(str(dest) + "/", "")) from None
+            raise InvalidRequest(str(exc).replace(str(dest) + "/", "")) from None

@@ -255,13 +255,31 @@ class Projector(Device):
         """Upload the patterns of ``schedule`` (and the per-pattern exposure, ms)."""
         if not isinstance(schedule, PatternSchedule):
             raise ValueError("schedule: expected a PatternSchedule")
-        if exposure_ms is not None and not (EXPOSURE_RANGE_MS[0] <= exposure_ms <= EXPOSURE_RANGE_MS[1]):
-            raise ValueError(f"exposure_ms: must be within {EXPOSURE_RANGE_MS}, got {exposure_ms}")
+        exp = self.exposure_ms if exposure_ms is None else self._checked_exposure(exposure_ms)
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="load a schedule")
-            exp = self.exposure_ms if exposure_ms is None else float(exposure_ms)
             self._call("load", self._do_load, schedule, exp)
             self.schedule, self.exposure_ms = schedule, exp
+
+    def set_exposure(self, exposure_ms: float) -> None:
+        """Change the per-pattern exposure, ms, keeping the uploaded patterns (a timing call only).
+
+        Allowed while running (the sequence restarts at pattern 0 where the hardware needs
+        a stop to change its timing). Before a schedule is loaded it is only remembered.
+        """
+        exp = self._checked_exposure(exposure_ms)
+        with self._lock:
+            if self._state is not DeviceState.CLOSED and self.schedule is not None:
+                self._call("timing", self._do_set_exposure, exp)
+            self.exposure_ms = exp
+
+    @staticmethod
+    def _checked_exposure(exposure_ms: float) -> float:
+        """The device-side check of an exposure (the API checks it once more at its boundary)."""
+        lo, hi = EXPOSURE_RANGE_MS
+        if not (math.isfinite(exposure_ms) and lo <= exposure_ms <= hi):
+            raise ValueError(f"exposure_ms: must be within {lo}–{hi} ms, got {exposure_ms}")
+        return float(exposure_ms)
 
     def set_led(self, led: str, *, current: float | None = None) -> None:
         """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
@@ -303,6 +321,10 @@ class Projector(Device):
 
     @abstractmethod
     def _do_load(self, schedule: PatternSchedule, exposure_ms: float) -> None: ...
+
+    @abstractmethod
+    def _do_set_exposure(self, exposure_ms: float) -> None:
+        """Set the pattern timing for ``exposure_ms`` without uploading patterns again."""
 
     @abstractmethod
     def _do_set_led(self, led: str, current: float) -> None: ...

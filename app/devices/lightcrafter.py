@@ -318,15 +318,22 @@ class LightCrafterProjector(Projector):
         self._c().set_sequence(bit_depth=bits, count=count, trigger=TRIG_AUTO if mode == "internal" else TRIG_EXT_POS,
                                exposure_us=exposure_us, period_us=exposure_us + self.dark_us, led=LED_SELECT[led])
 
-    def _resend_sequence(self, led: str, mode: str) -> None:
+    def _resend_sequence(self, led: str, mode: str, exposure_ms: float | None = None) -> None:
+        """The sequence setting alone (0x0400): same bit depth and count, so the patterns stay."""
         if self.schedule is None:
             return
         running = self.state.value == "running"
         if running:
             self._c().start_sequence(False)
-        self._send_sequence(self.schedule.n_frames, self.bit_depth, led, mode, self.exposure_ms)
+        exp = self.exposure_ms if exposure_ms is None else exposure_ms
+        self._send_sequence(self.schedule.n_frames, self.bit_depth, led, mode, exp)
         if running:
             self._c().start_sequence(True)
+
+    def _do_set_exposure(self, exposure_ms: float) -> None:
+        """The timing call: exposure and period in the sequence setting, no pattern upload."""
+        if round(exposure_ms * 1000) != round(self.exposure_ms * 1000):
+            self._resend_sequence(self.led, self.trigger_mode, exposure_ms)
 
     @staticmethod
     def _currents(led: str, current: float) -> tuple[int, int, int]:

@@ -70,6 +70,7 @@ class LightCrafterState:
     shown: int = 0
     advances: int = 0
     commands: list[int] = field(default_factory=list)
+    bytes_received: int = 0  # every packet byte the projector read (uploads are ~420 kB a pattern)
 
 
 class LightCrafterEmulator:
@@ -152,6 +153,7 @@ class LightCrafterEmulator:
                 if rest is None:
                     return
                 payload, check = rest[:-1], rest[-1]
+                self.state.bytes_received += len(head) + len(rest)
                 if sum(head + payload) % 256 != check:
                     self._send(conn, 0x01, cmd, bytes([E_CHECKSUM]))
                     continue

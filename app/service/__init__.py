@@ -1,5 +1,5 @@
 """The live instrument: devices, acquisition and reconstruction threads, latest results."""
 
-from app.service.instrument import Instrument, NotReady
+from app.service.instrument import Instrument
 
-__all__ = ["Instrument", "NotReady"]
+__all__ = ["Instrument"]

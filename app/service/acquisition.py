@@ -187,7 +187,7 @@ class Acquisition:
             pending, self._pending = self._pending, {}
         if pending:
             apply_settings(
-                self.devices, self.schedule,
+                self.devices,
                 exposure_ms=pending.get("exposure_ms"),  # type: ignore[arg-type]
                 led=pending.get("led"),  # type: ignore[arg-type]
             )

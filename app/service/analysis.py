@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from app.core.errors import InvalidRequest
 from app.service.reconstruction import LiveResult
 
 
@@ -17,7 +18,10 @@ def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
     """Plane accuracy/precision/flatness of the points in ``roi`` (paper's DOF-target method)."""
     from app.analysis.plane import plane_accuracy
 
-    acc = plane_accuracy(result.points, result.valid, roi=roi)
+    try:
+        acc = plane_accuracy(result.points, result.valid, roi=roi)
+    except ValueError as exc:  # the ROI (the only user input) does not fit the result
+        raise InvalidRequest(str(exc)) from None
     return {
         "accuracy_mm": _f(acc.accuracy_mm), "precision_mm": _f(acc.precision_mm),
         "flatness_mm": _f(acc.flatness_mm), "points": int(acc.n_points),
@@ -30,7 +34,10 @@ def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = 
     """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``."""
     from app.analysis.feature import feature_height
 
-    res = feature_height(result.depth, result.texture, result.valid, roi=roi, polarity=polarity)
+    try:
+        res = feature_height(result.depth, result.texture, result.valid, roi=roi, polarity=polarity)
+    except ValueError as exc:  # the ROI / polarity (user input) does not fit the result
+        raise InvalidRequest(str(exc)) from None
     return {
         "height_mm": _f(res.height_mm), "height_std_mm": _f(res.height_std_mm),
         "count": int(res.count),

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.calib.board import BoardSpec, Detection, detect_board, texture_to_u8
 from app.capture.captureset import CaptureSet
+from app.core.errors import NotFound
 
 
 @dataclass
@@ -80,13 +81,13 @@ class CalibrationSession:
     def pose(self, index: int) -> Pose:
         with self.lock:
             if not 0 <= index < len(self.poses):
-                raise IndexError(f"pose {index}: no such pose (have {len(self.poses)})")
+                raise NotFound(f"pose {index}: no such pose (have {len(self.poses)})")
             return self.poses[index]
 
     def delete(self, index: int) -> None:
         with self.lock:
             if not 0 <= index < len(self.poses):
-                raise IndexError(f"pose {index}: no such pose (have {len(self.poses)})")
+                raise NotFound(f"pose {index}: no such pose (have {len(self.poses)})")
             del self.poses[index]
             self.report = None
 

@@ -103,14 +103,12 @@ def close_devices(devs: DeviceBundle) -> None:
             log.warning("close %s: %s", d.name, exc)
 
 
-def apply_settings(
-    devs: DeviceBundle, schedule: PatternSchedule, *, exposure_ms: float | None, led: str | None
-) -> None:
+def apply_settings(devs: DeviceBundle, *, exposure_ms: float | None, led: str | None) -> None:
     """Change exposure and/or LED on running devices (called at a set boundary)."""
     if exposure_ms is not None:
         devs.camera.configure(exposure_ms=exposure_ms)
         if devs.projector is not None and devs.projector.state is not DeviceState.CLOSED:
-            devs.projector.load_schedule(schedule, exposure_ms=exposure_ms)
+            devs.projector.set_exposure(exposure_ms)  # timing only: the patterns stay uploaded
     if led is not None:
         if devs.controller is not None:
             devs.controller.set_led(led)

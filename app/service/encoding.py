@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.core.errors import InvalidRequest
 from app.service.motion import MOTION
 
 DEFAULT_RANGE_MM = (0.0, 35.0)
@@ -63,11 +64,11 @@ def depth_png_um(depth_mm: npt.NDArray[np.float32]) -> bytes:
 
 
 def check_range_mm(min_mm: float | None, max_mm: float | None) -> tuple[float, float]:
-    """The colormap range from optional bounds; ``ValueError`` if not min < max."""
+    """The colormap range from optional bounds (user input); ``InvalidRequest`` if not min < max."""
     lo = DEFAULT_RANGE_MM[0] if min_mm is None else float(min_mm)
     hi = DEFAULT_RANGE_MM[1] if max_mm is None else float(max_mm)
     if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-        raise ValueError(f"min_mm/max_mm: need finite min < max, got {lo}, {hi}")
+        raise InvalidRequest(f"min_mm/max_mm: need finite min < max, got {lo}, {hi}")
     return lo, hi
 
 

@@ -7,7 +7,6 @@ Everything the API does goes through here. Threads stop on events and are joined
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from pathlib import Path
@@ -16,7 +15,8 @@ from typing import Any
 from app.calib.calibration import Calibration, save_calibration
 from app.capture.captureset import CaptureSet
 from app.config import Settings
-from app.devices.base import EXPOSURE_RANGE_MS, LEDS
+from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
+from app.devices.base import LEDS
 from app.recon.patterns import PatternSchedule
 from app.service import calibration_store
 from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
@@ -27,10 +27,6 @@ from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import NewestQueue
 
 log = logging.getLogger("fringescope.service")
-
-
-class NotReady(RuntimeError):
-    """The instrument cannot do this yet (no result, no calibration, no session); → 503/404."""
 
 
 class Instrument:
@@ -182,15 +178,13 @@ class Instrument:
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
-        lo, hi = EXPOSURE_RANGE_MS
-        if not (math.isfinite(exposure_ms) and lo <= exposure_ms <= hi):
-            raise ValueError(f"exposure_ms: must be within {lo}–{hi} ms, got {exposure_ms}")
+        """Request ``exposure_ms`` from the next whole set (checked at the API boundary and by the devices)."""
         self._acq().request(exposure_ms=float(exposure_ms))
         return float(exposure_ms)
 
     def set_led(self, led: str) -> str:
         if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+            raise InvalidRequest(f"led: must be one of {LEDS}, got {led!r}")
         self._acq().request(led=led)
         return led
 
@@ -202,36 +196,37 @@ class Instrument:
 
     def _acq(self) -> Any:
         if self.acquisition is None:
-            raise NotReady("instrument not started")
+            raise DeviceUnavailable("instrument not started")
         return self.acquisition
 
     # -- results -----------------------------------------------------------------------------
     def latest_result(self) -> LiveResult:
         _, res = self.results.latest()
         if res is None:
-            raise NotReady(self._why_no_result())
+            raise self._why_no_result()
         return res
 
     def wait_result(self, after_seq: int, timeout_s: float) -> LiveResult | None:
         """The first result newer than ``after_seq`` (None on timeout or shutdown)."""
         return self.results.wait_newer(after_seq, timeout_s)[1]
 
-    def _why_no_result(self) -> str:
+    def _why_no_result(self) -> Conflict | DeviceUnavailable:
+        """Why there is no result: a state the client can change (409) or a wait/fault (503)."""
         if self.calibrating:
-            return "no depth result yet: the calibration is being created"
+            return DeviceUnavailable("no depth result yet: the calibration is being created")
         if self.calibration is None:
-            return "no depth result: no calibration is active"
+            return Conflict("no depth result: no calibration is active")
         if self.acquisition is None or not self.acquisition.acquiring:
-            return "no depth result: acquisition is stopped"
+            return Conflict("no depth result: acquisition is stopped")
         if self.acquisition.fault:
-            return f"no depth result: device fault ({self.acquisition.fault})"
-        return "no depth result yet"
+            return DeviceUnavailable(f"no depth result: device fault ({self.acquisition.fault})")
+        return DeviceUnavailable("no depth result yet")
 
     def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
         """The next whole fringe set grabbed after this call (optionally at one exposure)."""
         acq = self._acq()
         if not acq.acquiring:
-            raise NotReady("acquisition is stopped: start it to capture")
+            raise Conflict("acquisition is stopped: start it to capture")
         seq = acq.sets.seq
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
@@ -241,7 +236,7 @@ class Instrument:
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
                 return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
                                   extra={"frame_indices": fs.frame_indices})
-        raise NotReady(f"no complete fringe set within {timeout_s:.0f} s")
+        raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
 
     def reconstruct_capture(self, capture: CaptureSet) -> Any:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
@@ -249,10 +244,13 @@ class Instrument:
 
         cal = self.calibration
         if cal is None:
-            raise NotReady("no calibration is active")
+            raise Conflict("no calibration is active: load or create one first")
         if capture.schedule != cal.pattern:
-            raise ValueError("capture: pattern schedule differs from the calibration's")
-        cal.check_frames(capture.frames.shape)
+            raise InvalidRequest("capture: pattern schedule differs from the calibration's")
+        try:
+            cal.check_frames(capture.frames.shape)
+        except ValueError as exc:
+            raise InvalidRequest(str(exc)) from None
         with self._upload_lock:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
@@ -350,12 +348,16 @@ class Instrument:
     def start_session(self, board: dict[str, Any]) -> CalibrationSession:
         from app.calib.board import BoardSpec
 
-        self.session = CalibrationSession(BoardSpec.from_dict(board))
+        try:
+            spec = BoardSpec.from_dict(board)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise InvalidRequest(f"board: {exc}") from None
+        self.session = CalibrationSession(spec)
         return self.session
 
     def require_session(self) -> CalibrationSession:
         if self.session is None:
-            raise NotReady("no calibration session: POST /api/calibration/session first")
+            raise Conflict("no calibration session: POST /api/calibration/session first")
         return self.session
 
     def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
@@ -365,12 +367,17 @@ class Instrument:
         return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist()}
 
     def solve_session(self, *, robust: bool = False) -> Any:
-        return self.require_session().solve(robust=robust)
+        """Fit the session's poses; too few or unusable poses are a Conflict with the reason."""
+        session = self.require_session()
+        try:
+            return session.solve(robust=robust)
+        except ValueError as exc:
+            raise Conflict(f"calibration solve: {exc}") from None
 
     def activate_session(self, name: str) -> dict[str, Any]:
         session = self.require_session()
         if session.report is None:
-            raise NotReady("calibration session not solved: POST /api/calibration/session/solve first")
+            raise Conflict("calibration session not solved: POST /api/calibration/session/solve first")
         self.set_calibration(session.report.calibration, name=name, persist=True)
         summary = self.calibration_summary()
         assert summary is not None

@@ -18,9 +18,12 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
+
+from app.capture import recording as rec_io
 from app.capture.captureset import CaptureSet
 from app.capture.recording import (
     Recording,
@@ -29,6 +32,7 @@ from app.capture.recording import (
     remove_stale_partials,
     validate_name,
 )
+from app.core.errors import Conflict, InvalidRequest, NotFound
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult
 
@@ -37,8 +41,8 @@ log = logging.getLogger("fringescope.service.recorder")
 SECRET_SETTINGS = frozenset({"api_token"})  # never written to disk
 
 
-class RecorderBusy(RuntimeError):
-    """A recording is already running (→ HTTP 409)."""
+class InsufficientDisk(OSError):
+    """Too little free space to start or go on recording (HTTP 507)."""
 
 
 class Recorder:
@@ -77,20 +81,28 @@ class Recorder:
     def start(self, name: str | None = None) -> dict[str, Any]:
         """Begin recording into ``<data_dir>/recordings/<name>`` (default: a time stamp).
 
-        Raises ``RecorderBusy`` if recording, ``FileExistsError`` if the name is taken,
-        ``ValueError`` for a bad name.
+        Raises ``Conflict`` if recording or if the name is taken, ``InvalidRequest`` for a
+        bad name, ``InsufficientDisk`` when the disk is nearly full.
         """
         if name is not None:
-            validate_name(name, "name")
+            try:
+                validate_name(name, "name")
+            except ValueError as exc:
+                raise InvalidRequest(str(exc)) from None
         with self._lock:
             if self._recording is not None:
-                raise RecorderBusy(f"already recording {self._recording.name!r}: stop it first")
+                raise Conflict(f"already recording {self._recording.name!r}: stop it first")
             if not self._cleaned:
                 remove_stale_partials(self.root)  # leftovers of a crash before this start
                 self._cleaned = True
             self._check_disk()
             settings = self.instrument.settings.model_dump(mode="json", exclude=set(SECRET_SETTINGS))
-            self._recording = Recording(self.root, name or self._fresh_name(), settings=settings)
+            try:
+                self._recording = Recording(self.root, name or self._fresh_name(), settings=settings)
+            except FileExistsError as exc:
+                raise Conflict(str(exc)) from None
+            except ValueError as exc:
+                raise InvalidRequest(str(exc)) from None
             self.sets_written = self.sets_with_depth = self.skipped_sets = self.errors = 0
             self.last_error = None
             self._stop.clear()
@@ -137,7 +149,47 @@ class Recorder:
         self.root.mkdir(parents=True, exist_ok=True)
         free_mb = shutil.disk_usage(self.root).free / 1e6
         if free_mb < self.min_free_mb:
-            raise OSError(f"only {free_mb:.0f} MB free in {self.root} (need {self.min_free_mb:.0f} MB)")
+            raise InsufficientDisk(f"only {free_mb:.0f} MB free in {self.root} (need {self.min_free_mb:.0f} MB)")
+
+    # -- the recordings on disk (NotFound for a name that is not one) -------------------------
+    def recordings(self) -> list[dict[str, Any]]:
+        """Summaries of every recording in the data folder, by name."""
+        return rec_io.list_recordings(self.root)
+
+    def session(self, name: str) -> dict[str, Any]:
+        """``session.json`` of recording ``name``."""
+        try:
+            return rec_io.read_session(self.root, name)
+        except FileNotFoundError as exc:
+            raise NotFound(str(exc).strip("'\"")) from None
+        except ValueError as exc:  # a bad name, or a folder that is not a whole recording
+            raise NotFound(f"recording {name!r}: {exc}") from None
+
+    def zip_chunks(self, name: str) -> Iterator[bytes]:
+        """The whole recording as a zip, in chunks (NotFound raised before the first chunk)."""
+        self.session(name)
+        return rec_io.iter_zip(self.root, name)
+
+    def delete(self, name: str) -> None:
+        """Delete recording ``name`` (Conflict while it is being written)."""
+        if self.active_name == name:
+            raise Conflict(f"recording {name!r} is running: stop it first")
+        self.session(name)
+        try:
+            rec_io.delete_recording(self.root, name)
+        except FileNotFoundError as exc:
+            raise NotFound(str(exc).strip("'\"")) from None
+
+    def set_depth(self, name: str, index: int) -> np.ndarray:
+        """The depth map (mm, float32, NaN invalid) of set ``index`` of recording ``name``."""
+        session = self.session(name)
+        folder = f"set_{index:04d}"
+        if not any(s["folder"] == folder for s in session["sets"]):
+            raise NotFound(f"recording {name!r} has no set {index}")
+        path = rec_io.safe_child(self.root, name) / folder / "depth.npy"
+        if not path.is_file():
+            raise NotFound(f"set {index} of {name!r} was recorded without a depth map")
+        return np.asarray(np.load(path, allow_pickle=False))
 
     # -- the thread ------------------------------------------------------------------------------
     def _run(self, rec: Recording) -> None:

@@ -49,7 +49,7 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
     with TestClient(app) as client:
         world = app.state.instrument.devices.world
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
-        assert client.post("/api/calibration/session/poses").status_code == 503  # no session yet
+        assert client.post("/api/calibration/session/poses").status_code == 409  # no session yet
 
         spec = BoardSpec()  # the simulator's checkerboard
         n_corners = spec.inner_corners[0] * spec.inner_corners[1]
@@ -77,7 +77,7 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         assert r.status_code == 200 and len(r.json()) == 7 and all(p["found"] for p in r.json())
 
         r = client.post("/api/calibration/session/activate")
-        assert r.status_code == 503 and "solve" in r.json()["detail"]
+        assert r.status_code == 409 and "solve" in r.json()["detail"]
         r = client.post("/api/calibration/session/solve", json={})
         assert r.status_code == 200, r.text
         report = r.json()

@@ -150,6 +150,20 @@ def test_3d_view_renders_points(page: tuple[Any, list[str]], server: str) -> Non
     assert errors == []
 
 
+def test_controls_take_their_ranges_from_the_limits_route(page: tuple[Any, list[str]], server: str) -> None:
+    """The LED choices, exposure range and colour range come from GET /api/limits (not the page)."""
+    pg, errors = page
+    limits = httpx.get(f"{server}/api/limits").json()
+    pg.wait_for_function("window.fringescope.limits !== null", timeout=10_000)
+    leds = pg.evaluate("[...document.querySelectorAll('#led option')].map(o => o.value)")
+    assert leds == limits["leds"]
+    lo, hi = pg.evaluate("[Number(document.querySelector('#exposure').min), "
+                         "Number(document.querySelector('#exposure').max)]")
+    assert [lo, hi] == limits["exposure_ms"]
+    assert pg.evaluate("window.fringescope.range") == limits["depth_range_mm"]
+    assert errors == []
+
+
 def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str) -> None:
     pg, errors = page
     before = httpx.get(f"{server}/api/status").json()["exposure_ms"]

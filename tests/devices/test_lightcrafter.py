@@ -22,6 +22,8 @@ from app.devices import (
 )
 from app.devices.lightcrafter import (
     CMD_PATTERN_DEF,
+    CMD_SEQ_SETTING,
+    CMD_SEQ_START,
     CMD_VERSION,
     FIRST,
     LAST,
@@ -183,3 +185,58 @@ def test_cli_emulate_lightcrafter():
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=30) == 0
+
+
+def test_exposure_change_is_a_timing_call_without_pattern_upload(emu):
+    """A new exposure sends only the sequence setting (stop, 0x0400, start): no pattern re-upload."""
+    schedule = PatternSchedule()
+    proj = LightCrafterProjector(emu.host, emu.port)
+    proj.open()
+    before_load = emu.state.bytes_received
+    proj.load_schedule(schedule, exposure_ms=25.0)
+    upload_bytes = emu.state.bytes_received - before_load
+    assert emu.state.commands.count(CMD_PATTERN_DEF) == 16 and upload_bytes > 16 * 608 * 684
+    proj.start()
+    patterns = {i: p.copy() for i, p in emu.state.patterns.items()}
+    n_cmds, n_bytes = len(emu.state.commands), emu.state.bytes_received
+
+    proj.set_exposure(40.0)
+
+    sent = emu.state.commands[n_cmds:]
+    assert sent == [CMD_SEQ_START, CMD_SEQ_SETTING, CMD_SEQ_START], [hex(c) for c in sent]
+    assert emu.state.bytes_received - n_bytes < 64  # three small packets, not ~6.7 MB
+    assert emu.state.sequence["exposure_us"] == 40000 and emu.state.sequence["period_us"] == 42000
+    assert emu.state.running and proj.exposure_ms == 40.0
+    assert sorted(emu.state.patterns) == list(range(16))
+    assert all(np.array_equal(emu.state.patterns[i], patterns[i]) for i in range(16))
+
+    n_cmds = len(emu.state.commands)
+    proj.set_exposure(40.0)  # unchanged: nothing to send
+    assert emu.state.commands[n_cmds:] == []
+    with pytest.raises(ValueError, match="exposure_ms"):
+        proj.set_exposure(0.1)
+    assert emu.state.sequence["exposure_us"] == 40000
+    proj.close()
+
+
+def test_service_exposure_change_uses_the_timing_call(emu):
+    """The acquisition's settings step (also auto-exposure's path) never re-uploads the patterns."""
+    from app.config import Settings
+    from app.service.devices import DeviceBundle, apply_settings, create_devices, start_devices
+
+    sim = create_devices(Settings(viewer=False, sim_seed=0))
+    proj = LightCrafterProjector(emu.host, emu.port)
+    devs = DeviceBundle(sim.camera, proj, None, None)
+    start_devices(devs, PatternSchedule(), exposure_ms=20.0, led="green", bit_depth=8)
+    try:
+        assert emu.state.commands.count(CMD_PATTERN_DEF) == 16 and emu.state.running
+        n_cmds, n_bytes = len(emu.state.commands), emu.state.bytes_received
+        for exposure_ms in (10.0, 15.0, 30.0, 12.5):  # an auto-exposure search's trials
+            apply_settings(devs, exposure_ms=exposure_ms, led=None)
+            assert sim.camera.settings.exposure_ms == exposure_ms
+            assert emu.state.sequence["exposure_us"] == round(exposure_ms * 1000)
+        assert CMD_PATTERN_DEF not in emu.state.commands[n_cmds:]
+        assert emu.state.bytes_received - n_bytes < 4 * 64
+    finally:
+        proj.close()
+        sim.camera.close()

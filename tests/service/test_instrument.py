@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from app.config import Settings
-from app.service.instrument import Instrument, NotReady
+from app.core.errors import Conflict, InvalidRequest
+from app.service.instrument import Instrument
 from tests.api.conftest import sim_calibration_file  # noqa: F401 - the shared session fixture
 
 
@@ -67,13 +68,14 @@ def test_auto_exposure_measures_real_sets(instrument: Instrument) -> None:
 
 
 def test_controls_validate_and_status_explains(instrument: Instrument) -> None:
+    # the exposure is checked at the API boundary (ExposureIn) and by the device, not again here
     with pytest.raises(ValueError, match="exposure_ms"):
-        instrument.set_exposure(0.5)
-    with pytest.raises(ValueError, match="led"):
+        instrument.devices.camera.configure(exposure_ms=0.5)
+    with pytest.raises(InvalidRequest, match="led"):
         instrument.set_led("white")
     instrument.set_acquiring(False)
     wait_until(lambda: instrument.state() == "stopped", 10, "stopped")
-    with pytest.raises(NotReady, match="stopped"):
+    with pytest.raises(Conflict, match="stopped"):
         instrument.next_capture(1.0)
 
 

@@ -131,6 +131,9 @@ class SimulatedProjector(Projector):
             raise ValueError(f"schedule: pattern size {schedule.width}x{schedule.height} != DMD {w}x{h}")
         self.world.set_schedule(schedule)
 
+    def _do_set_exposure(self, exposure_ms: float) -> None:
+        self.link.check()  # the simulated world's timing follows the camera's exposure
+
     def _do_set_led(self, led: str, current: float) -> None:
         self.link.check()
         self.world.led, self.world.current = led, current

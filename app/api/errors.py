@@ -1,0 +1,118 @@
+"""Errors → HTTP, in one place, and the OpenAPI ``responses`` every route declares.
+
+Domain errors (:mod:`app.core.errors`) carry their reason to the client: InvalidRequest
+422, Conflict 409, NotFound 404, DeviceUnavailable 503 (as do device errors: the
+hardware failed); a nearly full disk when recording is 507. Request validation is 422
+with pydantic's detail. Anything else is a programming error: 500 with a generic
+reason, its traceback logged.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from starlette.routing import Match, Mount
+
+from app.core.errors import Conflict, DeviceUnavailable, DomainError, InvalidRequest, NotFound
+from app.devices.errors import DeviceError
+from app.service.recorder import InsufficientDisk
+
+log = logging.getLogger("fringescope.api")
+
+METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE")
+
+STATUS: dict[type[DomainError], int] = {
+    InvalidRequest: 422, Conflict: 409, NotFound: 404, DeviceUnavailable: 503,
+}
+
+
+def status_of(exc: DomainError) -> int:
+    for cls in type(exc).__mro__:
+        if cls in STATUS:
+            return STATUS[cls]  # type: ignore[index]
+    return 500
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the one mapping of exceptions to HTTP answers on ``app``."""
+
+    async def domain(_: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, DomainError)
+        return JSONResponse({"detail": exc.detail}, status_code=status_of(exc))
+
+    async def device(_: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse({"detail": str(exc) or type(exc).__name__}, status_code=503)
+
+    async def disk(_: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse({"detail": f"cannot record: {exc}"}, status_code=507)
+
+    async def internal(request: Request, exc: Exception) -> JSONResponse:
+        log.error("%s %s failed", request.method, request.url.path, exc_info=exc)
+        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); see the server log"},
+                            status_code=500)
+
+    app.add_exception_handler(DomainError, domain)
+    app.add_exception_handler(DeviceError, device)
+    app.add_exception_handler(InsufficientDisk, disk)
+    app.add_exception_handler(Exception, internal)
+
+
+def install_api_fallback(app: FastAPI) -> None:
+    """Unknown ``/api`` paths are 404 and wrong methods 405 listing every allowed method.
+
+    Without it the dashboard mounted at ``/`` would answer them (405 ``Allow: GET, HEAD``).
+    Call after every API route is included and before the dashboard is mounted.
+    """
+
+    async def fallback(request: Request) -> JSONResponse:
+        path = request.url.path
+        allowed = set()
+        for method in METHODS:
+            scope = {**request.scope, "method": method}
+            for route in app.router.routes:
+                if route is fallback_route or isinstance(route, Mount):
+                    continue
+                if route.matches(scope)[0] is Match.FULL:
+                    allowed.add(method)
+                    break
+        if not allowed:
+            return JSONResponse({"detail": f"no such API route: {path}"}, status_code=404)
+        allow = ", ".join(sorted(allowed - {"HEAD"}))
+        return JSONResponse({"detail": f"{request.method} not allowed on {path} (allowed: {allow})"},
+                            status_code=405, headers={"Allow": allow})
+
+    app.add_api_route("/api/{rest:path}", fallback, include_in_schema=False, methods=list(METHODS))
+    fallback_route = app.router.routes[-1]
+
+
+# -- OpenAPI: the answers a route can give besides its 200 -----------------------------------------
+_DETAIL: dict[str, Any] = {"type": "string", "description": "what is wrong, one line"}
+_VALIDATION_ITEM: dict[str, Any] = {"type": "object", "required": ["loc", "msg", "type"], "properties": {
+    "loc": {"type": "array", "items": {"anyOf": [{"type": "string"}, {"type": "integer"}]}},
+    "msg": {"type": "string"}, "type": {"type": "string"}}}
+
+
+Responses = dict[int | str, dict[str, Any]]
+
+
+def _err(description: str, detail: dict[str, Any] | None = None) -> dict[str, Any]:
+    schema = {"type": "object", "required": ["detail"], "properties": {"detail": detail or _DETAIL}}
+    return {"description": description, "content": {"application/json": {"schema": schema}}}
+
+
+R400: Responses = {400: _err("malformed request body (e.g. a broken multipart form)")}
+R404: Responses = {404: _err("no such thing (reason in detail)")}
+R409: Responses = {409: _err("not possible in the current state (reason in detail)")}
+R413: Responses = {413: _err("upload larger than the configured limit")}
+R415: Responses = {415: _err("unsupported upload content type")}
+#: request validation (a list of pydantic errors) or a domain InvalidRequest (one line)
+R422: Responses = {422: _err("invalid request: parameters that fail validation (list) or a reason (string)",
+                  {"anyOf": [_DETAIL, {"type": "array", "items": _VALIDATION_ITEM}]})}
+R503: Responses = {503: _err("device or live pipeline unavailable now (reason in detail)")}
+R507: Responses = {507: _err("not enough free disk space")}
+
+#: every route needs the instrument: 503 when it is not available
+COMMON: Responses = {**R503}

@@ -1,0 +1,59 @@
+// The status bar: state, rates, devices, faults and warnings from GET /api/status.
+// Other panels subscribe with onStatus(fn) and get every new status after the bar.
+
+import { $, api, fmt, say } from "./api.js";
+import { ui } from "./state.js";
+
+const listeners = [];
+
+/** Call fn(status) with every status polled from now on. */
+export function onStatus(fn) {
+  listeners.push(fn);
+}
+
+function showStatus(st) {
+  ui.status = st;
+  const state = $("state");
+  state.textContent = st.state;
+  state.className = `pill state-${st.state}`;
+  $("m-camera").textContent = fmt(st.camera_fps, 1);
+  $("m-depth").textContent = fmt(st.depth_fps, 2);
+  $("m-latency").textContent = fmt(st.latency_ms, 0);
+  $("m-dropped").textContent = String(st.dropped_sets ?? "–");
+  $("m-incomplete").textContent = String(st.incomplete_sets ?? "–");
+  $("m-mode").textContent = st.mode;
+
+  const devices = $("devices");
+  devices.textContent = "";
+  for (const d of st.devices || []) {
+    const chip = document.createElement("span");
+    chip.className = `chip dev-${d.state}`;
+    chip.textContent = `${d.kind}: ${d.state}`;
+    chip.title = `${d.name}${d.error ? " — " + d.error : ""}`;
+    devices.appendChild(chip);
+  }
+
+  const fault = $("fault");
+  fault.hidden = st.state !== "fault";
+  if (st.state === "fault") {
+    const bad = (st.devices || []).filter((d) => d.state === "fault" || d.error);
+    $("fault-text").textContent =
+      (st.last_error || "device fault") + (bad.length ? ` (${bad.map((d) => d.name).join(", ")})` : "");
+  }
+  const warnings = $("warnings");
+  const list = st.warnings || [];
+  warnings.hidden = list.length === 0;
+  warnings.textContent = list.map((w) => "⚠ " + w).join("   ");
+  for (const fn of listeners) fn(st);
+}
+
+export async function pollStatus() {
+  try {
+    showStatus(await api("/api/status", { timeoutMs: 5000 }));
+  } catch (err) {
+    const state = $("state");
+    state.textContent = "offline";
+    state.className = "pill state-fault";
+    say(`status: ${err.message}`, "error");
+  }
+}
