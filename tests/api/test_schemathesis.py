@@ -24,6 +24,7 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
 from hypothesis.stateful import run_state_machine_as_test
+from schemathesis.config import SchemathesisConfig
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from app.config import Settings
@@ -79,7 +80,10 @@ class WithoutLifespan:
 PROXY = WithoutLifespan()
 # The spec of an app built exactly like the served one (building starts nothing).
 SPEC = create_app(Settings(api_token=TOKEN, viewer=False)).openapi()
-schema = schemathesis.openapi.from_dict(SPEC).exclude(path_regex=ENDLESS)
+# the token as schemathesis' own credentials for the spec's bearer scheme: it sends it on every
+# case except the negative ones that drop it on purpose (which must then get a 401)
+CONFIG = SchemathesisConfig.from_dict({"auth": {"openapi": {"bearer": {"bearer": TOKEN}}}})
+schema = schemathesis.openapi.from_dict(SPEC, config=CONFIG).exclude(path_regex=ENDLESS)
 schema.app = PROXY
 
 
@@ -89,6 +93,7 @@ def live_app(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Pat
                         max_upload_mb=5.0)
     app = create_app(cfg)
     with TestClient(app) as client:  # runs the lifespan: the Instrument starts (and stops after)
+        client.headers.update(AUTH)  # with a token set, /api/status needs it too
         wait_for(client, lambda st: st["results_published"] >= 1, 120, "first result")
         PROXY.app = app
         yield app
@@ -105,7 +110,7 @@ def test_every_operation_passes_the_default_checks(case: Any, live_app: Any) -> 
 
 def _call(case: Any, **kwargs: Any) -> None:
     excluded = [positive_data_acceptance] if case.operation.label in SEMANTIC_422 else []
-    response = case.call_and_validate(headers=AUTH, excluded_checks=excluded, **kwargs)
+    response = case.call_and_validate(excluded_checks=excluded, **kwargs)
     if response.status_code == 422:
         assert response.json()["detail"], "a 422 without a reason"
 
@@ -121,8 +126,7 @@ def test_stateful_links(live_app: Any) -> None:
     machine = schema.exclude(path_regex=r"^/api/exposure/auto$").as_state_machine()
 
     class Workflow(machine):  # type: ignore[misc, valid-type]
-        def get_call_kwargs(self, case: Any) -> dict[str, Any]:
-            return {"headers": AUTH}
+        pass
 
     assert machine.bundles, "no OpenAPI links found: the stateful run would test nothing"
     run_state_machine_as_test(Workflow, settings=settings(max_examples=15, stateful_step_count=6, **HYPOTHESIS))
@@ -132,10 +136,10 @@ def test_instrument_survived(live_app: Any) -> None:
     """After the fuzzing the app still answers and its threads still run (runs last here)."""
     inst = live_app.state.instrument
     assert inst.acquisition is not None and inst.acquisition.alive and inst.reconstruction.alive
-    client = TestClient(live_app)  # no `with`: the module's lifespan is already running
+    client = TestClient(live_app, headers=AUTH)  # no `with`: the module's lifespan is already running
     client.put("/api/mode", json={"rolling": False}, headers=AUTH)
     client.post("/api/acquisition/start", headers=AUTH)
     client.put("/api/exposure", json={"exposure_ms": 10}, headers=AUTH)
     client.post("/api/recording/stop", headers=AUTH)
-    before = client.get("/api/status").json()["results_published"]
+    before = client.get("/api/status", headers=AUTH).json()["results_published"]
     wait_for(client, lambda st: st["results_published"] > before, 60, "a new result after the fuzzing")
