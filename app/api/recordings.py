@@ -68,7 +68,7 @@ def recording_status(request: Request) -> dict[str, Any]:
                         507: {"description": "not enough free disk space"}})
 def recording_start(
     request: Request,
-    body: RecordingStartIn = Body(default_factory=RecordingStartIn),  # type: ignore[arg-type]
+    body: RecordingStartIn = Body(default_factory=RecordingStartIn),
 ) -> dict[str, Any]:
     """Record every whole fringe set (PNG frames) with its depth map until stopped."""
     recorder = get_recorder(request)

@@ -6,13 +6,17 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
 
+from app.core.board import BoardType
+from app.core.limits import EXPOSURE_RANGE_MS, Led
+
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class ExposureIn(Strict):
-    exposure_ms: float = Field(..., ge=1.0, le=100.0, description="camera exposure, 1–100 ms")
+    exposure_ms: float = Field(..., ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1],
+                               description="camera exposure, 1–100 ms")
 
 
 class ExposureOut(BaseModel):
@@ -22,7 +26,7 @@ class ExposureOut(BaseModel):
 
 class AutoExposureIn(Strict):
     saturation_limit: float = Field(0.005, ge=0.0, lt=1.0, description="allowed saturated fraction")
-    max_exposure_ms: float = Field(100.0, ge=1.0, le=100.0)
+    max_exposure_ms: float = Field(EXPOSURE_RANGE_MS[1], ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1])
 
 
 class ExposureTrialOut(BaseModel):
@@ -41,7 +45,7 @@ class AutoExposureOut(BaseModel):
 
 
 class LedIn(Strict):
-    led: Literal["red", "green", "blue"]
+    led: Led
 
 
 class LedOut(BaseModel):
@@ -126,10 +130,10 @@ class ReconstructSummary(BaseModel):
 
 
 class BoardIn(Strict):
-    """A ``board.json`` object: checkerboard (inner_corners, square_mm) or circles (grid, spacing_mm)."""
+    """A ``board.json`` object: checkerboard (inner_corners, square_mm) or circles (inner_corners, spacing_mm)."""
 
     model_config = ConfigDict(extra="allow")
-    type: Literal["checkerboard", "circles", "asymmetric_circles"]
+    type: BoardType
 
 
 class PoseOut(BaseModel):

@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS, check_exposure_ms, check_led
+from app.core.schedule import PatternSchedule
 from app.devices.errors import DeviceDisconnected, DeviceError, DeviceStateError
-from app.recon.patterns import PatternSchedule
 
-LEDS = ("red", "green", "blue")
-EXPOSURE_RANGE_MS = (1.0, 100.0)
+__all__ = ["EXPOSURE_RANGE_MS", "LEDS"]  # re-exported: the devices' limits are the instrument's
 
 
 class DeviceState(enum.StrEnum):
@@ -255,8 +255,8 @@ class Projector(Device):
         """Upload the patterns of ``schedule`` (and the per-pattern exposure, ms)."""
         if not isinstance(schedule, PatternSchedule):
             raise ValueError("schedule: expected a PatternSchedule")
-        if exposure_ms is not None and not (EXPOSURE_RANGE_MS[0] <= exposure_ms <= EXPOSURE_RANGE_MS[1]):
-            raise ValueError(f"exposure_ms: must be within {EXPOSURE_RANGE_MS}, got {exposure_ms}")
+        if exposure_ms is not None:
+            check_exposure_ms(exposure_ms)
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="load a schedule")
             exp = self.exposure_ms if exposure_ms is None else float(exposure_ms)
@@ -265,8 +265,7 @@ class Projector(Device):
 
     def set_led(self, led: str, *, current: float | None = None) -> None:
         """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
-        if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+        check_led(led)
         cur = self.led_current if current is None else float(current)
         if not (0.0 <= cur <= 1.0):
             raise ValueError(f"current: must be within 0–1, got {current}")
@@ -307,7 +306,7 @@ class Projector(Device):
     @abstractmethod
     def _do_set_led(self, led: str, current: float) -> None: ...
 
-    def _do_set_trigger_mode(self, mode: str) -> None:  # noqa: B027 - optional hook
+    def _do_set_trigger_mode(self, mode: str) -> None:  # optional hook
         pass
 
     @abstractmethod
@@ -331,8 +330,7 @@ class Controller(Device):
             return str(self._call("identify", self._do_identify))
 
     def set_led(self, led: str, *, current: float | None = None) -> None:
-        if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+        check_led(led)
         cur = self.current if current is None else float(current)
         if not (0.0 <= cur <= 1.0):
             raise ValueError(f"current: must be within 0–1, got {current}")

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.patterns import PatternSchedule
+from app.core.schedule import PatternSchedule
 from app.recon.phase import wrapped_phase
 
 #: candidate exposures, ms (roughly geometric: each step ≈ 1.25–1.5×)

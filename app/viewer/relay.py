@@ -137,11 +137,11 @@ async def relay_websocket(websocket: WebSocket, viewer: Any) -> None:
     try:
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
-            exc = task.exception()
-            if exc is not None and not isinstance(
-                exc, websockets.exceptions.ConnectionClosed | WebSocketDisconnect
+            err = task.exception()
+            if err is not None and not isinstance(
+                err, websockets.exceptions.ConnectionClosed | WebSocketDisconnect
             ):
-                log.warning("viser relay: %s ended: %r", task.get_name(), exc)
+                log.warning("viser relay: %s ended: %r", task.get_name(), err)
     finally:
         for task in tasks:
             task.cancel()

@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 import viser
 
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS
 from app.recon.colormap import depth_colormap
 from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.encoding import texture_u8 as _texture_u8
@@ -36,7 +37,6 @@ from app.viewer.cloud import (
 
 log = logging.getLogger(__name__)
 
-LEDS = ("red", "green", "blue")
 __all__ = ["Viewer", "cloud_arrays", "decimation_step", "initial_view"]
 
 
@@ -168,8 +168,8 @@ class Viewer:
         status = self._safe_status()
         with gui.add_folder("Acquisition"):
             exposure = gui.add_slider(
-                "Exposure (ms)", min=1.0, max=100.0, step=1.0,
-                initial_value=float(np.clip(status.get("exposure_ms", 30.0), 1.0, 100.0)),
+                "Exposure (ms)", min=EXPOSURE_RANGE_MS[0], max=EXPOSURE_RANGE_MS[1], step=1.0,
+                initial_value=float(np.clip(status.get("exposure_ms", 30.0), *EXPOSURE_RANGE_MS)),
             )
             led0 = status.get("led", "green")
             led = gui.add_dropdown("LED", LEDS, initial_value=led0 if led0 in LEDS else "green")
@@ -235,7 +235,7 @@ class Viewer:
             return
         exposure_ms = status.get("exposure_ms")
         if isinstance(exposure_ms, int | float) and math.isfinite(exposure_ms):
-            gui["exposure"].value = float(np.clip(round(exposure_ms), 1.0, 100.0))
+            gui["exposure"].value = float(np.clip(round(exposure_ms), *EXPOSURE_RANGE_MS))
         if status.get("led") in LEDS:
             gui["led"].value = status["led"]
 
