@@ -15,7 +15,7 @@ import logging
 import math
 import threading
 import time
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -25,6 +25,8 @@ from app.core.limits import EXPOSURE_RANGE_MS, LEDS
 from app.recon.colormap import depth_colormap
 from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.encoding import texture_u8 as _texture_u8
+from app.service.reconstruction import LiveResult
+from app.service.store import LatestSlot
 from app.viewer.cloud import (
     COLOR_MODES,
     PANEL_WIDTH_PX,
@@ -38,6 +40,16 @@ from app.viewer.cloud import (
 log = logging.getLogger(__name__)
 
 __all__ = ["Viewer", "cloud_arrays", "decimation_step", "initial_view"]
+
+
+class ViewedInstrument(Protocol):
+    """What the viewer uses of the instrument: the latest-result slot, the status, two controls."""
+
+    @property
+    def store(self) -> LatestSlot[LiveResult]: ...
+    def status(self) -> dict[str, Any]: ...
+    def set_exposure(self, exposure_ms: float) -> float: ...
+    def set_led(self, led: str) -> str: ...
 
 
 class Viewer:
@@ -65,7 +77,7 @@ class Viewer:
 
     def __init__(
         self,
-        instrument: Any,
+        instrument: ViewedInstrument,
         *,
         host: str = "127.0.0.1",
         port: int = 0,
@@ -253,7 +265,7 @@ class Viewer:
     def _run(self) -> None:
         last_push = -math.inf
         last_status = -math.inf
-        shown: Any = None
+        shown: LiveResult | None = None
         dirty = False  # `shown` differs from what the browsers have
         while not self._stop.is_set():
             seq, result = self._store.wait_newer(self.last_seq, 0.25)
@@ -277,7 +289,7 @@ class Viewer:
                 self._redraw.clear()
                 dirty = shown is not None
             # Nobody watching: keep the newest and send it when a browser connects.
-            if not dirty or (self.only_when_watched and not self._watched()):
+            if not dirty or shown is None or (self.only_when_watched and not self._watched()):
                 continue
             try:
                 self._show(shown)
@@ -290,7 +302,7 @@ class Viewer:
         server = self._server
         return server is not None and len(server.get_clients()) > 0
 
-    def _show(self, result: Any) -> None:
+    def _show(self, result: LiveResult) -> None:
         server = self._server
         if server is None:
             return
