@@ -16,6 +16,7 @@ from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
+from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule
 from app.recon import ReconResult
@@ -164,7 +165,8 @@ class Instrument:
     def set_acquiring(self, on: bool) -> None:
         self.pipeline.set_acquiring(on)
 
-    def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
+    def auto_exposure(self, *, saturation_limit: float = 0.005,
+                      max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
         return self.pipeline.auto_exposure(saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
 

@@ -25,3 +25,4 @@ def test_led():
     assert [check_led(x) for x in LEDS] == list(LEDS)
     with pytest.raises(ValueError, match="led"):
         check_led("white")
+
