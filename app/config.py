@@ -13,6 +13,8 @@ from typing import Any, Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.core.limits import EXPOSURE_RANGE_MS, BitDepth, Led
+
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="FRINGESCOPE_", extra="forbid")
@@ -46,9 +48,9 @@ class Settings(BaseSettings):
     sim_disconnect_every_s: float = Field(0.0, ge=0)
 
     # acquisition
-    exposure_ms: float = Field(30.0, ge=1, le=100)
-    led: Literal["red", "green", "blue"] = "green"
-    bit_depth: Literal[8, 12] = 8
+    exposure_ms: float = Field(30.0, ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1])
+    led: Led = "green"
+    bit_depth: BitDepth = 8
     rolling: bool = False
     autostart: bool = True
 

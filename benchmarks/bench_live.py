@@ -23,13 +23,13 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import httpx  # noqa: E402
-import numpy as np  # noqa: E402
-import uvicorn  # noqa: E402
-from websockets.sync.client import connect  # noqa: E402
+import httpx
+import numpy as np
+import uvicorn
+from websockets.sync.client import connect
 
-from app.config import Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
+from app.config import Settings
+from app.main import create_app
 
 
 def free_port() -> int:

@@ -12,18 +12,18 @@ import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-import statistics  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.recon import Reconstructor  # noqa: E402
-from tests.recon.analytic_rig import Rig, bump_surface  # noqa: E402
+from app.recon import Reconstructor
+from tests.recon.analytic_rig import Rig, bump_surface
 
 WIDTH, HEIGHT = 1384, 1032
 

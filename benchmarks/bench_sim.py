@@ -14,14 +14,14 @@ import time
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 TARGET_FPS = 45.0
 
 
 def bench(scene: str, frames: int) -> None:
+    from app.core.schedule import PatternSchedule
     from app.devices.sim import create_sim_devices
-    from app.recon.patterns import PatternSchedule
 
     dev = create_sim_devices(scene=scene, seed=1, realtime=False)
     cam, proj = dev.camera, dev.projector

@@ -92,7 +92,7 @@ def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
 
 @router.post("/session/solve", response_model=SolveOut, responses={**R409, **R400, **R422, **COMMON})
 def solve(
-    body: SolveIn = Body(default_factory=SolveIn),  # type: ignore[arg-type]
+    body: SolveIn = Body(default_factory=SolveIn),
     inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Fit the calibration from the detected poses: per-pose table and totals."""
@@ -113,7 +113,7 @@ def solve(
 
 @router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R400, **R422, **COMMON})
 def activate(
-    body: ActivateIn = Body(default_factory=ActivateIn),  # type: ignore[arg-type]
+    body: ActivateIn = Body(default_factory=ActivateIn),
     inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Make the solved calibration active (and saved in the data folder)."""

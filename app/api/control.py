@@ -40,7 +40,7 @@ def put_exposure(body: ExposureIn, inst: Instrument = Depends(get_instrument)) -
 
 @router.post("/exposure/auto", response_model=AutoExposureOut, responses={**R409, **R400, **R422, **COMMON})
 def auto_exposure(
-    body: AutoExposureIn = Body(default_factory=AutoExposureIn),  # type: ignore[arg-type]
+    body: AutoExposureIn = Body(default_factory=AutoExposureIn),
     inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Longest exposure whose sets keep saturation under the limit (grabs a few real sets)."""

@@ -53,7 +53,7 @@ START_LINKS: Responses = {200: {"description": "Successful Response", "links": {
 @router.post("/recording/start", response_model=RecorderStatus,
              responses={**START_LINKS, **R409, **R400, **R422, **R507, **COMMON})
 def recording_start(
-    body: RecordingStartIn = Body(default_factory=RecordingStartIn),  # type: ignore[arg-type]
+    body: RecordingStartIn = Body(default_factory=RecordingStartIn),
     recorder: Recorder = Depends(get_recorder),
 ) -> dict[str, Any]:
     """Record every whole fringe set (PNG frames) with its depth map until stopped."""

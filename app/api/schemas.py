@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, model_validator
 
 from app.capture.recording import NAME_PATTERN
-from app.devices.base import EXPOSURE_RANGE_MS
+from app.core.limits import EXPOSURE_RANGE_MS, Led
 
 EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
 
@@ -47,7 +47,7 @@ class AutoExposureOut(BaseModel):
 
 
 class LedIn(Strict):
-    led: Literal["red", "green", "blue"]
+    led: Led
 
 
 class LedOut(BaseModel):
@@ -133,13 +133,15 @@ class ReconstructSummary(BaseModel):
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
 BoardSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
+#: ``inner_corners`` is the grid size for every board type; an older ``grid`` key is read too
+InnerCorners = Annotated[BoardSize, Field(validation_alias=AliasChoices("inner_corners", "grid"))]
 
 
 class CheckerboardIn(Strict):
     """A checkerboard ``board.json``: inner corners [cols, rows] and square size, mm."""
 
     type: Literal["checkerboard"]
-    inner_corners: BoardSize
+    inner_corners: InnerCorners
     square_mm: PositiveMm
 
 
@@ -147,7 +149,7 @@ class CirclesIn(Strict):
     """A (symmetric or asymmetric) circle grid ``board.json``: grid [cols, rows] and spacing, mm."""
 
     type: Literal["circles", "asymmetric_circles"]
-    grid: BoardSize
+    inner_corners: InnerCorners
     spacing_mm: PositiveMm
 
 

@@ -1,98 +1,19 @@
-"""Calibration boards: the ``board.json`` spec, model points, and detection in a texture image."""
+"""Calibration boards: reading ``board.json`` and detection in a texture image (the spec is app.core.board)."""
 
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-BOARD_TYPES = ("checkerboard", "circles", "asymmetric_circles")
+from app.core.board import BOARD_TYPES, BoardSpec
 
-
-@dataclass(frozen=True)
-class BoardSpec:
-    """A flat calibration target.
-
-    Attributes:
-        type: ``"checkerboard"``, ``"circles"`` or ``"asymmetric_circles"``.
-        cols, rows: inner corners (checkerboard) or circles per row / per column.
-        pitch_mm: square size (checkerboard) or circle spacing, mm. For the asymmetric
-            grid, OpenCV's convention: circles in one row are ``2 * pitch_mm`` apart and
-            successive rows are offset by ``pitch_mm`` both ways.
-    """
-
-    type: str
-    cols: int
-    rows: int
-    pitch_mm: float
-
-    def __post_init__(self) -> None:
-        if self.type not in BOARD_TYPES:
-            raise ValueError(f"type: must be one of {BOARD_TYPES}, got {self.type!r}")
-        if int(self.cols) != self.cols or int(self.rows) != self.rows or self.cols < 2 or self.rows < 2:
-            raise ValueError(f"inner_corners: need integers >= 2, got [{self.cols}, {self.rows}]")
-        if not (math.isfinite(self.pitch_mm) and self.pitch_mm > 0):
-            raise ValueError(f"pitch_mm: must be positive, got {self.pitch_mm}")
-
-    @property
-    def pattern_size(self) -> tuple[int, int]:
-        """OpenCV pattern size (points per row, points per column)."""
-        return (int(self.cols), int(self.rows))
-
-    @property
-    def n_points(self) -> int:
-        return int(self.cols * self.rows)
-
-    def object_points(self) -> npt.NDArray[np.float32]:
-        """(n, 3) float32 board-frame coordinates in mm, z = 0, in OpenCV detection order."""
-        i, j = np.mgrid[0 : self.rows, 0 : self.cols]
-        if self.type == "asymmetric_circles":
-            x = (2 * j + i % 2) * self.pitch_mm
-        else:
-            x = j * self.pitch_mm
-        y = i * self.pitch_mm
-        pts = np.stack([x.ravel(), y.ravel(), np.zeros(self.n_points)], axis=1)
-        return pts.astype(np.float32)
-
-    def to_dict(self) -> dict[str, Any]:
-        key = "square_mm" if self.type == "checkerboard" else "spacing_mm"
-        size_key = "inner_corners" if self.type == "checkerboard" else "grid"
-        return {"type": self.type, size_key: [self.cols, self.rows], key: self.pitch_mm}
-
-    @classmethod
-    def from_dict(cls, data: Any) -> BoardSpec:
-        """Parse a ``board.json`` object; ``ValueError`` names the offending key."""
-        if not isinstance(data, dict):
-            raise ValueError("board: expected a JSON object")
-        btype = data.get("type")
-        if btype not in BOARD_TYPES:
-            raise ValueError(f"board.type: must be one of {BOARD_TYPES}, got {btype!r}")
-        size = data.get("inner_corners", data.get("grid"))
-        if size is None:
-            raise ValueError("board.inner_corners: missing ([cols, rows])")
-        if (
-            not isinstance(size, list | tuple)
-            or len(size) != 2
-            or not all(isinstance(s, int) and not isinstance(s, bool) for s in size)
-        ):
-            raise ValueError(f"board.inner_corners: expected [cols, rows] integers, got {size!r}")
-        pitch_key = "square_mm" if btype == "checkerboard" else "spacing_mm"
-        pitch = data.get(pitch_key)
-        if pitch is None:
-            raise ValueError(f"board.{pitch_key}: missing")
-        if isinstance(pitch, bool) or not isinstance(pitch, int | float):
-            raise ValueError(f"board.{pitch_key}: expected a number, got {pitch!r}")
-        try:
-            return cls(type=btype, cols=size[0], rows=size[1], pitch_mm=float(pitch))
-        except ValueError as exc:
-            raise ValueError(f"board: {exc}") from None
+__all__ = ["BOARD_TYPES", "BoardSpec", "Detection", "detect_board", "load_board", "texture_to_u8"]
 
 
 def load_board(path: str | os.PathLike[str]) -> BoardSpec:
@@ -185,11 +106,12 @@ def _find_checkerboard(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDAr
     )
     half = int(max(2, min(10, 0.3 * spacing)))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-    return cv2.cornerSubPix(img, c.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), criteria)
+    refined = cv2.cornerSubPix(img, c.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), criteria)
+    return np.asarray(refined, np.float32)
 
 
 def _find_circles(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[np.float32] | None:
-    params = cv2.SimpleBlobDetector_Params()
+    params = cv2.SimpleBlobDetector_Params()  # type: ignore[attr-defined]  # missing from OpenCV's stubs
     params.minArea = 8.0
     params.maxArea = float(img.size) / max(8, board.n_points)
     params.filterByConvexity = False
@@ -198,7 +120,7 @@ def _find_circles(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[n
     grid = cv2.CALIB_CB_ASYMMETRIC_GRID if board.type == "asymmetric_circles" else cv2.CALIB_CB_SYMMETRIC_GRID
     for image, color in ((img, 0), (255 - img, 0)):  # dark circles on white, then light on dark
         params.blobColor = color
-        detector = cv2.SimpleBlobDetector_create(params)
+        detector = cv2.SimpleBlobDetector_create(params)  # type: ignore[attr-defined]
         for flags in (grid, grid | cv2.CALIB_CB_CLUSTERING):
             found, centers = cv2.findCirclesGrid(image, board.pattern_size, flags=flags, blobDetector=detector)
             if found and centers is not None and len(centers) == board.n_points:

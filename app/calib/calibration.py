@@ -28,7 +28,7 @@ import numpy.typing as npt
 
 from app import __version__
 from app.atomic import atomic_write_text
-from app.recon.patterns import PatternSchedule
+from app.core.schedule import PatternSchedule
 
 FORMAT = "fringescope.calibration/1"
 N_NUMERATOR = 11

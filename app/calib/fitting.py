@@ -17,11 +17,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from app.calib.board import BoardSpec, detect_board, load_board, texture_to_u8
+from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
 from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize
 from app.capture.captureset import CaptureSet, read_capture_set
-from app.recon.patterns import PatternSchedule
+from app.core.board import BoardSpec
+from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
 MIN_HEIGHT_SPAN_MM = 1.0
@@ -293,7 +294,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             height_mm=(float(hz.min()), float(hz.max())),
         ))
     calibration = Calibration(
-        camera_matrix=cam, dist_coeffs=dist.ravel(), image_size=image_size, plane_normal=normal,
+        camera_matrix=np.asarray(cam, np.float64), dist_coeffs=np.asarray(dist, np.float64).ravel(), image_size=image_size, plane_normal=normal,
         plane_offset_mm=offset, numerator=fit.numerator, denominator=fit.denominator,
         normalization=norm, pattern=schedule,
         height_range_mm=(float(z[use].min()), float(z[use].max())),

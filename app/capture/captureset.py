@@ -14,10 +14,11 @@ import numpy as np
 import numpy.typing as npt
 
 from app.atomic import atomic_directory
-from app.recon.patterns import PatternSchedule
+from app.core.encoding import png_bytes
+from app.core.limits import check_led
+from app.core.schedule import PatternSchedule
 
 FORMAT = "fringescope.capture/1"
-LEDS = ("red", "green", "blue")
 
 
 @dataclass
@@ -42,8 +43,7 @@ class CaptureSet:
         validate_frames(self.frames, self.schedule)
         if not (math.isfinite(self.exposure_ms) and self.exposure_ms > 0):
             raise ValueError(f"exposure_ms: must be positive, got {self.exposure_ms}")
-        if self.led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {self.led!r}")
+        check_led(self.led)
 
 
 def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
@@ -81,10 +81,7 @@ def write_capture_set(
     }
     with atomic_directory(path, overwrite=overwrite) as tmp:
         for name, frame in zip(names, capture.frames, strict=True):
-            ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            if not ok:
-                raise OSError(f"{name}: PNG encoding failed")
-            (tmp / name).write_bytes(buf.tobytes())
+            (tmp / name).write_bytes(png_bytes(frame))
         for name, data in (extra_files or {}).items():
             (tmp / name).write_bytes(data)
         (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")

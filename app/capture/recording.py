@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from app.atomic import atomic_write_text
 from app.capture.captureset import CaptureSet, frame_names, write_capture_set
+from app.core.encoding import npy_bytes
 
 FORMAT = "fringescope.recording/1"
 SESSION_FILE = "session.json"
@@ -85,10 +86,7 @@ def _iso(t: float) -> str:
 
 def depth_npy_bytes(depth_mm: npt.ArrayLike) -> bytes:
     """A depth map as ``.npy`` bytes: (H, W) float32 mm, NaN where invalid."""
-    arr = _depth_array(depth_mm)
-    buf = io.BytesIO()
-    np.save(buf, arr, allow_pickle=False)
-    return buf.getvalue()
+    return npy_bytes(_depth_array(depth_mm))
 
 
 def depth_tiff_bytes(depth_mm: npt.ArrayLike) -> bytes:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import io
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from app.calib import load_calibration
     from app.capture import read_capture_set
     from app.capture.ply import write_ply
+    from app.core.encoding import npy_bytes
     from app.recon import Reconstructor, reason_png, render_depth_png
 
     set_dir = Path(args.set_dir)
@@ -58,9 +58,7 @@ def run(args: argparse.Namespace) -> int:
     res = rec.run(capture.frames)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    np.save(buf, res.depth)
-    atomic_write_bytes(out / "depth.npy", buf.getvalue())
+    atomic_write_bytes(out / "depth.npy", npy_bytes(res.depth))
     write_ply(out / "points.ply", res.points, res.valid, res.texture)
     atomic_write_bytes(out / "depth.png", render_depth_png(res.depth, args.range))
     atomic_write_bytes(out / "reason.png", reason_png(res.reason))

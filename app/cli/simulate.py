@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from app.devices.base import LEDS
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -65,11 +65,13 @@ def _calibration(args: argparse.Namespace) -> int:
 
 def _scene(args: argparse.Namespace) -> int:
     from app.capture.captureset import write_capture_set
-    from app.devices.sim.offline import npy_bytes, render_capture_set
+    from app.core.encoding import npy_bytes
+    from app.devices.sim.offline import render_capture_set
     from app.devices.sim.world import READOUT_MS, SimulatedWorld
 
-    if not (1.0 <= args.exposure_ms <= 100.0):
-        raise ValueError(f"--exposure-ms: must be within 1–100 ms, got {args.exposure_ms}")
+    if not (EXPOSURE_RANGE_MS[0] <= args.exposure_ms <= EXPOSURE_RANGE_MS[1]):
+        raise ValueError(f"--exposure-ms: must be within {EXPOSURE_RANGE_MS[0]:g}–{EXPOSURE_RANGE_MS[1]:g} ms, "
+                         f"got {args.exposure_ms}")
     min_period_ms = max(args.exposure_ms, READOUT_MS)
     if args.frames_per_second is None:
         period_ms = min_period_ms

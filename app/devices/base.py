@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS, check_exposure_ms, check_led
+from app.core.schedule import PatternSchedule
 from app.devices.errors import DeviceDisconnected, DeviceError, DeviceStateError
-from app.recon.patterns import PatternSchedule
 
-LEDS = ("red", "green", "blue")
-EXPOSURE_RANGE_MS = (1.0, 100.0)
+__all__ = ["EXPOSURE_RANGE_MS", "LEDS"]  # re-exported: the devices' limits are the instrument's
 
 
 class DeviceState(enum.StrEnum):
@@ -255,7 +255,7 @@ class Projector(Device):
         """Upload the patterns of ``schedule`` (and the per-pattern exposure, ms)."""
         if not isinstance(schedule, PatternSchedule):
             raise ValueError("schedule: expected a PatternSchedule")
-        exp = self.exposure_ms if exposure_ms is None else self._checked_exposure(exposure_ms)
+        exp = self.exposure_ms if exposure_ms is None else check_exposure_ms(exposure_ms)
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="load a schedule")
             self._call("load", self._do_load, schedule, exp)
@@ -267,24 +267,15 @@ class Projector(Device):
         Allowed while running (the sequence restarts at pattern 0 where the hardware needs
         a stop to change its timing). Before a schedule is loaded it is only remembered.
         """
-        exp = self._checked_exposure(exposure_ms)
+        exp = check_exposure_ms(exposure_ms)  # the device-side check (the API checks once more)
         with self._lock:
             if self._state is not DeviceState.CLOSED and self.schedule is not None:
                 self._call("timing", self._do_set_exposure, exp)
             self.exposure_ms = exp
 
-    @staticmethod
-    def _checked_exposure(exposure_ms: float) -> float:
-        """The device-side check of an exposure (the API checks it once more at its boundary)."""
-        lo, hi = EXPOSURE_RANGE_MS
-        if not (math.isfinite(exposure_ms) and lo <= exposure_ms <= hi):
-            raise ValueError(f"exposure_ms: must be within {lo}–{hi} ms, got {exposure_ms}")
-        return float(exposure_ms)
-
     def set_led(self, led: str, *, current: float | None = None) -> None:
         """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
-        if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+        check_led(led)
         cur = self.led_current if current is None else float(current)
         if not (0.0 <= cur <= 1.0):
             raise ValueError(f"current: must be within 0–1, got {current}")
@@ -329,7 +320,7 @@ class Projector(Device):
     @abstractmethod
     def _do_set_led(self, led: str, current: float) -> None: ...
 
-    def _do_set_trigger_mode(self, mode: str) -> None:  # noqa: B027 - optional hook
+    def _do_set_trigger_mode(self, mode: str) -> None:  # optional hook
         pass
 
     @abstractmethod
@@ -353,8 +344,7 @@ class Controller(Device):
             return str(self._call("identify", self._do_identify))
 
     def set_led(self, led: str, *, current: float | None = None) -> None:
-        if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+        check_led(led)
         cur = self.current if current is None else float(current)
         if not (0.0 <= cur <= 1.0):
             raise ValueError(f"current: must be within 0–1, got {current}")

@@ -84,11 +84,6 @@ class ControllerProtocol:
             self.notices.append("# INTERLOCK closed")
         self.interlock_open = is_open
 
-    def projector_edge(self) -> None:
-        """One trigger edge from the projector (counts in PASS mode while armed)."""
-        if self.armed and self.settings["mode"] == "PASS":
-            self._pass_pulses += 1
-
     def pulses(self) -> int:
         """Camera pulses since the last ARM (frozen when disarmed)."""
         if not self.armed:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from app.core.limits import EXPOSURE_RANGE_MS
 from app.devices.base import Camera, CameraCapabilities, CameraSettings, Frame
 from app.devices.errors import DeviceDisconnected, DeviceError, DeviceNotFound, DeviceTimeout
 from app.devices.opencv_camera import to_mono
@@ -94,9 +95,10 @@ class GenICamCamera(Camera):
         depths = tuple(d for d, names in PIXEL_FORMATS.items() if self._offers(nm, names))
         exp = _node(nm, "ExposureTime")
         gain = _node(nm, "Gain")
+        lo, hi = EXPOSURE_RANGE_MS
         self._caps = CameraCapabilities(
             width=int(nm.Width.value), height=int(nm.Height.value), bit_depths=depths or (8,),
-            exposure_range_ms=(max(1.0, exp.min / 1000), min(100.0, exp.max / 1000)) if exp else (1.0, 100.0),
+            exposure_range_ms=(max(lo, exp.min / 1000), min(hi, exp.max / 1000)) if exp else (lo, hi),
             gain_range=(float(gain.min), float(gain.max)) if gain else (1.0, 1.0),
             hardware_trigger=_node(nm, "TriggerMode") is not None,
         )

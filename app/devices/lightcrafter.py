@@ -44,9 +44,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.core.schedule import PatternSchedule
 from app.devices.base import Projector
 from app.devices.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout, ProtocolError
-from app.recon.patterns import PatternSchedule, generate_patterns
+from app.recon.patterns import generate_patterns
 
 DEFAULT_PORT = 21845
 DMD_WIDTH, DMD_HEIGHT = 608, 684

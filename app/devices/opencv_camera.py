@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.core.limits import EXPOSURE_RANGE_MS
 from app.devices.base import Camera, CameraCapabilities, CameraSettings, Frame
 from app.devices.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout
 
@@ -94,7 +95,7 @@ class OpenCVCamera(Camera):
             self._do_open()
             self._do_close()
         return CameraCapabilities(width=self._size[0], height=self._size[1], bit_depths=(8, 12, 16),
-                                  exposure_range_ms=(1.0, 100.0), gain_range=(1.0, 1.0))
+                                  exposure_range_ms=EXPOSURE_RANGE_MS, gain_range=(1.0, 1.0))
 
     def _do_configure(self, settings: CameraSettings) -> None:
         cap = self._cap

@@ -3,12 +3,13 @@
 Imports numpy/numba/cv2 only; no I/O, no threads, no settings.
 """
 
+from app.core.reasons import PRECEDENCE, Reason
+from app.core.schedule import PatternSchedule
 from app.recon.colormap import depth_colormap, reason_png, render_depth_png
 from app.recon.model import ModelTables, evaluate_height, model_tables
-from app.recon.patterns import PatternSchedule, fringe_profile, generate_patterns
+from app.recon.patterns import fringe_profile, generate_patterns
 from app.recon.phase import WrappedPhase, default_max_code, wrapped_phase
 from app.recon.points import RayTables, points_from_height, ray_tables
-from app.recon.reasons import PRECEDENCE, Reason
 from app.recon.reconstructor import PhaseResult, ReconResult, Reconstructor, compute_phase
 from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, combine_frequencies, unwrap_hierarchical
 

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.reasons import Reason
+from app.core.encoding import png_bytes
+from app.core.reasons import Reason
 
 U8 = npt.NDArray[np.uint8]
 
@@ -67,13 +68,6 @@ def _nice_step(span: float, max_ticks: int) -> float:
     return 10.0 * mag
 
 
-def _png(rgb: U8) -> bytes:
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
-    if not ok:
-        raise ValueError("image: PNG encoding failed")
-    return buf.tobytes()
-
-
 def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 35.0)) -> bytes:
     """PNG of :func:`depth_colormap` with a vertical colour bar and mm tick labels at the right."""
     img = depth_colormap(depth, range_mm)
@@ -95,7 +89,7 @@ def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0,
         label = f"{tick:g} mm"
         cv2.putText(canvas, label, (x0 + bar_w + 7, y + 4), _FONT, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
         tick += step
-    return _png(canvas)
+    return png_bytes(canvas, rgb=True)
 
 
 def reason_png(reason: npt.ArrayLike) -> bytes:
@@ -120,4 +114,4 @@ def reason_png(reason: npt.ArrayLike) -> bytes:
         frac = 100.0 * float(np.count_nonzero(r == code)) / total
         cv2.putText(canvas, f"{int(code)} {code.name.lower()} {frac:.1f}%", (22, y + 13), _FONT, 0.4,
                     (0, 0, 0), 1, cv2.LINE_AA)
-    return _png(canvas)
+    return png_bytes(canvas, rgb=True)

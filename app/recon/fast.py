@@ -26,12 +26,12 @@ import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP threads: 8× slower on 2 cores
 
-import math  # noqa: E402
-import threading  # noqa: E402
+import math
+import threading
 
-import numpy as np  # noqa: E402
-import numpy.typing as npt  # noqa: E402
-from numba import njit, prange  # noqa: E402
+import numpy as np
+import numpy.typing as npt
+from numba import njit, prange
 
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -166,7 +166,7 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,
+def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
                total, m2, prev, hbuf, code):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for 4 frequencies × 4 steps."""
     # hoisted: LLVM cannot tell that the stores below leave k alone
@@ -199,7 +199,7 @@ def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, 
 # The general path, row by row through buffers: any N, any number of frequencies, and
 # the noise-optimal combination.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # pragma: no cover
+def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # type: ignore[no-untyped-def]  # pragma: no cover
     if first:
         for u in range(row.shape[0]):
             x = np.float32(row[u])
@@ -217,7 +217,7 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # pragma: no cov
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # pragma: no cover
+def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(s_acc.shape[0]):
         yy = -s_acc[u]
         xx = c_acc[u]
@@ -234,7 +234,7 @@ def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # pragma: no 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # pragma: no cover
+def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
         wsum[u] += w
@@ -242,13 +242,13 @@ def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _combined_row(prev, wsum, wphi):  # pragma: no cover
+def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(prev.shape[0]):
         prev[u] = wphi[u] / wsum[u] if wsum[u] > _F0 else _NAN
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
+def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
                 hbuf, code):  # pragma: no cover
     k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
     k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
@@ -260,7 +260,7 @@ def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top,
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,
+def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,  # type: ignore[no-untyped-def]
                  m2_min, top_code, scratch, total, m2, prev, hbuf, code):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for any schedule."""
     n_steps = cos_t.shape[0]
@@ -289,20 +289,20 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi,
 
 # Phase 2: outputs from the block buffers.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _reason_row(reason, valid, code):  # pragma: no cover
+def _reason_row(reason, valid, code):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(code.shape[0]):
         reason[u] = code[u]
         valid[u] = code[u] == 0
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _select_row(out, values, code):  # pragma: no cover
+def _select_row(out, values, code):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(out.shape[0]):
         out[u] = values[u] if code[u] == 0 else _NAN
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # pragma: no cover
+def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(total.shape[0]):
         b = mod_scale * np.sqrt(m2[u])
         modulation[u] = b
@@ -310,7 +310,7 @@ def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # pragma
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _points_row(pts, hbuf, code, q, offset):  # pragma: no cover
+def _points_row(pts, hbuf, code, q, offset):  # type: ignore[no-untyped-def]  # pragma: no cover
     # pts, q: the row's (W·3,) flat views; q = (x, y, 1)/(n·r), so a point is (h − offset)·q
     for u in range(hbuf.shape[0]):
         t = hbuf[u] - offset if code[u] == 0 else _NAN
@@ -320,7 +320,7 @@ def _points_row(pts, hbuf, code, q, offset):  # pragma: no cover
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def fused_kernel(  # one call carries every table to keep the kernel fused
+def fused_kernel(  # type: ignore[no-untyped-def]  # one call carries every table to keep the kernel fused
     frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
     un, row_coefs, phi0, inv_sphi, lo, hi, sing_rtol, ray_q, offset,
     depth, points, reason, valid, modulation, texture, phase,
@@ -382,7 +382,7 @@ def warmup(dtype: object = np.uint8) -> None:
         _warmup_locked(dt)
 
 
-def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
+def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     if dt.name in _warm:
         return
     f32 = np.zeros((2, 3), np.float32)

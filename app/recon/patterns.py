@@ -1,102 +1,15 @@
-"""Fringe pattern schedule and projector image generation (Le et al. 2018, Sec. 2)."""
+"""Projector image generation for a fringe pattern schedule (Le et al. 2018, Sec. 2)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-ORIENTATIONS = ("vertical",)
+from app.core.schedule import ORIENTATIONS, PatternSchedule
 
-
-@dataclass(frozen=True)
-class PatternSchedule:
-    """Which fringe images make one depth map.
-
-    Frames are ordered frequency-major, shift-minor: frame ``i`` shows fringe count
-    ``frequencies[i // steps]`` with phase shift ``2π (i % steps) / steps``.
-
-    Attributes:
-        frequencies: fringe counts across the projector width, strictly increasing,
-            the first equal to 1 (its phase is absolute).
-        steps: phase shifts per frequency, N ≥ 3.
-        width, height: projector resolution in pixels (DLP3000: 608 × 684).
-        orientation: ``"vertical"`` — fringes vary along projector columns.
-    """
-
-    frequencies: tuple[int, ...] = (1, 4, 12, 36)
-    steps: int = 4
-    width: int = 608
-    height: int = 684
-    orientation: str = "vertical"
-    extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
-
-    def __post_init__(self) -> None:
-        freqs = tuple(int(k) for k in self.frequencies)
-        object.__setattr__(self, "frequencies", freqs)
-        if len(freqs) < 1:
-            raise ValueError("frequencies: at least one frequency is required")
-        if freqs[0] != 1:
-            raise ValueError(f"frequencies: the first must be 1 (absolute phase), got {freqs[0]}")
-        if any(b <= a for a, b in zip(freqs, freqs[1:], strict=False)):
-            raise ValueError(f"frequencies: must be strictly increasing, got {list(freqs)}")
-        if int(self.steps) != self.steps or self.steps < 3:
-            raise ValueError(f"steps: need an integer N >= 3, got {self.steps}")
-        if self.width < 2 or self.height < 1:
-            raise ValueError(f"width/height: invalid projector size {self.width}x{self.height}")
-        if self.orientation not in ORIENTATIONS:
-            raise ValueError(f"orientation: must be one of {ORIENTATIONS}, got {self.orientation!r}")
-        if freqs[-1] * 2 > self.width:
-            raise ValueError(f"frequencies: {freqs[-1]} fringes need at least 2 px per period")
-
-    @property
-    def n_frames(self) -> int:
-        """Frames per depth map, ``len(frequencies) * steps``."""
-        return len(self.frequencies) * self.steps
-
-    @property
-    def shifts_rad(self) -> npt.NDArray[np.float64]:
-        """Phase shifts δ_n = 2π n / N, shape (N,), radians."""
-        return 2.0 * math.pi * np.arange(self.steps) / self.steps
-
-    def frame_index(self, freq_index: int, shift_index: int) -> int:
-        """Position of image (frequency ``freq_index``, shift ``shift_index``) in a set."""
-        return freq_index * self.steps + shift_index
-
-    def to_dict(self) -> dict[str, Any]:
-        """The ``pattern`` object of the capture-set and calibration formats."""
-        return {
-            **self.extra,
-            "frequencies": list(self.frequencies),
-            "steps": self.steps,
-            "width": self.width,
-            "height": self.height,
-            "orientation": self.orientation,
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> PatternSchedule:
-        """Parse a ``pattern`` object; unknown keys are kept in ``extra``."""
-        if not isinstance(data, dict):
-            raise ValueError("pattern: expected an object")
-        known = {"frequencies", "steps", "width", "height", "orientation"}
-        missing = {"frequencies", "steps"} - data.keys()
-        if missing:
-            raise ValueError(f"pattern: missing keys {sorted(missing)}")
-        try:
-            return cls(
-                frequencies=tuple(int(k) for k in data["frequencies"]),
-                steps=int(data["steps"]),
-                width=int(data.get("width", 608)),
-                height=int(data.get("height", 684)),
-                orientation=str(data.get("orientation", "vertical")),
-                extra={k: v for k, v in data.items() if k not in known},
-            )
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"pattern: {exc}") from None
+__all__ = ["ORIENTATIONS", "PatternSchedule", "fringe_profile", "generate_patterns"]
 
 
 def fringe_profile(

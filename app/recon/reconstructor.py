@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from app.core.reasons import assign_reasons
+from app.core.schedule import PatternSchedule
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
@@ -24,10 +26,8 @@ from app.recon.model import (
     evaluate_height,
     outside_volume,
 )
-from app.recon.patterns import PatternSchedule
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
-from app.recon.reasons import assign_reasons
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     check_consistency_rad,
@@ -61,7 +61,7 @@ class PhaseResult:
         modulation: float32 finest-frequency modulation B, codes.
         background: float32 A, the mean of all frames, codes.
         texture: float32 A + B (finest frequency), codes, for display.
-        reason: uint8 :class:`~app.recon.reasons.Reason` (OK, SATURATED,
+        reason: uint8 :class:`~app.core.reasons.Reason` (OK, SATURATED,
             LOW_MODULATION or UNWRAP_INCONSISTENT).
     """
 
@@ -80,7 +80,7 @@ class ReconResult:
         depth: float32 height above the reference plane, mm, NaN invalid.
         points: (H, W, 3) float32 camera-frame points, mm, NaN invalid.
         valid: bool, ``reason == Reason.OK``.
-        reason: uint8 :class:`~app.recon.reasons.Reason` code.
+        reason: uint8 :class:`~app.core.reasons.Reason` code.
         modulation: float32 finest-frequency modulation B, codes.
         texture: float32 A + B, codes, for display.
         phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;

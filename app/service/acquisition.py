@@ -13,9 +13,9 @@ import threading
 import time
 from collections.abc import Callable
 
+from app.core.schedule import PatternSchedule
 from app.devices.base import Frame
 from app.devices.errors import DeviceError, DeviceTimeout
-from app.recon.patterns import PatternSchedule
 from app.service.devices import (
     DeviceBundle,
     apply_settings,

@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.patterns import PatternSchedule
+from app.core.limits import EXPOSURE_RANGE_MS
+from app.core.schedule import PatternSchedule
 from app.recon.phase import wrapped_phase
 
-#: candidate exposures, ms (roughly geometric: each step ≈ 1.25–1.5×)
+#: candidate exposures, ms (roughly geometric: each step ≈ 1.25–1.5×), spanning EXPOSURE_RANGE_MS
 LADDER_MS = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 40.0,
              50.0, 65.0, 80.0, 100.0)
 
@@ -69,8 +70,8 @@ def choose_exposure(
     measure: Callable[[float], tuple[float, float]],
     *,
     saturation_limit: float = 0.005,
-    min_exposure_ms: float = 1.0,
-    max_exposure_ms: float = 100.0,
+    min_exposure_ms: float = EXPOSURE_RANGE_MS[0],
+    max_exposure_ms: float = EXPOSURE_RANGE_MS[1],
     ladder_ms: tuple[float, ...] = LADDER_MS,
 ) -> AutoExposureResult:
     """Bisect ``ladder_ms`` for the longest exposure with saturation ≤ ``saturation_limit``.

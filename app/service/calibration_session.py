@@ -15,9 +15,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.calib.board import BoardSpec, Detection, detect_board, texture_to_u8
+from app.calib.board import Detection, detect_board, texture_to_u8
+from app.calib.fitting import CalibrationReport, calibrate_sets
 from app.capture.captureset import CaptureSet
+from app.core.board import BoardSpec
+from app.core.encoding import png_bytes
 from app.core.errors import NotFound
+from app.recon import compute_phase
 
 
 @dataclass
@@ -49,10 +53,7 @@ def preview_png(texture_u8: np.ndarray, board: BoardSpec, detection: Detection) 
     if detection.found:
         pts = detection.image_points.reshape(-1, 1, 2).astype(np.float32)
         cv2.drawChessboardCorners(img, board.pattern_size, pts, True)
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise OSError("preview encoding failed")
-    return buf.tobytes()
+    return png_bytes(img)
 
 
 class CalibrationSession:
@@ -61,14 +62,12 @@ class CalibrationSession:
     def __init__(self, board: BoardSpec) -> None:
         self.board = board
         self.poses: list[Pose] = []
-        self.report: Any = None  # app.calib CalibrationReport once solved
+        self.report: CalibrationReport | None = None  # once solved
         self.created = datetime.now(UTC).isoformat(timespec="seconds")
         self.lock = threading.Lock()
 
     def add(self, capture: CaptureSet) -> tuple[int, Pose]:
         """Detect the board in ``capture`` and keep it as the next pose."""
-        from app.recon import compute_phase
-
         res = compute_phase(capture.frames, capture.schedule)
         tex = texture_to_u8(res.texture)
         det = detect_board(tex, self.board)
@@ -95,10 +94,8 @@ class CalibrationSession:
         with self.lock:
             return [p.summary(i) for i, p in enumerate(self.poses)]
 
-    def solve(self, *, robust: bool = False) -> Any:
+    def solve(self, *, robust: bool = False) -> CalibrationReport:
         """Fit from the detected poses (the first one is the reference plane)."""
-        from app.calib.fitting import calibrate_sets
-
         with self.lock:
             used = [(i, p) for i, p in enumerate(self.poses) if p.found]
         if not used:

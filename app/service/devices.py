@@ -4,11 +4,23 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from app.config import Settings
-from app.devices.base import Camera, Controller, DeviceState, Projector
-from app.recon.patterns import PatternSchedule
+from app.core.records import DeviceStatus
+from app.core.schedule import PatternSchedule
+from app.devices.base import Camera, Controller, Device, DeviceState, Projector
+from app.devices.factory import (
+    CameraSpec,
+    ControllerSpec,
+    DeviceSpecs,
+    ProjectorSpec,
+    SimSpec,
+)
+from app.devices.factory import create_devices as factory_devices
+
+if TYPE_CHECKING:
+    from app.devices.sim.world import SimulatedWorld
 
 log = logging.getLogger("fringescope.service.devices")
 
@@ -20,44 +32,41 @@ class DeviceBundle:
     camera: Camera
     projector: Projector | None = None
     controller: Controller | None = None
-    world: Any = None
+    world: SimulatedWorld | None = None
 
     @property
     def is_sim(self) -> bool:
         return self.world is not None
 
-    def all(self) -> list[Any]:
+    def all(self) -> list[Device]:
         return [d for d in (self.camera, self.projector, self.controller) if d is not None]
 
-    def describe(self) -> list[dict[str, Any]]:
-        return [
-            {"name": d.name, "kind": d.kind, "state": d.state.value, "error": d.last_error}
-            for d in self.all()
-        ]
+    def describe(self) -> tuple[DeviceStatus, ...]:
+        return tuple(DeviceStatus(d.name, d.kind, d.state.value, d.last_error) for d in self.all())
 
     def faulted(self) -> bool:
         return any(d.state is DeviceState.FAULT for d in self.all())
 
 
+def device_specs(settings: Settings) -> DeviceSpecs:
+    """The typed backend specs the device factory takes, from ``settings``."""
+    return DeviceSpecs(
+        camera=CameraSpec(settings.camera, settings.camera_source),
+        projector=ProjectorSpec(settings.projector, settings.lightcrafter_host, settings.lightcrafter_port),
+        controller=ControllerSpec(settings.controller, settings.serial_port),
+        sim=SimSpec(
+            scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,
+            drop_rate=settings.sim_drop_rate, timeout_rate=settings.sim_timeout_rate,
+            disconnect_every_s=settings.sim_disconnect_every_s, realtime=True,
+        ),
+    )
+
+
 def create_devices(settings: Settings) -> DeviceBundle:
-    """Devices named by ``settings``: the simulator (keeping its world) or the factory's."""
-    if settings.camera == "sim" and settings.projector == "sim" and settings.controller == "sim":
-        from app.devices.sim import create_sim_devices
-
-        sim = create_sim_devices(
-            scene=settings.sim_scene,
-            seed=settings.sim_seed,
-            bit_depth=settings.bit_depth,
-            drop_rate=settings.sim_drop_rate,
-            timeout_rate=settings.sim_timeout_rate,
-            disconnect_every_s=settings.sim_disconnect_every_s,
-            realtime=True,
-        )
-        return DeviceBundle(sim.camera, sim.projector, sim.controller, sim.world)
-    from app.devices.factory import create_devices as factory
-
-    devs = factory(settings)
-    return DeviceBundle(devs.camera, devs.projector, devs.controller, getattr(devs, "world", None))
+    """Devices named by ``settings``; the simulator's world is kept when every device is simulated."""
+    specs = device_specs(settings)
+    devs = factory_devices(specs)
+    return DeviceBundle(devs.camera, devs.projector, devs.controller, devs.world if specs.all_sim else None)
 
 
 def start_devices(

@@ -5,7 +5,6 @@ Encodings are cached on the :class:`LiveResult`, so any number of clients share 
 
 from __future__ import annotations
 
-import io
 import json
 from typing import Any
 
@@ -13,6 +12,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.core.encoding import npy_bytes as npy_bytes  # re-exported for the result routes
+from app.core.encoding import png_bytes
 from app.core.errors import InvalidRequest
 from app.service.motion import MOTION
 
@@ -35,19 +36,6 @@ def reason_legend() -> dict[str, Any]:
     return {str(code): {"name": name, "rgb": list(rgb)} for code, (name, rgb) in reason_colors().items()}
 
 
-def _png(img: npt.NDArray[Any], compression: int = 1) -> bytes:
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, compression])
-    if not ok:
-        raise OSError("PNG encoding failed")
-    return buf.tobytes()
-
-
-def npy_bytes(array: npt.NDArray[Any]) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array, allow_pickle=False)
-    return buf.getvalue()
-
-
 def depth_png_um(depth_mm: npt.NDArray[np.float32]) -> bytes:
     """16-bit PNG of depth in micrometres, 0 = invalid.
 
@@ -60,7 +48,7 @@ def depth_png_um(depth_mm: npt.NDArray[np.float32]) -> bytes:
     finite = np.isfinite(d)
     um = np.zeros(d.shape, np.uint16)
     um[finite] = np.clip(np.rint(d[finite] * 1000.0), 1, 65535).astype(np.uint16)
-    return _png(um)
+    return png_bytes(um)
 
 
 def check_range_mm(min_mm: float | None, max_mm: float | None) -> tuple[float, float]:
@@ -106,7 +94,7 @@ def texture_u8(texture: npt.NDArray[np.float32], full_scale: float) -> npt.NDArr
 
 
 def texture_png(texture: npt.NDArray[np.float32], full_scale: float) -> bytes:
-    return _png(texture_u8(texture, full_scale))
+    return png_bytes(texture_u8(texture, full_scale))
 
 
 def reason_png(reason: npt.NDArray[np.uint8]) -> bytes:
@@ -115,7 +103,7 @@ def reason_png(reason: npt.NDArray[np.uint8]) -> bytes:
     lut[:] = (255, 0, 255)
     for code, (_, rgb) in reason_colors().items():
         lut[code] = rgb[::-1]  # OpenCV writes BGR
-    return _png(lut[np.asarray(reason, np.uint8)])
+    return png_bytes(lut[np.asarray(reason, np.uint8)])
 
 
 def ply_bytes(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_], intensity: Any) -> bytes:

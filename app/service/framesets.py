@@ -48,10 +48,6 @@ class FrameSet:
     def timestamps(self) -> list[float]:
         return [f.timestamp for f in self.frames]
 
-    @property
-    def last_index(self) -> int:
-        return max(f.index for f in self.frames)
-
     def stack(self) -> npt.NDArray[Any]:
         """(F, H, W) frames in capture-set order, the camera's dtype (uint8/uint16)."""
         return np.stack([f.data for f in self.frames])

@@ -1,32 +1,45 @@
-"""The Instrument: devices, the acquisition and reconstruction threads, the latest result.
+"""The Instrument: a thin facade over the live pipeline and the calibration manager.
 
-Everything the API does goes through here. Threads stop on events and are joined in
-:meth:`Instrument.close`.
+Everything the API does goes through here. The live pipeline (:mod:`app.service.pipeline`)
+owns the devices, the acquisition and reconstruction threads and the latest result; the
+calibration manager (:mod:`app.service.calibrations`) owns the active calibration, its
+store, its creation and the REST wizard's session. Threads stop on events and are joined
+in :meth:`Instrument.close`.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
-import time
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
-from app.calib.calibration import Calibration, save_calibration
+from app.calib.calibration import Calibration
+from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
-from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
-from app.devices.base import LEDS
-from app.recon.patterns import PatternSchedule
-from app.service import calibration_store
-from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
+from app.core.limits import EXPOSURE_RANGE_MS
+from app.core.records import State, Status
+from app.core.schedule import PatternSchedule
+from app.recon import ReconResult
+from app.service.autoexposure import AutoExposureResult
 from app.service.calibration_session import CalibrationSession
+from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
-from app.service.framesets import FrameSet
-from app.service.reconstruction import LiveResult, Reconstruction
-from app.service.store import NewestQueue
+from app.service.pipeline import LivePipeline, NotReady, PipelineConfig
+from app.service.reconstruction import LiveResult
 
-log = logging.getLogger("fringescope.service")
+if TYPE_CHECKING:
+    from app.service.acquisition import Acquisition
+    from app.service.reconstruction import Reconstruction
+    from app.service.store import LatestSlot
+
+__all__ = ["Instrument", "NotReady", "RecordingState"]
+
+
+class RecordingState(Protocol):
+    """What the status needs of the recorder: the running recording's name, if any."""
+
+    @property
+    def active_name(self) -> str | None: ...
 
 
 class Instrument:
@@ -35,252 +48,147 @@ class Instrument:
     def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None) -> None:
         self.settings = settings
         self.schedule = PatternSchedule()
-        self.devices = devices
-        self.queue: NewestQueue[FrameSet] = NewestQueue(maxsize=1)
-        self.acquisition: Any = None
-        self.reconstruction = Reconstruction(
-            self.queue, self._live_engine, n_frequencies=len(self.schedule.frequencies),
-            bit_depth=settings.bit_depth,
-        )
-        self.results = self.reconstruction.results
-        self.store = self.results  # the viewer's name for the latest-result slot
-        self.calibration: Calibration | None = None
-        self.recorder: Any = None  # the Recorder of live sets, attached by create_app
-        self.calibration_name: str | None = None
-        self.session: CalibrationSession | None = None
-        self.warnings: list[str] = []
-        self.last_error: str | None = None
-        self._engine: Any = None
-        self._upload_engine: Any = None
-        self._upload_engine_cal: Calibration | None = None
-        self._upload_lock = threading.Lock()
-        self._control_lock = threading.Lock()
-        self._calibrating: threading.Thread | None = None
+        config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
+                                rolling=settings.rolling, autostart=settings.autostart)
+        self.pipeline = LivePipeline(config, self.schedule, devices)
+        self.calibrations = CalibrationManager(settings, self.pipeline)
+        self.recorder: RecordingState | None = None  # attached by create_app
         self._closed = False
         self._started = False
+
+    # -- the parts, by the names the routers, the viewer and the recorder use ----------------
+    @property
+    def devices(self) -> DeviceBundle | None:
+        return self.pipeline.devices
+
+    @property
+    def acquisition(self) -> Acquisition | None:
+        return self.pipeline.acquisition
+
+    @property
+    def reconstruction(self) -> Reconstruction:
+        return self.pipeline.reconstruction
+
+    @property
+    def results(self) -> LatestSlot[LiveResult]:
+        return self.pipeline.results
+
+    store = results  # the viewer's name for the latest-result slot
+
+    @property
+    def calibration(self) -> Calibration | None:
+        return self.calibrations.calibration
+
+    @property
+    def calibration_name(self) -> str | None:
+        return self.calibrations.name
+
+    @property
+    def session(self) -> CalibrationSession | None:
+        return self.calibrations.session
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.calibrations.warnings
+
+    @property
+    def calibrating(self) -> bool:
+        return self.calibrations.creating
 
     # -- lifecycle -----------------------------------------------------------------------
     def start(self) -> None:
         """Create the devices, start both threads, and load (or begin creating) a calibration."""
-        from app.service.acquisition import Acquisition
-
         if self._started:
             return
         self._started = True
-        if self.devices is None:
-            self.devices = create_devices(self.settings)
-        self.acquisition = Acquisition(
-            self.devices, self.schedule, self.queue,
-            exposure_ms=self.settings.exposure_ms, led=self.settings.led,
-            bit_depth=self.settings.bit_depth, rolling=self.settings.rolling,
-        )
-        self._load_initial_calibration()
-        self.reconstruction.start_thread()
-        self.acquisition.start_thread(acquire=self.settings.autostart)
+        self.pipeline.start(self.pipeline.devices or create_devices(self.settings))
+        assert self.devices is not None
+        self.calibrations.load_initial(is_sim=self.devices.is_sim)
+        self.pipeline.run()
 
     def close(self, timeout_s: float = 15.0) -> None:
         """Stop and join every thread, close the devices (idempotent)."""
         if self._closed:
             return
         self._closed = True
-        if self.acquisition is not None:
-            self.acquisition.shutdown(timeout_s)
-        self.reconstruction.shutdown(timeout_s)
-        if self._calibrating is not None and self._calibrating.is_alive():
-            self._calibrating.join(max(timeout_s, 120.0))  # a fit cannot be interrupted
+        self.pipeline.close(timeout_s)
+        self.calibrations.join(timeout_s)
 
     stop = close
 
     def threads(self) -> list[threading.Thread]:
         """The instrument's own threads (for shutdown checks)."""
-        out = [self.reconstruction._thread]
-        if self.acquisition is not None:
-            out.append(self.acquisition._thread)
-        if self._calibrating is not None:
-            out.append(self._calibrating)
+        out = self.pipeline.threads()
+        if (creating := self.calibrations.thread()) is not None:
+            out.append(creating)
         return out
 
-    # -- calibration -------------------------------------------------------------------
-    def _load_initial_calibration(self) -> None:
-        s = self.settings
-        try:
-            path = calibration_store.initial_path(s)
-        except ValueError as exc:
-            self._error(str(exc))
-            return
-        if path is not None:
-            try:
-                cal = calibration_store.load(path)
-                name = str(cal.extra.get(calibration_store.NAME_KEY, path.stem))
-                self.set_calibration(cal, name=name, persist=False)
-                return
-            except ValueError as exc:
-                self._error(str(exc))
-                if s.calibration_file is not None:
-                    return
-        if self.devices is not None and self.devices.is_sim:
-            self._calibrating = threading.Thread(
-                target=self._create_sim_calibration, name="fringescope-calibrate", daemon=True
-            )
-            self._calibrating.start()
-        else:
-            self.warnings.append("no calibration: load one (PUT /api/calibration/file) or calibrate")
-
-    def _create_sim_calibration(self) -> None:
-        try:
-            cal = calibration_store.create_sim_calibration(self.settings)
-        except Exception as exc:
-            log.exception("simulator calibration failed")
-            self._error(f"simulator calibration failed: {exc}")
-            return
-        if not self._closed:
-            self.set_calibration(cal, name="sim", persist=False)
-
+    # -- calibration -----------------------------------------------------------------------
     def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
-        from app.recon import Reconstructor
-
-        if cal.pattern != self.schedule:
-            raise ValueError("calibration: its pattern schedule differs from the projector's")
-        if self.devices is not None:
-            caps = self.devices.camera.capabilities
-            if tuple(cal.image_size) != (caps.width, caps.height):
-                raise ValueError(
-                    f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
-                    f"the camera's {caps.width}x{caps.height}"
-                )
-        engine = Reconstructor(cal, fast=True)
-        if persist:
-            calibration_store.save_active(self.settings, cal, name)
-        with self._control_lock:
-            self.calibration, self.calibration_name = cal, name
-            self._engine = engine
-            self._upload_engine = None
-            self.warnings = [w for w in self.warnings if not w.startswith("no calibration")]
-        self.results.clear()
+        self.calibrations.activate(cal, name=name, persist=persist)
 
     def calibration_summary(self) -> dict[str, Any] | None:
-        cal = self.calibration
-        if cal is None:
-            return None
-        return {
-            "name": self.calibration_name, "created": cal.created,
-            "height_range_mm": list(cal.height_range_mm), "image_size": list(cal.image_size),
-            "software_version": cal.software_version, "poses": len(cal.pose_residuals),
-        }
+        summary = self.calibrations.summary()
+        return None if summary is None else summary.to_dict()
 
-    @property
-    def calibrating(self) -> bool:
-        return self._calibrating is not None and self._calibrating.is_alive()
+    def reconstruct_capture(self, capture: CaptureSet) -> ReconResult:
+        """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
+        return self.calibrations.reconstruct(capture)
 
-    def _live_engine(self) -> Any:
-        return self._engine
+    def start_session(self, board: dict[str, Any]) -> CalibrationSession:
+        return self.calibrations.start_session(board)
+
+    def require_session(self) -> CalibrationSession:
+        return self.calibrations.require_session()
+
+    def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
+        """Grab the next whole set of the current view and add it to the session."""
+        return self.calibrations.capture_pose(timeout_s)
+
+    def solve_session(self, *, robust: bool = False) -> CalibrationReport:
+        return self.calibrations.solve_session(robust=robust)
+
+    def activate_session(self, name: str) -> dict[str, Any]:
+        return self.calibrations.activate_session(name).to_dict()
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
-        """Request ``exposure_ms`` from the next whole set (checked at the API boundary and by the devices)."""
-        self._acq().request(exposure_ms=float(exposure_ms))
-        return float(exposure_ms)
+        return self.pipeline.set_exposure(exposure_ms)
 
     def set_led(self, led: str) -> str:
-        if led not in LEDS:
-            raise InvalidRequest(f"led: must be one of {LEDS}, got {led!r}")
-        self._acq().request(led=led)
-        return led
+        return self.pipeline.set_led(led)
 
     def set_rolling(self, rolling: bool) -> None:
-        self._acq().set_rolling(rolling)
+        self.pipeline.set_rolling(rolling)
 
     def set_acquiring(self, on: bool) -> None:
-        self._acq().set_acquiring(on)
+        self.pipeline.set_acquiring(on)
 
-    def _acq(self) -> Any:
-        if self.acquisition is None:
-            raise DeviceUnavailable("instrument not started")
-        return self.acquisition
+    def auto_exposure(self, *, saturation_limit: float = 0.005,
+                      max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> AutoExposureResult:
+        """Search exposures on real sets, then keep the chosen one."""
+        return self.pipeline.auto_exposure(saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
 
     # -- results -----------------------------------------------------------------------------
     def latest_result(self) -> LiveResult:
         _, res = self.results.latest()
         if res is None:
-            raise self._why_no_result()
+            if self.calibrating:
+                raise NotReady("no depth result yet: the calibration is being created")
+            raise NotReady(self.pipeline.why_no_result() or "no depth result yet")
         return res
 
     def wait_result(self, after_seq: int, timeout_s: float) -> LiveResult | None:
         """The first result newer than ``after_seq`` (None on timeout or shutdown)."""
         return self.results.wait_newer(after_seq, timeout_s)[1]
 
-    def _why_no_result(self) -> Conflict | DeviceUnavailable:
-        """Why there is no result: a state the client can change (409) or a wait/fault (503)."""
-        if self.calibrating:
-            return DeviceUnavailable("no depth result yet: the calibration is being created")
-        if self.calibration is None:
-            return Conflict("no depth result: no calibration is active")
-        if self.acquisition is None or not self.acquisition.acquiring:
-            return Conflict("no depth result: acquisition is stopped")
-        if self.acquisition.fault:
-            return DeviceUnavailable(f"no depth result: device fault ({self.acquisition.fault})")
-        return DeviceUnavailable("no depth result yet")
-
     def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
         """The next whole fringe set grabbed after this call (optionally at one exposure)."""
-        acq = self._acq()
-        if not acq.acquiring:
-            raise Conflict("acquisition is stopped: start it to capture")
-        seq = acq.sets.seq
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            seq, fs = acq.sets.wait_newer(seq, left)
-            if fs is None:
-                break
-            if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
-                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
-                                  extra={"frame_indices": fs.frame_indices})
-        raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
-
-    def reconstruct_capture(self, capture: CaptureSet) -> Any:
-        """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
-        from app.recon import Reconstructor
-
-        cal = self.calibration
-        if cal is None:
-            raise Conflict("no calibration is active: load or create one first")
-        if capture.schedule != cal.pattern:
-            raise InvalidRequest("capture: pattern schedule differs from the calibration's")
-        try:
-            cal.check_frames(capture.frames.shape)
-        except ValueError as exc:
-            raise InvalidRequest(str(exc)) from None
-        with self._upload_lock:
-            if self._upload_engine is None or self._upload_engine_cal is not cal:
-                self._upload_engine = Reconstructor(cal, fast=True)
-                self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames)
-
-    def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
-        """Search exposures on real sets, then keep the chosen one."""
-        acq = self._acq()
-        before = acq.exposure_ms
-        full_scale = 255 if self.settings.bit_depth == 8 else 2**self.settings.bit_depth - 1
-
-        def measure(exposure_ms: float) -> tuple[float, float]:
-            self.set_exposure(exposure_ms)
-            timeout = 5.0 + 3 * self.schedule.n_frames * max(exposure_ms, 30.0) / 1000.0
-            cap = self.next_capture(timeout, exposure_ms=exposure_ms)
-            frames = cap.frames
-            fs = 255 if frames.dtype.itemsize == 1 else full_scale
-            return set_statistics(frames, self.schedule, fs)
-
-        try:
-            result = choose_exposure(measure, saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
-        except Exception:
-            self.set_exposure(before)
-            raise
-        self.set_exposure(result.exposure_ms)
-        return result
+        return self.pipeline.next_capture(timeout_s, exposure_ms=exposure_ms)
 
     # -- status ----------------------------------------------------------------------------------
-    def state(self) -> str:
+    def state(self) -> State:
         """starting | calibrating | running | stopped | fault (a fault outranks the rest)."""
         acq = self.acquisition
         if self._closed:
@@ -297,88 +205,41 @@ class Instrument:
             return "starting"
         return "running"
 
-    def status(self) -> dict[str, Any]:
-        acq, rec = self.acquisition, self.reconstruction
-        latency = rec.latencies.median()
+    def status_record(self) -> Status:
+        acq, rec, s = self.acquisition, self.reconstruction, self.settings
+        latency, recon = rec.latencies.median(), rec.recon_times.median()
         warnings = list(self.warnings)
         if acq is not None and not acq.assembler.completed and acq.frames_received > 3 * self.schedule.n_frames:
             warnings.append("no complete fringe set in the frames so far (missing pattern indices or drops)")
-        last_error = self.last_error
+        last_error = self.calibrations.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:
                 last_error = err
-        return {
-            "state": self.state(),
-            "camera_fps": round(acq.camera_rate.rate(), 3) if acq else 0.0,
-            "depth_fps": round(rec.depth_rate.rate(), 3),
-            "latency_ms": None if latency is None else round(latency, 3),
-            "recon_ms": None if (recon := rec.recon_times.median()) is None else round(recon, 3),
-            "exposure_ms": acq.exposure_ms if acq else self.settings.exposure_ms,
-            "led": acq.led if acq else self.settings.led,
-            "mode": "rolling" if (acq.rolling if acq else self.settings.rolling) else "set",
-            "acquiring": bool(acq and acq.acquiring),
-            "calibration": self.calibration_summary(),
-            "devices": self.devices.describe() if self.devices is not None else [],
-            "last_error": last_error,
-            "sets_completed": acq.assembler.completed if acq else 0,
-            "results_published": rec.completed,
-            "dropped_sets": self.queue.dropped,
-            "incomplete_sets": acq.assembler.incomplete if acq else 0,
-            "mixed_sets": acq.assembler.mixed if acq else 0,
-            "frames_received": acq.frames_received if acq else 0,
-            "frames_dropped": acq.frames_dropped if acq else 0,
-            "faults": acq.faults if acq else 0,
-            "recording": getattr(self.recorder, "active_name", None),
-            "warnings": warnings,
-        }
+        return Status(
+            state=self.state(),
+            camera_fps=round(acq.camera_rate.rate(), 3) if acq else 0.0,
+            depth_fps=round(rec.depth_rate.rate(), 3),
+            latency_ms=None if latency is None else round(latency, 3),
+            recon_ms=None if recon is None else round(recon, 3),
+            exposure_ms=acq.exposure_ms if acq else s.exposure_ms,
+            led=acq.led if acq else s.led,
+            mode="rolling" if (acq.rolling if acq else s.rolling) else "set",
+            acquiring=bool(acq and acq.acquiring),
+            calibration=self.calibrations.summary(),
+            devices=self.devices.describe() if self.devices is not None else (),
+            last_error=last_error,
+            sets_completed=acq.assembler.completed if acq else 0,
+            results_published=rec.completed,
+            dropped_sets=self.pipeline.queue.dropped,
+            incomplete_sets=acq.assembler.incomplete if acq else 0,
+            mixed_sets=acq.assembler.mixed if acq else 0,
+            frames_received=acq.frames_received if acq else 0,
+            frames_dropped=acq.frames_dropped if acq else 0,
+            faults=acq.faults if acq else 0,
+            recording=None if self.recorder is None else self.recorder.active_name,
+            warnings=tuple(warnings),
+        )
 
-    def _error(self, msg: str) -> None:
-        log.warning("%s", msg)
-        self.last_error = msg
-        self.warnings.append(msg)
-
-    # -- calibration session -------------------------------------------------------------------
-    def calibration_dir(self) -> Path:
-        return Path(self.settings.data_dir) / "calibrations"
-
-    def save_calibration_copy(self, cal: Calibration, name: str) -> Path:
-        return save_calibration(cal, self.calibration_dir() / f"{name}.json")
-
-    # -- calibration session (the REST wizard) ---------------------------------------------
-    def start_session(self, board: dict[str, Any]) -> CalibrationSession:
-        from app.calib.board import BoardSpec
-
-        try:
-            spec = BoardSpec.from_dict(board)
-        except (ValueError, TypeError, KeyError) as exc:
-            raise InvalidRequest(f"board: {exc}") from None
-        self.session = CalibrationSession(spec)
-        return self.session
-
-    def require_session(self) -> CalibrationSession:
-        if self.session is None:
-            raise Conflict("no calibration session: POST /api/calibration/session first")
-        return self.session
-
-    def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
-        """Grab the next whole set of the current view and add it to the session."""
-        session = self.require_session()
-        index, pose = session.add(self.next_capture(timeout_s))
-        return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist()}
-
-    def solve_session(self, *, robust: bool = False) -> Any:
-        """Fit the session's poses; too few or unusable poses are a Conflict with the reason."""
-        session = self.require_session()
-        try:
-            return session.solve(robust=robust)
-        except ValueError as exc:
-            raise Conflict(f"calibration solve: {exc}") from None
-
-    def activate_session(self, name: str) -> dict[str, Any]:
-        session = self.require_session()
-        if session.report is None:
-            raise Conflict("calibration session not solved: POST /api/calibration/session/solve first")
-        self.set_calibration(session.report.calibration, name=name, persist=True)
-        summary = self.calibration_summary()
-        assert summary is not None
-        return summary
+    def status(self) -> dict[str, Any]:
+        """:meth:`status_record` as the JSON object of ``GET /api/status``."""
+        return self.status_record().to_dict()

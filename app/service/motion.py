@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.reasons import Reason
+from app.core.reasons import Reason
 
 #: reason code for "moved during the set" (after the engine's own codes)
 MOTION = int(getattr(Reason, "MOTION", max(int(r) for r in Reason) + 1))

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.recon import Reconstructor
 from app.service.framesets import FrameSet
 from app.service.motion import MOTION, motion_mask
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
@@ -90,7 +91,7 @@ class Reconstruction:
     def __init__(
         self,
         queue: NewestQueue[FrameSet],
-        reconstructor: Callable[[], Any],
+        reconstructor: Callable[[], Reconstructor | None],
         *,
         n_frequencies: int,
         bit_depth: int = 8,
@@ -104,9 +105,7 @@ class Reconstruction:
         self.latencies = RecentValues(100)
         self.recon_times = RecentValues(100)
         self.completed = 0
-        self.errors = 0
         self.last_error: str | None = None
-        self.idle_without_calibration = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fringescope-reconstruction", daemon=True)
 
@@ -130,12 +129,10 @@ class Reconstruction:
                 continue
             engine = self.reconstructor()
             if engine is None:
-                self.idle_without_calibration += 1
                 continue
             try:
                 result = self.process(engine, fs)
             except Exception as exc:  # a bad set must not kill the thread
-                self.errors += 1
                 self.last_error = f"reconstruction: {exc}"
                 log.warning("reconstruction failed: %s", exc, exc_info=True)
                 continue
@@ -145,7 +142,7 @@ class Reconstruction:
             self.latencies.add(result.latency_ms)
             self.recon_times.add(result.recon_ms)
 
-    def process(self, engine: Any, fs: FrameSet) -> LiveResult:
+    def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
         """Reconstruct one set (motion-masked in rolling mode) into a :class:`LiveResult`."""
         t0 = time.perf_counter()
         frames = fs.stack()

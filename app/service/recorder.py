@@ -19,7 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,13 +32,30 @@ from app.capture.recording import (
     remove_stale_partials,
     validate_name,
 )
+from app.config import Settings
 from app.core.errors import Conflict, InvalidRequest, NotFound
+from app.core.schedule import PatternSchedule
+from app.service.acquisition import Acquisition
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult
+from app.service.store import LatestSlot
 
 log = logging.getLogger("fringescope.service.recorder")
 
 SECRET_SETTINGS = frozenset({"api_token"})  # never written to disk
+
+
+class RecordedInstrument(Protocol):
+    """What the recorder reads of the instrument: settings, schedule, whole raw sets, published results."""
+
+    @property
+    def settings(self) -> Settings: ...
+    @property
+    def schedule(self) -> PatternSchedule: ...
+    @property
+    def acquisition(self) -> Acquisition | None: ...
+    @property
+    def results(self) -> LatestSlot[LiveResult]: ...
 
 
 class InsufficientDisk(OSError):
@@ -54,7 +71,7 @@ class Recorder:
         depth_wait_s: how long a raw set waits for its depth map before it is written raw, s.
     """
 
-    def __init__(self, instrument: Any, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0) -> None:
+    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0) -> None:
         self.instrument = instrument
         self.root = recordings_root(instrument.settings.data_dir)
         self.min_free_mb = float(min_free_mb)
@@ -63,7 +80,6 @@ class Recorder:
         self._recording: Recording | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self.sets_written = 0
         self.sets_with_depth = 0
         self.skipped_sets = 0
         self.errors = 0
@@ -103,7 +119,7 @@ class Recorder:
                 raise Conflict(str(exc)) from None
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
-            self.sets_written = self.sets_with_depth = self.skipped_sets = self.errors = 0
+            self.sets_with_depth = self.skipped_sets = self.errors = 0
             self.last_error = None
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, args=(self._recording,),
@@ -269,7 +285,6 @@ class Recorder:
         except (OSError, ValueError) as exc:
             self._fail(f"recording stopped: {exc}")
             raise _StopRecording from exc
-        self.sets_written += 1
         self.sets_with_depth += res is not None
 
     def _fail(self, msg: str) -> None:

@@ -16,6 +16,7 @@ import numpy.typing as npt
 from app.recon.colormap import depth_colormap
 from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.encoding import texture_u8 as _texture_u8
+from app.service.reconstruction import LiveResult
 
 COLOR_MODES = ("height", "texture")
 PANEL_WIDTH_PX = 360  # GUI images are downscaled to this width: they are previews
@@ -32,7 +33,7 @@ def decimation_step(height: int, width: int, max_points: int) -> int:
 
 
 def cloud_arrays(
-    result: Any,
+    result: LiveResult,
     max_points: int,
     color_mode: str = "height",
     range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
@@ -76,7 +77,7 @@ def cloud_arrays(
     return xyz, np.ascontiguousarray(colors), step
 
 
-def texture_u8(result: Any) -> npt.NDArray[np.uint8]:
+def texture_u8(result: LiveResult) -> npt.NDArray[np.uint8]:
     """The result's texture as uint8, scaled as the REST texture PNG is."""
     return _texture_u8(np.asarray(result.texture), float(result.full_scale))
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from typing import Any
+from typing import TYPE_CHECKING
 
 import httpx
 import websockets
@@ -23,6 +23,9 @@ from fastapi.responses import RedirectResponse, Response
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 from websockets.typing import Subprotocol
 
+if TYPE_CHECKING:
+    from app.viewer.viewer import Viewer
+
 log = logging.getLogger(__name__)
 
 # Close codes an endpoint may send (1005/1006/1015 are reserved for "none received").
@@ -30,14 +33,14 @@ _SENDABLE = set(range(1000, 1004)) | set(range(1007, 1015)) | set(range(3000, 50
 _FORWARD_RESPONSE_HEADERS = ("content-type", "content-encoding", "cache-control", "etag")
 
 
-def _upstream_port(viewer: Any) -> int | None:
+def _upstream_port(viewer: Viewer) -> int | None:
     try:
         return int(viewer.port)
     except RuntimeError:  # not started / stopped
         return None
 
 
-def viewer_router(viewer: Any, prefix: str = "/viser") -> APIRouter:
+def viewer_router(viewer: Viewer, prefix: str = "/viser") -> APIRouter:
     """Routes relaying ``viewer`` (an :class:`app.viewer.viewer.Viewer`) under ``prefix``.
 
     The port is read per request, so the viewer may be started after the app is built.
@@ -89,7 +92,7 @@ async def _refuse(websocket: WebSocket, offered: list[Subprotocol], code: int, r
     await websocket.close(code=code, reason=reason)
 
 
-async def relay_websocket(websocket: WebSocket, viewer: Any) -> None:
+async def relay_websocket(websocket: WebSocket, viewer: Viewer) -> None:
     """Relay one browser WebSocket to the viser server until either side closes."""
     offered = [Subprotocol(p) for p in websocket.scope.get("subprotocols", [])]
     port = _upstream_port(viewer)
@@ -137,11 +140,11 @@ async def relay_websocket(websocket: WebSocket, viewer: Any) -> None:
     try:
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
-            exc = task.exception()
-            if exc is not None and not isinstance(
-                exc, websockets.exceptions.ConnectionClosed | WebSocketDisconnect
+            err = task.exception()
+            if err is not None and not isinstance(
+                err, websockets.exceptions.ConnectionClosed | WebSocketDisconnect
             ):
-                log.warning("viser relay: %s ended: %r", task.get_name(), exc)
+                log.warning("viser relay: %s ended: %r", task.get_name(), err)
     finally:
         for task in tasks:
             task.cancel()

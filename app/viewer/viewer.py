@@ -15,15 +15,18 @@ import logging
 import math
 import threading
 import time
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 import viser
 
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS
 from app.recon.colormap import depth_colormap
 from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.encoding import texture_u8 as _texture_u8
+from app.service.reconstruction import LiveResult
+from app.service.store import LatestSlot
 from app.viewer.cloud import (
     COLOR_MODES,
     PANEL_WIDTH_PX,
@@ -36,8 +39,17 @@ from app.viewer.cloud import (
 
 log = logging.getLogger(__name__)
 
-LEDS = ("red", "green", "blue")
 __all__ = ["Viewer", "cloud_arrays", "decimation_step", "initial_view"]
+
+
+class ViewedInstrument(Protocol):
+    """What the viewer uses of the instrument: the latest-result slot, the status, two controls."""
+
+    @property
+    def store(self) -> LatestSlot[LiveResult]: ...
+    def status(self) -> dict[str, Any]: ...
+    def set_exposure(self, exposure_ms: float) -> float: ...
+    def set_led(self, led: str) -> str: ...
 
 
 class Viewer:
@@ -65,7 +77,7 @@ class Viewer:
 
     def __init__(
         self,
-        instrument: Any,
+        instrument: ViewedInstrument,
         *,
         host: str = "127.0.0.1",
         port: int = 0,
@@ -168,8 +180,8 @@ class Viewer:
         status = self._safe_status()
         with gui.add_folder("Acquisition"):
             exposure = gui.add_slider(
-                "Exposure (ms)", min=1.0, max=100.0, step=1.0,
-                initial_value=float(np.clip(status.get("exposure_ms", 30.0), 1.0, 100.0)),
+                "Exposure (ms)", min=EXPOSURE_RANGE_MS[0], max=EXPOSURE_RANGE_MS[1], step=1.0,
+                initial_value=float(np.clip(status.get("exposure_ms", 30.0), *EXPOSURE_RANGE_MS)),
             )
             led0 = status.get("led", "green")
             led = gui.add_dropdown("LED", LEDS, initial_value=led0 if led0 in LEDS else "green")
@@ -235,7 +247,7 @@ class Viewer:
             return
         exposure_ms = status.get("exposure_ms")
         if isinstance(exposure_ms, int | float) and math.isfinite(exposure_ms):
-            gui["exposure"].value = float(np.clip(round(exposure_ms), 1.0, 100.0))
+            gui["exposure"].value = float(np.clip(round(exposure_ms), *EXPOSURE_RANGE_MS))
         if status.get("led") in LEDS:
             gui["led"].value = status["led"]
 
@@ -253,7 +265,7 @@ class Viewer:
     def _run(self) -> None:
         last_push = -math.inf
         last_status = -math.inf
-        shown: Any = None
+        shown: LiveResult | None = None
         dirty = False  # `shown` differs from what the browsers have
         while not self._stop.is_set():
             seq, result = self._store.wait_newer(self.last_seq, 0.25)
@@ -277,7 +289,7 @@ class Viewer:
                 self._redraw.clear()
                 dirty = shown is not None
             # Nobody watching: keep the newest and send it when a browser connects.
-            if not dirty or (self.only_when_watched and not self._watched()):
+            if not dirty or shown is None or (self.only_when_watched and not self._watched()):
                 continue
             try:
                 self._show(shown)
@@ -290,7 +302,7 @@ class Viewer:
         server = self._server
         return server is not None and len(server.get_clients()) > 0
 
-    def _show(self, result: Any) -> None:
+    def _show(self, result: LiveResult) -> None:
         server = self._server
         if server is None:
             return

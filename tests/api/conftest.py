@@ -18,8 +18,8 @@ from fastapi.testclient import TestClient
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-from app.config import Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
+from app.config import Settings
+from app.main import create_app
 
 LIVE_EXPOSURE_MS = 30.0  # the paper's range; the simulator renders each frame well within the period
 LIVE_SCENE = "dof_target"  # static: cheap to render, and has a known truth

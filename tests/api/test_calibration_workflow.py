@@ -40,7 +40,7 @@ def capture_after_change(client: TestClient) -> dict[str, Any]:
 
 @pytest.mark.slow
 def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: Path) -> None:
-    from app.devices.sim import BoardSpec, render_capture_set
+    from app.devices.sim import render_capture_set, sim_board
     from app.devices.sim.offline import auto_exposure_ms
     from app.devices.sim.scenes import board_poses, board_scene, build_scene
 
@@ -51,9 +51,9 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/calibration/session/poses").status_code == 409  # no session yet
 
-        spec = BoardSpec()  # the simulator's checkerboard
-        n_corners = spec.inner_corners[0] * spec.inner_corners[1]
-        r = client.post("/api/calibration/session", json=spec.to_json())
+        spec = sim_board()  # the simulator's checkerboard
+        n_corners = spec.n_points
+        r = client.post("/api/calibration/session", json=spec.to_dict())
         assert r.status_code == 200 and r.json()["poses"] == []
 
         # a view without the board: captured, but not found

@@ -15,7 +15,7 @@ import numpy as np
 
 from app.calib.board import BoardSpec
 from app.calib.fitting import PoseObservation
-from app.recon.patterns import PatternSchedule
+from app.core.schedule import PatternSchedule
 
 
 def rot(ax_deg: float, ay_deg: float, az_deg: float = 0.0) -> np.ndarray:

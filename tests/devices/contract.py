@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from app.core.schedule import PatternSchedule
 from app.devices import (
     Camera,
     Controller,
@@ -23,7 +24,6 @@ from app.devices import (
     DeviceTimeout,
     Projector,
 )
-from app.recon.patterns import PatternSchedule
 
 
 class _Common:

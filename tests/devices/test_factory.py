@@ -1,14 +1,19 @@
-"""create_devices: Settings → unopened devices of the chosen backends."""
+"""create_devices: typed backend specs → unopened devices of the chosen backends."""
 
 from __future__ import annotations
 
-import importlib
-
 import pytest
 
-from app.config import Settings
 from app.devices import DeviceState
-from app.devices.factory import Devices, create_devices
+from app.devices.factory import (
+    CameraSpec,
+    ControllerSpec,
+    Devices,
+    DeviceSpecs,
+    ProjectorSpec,
+    SimSpec,
+    create_devices,
+)
 from app.devices.genicam_camera import GenICamCamera
 from app.devices.lightcrafter import LightCrafterProjector
 from app.devices.opencv_camera import OpenCVCamera
@@ -19,15 +24,15 @@ from tests.devices.test_replay import make_recording
 
 def test_real_backends_are_built_unopened(tmp_path):
     rec = make_recording(tmp_path / "rec", n_sets=1)
-    s = Settings(camera="replay", camera_source=str(rec), projector="lightcrafter", lightcrafter_host="10.0.0.7",
-                 lightcrafter_port=2000, controller="serial", serial_port="usb:2341:0043:FS0001")
-    devs = create_devices(s)
+    devs = create_devices(DeviceSpecs(CameraSpec("replay", str(rec)), ProjectorSpec("lightcrafter", "10.0.0.7", 2000),
+                                      ControllerSpec("serial", "usb:2341:0043:FS0001")))
     assert isinstance(devs, Devices)
     assert isinstance(devs.camera, ReplayCamera) and devs.camera.folder == rec
     assert isinstance(devs.projector, LightCrafterProjector)
     assert (devs.projector.host, devs.projector.port) == ("10.0.0.7", 2000)
     assert isinstance(devs.controller, SerialController) and devs.controller.port == "usb:2341:0043:FS0001"
-    assert all(d.state is DeviceState.CLOSED for d in devs)
+    assert devs.world is None
+    assert all(d.state is DeviceState.CLOSED for d in devs[:3])
     # the replay camera really works from these settings
     devs.camera.open()
     devs.camera.start()
@@ -35,38 +40,37 @@ def test_real_backends_are_built_unopened(tmp_path):
     devs.camera.close()
 
 
+NONE = {"projector": ProjectorSpec("none"), "controller": ControllerSpec("none")}
+
+
 def test_camera_sources_and_none(tmp_path):
-    devs = create_devices(Settings(camera="opencv", camera_source="2", projector="none", controller="none"))
+    devs = create_devices(DeviceSpecs(CameraSpec("opencv", "2"), **NONE))
     assert isinstance(devs.camera, OpenCVCamera) and devs.camera.source == 2
     assert devs.projector is None and devs.controller is None
-    devs = create_devices(Settings(camera="opencv", camera_source="rtsp://cam/stream", projector="none",
-                                   controller="none"))
+    devs = create_devices(DeviceSpecs(CameraSpec("opencv", "rtsp://cam/stream"), **NONE))
     assert devs.camera.source == "rtsp://cam/stream"
-    cam = create_devices(Settings(camera="genicam", camera_source="/opt/x.cti#3", projector="none",
-                                  controller="none")).camera
+    cam = create_devices(DeviceSpecs(CameraSpec("genicam", "/opt/x.cti#3"), **NONE)).camera
     assert isinstance(cam, GenICamCamera) and str(cam.cti) == "/opt/x.cti" and cam.device == 3
-    cam = create_devices(Settings(camera="genicam", camera_source="/opt/x.cti#SN42", projector="none",
-                                  controller="none")).camera
+    cam = create_devices(DeviceSpecs(CameraSpec("genicam", "/opt/x.cti#SN42"), **NONE)).camera
     assert cam.device == "SN42"
 
 
 @pytest.mark.parametrize(
-    ("kwargs", "field"),
-    [({"camera": "replay"}, "camera_source"), ({"camera": "genicam"}, "camera_source"),
-     ({"camera": "replay", "camera_source": "x", "controller": "serial"}, "serial_port"),
-     ({"camera": "replay", "camera_source": "x", "controller": "serial", "serial_port": "usb:12"}, "port")],
+    ("camera", "controller", "field"),
+    [(CameraSpec("replay"), ControllerSpec("none"), "camera_source"),
+     (CameraSpec("genicam"), ControllerSpec("none"), "camera_source"),
+     (CameraSpec("replay", "x"), ControllerSpec("serial"), "serial_port"),
+     (CameraSpec("replay", "x"), ControllerSpec("serial", "usb:12"), "port")],
 )
-def test_missing_or_bad_settings_name_the_field(kwargs, field):
-    base = {"projector": "none", "controller": "none"}
+def test_missing_or_bad_specs_name_the_field(camera, controller, field):
     with pytest.raises(ValueError, match=field):
-        create_devices(Settings(**{**base, **kwargs}))
+        create_devices(DeviceSpecs(camera, ProjectorSpec("none"), controller))
 
 
 def test_sim_backends_come_from_the_simulator():
-    sim = importlib.import_module("app.devices.sim")
-    if not hasattr(sim, "create_sim_devices"):
-        pytest.skip("app.devices.sim.create_sim_devices not available yet")
-    devs = create_devices(Settings(camera="sim", projector="sim", controller="none", sim_seed=1))
+    specs = DeviceSpecs(CameraSpec("sim"), ProjectorSpec("sim"), ControllerSpec("none"), SimSpec(seed=1))
+    assert not specs.all_sim
+    devs = create_devices(specs)
     assert devs.camera.kind == "camera" and devs.projector is not None and devs.projector.kind == "projector"
-    assert devs.controller is None
-    assert all(d.state is DeviceState.CLOSED for d in devs if d is not None)
+    assert devs.controller is None and devs.world is not None
+    assert all(d.state is DeviceState.CLOSED for d in devs[:3] if d is not None)

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.calib.calibration import Calibration
-from app.recon.patterns import PatternSchedule
+from app.core.schedule import PatternSchedule
 
 F64 = npt.NDArray[np.float64]
 

@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
+from app.core.reasons import assign_reasons
 from app.recon import PRECEDENCE, Reason, Reconstructor
-from app.recon.reasons import assign_reasons
 from tests.recon.analytic_rig import Rig, reason_scene
 
 

@@ -56,3 +56,10 @@ def test_invalid_arguments():
         choose_exposure(lambda e: (0.0, 0.0), saturation_limit=1.5)
     with pytest.raises(ValueError, match="max_exposure_ms"):
         choose_exposure(lambda e: (0.0, 0.0), max_exposure_ms=0.5)
+
+
+def test_ladder_spans_the_exposure_range():
+    from app.core.limits import EXPOSURE_RANGE_MS
+    from app.service.autoexposure import LADDER_MS
+
+    assert (LADDER_MS[0], LADDER_MS[-1]) == EXPOSURE_RANGE_MS

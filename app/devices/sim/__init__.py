@@ -20,11 +20,11 @@ from app.devices.sim.devices import (
 )
 from app.devices.sim.offline import render_capture_set, simulate_calibration_folder
 from app.devices.sim.optics import SimRig, default_rig
-from app.devices.sim.scenes import BoardSpec, list_scenes
+from app.devices.sim.scenes import list_scenes, sim_board
 from app.devices.sim.world import READOUT_MS, SimulatedWorld
 
 __all__ = [
-    "BoardSpec", "READOUT_MS", "SimDevices", "SimRig", "SimulatedCamera", "SimulatedController",
+    "READOUT_MS", "SimDevices", "SimRig", "SimulatedCamera", "SimulatedController",
     "SimulatedProjector", "SimulatedWorld", "create_sim_devices", "default_rig", "list_scenes",
-    "render_capture_set", "simulate_calibration_folder",
+    "render_capture_set", "sim_board", "simulate_calibration_folder",
 ]

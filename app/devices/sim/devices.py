@@ -5,6 +5,8 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+from app.core.limits import LIVE_BIT_DEPTHS
+from app.core.schedule import PatternSchedule
 from app.devices.base import (
     Camera,
     CameraCapabilities,
@@ -16,7 +18,6 @@ from app.devices.base import (
 from app.devices.errors import DeviceTimeout
 from app.devices.sim.faults import FrameFaults, Link
 from app.devices.sim.world import READOUT_MS, SimulatedWorld
-from app.recon.patterns import PatternSchedule
 
 BUFFER_FRAMES = 8  # frames the simulated camera buffers before it overwrites (drops) old ones
 
@@ -202,8 +203,8 @@ def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, b
                        drop_rate: float = 0.0, timeout_rate: float = 0.0, disconnect_every_s: float = 0.0,
                        realtime: bool = True, distortion: bool = True, reconnect_delay_s: float = 0.5) -> SimDevices:
     """Camera, projector and controller sharing one simulated world (nothing opened yet)."""
-    if bit_depth not in (8, 12):
-        raise ValueError(f"bit_depth: must be 8 or 12, got {bit_depth}")
+    if bit_depth not in LIVE_BIT_DEPTHS:
+        raise ValueError(f"bit_depth: must be one of {LIVE_BIT_DEPTHS}, got {bit_depth}")
     world = SimulatedWorld(scene, seed=seed, distortion=distortion)
     fault_seed = world.seed_seq.spawn(1)[0]
     camera = SimulatedCamera(world, realtime=realtime,

@@ -25,7 +25,6 @@ class Link:
         self._down_until = -np.inf  # while now < this, the device is unplugged
         self._down_manual = False
         self._next_unplug = np.inf
-        self.disconnects = 0
 
     def opened(self) -> None:
         """Open succeeded: arm the periodic unplug."""
@@ -33,7 +32,6 @@ class Link:
 
     def unplug(self, *, for_s: float | None = None) -> None:
         """Pull the cable (until :meth:`replug` if ``for_s`` is None)."""
-        self.disconnects += 1
         if for_s is None:
             self._down_manual = True
         else:
@@ -64,7 +62,8 @@ class Link:
 class FrameFaults:
     """Per-frame random faults with their own seeded generator."""
 
-    def __init__(self, *, drop_rate: float = 0.0, timeout_rate: float = 0.0, seed: int | None = None) -> None:
+    def __init__(self, *, drop_rate: float = 0.0, timeout_rate: float = 0.0,
+                 seed: int | np.random.SeedSequence | None = None) -> None:
         for name, rate in (("drop_rate", drop_rate), ("timeout_rate", timeout_rate)):
             if not 0.0 <= rate < 1.0:
                 raise ValueError(f"{name}: must be within [0, 1), got {rate}")

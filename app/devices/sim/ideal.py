@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.recon.patterns import PatternSchedule
+from app.core.schedule import PatternSchedule
 
 if TYPE_CHECKING:
     from app.calib.calibration import Calibration

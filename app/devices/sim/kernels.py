@@ -17,7 +17,7 @@ FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
 
 
 @nb.njit(cache=True, inline="always")
-def _next(state):  # noqa: ANN001, ANN202
+def _next(state):
     x = state[0]
     x ^= x >> np.uint64(12)
     x ^= x << np.uint64(25)
@@ -27,7 +27,7 @@ def _next(state):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _adc(mean, g, read2, maxv, z):  # noqa: ANN001, ANN202
+def _adc(mean, g, read2, maxv, z):
     """Quantised DN of a pixel of noise-free mean ``mean`` (DN) and unit normal deviate ``z``
     (shot + read noise, clipped to 0 .. maxv; branch-free so that row loops vectorise)."""
     mean = max(mean, 0.0)
@@ -36,7 +36,7 @@ def _adc(mean, g, read2, maxv, z):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def add_noise(out, mean, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
+def add_noise(out, mean, g, read2, maxv, table, state):
     """out[i] = ADC(mean[i] + noise) for a precomputed noise-free mean (DN)."""
     n = out.shape[0]
     i = 0
@@ -50,14 +50,14 @@ def add_noise(out, mean, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb):  # noqa: ANN001, ANN201
+def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb):
     for i in range(mean.shape[0]):
         p = 0.5 + 0.5 * (ck[i] * cosd - sk[i] * sind)
         mean[i] = scale * (base[i] * qbar + fringe[i] * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy", inline="always")
-def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):  # noqa: ANN001, ANN202
+def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):
     """Index into the (nq,) projector table of a rest-pose sample (N0, D0, base b) moved by δ
     (see moving_frame); −1 where it is unlit (b = 0 or off the pattern). Branch-free: vectorises."""
     xp = (n0 + n_add) / (d0 + d_add)
@@ -71,7 +71,7 @@ def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):  
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
 def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac, width_p,
-               nq):  # noqa: ANN001, ANN201
+               nq):
     """kk[u0 .. u1 − 1] = table indices of the contiguous rest-pose samples s0 .. s0 + u1 − u0 − 1."""
     for i in range(u1 - u0):
         kk[u0 + i] = _fringe_index(n0_row[s0 + i], d0_row[s0 + i], base_row[s0 + i], n_add, d_add, k_over_w,
@@ -79,21 +79,21 @@ def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w,
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _shade(q, b, fr, qbar, scale, amb):  # noqa: ANN001, ANN202
+def _shade(q, b, fr, qbar, scale, amb):
     """DN of a sample of base b and fringe part fr lit by projector output q (NaN: unlit → ambient)."""
     m = scale * (b * qbar + fr * (q - qbar)) + amb
     return m if q == q else amb
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _shade_run(row, qv, u0, u1, s0, base_row, fringe_row, qbar, scale, amb):  # noqa: ANN001, ANN201
+def _shade_run(row, qv, u0, u1, s0, base_row, fringe_row, qbar, scale, amb):
     """row[u] = DN of the rest-pose sample s0 + u − u0 lit by projector output qv[u] (NaN: unlit)."""
     for i in range(u1 - u0):
         row[u0 + i] = _shade(qv[u0 + i], base_row[s0 + i], fringe_row[s0 + i], qbar, scale, amb)
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _flow_run(block_flow, by, bx, block, w):  # noqa: ANN001, ANN202
+def _flow_run(block_flow, by, bx, block, w):
     """The run of tiles bx .. e − 1 of tile row ``by`` sharing tile bx's flow (fu, fv): returns
     (e, fu, fv, u0, u1, a, b) with columns u0 .. u1 − 1, of which a .. b − 1 have their
     rest-pose source u − fu inside the image (the others clamp to column 0 or W − 1)."""
@@ -109,7 +109,7 @@ def _flow_run(block_flow, by, bx, block, w):  # noqa: ANN001, ANN202
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
 def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac, width_p,
-               qtab, qbar, scale, amb):  # noqa: ANN001, ANN201
+               qtab, qbar, scale, amb):
     """Noise-free row ``v`` (W,) float32 DN of the moved scene (see moving_frame) into ``row``.
 
     Neighbouring tiles mostly share their flow, so each run of equal flow reads a contiguous
@@ -147,7 +147,7 @@ def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _deviates(z, u0, u1, table, state, r, j):  # noqa: ANN001, ANN202
+def _deviates(z, u0, u1, table, state, r, j):
     """z[u0 .. u1 − 1] = the next normal deviates, four per generator step; (r, j) carries the
     current step's bits and how many of its four are used. Returns the new (r, j)."""
     for u in range(u0, u1):
@@ -160,7 +160,7 @@ def _deviates(z, u0, u1, table, state, r, j):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _adc_run(out_row, row, z, u0, u1, g, read2, maxv):  # noqa: ANN001, ANN201
+def _adc_run(out_row, row, z, u0, u1, g, read2, maxv):
     """out_row[u] = ADC(row[u], z[u]) for u0 ≤ u < u1 (vectorised)."""
     for u in range(u0, u1):
         out_row[u] = _adc(row[u], g, read2, maxv, z[u])
@@ -168,7 +168,7 @@ def _adc_run(out_row, row, z, u0, u1, g, read2, maxv):  # noqa: ANN001, ANN201
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
 def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
-                 width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):  # noqa: ANN001, ANN201
+                 width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):
     """A frame of a rigidly translated scene: the noise-free mean (``noisy`` False, ``out``
     float32) or the noisy, quantised frame (``noisy`` True, ``out`` uint8/uint16), in one pass.
 

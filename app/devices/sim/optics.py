@@ -10,10 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:  # types only: ideal.py imports this module
+    from app.calib.calibration import Calibration
+    from app.core.schedule import PatternSchedule
 
 F64 = npt.NDArray[np.float64]
 
@@ -108,7 +113,7 @@ class CameraModel:
         """Pixel coordinates (…, 2) of camera-frame points (…, 3), with distortion."""
         p = np.asarray(points, np.float64).reshape(-1, 3)
         uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
-        return uv.reshape(*np.shape(points)[:-1], 2)
+        return np.asarray(uv, np.float64).reshape(*np.shape(points)[:-1], 2)
 
 
 @dataclass(frozen=True)
@@ -196,7 +201,7 @@ class SimRig:
         return SimRig(cam, self.projector, self.reference, self.reference_point_mm, self.focus_mm,
                       self.blur_per_inv_mm, self.projector_focus_mm, self.projector_blur_per_inv_mm, self.extra)
 
-    def ideal_calibration(self, schedule=None):  # noqa: ANN001, ANN201 - avoids an import cycle in the signature
+    def ideal_calibration(self, schedule: PatternSchedule | None = None) -> Calibration:
         """The exact Eq. (5) calibration of this pinhole geometry (oracle for tests; see ideal.py)."""
         from app.devices.sim.ideal import ideal_calibration
 

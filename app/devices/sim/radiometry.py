@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-LEDS = ("red", "green", "blue")
+from app.core.limits import check_led
 
 # Relative LED radiant flux at full current (LightCrafter LEDs) and the mono sensor's
 # quantum efficiency at each LED's wavelength (Sony ICX825-like: peaks in the green).
@@ -73,8 +73,7 @@ class SensorModel:
 
     def light_scale(self, *, exposure_ms: float, current: float, led: str) -> float:
         """Electrons per (reflectance · pattern / d_p²[mm²]) for these settings."""
-        if led not in LEDS:
-            raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+        check_led(led)
         return exposure_ms * current * LED_FLUX[led] * SENSOR_QE[led] * SCOPE_TRANSMISSION * self.photons_scale
 
     def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8, gain: float = 1.0) -> npt.NDArray[np.float64]:

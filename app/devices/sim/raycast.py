@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 
 @nb.njit(cache=True, inline="always")
-def _bilinear(grid, s0, t0, ds, s, t):  # noqa: ANN001, ANN202
+def _bilinear(grid, s0, t0, ds, s, t):
     ny, nx = grid.shape
     fx = (s - s0) / ds
     fy = (t - t0) / ds
@@ -29,7 +29,7 @@ def _bilinear(grid, s0, t0, ds, s, t):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, nogil=True)
-def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, hmin, hmax):  # noqa: ANN001, ANN201
+def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, hmin, hmax):
     """First intersection of each ray with a height field over a plane frame.
 
     Args:

@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter
 
+from app.core.schedule import PatternSchedule
 from app.devices.sim import kernels, tool_kernels
 from app.devices.sim.optics import SimRig, mat3
 from app.devices.sim.radiometry import (
@@ -25,7 +26,6 @@ from app.devices.sim.radiometry import (
 )
 from app.devices.sim.scenes.base import F64, Scene
 from app.devices.sim.trace import integrate_print, trace
-from app.recon.patterns import PatternSchedule
 
 F32 = npt.NDArray[np.float32]
 _TABLE = gaussian_quantile_table()

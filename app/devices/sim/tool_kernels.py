@@ -18,7 +18,7 @@ from app.devices.sim.kernels import FAST, _adc_run, _deviates, _scene_row
 
 
 @nb.njit(cache=True, error_model="numpy")
-def tool_spans(sx, sy, v0, v1, rad_px, w):  # noqa: ANN001, ANN201
+def tool_spans(sx, sy, v0, v1, rad_px, w):
     """First/last column (v1 − v0 + 1, 2) int64 of rows v0 .. v1 covered by discs of radius rad_px
     (px) at the samples (sx, sy) (n,) px, clipped to 0 .. w − 1 (first > last: none).
     Not fastmath: the same spans as the numpy formulation in render.py used to give."""
@@ -70,7 +70,7 @@ class ToolFrame(NamedTuple):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
+def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):
     """Ray (from the origin, direction r) against a capsule; returns (t, nx, ny, nz) or t = inf.
 
     The capsule lies inside the infinite cylinder around its axis, so a ray that misses the
@@ -112,7 +112,7 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _pow(x, e):  # noqa: ANN001, ANN202
+def _pow(x, e):
     """x**e for x ≥ 0; by repeated squaring for a small whole e (specular exponents: ~7× faster than pow)."""
     if e == int(e) and 0 <= e < 1024:
         n = int(e)
@@ -134,7 +134,7 @@ _C = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.480158728947672
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _cos(x):  # noqa: ANN001, ANN202
+def _cos(x):
     """cos(x) (rad) to ~1e-15 for |x| ≲ 1e3; branch-free so that the loops calling it vectorise
     (math.cos is a scalar libm call). Quadrant reduction, then the fdlibm polynomials."""
     q = math.floor(x * (2.0 / math.pi) + 0.5)
@@ -148,7 +148,7 @@ def _cos(x):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _pow_bits(x, n):  # noqa: ANN001, ANN202
+def _pow_bits(x, n):
     """x**n for x ≥ 0 and a whole 0 ≤ n < 1024: the products of _pow, unrolled (no loop, so
     the loops calling it vectorise)."""
     y = 1.0
@@ -174,7 +174,7 @@ def _pow_bits(x, n):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _cylinder(rx, ry, rz, p0, a_hat, radius):  # noqa: ANN001, ANN202
+def _cylinder(rx, ry, rz, p0, a_hat, radius):
     """The infinite-cylinder step of _capsule_t (same arithmetic): (a, disc, t, axial position,
     normal x, y, z); a hit needs a > 0, disc ≥ 0, t > 0 and 0 ≤ axial ≤ length."""
     ox, oy, oz = -p0[0], -p0[1], -p0[2]
@@ -191,7 +191,7 @@ def _cylinder(rx, ry, rz, p0, a_hat, radius):  # noqa: ANN001, ANN202
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _cylinder_run(tt, rx, ry, rz, u0, u1, p0, a_hat, length, radius):  # noqa: ANN001, ANN201
+def _cylinder_run(tt, rx, ry, rz, u0, u1, p0, a_hat, length, radius):
     """tt[u] = ray parameter (mm) of the tool's cylinder hit of ray (rx, ry, rz)[u], u0 ≤ u ≤ u1;
     inf: miss, NaN: the end spheres decide (see _capsule_t). Returns the number of NaNs.
 
@@ -208,7 +208,7 @@ def _cylinder_run(tt, rx, ry, rz, u0, u1, p0, a_hat, length, radius):  # noqa: A
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _light(t, rx, ry, rz, p0, a_hat, radius, pc):  # noqa: ANN001, ANN202
+def _light(t, rx, ry, rz, p0, a_hat, radius, pc):
     """Geometry of the cylinder hit at ray parameter t: (X, Y, Z) point, unit normal, unit
     direction to the projector and distance d (mm)."""
     _, _, _, _, nx, ny, nz = _cylinder(rx, ry, rz, p0, a_hat, radius)
@@ -220,7 +220,7 @@ def _light(t, rx, ry, rz, p0, a_hat, radius, pc):  # noqa: ANN001, ANN202
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
 def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c, width_p, rows_lit,
-                    two_pi_k_over_w, shift, dz):  # noqa: ANN001, ANN201
+                    two_pi_k_over_w, shift, dz):
     """kk[u] = projector response table index (as float) of the cylinder hit tt[u] (_cylinder_run)
     where it is in front of the rest-pose depth zrow[u] + dz and lit; −9 where in front but
     unlit, NaN where not in front."""
@@ -241,7 +241,7 @@ def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al,
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
 def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, n_shin, atten, qbar, scale,
-                 amb):  # noqa: ANN001, ANN201
+                 amb):
     """out[u] = DN of the cylinder hit tt[u] given qq[u] = projector output − qbar (lit), −9
     (unlit: ambient) or NaN (not in front: NaN); n_shin: the whole specular exponent."""
     for u in range(u0, u1 + 1):
@@ -258,7 +258,7 @@ def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, k
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):  # noqa: ANN001, ANN202
+def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):
     """DN of the tool along ray (rx, ry, rz) in front of the scene at depth zs (NaN: none) by
     the full scalar capsule test (for the rays the vectorised cylinder passes leave out)."""
     (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit, two_pi_k_over_w,
@@ -285,7 +285,7 @@ def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):  # noqa: ANN001, A
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):  # noqa: ANN001, ANN201
+def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
     """Overwrite row[u0 .. u1] (row ``v`` of the mean frame) where the tool is in front of the scene
     (its rest-pose depth zs (H, W) + tool.dz, NaN off-object). rays: (3, H, W) float64 planes of
     the unit pixel rays; sc: three (W,) float64 scratch rows (separate arrays: views of one 2-D
@@ -324,7 +324,7 @@ def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):  # no
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
 def tool_frame(out, noisy, row, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
                width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state, rays, zs, v0, spans, tool,
-               lut):  # noqa: ANN001, ANN201
+               lut):
     """moving_frame with the capsule ``tool`` in front, row by row in raster order (the noise
     sequence of add_noise over the mean frame), so the mean frame is never stored.
 

@@ -55,10 +55,9 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
     normals = np.full((n, 3), np.nan)
     material = np.full(n, BACKGROUND, np.uint8)
     albedo = np.ones(n)
-    gs, gt = np.gradient(hf.heights, hf.ds) if np.ptp(hf.heights) > 0 else (None, None)
-    if gs is not None:
+    if np.ptp(hf.heights) > 0:
         # np.gradient returns d/d(row) first: rows are t, columns s.
-        dh_dt, dh_ds = gs, gt
+        dh_dt, dh_ds = (np.asarray(g, np.float64) for g in np.gradient(hf.heights, hf.ds))
         hs = _bilinear_np(dh_ds, hf.s0, hf.t0, hf.ds, s[ok], t[ok])
         ht = _bilinear_np(dh_dt, hf.s0, hf.t0, hf.ds, s[ok], t[ok])
         nl = np.stack([-hs, -ht, np.ones_like(hs)], -1)
@@ -125,14 +124,13 @@ def integrate_print(hf: HeightField, st: F64, material: npt.NDArray[np.uint8], s
     corners = [hf.printed(sc + 0.5 * (a * j[0] + b * j[1]), tc + 0.5 * (a * j[2] + b * j[3]))
                for a, b in ((-1, -1), (1, -1), (-1, 1), (1, 1))]
     centre = hf.printed(sc, tc)
-    vals = centre.astype(np.float64)
+    vals: npt.NDArray[np.float64] = centre.astype(np.float64)
     mixed = np.zeros(sc.shape, bool)
     for c in corners:
         mixed |= c != centre
     if mixed.any():
         off = (np.arange(oversample) + 0.5) / oversample - 0.5
-        a, b = np.meshgrid(off, off)
-        a, b = a.ravel(), b.ravel()
+        a, b = (g.ravel() for g in np.meshgrid(off, off))
         sm, tm = sc[mixed], tc[mixed]
         jm = [x[mixed] for x in j]
         ssub = sm[:, None] + a[None] * jm[0][:, None] + b[None] * jm[1][:, None]

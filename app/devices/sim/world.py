@@ -8,11 +8,11 @@ import time
 import numpy as np
 import numpy.typing as npt
 
+from app.core.schedule import PatternSchedule
 from app.devices.sim.optics import SimRig, default_rig
 from app.devices.sim.radiometry import SensorModel
 from app.devices.sim.render import Renderer
 from app.devices.sim.scenes import Scene, build_scene
-from app.recon.patterns import PatternSchedule
 
 READOUT_MS = 1000.0 / 45.0  # sensor readout: frame period = max(exposure, readout)
 

@@ -8,7 +8,7 @@ import pytest
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-from app.devices.sim import SimulatedWorld  # noqa: E402
+from app.devices.sim import SimulatedWorld
 
 
 @pytest.fixture(scope="session")

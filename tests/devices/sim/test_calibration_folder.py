@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from app.calib.board import BoardSpec as CalBoard
 from app.calib.board import detect_board
 from app.capture.captureset import read_capture_set
+from app.core.board import BoardSpec
 from app.devices.sim import default_rig, simulate_calibration_folder
-from app.devices.sim.scenes import BoardSpec
+from app.devices.sim.scenes import board_points_mm, sim_board
 
 
 def _texture(cs) -> np.ndarray:
@@ -23,7 +23,7 @@ def _texture(cs) -> np.ndarray:
 def _truth_corners(cs, spec: BoardSpec, rig) -> np.ndarray:
     sim = cs.extra["simulated"]
     origin, axes = np.array(sim["board_origin_mm"]), np.array(sim["board_axes"])
-    pts = origin + spec.object_points() @ axes.T
+    pts = origin + board_points_mm(spec) @ axes.T
     return rig.camera.project(pts)
 
 
@@ -31,14 +31,15 @@ def _truth_corners(cs, spec: BoardSpec, rig) -> np.ndarray:
 def test_checkerboard_folder_detected_subpixel(tmp_path):
     out = simulate_calibration_folder(tmp_path / "cal", board="checkerboard", poses=3, seed=1)
     board = json.loads((out / "board.json").read_text())
-    spec, rig = BoardSpec(), default_rig()
-    assert board == {"type": "checkerboard", "inner_corners": list(spec.inner_corners), "square_mm": spec.pitch_mm}
+    spec, rig = sim_board(), default_rig()
+    assert board == {"type": "checkerboard", "inner_corners": [spec.cols, spec.rows], "square_mm": spec.pitch_mm}
+    assert BoardSpec.from_dict(board) == spec
     for k in range(3):
         cs = read_capture_set(out / f"pose_{k:02d}")
         assert cs.frames.shape == (16, 1032, 1384) and cs.frames.max() < 255
         # OpenCV's detector with gradient refinement (as calibration runs it): the ±30°
         # poses foreshorten the squares, and raw corners there are off by up to 0.3 px
-        det = detect_board(_texture(cs), CalBoard.from_dict(board))
+        det = detect_board(_texture(cs), BoardSpec.from_dict(board))
         ok, corners = det.found, det.image_points
         assert ok, f"pose {k}"
         truth = _truth_corners(cs, spec, rig)
@@ -53,10 +54,10 @@ def test_checkerboard_folder_detected_subpixel(tmp_path):
 def test_circle_grid_folder_detected(tmp_path):
     out = simulate_calibration_folder(tmp_path / "cal", board="circles", poses=2, seed=2)
     assert json.loads((out / "board.json").read_text())["type"] == "circles"
-    spec, rig = BoardSpec(type="circles"), default_rig()
+    spec, rig = sim_board("circles"), default_rig()
     for k in range(2):
         cs = read_capture_set(out / f"pose_{k:02d}")
-        ok, centres = cv2.findCirclesGrid(_texture(cs), spec.inner_corners, flags=cv2.CALIB_CB_SYMMETRIC_GRID)
+        ok, centres = cv2.findCirclesGrid(_texture(cs), spec.pattern_size, flags=cv2.CALIB_CB_SYMMETRIC_GRID)
         assert ok, f"pose {k}"
         truth = _truth_corners(cs, spec, rig)
         d = np.linalg.norm(centres.reshape(-1, 2)[:, None, :] - truth[None], axis=2).min(axis=1)

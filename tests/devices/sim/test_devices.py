@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
+from app.core.schedule import PatternSchedule
 from app.devices import DeviceDisconnected, DeviceNotFound, DeviceState, DeviceTimeout
 from app.devices.sim import create_sim_devices
-from app.recon.patterns import PatternSchedule
 
 
 def _running(**kw):

@@ -7,12 +7,13 @@ from collections.abc import Callable
 from app.devices.sim.optics import SimRig
 from app.devices.sim.scenes.base import HeightField, Scene, Sphere, Tool
 from app.devices.sim.scenes.targets import (
-    BoardSpec,
+    board_points_mm,
     board_poses,
     board_scene,
     dof_target_scene,
     far_plane_scene,
     plane_scene,
+    sim_board,
     sphere_scene,
 )
 from app.devices.sim.scenes.tissue import anastomosis_scene, flap_scene, pile_scene
@@ -41,5 +42,5 @@ def build_scene(name: str, rig: SimRig) -> Scene:
         raise ValueError(f"scene: unknown {name!r}; choose from {', '.join(SCENES)}") from None
 
 
-__all__ = ["BoardSpec", "HeightField", "SCENES", "Scene", "Sphere", "Tool", "board_poses", "board_scene",
-           "build_scene", "list_scenes"]
+__all__ = ["HeightField", "SCENES", "Scene", "Sphere", "Tool", "board_points_mm", "board_poses", "board_scene",
+           "build_scene", "list_scenes", "sim_board"]

@@ -50,10 +50,6 @@ class HeightField:
     def hmax(self) -> float:
         return float(self.heights.max())
 
-    def grid_coords(self) -> tuple[F64, F64]:
-        ny, nx = self.heights.shape
-        return self.s0 + self.ds * np.arange(nx), self.t0 + self.ds * np.arange(ny)
-
     def local(self, points: F64) -> F64:
         """(s, t, w) of camera-frame points (…, 3)."""
         from app.devices.sim.optics import mat3

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from app.core.board import BoardSpec, BoardType
 from app.devices.sim.optics import SimRig, rotation_x, rotation_y
 from app.devices.sim.scenes.base import (
     F64,
@@ -20,53 +19,53 @@ from app.devices.sim.scenes.base import (
 BLACK = 0.07  # printed black relative to the paper's white
 
 
-@dataclass(frozen=True)
-class BoardSpec:
-    """A calibration board as written to ``board.json`` (DESIGN.md)."""
+#: the board types the simulator prints
+SIM_BOARD_TYPES: dict[str, BoardType] = {"checkerboard": "checkerboard", "circles": "circles"}
 
-    type: str = "checkerboard"  # or "circles" (symmetric grid of dark dots)
-    # 108 corners over 15 × 11 mm: twice the corners of an 8 × 6 board of the same size
-    # halve the variance of each pose — and pose 0 *is* the reference plane
-    inner_corners: tuple[int, int] = (12, 9)  # (cols, rows) of corners / circle centres
-    pitch_mm: float = 1.4  # square size or circle spacing
 
-    def to_json(self) -> dict[str, object]:
-        if self.type == "checkerboard":
-            return {"type": "checkerboard", "inner_corners": list(self.inner_corners), "square_mm": self.pitch_mm}
-        return {"type": "circles", "inner_corners": list(self.inner_corners), "pattern_size": list(self.inner_corners),
-                "spacing_mm": self.pitch_mm, "circle_diameter_mm": 0.5 * self.pitch_mm}
+def sim_board(board_type: str = "checkerboard") -> BoardSpec:
+    """The simulator's board of ``board_type`` (``checkerboard`` or ``circles``, a symmetric grid of dark dots).
 
-    def object_points(self) -> F64:
-        """(cols·rows, 3) control points in board coordinates (s, t, 0), row-major from the top-left."""
-        cols, rows = self.inner_corners
-        s = (np.arange(cols) - (cols - 1) / 2) * self.pitch_mm
-        t = (np.arange(rows) - (rows - 1) / 2) * self.pitch_mm
-        ss, tt = np.meshgrid(s, t)
-        return np.stack([ss.ravel(), tt.ravel(), np.zeros(ss.size)], -1)
+    108 corners over 15 × 11 mm: twice the corners of an 8 × 6 board of the same size
+    halve the variance of each pose — and pose 0 *is* the reference plane.
+    """
+    if board_type not in SIM_BOARD_TYPES:
+        raise ValueError(f"board: must be 'checkerboard' or 'circles', got {board_type!r}")
+    return BoardSpec(SIM_BOARD_TYPES[board_type], 12, 9, 1.4)
 
-    def printer(self) -> PrintFn:
-        cols, rows = self.inner_corners
-        p = self.pitch_mm
-        if self.type == "checkerboard":
-            half_s, half_t = (cols + 1) * p / 2, (rows + 1) * p / 2
 
-            def checker(s: F64, t: F64) -> F64:
-                inside = (np.abs(s) < half_s) & (np.abs(t) < half_t)
-                parity = (np.floor((s + half_s) / p) + np.floor((t + half_t) / p)) % 2
-                return np.where(inside & (parity == 0), BLACK, 1.0)
+def board_points_mm(spec: BoardSpec) -> F64:
+    """(cols·rows, 3) control points in the sim's board coordinates (s, t, 0), centred, row-major from the top-left."""
+    s = (np.arange(spec.cols) - (spec.cols - 1) / 2) * spec.pitch_mm
+    t = (np.arange(spec.rows) - (spec.rows - 1) / 2) * spec.pitch_mm
+    ss, tt = np.meshgrid(s, t)
+    return np.stack([ss.ravel(), tt.ravel(), np.zeros(ss.size)], -1)
 
-            return checker
-        if self.type != "circles":
-            raise ValueError(f"board: unknown type {self.type!r}")
-        r = 0.25 * p
 
-        def circles(s: F64, t: F64) -> F64:
-            i = np.clip(np.rint(s / p + (cols - 1) / 2), 0, cols - 1)
-            j = np.clip(np.rint(t / p + (rows - 1) / 2), 0, rows - 1)
-            cs, ct = (i - (cols - 1) / 2) * p, (j - (rows - 1) / 2) * p
-            return np.where((s - cs) ** 2 + (t - ct) ** 2 < r * r, BLACK, 1.0)
+def board_printer(spec: BoardSpec) -> PrintFn:
+    """The board's print: reflectance at board coordinates (s, t), mm."""
+    cols, rows = spec.cols, spec.rows
+    p = spec.pitch_mm
+    if spec.type == "checkerboard":
+        half_s, half_t = (cols + 1) * p / 2, (rows + 1) * p / 2
 
-        return circles
+        def checker(s: F64, t: F64) -> F64:
+            inside = (np.abs(s) < half_s) & (np.abs(t) < half_t)
+            parity = (np.floor((s + half_s) / p) + np.floor((t + half_t) / p)) % 2
+            return np.where(inside & (parity == 0), BLACK, 1.0)
+
+        return checker
+    if spec.type != "circles":
+        raise ValueError(f"board: unknown type {spec.type!r}")
+    r = 0.25 * p
+
+    def circles(s: F64, t: F64) -> F64:
+        i = np.clip(np.rint(s / p + (cols - 1) / 2), 0, cols - 1)
+        j = np.clip(np.rint(t / p + (rows - 1) / 2), 0, rows - 1)
+        cs, ct = (i - (cols - 1) / 2) * p, (j - (rows - 1) / 2) * p
+        return np.where((s - cs) ** 2 + (t - ct) ** 2 < r * r, BLACK, 1.0)
+
+    return circles
 
 
 def board_poses(rig: SimRig, poses: int, seed: int | None = 0) -> list[tuple[F64, F64]]:
@@ -97,7 +96,7 @@ def board_poses(rig: SimRig, poses: int, seed: int | None = 0) -> list[tuple[F64
 
 def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64]) -> Scene:
     origin, axes = pose
-    return Scene(f"board_{spec.type}", flat_field(origin, axes, 11.0, "white", spec.printer(), ds=1.0),
+    return Scene(f"board_{spec.type}", flat_field(origin, axes, 11.0, "white", board_printer(spec), ds=1.0),
                  description="calibration board")
 
 

@@ -1,0 +1,40 @@
+"""Limits of the instrument written once: LEDs, exposure range, bit depths.
+
+Devices, the service, the API schemas, the command line, the simulator and the page
+(through ``GET /api/limits``) read them from here.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+#: projector LEDs (the DLP3000 LightCrafter's), in wavelength order
+LEDS: tuple[str, ...] = ("red", "green", "blue")
+Led = Literal["red", "green", "blue"]
+
+#: camera exposure per frame accepted anywhere, ms (inclusive)
+EXPOSURE_RANGE_MS: tuple[float, float] = (1.0, 100.0)
+
+#: bit depths the live camera can be configured to
+LIVE_BIT_DEPTHS: tuple[int, ...] = (8, 12)
+BitDepth = Literal[8, 12]
+
+
+def check_exposure_ms(exposure_ms: float) -> float:
+    """``exposure_ms`` as float; ``ValueError`` naming the argument unless within :data:`EXPOSURE_RANGE_MS`."""
+    lo, hi = EXPOSURE_RANGE_MS
+    try:
+        value = math.nan if isinstance(exposure_ms, str | bytes | bool) else float(exposure_ms)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise ValueError(f"exposure_ms: must be within {lo:g}–{hi:g} ms, got {exposure_ms}")
+    return value
+
+
+def check_led(led: str) -> str:
+    """``led`` unchanged; ``ValueError`` naming the argument unless one of :data:`LEDS`."""
+    if led not in LEDS:
+        raise ValueError(f"led: must be one of {LEDS}, got {led!r}")
+    return led

@@ -1,0 +1,168 @@
+"""The calibration manager: the store, creation (the simulator's), activation, the REST wizard's session.
+
+Activating a calibration installs a fresh reconstruction engine in the live pipeline;
+uploaded sets are reconstructed with an engine of their own.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from app.calib.calibration import Calibration
+from app.calib.fitting import CalibrationReport
+from app.capture.captureset import CaptureSet
+from app.config import Settings
+from app.core.board import BoardSpec
+from app.core.records import CalibrationSummary
+from app.core.schedule import PatternSchedule
+from app.recon import ReconResult, Reconstructor
+from app.service import calibration_store
+from app.service.calibration_session import CalibrationSession
+from app.service.pipeline import LivePipeline, NotReady
+
+log = logging.getLogger("fringescope.service")
+
+
+class CalibrationManager:
+    """The active calibration of ``pipeline``, where it is kept, and how a new one is made."""
+
+    def __init__(self, settings: Settings, pipeline: LivePipeline) -> None:
+        self.settings = settings
+        self.pipeline = pipeline
+        self.schedule: PatternSchedule = pipeline.schedule
+        self.calibration: Calibration | None = None
+        self.name: str | None = None
+        self.session: CalibrationSession | None = None
+        self.warnings: list[str] = []
+        self.last_error: str | None = None
+        self._upload_engine: Reconstructor | None = None
+        self._upload_engine_cal: Calibration | None = None
+        self._upload_lock = threading.Lock()
+        self._lock = threading.Lock()
+        self._creating: threading.Thread | None = None
+
+    # -- loading and creation ----------------------------------------------------------------
+    def load_initial(self, *, is_sim: bool) -> None:
+        """Load the configured / active / simulator calibration, or begin creating the simulator's."""
+        s = self.settings
+        try:
+            path = calibration_store.initial_path(s)
+        except ValueError as exc:
+            self._error(str(exc))
+            return
+        if path is not None:
+            try:
+                cal = calibration_store.load(path)
+                self.activate(cal, name=str(cal.extra.get(calibration_store.NAME_KEY, path.stem)), persist=False)
+                return
+            except ValueError as exc:
+                self._error(str(exc))
+                if s.calibration_file is not None:
+                    return
+        if is_sim:
+            self._creating = threading.Thread(target=self._create_sim, name="fringescope-calibrate", daemon=True)
+            self._creating.start()
+        else:
+            self.warnings.append("no calibration: load one (PUT /api/calibration/file) or calibrate")
+
+    def _create_sim(self) -> None:
+        try:
+            cal = calibration_store.create_sim_calibration(self.settings)
+        except Exception as exc:
+            log.exception("simulator calibration failed")
+            self._error(f"simulator calibration failed: {exc}")
+            return
+        if not self.pipeline.closed:
+            self.activate(cal, name="sim", persist=False)
+
+    @property
+    def creating(self) -> bool:
+        return self._creating is not None and self._creating.is_alive()
+
+    def thread(self) -> threading.Thread | None:
+        return self._creating
+
+    def join(self, timeout_s: float) -> None:
+        if self._creating is not None and self._creating.is_alive():
+            self._creating.join(max(timeout_s, 120.0))  # a fit cannot be interrupted
+
+    # -- activation --------------------------------------------------------------------------
+    def activate(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
+        """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
+        if cal.pattern != self.schedule:
+            raise ValueError("calibration: its pattern schedule differs from the projector's")
+        size = self.pipeline.image_size()
+        if size is not None and tuple(cal.image_size) != size:
+            raise ValueError(
+                f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
+                f"the camera's {size[0]}x{size[1]}"
+            )
+        engine = Reconstructor(cal, fast=True)
+        if persist:
+            calibration_store.save_active(self.settings, cal, name)
+        with self._lock:
+            self.calibration, self.name = cal, name
+            self._upload_engine = None
+            self.warnings = [w for w in self.warnings if not w.startswith("no calibration")]
+        self.pipeline.use_engine(engine)
+
+    def summary(self) -> CalibrationSummary | None:
+        cal = self.calibration
+        if cal is None:
+            return None
+        w, h = cal.image_size
+        lo, hi = cal.height_range_mm
+        return CalibrationSummary(
+            name=self.name, created=cal.created, height_range_mm=(float(lo), float(hi)), image_size=(int(w), int(h)),
+            software_version=cal.software_version, poses=len(cal.pose_residuals),
+        )
+
+    # -- uploaded sets -----------------------------------------------------------------------
+    def reconstruct(self, capture: CaptureSet) -> ReconResult:
+        """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
+        cal = self.calibration
+        if cal is None:
+            raise NotReady("no calibration is active")
+        if capture.schedule != cal.pattern:
+            raise ValueError("capture: pattern schedule differs from the calibration's")
+        cal.check_frames(capture.frames.shape)
+        with self._upload_lock:
+            if self._upload_engine is None or self._upload_engine_cal is not cal:
+                self._upload_engine = Reconstructor(cal, fast=True)
+                self._upload_engine_cal = cal
+            return self._upload_engine.run(capture.frames)
+
+    # -- the session (the REST wizard) -------------------------------------------------------
+    def start_session(self, board: dict[str, Any]) -> CalibrationSession:
+        self.session = CalibrationSession(BoardSpec.from_dict(board))
+        return self.session
+
+    def require_session(self) -> CalibrationSession:
+        if self.session is None:
+            raise NotReady("no calibration session: POST /api/calibration/session first")
+        return self.session
+
+    def capture_pose(self, timeout_s: float) -> dict[str, Any]:
+        """Grab the next whole set of the current view and add it to the session."""
+        session = self.require_session()
+        index, pose = session.add(self.pipeline.next_capture(timeout_s))
+        return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist()}
+
+    def solve_session(self, *, robust: bool = False) -> CalibrationReport:
+        return self.require_session().solve(robust=robust)
+
+    def activate_session(self, name: str) -> CalibrationSummary:
+        session = self.require_session()
+        if session.report is None:
+            raise NotReady("calibration session not solved: POST /api/calibration/session/solve first")
+        self.activate(session.report.calibration, name=name, persist=True)
+        summary = self.summary()
+        assert summary is not None
+        return summary
+
+    def _error(self, msg: str) -> None:
+        log.warning("%s", msg)
+        self.last_error = msg
+        self.warnings.append(msg)

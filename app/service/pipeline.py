@@ -1,0 +1,174 @@
+"""The live pipeline: devices → acquisition thread → reconstruction thread → latest result.
+
+It reconstructs with whichever engine the calibration manager installs
+(:meth:`LivePipeline.use_engine`); without one, whole sets are grabbed but not
+reconstructed. Threads stop on events and are joined in :meth:`LivePipeline.close`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+from app.capture.captureset import CaptureSet
+from app.core.errors import DeviceUnavailable
+from app.core.limits import check_exposure_ms, check_led
+from app.core.schedule import PatternSchedule
+from app.recon import Reconstructor
+from app.service.acquisition import Acquisition
+from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
+from app.service.devices import DeviceBundle
+from app.service.framesets import FrameSet
+from app.service.reconstruction import LiveResult, Reconstruction
+from app.service.store import LatestSlot, NewestQueue
+
+
+class NotReady(DeviceUnavailable):
+    """The instrument cannot do this yet (not started, no result, no calibration, no session)."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """What the pipeline needs of the settings: the starting acquisition parameters."""
+
+    exposure_ms: float
+    led: str
+    bit_depth: int
+    rolling: bool
+    autostart: bool
+
+
+class LivePipeline:
+    """Devices, the acquisition and reconstruction threads, the latest result."""
+
+    def __init__(self, config: PipelineConfig, schedule: PatternSchedule, devices: DeviceBundle | None) -> None:
+        self.config = config
+        self.schedule = schedule
+        self.devices = devices
+        self.queue: NewestQueue[FrameSet] = NewestQueue(maxsize=1)
+        self.acquisition: Acquisition | None = None
+        self.reconstruction = Reconstruction(
+            self.queue, self._live_engine, n_frequencies=len(schedule.frequencies), bit_depth=config.bit_depth,
+        )
+        self.results: LatestSlot[LiveResult] = self.reconstruction.results
+        self._engine: Reconstructor | None = None
+        self.closed = False
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def start(self, devices: DeviceBundle) -> None:
+        """Take ``devices`` and build the acquisition on them; the threads start in :meth:`run`."""
+        self.devices = devices
+        c = self.config
+        self.acquisition = Acquisition(
+            devices, self.schedule, self.queue,
+            exposure_ms=c.exposure_ms, led=c.led, bit_depth=c.bit_depth, rolling=c.rolling,
+        )
+
+    def run(self) -> None:
+        """Start the reconstruction and acquisition threads (acquiring if ``autostart``)."""
+        self.reconstruction.start_thread()
+        self._acq().start_thread(acquire=self.config.autostart)
+
+    def close(self, timeout_s: float) -> None:
+        self.closed = True
+        if self.acquisition is not None:
+            self.acquisition.shutdown(timeout_s)
+        self.reconstruction.shutdown(timeout_s)
+
+    def threads(self) -> list[threading.Thread]:
+        out = [self.reconstruction._thread]
+        if self.acquisition is not None:
+            out.append(self.acquisition._thread)
+        return out
+
+    # -- the engine ------------------------------------------------------------------------
+    def use_engine(self, engine: Reconstructor) -> None:
+        """Reconstruct from now on with ``engine``; older results are dropped."""
+        self._engine = engine
+        self.results.clear()
+
+    @property
+    def has_engine(self) -> bool:
+        return self._engine is not None
+
+    def _live_engine(self) -> Reconstructor | None:
+        return self._engine
+
+    def image_size(self) -> tuple[int, int] | None:
+        """The camera's (width, height), once devices exist."""
+        if self.devices is None:
+            return None
+        caps = self.devices.camera.capabilities
+        return (caps.width, caps.height)
+
+    # -- control ---------------------------------------------------------------------------
+    def set_exposure(self, exposure_ms: float) -> float:
+        exposure_ms = check_exposure_ms(exposure_ms)
+        self._acq().request(exposure_ms=exposure_ms)
+        return exposure_ms
+
+    def set_led(self, led: str) -> str:
+        check_led(led)
+        self._acq().request(led=led)
+        return led
+
+    def set_rolling(self, rolling: bool) -> None:
+        self._acq().set_rolling(rolling)
+
+    def set_acquiring(self, on: bool) -> None:
+        self._acq().set_acquiring(on)
+
+    def _acq(self) -> Acquisition:
+        if self.acquisition is None:
+            raise NotReady("instrument not started")
+        return self.acquisition
+
+    # -- results ---------------------------------------------------------------------------
+    def why_no_result(self) -> str | None:
+        """Why no result can come now (None: one is on its way)."""
+        if not self.has_engine:
+            return "no depth result: no calibration is active"
+        if self.acquisition is None or not self.acquisition.acquiring:
+            return "no depth result: acquisition is stopped"
+        if self.acquisition.fault:
+            return f"no depth result: device fault ({self.acquisition.fault})"
+        return None
+
+    def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
+        """The next whole fringe set grabbed after this call (optionally at one exposure)."""
+        acq = self._acq()
+        if not acq.acquiring:
+            raise NotReady("acquisition is stopped: start it to capture")
+        seq = acq.sets.seq
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            seq, fs = acq.sets.wait_newer(seq, left)
+            if fs is None:
+                break
+            if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
+                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
+                                  extra={"frame_indices": fs.frame_indices})
+        raise NotReady(f"no complete fringe set within {timeout_s:.0f} s")
+
+    def auto_exposure(self, *, saturation_limit: float, max_exposure_ms: float) -> AutoExposureResult:
+        """Search exposures on real sets, then keep the chosen one."""
+        acq = self._acq()
+        before = acq.exposure_ms
+        bit_depth = self.config.bit_depth
+        full_scale = 255 if bit_depth == 8 else 2**bit_depth - 1
+
+        def measure(exposure_ms: float) -> tuple[float, float]:
+            self.set_exposure(exposure_ms)
+            timeout = 5.0 + 3 * self.schedule.n_frames * max(exposure_ms, 30.0) / 1000.0
+            frames = self.next_capture(timeout, exposure_ms=exposure_ms).frames
+            fs = 255 if frames.dtype.itemsize == 1 else full_scale
+            return set_statistics(frames, self.schedule, fs)
+
+        try:
+            result = choose_exposure(measure, saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
+        except Exception:
+            self.set_exposure(before)
+            raise
+        self.set_exposure(result.exposure_ms)
+        return result
