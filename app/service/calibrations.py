@@ -15,12 +15,13 @@ from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
 from app.core.board import BoardSpec
+from app.core.errors import Conflict, InvalidRequest
 from app.core.records import CalibrationSummary
 from app.core.schedule import PatternSchedule
 from app.recon import ReconResult, Reconstructor
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
-from app.service.pipeline import LivePipeline, NotReady
+from app.service.pipeline import LivePipeline
 
 log = logging.getLogger("fringescope.service")
 
@@ -124,10 +125,13 @@ class CalibrationManager:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
         cal = self.calibration
         if cal is None:
-            raise NotReady("no calibration is active")
+            raise Conflict("no calibration is active: load or create one first")
         if capture.schedule != cal.pattern:
-            raise ValueError("capture: pattern schedule differs from the calibration's")
-        cal.check_frames(capture.frames.shape)
+            raise InvalidRequest("capture: pattern schedule differs from the calibration's")
+        try:
+            cal.check_frames(capture.frames.shape)
+        except ValueError as exc:
+            raise InvalidRequest(str(exc)) from None
         with self._upload_lock:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
@@ -136,12 +140,16 @@ class CalibrationManager:
 
     # -- the session (the REST wizard) -------------------------------------------------------
     def start_session(self, board: dict[str, Any]) -> CalibrationSession:
-        self.session = CalibrationSession(BoardSpec.from_dict(board))
+        try:
+            spec = BoardSpec.from_dict(board)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise InvalidRequest(f"board: {exc}") from None
+        self.session = CalibrationSession(spec)
         return self.session
 
     def require_session(self) -> CalibrationSession:
         if self.session is None:
-            raise NotReady("no calibration session: POST /api/calibration/session first")
+            raise Conflict("no calibration session: POST /api/calibration/session first")
         return self.session
 
     def capture_pose(self, timeout_s: float) -> dict[str, Any]:
@@ -151,12 +159,17 @@ class CalibrationManager:
         return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist()}
 
     def solve_session(self, *, robust: bool = False) -> CalibrationReport:
-        return self.require_session().solve(robust=robust)
+        """Fit the session's poses; too few or unusable poses are a Conflict with the reason."""
+        session = self.require_session()
+        try:
+            return session.solve(robust=robust)
+        except ValueError as exc:
+            raise Conflict(f"calibration solve: {exc}") from None
 
     def activate_session(self, name: str) -> CalibrationSummary:
         session = self.require_session()
         if session.report is None:
-            raise NotReady("calibration session not solved: POST /api/calibration/session/solve first")
+            raise Conflict("calibration session not solved: POST /api/calibration/session/solve first")
         self.activate(session.report.calibration, name=name, persist=True)
         summary = self.summary()
         assert summary is not None

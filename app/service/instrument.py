@@ -16,6 +16,7 @@ from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
+from app.core.errors import DeviceUnavailable
 from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule
@@ -24,7 +25,7 @@ from app.service.autoexposure import AutoExposureResult
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
-from app.service.pipeline import LivePipeline, NotReady, PipelineConfig
+from app.service.pipeline import LivePipeline, PipelineConfig
 from app.service.reconstruction import LiveResult
 
 if TYPE_CHECKING:
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
     from app.service.reconstruction import Reconstruction
     from app.service.store import LatestSlot
 
-__all__ = ["Instrument", "NotReady", "RecordingState"]
+__all__ = ["Instrument", "RecordingState"]
 
 
 class RecordingState(Protocol):
@@ -175,8 +176,8 @@ class Instrument:
         _, res = self.results.latest()
         if res is None:
             if self.calibrating:
-                raise NotReady("no depth result yet: the calibration is being created")
-            raise NotReady(self.pipeline.why_no_result() or "no depth result yet")
+                raise DeviceUnavailable("no depth result yet: the calibration is being created")
+            raise self.pipeline.why_no_result() or DeviceUnavailable("no depth result yet")
         return res
 
     def wait_result(self, after_seq: int, timeout_s: float) -> LiveResult | None:

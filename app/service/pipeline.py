@@ -12,8 +12,8 @@ import time
 from dataclasses import dataclass
 
 from app.capture.captureset import CaptureSet
-from app.core.errors import DeviceUnavailable
-from app.core.limits import check_exposure_ms, check_led
+from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
+from app.core.limits import LEDS
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
 from app.service.acquisition import Acquisition
@@ -22,10 +22,6 @@ from app.service.devices import DeviceBundle
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import LatestSlot, NewestQueue
-
-
-class NotReady(DeviceUnavailable):
-    """The instrument cannot do this yet (not started, no result, no calibration, no session)."""
 
 
 @dataclass(frozen=True)
@@ -104,12 +100,13 @@ class LivePipeline:
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
-        exposure_ms = check_exposure_ms(exposure_ms)
-        self._acq().request(exposure_ms=exposure_ms)
-        return exposure_ms
+        """Request ``exposure_ms`` from the next whole set (checked at the API boundary and by the devices)."""
+        self._acq().request(exposure_ms=float(exposure_ms))
+        return float(exposure_ms)
 
     def set_led(self, led: str) -> str:
-        check_led(led)
+        if led not in LEDS:
+            raise InvalidRequest(f"led: must be one of {LEDS}, got {led!r}")
         self._acq().request(led=led)
         return led
 
@@ -121,25 +118,25 @@ class LivePipeline:
 
     def _acq(self) -> Acquisition:
         if self.acquisition is None:
-            raise NotReady("instrument not started")
+            raise DeviceUnavailable("instrument not started")
         return self.acquisition
 
     # -- results ---------------------------------------------------------------------------
-    def why_no_result(self) -> str | None:
-        """Why no result can come now (None: one is on its way)."""
+    def why_no_result(self) -> Conflict | DeviceUnavailable | None:
+        """Why no result can come now: a state the client can change (409) or a fault (503); None: one is on its way."""
         if not self.has_engine:
-            return "no depth result: no calibration is active"
+            return Conflict("no depth result: no calibration is active")
         if self.acquisition is None or not self.acquisition.acquiring:
-            return "no depth result: acquisition is stopped"
+            return Conflict("no depth result: acquisition is stopped")
         if self.acquisition.fault:
-            return f"no depth result: device fault ({self.acquisition.fault})"
+            return DeviceUnavailable(f"no depth result: device fault ({self.acquisition.fault})")
         return None
 
     def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
         """The next whole fringe set grabbed after this call (optionally at one exposure)."""
         acq = self._acq()
         if not acq.acquiring:
-            raise NotReady("acquisition is stopped: start it to capture")
+            raise Conflict("acquisition is stopped: start it to capture")
         seq = acq.sets.seq
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
@@ -149,7 +146,7 @@ class LivePipeline:
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
                 return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
                                   extra={"frame_indices": fs.frame_indices})
-        raise NotReady(f"no complete fringe set within {timeout_s:.0f} s")
+        raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
 
     def auto_exposure(self, *, saturation_limit: float, max_exposure_ms: float) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""

@@ -7,10 +7,11 @@ import dataclasses
 import pytest
 
 from app.config import Settings
+from app.core.errors import Conflict
 from app.core.schedule import PatternSchedule
 from app.devices.sim import default_rig
 from app.service.calibrations import CalibrationManager
-from app.service.pipeline import LivePipeline, NotReady, PipelineConfig
+from app.service.pipeline import LivePipeline, PipelineConfig
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +27,8 @@ def _manager(tmp_path) -> CalibrationManager:
 def test_activation_installs_the_engine_and_summarises(tmp_path, calibration):
     mgr = _manager(tmp_path)
     assert mgr.summary() is None and not mgr.pipeline.has_engine
-    assert mgr.pipeline.why_no_result() == "no depth result: no calibration is active"
+    why = mgr.pipeline.why_no_result()
+    assert isinstance(why, Conflict) and why.detail == "no depth result: no calibration is active"
     mgr.activate(calibration, name="bench", persist=True)
     assert mgr.pipeline.has_engine and mgr.calibration is calibration
     s = mgr.summary()
@@ -44,13 +46,13 @@ def test_activation_rejects_another_schedule(tmp_path, calibration):
     assert mgr.calibration is None and not mgr.pipeline.has_engine
 
 
-def test_not_ready_without_calibration_or_session(tmp_path):
+def test_conflict_without_calibration_or_session(tmp_path):
     mgr = _manager(tmp_path)
-    with pytest.raises(NotReady, match="no calibration session"):
+    with pytest.raises(Conflict, match="no calibration session"):
         mgr.require_session()
     session = mgr.start_session({"type": "checkerboard", "inner_corners": [9, 6], "square_mm": 2.0})
     assert mgr.require_session() is session and session.board.pitch_mm == 2.0
-    with pytest.raises(NotReady, match="solved"):
+    with pytest.raises(Conflict, match="solved"):
         mgr.activate_session("x")
-    with pytest.raises(NotReady, match="no calibration is active"):
+    with pytest.raises(Conflict, match="no calibration is active"):
         mgr.reconstruct(None)  # type: ignore[arg-type]  # refused before the set is looked at
