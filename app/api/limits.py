@@ -5,15 +5,12 @@ The dashboard reads these instead of repeating them in ``static/``.
 
 from __future__ import annotations
 
-from typing import get_args
-
 from fastapi import APIRouter, Depends
 
 from app.api.deps import get_instrument
 from app.api.errors import COMMON
 from app.api.schemas import LimitsOut
-from app.config import Settings
-from app.devices.base import EXPOSURE_RANGE_MS, LEDS
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS, LIVE_BIT_DEPTHS
 from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.instrument import Instrument
 
@@ -26,6 +23,6 @@ def limits(inst: Instrument = Depends(get_instrument)) -> LimitsOut:
     if inst.devices is not None:
         bit_depths = [int(b) for b in inst.devices.camera.capabilities.bit_depths]
     else:
-        bit_depths = [int(b) for b in get_args(Settings.model_fields["bit_depth"].annotation)]
+        bit_depths = list(LIVE_BIT_DEPTHS)
     return LimitsOut(leds=list(LEDS), exposure_ms=list(EXPOSURE_RANGE_MS), bit_depths=bit_depths,
                      depth_range_mm=list(DEFAULT_RANGE_MM))
