@@ -6,7 +6,7 @@ import { setupAnalysis } from "./analysis.js";
 import { applyLimits as controlsLimits, setupControls } from "./controls.js";
 import { applyLimits as depthLimits, setupDepth } from "./depth.js";
 import { setupRecording } from "./recording.js";
-import { ui } from "./state.js";
+import { signedIn, ui } from "./state.js";
 import { pollStatus } from "./status.js";
 import { setupTexture } from "./texture.js";
 import { setupView3d } from "./view3d.js";
@@ -37,7 +37,7 @@ function start() {
 
 // static/auth.js (a module that runs first) signs in when the server has a token
 function begin() {
-  (window.fringescopeSignIn || Promise.resolve()).then(start, (err) => say(String(err.message || err), "error"));
+  signedIn().then(start, (err) => say(String(err.message || err), "error"));
 }
 
 if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", begin);

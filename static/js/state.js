@@ -20,3 +20,8 @@ export const ui = {
   recording: null,
 };
 window.fringescope = ui; // for tests and the curious
+
+// static/auth.js (a module that runs before js/main.js) leaves its sign-in promise on window
+export function signedIn() {
+  return window.fringescopeSignIn || Promise.resolve();
+}
