@@ -34,7 +34,8 @@ function showControls(st) {
   const cal = st.calibration;
   $("calib-line").textContent = cal
     ? `calibration: ${cal.name ?? "?"} · ${cal.poses} poses · ` +
-      `${fmt(cal.height_range_mm[0], 1)}–${fmt(cal.height_range_mm[1], 1)} mm`
+      `${fmt(cal.height_range_mm[0], 1)}–${fmt(cal.height_range_mm[1], 1)} mm · model ${cal.model ?? "eq5"}` +
+      (cal.held_out?.[cal.model]?.rms_mm != null ? ` (held-out RMS ${fmt(cal.held_out[cal.model].rms_mm, 4)} mm)` : "")
     : st.state === "calibrating" ? "calibration: being created…" : "calibration: none active";
 }
 

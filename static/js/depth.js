@@ -107,7 +107,7 @@ export function connectStream() {
   ws.binaryType = "blob";
   ui.ws = ws;
   ws.onopen = () => { $("stream-kind").textContent = "live"; };
-  ws.onmessage = (ev) => { if (ui.ws === ws) showDepthBlob(ev.data, "stream"); };
+  ws.onmessage = (ev) => { if (ui.ws === ws && !$("show-sigma").checked) showDepthBlob(ev.data, "stream"); };
   ws.onclose = () => {
     if (ui.ws !== ws) return; // replaced on purpose
     ui.ws = null;
@@ -119,10 +119,12 @@ export function connectStream() {
 // Fallback while the stream is down: poll the latest colormap.
 async function pollDepth() {
   const st = ui.status;
-  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
+  const sigma = $("show-sigma").checked; // the σ map is polled, the stream carries depth
+  if (!sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
   if (!st || !st.results_published) return; // nothing to fetch yet
   try {
-    const blob = await api(`/api/depth/latest?format=color&${rangeQuery()}`, { blob: true });
+    const query = sigma ? "field=sigma" : rangeQuery();
+    const blob = await api(`/api/depth/latest?format=color&${query}`, { blob: true });
     await showDepthBlob(blob, "poll");
   } catch (_) { /* shown by the status bar */ }
 }

@@ -44,6 +44,9 @@ function renderReport(r) {
   box.appendChild(el("p",
     `RMS ${fmt(r.rms_mm, 4)} mm · reprojection ${fmt(r.reprojection_px, 3)} px · ` +
     `heights ${fmt(r.height_range_mm[0], 1)}–${fmt(r.height_range_mm[1], 1)} mm`));
+  box.appendChild(el("p", `model: ${r.model ?? "eq5"} · held-out poses: ` +
+    (Object.entries(r.held_out ?? {}).map(([m, h]) =>
+      `${m} RMS ${fmt(h.rms_mm, 4)} / max ${fmt(h.max_mm, 4)} mm`).join(" · ") || "–")));
   const table = el("table");
   const head = el("tr");
   for (const h of ["pose", "name", "points", "reproj. px", "RMS mm", "height mm", "used"]) head.appendChild(el("th", h));
