@@ -21,6 +21,8 @@ REASON_COLORS: dict[Reason, tuple[int, int, int]] = {
     Reason.UNWRAP_INCONSISTENT: (230, 50, 50),
     Reason.OUTSIDE_VOLUME: (60, 100, 235),
     Reason.MODEL_SINGULAR: (240, 200, 0),
+    Reason.OUTSIDE_FIELD: (150, 60, 200),
+    Reason.UNCERTAIN: (240, 140, 30),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 

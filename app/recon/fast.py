@@ -28,10 +28,13 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP t
 
 import math  # noqa: E402
 import threading  # noqa: E402
+from typing import NamedTuple  # noqa: E402
 
 import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
 from numba import njit, prange  # noqa: E402
+
+from app.recon.reasons import Reason  # noqa: E402
 
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -39,6 +42,76 @@ ROWS_PER_BLOCK = 8
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
 KERNEL_LOCK = threading.Lock()
+
+
+class PhaseArgs(NamedTuple):
+    """The phase stage's inputs: float32 cos δ_n, sin δ_n (N,), fringe counts (K,), sensor
+    maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad)."""
+
+    cos_t: npt.NDArray[np.float32]
+    sin_t: npt.NDArray[np.float32]
+    freqs: npt.NDArray[np.float32]
+    max_code: np.int32
+    min_mod: np.float32
+    cons_rad: np.float32
+
+
+class HeightArgs(NamedTuple):
+    """The height stage's inputs (float32 scalars): the model's
+    :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
+    ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
+    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
+    mm, the supported region (``region`` (gh, gw, 2) height bounds mm, 1/cell size px,
+    phase range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
+
+    u_norm: npt.NDArray[np.float32]
+    row_coefs: npt.NDArray[np.float32]
+    ray_coefs: npt.NDArray[np.float32]
+    use_rays: bool
+    phi0: np.float32
+    inv_sphi: np.float32
+    cubic: np.float32
+    lo: np.float32
+    hi: np.float32
+    sing_rtol: np.float32
+    ray_q: npt.NDArray[np.float32]
+    offset: np.float32
+    region: npt.NDArray[np.float32]
+    inv_cell_w: np.float32
+    inv_cell_h: np.float32
+    phase_lo: np.float32
+    phase_hi: np.float32
+    read_var: np.float32
+    gain: np.float32
+    max_sigma: np.float32
+    combine: bool
+    half_steps: np.float32
+    inv_frames: np.float32
+
+
+class Outputs(NamedTuple):
+    """The kernel's (H, W) outputs (points (H, W, 3)); ``phase`` with zero rows is skipped."""
+
+    depth: npt.NDArray[np.float32]
+    points: npt.NDArray[np.float32]
+    reason: npt.NDArray[np.uint8]
+    valid: npt.NDArray[np.bool_]
+    modulation: npt.NDArray[np.float32]
+    texture: npt.NDArray[np.float32]
+    phase: npt.NDArray[np.float32]
+    sigma: npt.NDArray[np.float32]
+
+
+# reason codes by name (values of app.recon.reasons.Reason)
+_OK = np.uint8(Reason.OK)
+_LOW_MODULATION = np.uint8(Reason.LOW_MODULATION)
+_SATURATED = np.uint8(Reason.SATURATED)
+_INCONSISTENT = np.uint8(Reason.UNWRAP_INCONSISTENT)
+_OUTSIDE_VOLUME = np.uint8(Reason.OUTSIDE_VOLUME)
+_MODEL_SINGULAR = np.uint8(Reason.MODEL_SINGULAR)
+_OUTSIDE_FIELD = np.uint8(Reason.OUTSIDE_FIELD)
+_UNCERTAIN = np.uint8(Reason.UNCERTAIN)
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -124,29 +197,11 @@ def _order_step(prev, phw, ratio):  # type: ignore[no-untyped-def]  # pragma: no
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_code(p, x, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,  # type: ignore[no-untyped-def]
-                 phi0, inv_sphi, sing_rtol, lo, hi):  # pragma: no cover - compiled
-    """Eq. (5) at normalised column ``x`` with the row's (α, β, γ) of a0, a1, b0, b1:
-    (height, 0 | OUTSIDE_VOLUME 4 | MODEL_SINGULAR 5)."""
-    a0 = (k2 * x + k1) * x + k0
-    a1 = (k5 * x + k4) * x + k3
-    b0 = (k8 * x + k7) * x + k6
-    b1 = (k11 * x + k10) * x + k9
-    pp = (p - phi0) * inv_sphi
-    b1p = b1 * pp
-    dd = b0 + b1p
-    h = (a0 + a1 * pp) / dd
-    singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
-    inside = (h >= lo) & (h <= hi)
-    return h, np.uint8(5) if singular else (np.uint8(0) if inside else np.uint8(4))
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover
-    # precedence SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
-    c = np.uint8(3) if dev >= cons_rad else c
-    c = np.uint8(1) if m2min < m2_min else c
-    return np.uint8(2) if top >= top_code else c
+    # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT (> the height stage's)
+    c = _INCONSISTENT if dev >= cons_rad else c
+    c = _LOW_MODULATION if m2min < m2_min else c
+    return _SATURATED if top >= top_code else c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -166,12 +221,9 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,
-               total, m2, prev, hbuf, code):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for 4 frequencies × 4 steps."""
-    # hoisted: LLVM cannot tell that the stores below leave k alone
-    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
-    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
+def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,
+               total, m2, prev, code):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`)."""
     for u in range(frames.shape[2]):
         yy, xx, q, tt, mx = _px4(frames, 0, v, u)
         qmin = q
@@ -185,15 +237,11 @@ def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, 
         yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
         qmin = min(qmin, q)
         p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
-        # stored early: fewer values live across the height (no register spills)
         total[u] = (tt + t1) + (t2 + t3)
         prev[u] = p
         m2[u] = q
         top = max(max(mx, m1), max(m2_, m3))
-        h, c = _height_code(p, un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
-                            phi0, inv_sphi, sing_rtol, lo, hi)
-        hbuf[u] = h
-        code[u] = _mask(c, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
+        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
@@ -248,20 +296,62 @@ def _combined_row(prev, wsum, wphi):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
-                hbuf, code):  # pragma: no cover
-    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
-    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
-    for u in range(prev.shape[0]):
-        h, c = _height_code(prev[u], un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
-                            phi0, inv_sphi, sing_rtol, lo, hi)
-        hbuf[u] = h
-        code[u] = _mask(c, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
+def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, m):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
+    :mod:`app.core.depth_model`); ``c`` is the phase stage's reason."""
+    pp = (p - m.phi0) * m.inv_sphi
+    t = pp + m.cubic * (pp * pp * pp)
+    b1p = b1 * t
+    dd = b0 + b1p
+    h = (a0 + a1 * t) / dd
+    slope = (a1 * b0 - a0 * b1) / (dd * dd) * m.inv_sphi * (_F1 + np.float32(3.0) * m.cubic * (pp * pp))
+    sig = abs(slope) * np.sqrt((m.read_var + m.gain * tot) * vf)
+    singular = abs(dd) <= m.sing_rtol * (abs(b0) + abs(b1p))
+    in_volume = (h >= m.lo) & (h <= m.hi)
+    in_field = (h >= rlo) & (h <= rhi) & (p >= m.phase_lo) & (p <= m.phase_hi)
+    hc = _UNCERTAIN if sig > m.max_sigma else _OK
+    hc = _OUTSIDE_FIELD if not in_field else hc
+    hc = _OUTSIDE_VOLUME if not in_volume else hc
+    hc = _MODEL_SINGULAR if singular else hc
+    return h, sig, hc if c == _OK else c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,
-                 m2_min, top_code, scratch, total, m2, prev, hbuf, code):  # pragma: no cover - compiled
+def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no cover - compiled
+    """Height stage of row ``v`` (both paths): height, σ and the final reason code."""
+    k = m.row_coefs[v]
+    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
+    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
+    g = m.ray_coefs
+    grid = m.region
+    gi = min(np.int64(np.float32(v) * m.inv_cell_h), grid.shape[0] - 1)
+    last_cell = grid.shape[1] - 1
+    un = m.u_norm
+    q = m.ray_q[v]
+    for u in range(prev.shape[0]):
+        x = un[u]
+        a0 = (k2 * x + k1) * x + k0
+        a1 = (k5 * x + k4) * x + k3
+        b0 = (k8 * x + k7) * x + k6
+        b1 = (k11 * x + k10) * x + k9
+        if m.use_rays:
+            q0, q1, q2 = q[u, 0], q[u, 1], q[u, 2]
+            a0 += g[0] * q0 + g[1] * q1 + g[2] * q2
+            a1 += g[3] * q0 + g[4] * q1 + g[5] * q2
+            b0 += g[6] * q0 + g[7] * q1 + g[8] * q2
+            b1 += g[9] * q0 + g[10] * q1 + g[11] * q2
+        vf = vfac[u] if m.combine else m.half_steps / m2[u]
+        gj = min(np.int64(np.float32(u) * m.inv_cell_w), last_cell)
+        h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * m.inv_frames, vf,
+                               grid[gi, gj, 0], grid[gi, gj, 1], code[u], m)
+        hbuf[u] = h
+        sbuf[u] = sig
+        code[u] = c
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _general_row(frames, v, cos_t, sin_t, freqs, combine, cons_rad,
+                 m2_min, top_code, scratch, total, m2, prev, vfac, code):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for any schedule."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
@@ -283,8 +373,11 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi,
             _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if combine:
         _combined_row(prev, wsum, wphi)
-    _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
-                hbuf, code)
+        # var(φ) = σ_I²·N²·k_max² / (2·Σ_k N k² m2_k) for the weights of _weigh_row
+        for u in range(prev.shape[0]):
+            vfac[u] = np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum[u] if wsum[u] > _F0 else _INF
+    for u in range(prev.shape[0]):
+        code[u] = _mask(_OK, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
 
 
 # Phase 2: outputs from the block buffers.
@@ -320,26 +413,21 @@ def _points_row(pts, hbuf, code, q, offset):  # pragma: no cover
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def fused_kernel(  # one call carries every table to keep the kernel fused
-    frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
-    un, row_coefs, phi0, inv_sphi, lo, hi, sing_rtol, ray_q, offset,
-    depth, points, reason, valid, modulation, texture, phase,
-):  # pragma: no cover - compiled
-    """Raw frames → all per-pixel outputs (see the module docstring). Writes into the outputs.
+def fused_kernel(frames, ph, m, out):  # pragma: no cover - compiled
+    """Raw frames → all per-pixel outputs (see the module docstring). Writes into ``out``.
 
-    ``un``: (W,) normalised column u'; ``row_coefs``: (H, 12) per-row quadratic
-    coefficients of a0, a1, b0, b1 in u'; ``ray_q``: (H, W, 3) rays over n·r. ``phase``
-    is skipped when it has zero rows.
+    ``ph``: :class:`PhaseArgs`; ``m``: :class:`HeightArgs`; ``out``: :class:`Outputs`
+    (``out.phase`` is skipped when it has zero rows).
     """
     n_frames, height, width = frames.shape
+    cos_t, sin_t, freqs = ph.cos_t, ph.sin_t, ph.freqs
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     mod_scale = np.float32(2.0) / np.float32(n_steps)
-    m2_min = (min_mod / mod_scale) * (min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
-    inv_frames = _F1 / np.float32(n_frames)
-    top_code = np.float32(max_code)
-    paper = n_steps == 4 and n_freq == 4 and not combine
-    want_phase = phase.shape[0] == height
+    m2_min = (ph.min_mod / mod_scale) * (ph.min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
+    top_code = np.float32(ph.max_code)
+    paper = n_steps == 4 and n_freq == 4 and not m.combine
+    want_phase = out.phase.shape[0] == height
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
@@ -347,27 +435,27 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
-        buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
-        total, m2, prev, hbuf = buf[0], buf[1], buf[2], buf[3]
+        buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
+        total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 7, width), np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
-                _paper_row(frames, v, r1, r2, r3, un, row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi,
-                           cons_rad, m2_min, top_code, total[r], m2[r], prev[r], hbuf[r], code[r])
+                _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
             else:
-                _general_row(frames, v, cos_t, sin_t, freqs, combine, un, row_coefs[v], phi0, inv_sphi,
-                             sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
-                             total[r], m2[r], prev[r], hbuf[r], code[r])
+                _general_row(frames, v, cos_t, sin_t, freqs, m.combine, ph.cons_rad, m2_min, top_code, scratch,
+                             total[r], m2[r], prev[r], vfac[r], code[r])
+            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
             v = v0 + r
-            _reason_row(reason[v], valid[v], code[r])
-            _select_row(depth[v], hbuf[r], code[r])
+            _reason_row(out.reason[v], out.valid[v], code[r])
+            _select_row(out.depth[v], hbuf[r], code[r])
+            _select_row(out.sigma[v], sbuf[r], code[r])
             if want_phase:
-                _select_row(phase[v], prev[r], code[r])
-            _shade_row(modulation[v], texture[v], m2[r], total[r], mod_scale, inv_frames)
-            _points_row(points[v].reshape(3 * width), hbuf[r], code[r], ray_q[v].reshape(3 * width), offset)
+                _select_row(out.phase[v], prev[r], code[r])
+            _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
+            _points_row(out.points[v].reshape(3 * width), hbuf[r], code[r], m.ray_q[v].reshape(3 * width), m.offset)
 
 
 _warm: set[str] = set()
@@ -388,11 +476,15 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     f32 = np.zeros((2, 3), np.float32)
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
-    fused_kernel(
-        frames, trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1), False,
-        np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.float32(0), np.float32(1),
-        np.float32(0), np.float32(1), np.float32(1e-5), np.zeros((2, 3, 3), np.float32), np.float32(0),
-        np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-        np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),
+    ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1))
+    m = HeightArgs(
+        np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
+        np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
+        np.zeros((2, 3, 3), np.float32), np.float32(0), np.array([[[-np.inf, np.inf]]], np.float32),
+        np.float32(0), np.float32(0), np.float32(-np.inf), np.float32(np.inf),
+        np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
+    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
+                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy())
+    fused_kernel(frames, ph, m, out)
     _warm.add(dt.name)

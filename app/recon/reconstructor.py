@@ -7,7 +7,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -15,14 +15,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from app.core.depth_model import HeightTables
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
-    RowCoefficients,
-    calibration_model_tables,
-    calibration_row_coefficients,
-    evaluate_height,
+    calibration_height_tables,
+    evaluate_height_slope,
     outside_volume,
+    pixel_tables,
 )
 from app.recon.patterns import PatternSchedule
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
@@ -37,8 +37,8 @@ from app.recon.unwrap import (
     combine_frequencies as combine_phases,
 )
 
-if TYPE_CHECKING:
-    from app.calib.calibration import Calibration
+if TYPE_CHECKING:  # app.core.calibration imports the schedule from app.recon (until it moves to app.core)
+    from app.core.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,40 @@ try:
 except ImportError as exc:  # numba missing or broken: the numpy oracle still works
     log.warning("numba fast path unavailable (%s); using the numpy path", exc)
     _fast = None
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Temporal noise of the camera: ``σ_I² = read_noise_dn² + gain_dn_per_e·I`` (DN², I in DN).
+
+    ``read_noise_dn`` includes everything independent of the signal (read noise, dark
+    current, ADC quantisation 1/12 DN²). :meth:`typical` is a generic CMOS/CCD at the
+    ADC's full range: full well 16 000 e⁻, read noise 12 e⁻.
+    """
+
+    gain_dn_per_e: float
+    read_noise_dn: float
+
+    def __post_init__(self) -> None:
+        for name in ("gain_dn_per_e", "read_noise_dn"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0.0):
+                raise ValueError(f"{name}: must be finite and >= 0, got {val}")
+
+    @classmethod
+    def typical(cls, max_code: int, *, full_well_e: float = 16000.0, read_noise_e: float = 12.0) -> SensorNoise:
+        g = max_code / full_well_e
+        return cls(g, math.sqrt((g * read_noise_e) ** 2 + 1.0 / 12.0))
+
+    def variance_dn2(self, mean_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        return self.read_noise_dn**2 + self.gain_dn_per_e * np.maximum(np.asarray(mean_dn, np.float64), 0.0)
+
+
+def phase_variance_factor(modulation_sq: npt.ArrayLike, steps: int) -> npt.NDArray[np.float64]:
+    """var(φ)/σ_I² of the N-step phase: ``N / (2·m2)`` with ``m2 = (Σ I cosδ)² + (Σ I sinδ)²
+    = (N·B/2)²`` (so ``2 / (N·B²)``)."""
+    with np.errstate(divide="ignore"):
+        return steps / (2.0 * np.asarray(modulation_sq, np.float64))
 
 
 @dataclass
@@ -86,6 +120,8 @@ class ReconResult:
         phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;
             None unless the reconstructor was made with ``with_phase=True``.
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
+        sigma: float32 1-σ depth noise, mm, NaN invalid: the sensor noise of the pixel's
+            intensities through the modulation to the phase and through the model's ∂z/∂φ.
     """
 
     depth: F32
@@ -96,6 +132,7 @@ class ReconResult:
     texture: F32
     phase: F32 | None
     elapsed_ms: float
+    sigma: F32 = field(default_factory=lambda: np.empty((0, 0), np.float32))
 
 
 def _phase_numpy(
@@ -179,6 +216,9 @@ class Reconstructor:
         fast: use the fused numba kernel (falls back to numpy if numba is missing).
         with_phase: also return the unwrapped phase (calibration and noise analysis
             need it; live depth does not, and it costs a full-frame write).
+        noise: the camera's :class:`SensorNoise` for ``ReconResult.sigma``; None →
+            :meth:`SensorNoise.typical` for the frames' maximum code.
+        max_sigma_mm: pixels whose σ exceeds this are UNCERTAIN (None: no such rule).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -195,9 +235,17 @@ class Reconstructor:
         combine_frequencies: bool = False,
         fast: bool = True,
         with_phase: bool = False,
+        noise: SensorNoise | None = None,
+        max_sigma_mm: float | None = None,
     ) -> None:
-        if not all(hasattr(calibration, a) for a in ("check_frames", "numerator", "pattern")):
+        from app.core.calibration import Calibration
+
+        if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
+        if noise is not None and not isinstance(noise, SensorNoise):
+            raise ValueError("noise: expected a SensorNoise")
+        if max_sigma_mm is not None and not (math.isfinite(max_sigma_mm) and max_sigma_mm > 0.0):
+            raise ValueError(f"max_sigma_mm: must be finite and > 0, got {max_sigma_mm}")
         if not (math.isfinite(height_margin_mm) and height_margin_mm >= 0.0):
             raise ValueError(f"height_margin_mm: must be finite and >= 0, got {height_margin_mm}")
         if min_modulation is not None and not (math.isfinite(min_modulation) and min_modulation >= 0):
@@ -211,6 +259,8 @@ class Reconstructor:
         self.height_margin_mm = float(height_margin_mm)
         self.combine_frequencies = bool(combine_frequencies)
         self.with_phase = bool(with_phase)
+        self.noise = noise
+        self.max_sigma_mm = None if max_sigma_mm is None else float(max_sigma_mm)
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
@@ -221,8 +271,17 @@ class Reconstructor:
             _ = self._fast_tables
 
     @cached_property
-    def _fast_tables(self) -> tuple[RowCoefficients, npt.NDArray[np.float32]]:
-        return calibration_row_coefficients(self.calibration), ray_quotients(calibration_ray_tables(self.calibration))
+    def _height_tables(self) -> HeightTables:
+        return calibration_height_tables(self.calibration)
+
+    @cached_property
+    def _fast_tables(self) -> tuple[HeightTables, npt.NDArray[np.float32]]:
+        t = self._height_tables
+        f32 = HeightTables(
+            np.ascontiguousarray(t.u_norm, np.float32), np.ascontiguousarray(t.row_coefs, np.float32),
+            np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
+        )
+        return f32, ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
     def _fast_schedule(self) -> tuple[F32, F32, F32]:
@@ -234,7 +293,11 @@ class Reconstructor:
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
-        return calibration_model_tables(self.calibration), calibration_ray_tables(self.calibration)
+        rays = calibration_ray_tables(self.calibration)
+        return pixel_tables(self._height_tables, ray_quotients(rays, dtype=np.float64)), rays
+
+    def _noise(self, max_code: int) -> SensorNoise:
+        return self.noise if self.noise is not None else SensorNoise.typical(max_code)
 
     def run(self, frames: Any, *, fast: bool | None = None) -> ReconResult:
         """Reconstruct one fringe set.
@@ -262,9 +325,21 @@ class Reconstructor:
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies
         )
-        height, singular = evaluate_height(model, phi)
+        height, singular, slope = evaluate_height_slope(model, phi)
         lo, hi = self._bounds_mm
         outside = outside_volume(height, (lo, hi), 0.0)
+        outside_field = cal.model.region.outside(height, phi)
+        steps = cal.pattern.steps
+        m2 = (wp.modulation * (steps / 2.0)) ** 2  # (K, H, W) (Σ I cosδ)² + (Σ I sinδ)²
+        if self.combine_frequencies:
+            k = np.asarray(cal.pattern.frequencies, np.float64)[:, None, None]
+            with np.errstate(divide="ignore"):
+                vfac = 0.5 * steps * k[-1] ** 2 / (k**2 * m2).sum(axis=0)
+        else:
+            vfac = phase_variance_factor(m2[-1], steps)
+        with np.errstate(invalid="ignore"):
+            sigma = np.abs(slope) * np.sqrt(self._noise(max_code).variance_dn2(wp.background) * vfac)
+            uncertain = sigma > self.max_sigma_mm if self.max_sigma_mm is not None else None
         reason = assign_reasons(
             phi.shape,
             saturated=reason == 2,
@@ -272,6 +347,8 @@ class Reconstructor:
             inconsistent=reason == 3,
             singular=singular,
             outside=outside,
+            outside_field=outside_field,
+            uncertain=uncertain,
         )
         valid = reason == 0
         depth = np.where(valid, height, np.nan)
@@ -286,6 +363,7 @@ class Reconstructor:
             texture=(wp.background + mod).astype(np.float32),
             phase=np.where(valid, phi, np.nan).astype(np.float32) if self.with_phase else None,
             elapsed_ms=(time.perf_counter() - t0) * 1e3,
+            sigma=np.where(valid, sigma, np.nan).astype(np.float32),
         )
 
     def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
@@ -301,18 +379,24 @@ class Reconstructor:
     def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult) -> None:
         assert _fast is not None
         cal = self.calibration
-        rows, ray_q = self._fast_tables
+        tables, ray_q = self._fast_tables
         cos_d, sin_d, freqs = self._fast_schedule
         lo, hi = self._bounds_mm
-        _fast.fused_kernel(
-            np.ascontiguousarray(frames), cos_d, sin_d, freqs,
-            np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
-            self.combine_frequencies,
-            rows.u_norm, rows.coefs, np.float32(rows.phi0), np.float32(rows.inv_sphi),
-            np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL), ray_q, np.float32(cal.plane_offset_mm),
-            out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
-            out.phase if out.phase is not None else _NO_PHASE,
+        grid, inv_w, inv_h, p_lo, p_hi = cal.model.region.kernel_bounds()
+        noise = self._noise(max_code)
+        f32 = np.float32
+        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad))
+        m = _fast.HeightArgs(
+            tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
+            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
+            ray_q, f32(cal.plane_offset_mm), grid, f32(inv_w), f32(inv_h), f32(p_lo), f32(p_hi),
+            f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
+            f32(self.max_sigma_mm if self.max_sigma_mm is not None else np.inf),
+            self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
         )
+        o = _fast.Outputs(out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
+                          out.phase if out.phase is not None else _NO_PHASE, out.sigma)
+        _fast.fused_kernel(np.ascontiguousarray(frames), ph, m, o)
 
 
 _NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows
@@ -358,13 +442,14 @@ def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
         texture=np.empty((h, w), np.float32),
         phase=np.empty((h, w), np.float32) if with_phase else None,
         elapsed_ms=0.0,
+        sigma=np.empty((h, w), np.float32),
     )
 
 
 def _reference_counts(res: ReconResult) -> tuple[int, int]:
     """(references to ``res``, most references to any of its arrays)."""
-    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase)
-              if a is not None]
+    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase,
+                          res.sigma) if a is not None]
     return sys.getrefcount(res), max(sys.getrefcount(a) for a in arrays)
 
 
