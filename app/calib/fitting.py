@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from app.calib.board import BoardSpec, detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
-from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize
+from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.depth_model import (
     MODEL_NAMES,
@@ -329,7 +329,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             height_mm=(float(hz.min()), float(hz.max())),
         ))
     uv_all = np.stack([u, v], axis=1)
-    ray_xy = cv2.undistortPoints(uv_all.reshape(-1, 1, 2), cam, dist).reshape(-1, 2).astype(np.float64)
+    ray_xy = undistort_points(uv_all, cam, dist)
     samples = BoardSamples(u[use], v[use], ray_xy[use], phi[use], z[use], pose_of[use].astype(np.int64),
                            image_size, int(schedule.frequencies[-1]), int(schedule.width))
     uncovered = _check_coverage(samples)
@@ -470,7 +470,7 @@ def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.
     xs, ys = xs[keep].astype(np.float64), ys[keep].astype(np.float64)
     phi = o.phase[ys.astype(np.int64), xs.astype(np.int64)].astype(np.float64)
     uv = np.stack([xs, ys], axis=1)
-    rays = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam, dist).reshape(-1, 2)
+    rays = undistort_points(uv, cam, dist)
     rays = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
     rmat = cv2.Rodrigues(rvec)[0]
     n_k, t_k = rmat[:, 2], np.asarray(tvec, np.float64).ravel()
