@@ -13,7 +13,12 @@ from scipy.optimize import brentq
 
 from app.calib.calibration import Calibration, load_calibration, save_calibration
 from app.calib.model import undistort_points
-from app.core.depth_model import BoardSamples, ReferencePlane, SupportedRegion, depth_model_from_dict
+from app.core.depth_model import (
+    BoardSamples,
+    ReferencePlane,
+    SupportedRegion,
+    depth_model_from_dict,
+)
 from app.core.eq5 import Eq5Model
 from app.core.geometric import GeometricModel
 from app.recon import Reconstructor
