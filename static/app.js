@@ -252,7 +252,7 @@ function connectStream() {
   ws.binaryType = "blob";
   ui.ws = ws;
   ws.onopen = () => { $("stream-kind").textContent = "live"; };
-  ws.onmessage = (ev) => { if (ui.ws === ws) showDepthBlob(ev.data, "stream"); };
+  ws.onmessage = (ev) => { if (ui.ws === ws && !$("show-sigma").checked) showDepthBlob(ev.data, "stream"); };
   ws.onclose = () => {
     if (ui.ws !== ws) return; // replaced on purpose
     ui.ws = null;
@@ -264,10 +264,12 @@ function connectStream() {
 // Fallback while the stream is down: poll the latest colormap.
 async function pollDepth() {
   const st = ui.status;
-  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
+  const sigma = $("show-sigma").checked; // the σ map is polled, the stream carries depth
+  if (!sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
   if (!st || !st.results_published) return; // nothing to fetch yet (avoid 503 noise)
   try {
-    const blob = await api(`/api/depth/latest?format=color&${rangeQuery()}`, { blob: true });
+    const query = sigma ? "field=sigma" : rangeQuery();
+    const blob = await api(`/api/depth/latest?format=color&${query}`, { blob: true });
     await showDepthBlob(blob, "poll");
   } catch (_) { /* shown by the status bar */ }
 }
@@ -439,7 +441,8 @@ function showStatus(st) {
   const cal = st.calibration;
   $("calib-line").textContent = cal
     ? `calibration: ${cal.name ?? "?"} · ${cal.poses} poses · ` +
-      `${fmt(cal.height_range_mm[0], 1)}–${fmt(cal.height_range_mm[1], 1)} mm`
+      `${fmt(cal.height_range_mm[0], 1)}–${fmt(cal.height_range_mm[1], 1)} mm · model ${cal.model ?? "eq5"}` +
+      (cal.held_out?.[cal.model]?.rms_mm != null ? ` (held-out RMS ${fmt(cal.held_out[cal.model].rms_mm, 4)} mm)` : "")
     : st.state === "calibrating" ? "calibration: being created…" : "calibration: none active";
 
   const waiting = $("depth-wait");
@@ -590,6 +593,9 @@ function renderReport(r) {
   box.appendChild(el("p",
     `RMS ${fmt(r.rms_mm, 4)} mm · reprojection ${fmt(r.reprojection_px, 3)} px · ` +
     `heights ${fmt(r.height_range_mm[0], 1)}–${fmt(r.height_range_mm[1], 1)} mm`));
+  box.appendChild(el("p", `model: ${r.model ?? "eq5"} · held-out poses: ` +
+    (Object.entries(r.held_out ?? {}).map(([m, h]) =>
+      `${m} RMS ${fmt(h.rms_mm, 4)} / max ${fmt(h.max_mm, 4)} mm`).join(" · ") || "–")));
   const table = el("table");
   const head = el("tr");
   for (const h of ["pose", "name", "points", "reproj. px", "RMS mm", "height mm", "used"]) head.appendChild(el("th", h));

@@ -31,11 +31,30 @@ def depth_latest(
     format: Literal["npy", "png", "color", "tiff"] = "npy",
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),
+    field: Literal["depth", "sigma"] = Query("depth", description="depth, or sigma: its 1-σ noise, mm"),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:
-    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar."""
+    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar.
+
+    ``field=sigma`` gives the per-pixel 1-σ depth noise (mm) in the same encodings
+    (``color`` defaults to 0–0.1 mm)."""
     res = inst.latest_result()
     headers = result_headers(res.metadata())
+    if field == "sigma":
+        sig = res.sigma if res.sigma is not None else np.full_like(res.depth, np.nan)
+        name = {"npy": "sigma.npy", "png": "sigma_um.png", "tiff": "sigma.tiff", "color": "sigma_color.png"}[format]
+        if format == "npy":
+            return binary(res.cached("sigma-npy", lambda: encoding.npy_bytes(sig)), "application/octet-stream",
+                          headers, name)
+        if format == "png":
+            return binary(res.cached("sigma-png", lambda: encoding.depth_png_um(sig)), "image/png", headers, name)
+        if format == "tiff":
+            from app.capture.recording import depth_tiff_bytes
+
+            return binary(res.cached("sigma-tiff", lambda: depth_tiff_bytes(sig)), "image/tiff", headers, name)
+        srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm, 0.1 if max_mm is None else max_mm)
+        return binary(res.cached(("sigma-color", srng), lambda: encoding.depth_color_png(sig, srng)), "image/png",
+                      headers, name)
     if format == "npy":
         data = res.cached("npy", lambda: encoding.npy_bytes(res.depth))
         return binary(data, "application/octet-stream", headers, "depth.npy")
@@ -78,7 +97,7 @@ def reason_legend() -> dict[str, Any]:
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Valid points (camera frame, mm) with texture intensity, binary PLY."""
     res = inst.latest_result()
-    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture))
+    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture, res.sigma))
     return binary(data, "application/octet-stream", result_headers(res.metadata()), "points.ply")
 
 

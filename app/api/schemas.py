@@ -76,6 +76,9 @@ class CalibrationSummary(BaseModel):
     image_size: list[int] = []
     software_version: str = ""
     poses: int = 0
+    model: str = Field("eq5", description="active depth model: eq5 | geometric")
+    held_out: dict[str, dict[str, float | int | str | None]] = Field(
+        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
 
 
 class StatusOut(BaseModel):
@@ -170,6 +173,9 @@ class SolveOut(BaseModel):
     reprojection_px: float | None
     height_range_mm: list[float]
     table: str
+    model: str = Field("eq5", description="the depth model the fit keeps: eq5 | geometric")
+    held_out: dict[str, dict[str, float | int | str | None]] = Field(
+        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
 
 
 class ActivateIn(Strict):

@@ -22,7 +22,7 @@ def _range(text: str) -> tuple[float, float]:
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "reconstruct",
-        help="turn one capture set into depth.npy, points.ply, depth.png and reason.png",
+        help="turn one capture set into depth.npy, sigma.npy, points.ply, depth.png and reason.png",
         description="Reconstruct one capture-set folder with a calibration file.",
     )
     p.add_argument("set_dir", metavar="SET_DIR", help="capture-set folder (capture.json + frames)")
@@ -61,7 +61,10 @@ def run(args: argparse.Namespace) -> int:
     buf = io.BytesIO()
     np.save(buf, res.depth)
     atomic_write_bytes(out / "depth.npy", buf.getvalue())
-    write_ply(out / "points.ply", res.points, res.valid, res.texture)
+    buf = io.BytesIO()
+    np.save(buf, res.sigma)
+    atomic_write_bytes(out / "sigma.npy", buf.getvalue())
+    write_ply(out / "points.ply", res.points, res.valid, res.texture, res.sigma)
     atomic_write_bytes(out / "depth.png", render_depth_png(res.depth, args.range))
     atomic_write_bytes(out / "reason.png", reason_png(res.reason))
     h, w = res.depth.shape

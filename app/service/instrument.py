@@ -171,6 +171,7 @@ class Instrument:
             "name": self.calibration_name, "created": cal.created,
             "height_range_mm": list(cal.height_range_mm), "image_size": list(cal.image_size),
             "software_version": cal.software_version, "poses": len(cal.pose_residuals),
+            "model": cal.model.name, "held_out": cal.held_out,
         }
 
     @property

@@ -187,7 +187,13 @@ def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
     r = live.get("/api/calibration/file")
     assert r.status_code == 200
     data = r.json()
-    assert data["format"] == "fringescope.calibration/1"
+    assert data["format"] == "fringescope.calibration/2"
+    summary = live.get("/api/calibration").json()
+    assert summary["model"] == data["model"]["name"] and set(summary["held_out"]) <= {"eq5", "geometric"}
+    other = "eq5" if data["model"]["name"] == "geometric" else "geometric"
+    corrupted = dict(data, model=dict(data["model"], name=other))  # one model's numbers under the other's name
+    r = live.put("/api/calibration/file", json=corrupted)
+    assert r.status_code == 422 and "model" in r.json()["detail"] and "\n" not in r.json()["detail"]
     bad = dict(data, format="something/9")
     r = live.put("/api/calibration/file", json=bad)
     assert r.status_code == 422 and "format" in r.json()["detail"]

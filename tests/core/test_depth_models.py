@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 
-import cv2
 import numpy as np
 import pytest
 from scipy.optimize import brentq
@@ -28,14 +27,7 @@ from tests.recon.analytic_rig import Rig, bump_surface
 
 
 def _geometric_of(rig: Rig, k1: float = 0.0) -> GeometricModel:
-    """The rig's projector (3×4 P = Kp [R | t]) as a GeometricModel, exactly."""
-    fp = rig.projector_focal_px
-    kp = np.array([[fp, 0.0, rig.schedule.width / 2], [0.0, fp, rig.schedule.height / 2], [0, 0, 1.0]])
-    rt = np.linalg.solve(kp, rig.P)
-    rvec = cv2.Rodrigues(rt[:, :3])[0].ravel()
-    t = rt[:, 3].copy()
-    t[1] = 0.0  # not observable along the fringe lines
-    return GeometricModel(rvec, t, fp, rig.schedule.width / 2, k1, rig.schedule.width, rig.schedule.frequencies[-1])
+    return rig.geometric_model(k1)
 
 
 def _calibration(rig: Rig, model, dist=None, height_range_mm=(0.0, 30.0)) -> Calibration:

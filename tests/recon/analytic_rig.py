@@ -19,8 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from app.calib.calibration import Calibration
+from app.core.geometric import GeometricModel
 from app.recon.patterns import PatternSchedule
 
 F64 = npt.NDArray[np.float64]
@@ -145,6 +147,22 @@ class Rig:
             pattern=self.schedule,
             height_range_mm=height_range_mm,
         )
+
+    def geometric_model(self, k1: float = 0.0) -> GeometricModel:
+        """The projector (P = Kp [R | t]) as the geometric depth model, exactly (``k1`` added)."""
+        fp = self.projector_focal_px
+        w, h = self.schedule.width, self.schedule.height
+        kp = np.array([[fp, 0.0, w / 2], [0.0, fp, h / 2], [0, 0, 1.0]])
+        rt = np.linalg.solve(kp, self.P)
+        rvec = Rotation.from_matrix(rt[:, :3]).as_rotvec()
+        t = rt[:, 3].copy()
+        t[1] = 0.0  # not observable along the fringe lines
+        return GeometricModel(rvec, t, fp, w / 2, k1, w, self.schedule.frequencies[-1])
+
+    def geometric_calibration(self, height_range_mm: tuple[float, float] = (0.0, 30.0)) -> Calibration:
+        """:meth:`calibration` with the geometric model instead of Eq. (5)."""
+        return Calibration(self.K, np.zeros(5), (self.width, self.height), self.n, self.plane_offset_mm,
+                           model=self.geometric_model(), pattern=self.schedule, height_range_mm=height_range_mm)
 
     # --- images ---------------------------------------------------------------------
     def render(
