@@ -116,6 +116,23 @@ def test_depth_formats_agree(live: TestClient) -> None:
     assert color.shape[0] >= depth.shape[0] and color.shape[1] > depth.shape[1]  # image + colour bar
 
 
+def test_sigma_field_matches_depth(live: TestClient) -> None:
+    for _ in range(50):
+        d = live.get("/api/depth/latest?format=npy")
+        s = live.get("/api/depth/latest?format=npy&field=sigma")
+        if d.headers["x-fringescope-seq"] == s.headers["x-fringescope-seq"]:
+            break
+    depth, sigma = np.load(io.BytesIO(d.content)), np.load(io.BytesIO(s.content))
+    assert sigma.dtype == np.float32 and sigma.shape == depth.shape
+    assert np.array_equal(np.isfinite(sigma), np.isfinite(depth))
+    assert 0.0 < np.nanmedian(sigma) < 0.5
+    r = live.get("/api/depth/latest?format=color&field=sigma")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert live.get("/api/depth/latest?field=noise").status_code == 422
+    ply = live.get("/api/pointcloud/latest.ply")
+    assert b"property float sigma_mm" in ply.content[:400]
+
+
 def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     tex = live.get("/api/texture/latest.png")
     assert tex.status_code == 200 and tex.headers["content-type"] == "image/png"
