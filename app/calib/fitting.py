@@ -211,8 +211,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     """Camera calibration, reference plane and the depth models' fits from detected poses.
 
     Both models (Eq. (5) and the geometric one) are fitted and judged on held-out poses
-    (leave one pose out); the one with the smaller held-out RMS becomes the calibration's
-    active model unless ``model`` (``"eq5"`` or ``"geometric"``) names one.
+    (leave one pose out); the one with the smaller held-out RMS (Eq. (5) by at least 2 %,
+    :data:`EQ5_PREFERENCE`) becomes the calibration's active model unless ``model``
+    (``"eq5"`` or ``"geometric"``) names one.
 
     Args:
         observations: per pose, or None for a pose whose board was not found (robust mode);
@@ -346,7 +347,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     for name in models:
         held_out[name] = _held_out_errors(name, samples, plane)
     if model is None:
-        model = min(models, key=lambda n: _key(held_out[n].get("rms_mm")))
+        model = _better_model(models, held_out)
     calibration = Calibration(
         camera_matrix=cam, dist_coeffs=dist.ravel(), image_size=image_size, plane_normal=normal,
         plane_offset_mm=offset, model=models[model], held_out=held_out, pattern=schedule,
@@ -363,6 +364,19 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
 
 def _key(x: object) -> float:
     return x if isinstance(x, float) and math.isfinite(x) else math.inf
+
+
+#: Eq. (5) must beat the geometric model's held-out RMS by this factor to be kept: the
+#: physical model extrapolates with the geometry (its supported region is the projector's
+#: field, not only the cells the boards reached), so on a tie it is the better choice.
+EQ5_PREFERENCE = 0.98
+
+
+def _better_model(models: dict[str, DepthModel], held_out: dict[str, dict[str, float | int | str | None]]) -> str:
+    if "geometric" not in models:
+        return "eq5"
+    eq5, geo = _key(held_out["eq5"].get("rms_mm")), _key(held_out["geometric"].get("rms_mm"))
+    return "eq5" if eq5 < EQ5_PREFERENCE * geo else "geometric"
 
 
 def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane

@@ -175,7 +175,7 @@ class SupportedRegion:
         return ~inside
 
 
-def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 1.0,
+def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0,
                         dilate: int = 1) -> SupportedRegion:
     """The (u, v, height) region the board samples cover: per grid cell the samples' height
     range ± ``margin_mm``; cells within ``dilate`` cells of covered ones take their

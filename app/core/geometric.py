@@ -37,7 +37,7 @@ from app.core.depth_model import (
 
 F64 = npt.NDArray[np.float64]
 MIN_SAMPLES = 20
-FIELD_MARGIN = 0.02  # of the calibrated projector range, each side
+FIELD_MARGIN = 0.1  # of the projector's full phase range 2πK, each side of the calibrated range
 
 
 def _rotation(rvec: F64) -> F64:
@@ -168,9 +168,9 @@ class GeometricModel(DepthModel):
 
         res = least_squares(residuals, x0, method="lm", x_scale="jac", max_nfev=5000)
         x = res.x if np.all(np.isfinite(res.x)) else x0
-        span = float(np.ptp(samples.phi[ok]))
+        margin = FIELD_MARGIN * 2.0 * math.pi * k
         lo, hi = float(np.min(samples.phi[ok])), float(np.max(samples.phi[ok]))
-        region = SupportedRegion(phase_rad=(lo - FIELD_MARGIN * span, hi + FIELD_MARGIN * span))
+        region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
         return cls(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]), float(x[7]), w, k, region)
 
 

@@ -61,8 +61,8 @@ class HeightArgs(NamedTuple):
     :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
     ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
     volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
-    mm, the supported region (``region`` (gh, gw, 2) height bounds mm, 1/cell size px,
-    phase range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    mm, the supported region (``region`` (gh, W, 2) height bounds mm per grid row and
+    column, ``region_rows`` (H,) the grid row of every image row, phase range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
 
     u_norm: npt.NDArray[np.float32]
@@ -78,8 +78,7 @@ class HeightArgs(NamedTuple):
     ray_q: npt.NDArray[np.float32]
     offset: np.float32
     region: npt.NDArray[np.float32]
-    inv_cell_w: np.float32
-    inv_cell_h: np.float32
+    region_rows: npt.NDArray[np.int64]
     phase_lo: np.float32
     phase_hi: np.float32
     read_var: np.float32
@@ -296,20 +295,21 @@ def _combined_row(prev, wsum, wphi):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, m):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, sing_rtol, lo, hi,  # type: ignore[no-untyped-def]
+               p_lo, p_hi, read_var, gain, max_sigma):  # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`); ``c`` is the phase stage's reason."""
-    pp = (p - m.phi0) * m.inv_sphi
-    t = pp + m.cubic * (pp * pp * pp)
+    pp = (p - phi0) * inv_sphi
+    t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
     h = (a0 + a1 * t) / dd
-    slope = (a1 * b0 - a0 * b1) / (dd * dd) * m.inv_sphi * (_F1 + np.float32(3.0) * m.cubic * (pp * pp))
-    sig = abs(slope) * np.sqrt((m.read_var + m.gain * tot) * vf)
-    singular = abs(dd) <= m.sing_rtol * (abs(b0) + abs(b1p))
-    in_volume = (h >= m.lo) & (h <= m.hi)
-    in_field = (h >= rlo) & (h <= rhi) & (p >= m.phase_lo) & (p <= m.phase_hi)
-    hc = _UNCERTAIN if sig > m.max_sigma else _OK
+    slope = (a1 * b0 - a0 * b1) / (dd * dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
+    sig = abs(slope) * np.sqrt((read_var + gain * tot) * vf)
+    singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
+    in_volume = (h >= lo) & (h <= hi)
+    in_field = (h >= rlo) & (h <= rhi) & (p >= p_lo) & (p <= p_hi)
+    hc = _UNCERTAIN if sig > max_sigma else _OK
     hc = _OUTSIDE_FIELD if not in_field else hc
     hc = _OUTSIDE_VOLUME if not in_volume else hc
     hc = _MODEL_SINGULAR if singular else hc
@@ -318,35 +318,56 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, m):  # type: ignore[no-u
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no cover - compiled
-    """Height stage of row ``v`` (both paths): height, σ and the final reason code."""
+    """Height stage of row ``v`` (both paths): height, σ and the final reason code.
+
+    ``m.region`` is (gh, W, 2): each grid row's height bounds expanded to the columns."""
     k = m.row_coefs[v]
     k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
     k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
     g = m.ray_coefs
-    grid = m.region
-    gi = min(np.int64(np.float32(v) * m.inv_cell_h), grid.shape[0] - 1)
-    last_cell = grid.shape[1] - 1
+    g0, g1, g2, g3, g4, g5 = g[0], g[1], g[2], g[3], g[4], g[5]
+    g6, g7, g8, g9, g10, g11 = g[6], g[7], g[8], g[9], g[10], g[11]
+    bounds = m.region[m.region_rows[v]]
+    phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
+    p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
+    inv_frames = m.inv_frames
     un = m.u_norm
     q = m.ray_q[v]
-    for u in range(prev.shape[0]):
-        x = un[u]
-        a0 = (k2 * x + k1) * x + k0
-        a1 = (k5 * x + k4) * x + k3
-        b0 = (k8 * x + k7) * x + k6
-        b1 = (k11 * x + k10) * x + k9
-        if m.use_rays:
+    if not m.combine:
+        half_steps = m.half_steps
+        for u in range(prev.shape[0]):
+            vfac[u] = half_steps / m2[u]  # var(φ)/σ_I² = N / (2·m2)
+    if m.use_rays:
+        for u in range(prev.shape[0]):
             q0, q1, q2 = q[u, 0], q[u, 1], q[u, 2]
-            a0 += g[0] * q0 + g[1] * q1 + g[2] * q2
-            a1 += g[3] * q0 + g[4] * q1 + g[5] * q2
-            b0 += g[6] * q0 + g[7] * q1 + g[8] * q2
-            b1 += g[9] * q0 + g[10] * q1 + g[11] * q2
-        vf = vfac[u] if m.combine else m.half_steps / m2[u]
-        gj = min(np.int64(np.float32(u) * m.inv_cell_w), last_cell)
-        h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * m.inv_frames, vf,
-                               grid[gi, gj, 0], grid[gi, gj, 1], code[u], m)
-        hbuf[u] = h
-        sbuf[u] = sig
-        code[u] = c
+            a0 = g0 * q0 + g1 * q1 + g2 * q2
+            a1 = g3 * q0 + g4 * q1 + g5 * q2
+            b0 = g6 * q0 + g7 * q1 + g8 * q2
+            b1 = g9 * q0 + g10 * q1 + g11 * q2
+            x = un[u]
+            a0 += (k2 * x + k1) * x + k0
+            a1 += (k5 * x + k4) * x + k3
+            b0 += (k8 * x + k7) * x + k6
+            b1 += (k11 * x + k10) * x + k9
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], bounds[u, 0],
+                                   bounds[u, 1], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma)
+            hbuf[u] = h
+            sbuf[u] = sig
+            code[u] = c
+    else:
+        for u in range(prev.shape[0]):
+            x = un[u]
+            a0 = (k2 * x + k1) * x + k0
+            a1 = (k5 * x + k4) * x + k3
+            b0 = (k8 * x + k7) * x + k6
+            b1 = (k11 * x + k10) * x + k9
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], bounds[u, 0],
+                                   bounds[u, 1], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma)
+            hbuf[u] = h
+            sbuf[u] = sig
+            code[u] = c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -480,8 +501,8 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
-        np.zeros((2, 3, 3), np.float32), np.float32(0), np.array([[[-np.inf, np.inf]]], np.float32),
-        np.float32(0), np.float32(0), np.float32(-np.inf), np.float32(np.inf),
+        np.zeros((2, 3, 3), np.float32), np.float32(0), np.tile(np.array([-np.inf, np.inf], np.float32), (1, 3, 1)),
+        np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
