@@ -1,4 +1,4 @@
-"""Pure numerics: patterns, phase, unwrapping, the Eq. (5) model, points, the fast path.
+"""Pure numerics: patterns, phase, unwrapping, the depth models' tables, points, σ, the fast path.
 
 Imports numpy/numba/cv2 only; no I/O, no threads, no settings.
 """
@@ -9,7 +9,7 @@ from app.recon.patterns import PatternSchedule, fringe_profile, generate_pattern
 from app.recon.phase import WrappedPhase, default_max_code, wrapped_phase
 from app.recon.points import RayTables, points_from_height, ray_tables
 from app.recon.reasons import PRECEDENCE, Reason
-from app.recon.reconstructor import PhaseResult, ReconResult, Reconstructor, compute_phase
+from app.recon.reconstructor import PhaseResult, ReconResult, Reconstructor, SensorNoise, compute_phase
 from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, combine_frequencies, unwrap_hierarchical
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "Reason",
     "ReconResult",
     "Reconstructor",
+    "SensorNoise",
     "WrappedPhase",
     "combine_frequencies",
     "compute_phase",

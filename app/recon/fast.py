@@ -3,15 +3,21 @@
 Rows are processed in blocks (``prange``), in two phases per block so that each phase
 streams few arrays at a time:
 
-1. Phase and height, into block-local buffers: for the paper's schedule (4 frequencies
-   × 4 steps) one loop per row reads all 16 frames of a pixel and keeps everything in
-   registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse levels with
-   a cheaper atan2 (they only pick fringe orders), the finest with the precise one, the
-   hierarchical unwrapping with its consistency test, Eq. (5) from per-row
-   polynomial coefficients (no per-pixel model tables to read) and the reason code.
-   Any other schedule, and the noise-optimal combination of frequencies, takes a
-   general row-by-row path with the same semantics.
-2. Outputs: reason/valid, depth, modulation/texture, optional phase and the points.
+1. Phase, then height, into block-local buffers: for the paper's schedule (4
+   frequencies × 4 steps) one loop per row reads all 16 frames of a pixel and keeps
+   everything in registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse
+   levels with a cheaper atan2 (they only pick fringe orders), the finest with the
+   precise one, the hierarchical unwrapping with its consistency test and the phase
+   stage's reason code. Any other schedule, and the noise-optimal combination of
+   frequencies, takes a general row-by-row path with the same semantics. The height
+   stage (:func:`_height_row`, both paths) evaluates the depth model's closed form
+   (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
+   terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
+   the supported region and the final reason code.
+2. Outputs: reason/valid, depth, σ, modulation/texture, optional phase and the points.
+
+The kernel takes named tuples (:class:`PhaseArgs`, :class:`HeightArgs`, :class:`Outputs`);
+reason codes are used by name.
 
 Each helper is compiled (and vectorised by LLVM) as its own function over 1-D rows;
 inside one big parallel body LLVM could not prove the buffers distinct. Semantics are

@@ -204,7 +204,7 @@ class Reconstructor:
     """Turns fringe sets into depth maps and point clouds for one calibration.
 
     Args:
-        calibration: a :class:`~app.calib.calibration.Calibration`.
+        calibration: a :class:`~app.core.calibration.Calibration` (any depth model).
         max_code: sensor maximum code; None → 255 (uint8) / 65535 (uint16). Pass 4095
             for 12-bit data delivered in uint16.
         min_modulation: minimum modulation B (codes) over all frequencies; None → 2 %
