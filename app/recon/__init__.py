@@ -9,7 +9,13 @@ from app.recon.patterns import PatternSchedule, fringe_profile, generate_pattern
 from app.recon.phase import WrappedPhase, default_max_code, wrapped_phase
 from app.recon.points import RayTables, points_from_height, ray_tables
 from app.recon.reasons import PRECEDENCE, Reason
-from app.recon.reconstructor import PhaseResult, ReconResult, Reconstructor, SensorNoise, compute_phase
+from app.recon.reconstructor import (
+    PhaseResult,
+    ReconResult,
+    Reconstructor,
+    SensorNoise,
+    compute_phase,
+)
 from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, combine_frequencies, unwrap_hierarchical
 
 __all__ = [
