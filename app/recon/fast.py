@@ -67,8 +67,9 @@ class HeightArgs(NamedTuple):
     :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
     ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
     volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
-    mm, the supported region (``region`` (gh, W, 2) height bounds mm per grid row and
-    column, ``region_rows`` (H,) the grid row of every image row, phase range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    mm, the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
+    grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
+    range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
 
     u_norm: npt.NDArray[np.float32]
@@ -83,7 +84,8 @@ class HeightArgs(NamedTuple):
     sing_rtol: np.float32
     ray_q: npt.NDArray[np.float32]
     offset: np.float32
-    region: npt.NDArray[np.float32]
+    region_lo: npt.NDArray[np.float32]
+    region_hi: npt.NDArray[np.float32]
     region_rows: npt.NDArray[np.int64]
     phase_lo: np.float32
     phase_hi: np.float32
@@ -326,26 +328,28 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
 def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no cover - compiled
     """Height stage of row ``v`` (both paths): height, σ and the final reason code.
 
-    ``m.region`` is (gh, W, 2): each grid row's height bounds expanded to the columns."""
+    ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
+    columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
     k = m.row_coefs[v]
     k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
     k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
     g = m.ray_coefs
     g0, g1, g2, g3, g4, g5 = g[0], g[1], g[2], g[3], g[4], g[5]
     g6, g7, g8, g9, g10, g11 = g[6], g[7], g[8], g[9], g[10], g[11]
-    bounds = m.region[m.region_rows[v]]
+    r_lo = m.region_lo[m.region_rows[v]]
+    r_hi = m.region_hi[m.region_rows[v]]
     phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
     p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
     inv_frames = m.inv_frames
     un = m.u_norm
-    q = m.ray_q[v]
+    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat, as in _points_row
     if not m.combine:
         half_steps = m.half_steps
         for u in range(prev.shape[0]):
             vfac[u] = half_steps / m2[u]  # var(φ)/σ_I² = N / (2·m2)
     if m.use_rays:
         for u in range(prev.shape[0]):
-            q0, q1, q2 = q[u, 0], q[u, 1], q[u, 2]
+            q0, q1, q2 = q[3 * u], q[3 * u + 1], q[3 * u + 2]
             a0 = g0 * q0 + g1 * q1 + g2 * q2
             a1 = g3 * q0 + g4 * q1 + g5 * q2
             b0 = g6 * q0 + g7 * q1 + g8 * q2
@@ -355,8 +359,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no co
             a1 += (k5 * x + k4) * x + k3
             b0 += (k8 * x + k7) * x + k6
             b1 += (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], bounds[u, 0],
-                                   bounds[u, 1], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
+                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma)
             hbuf[u] = h
             sbuf[u] = sig
@@ -368,8 +372,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no co
             a1 = (k5 * x + k4) * x + k3
             b0 = (k8 * x + k7) * x + k6
             b1 = (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], bounds[u, 0],
-                                   bounds[u, 1], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
+                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma)
             hbuf[u] = h
             sbuf[u] = sig
@@ -507,7 +511,7 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
-        np.zeros((2, 3, 3), np.float32), np.float32(0), np.tile(np.array([-np.inf, np.inf], np.float32), (1, 3, 1)),
+        np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32), np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
