@@ -54,7 +54,13 @@ def run(args: argparse.Namespace) -> int:
             f"{set_dir}: pattern {list(cap_s.frequencies)}x{cap_s.steps} differs from the "
             f"calibration's {list(cal_s.frequencies)}x{cal_s.steps}"
         )
-    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy)
+    from app.recon.noise import estimate_sensor_noise
+
+    try:  # σ from the camera noise this set shows (the N-step residual, N > 3)
+        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=args.max_code)
+    except ValueError:
+        noise = None  # N = 3 or too few usable pixels: the typical sensor
+    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise)
     res = rec.run(capture.frames)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
