@@ -193,3 +193,20 @@ def test_geometric_model_reconstructs_in_both_paths(fast):
     assert res.valid.mean() > 0.99
     err = np.abs(res.depth - h)[res.valid]
     assert np.percentile(err, 99) < 0.01
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_projector_field_bounds_the_geometric_model(fast):
+    """Phases outside the calibrated projector field are OUTSIDE_FIELD, inside they are valid."""
+    rig = Rig()
+    cal = rig.geometric_calibration()
+    h = bump_surface(rig)
+    phi = rig.finest_phase(h)
+    cut = float(np.median(phi))
+    cal.model.region = SupportedRegion(phase_rad=(-1.0, cut))
+    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
+                                                       amplitude=90 * 256))
+    clear = np.abs(phi - cut) > 1e-3
+    out = res.reason == Reason.OUTSIDE_FIELD
+    assert np.array_equal(out[clear], (phi > cut)[clear])
+    assert res.valid[clear & (phi < cut)].all()
