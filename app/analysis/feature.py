@@ -118,19 +118,17 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: only {int(ok.sum())} valid pixels in the ROI")
     if threshold is None:
         threshold = _otsu(tex[ok])
-    first: F64 | None = None
-    if polarity is None or height_threshold_mm is not None:
-        first, _ = _fit_baseline(z, ok)
+    first, _ = _fit_baseline(z, ok)  # robust quadratic over the ROI: the surface the feature lies on
     if polarity is None:
-        assert first is not None
         polarity = _find_polarity(z - first, tex, ok, threshold)
     mask = area & ((tex > threshold) if polarity == "bright" else (tex < threshold))
     if height_threshold_mm is not None:
-        assert first is not None
         mask &= (z - first) > height_threshold_mm
     labels, comps = _components(mask, min_area_px)
     if not comps:
         raise ValueError("threshold: no feature segment found in the ROI")
+    if inner:
+        labels = _grow_by_height(labels, comps, z - first, ok, inner)
     mask = np.isin(labels, comps)
     near = cv2.dilate(mask.astype(np.uint8), _disk(inner)) > 0 if inner else mask
     far = cv2.dilate(mask.astype(np.uint8), _disk(outer)) > 0
@@ -156,6 +154,30 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         polarity=polarity,
         curvature_per_px2=k,
     )
+
+
+def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64, ok: npt.NDArray[np.bool_],
+                    reach_px: int) -> npt.NDArray[np.int32]:
+    """Each segment widened, within ``reach_px``, to the pixels standing above half its median height.
+
+    An intensity threshold can miss a round thread's flanks (a bright thread's sides are
+    lit obliquely and darker than its top); left out, they would fall into the baseline ring
+    and lift the baseline. A thread on a surface stands at least its radius — half its
+    height — over it everywhere across its width, so half the median height of the segment
+    catches its whole width.
+    """
+    sel = np.isin(labels, comps) & ok
+    if not sel.any():
+        return labels
+    level = 0.5 * float(np.median(resid[sel]))
+    if not level > 0:
+        return labels
+    raised = ok & (resid > level)
+    out = labels.copy()
+    for c in comps:
+        zone = cv2.dilate((labels == c).astype(np.uint8), _disk(reach_px)) > 0
+        out[raised & zone & (out == 0)] = c
+    return out
 
 
 def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: float) -> str:
@@ -237,9 +259,17 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
         d = t[sel] - a[comp[sel]] - b[comp[sel]] * ds[sel]
         return x[0] - x[1] * d * d
 
+    # The crest axis stays among the sections' central pixels and the profile curves down: a
+    # free axis far to one side with k → 0 would turn the parabola into a tilted line.
+    t_lo = np.array([t[comp == c].min() if np.any(comp == c) else -1.0 for c in range(n_comp)])
+    t_hi = np.array([t[comp == c].max() if np.any(comp == c) else 1.0 for c in range(n_comp)])
+    lower = np.concatenate([[-np.inf, 0.0], t_lo, np.full(n_comp, -0.5)])
+    upper = np.concatenate([[np.inf, np.inf], t_hi, np.full(n_comp, 0.5)])
+
     def solve(x_start: F64, sel: npt.NDArray[np.bool_]) -> F64:
-        method = "lm" if sel.sum() > len(x_start) else "trf"
-        return np.asarray(least_squares(lambda p: model(p, sel) - h[sel], x_start, method=method).x)
+        x_start = np.clip(x_start, np.nextafter(lower, upper), np.nextafter(upper, lower))
+        return np.asarray(least_squares(lambda p: model(p, sel) - h[sel], x_start, bounds=(lower, upper),
+                                        method="trf", x_scale="jac").x)
 
     # start: a shared parabola in t about each segment's mean position
     a0 = np.array([t[comp == c].mean() if np.any(comp == c) else 0.0 for c in range(n_comp)])
