@@ -143,6 +143,18 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
     height, k, per_section, _, se = _joint_profile(sections, int(block_sections))
+    # The jackknife over sections cannot see the baseline surface's own error, common to all of
+    # them where the flank lines do not absorb it (its curvature across the feature): add it,
+    # propagated linearly through the same sections.
+    basis, cov = _baseline_covariance(z, ring, baseline, rms)
+    effect = np.zeros(len(basis))
+    for m, phi in enumerate(basis):
+        moved: list[_Section] = []
+        for i, c in enumerate(comps):
+            moved += _sections(phi, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i)
+        hm = np.concatenate([sec.h for sec in moved])
+        effect[m] = -float(hm.mean())
+    se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0))) if math.isfinite(se) else se
     return FeatureHeight(
         height_mm=height,
         height_std_mm=float(per_section.std(ddof=1)) if len(per_section) > 1 else 0.0,
@@ -336,6 +348,34 @@ def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
         keep = new
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     return design(xx, yy) @ coef, float(np.sqrt(np.mean(e[keep] ** 2)))
+
+
+def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float) -> tuple[F64, F64]:
+    """Basis images (6, H, W) of :func:`_fit_baseline`'s quadratic and the covariance (6, 6) of its
+    coefficients, rms²·(AᵀA)⁻¹ over the pixels it kept (|residual| ≤ 3·rms, as its clipping)."""
+    h, w = z.shape
+    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (xx - cx) / s, (yy - cy) / s
+    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
+    a = basis[:, kept].T
+    return basis, rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+
+
+def _correlation_factor(resid: F64, sel: npt.NDArray[np.bool_], box: int = 5) -> float:
+    """How much spatial correlation inflates the variance of a mean over many pixels: the variance of
+    ``box``×``box`` means over boxes wholly in ``sel``, times box², over the pixel variance (1 for
+    independent pixels; clipped to 1 … box²)."""
+    m = sel.astype(np.float64)
+    full = cv2.boxFilter(m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT) > 1 - 1e-9
+    if full.sum() < 10 or sel.sum() < 10:
+        return 1.0
+    means = cv2.boxFilter(resid * m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT)[full]
+    var = float(np.var(resid[sel]))
+    if not var > 0:
+        return 1.0
+    return float(np.clip(np.var(means) * box * box / var, 1.0, box * box))
 
 
 def _components(mask: npt.NDArray[np.bool_], min_area: int) -> tuple[npt.NDArray[np.int32], list[int]]:

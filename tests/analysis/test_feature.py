@@ -95,14 +95,15 @@ def test_height_expectation_does_not_move_with_noise(dark):
         assert all(e.polarity == ("dark" if dark else "bright") for e in est)
 
 
-def test_standard_error_matches_the_scatter_with_correlated_noise():
-    est = [feature_height(*_noisy(0.05, seed, corr_px=1.0)[:2]) for seed in range(24)]
+@pytest.mark.parametrize("corr_px", [0.0, 1.0], ids=["white", "correlated"])
+def test_standard_error_matches_the_scatter(corr_px):
+    """The reported standard error against the seed-to-seed scatter of the height (24 seeds: the
+    ratio is known to ±15 %); measured ≈ 0.9 (white) and ≈ 0.75 (correlated) noise."""
+    est = [feature_height(*_noisy(0.05, seed, corr_px=corr_px)[:2]) for seed in range(24)]
     h = np.array([e.height_mm for e in est])
     se = np.array([e.height_se_mm for e in est])
     assert np.all(np.isfinite(se)) and np.all(se > 0)
-    # the block jackknife runs low here (≈ 0.6–0.75 of the seed-to-seed scatter, see the report):
-    # this pins its order of magnitude, not its calibration
-    assert 0.5 < np.median(se) / np.std(h, ddof=1) < 1.6
+    assert 0.6 < np.median(se) / np.std(h, ddof=1) < 1.4
 
 
 def test_polarity_found_or_given():
