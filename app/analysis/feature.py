@@ -127,8 +127,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     labels, comps = _components(mask, min_area_px)
     if not comps:
         raise ValueError("threshold: no feature segment found in the ROI")
-    if inner:
-        labels = _grow_by_height(labels, comps, z - first, ok, inner)
+    labels = _grow_by_height(labels, comps, z - first, ok, outer)
     mask = np.isin(labels, comps)
     near = cv2.dilate(mask.astype(np.uint8), _disk(inner)) > 0 if inner else mask
     far = cv2.dilate(mask.astype(np.uint8), _disk(outer)) > 0
@@ -186,9 +185,15 @@ def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
         return labels
     raised = ok & (resid > level)
     out = labels.copy()
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     for c in comps:
-        zone = cv2.dilate((labels == c).astype(np.uint8), _disk(reach_px)) > 0
-        out[raised & zone & (out == 0)] = c
+        grown = (labels == c).astype(np.uint8)
+        for _ in range(reach_px):  # geodesic: one pixel a step, only through raised pixels
+            step = (cv2.dilate(grown, cross) > 0) & raised & ((out == 0) | (out == c))
+            if not (step & (grown == 0)).any():
+                break
+            grown[step] = 1
+        out[(grown > 0) & (out == 0)] = c
     return out
 
 
