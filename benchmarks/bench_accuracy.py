@@ -1,7 +1,7 @@
 """Accuracy on the simulator, beside the paper's figures (Le et al. 2018).
 
-simulate a calibration → calibrate → simulate the 45° DOF target, spheres and a suture →
-reconstruct → validate against the simulator's ground truth.
+simulate a calibration → calibrate → simulate the 45° DOF target, planes, spheres and a dark
+and a bright 0.72 mm suture → reconstruct → validate against the simulator's ground truth.
 
     python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8] [--board checkerboard]
                                         [--partial-boards | --full-boards] [--keep DIR] [--strict]
