@@ -172,3 +172,36 @@ def test_endoscope_rig_calibrates_end_to_end(endo_calibration):
     # the reference plane is the rig's (pose 0)
     origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
     assert float(np.degrees(np.arccos(abs(cal.plane_normal @ axes[:, 2])))) < 0.2
+
+
+def test_rig_selected_by_settings_everywhere_the_simulator_is_built(tmp_path):
+    """FRINGESCOPE_SIM_RIG reaches the devices of the factory and of the service, and the simulator's
+    own calibration file is per rig (nothing is rendered here)."""
+    from app.config import Settings
+    from app.devices.factory import create_devices as factory_devices
+    from app.service.calibration_store import sim_file_name
+    from app.service.devices import create_devices as service_devices
+
+    settings = Settings(data_dir=tmp_path, sim_rig="endoscope", bit_depth=12, viewer=False)
+    for devs in (factory_devices(settings), service_devices(settings)):
+        cam = devs.camera
+        assert cam.world.rig.name == "endoscope"
+        caps = cam.capabilities
+        assert (caps.width, caps.height) == (1280, 1024) and 12 in caps.bit_depths
+    assert sim_file_name(settings) == "sim-endoscope.json"
+    assert sim_file_name(Settings(data_dir=tmp_path)) == "sim.json"
+    with pytest.raises(ValueError):
+        Settings(sim_rig="fisheye")
+
+
+def test_calibration_reads_the_capture_bit_depth():
+    from app.calib.fitting import capture_max_code
+    from app.capture.captureset import CaptureSet
+    from app.recon.patterns import PatternSchedule
+
+    frames = np.zeros((16, 4, 4), np.uint16)
+    sched = PatternSchedule()
+    assert capture_max_code(CaptureSet(frames=frames, schedule=sched, extra={"bit_depth": 12})) == 4095
+    assert capture_max_code(CaptureSet(frames=frames, schedule=sched)) is None
+    with pytest.raises(ValueError, match="bit_depth"):
+        capture_max_code(CaptureSet(frames=frames, schedule=sched, extra={"bit_depth": 20}))
