@@ -192,7 +192,7 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
     for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
         if cs.schedule != schedule or cs.frames.shape != shape:
             raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
-        res = compute_phase(cs.frames, cs.schedule)
+        res = compute_phase(cs.frames, cs.schedule, max_code=capture_max_code(cs))
         det = detect_board(texture_to_u8(res.texture), board)
         if not det.found:
             if not robust or i == 0:
@@ -490,6 +490,17 @@ def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.
     n_k, t_k = rmat[:, 2], np.asarray(tvec, np.float64).ravel()
     pts = rays * ((n_k @ t_k) / (rays @ n_k))[:, None]
     return uv, pts @ normal + offset, phi
+
+
+def capture_max_code(cs: CaptureSet) -> int | None:
+    """The sensor's maximum code from a capture set's optional ``bit_depth`` (DESIGN.md), else None
+    (the dtype's full range): 12-bit frames in uint16 must not be judged against 65535."""
+    bits = getattr(cs, "bit_depth", None) or cs.extra.get("bit_depth")
+    if bits is None:
+        return None
+    if isinstance(bits, bool) or not isinstance(bits, int) or not 8 <= bits <= 16:
+        raise ValueError(f"bit_depth: must be an integer within 8–16, got {bits!r}")
+    return int(2**bits - 1)
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

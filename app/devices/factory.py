@@ -30,7 +30,7 @@ def _sim_devices(settings: Settings) -> Devices:
     built: Any = create_sim_devices(
         scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,
         drop_rate=settings.sim_drop_rate, timeout_rate=settings.sim_timeout_rate,
-        disconnect_every_s=settings.sim_disconnect_every_s,
+        disconnect_every_s=settings.sim_disconnect_every_s, rig=settings.sim_rig,
     )
     if isinstance(built, tuple) and not hasattr(built, "camera"):
         return Devices(*built)

@@ -30,10 +30,12 @@ def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = 
     """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``."""
     from app.analysis.feature import feature_height
 
-    res = feature_height(result.depth, result.texture, result.valid, roi=roi, polarity=polarity)
+    res = feature_height(result.depth, result.texture, result.valid, roi=roi,
+                         polarity=None if polarity == "auto" else polarity)
     return {
         "height_mm": _f(res.height_mm), "height_std_mm": _f(res.height_std_mm),
         "count": int(res.count),
         "extra": {"seq": result.seq, "baseline_rms_mm": _f(res.baseline_rms_mm),
+                  "height_se_mm": _f(res.height_se_mm), "polarity": res.polarity,
                   "feature_pixels": int(res.mask.sum())},
     }

@@ -52,6 +52,7 @@ def create_devices(settings: Settings) -> DeviceBundle:
             timeout_rate=settings.sim_timeout_rate,
             disconnect_every_s=settings.sim_disconnect_every_s,
             realtime=True,
+            rig=settings.sim_rig,
         )
         return DeviceBundle(sim.camera, sim.projector, sim.controller, sim.world)
     from app.devices.factory import create_devices as factory
