@@ -163,7 +163,7 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
     for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
         if cs.schedule != schedule or cs.frames.shape != shape:
             raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
-        res = compute_phase(cs.frames, cs.schedule)
+        res = compute_phase(cs.frames, cs.schedule, max_code=cs.max_code)
         det = detect_board(texture_to_u8(res.texture), board)
         if not det.found:
             if not robust or i == 0:

@@ -9,8 +9,11 @@ streams few arrays at a time:
    a cheaper atan2 (they only pick fringe orders), the finest with the precise one, the
    hierarchical unwrapping with its consistency test, Eq. (5) from per-row
    polynomial coefficients (no per-pixel model tables to read) and the reason code.
-   Any other schedule, and the noise-optimal combination of frequencies, takes a
-   general row-by-row path with the same semantics.
+   Any other schedule (any N ≥ 3, heterodyne unwrapping), and the noise-optimal
+   combination of frequencies, takes a general row-by-row path with the same semantics.
+   Then a scan of the row's codes refits, pixel by pixel, the few pixels with a clipped
+   sample from their unclipped ones (saturation-tolerant phase); on unsaturated data
+   that scan is all it costs.
 2. Outputs: reason/valid, depth, modulation/texture, optional phase and the points.
 
 Each helper is compiled (and vectorised by LLVM) as its own function over 1-D rows;
@@ -234,6 +237,46 @@ def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # pragma: no 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrap(x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """x mod 2π in [0, 2π)."""
+    r = x - _TWO_PI * np.float32(np.floor(x * _INV_TWO_PI))
+    return _F0 if r >= _TWO_PI else (r + _TWO_PI if r < _F0 else r)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The phase of ≤ 1 fringe over the field: the unused arc split in half (``unwrap.absolute_phase``)."""
+    return ph - _TWO_PI if ph > _PI * (_F1 + f0) else ph
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrapped_row(s_acc, c_acc, wph, m2, m2min):  # pragma: no cover
+    for u in range(s_acc.shape[0]):
+        yy = -s_acc[u]
+        xx = c_acc[u]
+        q = xx * xx + yy * yy
+        m2[u] = q
+        m2min[u] = min(m2min[u], q)
+        wph[u] = atan2_0_2pi(yy, xx)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, prev, dev, ratio, f0, first):  # pragma: no cover
+    """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
+    for u in range(prev.shape[0]):
+        x = _F0
+        for i in range(coefs.shape[0]):
+            x += coefs[i] * wphs[i, u]
+        ph = _wrap(x)
+        if first:
+            prev[u] = _absolute(ph, f0)
+        else:
+            p, d = _order_step(prev[u], ph, ratio)
+            prev[u] = p
+            dev[u] = max(dev[u], d)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
@@ -260,8 +303,39 @@ def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top,
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,
-                 m2_min, top_code, scratch, total, m2, prev, hbuf, code):  # pragma: no cover - compiled
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, scratch, total, m2, prev):
+    # pragma: no cover - compiled
+    """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
+                                                 scratch[4], scratch[5], scratch[6])
+    wphs = scratch[7:7 + n_freq]
+    m2s = scratch[7 + n_freq:7 + 2 * n_freq]
+    for ki in range(n_freq):
+        for n in range(n_steps):
+            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+    for s in range(chain_f.shape[0]):
+        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0)
+    m2[:] = m2s[n_freq - 1]
+    if combine:
+        for ki in range(n_freq):
+            kk = freqs[ki]
+            # every frequency unwrapped by the finest (the oracle's rule), then weighed
+            for u in range(prev.shape[0]):
+                p, _ = _order_step(prev[u], wphs[ki, u], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki, u]
+                wsum[u] += w
+                wphi[u] += w * (k_max / kk) * p
+        _combined_row(prev, wsum, wphi)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un, k, phi0, inv_sphi,
+                 sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch, total, m2, prev, hbuf,
+                 code):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for any schedule."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
@@ -274,6 +348,11 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi,
     dev[:] = _F0
     wsum[:] = _F0
     wphi[:] = _F0
+    if heterodyne:
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, scratch, total, m2, prev)
+        _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
+                    hbuf, code)
+        return
     for ki in range(n_freq):
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
@@ -285,6 +364,112 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi,
         _combined_row(prev, wsum, wphi)
     _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
                 hbuf, code)
+
+
+# Saturation-tolerant phase: the pixels of a row coded SATURATED are refitted one by one.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _fit_unclipped(frames, b, v, u, cos_t, sin_t, top_code):  # pragma: no cover - compiled
+    """Least squares A + a cos δ + b sin δ over the unclipped samples of frames b.. at (v, u), float64:
+    (ok = at least three samples, y = −b, x = a) with (x, y) scaled like (Σ I cos δ, −Σ I sin δ)."""
+    n_steps = cos_t.shape[0]
+    s1 = sc = ss = scc = sss = scs = r1 = rc = rs = 0.0
+    for n in range(n_steps):
+        i = float(frames[b + n, v, u])
+        if i < top_code:
+            c = float(cos_t[n])
+            s = float(sin_t[n])
+            s1 += 1.0
+            sc += c
+            ss += s
+            scc += c * c
+            sss += s * s
+            scs += c * s
+            r1 += i
+            rc += i * c
+            rs += i * s
+    if s1 < 3.0:
+        return False, _F0, _F0
+    # Cramer's rule on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
+    det = s1 * (scc * sss - scs * scs) - sc * (sc * sss - scs * ss) + ss * (sc * scs - scc * ss)
+    da = s1 * (rc * sss - scs * rs) - r1 * (sc * sss - scs * ss) + ss * (sc * rs - rc * ss)
+    db = s1 * (scc * rs - rc * scs) - sc * (sc * rs - rc * ss) + r1 * (sc * scs - scc * ss)
+    half_n = 0.5 * n_steps / det
+    return True, np.float32(-db * half_n), np.float32(da * half_n)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, top_code,
+                 cons_rad, wphs, m2s):  # pragma: no cover - compiled
+    """A saturated pixel from its unclipped samples: (ok, phase, finest m2, min m2, max |residual|)."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    m2min = _INF
+    for ki in range(n_freq):
+        ok, yy, xx = _fit_unclipped(frames, ki * n_steps, v, u, cos_t, sin_t, top_code)
+        if not ok:
+            return False, _F0, _F0, _F0, _F0
+        wphs[ki] = atan2_0_2pi(yy, xx)
+        m2s[ki] = xx * xx + yy * yy
+        m2min = min(m2min, m2s[ki])
+    k_max = freqs[n_freq - 1]
+    dev = _F0
+    wsum = _F0
+    wphi = _F0
+    if heterodyne:
+        p = _F0
+        for s in range(chain_f.shape[0]):
+            x = _F0
+            for i in range(n_freq):
+                x += chain_c[s, i] * wphs[i]
+            ph = _wrap(x)
+            if s == 0:
+                p = _absolute(ph, chain_f[0])
+            else:
+                p, d = _order_step(p, ph, chain_f[s] / chain_f[s - 1])
+                dev = max(dev, d)
+        if combine:
+            for ki in range(n_freq):
+                kk = freqs[ki]
+                pk, _ = _order_step(p, wphs[ki], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * pk
+    else:
+        p = wphs[0]
+        for ki in range(n_freq):
+            if ki > 0:
+                p, d = _order_step(p, wphs[ki], freqs[ki] / freqs[ki - 1])
+                dev = max(dev, d)
+            if combine:
+                kk = freqs[ki]
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * p
+    if combine:
+        p = wphi / wsum if wsum > _F0 else _NAN
+    return True, p, m2s[n_freq - 1], m2min, dev
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un, k, phi0, inv_sphi,
+               sing_rtol, lo, hi, cons_rad, m2_min, top_code, m2, prev, hbuf, code, wphs, m2s):  # pragma: no cover
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count."""
+    n = 0
+    for u in range(code.shape[0]):
+        if code[u] != 2:
+            continue
+        ok, p, q, qmin, dev = _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne,
+                                           combine, top_code, cons_rad, wphs, m2s)
+        if not ok:
+            continue
+        h, c = _height_code(p, un[u], k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], k[8], k[9], k[10], k[11],
+                            phi0, inv_sphi, sing_rtol, lo, hi)
+        prev[u] = p
+        m2[u] = q
+        hbuf[u] = h
+        code[u] = _mask(c, dev, qmin, _F0, cons_rad, m2_min, top_code)
+        n += 1
+    return n
 
 
 # Phase 2: outputs from the block buffers.
@@ -321,15 +506,18 @@ def _points_row(pts, hbuf, code, q, offset):  # pragma: no cover
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(  # one call carries every table to keep the kernel fused
-    frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
+    frames, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, max_code, min_mod, cons_rad, combine,
     un, row_coefs, phi0, inv_sphi, lo, hi, sing_rtol, ray_q, offset,
-    depth, points, reason, valid, modulation, texture, phase,
+    depth, points, reason, valid, modulation, texture, phase, recovered,
 ):  # pragma: no cover - compiled
     """Raw frames → all per-pixel outputs (see the module docstring). Writes into the outputs.
 
-    ``un``: (W,) normalised column u'; ``row_coefs``: (H, 12) per-row quadratic
-    coefficients of a0, a1, b0, b1 in u'; ``ray_q``: (H, W, 3) rays over n·r. ``phase``
-    is skipped when it has zero rows.
+    ``chain_c``, ``chain_f``: the (S, K) and (S,) unwrapping steps of
+    :func:`app.recon.unwrap.unwrap_chain` (used when ``heterodyne``). ``un``: (W,)
+    normalised column u'; ``row_coefs``: (H, 12) per-row quadratic coefficients of a0,
+    a1, b0, b1 in u'; ``ray_q``: (H, W, 3) rays over n·r. ``phase`` is skipped when it
+    has zero rows. ``recovered``: (H,) int32, per row the pixels refitted from their
+    unclipped samples.
     """
     n_frames, height, width = frames.shape
     n_steps = cos_t.shape[0]
@@ -338,7 +526,7 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
     m2_min = (min_mod / mod_scale) * (min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
     inv_frames = _F1 / np.float32(n_frames)
     top_code = np.float32(max_code)
-    paper = n_steps == 4 and n_freq == 4 and not combine
+    paper = n_steps == 4 and n_freq == 4 and not combine and not heterodyne
     want_phase = phase.shape[0] == height
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
@@ -350,16 +538,21 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
         buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
         total, m2, prev, hbuf = buf[0], buf[1], buf[2], buf[3]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 7, width), np.float32)
+        scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
+        wphs = np.empty(n_freq, np.float32)
+        m2s = np.empty(n_freq, np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
                 _paper_row(frames, v, r1, r2, r3, un, row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi,
                            cons_rad, m2_min, top_code, total[r], m2[r], prev[r], hbuf[r], code[r])
             else:
-                _general_row(frames, v, cos_t, sin_t, freqs, combine, un, row_coefs[v], phi0, inv_sphi,
-                             sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
+                _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un,
+                             row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
                              total[r], m2[r], prev[r], hbuf[r], code[r])
+            recovered[v] = _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un,
+                                      row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,
+                                      m2[r], prev[r], hbuf[r], code[r], wphs, m2s)
         for r in range(n_rows):
             v = v0 + r
             _reason_row(reason[v], valid[v], code[r])
@@ -389,10 +582,11 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
     fused_kernel(
-        frames, trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1), False,
+        frames, trig, trig, np.ones(1, np.float32), np.ones((1, 1), np.float32), np.ones(1, np.float32), False,
+        np.int32(1), np.float32(0), np.float32(1), False,
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.float32(0), np.float32(1),
         np.float32(0), np.float32(1), np.float32(1e-5), np.zeros((2, 3, 3), np.float32), np.float32(0),
         np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-        np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),
+        np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), np.empty(2, np.int32),
     )
     _warm.add(dt.name)

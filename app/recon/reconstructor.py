@@ -31,7 +31,8 @@ from app.recon.reasons import assign_reasons
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     check_consistency_rad,
-    unwrap_hierarchical,
+    unwrap_chain,
+    unwrap_phases,
 )
 from app.recon.unwrap import (
     combine_frequencies as combine_phases,
@@ -63,6 +64,7 @@ class PhaseResult:
         texture: float32 A + B (finest frequency), codes, for display.
         reason: uint8 :class:`~app.recon.reasons.Reason` (OK, SATURATED,
             LOW_MODULATION or UNWRAP_INCONSISTENT).
+        recovered: pixels with clipped samples whose phase was fitted from the rest.
     """
 
     phase: F32
@@ -70,6 +72,7 @@ class PhaseResult:
     background: F32
     texture: F32
     reason: npt.NDArray[np.uint8]
+    recovered: int = 0
 
 
 @dataclass
@@ -86,6 +89,8 @@ class ReconResult:
         phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;
             None unless the reconstructor was made with ``with_phase=True``.
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
+        recovered: pixels with clipped samples whose phase was fitted from the rest
+            (see :mod:`app.recon.phase`).
     """
 
     depth: F32
@@ -96,6 +101,7 @@ class ReconResult:
     texture: F32
     phase: F32 | None
     elapsed_ms: float
+    recovered: int = 0
 
 
 def _phase_numpy(
@@ -104,8 +110,8 @@ def _phase_numpy(
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
-    unwrapped, consistent = unwrap_hierarchical(
-        wp.phase, schedule.frequencies, consistency_rad=consistency_rad
+    unwrapped, consistent = unwrap_phases(
+        wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad
     )
     if combine:
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
@@ -160,6 +166,7 @@ def compute_phase(
         background=wp.background.astype(np.float32),
         texture=(wp.background + mod).astype(np.float32),
         reason=reason,
+        recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
     )
 
 
@@ -225,31 +232,35 @@ class Reconstructor:
         return calibration_row_coefficients(self.calibration), ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
-    def _fast_schedule(self) -> tuple[F32, F32, F32]:
-        """float32 (cos δ_n, sin δ_n, frequencies) of the calibration's pattern."""
+    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32]:
+        """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies) of the pattern."""
         sched = self.calibration.pattern
         delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        coefs, steps = unwrap_chain(sched.frequencies, sched.unwrap)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-                np.asarray(sched.frequencies, np.float32))
+                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
         return calibration_model_tables(self.calibration), calibration_ray_tables(self.calibration)
 
-    def run(self, frames: Any, *, fast: bool | None = None) -> ReconResult:
+    def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None) -> ReconResult:
         """Reconstruct one fringe set.
 
         Args:
             frames: (F, H, W) uint8/uint16 in capture-set order (F = the calibration's
                 ``pattern.n_frames``, H×W its image size), or a sequence of 2-D frames.
             fast: override the constructor's choice of path for this call.
+            max_code: override the constructor's sensor maximum code for this call
+                (a capture set's ``max_code``, from its ``bit_depth``).
 
         Returns:
             :class:`ReconResult`.
         """
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
-        max_code, min_mod = resolve_levels(frames.dtype, self.max_code, self.min_modulation)
+        max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
+                                           self.min_modulation)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
             return self._run_fast(frames, max_code, min_mod)
@@ -286,6 +297,7 @@ class Reconstructor:
             texture=(wp.background + mod).astype(np.float32),
             phase=np.where(valid, phi, np.nan).astype(np.float32) if self.with_phase else None,
             elapsed_ms=(time.perf_counter() - t0) * 1e3,
+            recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
         )
 
     def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
@@ -302,17 +314,19 @@ class Reconstructor:
         assert _fast is not None
         cal = self.calibration
         rows, ray_q = self._fast_tables
-        cos_d, sin_d, freqs = self._fast_schedule
+        cos_d, sin_d, freqs, chain_c, chain_f = self._fast_schedule
         lo, hi = self._bounds_mm
+        recovered = np.zeros(frames.shape[1], np.int32)
         _fast.fused_kernel(
-            np.ascontiguousarray(frames), cos_d, sin_d, freqs,
+            np.ascontiguousarray(frames), cos_d, sin_d, freqs, chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
             np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
             self.combine_frequencies,
             rows.u_norm, rows.coefs, np.float32(rows.phi0), np.float32(rows.inv_sphi),
             np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL), ray_q, np.float32(cal.plane_offset_mm),
             out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
-            out.phase if out.phase is not None else _NO_PHASE,
+            out.phase if out.phase is not None else _NO_PHASE, recovered,
         )
+        out.recovered = int(recovered.sum())
 
 
 _NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows

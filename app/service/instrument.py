@@ -153,7 +153,8 @@ class Instrument:
                     f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
                     f"the camera's {caps.width}x{caps.height}"
                 )
-        engine = Reconstructor(cal, fast=True)
+        bits = self.settings.bit_depth
+        engine = Reconstructor(cal, fast=True, max_code=None if bits == 8 else 2**bits - 1)
         if persist:
             calibration_store.save_active(self.settings, cal, name)
         with self._control_lock:
@@ -246,10 +247,12 @@ class Instrument:
     def reconstruct_capture(self, capture: CaptureSet) -> Any:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
         from app.recon import Reconstructor
+        from app.recon.patterns import check_pattern
 
         cal = self.calibration
         if cal is None:
             raise NotReady("no calibration is active")
+        check_pattern(cal.pattern, capture.schedule)
         if capture.schedule != cal.pattern:
             raise ValueError("capture: pattern schedule differs from the calibration's")
         cal.check_frames(capture.frames.shape)
@@ -257,7 +260,7 @@ class Instrument:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames)
+            return self._upload_engine.run(capture.frames, max_code=capture.max_code)
 
     def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
