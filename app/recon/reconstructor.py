@@ -7,7 +7,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
@@ -106,10 +107,12 @@ class ReconResult:
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool,
+    consistency_rad: float, combine: bool, phase_error: Any = None,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
+    if phase_error is not None:
+        wp = replace(wp, phase=phase_error.apply(wp.phase))
     unwrapped, consistent = unwrap_phases(
         wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad
     )
@@ -134,6 +137,7 @@ def compute_phase(
     min_modulation: float | None = None,
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
     combine_frequencies: bool = False,
+    phase_error: PhaseErrorLUT | None = None,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
 
@@ -145,6 +149,8 @@ def compute_phase(
             (see :func:`app.recon.phase.resolve_levels`).
         consistency_rad: unwrapping consistency threshold, radians.
         combine_frequencies: use the noise-optimal combination of all frequencies.
+        phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
+            wrapped phases before unwrapping (projector-gamma correction).
 
     Returns:
         :class:`PhaseResult`.
@@ -157,7 +163,7 @@ def compute_phase(
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error
     )
     mod = wp.modulation[-1]
     return PhaseResult(
