@@ -334,6 +334,8 @@ class Instrument:
             "frames_dropped": acq.frames_dropped if acq else 0,
             "faults": acq.faults if acq else 0,
             "recording": getattr(self.recorder, "active_name", None),
+            "bit_depth": self.settings.bit_depth,
+            "schedule": self.schedule.to_dict(),
             "warnings": warnings,
         }
 
