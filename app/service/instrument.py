@@ -241,6 +241,7 @@ class Instrument:
                 break
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
                 return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
+                                  bit_depth=self.settings.bit_depth,
                                   extra={"frame_indices": fs.frame_indices})
         raise NotReady(f"no complete fringe set within {timeout_s:.0f} s")
 

@@ -55,7 +55,8 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
     depth, points = world.truth(float(t_truth))
     meta = {"simulated": {"scene": world.scene.name, "seed": seed, "t0_s": t0_s, "truth_time_s": float(t_truth),
                           "distortion": bool(np.any(world.rig.dist != 0)), "current": current}}
-    return CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta), depth, points
+    return (CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta,
+                       bit_depth=bit_depth), depth, points)
 
 
 def npy_bytes(arr: np.ndarray) -> bytes:
