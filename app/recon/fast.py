@@ -451,6 +451,14 @@ def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    n = 0
+    for u in range(code.shape[0]):
+        n += code[u] == 2
+    return n
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un, k, phi0, inv_sphi,
                sing_rtol, lo, hi, cons_rad, m2_min, top_code, m2, prev, hbuf, code, wphs, m2s):  # pragma: no cover
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count."""
@@ -550,9 +558,11 @@ def fused_kernel(  # one call carries every table to keep the kernel fused
                 _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un,
                              row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
                              total[r], m2[r], prev[r], hbuf[r], code[r])
-            recovered[v] = _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, un,
-                                      row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,
-                                      m2[r], prev[r], hbuf[r], code[r], wphs, m2s)
+            recovered[v] = 0
+            if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
+                recovered[v] = _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine,
+                                          un, row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min,
+                                          top_code, m2[r], prev[r], hbuf[r], code[r], wphs, m2s)
         for r in range(n_rows):
             v = v0 + r
             _reason_row(reason[v], valid[v], code[r])
