@@ -292,16 +292,16 @@ class Renderer:
         # Fringe attenuation on the tool from camera defocus at its mean depth.
         z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0)) if len(ends) else self.rig.focus_mm
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
-        length = self.schedule.axis_length
-        atten = math.exp(-((2 * math.pi * k * self.grad_median / length) ** 2) * sig**2 / 2)
+        axis_px = self.schedule.axis_length
+        atten = math.exp(-((2 * math.pi * k * self.grad_median / axis_px) ** 2) * sig**2 / 2)
         # The projector coordinate across the fringes is not traced (the tool stays inside the DMD);
         # only its centre line is tested.
         across = 1 if self.schedule.orientation == "vertical" else 0
         rows_lit = -0.5 <= proj.K[across, 2] <= float(proj.size[across])
         return v0, spans, tool_kernels.ToolFrame(
             p0, axis / length, length, float(tool.radius_mm), float(REFLECTANCE[tool.material][led]), float(ks),
-            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(length),
-            bool(rows_lit), 2 * math.pi * k / length, shift, atten, dz)
+            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(axis_px),
+            bool(rows_lit), 2 * math.pi * k / axis_px, shift, atten, dz)
 
     def _tool_spans(self, uv: F64, rad_px: float) -> tuple[int, npt.NDArray[np.int64]]:
         """Row spans (v0, (n, 2) first/last column) of the stadium of radius ``rad_px`` swept by a disc
