@@ -33,16 +33,16 @@ def phase_files(res: Any) -> dict[str, bytes]:
         buf = io.BytesIO()
         np.save(buf, arr)
         out[name] = buf.getvalue()
-    out["phase.png"] = render_depth_png(res.phase, phase_range(res.phase))
+    out["phase.png"] = render_depth_png(res.phase, phase_range(res.phase), unit="rad")
     return out
 
 
 def phase_range(phase: Any) -> tuple[float, float]:
-    """Colormap range of a phase map: its finite min..max (0..2π when nothing is valid)."""
+    """Colormap range of a phase map: 0.1 to 99.9 percentile of its finite values (0..2π when none)."""
     finite = phase[np.isfinite(phase)]
     if finite.size == 0:
         return 0.0, 2 * math.pi
-    lo, hi = float(finite.min()), float(finite.max())
+    lo, hi = (float(q) for q in np.percentile(finite, [0.1, 99.9]))
     return (lo, hi) if hi > lo else (lo, lo + 1.0)
 
 

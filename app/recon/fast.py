@@ -261,7 +261,13 @@ def _wrapped_row(s_acc, c_acc, wph, m2, m2min):  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _chain_row(wphs, coefs, prev, dev, ratio, f0, first):  # pragma: no cover
+def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """0 if the absolute beat phase ``p`` lies on the field [−slack, 2π·f0 + slack], else ∞ (a deviation)."""
+    return _F0 if (p >= -slack) & (p <= _TWO_PI * f0 + slack) else _INF
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, prev, dev, ratio, f0, first, slack):  # pragma: no cover
     """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
     for u in range(prev.shape[0]):
         x = _F0
@@ -270,6 +276,7 @@ def _chain_row(wphs, coefs, prev, dev, ratio, f0, first):  # pragma: no cover
         ph = _wrap(x)
         if first:
             prev[u] = _absolute(ph, f0)
+            dev[u] = _outside_field(prev[u], f0, slack)
         else:
             p, d = _order_step(prev[u], ph, ratio)
             prev[u] = p
@@ -303,7 +310,7 @@ def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top,
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, scratch, total, m2, prev):
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):
     # pragma: no cover - compiled
     """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
     n_steps = cos_t.shape[0]
@@ -317,8 +324,9 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, s
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+    slack = cons_rad * chain_f[0] / chain_f[1]
     for s in range(chain_f.shape[0]):
-        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0)
+        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
     m2[:] = m2s[n_freq - 1]
     if combine:
         for ki in range(n_freq):
@@ -349,7 +357,8 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
     wsum[:] = _F0
     wphi[:] = _F0
     if heterodyne:
-        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, scratch, total, m2, prev)
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2,
+                        prev)
         _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
                     hbuf, code)
         return
@@ -424,6 +433,7 @@ def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
             ph = _wrap(x)
             if s == 0:
                 p = _absolute(ph, chain_f[0])
+                dev = _outside_field(p, chain_f[0], cons_rad * chain_f[0] / chain_f[1])
             else:
                 p, d = _order_step(p, ph, chain_f[s] / chain_f[s - 1])
                 dev = max(dev, d)

@@ -110,7 +110,9 @@ def unwrap_phases(
 
     Returns:
         ``(unwrapped, consistent)`` as :func:`unwrap_hierarchical`. For heterodyne, the
-        finest phase comes from the chain and every other from it by the frequency ratio.
+        finest phase comes from the chain and every other from it by the frequency ratio;
+        a pixel is also inconsistent when its absolute beat phase lies outside the field,
+        [−s, 2π·f0 + s] with s = ``consistency_rad``·f0/f1.
     """
     wrapped = np.asarray(wrapped, dtype=np.float64)
     if wrapped.ndim != 3:
@@ -121,8 +123,11 @@ def unwrap_phases(
     if len(frequencies) != wrapped.shape[0]:
         raise ValueError(f"frequencies: {len(frequencies)} given for {wrapped.shape[0]} phase maps")
     threshold = check_consistency_rad(consistency_rad)
-    consistent = np.ones(wrapped.shape[1:], dtype=bool)
     prev = absolute_phase(np.mod(np.tensordot(coefs[0], wrapped, axes=1), TWO_PI), steps[0])
+    # the absolute beat covers 2π·f0 of the circle; beyond it (by more than the first step
+    # tolerates) lies no point of the field: noise, not fringes
+    slack = threshold * steps[0] / steps[1]
+    consistent = (prev >= -slack) & (prev <= TWO_PI * steps[0] + slack)
     for s in range(1, len(steps)):
         phw = np.mod(np.tensordot(coefs[s], wrapped, axes=1), TWO_PI)
         e = (steps[s] / steps[s - 1]) * prev - phw
