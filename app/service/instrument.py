@@ -143,7 +143,9 @@ class Instrument:
     def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
         from app.recon import Reconstructor
+        from app.recon.patterns import check_pattern
 
+        check_pattern(cal.pattern, self.schedule, "projector")  # names orientation/unwrap mismatches
         if cal.pattern != self.schedule:
             raise ValueError("calibration: its pattern schedule differs from the projector's")
         if self.devices is not None:
