@@ -56,7 +56,7 @@ class PatternSchedule:
             raise ValueError(f"frequencies: heterodyne unwrapping needs at least 3, got {len(freqs)}")
         if int(self.steps) != self.steps or self.steps < 3:
             raise ValueError(f"steps: need an integer N >= 3, got {self.steps}")
-        if self.width < 2 or self.height < 2:
+        if self.width < 2 or self.height < 1:
             raise ValueError(f"width/height: invalid projector size {self.width}x{self.height}")
         if self.orientation not in ORIENTATIONS:
             raise ValueError(f"orientation: must be one of {ORIENTATIONS}, got {self.orientation!r}")
