@@ -397,6 +397,11 @@ function showStatus(st) {
   $("m-dropped").textContent = String(st.dropped_sets ?? "–");
   $("m-incomplete").textContent = String(st.incomplete_sets ?? "–");
   $("m-mode").textContent = st.mode;
+  const sch = st.schedule;
+  $("m-sensor").textContent = (st.bit_depth ? `${st.bit_depth}-bit` : "–") + (sch
+    ? ` · ${sch.unwrap || "hierarchical"} [${sch.frequencies.map((k) => +k.toFixed(2)).join(", ")}]×${sch.steps}` +
+      (sch.orientation === "horizontal" ? " horizontal" : "")
+    : "");
 
   const devices = $("devices");
   devices.textContent = "";

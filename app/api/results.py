@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument, result_headers
-from app.api.schemas import ReconstructSummary, ResultMeta
+from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.service import encoding
 from app.service.instrument import Instrument
@@ -129,4 +129,38 @@ async def reconstruct(
         height_max_mm=float(finite.max()) if finite.size else None,
         elapsed_ms=float(res.elapsed_ms),
         shape=list(res.depth.shape),
+    )
+
+
+@router.post(
+    "/phase",
+    response_model=PhaseSummary,
+    responses={200: {"content": {"application/octet-stream": {}}}, 413: {}, 415: {}, 422: {}},
+    openapi_extra={"requestBody": {"content": {
+        "multipart/form-data": {"schema": {"type": "object", "properties": {
+            "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
+        "application/zip": {"schema": {"type": "string", "format": "binary"}},
+    }}},
+)
+async def phase(
+    request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
+) -> Any:
+    """Unwrapped phase of an uploaded capture set, no calibration needed (``format=npy``: phase.npy)."""
+    from starlette.concurrency import run_in_threadpool
+
+    from app.service.phase import decode_capture
+
+    capture = await capture_from_request(request, int(inst.settings.max_upload_mb * 1024 * 1024))
+    res = await run_in_threadpool(decode_capture, capture)
+    if format == "npy":
+        return binary(encoding.npy_bytes(res.phase), "application/octet-stream", None, "phase.npy")
+    finite = res.phase[np.isfinite(res.phase)]
+    return PhaseSummary(
+        valid_fraction=float(np.isfinite(res.phase).mean()),
+        phase_min_rad=float(finite.min()) if finite.size else None,
+        phase_max_rad=float(finite.max()) if finite.size else None,
+        recovered_pixels=res.recovered,
+        bit_depth=capture.bit_depth or (8 if capture.frames.dtype == np.uint8 else 16),
+        schedule=capture.schedule.to_dict(),
+        shape=list(res.phase.shape),
     )

@@ -103,6 +103,8 @@ class StatusOut(BaseModel):
     frames_dropped: int
     faults: int
     recording: str | None = None  # issue 7: name of the running recording
+    bit_depth: int | None = None  # issue 14: the camera's significant bits
+    schedule: dict[str, Any] | None = None  # issue 14: the fringe pattern schedule in use
     warnings: list[str]
 
 
@@ -117,6 +119,18 @@ class ResultMeta(BaseModel):
     latency_ms: float
     recon_ms: float
     valid_fraction: float
+    shape: list[int]
+
+
+class PhaseSummary(BaseModel):
+    """``POST /api/phase``: calibration-free decoding of an uploaded capture set."""
+
+    valid_fraction: float
+    phase_min_rad: float | None
+    phase_max_rad: float | None
+    recovered_pixels: int = Field(description="pixels with clipped samples fitted from the unclipped ones")
+    bit_depth: int
+    schedule: dict[str, Any]
     shape: list[int]
 
 

@@ -42,26 +42,23 @@ def run(args: argparse.Namespace) -> int:
     from app.capture import read_capture_set
     from app.capture.ply import write_ply
     from app.recon import Reconstructor, reason_png, render_depth_png
+    from app.recon.patterns import check_pattern
 
     set_dir = Path(args.set_dir)
     if not set_dir.is_dir():
         raise ValueError(f"{set_dir}: capture-set folder not found")
     capture = read_capture_set(set_dir)
     calibration = load_calibration(args.calibration)
-    cal_s, cap_s = calibration.pattern, capture.schedule
-    if (cal_s.frequencies, cal_s.steps) != (cap_s.frequencies, cap_s.steps):
-        raise ValueError(
-            f"{set_dir}: pattern {list(cap_s.frequencies)}x{cap_s.steps} differs from the "
-            f"calibration's {list(cal_s.frequencies)}x{cal_s.steps}"
-        )
+    check_pattern(calibration.pattern, capture.schedule, str(set_dir))
     from app.recon.noise import estimate_sensor_noise
 
+    max_code = args.max_code or capture.max_code  # the set's bit_depth unless told
     try:  # σ from the camera noise this set shows (the N-step residual, N > 3)
-        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=args.max_code)
+        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=max_code)
     except ValueError:
         noise = None  # N = 3 or too few usable pixels: the typical sensor
     rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise)
-    res = rec.run(capture.frames)
+    res = rec.run(capture.frames, max_code=max_code)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()

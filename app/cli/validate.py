@@ -38,11 +38,13 @@ def run(args: argparse.Namespace) -> int:
     from app.calib import load_calibration
     from app.capture.captureset import read_capture_set
     from app.recon import Reconstructor
+    from app.recon.patterns import check_pattern
 
     roi = parse_roi(args.roi) if args.roi else None
     capture = read_capture_set(args.set_dir)
     calibration = load_calibration(args.calibration)
-    result = Reconstructor(calibration).run(capture.frames)
+    check_pattern(calibration.pattern, capture.schedule, str(args.set_dir))
+    result = Reconstructor(calibration).run(capture.frames, max_code=capture.max_code)
     area = roi_mask(result.valid.shape, roi)
     figures: dict[str, Any] = {
         "set": str(args.set_dir),

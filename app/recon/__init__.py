@@ -4,6 +4,7 @@ Imports numpy/numba/cv2 only; no I/O, no threads, no settings.
 """
 
 from app.recon.colormap import depth_colormap, reason_png, render_depth_png
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.model import ModelTables, evaluate_height, model_tables
 from app.recon.patterns import PatternSchedule, fringe_profile, generate_patterns
 from app.recon.phase import WrappedPhase, default_max_code, wrapped_phase
@@ -16,13 +17,20 @@ from app.recon.reconstructor import (
     SensorNoise,
     compute_phase,
 )
-from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, combine_frequencies, unwrap_hierarchical
+from app.recon.unwrap import (
+    DEFAULT_CONSISTENCY_RAD,
+    combine_frequencies,
+    unwrap_chain,
+    unwrap_hierarchical,
+    unwrap_phases,
+)
 
 __all__ = [
     "DEFAULT_CONSISTENCY_RAD",
     "PRECEDENCE",
     "ModelTables",
     "PatternSchedule",
+    "PhaseErrorLUT",
     "PhaseResult",
     "RayTables",
     "Reason",
@@ -42,6 +50,8 @@ __all__ = [
     "ray_tables",
     "reason_png",
     "render_depth_png",
+    "unwrap_chain",
     "unwrap_hierarchical",
+    "unwrap_phases",
     "wrapped_phase",
 ]

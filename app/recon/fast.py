@@ -8,8 +8,11 @@ streams few arrays at a time:
    everything in registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse
    levels with a cheaper atan2 (they only pick fringe orders), the finest with the
    precise one, the hierarchical unwrapping with its consistency test and the phase
-   stage's reason code. Any other schedule, and the noise-optimal combination of
-   frequencies, takes a general row-by-row path with the same semantics. The height
+   stage's reason code. Any other schedule (any N ≥ 3, heterodyne unwrapping), and the
+   noise-optimal combination of frequencies, takes a general row-by-row path with the
+   same semantics. Then a scan of the row's codes refits, pixel by pixel, the few pixels
+   with a clipped sample from their unclipped ones (saturation-tolerant phase); on
+   unsaturated data that scan is all it costs. The height
    stage (:func:`_height_row`, both paths) evaluates the depth model's closed form
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
    terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
@@ -52,7 +55,9 @@ KERNEL_LOCK = threading.Lock()
 
 class PhaseArgs(NamedTuple):
     """The phase stage's inputs: float32 cos δ_n, sin δ_n (N,), fringe counts (K,), sensor
-    maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad)."""
+    maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad);
+    ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
+    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -60,6 +65,9 @@ class PhaseArgs(NamedTuple):
     max_code: np.int32
     min_mod: np.float32
     cons_rad: np.float32
+    chain_c: npt.NDArray[np.float32]
+    chain_f: npt.NDArray[np.float32]
+    heterodyne: bool
 
 
 class HeightArgs(NamedTuple):
@@ -98,7 +106,8 @@ class HeightArgs(NamedTuple):
 
 
 class Outputs(NamedTuple):
-    """The kernel's (H, W) outputs (points (H, W, 3)); ``phase`` with zero rows is skipped."""
+    """The kernel's (H, W) outputs (points (H, W, 3)); ``phase`` with zero rows is skipped;
+    ``recovered`` (H,) int32: per row, the pixels refitted from their unclipped samples."""
 
     depth: npt.NDArray[np.float32]
     points: npt.NDArray[np.float32]
@@ -108,6 +117,7 @@ class Outputs(NamedTuple):
     texture: npt.NDArray[np.float32]
     phase: npt.NDArray[np.float32]
     sigma: npt.NDArray[np.float32]
+    recovered: npt.NDArray[np.int32]
 
 
 # reason codes by name (values of app.recon.reasons.Reason)
@@ -289,6 +299,53 @@ def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # pragma: no 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrap(x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """x mod 2π in [0, 2π)."""
+    r = x - _TWO_PI * np.float32(np.floor(x * _INV_TWO_PI))
+    return _F0 if r >= _TWO_PI else (r + _TWO_PI if r < _F0 else r)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The phase of ≤ 1 fringe over the field: the unused arc split in half (``unwrap.absolute_phase``)."""
+    return ph - _TWO_PI if ph > _PI * (_F1 + f0) else ph
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrapped_row(s_acc, c_acc, wph, m2, m2min):  # pragma: no cover
+    for u in range(s_acc.shape[0]):
+        yy = -s_acc[u]
+        xx = c_acc[u]
+        q = xx * xx + yy * yy
+        m2[u] = q
+        m2min[u] = min(m2min[u], q)
+        wph[u] = atan2_0_2pi(yy, xx)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """0 if the absolute beat phase ``p`` lies on the field [−slack, 2π·f0 + slack], else ∞ (a deviation)."""
+    return _F0 if (p >= -slack) & (p <= _TWO_PI * f0 + slack) else _INF
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, prev, dev, ratio, f0, first, slack):  # pragma: no cover
+    """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
+    for u in range(prev.shape[0]):
+        x = _F0
+        for i in range(coefs.shape[0]):
+            x += coefs[i] * wphs[i, u]
+        ph = _wrap(x)
+        if first:
+            prev[u] = _absolute(ph, f0)
+            dev[u] = _outside_field(prev[u], f0, slack)
+        else:
+            p, d = _order_step(prev[u], ph, ratio)
+            prev[u] = p
+            dev[u] = max(dev[u], d)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
@@ -379,11 +436,41 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # pragma: no co
             sbuf[u] = sig
             code[u] = c
 
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):
+    # pragma: no cover - compiled
+    """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
+                                                 scratch[4], scratch[5], scratch[6])
+    wphs = scratch[7:7 + n_freq]
+    m2s = scratch[7 + n_freq:7 + 2 * n_freq]
+    for ki in range(n_freq):
+        for n in range(n_steps):
+            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+    slack = cons_rad * chain_f[0] / chain_f[1]
+    for s in range(chain_f.shape[0]):
+        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    m2[:] = m2s[n_freq - 1]
+    if combine:
+        for ki in range(n_freq):
+            kk = freqs[ki]
+            # every frequency unwrapped by the finest (the oracle's rule), then weighed
+            for u in range(prev.shape[0]):
+                p, _ = _order_step(prev[u], wphs[ki, u], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki, u]
+                wsum[u] += w
+                wphi[u] += w * (k_max / kk) * p
+        _combined_row(prev, wsum, wphi)
+
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, combine, cons_rad,
+def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
                  m2_min, top_code, scratch, total, m2, prev, vfac, code):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for any schedule."""
+    """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping)."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -395,20 +482,149 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, cons_rad,
     dev[:] = _F0
     wsum[:] = _F0
     wphi[:] = _F0
-    for ki in range(n_freq):
-        for n in range(n_steps):
-            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
-        _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+    if heterodyne:
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2,
+                        prev)
+    else:
+        for ki in range(n_freq):
+            for n in range(n_steps):
+                _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+            if combine:
+                kk = freqs[ki]
+                _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
         if combine:
-            kk = freqs[ki]
-            _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
+            _combined_row(prev, wsum, wphi)
     if combine:
-        _combined_row(prev, wsum, wphi)
         # var(φ) = σ_I²·N²·k_max² / (2·Σ_k N k² m2_k) for the weights of _weigh_row
         for u in range(prev.shape[0]):
-            vfac[u] = np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum[u] if wsum[u] > _F0 else _INF
+            vfac[u] = _combined_vfac(n_steps, k_max, wsum[u])
     for u in range(prev.shape[0]):
         code[u] = _mask(_OK, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """var(φ)/σ_I² of the noise-optimal phase with weight sum ``wsum``."""
+    return np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum if wsum > _F0 else _INF
+
+
+# Saturation-tolerant phase: the pixels of a row coded SATURATED are refitted one by one.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _fit_unclipped(frames, b, v, u, cos_t, sin_t, top_code):  # pragma: no cover - compiled
+    """Least squares A + a cos δ + b sin δ over the unclipped samples of frames b.. at (v, u), float64:
+    (ok = at least three samples, y = −b, x = a) with (x, y) scaled like (Σ I cos δ, −Σ I sin δ)."""
+    n_steps = cos_t.shape[0]
+    s1 = sc = ss = scc = sss = scs = r1 = rc = rs = 0.0
+    for n in range(n_steps):
+        i = float(frames[b + n, v, u])
+        if i < top_code:
+            c = float(cos_t[n])
+            s = float(sin_t[n])
+            s1 += 1.0
+            sc += c
+            ss += s
+            scc += c * c
+            sss += s * s
+            scs += c * s
+            r1 += i
+            rc += i * c
+            rs += i * s
+    if s1 < 3.0:
+        return False, _F0, _F0
+    # Cramer's rule on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
+    det = s1 * (scc * sss - scs * scs) - sc * (sc * sss - scs * ss) + ss * (sc * scs - scc * ss)
+    da = s1 * (rc * sss - scs * rs) - r1 * (sc * sss - scs * ss) + ss * (sc * rs - rc * ss)
+    db = s1 * (scc * rs - rc * scs) - sc * (sc * rs - rc * ss) + r1 * (sc * scs - scc * ss)
+    half_n = 0.5 * n_steps / det
+    return True, np.float32(-db * half_n), np.float32(da * half_n)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, top_code,
+                 cons_rad, wphs, m2s):  # pragma: no cover - compiled
+    """A saturated pixel from its unclipped samples: (ok, phase, finest m2, min m2, max |residual|,
+    weight sum of the noise-optimal combination)."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    m2min = _INF
+    for ki in range(n_freq):
+        ok, yy, xx = _fit_unclipped(frames, ki * n_steps, v, u, cos_t, sin_t, top_code)
+        if not ok:
+            return False, _F0, _F0, _F0, _F0, _F0
+        wphs[ki] = atan2_0_2pi(yy, xx)
+        m2s[ki] = xx * xx + yy * yy
+        m2min = min(m2min, m2s[ki])
+    k_max = freqs[n_freq - 1]
+    dev = _F0
+    wsum = _F0
+    wphi = _F0
+    if heterodyne:
+        p = _F0
+        for s in range(chain_f.shape[0]):
+            x = _F0
+            for i in range(n_freq):
+                x += chain_c[s, i] * wphs[i]
+            ph = _wrap(x)
+            if s == 0:
+                p = _absolute(ph, chain_f[0])
+                dev = _outside_field(p, chain_f[0], cons_rad * chain_f[0] / chain_f[1])
+            else:
+                p, d = _order_step(p, ph, chain_f[s] / chain_f[s - 1])
+                dev = max(dev, d)
+        if combine:
+            for ki in range(n_freq):
+                kk = freqs[ki]
+                pk, _ = _order_step(p, wphs[ki], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * pk
+    else:
+        p = wphs[0]
+        for ki in range(n_freq):
+            if ki > 0:
+                p, d = _order_step(p, wphs[ki], freqs[ki] / freqs[ki - 1])
+                dev = max(dev, d)
+            if combine:
+                kk = freqs[ki]
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * p
+    if combine:
+        p = wphi / wsum if wsum > _F0 else _NAN
+    return True, p, m2s[n_freq - 1], m2min, dev, wsum
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    n = 0
+    for u in range(code.shape[0]):
+        n += code[u] == _SATURATED
+    return n
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,
+               m2, prev, vfac, code, wphs, m2s):  # pragma: no cover - compiled
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency (phase stage:
+    phase, finest m2, σ factor and phase-stage code; the height stage follows); their count."""
+    n_steps = cos_t.shape[0]
+    k_max = freqs[freqs.shape[0] - 1]
+    n = 0
+    for u in range(code.shape[0]):
+        if code[u] != _SATURATED:
+            continue
+        ok, p, q, qmin, dev, wsum = _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne,
+                                                 combine, top_code, cons_rad, wphs, m2s)
+        if not ok:
+            continue
+        prev[u] = p
+        m2[u] = q
+        if combine:
+            vfac[u] = _combined_vfac(n_steps, k_max, wsum)
+        code[u] = _mask(_OK, dev, qmin, _F0, cons_rad, m2_min, top_code)
+        n += 1
+    return n
 
 
 # Phase 2: outputs from the block buffers.
@@ -457,26 +673,35 @@ def fused_kernel(frames, ph, m, out):  # pragma: no cover - compiled
     mod_scale = np.float32(2.0) / np.float32(n_steps)
     m2_min = (ph.min_mod / mod_scale) * (ph.min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
     top_code = np.float32(ph.max_code)
-    paper = n_steps == 4 and n_freq == 4 and not m.combine
+    paper = n_steps == 4 and n_freq == 4 and not m.combine and not ph.heterodyne
     want_phase = out.phase.shape[0] == height
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
+    recovered = out.recovered
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
         buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 7, width), np.float32)
+        scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
+        wphs = np.empty(n_freq, np.float32)
+        m2s = np.empty(n_freq, np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
                 _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
             else:
-                _general_row(frames, v, cos_t, sin_t, freqs, m.combine, ph.cons_rad, m2_min, top_code, scratch,
-                             total[r], m2[r], prev[r], vfac[r], code[r])
+                _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
+                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r])
+            n_refit = 0
+            if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
+                n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
+                                              m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
+                                              code[r], wphs, m2s)
+            recovered[v] = n_refit
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
             v = v0 + r
@@ -507,7 +732,8 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
     f32 = np.zeros((2, 3), np.float32)
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
-    ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1))
+    ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False)
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
@@ -516,6 +742,7 @@ def _warmup_locked(dt: np.dtype) -> None:  # type: ignore[type-arg]
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy())
+                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy(),
+                  np.empty(2, np.int32))
     fused_kernel(frames, ph, m, out)
     _warm.add(dt.name)

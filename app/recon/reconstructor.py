@@ -7,7 +7,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.depth_model import HeightTables
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
@@ -31,7 +32,8 @@ from app.recon.reasons import assign_reasons
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     check_consistency_rad,
-    unwrap_hierarchical,
+    unwrap_chain,
+    unwrap_phases,
 )
 from app.recon.unwrap import (
     combine_frequencies as combine_phases,
@@ -97,6 +99,7 @@ class PhaseResult:
         texture: float32 A + B (finest frequency), codes, for display.
         reason: uint8 :class:`~app.recon.reasons.Reason` (OK, SATURATED,
             LOW_MODULATION or UNWRAP_INCONSISTENT).
+        recovered: pixels with clipped samples whose phase was fitted from the rest.
     """
 
     phase: F32
@@ -104,6 +107,7 @@ class PhaseResult:
     background: F32
     texture: F32
     reason: npt.NDArray[np.uint8]
+    recovered: int = 0
 
 
 @dataclass
@@ -122,6 +126,8 @@ class ReconResult:
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
         sigma: float32 1-σ depth noise, mm, NaN invalid: the sensor noise of the pixel's
             intensities through the modulation to the phase and through the model's ∂z/∂φ.
+        recovered: pixels with clipped samples whose phase was fitted from the rest
+            (see :mod:`app.recon.phase`).
     """
 
     depth: F32
@@ -133,16 +139,19 @@ class ReconResult:
     phase: F32 | None
     elapsed_ms: float
     sigma: F32 = field(default_factory=lambda: np.empty((0, 0), np.float32))
+    recovered: int = 0
 
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool,
+    consistency_rad: float, combine: bool, phase_error: Any = None,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
-    unwrapped, consistent = unwrap_hierarchical(
-        wp.phase, schedule.frequencies, consistency_rad=consistency_rad
+    if phase_error is not None:
+        wp = replace(wp, phase=phase_error.apply(wp.phase))
+    unwrapped, consistent = unwrap_phases(
+        wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad
     )
     if combine:
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
@@ -165,6 +174,7 @@ def compute_phase(
     min_modulation: float | None = None,
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
     combine_frequencies: bool = False,
+    phase_error: PhaseErrorLUT | None = None,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
 
@@ -176,6 +186,8 @@ def compute_phase(
             (see :func:`app.recon.phase.resolve_levels`).
         consistency_rad: unwrapping consistency threshold, radians.
         combine_frequencies: use the noise-optimal combination of all frequencies.
+        phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
+            wrapped phases before unwrapping (projector-gamma correction).
 
     Returns:
         :class:`PhaseResult`.
@@ -188,7 +200,7 @@ def compute_phase(
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error
     )
     mod = wp.modulation[-1]
     return PhaseResult(
@@ -197,6 +209,7 @@ def compute_phase(
         background=wp.background.astype(np.float32),
         texture=(wp.background + mod).astype(np.float32),
         reason=reason,
+        recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
     )
 
 
@@ -284,12 +297,13 @@ class Reconstructor:
         return f32, ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
-    def _fast_schedule(self) -> tuple[F32, F32, F32]:
-        """float32 (cos δ_n, sin δ_n, frequencies) of the calibration's pattern."""
+    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32]:
+        """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies) of the pattern."""
         sched = self.calibration.pattern
         delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        coefs, steps = unwrap_chain(sched.frequencies, sched.unwrap)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-                np.asarray(sched.frequencies, np.float32))
+                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -312,20 +326,23 @@ class Reconstructor:
     def _noise(self, max_code: int) -> SensorNoise:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
 
-    def run(self, frames: Any, *, fast: bool | None = None) -> ReconResult:
+    def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None) -> ReconResult:
         """Reconstruct one fringe set.
 
         Args:
             frames: (F, H, W) uint8/uint16 in capture-set order (F = the calibration's
                 ``pattern.n_frames``, H×W its image size), or a sequence of 2-D frames.
             fast: override the constructor's choice of path for this call.
+            max_code: override the constructor's sensor maximum code for this call
+                (a capture set's ``max_code``, from its ``bit_depth``).
 
         Returns:
             :class:`ReconResult`.
         """
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
-        max_code, min_mod = resolve_levels(frames.dtype, self.max_code, self.min_modulation)
+        max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
+                                           self.min_modulation)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
             return self._run_fast(frames, max_code, min_mod)
@@ -377,6 +394,7 @@ class Reconstructor:
             phase=np.where(valid, phi, np.nan).astype(np.float32) if self.with_phase else None,
             elapsed_ms=(time.perf_counter() - t0) * 1e3,
             sigma=np.where(valid, sigma, np.nan).astype(np.float32),
+            recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
         )
 
     def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
@@ -393,12 +411,13 @@ class Reconstructor:
         assert _fast is not None
         cal = self.calibration
         tables, ray_q = self._fast_tables
-        cos_d, sin_d, freqs = self._fast_schedule
+        cos_d, sin_d, freqs, chain_c, chain_f = self._fast_schedule
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi = self._region_columns
         noise = self._noise(max_code)
         f32 = np.float32
-        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad))
+        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
+                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne")
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
@@ -407,9 +426,11 @@ class Reconstructor:
             f32(self.max_sigma_mm if self.max_sigma_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
         )
+        recovered = np.zeros(frames.shape[1], np.int32)
         o = _fast.Outputs(out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
-                          out.phase if out.phase is not None else _NO_PHASE, out.sigma)
+                          out.phase if out.phase is not None else _NO_PHASE, out.sigma, recovered)
         _fast.fused_kernel(np.ascontiguousarray(frames), ph, m, o)
+        out.recovered = int(recovered.sum())
 
 
 _NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows

@@ -143,7 +143,9 @@ class Instrument:
     def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
         from app.recon import Reconstructor
+        from app.recon.patterns import check_pattern
 
+        check_pattern(cal.pattern, self.schedule, "projector")  # names orientation/unwrap mismatches
         if cal.pattern != self.schedule:
             raise ValueError("calibration: its pattern schedule differs from the projector's")
         if self.devices is not None:
@@ -153,7 +155,8 @@ class Instrument:
                     f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
                     f"the camera's {caps.width}x{caps.height}"
                 )
-        engine = Reconstructor(cal, fast=True)
+        bits = self.settings.bit_depth
+        engine = Reconstructor(cal, fast=True, max_code=None if bits == 8 else 2**bits - 1)
         if persist:
             calibration_store.save_active(self.settings, cal, name)
         with self._control_lock:
@@ -241,16 +244,19 @@ class Instrument:
                 break
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
                 return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
+                                  bit_depth=self.settings.bit_depth,
                                   extra={"frame_indices": fs.frame_indices})
         raise NotReady(f"no complete fringe set within {timeout_s:.0f} s")
 
     def reconstruct_capture(self, capture: CaptureSet) -> Any:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
         from app.recon import Reconstructor
+        from app.recon.patterns import check_pattern
 
         cal = self.calibration
         if cal is None:
             raise NotReady("no calibration is active")
+        check_pattern(cal.pattern, capture.schedule)
         if capture.schedule != cal.pattern:
             raise ValueError("capture: pattern schedule differs from the calibration's")
         cal.check_frames(capture.frames.shape)
@@ -258,7 +264,7 @@ class Instrument:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames)
+            return self._upload_engine.run(capture.frames, max_code=capture.max_code)
 
     def auto_exposure(self, *, saturation_limit: float = 0.005, max_exposure_ms: float = 100.0) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
@@ -332,6 +338,8 @@ class Instrument:
             "frames_dropped": acq.frames_dropped if acq else 0,
             "faults": acq.faults if acq else 0,
             "recording": getattr(self.recorder, "active_name", None),
+            "bit_depth": self.settings.bit_depth,
+            "schedule": self.schedule.to_dict(),
             "warnings": warnings,
         }
 

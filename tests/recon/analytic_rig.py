@@ -220,7 +220,9 @@ def reason_scene(
     rng = np.random.default_rng(seed)
     frames = rig.render(h, background=110 * scale, amplitude=90 * scale, noise=noise * scale,
                         dtype=dtype, rng=rng, max_code=top)
-    frames[5, patches["SATURATED"][0], patches["SATURATED"][1]] = top
+    # all but two shifts of the second frequency clipped: fewer than three left to fit
+    n = rig.schedule.steps
+    frames[n + 1 : 2 * n - 1, patches["SATURATED"][0], patches["SATURATED"][1]] = top
     flat = np.clip(np.rint(100 * scale + rng.normal(0, noise * scale, (rig.schedule.n_frames, 20, 25))), 0, top)
     frames[:, patches["LOW_MODULATION"][0], patches["LOW_MODULATION"][1]] = flat.astype(dtype)
     # shift the k = 4 fringes by π (N = 4: frame n ↔ n + 2): the 1 → 4 residual becomes ≈ π

@@ -105,7 +105,8 @@ class SimulatedCamera(Camera):
                                      bits=s.bit_depth)
             return Frame(data=data, index=index, timestamp=mid, pattern_index=pattern, exposure_ms=s.exposure_ms,
                          gain=s.gain, led=self.world.led if pattern >= 0 else "",
-                         meta={"scene_time_s": mid - self.world.epoch, "current": self.world.current})
+                         meta={"scene_time_s": mid - self.world.epoch, "current": self.world.current},
+                         bit_depth=s.bit_depth)
 
 
 class SimulatedProjector(Projector):

@@ -66,9 +66,9 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
     sim_meta: dict[str, object] = meta["simulated"]  # type: ignore[assignment]
     if world.rig.name != "default":  # the default rig's capture.json stays as it was
         sim_meta["rig"] = world.rig.name
-    if bit_depth != 8:
-        meta["bit_depth"] = bit_depth  # DESIGN.md's optional key: 12-bit codes in 16-bit PNGs
-    return CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta), depth, points
+    # bit_depth: the capture set's own key (DESIGN.md: 12-bit codes in 16-bit PNGs)
+    return (CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta,
+                       bit_depth=bit_depth), depth, points)
 
 
 def npy_bytes(arr: np.ndarray) -> bytes:

@@ -147,6 +147,18 @@ class ProjectorModel:
         g = self.R[:, 2].copy()
         return a, float(a @ self.centre), g, float(g @ self.centre)
 
+    def fringe_coordinate(self, points: F64, orientation: str = "vertical") -> F64:
+        """Projector coordinate along which the fringe phase grows: column (vertical fringes) or row."""
+        return self.column(points) if orientation == "vertical" else self.row(points)
+
+    def fringe_coefficients(self, orientation: str = "vertical") -> tuple[F64, float, F64, float]:
+        """:meth:`column_coefficients`, or for horizontal fringes the same for the projector row."""
+        if orientation == "vertical":
+            return self.column_coefficients()
+        a = self.K[1, 1] * self.R[:, 1] + self.K[1, 2] * self.R[:, 2]
+        g = self.R[:, 2].copy()
+        return a, float(a @ self.centre), g, float(g @ self.centre)
+
 
 @dataclass(frozen=True)
 class Plane:

@@ -99,7 +99,7 @@ def test_endoscope_frames_are_12_bit(endo_plane):
     cs, depth, _ = render_capture_set("plane", world=endo_plane, seed=4, exposure_ms=30.0)
     assert cs.frames.dtype == np.uint16 and cs.frames.shape == (16, 1024, 1280)
     assert 1000 < int(cs.frames.max()) <= 4095
-    assert cs.extra["bit_depth"] == 12 and cs.extra["simulated"]["rig"] == "endoscope"
+    assert cs.bit_depth == 12 and cs.extra["simulated"]["rig"] == "endoscope"
     assert np.isfinite(depth).mean() > 0.99
 
 
