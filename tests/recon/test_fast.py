@@ -184,3 +184,27 @@ def test_fast_agrees_with_numpy_on_clipped_samples(steps, frequencies, combine):
     assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
     both = ok & ref.valid & band
     assert abs(float(np.mean(a.depth[both] - ref.depth[both]))) < 0.01  # no bias from the refit
+
+
+@pytest.mark.parametrize(("schedule", "combine"), [
+    (dict(frequencies=(1, 4, 12, 36), steps=4), False),
+    (dict(frequencies=(1, 4, 12, 36), steps=4), True),
+    (dict(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwrap="heterodyne"), False),
+    (dict(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=5, unwrap="heterodyne"), True),
+])
+def test_fast_sigma_agrees_with_numpy_on_refitted_and_heterodyne_pixels(schedule, combine):
+    """The merged kernel: σ of the height stage follows the phase stage's refit and heterodyne chain."""
+    from app.recon import PatternSchedule
+
+    rig = Rig(schedule=PatternSchedule(**schedule))
+    steps = rig.schedule.steps
+    frames = rig.render(bump_surface(rig), background=130, amplitude=110, noise=0.5, rng=np.random.default_rng(3))
+    frames[::steps, 30:90] = 255  # one clipped shift per frequency: refitted
+    rec = Reconstructor(rig.calibration(), combine_frequencies=combine)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    assert np.array_equal(a.reason, b.reason) and a.recovered == b.recovered > 0
+    ok = a.valid
+    assert ok[30:90].mean() > 0.99
+    np.testing.assert_allclose(b.sigma[ok], a.sigma[ok], rtol=1e-4)
+    assert np.isnan(b.sigma[~ok]).all()
