@@ -42,6 +42,9 @@ class Settings(BaseSettings):
     # a static tissue scene: the simulator renders it faster than the camera rate, so every
     # set is complete; "anastomosis" (breathing + moving forceps) renders below 30 frames/s here
     sim_scene: str = "intestine_flap"
+    # rig preset of the simulator: "default" (the paper's rig) or "endoscope" (another sensor and
+    # lens, wide triangulation angle, barrel distortion k1 = -0.25, 12-bit sensor: set bit_depth = 12)
+    sim_rig: Literal["default", "endoscope"] = "default"
     sim_seed: int | None = None
     sim_drop_rate: float = Field(0.0, ge=0, le=1)
     sim_timeout_rate: float = Field(0.0, ge=0, le=1)

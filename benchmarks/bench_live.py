@@ -80,10 +80,13 @@ def main() -> int:
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--scene", default="intestine_flap", help="simulator scene (the serve default)")
     ap.add_argument("--viewer", action="store_true", help="also run the viser 3-D viewer")
+    ap.add_argument("--rig", choices=("default", "endoscope"), default="default",
+                    help="simulator rig preset (endoscope: 12-bit sensor)")
     args = ap.parse_args()
 
     settings = Settings(port=free_port(), data_dir=Path(args.data_dir), exposure_ms=args.exposure_ms,
-                        viewer=args.viewer, sim_seed=1, sim_scene=args.scene)
+                        viewer=args.viewer, sim_seed=1, sim_scene=args.scene, sim_rig=args.rig,
+                        bit_depth=12 if args.rig == "endoscope" else 8)
     base = f"http://127.0.0.1:{settings.port}"
     server, thread = start_server(settings)
     try:

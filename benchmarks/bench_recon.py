@@ -1,9 +1,10 @@
 """Reconstruction speed: fused numba kernel vs numpy oracle vs one memory pass.
 
 16 frames of 1384 × 1032 (the Grasshopper3), uint8 and uint16, a synthetic rig with a
-closed-form Eq. (5). Prints the median ms per set of each path and the ratios
-fast / memory pass and numpy / fast. Target: fast (with points) ≤ 5 ms and ≤ 3× the
-memory pass (``frames.sum()``).
+closed-form Eq. (5), and the same rig with the geometric depth model (``geometric``
+rows). Every run computes σ. Prints the median ms per set of each path and the ratios
+fast / memory pass and numpy / fast. Target: fast (with points and σ) ≤ 5 ms and ≤ 3×
+the memory pass (``frames.sum()``).
 """
 
 from __future__ import annotations
@@ -43,20 +44,22 @@ def median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
 def main() -> int:
     rig = Rig(width=WIDTH, height=HEIGHT, focal_px=200.0 * WIDTH / 160)
     height_mm = bump_surface(rig)
-    rec = Reconstructor(rig.calibration())
     print(f"bench_recon: 16 frames {WIDTH}x{HEIGHT}, {os.cpu_count()} CPUs, "
           f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
           f"load average {os.getloadavg()[0]:.1f} (wall times inflate when other work shares the CPUs)")
-    for dtype, scale in ((np.uint8, 1.0), (np.uint16, 16.0)):
+    geo = rig.geometric_calibration()
+    for model, dtype, scale in (("eq5", np.uint8, 1.0), ("eq5", np.uint16, 16.0),
+                                ("geometric", np.uint8, 1.0), ("geometric", np.uint16, 16.0)):
         frames = rig.render(height_mm, background=110 * scale, amplitude=90 * scale,
                             noise=1.0 * scale, dtype=dtype, max_code=4095 if dtype == np.uint16 else None)
-        rec16 = rec if dtype == np.uint8 else Reconstructor(rig.calibration(), max_code=4095)
+        cal = rig.calibration() if model == "eq5" else geo
+        rec16 = Reconstructor(cal, max_code=4095 if dtype == np.uint16 else None)
         res = rec16.run(frames)
         mem, mem_cpu = median_ms(lambda f=frames: f.sum(), 15)
         fast, fast_cpu = median_ms(lambda r=rec16, f=frames: r.run(f), 30)
         numpy_ms, _ = median_ms(lambda r=rec16, f=frames: r.run(f, fast=False), 3)
-        name = np.dtype(dtype).name
-        print(f"{name:6s} fast {fast:7.2f} ms (cpu {fast_cpu:6.1f})  numpy {numpy_ms:7.1f} ms  "
+        name = f"{np.dtype(dtype).name:6s} {model:9s}"
+        print(f"{name} fast {fast:7.2f} ms (cpu {fast_cpu:6.1f})  numpy {numpy_ms:7.1f} ms  "
               f"memory pass {mem:6.2f} ms (cpu {mem_cpu:5.1f})  fast/memory {fast / mem:4.2f}  "
               f"numpy/fast {numpy_ms / fast:5.1f}  valid {res.valid.mean():.3f}")
     return 0

@@ -19,11 +19,11 @@ import numpy as np
 TARGET_FPS = 45.0
 
 
-def bench(scene: str, frames: int) -> None:
+def bench(scene: str, frames: int, rig: str = "default") -> None:
     from app.core.schedule import PatternSchedule
     from app.devices.sim import create_sim_devices
 
-    dev = create_sim_devices(scene=scene, seed=1, realtime=False)
+    dev = create_sim_devices(scene=scene, seed=1, realtime=False, rig=rig)
     cam, proj = dev.camera, dev.projector
     cam.open()
     proj.open()
@@ -40,15 +40,16 @@ def bench(scene: str, frames: int) -> None:
     proj.close()
 
     rng = np.random.default_rng(0)
-    h, w = 1032, 1384
+    w, h = dev.world.rig.image_size
+    dtype = np.uint8 if cam.settings.bit_depth == 8 else np.uint16
     b0, bc0 = time.perf_counter(), time.process_time()
     for _ in range(frames):
-        rng.integers(0, 256, size=(h, w), dtype=np.uint8)
+        rng.integers(0, 2**cam.settings.bit_depth, size=(h, w), dtype=dtype)
     bwall, bcpu = time.perf_counter() - b0, time.process_time() - bc0
     fps, fps_cpu = frames / wall, frames / cpu
     print(f"{scene:16s} {fps:7.1f} frames/s wall ({fps / TARGET_FPS:4.2f}x target), "
           f"{fps_cpu:7.1f} per CPU-s ({fps_cpu / TARGET_FPS:4.2f}x target); "
-          f"numpy uint8 noise baseline {frames / bwall:7.1f}/s wall, {frames / bcpu:7.1f}/CPU-s; "
+          f"numpy {np.dtype(dtype).name} noise baseline {frames / bwall:7.1f}/s wall, {frames / bcpu:7.1f}/CPU-s; "
           f"sim/baseline {fps / (frames / bwall):4.2f} wall, {fps_cpu / (frames / bcpu):4.2f} CPU")
 
 
@@ -56,9 +57,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--scenes", nargs="*", default=["plane", "dof_target", "intestine_pile", "anastomosis"])
     ap.add_argument("--frames", type=int, default=64)
+    ap.add_argument("--rig", default="default", help="simulator rig preset: default or endoscope")
     args = ap.parse_args()
     for s in args.scenes:
-        bench(s, args.frames)
+        bench(s, args.frames, args.rig)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,10 @@ def test_reconstruct_writes_outputs(tmp_path, capsys):
     assert np.max(np.abs(depth[ok] - h[ok])) < 0.1
     cloud = read_ply(out / "points.ply")
     assert cloud.size == ok.sum()
+    sigma = np.load(out / "sigma.npy")
+    assert sigma.dtype == np.float32 and np.array_equal(np.isfinite(sigma), ok)
+    assert 0.0 < np.nanmedian(sigma) < 0.1
+    np.testing.assert_array_equal(cloud["sigma_mm"], sigma[ok])
     for name in ("depth.png", "reason.png"):
         img = cv2.imread(str(out / name))
         assert img is not None and img.shape[0] >= h.shape[0]
@@ -70,3 +74,16 @@ def test_bad_calibration_is_one_line_error(tmp_path, capsys):
                "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "calibration" in err[0]
+
+
+def test_corrupted_geometric_calibration_is_one_line_error(tmp_path, capsys):
+    import json
+
+    _setup(tmp_path)
+    data = json.loads((tmp_path / "calibration.json").read_text())
+    data["model"] = {"name": "geometric", "rvec": [0.0, "x", 0.0]}
+    (tmp_path / "calibration.json").write_text(json.dumps(data))
+    rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "model" in err[0], err

@@ -170,3 +170,84 @@ def projector_incidence_cos(points: npt.ArrayLike, normals: npt.ArrayLike,
     dist = np.linalg.norm(to_projector, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.asarray((n * to_projector).sum(-1) / dist, np.float64)
+
+
+def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tuple[float, float],
+                  sigma_mm: npt.ArrayLike, *, lit: npt.ArrayLike | None = None, gross_mm: float = 0.5,
+                  grid: tuple[int, int] = (3, 3)) -> list[dict[str, Any]]:
+    """Acceptance figures in each cell of a ``grid`` (rows, cols) split of the image — every ninth by default.
+
+    Args:
+        result: a ``ReconResult`` (``depth`` (H, W) mm NaN invalid, ``valid`` (H, W) bool,
+            ``reason`` (H, W) uint8 :class:`~app.core.reasons.Reason`).
+        truth_depth: (H, W) true height, mm, NaN off-object.
+        height_range_mm: (lo, hi) calibrated height range, mm: inside it a pixel is "in the volume".
+        sigma_mm: (H, W) predicted 1-σ depth noise per pixel, mm (e.g. ``ReconResult.sigma``).
+        lit: optional (H, W) bool: pixels the projector lights (default: every pixel with a truth).
+        gross_mm: an error beyond this on a valid pixel is gross.
+        grid: (rows, cols) of the split.
+
+    Returns:
+        One dict per cell, row-major: ``row``, ``col``; in the volume: ``pixels`` (lit, unsaturated),
+        ``valid_fraction``, ``mean_error_mm``, ``rms_mm``, ``floor_mm`` (RMS of ``sigma_mm`` over the
+        same valid pixels), ``rms_ratio`` (rms / floor), ``std_ratio`` (std / floor), ``gross``
+        (valid pixels with |error| > gross_mm), ``max_abs_error_mm``; outside the volume:
+        ``outside_pixels``, ``outside_valid``, ``outside_gross``, ``outside_max_abs_error_mm``.
+        Figures of an empty set are NaN.
+    """
+    from app.core.reasons import Reason
+
+    depth = np.asarray(result.depth, np.float64)
+    truth = np.asarray(truth_depth, np.float64)
+    sig = np.asarray(sigma_mm, np.float64)
+    valid = np.asarray(result.valid, bool)
+    if truth.shape != depth.shape:
+        raise ValueError(f"truth_depth: shape {truth.shape} does not match depth {depth.shape}")
+    if sig.shape != depth.shape:
+        raise ValueError(f"sigma_mm: shape {sig.shape} does not match depth {depth.shape}")
+    rows, cols = (int(g) for g in grid)
+    if rows < 1 or cols < 1:
+        raise ValueError(f"grid: need positive (rows, cols), got {grid}")
+    lo, hi = (float(x) for x in height_range_mm)
+    if not lo < hi:
+        raise ValueError(f"height_range_mm: need lo < hi, got {height_range_mm}")
+    lit_m = np.isfinite(truth) if lit is None else np.asarray(lit, bool) & np.isfinite(truth)
+    unsat = np.asarray(result.reason) != Reason.SATURATED
+    with np.errstate(invalid="ignore"):
+        inside = lit_m & (truth >= lo) & (truth <= hi)
+        outside = lit_m & ~((truth >= lo) & (truth <= hi))
+    err = depth - truth
+    h, w = depth.shape
+    ys = np.linspace(0, h, rows + 1).round().astype(int)
+    xs = np.linspace(0, w, cols + 1).round().astype(int)
+    nan = math.nan
+    cells = []
+    for r in range(rows):
+        for c in range(cols):
+            win = (slice(ys[r], ys[r + 1]), slice(xs[c], xs[c + 1]))
+            ins = inside[win] & unsat[win]
+            ok = ins & valid[win]
+            e = err[win][ok]
+            s = sig[win][ok]
+            s = s[np.isfinite(s)]
+            floor = float(np.sqrt(np.mean(s**2))) if s.size else nan
+            rms = float(np.sqrt(np.mean(e**2))) if e.size else nan
+            out_m = outside[win]
+            out_ok = out_m & valid[win]
+            eo = np.abs(err[win][out_ok])
+            cells.append({
+                "row": r, "col": c, "pixels": int(ins.sum()),
+                "valid_fraction": float(ok.sum() / ins.sum()) if ins.any() else nan,
+                "mean_error_mm": float(e.mean()) if e.size else nan,
+                "rms_mm": rms,
+                "floor_mm": floor,
+                "rms_ratio": rms / floor if e.size and floor > 0 else nan,
+                "std_ratio": float(e.std()) / floor if e.size > 1 and floor > 0 else nan,
+                "gross": int((np.abs(e) > gross_mm).sum()),
+                "max_abs_error_mm": float(np.abs(e).max()) if e.size else nan,
+                "outside_pixels": int(out_m.sum()),
+                "outside_valid": int(out_ok.sum()),
+                "outside_gross": int((eo > gross_mm).sum()),
+                "outside_max_abs_error_mm": float(eo.max()) if eo.size else nan,
+            })
+    return cells

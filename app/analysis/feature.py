@@ -1,18 +1,28 @@
 """Height of a raised feature (a suture) over the surrounding surface, as a caliper would see it.
 
 The feature is segmented by an intensity threshold on the texture image (optionally
-also by its height over a first baseline), a smooth baseline surface is fitted to a
-ring of pixels around it, and the crest height above that baseline is taken in every
-cross-section along the feature's length: its mean ± std is the feature height.
+also by its height over a first baseline); its polarity (darker or brighter than the
+surroundings) is, unless given, the one whose segment stands above the surface. A smooth
+baseline surface is fitted to a ring of pixels around it, and each 1-px cross-section
+across the feature's long axis is levelled by a line through its two flanks (a caliper
+rests on both sides). Then one crest profile — a parabola across the feature about a
+straight crest axis, h = H − k·(t − a − b·s)² — is fitted by least squares to the central
+part of *all* cross-sections at once: the height H is a linear least-squares estimate
+given the shared shape, so its expectation does not move with the depth noise (the apex
+of a per-section parabola, c + b²/4|a|, is pushed up by var(b)/4|a|; a maximum is pushed
+up by the noise itself). Its standard error comes from a block jackknife over the
+cross-sections (neighbouring sections share blur, so blocks, not single sections).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.optimize import least_squares
 
 from app.analysis.common import roi_mask
 
@@ -24,12 +34,17 @@ class FeatureHeight:
     """Result of :func:`feature_height`.
 
     Attributes:
-        height_mm: mean crest height over the cross-sections, mm.
-        height_std_mm: standard deviation of the crest heights, mm.
+        height_mm: crest height H of the profile fitted to all cross-sections, mm.
+        height_std_mm: standard deviation of the per-section crest heights, mm (the spread a
+            caliper would see along the feature).
         count: cross-sections measured.
         mask: (H, W) bool segmented feature pixels.
-        crest_heights_mm: (count,) per cross-section crest heights, mm.
+        crest_heights_mm: (count,) per cross-section crest heights, mm: each section's mean
+            of h + k·(t − axis)² with the shared profile (their pixel-weighted mean is H).
         baseline_rms_mm: RMS residual of the baseline surface fit, mm.
+        height_se_mm: standard error of ``height_mm``, mm (block jackknife over sections).
+        polarity: ``"bright"`` or ``"dark"`` (as given, or as found).
+        curvature_per_px2: k of the fitted profile, mm/px².
     """
 
     height_mm: float
@@ -38,14 +53,25 @@ class FeatureHeight:
     mask: npt.NDArray[np.bool_]
     crest_heights_mm: F64
     baseline_rms_mm: float
+    height_se_mm: float = math.nan
+    polarity: str = "bright"
+    curvature_per_px2: float = math.nan
+
+
+@dataclass
+class _Section:
+    comp: int  # index of the connected segment
+    s0: float  # position along the segment's axis, px
+    t: F64  # across-axis coordinates (px) of the section's central pixels
+    h: F64  # their heights over the flank line, mm
 
 
 def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.ArrayLike | None = None, *,
                    roi: tuple[int, int, int, int] | None = None, threshold: float | None = None,
-                   polarity: str = "bright", height_threshold_mm: float | None = None,
+                   polarity: str | None = None, height_threshold_mm: float | None = None,
                    ring_px: tuple[int, int] = (4, 16), min_area_px: int = 30,
-                   min_section_px: int = 3, slab_px: float = 3.0) -> FeatureHeight:
-    """Crest height of a feature over a fitted baseline.
+                   min_section_px: int = 3, slab_px: float = 3.0, block_sections: int = 10) -> FeatureHeight:
+    """Crest height of a feature over a fitted baseline (noise-unbiased, with its standard error).
 
     Args:
         depth: (H, W) float height map, mm, NaN invalid.
@@ -53,7 +79,9 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         valid: optional (H, W) bool mask (combined with finiteness of ``depth``).
         roi: (x0, y0, x1, y1) pixel box (x1, y1 exclusive) around the feature.
         threshold: intensity threshold; default Otsu's threshold inside the ROI.
-        polarity: ``"bright"`` (feature brighter than surroundings) or ``"dark"``.
+        polarity: ``"bright"`` (feature brighter than surroundings), ``"dark"``, or None:
+            found — the side of the threshold whose pixels stand higher above a baseline
+            fitted to the whole ROI (a suture lies *on* the tissue).
         height_threshold_mm: if given, feature pixels must also stand this high above a
             first baseline fitted to the whole ROI.
         ring_px: (inner, outer) distance in pixels of the baseline ring from the feature.
@@ -61,6 +89,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         min_section_px: cross-sections with fewer feature pixels are skipped.
         slab_px: half-length along the feature of the flank pixels used for each
             cross-section's local baseline line.
+        block_sections: consecutive sections per jackknife block (≥ the blur's correlation length).
 
     Returns:
         A :class:`FeatureHeight`.
@@ -71,11 +100,13 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: expected (H, W), got shape {z.shape}")
     if tex.shape != z.shape:
         raise ValueError(f"texture: shape {tex.shape} does not match depth {z.shape}")
-    if polarity not in ("bright", "dark"):
-        raise ValueError(f"polarity: must be 'bright' or 'dark', got {polarity!r}")
+    if polarity not in (None, "bright", "dark"):
+        raise ValueError(f"polarity: must be 'bright', 'dark' or None (found), got {polarity!r}")
     inner, outer = (int(r) for r in ring_px)
     if not 0 <= inner < outer:
         raise ValueError(f"ring_px: need 0 <= inner < outer, got {ring_px}")
+    if int(block_sections) != block_sections or block_sections < 1:
+        raise ValueError(f"block_sections: need a positive integer, got {block_sections}")
     area = roi_mask(z.shape, roi)
     ok = area & np.isfinite(z) & np.isfinite(tex)
     if valid is not None:
@@ -87,13 +118,16 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: only {int(ok.sum())} valid pixels in the ROI")
     if threshold is None:
         threshold = _otsu(tex[ok])
+    first, _ = _fit_baseline(z, ok)  # robust quadratic over the ROI: the surface the feature lies on
+    if polarity is None:
+        polarity = _find_polarity(z - first, tex, ok, threshold)
     mask = area & ((tex > threshold) if polarity == "bright" else (tex < threshold))
     if height_threshold_mm is not None:
-        first, _ = _fit_baseline(z, ok)
         mask &= (z - first) > height_threshold_mm
     labels, comps = _components(mask, min_area_px)
     if not comps:
         raise ValueError("threshold: no feature segment found in the ROI")
+    labels = _grow_by_height(labels, comps, z - first, ok, outer)
     mask = np.isin(labels, comps)
     near = cv2.dilate(mask.astype(np.uint8), _disk(inner)) > 0 if inner else mask
     far = cv2.dilate(mask.astype(np.uint8), _disk(outer)) > 0
@@ -102,30 +136,85 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError("ring_px: too few valid baseline pixels around the feature")
     baseline, rms = _fit_baseline(z, ring)
     resid = z - baseline
-    crests: list[float] = []
-    for c in comps:
-        crests += _crest_heights(resid, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1)
-    if not crests:
+    sections: list[_Section] = []
+    for i, c in enumerate(comps):
+        sections += _sections(resid, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i)
+    if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
-    arr = np.asarray(crests)
+    height, k, per_section, _, se = _joint_profile(sections, int(block_sections))
+    # The jackknife over sections cannot see the baseline surface's own error, common to all of
+    # them where the flank lines do not absorb it (its curvature across the feature): add it,
+    # propagated linearly through the same sections.
+    basis, cov = _baseline_covariance(z, ring, baseline, rms)
+    effect = np.zeros(len(basis))
+    for m, phi in enumerate(basis):
+        moved: list[_Section] = []
+        for i, c in enumerate(comps):
+            moved += _sections(phi, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i)
+        hm = np.concatenate([sec.h for sec in moved])
+        effect[m] = -float(hm.mean())
+    se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0))) if math.isfinite(se) else se
     return FeatureHeight(
-        height_mm=float(arr.mean()),
-        height_std_mm=float(arr.std(ddof=1)) if len(arr) > 1 else 0.0,
-        count=len(arr),
+        height_mm=height,
+        height_std_mm=float(per_section.std(ddof=1)) if len(per_section) > 1 else 0.0,
+        count=len(per_section),
         mask=mask,
-        crest_heights_mm=arr,
+        crest_heights_mm=per_section,
         baseline_rms_mm=rms,
+        height_se_mm=se,
+        polarity=polarity,
+        curvature_per_px2=k,
     )
 
 
-def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-                   slab_px: float, reach_px: float) -> list[float]:
-    """Crest per 1-px cross-section across the segment's long axis.
+def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64, ok: npt.NDArray[np.bool_],
+                    reach_px: int) -> npt.NDArray[np.int32]:
+    """Each segment widened, within ``reach_px``, to the pixels standing above half its median height.
 
-    In each cross-section the baseline is refined by a line through the ring pixels on
-    both flanks (within ``slab_px`` along the axis), as a caliper rests on both sides;
-    the crest is a parabola through the central part of the profile, evaluated on the
-    feature's axis (:func:`_crests_on_axis`).
+    An intensity threshold can miss a round thread's flanks (a bright thread's sides are
+    lit obliquely and darker than its top); left out, they would fall into the baseline ring
+    and lift the baseline. A thread on a surface stands at least its radius — half its
+    height — over it everywhere across its width, so half the median height of the segment
+    catches its whole width.
+    """
+    sel = np.isin(labels, comps) & ok
+    if not sel.any():
+        return labels
+    level = 0.5 * float(np.median(resid[sel]))
+    if not level > 0:
+        return labels
+    raised = ok & (resid > level)
+    out = labels.copy()
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for c in comps:
+        grown = (labels == c).astype(np.uint8)
+        for _ in range(reach_px):  # geodesic: one pixel a step, only through raised pixels
+            step = (cv2.dilate(grown, cross) > 0) & raised & ((out == 0) | (out == c))
+            if not (step & (grown == 0)).any():
+                break
+            grown[step] = 1
+        out[(grown > 0) & (out == 0)] = c
+    return out
+
+
+def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: float) -> str:
+    """``"bright"`` if the pixels above the threshold stand higher (median) over the ROI baseline than
+    those below it, else ``"dark"``: the raised feature is the side of the threshold that stands up."""
+    bright = ok & (tex > threshold)
+    dark = ok & (tex < threshold)
+    if not bright.any() or not dark.any():
+        raise ValueError("threshold: splits nothing in the ROI, cannot tell the feature's polarity")
+    return "bright" if float(np.median(resid[bright])) > float(np.median(resid[dark])) else "dark"
+
+
+def _sections(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
+              slab_px: float, reach_px: float, comp: int) -> list[_Section]:
+    """Cross-sections (1 px along the segment's long axis) levelled by a line through both flanks.
+
+    In each cross-section the baseline is refined by a line through the ring pixels on both
+    flanks (within ``slab_px`` along the axis), as a caliper rests on both sides; the central
+    60 % of the section, chosen by position (not by value, which would favour upward noise),
+    is kept — the part of a round thread a parabola describes well.
     """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
@@ -145,7 +234,7 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
     r_order = np.argsort(r_along)
     r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]
     section = np.rint(along).astype(np.int64)
-    fits: list[tuple[float, npt.NDArray[np.float64] | None, float, float, float]] = []
+    out: list[_Section] = []
     order = np.argsort(section, kind="stable")
     bounds = np.flatnonzero(np.diff(section[order])) + 1
     for idx in np.split(order, bounds):
@@ -158,54 +247,85 @@ def _crest_heights(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.
             continue  # a caliper needs ground on both sides
         slope, inter = np.polyfit(fa, fv, 1)
         t, h = across[idx], r[idx] - (slope * across[idx] + inter)
-        # The central 60 % of the cross-section, chosen by position (not by value, which
-        # would favour upward noise) — the part of a round thread a parabola fits well.
         t_c, half = 0.5 * (t.max() + t.min()), 0.5 * float(np.ptp(t))
         top = np.abs(t - t_c) <= 0.6 * half
-        coef = None
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
-            # kept whatever its curvature: dropping the noisy ones that curve up would
-            # keep a biased (upward) sample
-            coef = np.polyfit(t[top], h[top], 2)
-        fits.append((s0, coef, float(t[top].min()), float(t[top].max()), float(np.median(np.sort(h)[-3:]))))
-    return _crests_on_axis(fits)
-
-
-def _crests_on_axis(fits: list[tuple[float, npt.NDArray[np.float64] | None, float, float, float]]) -> list[float]:
-    """Each cross-section's parabola evaluated on the feature's axis.
-
-    The apex of a noisy parabola, c + b²/4|a|, is biased upward by var(b)/4|a|; the
-    value at a fixed position is linear in the coefficients, hence unbiased. The axis
-    (the crest's position across the feature, a line along it) comes from all the
-    sections' apexes at once, robustly. Sections without a usable parabola give the
-    median of their three highest points.
-    """
-    apex = [(s0, t) for s0, c, lo, hi, _ in fits if (t := _apex(c, lo, hi)) is not None]
-    axis = None
-    if len(apex) >= 5:
-        s_a, t_a = np.asarray(apex).T
-        keep = np.ones(len(s_a), bool)
-        for _ in range(3):  # clip apexes far from the line: neighbours' knots, bad sections
-            axis = np.polyfit(s_a[keep], t_a[keep], 1)
-            e = t_a - np.polyval(axis, s_a)
-            keep = np.abs(e) <= max(3.0 * 1.4826 * float(np.median(np.abs(e[keep]))), 0.5)
-    out = []
-    for s0, c, lo, hi, fallback in fits:
-        if c is not None and axis is not None and lo <= np.polyval(axis, s0) <= hi:
-            out.append(float(np.polyval(c, np.polyval(axis, s0))))
-        elif c is not None and axis is None and (t := _apex(c, lo, hi)) is not None:
-            out.append(float(np.polyval(c, t)))
-        else:
-            out.append(fallback)
+            out.append(_Section(comp, s0, t[top], h[top]))
     return out
 
 
-def _apex(coef: npt.NDArray[np.float64] | None, lo: float, hi: float) -> float | None:
-    """Position of a downward parabola's apex when it lies within [lo, hi], else None."""
-    if coef is None or coef[0] >= 0:
-        return None
-    t = -coef[1] / (2 * coef[0])
-    return float(t) if lo <= t <= hi else None
+def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, F64, F64, float]:
+    """Fit h = H − k·(t − a_c − b_c·s)² to every section's central pixels at once (one H and k;
+    a crest axis a_c + b_c·s per segment c); 4σ (MAD) outliers are dropped once and the fit redone.
+    The standard error of H is a delete-one-block jackknife (blocks of ``block`` consecutive
+    sections in a segment), each block's fit redone, so the shape's own uncertainty counts.
+
+    Returns (H, k, per-section heights (n,), their weights (n,) = pixels used, standard error of H).
+    """
+    comp = np.concatenate([np.full(len(s.t), s.comp) for s in sections])
+    sec = np.concatenate([np.full(len(s.t), i) for i, s in enumerate(sections)])
+    s_pos = np.concatenate([np.full(len(s.t), s.s0) for s in sections])
+    t = np.concatenate([s.t for s in sections])
+    h = np.concatenate([s.h for s in sections])
+    n_comp = int(comp.max()) + 1
+    s_ref = np.array([s_pos[comp == c].mean() if np.any(comp == c) else 0.0 for c in range(n_comp)])
+    ds = s_pos - s_ref[comp]
+
+    def model(x: F64, sel: npt.NDArray[np.bool_]) -> F64:
+        a, b = x[2 : 2 + n_comp], x[2 + n_comp :]
+        d = t[sel] - a[comp[sel]] - b[comp[sel]] * ds[sel]
+        return x[0] - x[1] * d * d
+
+    # The crest axis stays among the sections' central pixels and the profile curves down: a
+    # free axis far to one side with k → 0 would turn the parabola into a tilted line.
+    t_lo = np.array([t[comp == c].min() if np.any(comp == c) else -1.0 for c in range(n_comp)])
+    t_hi = np.array([t[comp == c].max() if np.any(comp == c) else 1.0 for c in range(n_comp)])
+    lower = np.concatenate([[-np.inf, 0.0], t_lo, np.full(n_comp, -0.5)])
+    upper = np.concatenate([[np.inf, np.inf], t_hi, np.full(n_comp, 0.5)])
+
+    def solve(x_start: F64, sel: npt.NDArray[np.bool_]) -> F64:
+        x_start = np.clip(x_start, np.nextafter(lower, upper), np.nextafter(upper, lower))
+        return np.asarray(least_squares(lambda p: model(p, sel) - h[sel], x_start, bounds=(lower, upper),
+                                        method="trf", x_scale="jac").x)
+
+    # start: a shared parabola in t about each segment's mean position
+    a0 = np.array([t[comp == c].mean() if np.any(comp == c) else 0.0 for c in range(n_comp)])
+    c2, _, c0 = np.polyfit(t - a0[comp], h, 2)
+    x = np.concatenate([[c0, max(-c2, 1e-6)], a0, np.zeros(n_comp)])
+    use = np.ones(len(h), bool)
+    everything = np.ones(len(h), bool)
+    for _ in range(2):
+        x = solve(x, use)
+        e = h - model(x, everything)
+        sigma = 1.4826 * float(np.median(np.abs(e[use])))
+        new = np.abs(e) <= max(4.0 * sigma, 1e-9)
+        if np.array_equal(new, use) or new.sum() <= len(x):
+            break
+        use = new
+    k = float(x[1])
+    lifted = h + (x[0] - model(x, everything))  # h + k·d²: each pixel's estimate of H
+    n = len(sections)
+    per = np.full(n, np.nan)
+    w = np.zeros(n)
+    for i in range(n):
+        m = (sec == i) & use
+        if m.any():
+            per[i] = float(lifted[m].mean())
+            w[i] = float(m.sum())
+    keep = w > 0
+    # jackknife blocks: consecutive sections of one segment (sections are in order along each)
+    sec_comp = np.array([s.comp for s in sections], np.int64)
+    labels = np.zeros(n, np.int64)
+    nxt = 0
+    for c in np.unique(sec_comp):
+        idx = np.flatnonzero(sec_comp == c)
+        labels[idx] = nxt + np.arange(len(idx)) // block
+        nxt = int(labels[idx].max()) + 1
+    se = math.nan
+    if nxt >= 2:
+        est = np.array([solve(x, use & (labels[sec] != j))[0] for j in range(nxt)])
+        se = float(math.sqrt((nxt - 1) / nxt * np.sum((est - est.mean()) ** 2)))
+    return float(x[0]), k, per[keep], w[keep], se
 
 
 def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
@@ -233,6 +353,34 @@ def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
         keep = new
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     return design(xx, yy) @ coef, float(np.sqrt(np.mean(e[keep] ** 2)))
+
+
+def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float) -> tuple[F64, F64]:
+    """Basis images (6, H, W) of :func:`_fit_baseline`'s quadratic and the covariance (6, 6) of its
+    coefficients, rms²·(AᵀA)⁻¹ over the pixels it kept (|residual| ≤ 3·rms, as its clipping)."""
+    h, w = z.shape
+    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (xx - cx) / s, (yy - cy) / s
+    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
+    a = basis[:, kept].T
+    return basis, rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+
+
+def _correlation_factor(resid: F64, sel: npt.NDArray[np.bool_], box: int = 5) -> float:
+    """How much spatial correlation inflates the variance of a mean over many pixels: the variance of
+    ``box``×``box`` means over boxes wholly in ``sel``, times box², over the pixel variance (1 for
+    independent pixels; clipped to 1 … box²)."""
+    m = sel.astype(np.float64)
+    full = cv2.boxFilter(m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT) > 1 - 1e-9
+    if full.sum() < 10 or sel.sum() < 10:
+        return 1.0
+    means = cv2.boxFilter(resid * m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT)[full]
+    var = float(np.var(resid[sel]))
+    if not var > 0:
+        return 1.0
+    return float(np.clip(np.var(means) * box * box / var, 1.0, box * box))
 
 
 def _components(mask: npt.NDArray[np.bool_], min_area: int) -> tuple[npt.NDArray[np.int32], list[int]]:

@@ -108,6 +108,8 @@ def solve(
         "reprojection_px": _num(report.reprojection_px),
         "height_range_mm": list(report.calibration.height_range_mm),
         "table": report.table(),
+        "model": report.calibration.model.name,
+        "held_out": report.held_out,
     }
 
 

@@ -10,7 +10,7 @@ from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument, result_headers
 from app.api.errors import COMMON, R400, R409, R413, R415, R422
-from app.api.schemas import ReconstructSummary, ResultMeta
+from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.service import encoding
 from app.service.instrument import Instrument
@@ -33,11 +33,30 @@ def depth_latest(
     format: Literal["npy", "png", "color", "tiff"] = "npy",
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),
+    field: Literal["depth", "sigma"] = Query("depth", description="depth, or sigma: its 1-σ noise, mm"),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:
-    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar."""
+    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar.
+
+    ``field=sigma`` gives the per-pixel 1-σ depth noise (mm) in the same encodings
+    (``color`` defaults to 0–0.1 mm)."""
     res = inst.latest_result()
     headers = result_headers(res.metadata())
+    if field == "sigma":
+        sig = res.sigma if res.sigma is not None else np.full_like(res.depth, np.nan)
+        name = {"npy": "sigma.npy", "png": "sigma_um.png", "tiff": "sigma.tiff", "color": "sigma_color.png"}[format]
+        if format == "npy":
+            return binary(res.cached("sigma-npy", lambda: encoding.npy_bytes(sig)), "application/octet-stream",
+                          headers, name)
+        if format == "png":
+            return binary(res.cached("sigma-png", lambda: encoding.depth_png_um(sig)), "image/png", headers, name)
+        if format == "tiff":
+            from app.capture.recording import depth_tiff_bytes
+
+            return binary(res.cached("sigma-tiff", lambda: depth_tiff_bytes(sig)), "image/tiff", headers, name)
+        srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm, 0.1 if max_mm is None else max_mm)
+        return binary(res.cached(("sigma-color", srng), lambda: encoding.depth_color_png(sig, srng)), "image/png",
+                      headers, name)
     if format == "npy":
         data = res.cached("npy", lambda: encoding.npy_bytes(res.depth))
         return binary(data, "application/octet-stream", headers, "depth.npy")
@@ -80,7 +99,7 @@ def reason_legend() -> dict[str, Any]:
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Valid points (camera frame, mm) with texture intensity, binary PLY."""
     res = inst.latest_result()
-    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture))
+    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture, res.sigma))
     return binary(data, "application/octet-stream", result_headers(res.metadata()), "points.ply")
 
 
@@ -112,4 +131,38 @@ async def reconstruct(
         height_max_mm=float(finite.max()) if finite.size else None,
         elapsed_ms=float(res.elapsed_ms),
         shape=list(res.depth.shape),
+    )
+
+
+@router.post(
+    "/phase",
+    response_model=PhaseSummary,
+    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R413, **R415, **R422, **COMMON},
+    openapi_extra={"requestBody": {"content": {
+        "multipart/form-data": {"schema": {"type": "object", "properties": {
+            "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
+        "application/zip": {"schema": {"type": "string", "format": "binary"}},
+    }}},
+)
+async def phase(
+    request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
+) -> Any:
+    """Unwrapped phase of an uploaded capture set, no calibration needed (``format=npy``: phase.npy)."""
+    from starlette.concurrency import run_in_threadpool
+
+    from app.service.phase import decode_capture
+
+    capture = await capture_from_request(request, int(inst.settings.max_upload_mb * 1024 * 1024))
+    res = await run_in_threadpool(decode_capture, capture)
+    if format == "npy":
+        return binary(encoding.npy_bytes(res.phase), "application/octet-stream", None, "phase.npy")
+    finite = res.phase[np.isfinite(res.phase)]
+    return PhaseSummary(
+        valid_fraction=float(np.isfinite(res.phase).mean()),
+        phase_min_rad=float(finite.min()) if finite.size else None,
+        phase_max_rad=float(finite.max()) if finite.size else None,
+        recovered_pixels=res.recovered,
+        bit_depth=capture.bit_depth or (8 if capture.frames.dtype == np.uint8 else 16),
+        schedule=capture.schedule.to_dict(),
+        shape=list(res.phase.shape),
     )

@@ -82,6 +82,9 @@ class CalibrationSummary(BaseModel):
     image_size: list[int] = []
     software_version: str = ""
     poses: int = 0
+    model: str = Field("eq5", description="active depth model: eq5 | geometric")
+    held_out: dict[str, dict[str, float | int | str | None]] = Field(
+        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
 
 
 class StatusOut(BaseModel):
@@ -106,6 +109,8 @@ class StatusOut(BaseModel):
     frames_dropped: int
     faults: int
     recording: str | None = None  # issue 7: name of the running recording
+    bit_depth: int | None = None  # issue 14: the camera's significant bits
+    schedule: dict[str, Any] | None = None  # issue 14: the fringe pattern schedule in use
     warnings: list[str]
 
 
@@ -120,6 +125,18 @@ class ResultMeta(BaseModel):
     latency_ms: float
     recon_ms: float
     valid_fraction: float
+    shape: list[int]
+
+
+class PhaseSummary(BaseModel):
+    """``POST /api/phase``: calibration-free decoding of an uploaded capture set."""
+
+    valid_fraction: float
+    phase_min_rad: float | None
+    phase_max_rad: float | None
+    recovered_pixels: int = Field(description="pixels with clipped samples fitted from the unclipped ones")
+    bit_depth: int
+    schedule: dict[str, Any]
     shape: list[int]
 
 
@@ -194,6 +211,9 @@ class SolveOut(BaseModel):
     reprojection_px: float | None
     height_range_mm: list[float]
     table: str
+    model: str = Field("eq5", description="the depth model the fit keeps: eq5 | geometric")
+    held_out: dict[str, dict[str, float | int | str | None]] = Field(
+        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
 
 
 class ActivateIn(Strict):

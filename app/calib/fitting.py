@@ -19,9 +19,18 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
-from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize
+from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
+from app.core.depth_model import (
+    MODEL_NAMES,
+    BoardSamples,
+    DepthModel,
+    ReferencePlane,
+    region_from_samples,
+)
+from app.core.eq5 import Eq5Model
+from app.core.geometric import GeometricModel
 from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
@@ -80,6 +89,8 @@ class CalibrationReport:
     poses: list[PoseReport] = field(default_factory=list)
     rms_mm: float = math.nan
     reprojection_px: float = math.nan
+    held_out: dict[str, dict[str, float | int | str | None]] = field(default_factory=dict)
+    uncovered: list[str] = field(default_factory=list)
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -97,7 +108,25 @@ class CalibrationReport:
             f"{'all':>4}  {'':<10} {sum(p.corners for p in self.poses):>7} {self.reprojection_px:>9.3f} "
             f"{self.rms_mm:>10.4f} {sum(p.points for p in self.poses):>6}  {lo:>7.2f}..{hi:<6.2f}"
         )
+        if self.uncovered:
+            lines.append(f"no control points in the {', '.join(self.uncovered)} ninth(s) of the image: "
+                         "Eq. (5) does not support depth there")
+        if self.held_out:
+            lines.append("")
+            lines.append(f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  (leave one pose out)")
+            active = self.calibration.model.name
+            for name, h in self.held_out.items():
+                if h.get("error"):
+                    lines.append(f"{name:<10} {'-':>15} {'-':>15} {'-':>7}  not fitted: {h['error']}")
+                    continue
+                mark = "  <- active" if name == active else ""
+                lines.append(f"{name:<10} {_fmt(h.get('rms_mm')):>15} {_fmt(h.get('max_mm')):>15} "
+                             f"{h.get('points', 0):>7}{mark}")
         return "\n".join(lines)
+
+
+def _fmt(x: object) -> str:
+    return f"{x:.4f}" if isinstance(x, float) and math.isfinite(x) else "-"
 
 
 def sample_phase(phase: npt.NDArray[np.floating], points: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -130,7 +159,7 @@ def sample_phase(phase: npt.NDArray[np.floating], points: npt.ArrayLike) -> npt.
 
 
 def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False,
-                     dense: bool = True) -> CalibrationReport:
+                     dense: bool = True, model: str | None = None) -> CalibrationReport:
     """Calibrate from a folder with ``board.json`` and capture sets ``pose_00/``, ``pose_01/``, …"""
     folder = Path(calib_dir)
     if not folder.is_dir():
@@ -142,11 +171,11 @@ def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False,
     if pose_dirs[0].name != "pose_00":
         raise ValueError(f"{folder}: pose_00/ (the reference plane) is missing")
     sets = [read_capture_set(p) for p in pose_dirs]
-    return calibrate_sets(board, sets, robust=robust, dense=dense, names=[p.name for p in pose_dirs])
+    return calibrate_sets(board, sets, robust=robust, dense=dense, names=[p.name for p in pose_dirs], model=model)
 
 
 def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = False, dense: bool = True,
-                   names: list[str] | None = None) -> CalibrationReport:
+                   names: list[str] | None = None, model: str | None = None) -> CalibrationReport:
     """Calibrate from capture sets of the board, ``sets[0]`` being the reference plane.
 
     Raises:
@@ -164,7 +193,7 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
     for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
         if cs.schedule != schedule or cs.frames.shape != shape:
             raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
-        res = compute_phase(cs.frames, cs.schedule)
+        res = compute_phase(cs.frames, cs.schedule, max_code=capture_max_code(cs))
         det = detect_board(texture_to_u8(res.texture), board)
         if not det.found:
             if not robust or i == 0:
@@ -173,13 +202,19 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
             continue
         observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name))
     image_size = (shape[2], shape[1])
-    return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names)
+    return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names,
+                            model=model)
 
 
 def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
                      schedule: PatternSchedule, *, robust: bool = False, dense: bool = True,
-                     names: list[str] | None = None) -> CalibrationReport:
-    """Camera calibration, reference plane and Eq. (5) fit from detected poses.
+                     names: list[str] | None = None, model: str | None = None) -> CalibrationReport:
+    """Camera calibration, reference plane and the depth models' fits from detected poses.
+
+    Both models (Eq. (5) and the geometric one) are fitted and judged on held-out poses
+    (leave one pose out); the one with the smaller held-out RMS (Eq. (5) by at least 2 %,
+    :data:`EQ5_PREFERENCE`) becomes the calibration's active model unless ``model``
+    (``"eq5"`` or ``"geometric"``) names one.
 
     Args:
         observations: per pose, or None for a pose whose board was not found (robust mode);
@@ -193,6 +228,8 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             camera rays. Many more, better spread points than the corners alone (the
             paper's choice, ``dense=False``), hence a better conditioned Eq. (5) fit.
     """
+    if model is not None and model not in MODEL_NAMES:
+        raise ValueError(f"model: must be one of {list(MODEL_NAMES)}, got {model!r}")
     names = names or [f"pose_{i:02d}" for i in range(len(observations))]
     found = [i for i, o in enumerate(observations) if o is not None]
     if not observations or observations[0] is None:
@@ -293,10 +330,28 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             dropped_points=int((sel & ~use).sum()), dropped=bool(dropped_pose[k]),
             height_mm=(float(hz.min()), float(hz.max())),
         ))
+    uv_all = np.stack([u, v], axis=1)
+    ray_xy = undistort_points(uv_all, cam, dist)
+    samples = BoardSamples(u[use], v[use], ray_xy[use], phi[use], z[use], pose_of[use].astype(np.int64),
+                           image_size, int(schedule.frequencies[-1]), int(schedule.width))
+    uncovered = _check_coverage(samples)
+    plane = ReferencePlane(normal, offset)
+    models: dict[str, DepthModel] = {"eq5": Eq5Model(fit.numerator, fit.denominator, norm,
+                                                      region_from_samples(samples))}
+    held_out: dict[str, dict[str, float | int | str | None]] = {}
+    try:
+        models["geometric"] = GeometricModel.fit(samples, plane)
+    except ValueError as exc:
+        if model == "geometric":
+            raise
+        held_out["geometric"] = {"error": str(exc)}
+    for name in models:
+        held_out[name] = _held_out_errors(name, samples, plane)
+    if model is None:
+        model = _better_model(models, held_out)
     calibration = Calibration(
-        camera_matrix=np.asarray(cam, np.float64), dist_coeffs=np.asarray(dist, np.float64).ravel(), image_size=image_size, plane_normal=normal,
-        plane_offset_mm=offset, numerator=fit.numerator, denominator=fit.denominator,
-        normalization=norm, pattern=schedule,
+        camera_matrix=cam, dist_coeffs=dist.ravel(), image_size=image_size, plane_normal=normal,
+        plane_offset_mm=offset, model=models[model], held_out=held_out, pattern=schedule,
         height_range_mm=(float(z[use].min()), float(z[use].max())),
         pose_residuals=[
             {"pose": r.pose, "name": r.name, "corners": r.corners, "reprojection_px": _num(r.reprojection_px),
@@ -304,7 +359,73 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             for r in reports
         ],
     )
-    return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px))
+    return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
+                             held_out=held_out, uncovered=uncovered)
+
+
+def _key(x: object) -> float:
+    return x if isinstance(x, float) and math.isfinite(x) else math.inf
+
+
+#: Eq. (5) must beat the geometric model's held-out RMS by this factor to be kept: the
+#: physical model extrapolates with the geometry (its supported region is the projector's
+#: field, not only the cells the boards reached), so on a tie it is the better choice.
+EQ5_PREFERENCE = 0.98
+
+
+def _better_model(models: dict[str, DepthModel], held_out: dict[str, dict[str, float | int | str | None]]) -> str:
+    if "geometric" not in models:
+        return "eq5"
+    eq5, geo = _key(held_out["eq5"].get("rms_mm")), _key(held_out["geometric"].get("rms_mm"))
+    return "eq5" if eq5 < EQ5_PREFERENCE * geo else "geometric"
+
+
+def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
+                     ) -> dict[str, float | int | str | None]:
+    """Leave-one-pose-out height errors (mm) of model ``name``: fit on the other poses,
+    evaluate on the left-out one; RMS and max |error| over all left-out points."""
+    kind: type[DepthModel] = Eq5Model if name == "eq5" else GeometricModel
+    errors = []
+    poses = np.unique(samples.pose)
+    for k in poses:
+        train = samples.subset(samples.pose != k)
+        test = samples.subset(samples.pose == k)
+        try:
+            _check_span(train.z_mm)
+            m = kind.fit(train, plane)
+        except ValueError:
+            continue  # the others alone do not determine the model
+        errors.append(m.height_at(test.u, test.v, test.ray_xy, test.phi, plane) - test.z_mm)
+    if not errors:
+        return {"rms_mm": None, "max_mm": None, "points": 0, "poses": 0}
+    e = np.concatenate(errors)
+    e = np.where(np.isfinite(e), e, np.inf)
+    return {"rms_mm": _num(_rms(e)) if np.all(np.isfinite(e)) else None,
+            "max_mm": _num(float(np.max(np.abs(e)))), "points": int(e.size), "poses": len(errors)}
+
+
+MAX_UNCOVERED_NINTHS = 4
+
+
+def _check_coverage(samples: BoardSamples) -> list[str]:
+    """The ninths of the image without control points. ``ValueError`` naming them when the
+    boards miss the centre or more than :data:`MAX_UNCOVERED_NINTHS` ninths."""
+    w, h = samples.image_size
+    col = np.clip((samples.u * 3 // w).astype(np.int64), 0, 2)
+    row = np.clip((samples.v * 3 // h).astype(np.int64), 0, 2)
+    hit = np.zeros((3, 3), bool)
+    hit[row, col] = True
+    if hit.all():
+        return []
+    rows, cols = ("top", "middle", "bottom"), ("left", "centre", "right")
+    missing = ["centre" if (i, j) == (1, 1) else f"{rows[i]} {cols[j]}"
+               for i in range(3) for j in range(3) if not hit[i, j]]
+    if hit[1, 1] and len(missing) <= MAX_UNCOVERED_NINTHS:
+        return missing
+    raise ValueError(
+        f"poses: the boards cover too little of the field — no control point in the {', '.join(missing)} "
+        f"ninth{'s' if len(missing) > 1 else ''} of the image; place the board so it reaches there"
+    )
 
 
 def _held_out_outliers(u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], phi: npt.NDArray[np.float64],
@@ -364,12 +485,23 @@ def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.
     xs, ys = xs[keep].astype(np.float64), ys[keep].astype(np.float64)
     phi = o.phase[ys.astype(np.int64), xs.astype(np.int64)].astype(np.float64)
     uv = np.stack([xs, ys], axis=1)
-    rays = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam, dist).reshape(-1, 2)
+    rays = undistort_points(uv, cam, dist)
     rays = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
     rmat = cv2.Rodrigues(rvec)[0]
     n_k, t_k = rmat[:, 2], np.asarray(tvec, np.float64).ravel()
     pts = rays * ((n_k @ t_k) / (rays @ n_k))[:, None]
     return uv, pts @ normal + offset, phi
+
+
+def capture_max_code(cs: CaptureSet) -> int | None:
+    """The sensor's maximum code from a capture set's optional ``bit_depth`` (DESIGN.md), else None
+    (the dtype's full range): 12-bit frames in uint16 must not be judged against 65535."""
+    bits = getattr(cs, "bit_depth", None) or cs.extra.get("bit_depth")
+    if bits is None:
+        return None
+    if isinstance(bits, bool) or not isinstance(bits, int) or not 8 <= bits <= 16:
+        raise ValueError(f"bit_depth: must be an integer within 8–16, got {bits!r}")
+    return int(2**bits - 1)
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

@@ -15,10 +15,11 @@ import numpy.typing as npt
 
 from app.atomic import atomic_directory
 from app.core.encoding import png_bytes
-from app.core.limits import check_led
+from app.core.limits import CAPTURE_BIT_DEPTHS, CHANNELS, check_led
 from app.core.schedule import PatternSchedule
 
 FORMAT = "fringescope.capture/1"
+_BGR_INDEX = {"blue": 0, "green": 1, "red": 2}
 
 
 @dataclass
@@ -31,6 +32,10 @@ class CaptureSet:
         exposure_ms: camera exposure, ms.
         led: projector LED colour.
         extra: unknown keys of ``capture.json`` (kept, ignored).
+        bit_depth: significant bits of the sensor codes (8, 10, 12, 14, 16); None → the
+            frames' full range. Saturation and modulation thresholds follow it.
+        channel: for colour frames on disk, the channel decoded (``red``, ``green``,
+            ``blue`` or ``luminance``); None for mono frames.
     """
 
     frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
@@ -38,12 +43,49 @@ class CaptureSet:
     exposure_ms: float = 20.0
     led: str = "green"
     extra: dict[str, Any] = field(default_factory=dict)
+    bit_depth: int | None = None
+    channel: str | None = None
 
     def __post_init__(self) -> None:
         validate_frames(self.frames, self.schedule)
         if not (math.isfinite(self.exposure_ms) and self.exposure_ms > 0):
             raise ValueError(f"exposure_ms: must be positive, got {self.exposure_ms}")
         check_led(self.led)
+        if self.channel is not None and self.channel not in CHANNELS:
+            raise ValueError(f"channel: must be one of {CHANNELS}, got {self.channel!r}")
+        if self.bit_depth is not None:
+            check_bit_depth(self.frames, self.bit_depth)
+
+    @property
+    def max_code(self) -> int:
+        """Saturation code: 2**bit_depth − 1, or the frames' full range (255 / 65535)."""
+        if self.bit_depth is not None:
+            return 2**self.bit_depth - 1
+        return 255 if self.frames.dtype == np.uint8 else 65535
+
+
+def check_bit_depth(frames: npt.NDArray[Any], bit_depth: Any) -> None:
+    """``ValueError`` naming ``bit_depth`` unless it is allowed and no frame value exceeds it."""
+    if isinstance(bit_depth, bool) or bit_depth not in CAPTURE_BIT_DEPTHS:
+        raise ValueError(f"bit_depth: must be one of {CAPTURE_BIT_DEPTHS}, got {bit_depth!r}")
+    if bit_depth > 8 and frames.dtype == np.uint8:
+        raise ValueError(f"bit_depth: {bit_depth} bits need 16-bit frames, the frames are 8-bit")
+    top = int(frames.max())
+    if top > 2**bit_depth - 1:
+        raise ValueError(f"bit_depth: frames hold values up to {top}, above the {bit_depth}-bit maximum "
+                         f"{2**bit_depth - 1}")
+
+
+def to_channel(image: npt.NDArray[Any], channel: str) -> npt.NDArray[Any]:
+    """One channel of a (H, W, 3|4) BGR(A) image as OpenCV reads it, same dtype.
+
+    ``luminance`` is Rec. 601 luma (``cv2.cvtColor``), the others pick a plane.
+    """
+    if channel not in CHANNELS:
+        raise ValueError(f"channel: must be one of {CHANNELS}, got {channel!r}")
+    if channel == "luminance":
+        return cv2.cvtColor(np.ascontiguousarray(image[..., :3]), cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(image[..., _BGR_INDEX[channel]])
 
 
 def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
@@ -78,6 +120,7 @@ def write_capture_set(
         "exposure_ms": float(capture.exposure_ms),
         "led": capture.led,
         "frames": names,
+        **({"bit_depth": capture.bit_depth} if capture.bit_depth is not None else {}),
     }
     with atomic_directory(path, overwrite=overwrite) as tmp:
         for name, frame in zip(names, capture.frames, strict=True):
@@ -111,6 +154,13 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
         schedule = PatternSchedule.from_dict(meta["pattern"])
     except ValueError as exc:
         raise ValueError(f"{meta_path}: {exc}") from None
+    channel = meta.get("channel")
+    if channel is not None and channel not in CHANNELS:
+        raise ValueError(f"{meta_path}: channel: must be one of {CHANNELS}, got {channel!r}")
+    bit_depth = meta.get("bit_depth")
+    if bit_depth is not None and (isinstance(bit_depth, bool) or bit_depth not in CAPTURE_BIT_DEPTHS):
+        raise ValueError(f"{meta_path}: bit_depth: must be one of {CAPTURE_BIT_DEPTHS}, got {bit_depth!r}")
+    led = meta.get("led", "green")
     names = meta["frames"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
@@ -124,8 +174,11 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
         img = cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ValueError(f"{fpath}: missing or not a readable image")
-        if img.ndim != 2:
-            raise ValueError(f"{fpath}: expected a single-channel image, got shape {img.shape}")
+        if img.ndim == 3 and img.shape[2] in (3, 4):
+            img = to_channel(img, channel or (led if led in _BGR_INDEX else "luminance"))
+            channel = channel or (led if led in _BGR_INDEX else "luminance")
+        elif img.ndim != 2:
+            raise ValueError(f"{fpath}: expected a grey or colour image, got shape {img.shape}")
         if img.dtype not in (np.uint8, np.uint16):
             raise ValueError(f"{fpath}: expected 8- or 16-bit pixels, got {img.dtype}")
         if frames and (img.shape != frames[0].shape or img.dtype != frames[0].dtype):
@@ -134,15 +187,17 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
                 f"{frames[0].shape} {frames[0].dtype}"
             )
         frames.append(img)
-    known = {"format", "pattern", "exposure_ms", "led", "frames"}
+    known = {"format", "pattern", "exposure_ms", "led", "frames", "bit_depth", "channel"}
     try:
         stack: Any = np.stack(frames)  # uint8 or uint16, checked per file above
         return CaptureSet(
             frames=stack,
             schedule=schedule,
             exposure_ms=float(meta.get("exposure_ms", 20.0)),
-            led=str(meta.get("led", "green")),
+            led=str(led),
             extra={k: v for k, v in meta.items() if k not in known},
+            bit_depth=bit_depth,
+            channel=channel,
         )
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{meta_path}: {exc}") from None

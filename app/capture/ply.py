@@ -1,4 +1,5 @@
-"""Point clouds as binary little-endian PLY: valid points only, float32 x y z + uchar intensity."""
+"""Point clouds as binary little-endian PLY: valid points only, float32 x y z + uchar intensity
+(+ float32 ``sigma_mm``, the 1-σ depth noise, when given)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import numpy.typing as npt
 from app.atomic import atomic_write_bytes
 
 VERTEX_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")])
+VERTEX_SIGMA_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("sigma_mm", "<f4")])
 
 
 def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
@@ -25,7 +27,7 @@ def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_
 
 
 def ply_bytes(
-    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike
+    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike, sigma: npt.ArrayLike | None = None
 ) -> bytes:
     """Encode the valid points of a depth map as a binary little-endian PLY.
 
@@ -35,9 +37,10 @@ def ply_bytes(
             in row-major order.
         intensity: (H, W) any numeric; uint8 is written as is, anything else is scaled
             so its maximum over the written pixels becomes 255.
+        sigma: optional (H, W) 1-σ depth noise, mm, written as float32 ``sigma_mm``.
 
     Returns:
-        PLY file contents: vertices with float32 ``x y z`` and uchar ``intensity``.
+        PLY file contents: vertices with float32 ``x y z``, uchar ``intensity`` (and float32 ``sigma_mm``).
     """
     pts = np.asarray(points)
     ok = np.asarray(valid)
@@ -48,28 +51,36 @@ def ply_bytes(
         raise ValueError(f"valid: expected a bool array of shape {pts.shape[:2]}, got {ok.dtype} {ok.shape}")
     if inten.shape != pts.shape[:2] or not (np.issubdtype(inten.dtype, np.number) or inten.dtype == np.bool_):
         raise ValueError(f"intensity: expected a numeric array of shape {pts.shape[:2]}, got {inten.dtype} {inten.shape}")
+    sig = None if sigma is None else np.asarray(sigma)
+    if sig is not None and (sig.shape != pts.shape[:2] or not np.issubdtype(sig.dtype, np.floating)):
+        raise ValueError(f"sigma: expected a float array of shape {pts.shape[:2]}, got {sig.dtype} {sig.shape}")
     mask = ok & np.all(np.isfinite(pts), axis=2)
-    verts = np.empty(int(mask.sum()), VERTEX_DTYPE)
+    verts = np.empty(int(mask.sum()), VERTEX_DTYPE if sig is None else VERTEX_SIGMA_DTYPE)
     sel = pts[mask].astype(np.float32)
     verts["x"], verts["y"], verts["z"] = sel[:, 0], sel[:, 1], sel[:, 2]
     verts["intensity"] = _intensity_u8(inten, mask)
+    extra = ""
+    if sig is not None:
+        verts["sigma_mm"] = sig[mask]
+        extra = "property float sigma_mm\n"
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment fringescope point cloud, camera frame, mm\n"
         f"element vertex {verts.size}\n"
-        "property float x\nproperty float y\nproperty float z\nproperty uchar intensity\nend_header\n"
+        f"property float x\nproperty float y\nproperty float z\nproperty uchar intensity\n{extra}end_header\n"
     )
     return header.encode("ascii") + verts.tobytes()
 
 
 def write_ply(
-    path: str | os.PathLike[str], points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike
+    path: str | os.PathLike[str], points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike,
+    sigma: npt.ArrayLike | None = None,
 ) -> Path:
     """Write :func:`ply_bytes` to ``path`` atomically."""
-    return atomic_write_bytes(path, ply_bytes(points, valid, intensity))
+    return atomic_write_bytes(path, ply_bytes(points, valid, intensity, sigma))
 
 
 def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:
-    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z, intensity)."""
+    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z, intensity[, sigma_mm])."""
     data = Path(path).read_bytes()
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
@@ -78,4 +89,5 @@ def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:
     if "format binary_little_endian 1.0" not in header:
         raise ValueError(f"{path}: only binary little-endian PLY is supported")
     count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    return np.frombuffer(data, VERTEX_DTYPE, count=count, offset=end + len(b"end_header\n"))
+    dtype = VERTEX_SIGMA_DTYPE if "property float sigma_mm" in header else VERTEX_DTYPE
+    return np.frombuffer(data, dtype, count=count, offset=end + len(b"end_header\n"))

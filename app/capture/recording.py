@@ -180,6 +180,7 @@ class Recording:
             stamped = CaptureSet(
                 frames=capture.frames, schedule=capture.schedule, exposure_ms=capture.exposure_ms,
                 led=capture.led, extra={**capture.extra, "timestamp": _iso(t), "index": index},
+                bit_depth=capture.bit_depth,
             )
             write_capture_set(self.path / folder, stamped, extra_files=extra)
             entry = {"folder": folder, "timestamp": _iso(t), "files": sorted(

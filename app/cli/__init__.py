@@ -45,11 +45,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from app.core.errors import DomainError
     from app.devices.errors import DeviceError
 
     try:
         return int(args.func(args) or 0)
-    except (ValueError, DeviceError, OSError) as exc:
+    except (ValueError, DomainError, DeviceError, OSError) as exc:
         print(f"fringescope {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

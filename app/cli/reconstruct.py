@@ -21,7 +21,7 @@ def _range(text: str) -> tuple[float, float]:
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "reconstruct",
-        help="turn one capture set into depth.npy, points.ply, depth.png and reason.png",
+        help="turn one capture set into depth.npy, sigma.npy, points.ply, depth.png and reason.png",
         description="Reconstruct one capture-set folder with a calibration file.",
     )
     p.add_argument("set_dir", metavar="SET_DIR", help="capture-set folder (capture.json + frames)")
@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from app.capture import read_capture_set
     from app.capture.ply import write_ply
     from app.core.encoding import npy_bytes
+    from app.core.schedule import check_pattern
     from app.recon import Reconstructor, reason_png, render_depth_png
 
     set_dir = Path(args.set_dir)
@@ -48,18 +49,21 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{set_dir}: capture-set folder not found")
     capture = read_capture_set(set_dir)
     calibration = load_calibration(args.calibration)
-    cal_s, cap_s = calibration.pattern, capture.schedule
-    if (cal_s.frequencies, cal_s.steps) != (cap_s.frequencies, cap_s.steps):
-        raise ValueError(
-            f"{set_dir}: pattern {list(cap_s.frequencies)}x{cap_s.steps} differs from the "
-            f"calibration's {list(cal_s.frequencies)}x{cal_s.steps}"
-        )
-    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy)
-    res = rec.run(capture.frames)
+    check_pattern(calibration.pattern, capture.schedule, str(set_dir))
+    from app.recon.noise import estimate_sensor_noise
+
+    max_code = args.max_code or capture.max_code  # the set's bit_depth unless told
+    try:  # σ from the camera noise this set shows (the N-step residual, N > 3)
+        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=max_code)
+    except ValueError:
+        noise = None  # N = 3 or too few usable pixels: the typical sensor
+    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise)
+    res = rec.run(capture.frames, max_code=max_code)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "depth.npy", npy_bytes(res.depth))
-    write_ply(out / "points.ply", res.points, res.valid, res.texture)
+    atomic_write_bytes(out / "sigma.npy", npy_bytes(res.sigma))
+    write_ply(out / "points.ply", res.points, res.valid, res.texture, res.sigma)
     atomic_write_bytes(out / "depth.png", render_depth_png(res.depth, args.range))
     atomic_write_bytes(out / "reason.png", reason_png(res.reason))
     h, w = res.depth.shape

@@ -20,7 +20,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--list", action="store_true", help="list the scenes and exit")
     p.add_argument("--exposure-ms", type=float, default=20.0, help="camera exposure per frame (default 20)")
     p.add_argument("--led", choices=LEDS, default="green", help="projector LED (default green)")
-    p.add_argument("--bits", type=int, choices=(8, 12), default=8, help="ADC bit depth (default 8)")
+    p.add_argument("--rig", default="default",
+                   help="rig preset: default (the paper's rig) or endoscope (1280x1024, wide angle, "
+                        "barrel k1 = -0.25, 12-bit, partial boards); default 'default'")
+    p.add_argument("--bits", type=int, choices=(8, 12), default=None,
+                   help="ADC bit depth (default: the rig's sensor, 8 for default, 12 for endoscope)")
     p.add_argument("--seed", type=int, default=None, help="random seed (noise, faults) for reproducible output")
     p.add_argument("--frames-per-second", type=float, default=None,
                    help="camera frame rate (default: as fast as the exposure and readout allow)")
@@ -30,12 +34,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
                    help="calibration board type (calibration only)")
     p.add_argument("--poses", type=int, default=8, help="number of board poses (calibration only, default 8)")
     p.add_argument("--no-distortion", action="store_true", help="ideal pinhole camera (no lens distortion)")
+    boards = p.add_mutually_exclusive_group()
+    boards.add_argument("--partial-boards", dest="partial_boards", action="store_true", default=None,
+                        help="boards cover only the central half of the field (calibration only; "
+                             "the endoscope rig's default)")
+    boards.add_argument("--full-boards", dest="partial_boards", action="store_false",
+                        help="boards as large as the default rig's (calibration only)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from app.devices.sim import list_scenes
+    from app.devices.sim.optics import RIG_NAMES
 
+    if args.rig not in RIG_NAMES:
+        raise ValueError(f"--rig: unknown {args.rig!r}; choose from {', '.join(RIG_NAMES)}")
     if args.list:
         for name in list_scenes():
             print(name)
@@ -58,7 +71,8 @@ def _calibration(args: argparse.Namespace) -> int:
     if args.poses < 2:
         raise ValueError(f"--poses: need at least 2, got {args.poses}")
     out = simulate_calibration_folder(args.output, board=args.board, poses=args.poses, seed=args.seed,
-                                      bit_depth=args.bits, distortion=not args.no_distortion)
+                                      bit_depth=args.bits, distortion=not args.no_distortion, rig=args.rig,
+                                      partial_boards=args.partial_boards)
     print(f"wrote {out}/board.json and {args.poses} poses")
     return 0
 
@@ -81,7 +95,7 @@ def _scene(args: argparse.Namespace) -> int:
         period_ms = 1000.0 / args.frames_per_second
         if period_ms < min_period_ms - 1e-9:
             raise ValueError(f"--frames-per-second: at most {1000.0 / min_period_ms:.1f} at this exposure")
-    world = SimulatedWorld(args.scene, seed=args.seed, distortion=not args.no_distortion)
+    world = SimulatedWorld(args.scene, seed=args.seed, distortion=not args.no_distortion, rig=args.rig)
     n_frames = world.schedule.n_frames
     set_s = n_frames * period_ms / 1000.0
     if args.duration_s is not None and not (args.duration_s > 0):

@@ -26,7 +26,8 @@ def register(subparsers: Any) -> None:
     mode.add_argument("--sphere", type=float, metavar="DIAMETER_MM", help="sphere of calibrated diameter")
     p.add_argument("--roi", metavar="x0,y0,x1,y1", help="pixel box to analyse (x1, y1 exclusive)")
     p.add_argument("--threshold", type=float, help="feature: intensity threshold (default Otsu)")
-    p.add_argument("--polarity", choices=("bright", "dark"), default="bright", help="feature: brighter or darker")
+    p.add_argument("--polarity", choices=("auto", "bright", "dark"), default="auto",
+                   help="feature: brighter or darker than its surroundings (default auto: the side that stands up)")
     p.add_argument("--json", metavar="OUT", help="write the figures as JSON")
     p.set_defaults(func=run)
 
@@ -36,12 +37,14 @@ def run(args: argparse.Namespace) -> int:
     from app.atomic import atomic_write_text
     from app.calib import load_calibration
     from app.capture.captureset import read_capture_set
+    from app.core.schedule import check_pattern
     from app.recon import Reconstructor
 
     roi = parse_roi(args.roi) if args.roi else None
     capture = read_capture_set(args.set_dir)
     calibration = load_calibration(args.calibration)
-    result = Reconstructor(calibration).run(capture.frames)
+    check_pattern(calibration.pattern, capture.schedule, str(args.set_dir))
+    result = Reconstructor(calibration).run(capture.frames, max_code=capture.max_code)
     area = roi_mask(result.valid.shape, roi)
     figures: dict[str, Any] = {
         "set": str(args.set_dir),
@@ -59,8 +62,9 @@ def run(args: argparse.Namespace) -> int:
         )
     elif args.feature:
         fh = feature_height(result.depth, result.texture, result.valid, roi=roi, threshold=args.threshold,
-                            polarity=args.polarity)
-        figures.update(mode="feature", height_mm=fh.height_mm, height_std_mm=fh.height_std_mm,
+                            polarity=None if args.polarity == "auto" else args.polarity)
+        figures.update(mode="feature", height_mm=fh.height_mm, height_se_mm=fh.height_se_mm,
+                       polarity=fh.polarity, height_std_mm=fh.height_std_mm,
                        count=fh.count, baseline_rms_mm=fh.baseline_rms_mm, feature_pixels=int(fh.mask.sum()))
     else:
         sf = sphere_figures(result.points, args.sphere, result.valid, roi=roi)

@@ -16,6 +16,11 @@ Led = Literal["red", "green", "blue"]
 #: camera exposure per frame accepted anywhere, ms (inclusive)
 EXPOSURE_RANGE_MS: tuple[float, float] = (1.0, 100.0)
 
+#: bit depths a capture set may declare (``"bit_depth"``; values above 2**bit_depth − 1 are refused)
+CAPTURE_BIT_DEPTHS: tuple[int, ...] = (8, 10, 12, 14, 16)
+#: colour channels a capture set may name for colour frames (``"channel"``)
+CHANNELS: tuple[str, ...] = ("red", "green", "blue", "luminance")
+
 #: bit depths the live camera can be configured to
 LIVE_BIT_DEPTHS: tuple[int, ...] = (8, 12)
 BitDepth = Literal[8, 12]

@@ -3,10 +3,14 @@
 When several apply, the reported code follows the chain of causes, first match wins:
 
     SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
+    > OUTSIDE_FIELD > UNCERTAIN
 
 A clipped pixel has a meaningless phase and so usually also low modulation or a bad
 unwrap; a pixel without fringe contrast usually also unwraps badly; a singular model
-yields a height far outside the volume. Reporting the earliest cause tells the user
+yields a height far outside the volume; a height outside the calibrated volume is also
+outside the region the calibration's data support (OUTSIDE_FIELD: inside the volume but
+where the boards did not reach, or outside the projector's calibrated field); UNCERTAIN
+(σ above the optional ``max_sigma_mm``) is the last resort. Reporting the earliest cause tells the user
 what to change (exposure, focus/LED power, calibration).
 """
 
@@ -27,6 +31,8 @@ class Reason(IntEnum):
     UNWRAP_INCONSISTENT = 3
     OUTSIDE_VOLUME = 4
     MODEL_SINGULAR = 5
+    OUTSIDE_FIELD = 6
+    UNCERTAIN = 7
 
 
 #: Codes ordered from highest to lowest precedence (OK last).
@@ -36,6 +42,8 @@ PRECEDENCE: tuple[Reason, ...] = (
     Reason.UNWRAP_INCONSISTENT,
     Reason.MODEL_SINGULAR,
     Reason.OUTSIDE_VOLUME,
+    Reason.OUTSIDE_FIELD,
+    Reason.UNCERTAIN,
     Reason.OK,
 )
 
@@ -48,11 +56,15 @@ def assign_reasons(
     inconsistent: npt.ArrayLike | None = None,
     singular: npt.ArrayLike | None = None,
     outside: npt.ArrayLike | None = None,
+    outside_field: npt.ArrayLike | None = None,
+    uncertain: npt.ArrayLike | None = None,
 ) -> npt.NDArray[np.uint8]:
     """Combine boolean masks into one uint8 reason map, honouring :data:`PRECEDENCE`."""
     out = np.zeros(shape, dtype=np.uint8)
     # lowest precedence first, so higher ones overwrite
     for mask, code in (
+        (uncertain, Reason.UNCERTAIN),
+        (outside_field, Reason.OUTSIDE_FIELD),
         (outside, Reason.OUTSIDE_VOLUME),
         (singular, Reason.MODEL_SINGULAR),
         (inconsistent, Reason.UNWRAP_INCONSISTENT),

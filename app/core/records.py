@@ -23,6 +23,8 @@ class CalibrationSummary:
     image_size: tuple[int, int]
     software_version: str
     poses: int
+    model: str = "eq5"  # the depth model: eq5 | geometric
+    held_out: dict[str, dict[str, Any]] = field(default_factory=dict)  # per model: leave-one-pose-out errors
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
@@ -66,6 +68,8 @@ class Status:
     frames_dropped: int
     faults: int
     recording: str | None
+    bit_depth: int = 8  # the camera's significant bits
+    schedule: dict[str, Any] = field(default_factory=dict)  # the fringe pattern schedule in use
     warnings: tuple[str, ...] = field(default=())
 
     def to_dict(self) -> dict[str, Any]:

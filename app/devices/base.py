@@ -43,6 +43,8 @@ class Frame:
         timestamp: exposure mid-point, seconds (``time.monotonic`` clock or the recording's).
         pattern_index: position of the projected pattern in the schedule, -1 if unknown.
         exposure_ms, gain, led: settings in force for this frame.
+        bit_depth: significant bits of ``data`` (e.g. 12 for Mono12 in uint16); the
+            saturation code is ``2**bit_depth − 1``.
     """
 
     data: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
@@ -53,6 +55,7 @@ class Frame:
     gain: float = 1.0
     led: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+    bit_depth: int = 8
 
 
 @dataclass(frozen=True)

@@ -26,15 +26,17 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class SimSpec:
-    """The digital twin: scene, noise seed, sensor bit depth, injected faults (rates per frame, period s)."""
+    """The digital twin: rig preset, scene, noise seed, sensor bit depth (None: the rig's own),
+    injected faults (rates per frame, period s)."""
 
     scene: str = "intestine_flap"
     seed: int | None = None
-    bit_depth: int = 8
+    bit_depth: int | None = 8
     drop_rate: float = 0.0
     timeout_rate: float = 0.0
     disconnect_every_s: float = 0.0
     realtime: bool = True
+    rig: str = "default"
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,7 @@ def _sim_devices(spec: SimSpec) -> Devices:
     built = create_sim_devices(
         scene=spec.scene, seed=spec.seed, bit_depth=spec.bit_depth, drop_rate=spec.drop_rate,
         timeout_rate=spec.timeout_rate, disconnect_every_s=spec.disconnect_every_s, realtime=spec.realtime,
+        rig=spec.rig,
     )
     return Devices(built.camera, built.projector, built.controller, built.world)
 

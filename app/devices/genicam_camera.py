@@ -203,9 +203,11 @@ class GenICamCamera(Camera):
         index = self._count
         self._count += 1
         s = self._settings
-        return Frame(data=to_mono(image, s.bit_depth), index=index, timestamp=stamp,
+        data = to_mono(image, s.bit_depth)
+        return Frame(data=data, index=index, timestamp=stamp,
                      pattern_index=(index - self._sync_at) % self.schedule_length,
-                     exposure_ms=s.exposure_ms, gain=s.gain, meta={"model": self.model})
+                     exposure_ms=s.exposure_ms, gain=s.gain, meta={"model": self.model},
+                     bit_depth=s.bit_depth if data.dtype == np.uint16 else 8)
 
     def set_node(self, name: str, value: Any) -> None:
         """Set a GenICam feature by name (rig-specific settings, e.g. ``AcquisitionFrameRate``)."""

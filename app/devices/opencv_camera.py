@@ -132,9 +132,10 @@ class OpenCVCamera(Camera):
         index = self._count
         self._count += 1
         s = self._settings
-        return Frame(data=to_mono(image, s.bit_depth), index=index, timestamp=stamp,
+        data = to_mono(image, s.bit_depth)
+        return Frame(data=data, index=index, timestamp=stamp,
                      pattern_index=(index - self._sync_at) % self.schedule_length,
-                     exposure_ms=s.exposure_ms, gain=s.gain)
+                     exposure_ms=s.exposure_ms, gain=s.gain, bit_depth=8 if data.dtype == np.uint8 else 16)
 
     def sync(self) -> None:
         """Declare that the next frame shows pattern 0 (e.g. after the projector restarted)."""

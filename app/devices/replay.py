@@ -78,7 +78,7 @@ class ReplayCamera(Camera):
 
     def _caps_of(self, cs: CaptureSet) -> CameraCapabilities:
         _, h, w = cs.frames.shape
-        depths = (8,) if cs.frames.dtype == np.uint8 else (12, 16)
+        depths = (8,) if cs.frames.dtype == np.uint8 else (cs.bit_depth,) if cs.bit_depth else (12, 16)
         return CameraCapabilities(width=w, height=h, bit_depths=depths)
 
     def _capabilities(self) -> CameraCapabilities:
@@ -118,7 +118,8 @@ class ReplayCamera(Camera):
         return Frame(data=cs.frames[i], index=index,
                      timestamp=time.monotonic() if self.pace else t_rec,
                      pattern_index=i, exposure_ms=cs.exposure_ms, led=cs.led,
-                     meta={"set": self._sets[self._set_pos].name, "recorded_time_s": t_rec})
+                     meta={"set": self._sets[self._set_pos].name, "recorded_time_s": t_rec},
+                     bit_depth=cs.bit_depth or (8 if cs.frames.dtype == np.uint8 else 16))
 
     # --- playback position ----------------------------------------------------------------------
     def _rewind(self) -> None:

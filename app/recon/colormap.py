@@ -22,6 +22,8 @@ REASON_COLORS: dict[Reason, tuple[int, int, int]] = {
     Reason.UNWRAP_INCONSISTENT: (230, 50, 50),
     Reason.OUTSIDE_VOLUME: (60, 100, 235),
     Reason.MODEL_SINGULAR: (240, 200, 0),
+    Reason.OUTSIDE_FIELD: (150, 60, 200),
+    Reason.UNCERTAIN: (240, 140, 30),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 
@@ -68,8 +70,8 @@ def _nice_step(span: float, max_ticks: int) -> float:
     return 10.0 * mag
 
 
-def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 35.0)) -> bytes:
-    """PNG of :func:`depth_colormap` with a vertical colour bar and mm tick labels at the right."""
+def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 35.0), *, unit: str = "mm") -> bytes:
+    """PNG of :func:`depth_colormap` with a vertical colour bar and tick labels in ``unit`` at the right."""
     img = depth_colormap(depth, range_mm)
     lo, hi = _check_range(range_mm)
     h = max(img.shape[0], 120)
@@ -86,7 +88,7 @@ def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0,
     while tick <= hi + 1e-9 * (hi - lo):
         y = int(round(bottom - 1 - (tick - lo) / (hi - lo) * (bottom - top - 1)))
         cv2.line(canvas, (x0 + bar_w, y), (x0 + bar_w + 4, y), (0, 0, 0), 1)
-        label = f"{tick:g} mm"
+        label = f"{tick:g} {unit}"
         cv2.putText(canvas, label, (x0 + bar_w + 7, y + 4), _FONT, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
         tick += step
     return png_bytes(canvas, rgb=True)

@@ -3,15 +3,24 @@
 Rows are processed in blocks (``prange``), in two phases per block so that each phase
 streams few arrays at a time:
 
-1. Phase and height, into block-local buffers: for the paper's schedule (4 frequencies
-   × 4 steps) one loop per row reads all 16 frames of a pixel and keeps everything in
-   registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse levels with
-   a cheaper atan2 (they only pick fringe orders), the finest with the precise one, the
-   hierarchical unwrapping with its consistency test, Eq. (5) from per-row
-   polynomial coefficients (no per-pixel model tables to read) and the reason code.
-   Any other schedule, and the noise-optimal combination of frequencies, takes a
-   general row-by-row path with the same semantics.
-2. Outputs: reason/valid, depth, modulation/texture, optional phase and the points.
+1. Phase, then height, into block-local buffers: for the paper's schedule (4
+   frequencies × 4 steps) one loop per row reads all 16 frames of a pixel and keeps
+   everything in registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse
+   levels with a cheaper atan2 (they only pick fringe orders), the finest with the
+   precise one, the hierarchical unwrapping with its consistency test and the phase
+   stage's reason code. Any other schedule (any N ≥ 3, heterodyne unwrapping), and the
+   noise-optimal combination of frequencies, takes a general row-by-row path with the
+   same semantics. Then a scan of the row's codes refits, pixel by pixel, the few pixels
+   with a clipped sample from their unclipped ones (saturation-tolerant phase); on
+   unsaturated data that scan is all it costs. The height
+   stage (:func:`_height_row`, both paths) evaluates the depth model's closed form
+   (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
+   terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
+   the supported region and the final reason code.
+2. Outputs: reason/valid, depth, σ, modulation/texture, optional phase and the points.
+
+The kernel takes named tuples (:class:`PhaseArgs`, :class:`HeightArgs`, :class:`Outputs`);
+reason codes are used by name.
 
 Each helper is compiled (and vectorised by LLVM) as its own function over 1-D rows;
 inside one big parallel body LLVM could not prove the buffers distinct. Semantics are
@@ -28,10 +37,13 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP t
 
 import math
 import threading
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit, prange
+
+from app.core.reasons import Reason
 
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -39,6 +51,84 @@ ROWS_PER_BLOCK = 8
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
 KERNEL_LOCK = threading.Lock()
+
+
+class PhaseArgs(NamedTuple):
+    """The phase stage's inputs: float32 cos δ_n, sin δ_n (N,), fringe counts (K,), sensor
+    maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad);
+    ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
+    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``."""
+
+    cos_t: npt.NDArray[np.float32]
+    sin_t: npt.NDArray[np.float32]
+    freqs: npt.NDArray[np.float32]
+    max_code: np.int32
+    min_mod: np.float32
+    cons_rad: np.float32
+    chain_c: npt.NDArray[np.float32]
+    chain_f: npt.NDArray[np.float32]
+    heterodyne: bool
+
+
+class HeightArgs(NamedTuple):
+    """The height stage's inputs (float32 scalars): the model's
+    :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
+    ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
+    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
+    mm, the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
+    grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
+    range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
+
+    u_norm: npt.NDArray[np.float32]
+    row_coefs: npt.NDArray[np.float32]
+    ray_coefs: npt.NDArray[np.float32]
+    use_rays: bool
+    phi0: np.float32
+    inv_sphi: np.float32
+    cubic: np.float32
+    lo: np.float32
+    hi: np.float32
+    sing_rtol: np.float32
+    ray_q: npt.NDArray[np.float32]
+    offset: np.float32
+    region_lo: npt.NDArray[np.float32]
+    region_hi: npt.NDArray[np.float32]
+    region_rows: npt.NDArray[np.int64]
+    phase_lo: np.float32
+    phase_hi: np.float32
+    read_var: np.float32
+    gain: np.float32
+    max_sigma: np.float32
+    combine: bool
+    half_steps: np.float32
+    inv_frames: np.float32
+
+
+class Outputs(NamedTuple):
+    """The kernel's (H, W) outputs (points (H, W, 3)); ``phase`` with zero rows is skipped;
+    ``recovered`` (H,) int32: per row, the pixels refitted from their unclipped samples."""
+
+    depth: npt.NDArray[np.float32]
+    points: npt.NDArray[np.float32]
+    reason: npt.NDArray[np.uint8]
+    valid: npt.NDArray[np.bool_]
+    modulation: npt.NDArray[np.float32]
+    texture: npt.NDArray[np.float32]
+    phase: npt.NDArray[np.float32]
+    sigma: npt.NDArray[np.float32]
+    recovered: npt.NDArray[np.int32]
+
+
+# reason codes by name (values of app.core.reasons.Reason)
+_OK = np.uint8(Reason.OK)
+_LOW_MODULATION = np.uint8(Reason.LOW_MODULATION)
+_SATURATED = np.uint8(Reason.SATURATED)
+_INCONSISTENT = np.uint8(Reason.UNWRAP_INCONSISTENT)
+_OUTSIDE_VOLUME = np.uint8(Reason.OUTSIDE_VOLUME)
+_MODEL_SINGULAR = np.uint8(Reason.MODEL_SINGULAR)
+_OUTSIDE_FIELD = np.uint8(Reason.OUTSIDE_FIELD)
+_UNCERTAIN = np.uint8(Reason.UNCERTAIN)
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -124,29 +214,11 @@ def _order_step(prev, phw, ratio):  # type: ignore[no-untyped-def]  # pragma: no
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_code(p, x, k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,  # type: ignore[no-untyped-def]
-                 phi0, inv_sphi, sing_rtol, lo, hi):  # pragma: no cover - compiled
-    """Eq. (5) at normalised column ``x`` with the row's (α, β, γ) of a0, a1, b0, b1:
-    (height, 0 | OUTSIDE_VOLUME 4 | MODEL_SINGULAR 5)."""
-    a0 = (k2 * x + k1) * x + k0
-    a1 = (k5 * x + k4) * x + k3
-    b0 = (k8 * x + k7) * x + k6
-    b1 = (k11 * x + k10) * x + k9
-    pp = (p - phi0) * inv_sphi
-    b1p = b1 * pp
-    dd = b0 + b1p
-    h = (a0 + a1 * pp) / dd
-    singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
-    inside = (h >= lo) & (h <= hi)
-    return h, np.uint8(5) if singular else (np.uint8(0) if inside else np.uint8(4))
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover
-    # precedence SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
-    c = np.uint8(3) if dev >= cons_rad else c
-    c = np.uint8(1) if m2min < m2_min else c
-    return np.uint8(2) if top >= top_code else c
+    # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT (> the height stage's)
+    c = _INCONSISTENT if dev >= cons_rad else c
+    c = _LOW_MODULATION if m2min < m2_min else c
+    return _SATURATED if top >= top_code else c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -166,12 +238,9 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               total, m2, prev, hbuf, code):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for 4 frequencies × 4 steps."""
-    # hoisted: LLVM cannot tell that the stores below leave k alone
-    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
-    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
+def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+               total, m2, prev, code):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`)."""
     for u in range(frames.shape[2]):
         yy, xx, q, tt, mx = _px4(frames, 0, v, u)
         qmin = q
@@ -185,15 +254,11 @@ def _paper_row(frames, v, r1, r2, r3, un, k, phi0, inv_sphi, sing_rtol, lo, hi, 
         yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
         qmin = min(qmin, q)
         p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
-        # stored early: fewer values live across the height (no register spills)
         total[u] = (tt + t1) + (t2 + t3)
         prev[u] = p
         m2[u] = q
         top = max(max(mx, m1), max(m2_, m3))
-        h, c = _height_code(p, un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
-                            phi0, inv_sphi, sing_rtol, lo, hi)
-        hbuf[u] = h
-        code[u] = _mask(c, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
+        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
@@ -234,6 +299,53 @@ def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # type: ignor
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrap(x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """x mod 2π in [0, 2π)."""
+    r = x - _TWO_PI * np.float32(np.floor(x * _INV_TWO_PI))
+    return _F0 if r >= _TWO_PI else (r + _TWO_PI if r < _F0 else r)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The phase of ≤ 1 fringe over the field: the unused arc split in half (``unwrap.absolute_phase``)."""
+    return ph - _TWO_PI if ph > _PI * (_F1 + f0) else ph
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _wrapped_row(s_acc, c_acc, wph, m2, m2min):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for u in range(s_acc.shape[0]):
+        yy = -s_acc[u]
+        xx = c_acc[u]
+        q = xx * xx + yy * yy
+        m2[u] = q
+        m2min[u] = min(m2min[u], q)
+        wph[u] = atan2_0_2pi(yy, xx)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """0 if the absolute beat phase ``p`` lies on the field [−slack, 2π·f0 + slack], else ∞ (a deviation)."""
+    return _F0 if (p >= -slack) & (p <= _TWO_PI * f0 + slack) else _INF
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
+    for u in range(prev.shape[0]):
+        x = _F0
+        for i in range(coefs.shape[0]):
+            x += coefs[i] * wphs[i, u]
+        ph = _wrap(x)
+        if first:
+            prev[u] = _absolute(ph, f0)
+            dev[u] = _outside_field(prev[u], f0, slack)
+        else:
+            p, d = _order_step(prev[u], ph, ratio)
+            prev[u] = p
+            dev[u] = max(dev[u], d)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
@@ -248,21 +360,117 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-                hbuf, code):  # pragma: no cover
-    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
-    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
-    for u in range(prev.shape[0]):
-        h, c = _height_code(prev[u], un[u], k0, k1, k2, k3, k4, k5, k6, k7, k8, k9, k10, k11,
-                            phi0, inv_sphi, sing_rtol, lo, hi)
-        hbuf[u] = h
-        code[u] = _mask(c, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
+def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, sing_rtol, lo, hi,  # type: ignore[no-untyped-def]
+               p_lo, p_hi, read_var, gain, max_sigma):  # pragma: no cover - compiled
+    """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
+    :mod:`app.core.depth_model`); ``c`` is the phase stage's reason."""
+    pp = (p - phi0) * inv_sphi
+    t = pp + cubic * (pp * pp * pp)
+    b1p = b1 * t
+    dd = b0 + b1p
+    h = (a0 + a1 * t) / dd
+    slope = (a1 * b0 - a0 * b1) / (dd * dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
+    sig = abs(slope) * np.sqrt((read_var + gain * tot) * vf)
+    singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
+    in_volume = (h >= lo) & (h <= hi)
+    in_field = (h >= rlo) & (h <= rhi) & (p >= p_lo) & (p <= p_hi)
+    hc = _UNCERTAIN if sig > max_sigma else _OK
+    hc = _OUTSIDE_FIELD if not in_field else hc
+    hc = _OUTSIDE_VOLUME if not in_volume else hc
+    hc = _MODEL_SINGULAR if singular else hc
+    return h, sig, hc if c == _OK else c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi, sing_rtol, lo, hi, cons_rad,  # type: ignore[no-untyped-def]
-                 m2_min, top_code, scratch, total, m2, prev, hbuf, code):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for any schedule."""
+def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Height stage of row ``v`` (both paths): height, σ and the final reason code.
+
+    ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
+    columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
+    k = m.row_coefs[v]
+    k0, k1, k2, k3, k4, k5 = k[0], k[1], k[2], k[3], k[4], k[5]
+    k6, k7, k8, k9, k10, k11 = k[6], k[7], k[8], k[9], k[10], k[11]
+    g = m.ray_coefs
+    g0, g1, g2, g3, g4, g5 = g[0], g[1], g[2], g[3], g[4], g[5]
+    g6, g7, g8, g9, g10, g11 = g[6], g[7], g[8], g[9], g[10], g[11]
+    r_lo = m.region_lo[m.region_rows[v]]
+    r_hi = m.region_hi[m.region_rows[v]]
+    phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
+    p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
+    inv_frames = m.inv_frames
+    un = m.u_norm
+    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat, as in _points_row
+    if not m.combine:
+        half_steps = m.half_steps
+        for u in range(prev.shape[0]):
+            vfac[u] = half_steps / m2[u]  # var(φ)/σ_I² = N / (2·m2)
+    if m.use_rays:
+        for u in range(prev.shape[0]):
+            q0, q1, q2 = q[3 * u], q[3 * u + 1], q[3 * u + 2]
+            a0 = g0 * q0 + g1 * q1 + g2 * q2
+            a1 = g3 * q0 + g4 * q1 + g5 * q2
+            b0 = g6 * q0 + g7 * q1 + g8 * q2
+            b1 = g9 * q0 + g10 * q1 + g11 * q2
+            x = un[u]
+            a0 += (k2 * x + k1) * x + k0
+            a1 += (k5 * x + k4) * x + k3
+            b0 += (k8 * x + k7) * x + k6
+            b1 += (k11 * x + k10) * x + k9
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
+                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma)
+            hbuf[u] = h
+            sbuf[u] = sig
+            code[u] = c
+    else:
+        for u in range(prev.shape[0]):
+            x = un[u]
+            a0 = (k2 * x + k1) * x + k0
+            a1 = (k5 * x + k4) * x + k3
+            b0 = (k8 * x + k7) * x + k6
+            b1 = (k11 * x + k10) * x + k9
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
+                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma)
+            hbuf[u] = h
+            sbuf[u] = sig
+            code[u] = c
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
+                                                 scratch[4], scratch[5], scratch[6])
+    wphs = scratch[7:7 + n_freq]
+    m2s = scratch[7 + n_freq:7 + 2 * n_freq]
+    for ki in range(n_freq):
+        for n in range(n_steps):
+            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+    slack = cons_rad * chain_f[0] / chain_f[1]
+    for s in range(chain_f.shape[0]):
+        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    m2[:] = m2s[n_freq - 1]
+    if combine:
+        for ki in range(n_freq):
+            kk = freqs[ki]
+            # every frequency unwrapped by the finest (the oracle's rule), then weighed
+            for u in range(prev.shape[0]):
+                p, _ = _order_step(prev[u], wphs[ki, u], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki, u]
+                wsum[u] += w
+                wphi[u] += w * (k_max / kk) * p
+        _combined_row(prev, wsum, wphi)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,  # type: ignore[no-untyped-def]
+                 m2_min, top_code, scratch, total, m2, prev, vfac, code):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping)."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -274,17 +482,149 @@ def _general_row(frames, v, cos_t, sin_t, freqs, combine, un, k, phi0, inv_sphi,
     dev[:] = _F0
     wsum[:] = _F0
     wphi[:] = _F0
-    for ki in range(n_freq):
-        for n in range(n_steps):
-            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
-        _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+    if heterodyne:
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2,
+                        prev)
+    else:
+        for ki in range(n_freq):
+            for n in range(n_steps):
+                _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+            if combine:
+                kk = freqs[ki]
+                _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
         if combine:
-            kk = freqs[ki]
-            _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
+            _combined_row(prev, wsum, wphi)
     if combine:
-        _combined_row(prev, wsum, wphi)
-    _height_row(prev, un, k, phi0, inv_sphi, sing_rtol, lo, hi, dev, m2min, top, cons_rad, m2_min, top_code,
-                hbuf, code)
+        # var(φ) = σ_I²·N²·k_max² / (2·Σ_k N k² m2_k) for the weights of _weigh_row
+        for u in range(prev.shape[0]):
+            vfac[u] = _combined_vfac(n_steps, k_max, wsum[u])
+    for u in range(prev.shape[0]):
+        code[u] = _mask(_OK, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """var(φ)/σ_I² of the noise-optimal phase with weight sum ``wsum``."""
+    return np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum if wsum > _F0 else _INF
+
+
+# Saturation-tolerant phase: the pixels of a row coded SATURATED are refitted one by one.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _fit_unclipped(frames, b, v, u, cos_t, sin_t, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Least squares A + a cos δ + b sin δ over the unclipped samples of frames b.. at (v, u), float64:
+    (ok = at least three samples, y = −b, x = a) with (x, y) scaled like (Σ I cos δ, −Σ I sin δ)."""
+    n_steps = cos_t.shape[0]
+    s1 = sc = ss = scc = sss = scs = r1 = rc = rs = 0.0
+    for n in range(n_steps):
+        i = float(frames[b + n, v, u])
+        if i < top_code:
+            c = float(cos_t[n])
+            s = float(sin_t[n])
+            s1 += 1.0
+            sc += c
+            ss += s
+            scc += c * c
+            sss += s * s
+            scs += c * s
+            r1 += i
+            rc += i * c
+            rs += i * s
+    if s1 < 3.0:
+        return False, _F0, _F0
+    # Cramer's rule on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
+    det = s1 * (scc * sss - scs * scs) - sc * (sc * sss - scs * ss) + ss * (sc * scs - scc * ss)
+    da = s1 * (rc * sss - scs * rs) - r1 * (sc * sss - scs * ss) + ss * (sc * rs - rc * ss)
+    db = s1 * (scc * rs - rc * scs) - sc * (sc * rs - rc * ss) + r1 * (sc * scs - scc * ss)
+    half_n = 0.5 * n_steps / det
+    return True, np.float32(-db * half_n), np.float32(da * half_n)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, top_code,  # type: ignore[no-untyped-def]
+                 cons_rad, wphs, m2s):  # pragma: no cover - compiled
+    """A saturated pixel from its unclipped samples: (ok, phase, finest m2, min m2, max |residual|,
+    weight sum of the noise-optimal combination)."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    m2min = _INF
+    for ki in range(n_freq):
+        ok, yy, xx = _fit_unclipped(frames, ki * n_steps, v, u, cos_t, sin_t, top_code)
+        if not ok:
+            return False, _F0, _F0, _F0, _F0, _F0
+        wphs[ki] = atan2_0_2pi(yy, xx)
+        m2s[ki] = xx * xx + yy * yy
+        m2min = min(m2min, m2s[ki])
+    k_max = freqs[n_freq - 1]
+    dev = _F0
+    wsum = _F0
+    wphi = _F0
+    if heterodyne:
+        p = _F0
+        for s in range(chain_f.shape[0]):
+            x = _F0
+            for i in range(n_freq):
+                x += chain_c[s, i] * wphs[i]
+            ph = _wrap(x)
+            if s == 0:
+                p = _absolute(ph, chain_f[0])
+                dev = _outside_field(p, chain_f[0], cons_rad * chain_f[0] / chain_f[1])
+            else:
+                p, d = _order_step(p, ph, chain_f[s] / chain_f[s - 1])
+                dev = max(dev, d)
+        if combine:
+            for ki in range(n_freq):
+                kk = freqs[ki]
+                pk, _ = _order_step(p, wphs[ki], kk / k_max)
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * pk
+    else:
+        p = wphs[0]
+        for ki in range(n_freq):
+            if ki > 0:
+                p, d = _order_step(p, wphs[ki], freqs[ki] / freqs[ki - 1])
+                dev = max(dev, d)
+            if combine:
+                kk = freqs[ki]
+                w = np.float32(n_steps) * kk * kk * m2s[ki]
+                wsum += w
+                wphi += w * (k_max / kk) * p
+    if combine:
+        p = wphi / wsum if wsum > _F0 else _NAN
+    return True, p, m2s[n_freq - 1], m2min, dev, wsum
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    n = 0
+    for u in range(code.shape[0]):
+        n += code[u] == _SATURATED
+    return n
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+               m2, prev, vfac, code, wphs, m2s):  # pragma: no cover - compiled
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency (phase stage:
+    phase, finest m2, σ factor and phase-stage code; the height stage follows); their count."""
+    n_steps = cos_t.shape[0]
+    k_max = freqs[freqs.shape[0] - 1]
+    n = 0
+    for u in range(code.shape[0]):
+        if code[u] != _SATURATED:
+            continue
+        ok, p, q, qmin, dev, wsum = _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne,
+                                                 combine, top_code, cons_rad, wphs, m2s)
+        if not ok:
+            continue
+        prev[u] = p
+        m2[u] = q
+        if combine:
+            vfac[u] = _combined_vfac(n_steps, k_max, wsum)
+        code[u] = _mask(_OK, dev, qmin, _F0, cons_rad, m2_min, top_code)
+        n += 1
+    return n
 
 
 # Phase 2: outputs from the block buffers.
@@ -320,54 +660,58 @@ def _points_row(pts, hbuf, code, q, offset):  # type: ignore[no-untyped-def]  # 
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def fused_kernel(  # type: ignore[no-untyped-def]  # one call carries every table to keep the kernel fused
-    frames, cos_t, sin_t, freqs, max_code, min_mod, cons_rad, combine,
-    un, row_coefs, phi0, inv_sphi, lo, hi, sing_rtol, ray_q, offset,
-    depth, points, reason, valid, modulation, texture, phase,
-):  # pragma: no cover - compiled
-    """Raw frames → all per-pixel outputs (see the module docstring). Writes into the outputs.
+def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Raw frames → all per-pixel outputs (see the module docstring). Writes into ``out``.
 
-    ``un``: (W,) normalised column u'; ``row_coefs``: (H, 12) per-row quadratic
-    coefficients of a0, a1, b0, b1 in u'; ``ray_q``: (H, W, 3) rays over n·r. ``phase``
-    is skipped when it has zero rows.
+    ``ph``: :class:`PhaseArgs`; ``m``: :class:`HeightArgs`; ``out``: :class:`Outputs`
+    (``out.phase`` is skipped when it has zero rows).
     """
     n_frames, height, width = frames.shape
+    cos_t, sin_t, freqs = ph.cos_t, ph.sin_t, ph.freqs
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     mod_scale = np.float32(2.0) / np.float32(n_steps)
-    m2_min = (min_mod / mod_scale) * (min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
-    inv_frames = _F1 / np.float32(n_frames)
-    top_code = np.float32(max_code)
-    paper = n_steps == 4 and n_freq == 4 and not combine
-    want_phase = phase.shape[0] == height
+    m2_min = (ph.min_mod / mod_scale) * (ph.min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
+    top_code = np.float32(ph.max_code)
+    paper = n_steps == 4 and n_freq == 4 and not m.combine and not ph.heterodyne
+    want_phase = out.phase.shape[0] == height
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
+    recovered = out.recovered
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
-        buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
-        total, m2, prev, hbuf = buf[0], buf[1], buf[2], buf[3]
+        buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
+        total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 7, width), np.float32)
+        scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
+        wphs = np.empty(n_freq, np.float32)
+        m2s = np.empty(n_freq, np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
-                _paper_row(frames, v, r1, r2, r3, un, row_coefs[v], phi0, inv_sphi, sing_rtol, lo, hi,
-                           cons_rad, m2_min, top_code, total[r], m2[r], prev[r], hbuf[r], code[r])
+                _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
             else:
-                _general_row(frames, v, cos_t, sin_t, freqs, combine, un, row_coefs[v], phi0, inv_sphi,
-                             sing_rtol, lo, hi, cons_rad, m2_min, top_code, scratch,
-                             total[r], m2[r], prev[r], hbuf[r], code[r])
+                _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
+                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r])
+            n_refit = 0
+            if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
+                n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
+                                              m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
+                                              code[r], wphs, m2s)
+            recovered[v] = n_refit
+            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
             v = v0 + r
-            _reason_row(reason[v], valid[v], code[r])
-            _select_row(depth[v], hbuf[r], code[r])
+            _reason_row(out.reason[v], out.valid[v], code[r])
+            _select_row(out.depth[v], hbuf[r], code[r])
+            _select_row(out.sigma[v], sbuf[r], code[r])
             if want_phase:
-                _select_row(phase[v], prev[r], code[r])
-            _shade_row(modulation[v], texture[v], m2[r], total[r], mod_scale, inv_frames)
-            _points_row(points[v].reshape(3 * width), hbuf[r], code[r], ray_q[v].reshape(3 * width), offset)
+                _select_row(out.phase[v], prev[r], code[r])
+            _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
+            _points_row(out.points[v].reshape(3 * width), hbuf[r], code[r], m.ray_q[v].reshape(3 * width), m.offset)
 
 
 _warm: set[str] = set()
@@ -388,11 +732,17 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     f32 = np.zeros((2, 3), np.float32)
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
-    fused_kernel(
-        frames, trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1), False,
-        np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.float32(0), np.float32(1),
-        np.float32(0), np.float32(1), np.float32(1e-5), np.zeros((2, 3, 3), np.float32), np.float32(0),
-        np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-        np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),
+    ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False)
+    m = HeightArgs(
+        np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
+        np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
+        np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32), np.full((1, 3), np.inf, np.float32),
+        np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
+        np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
+    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
+                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy(),
+                  np.empty(2, np.int32))
+    fused_kernel(frames, ph, m, out)
     _warm.add(dt.name)

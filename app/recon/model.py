@@ -1,4 +1,8 @@
-"""The Eq. (5) rational phase-to-height model, precomputed per pixel.
+"""Phase-to-height models precomputed per pixel (Eq. (5) and the geometric model alike).
+
+Every :class:`~app.core.depth_model.DepthModel` gives :class:`~app.core.depth_model.HeightTables`;
+:func:`pixel_tables` turns them into per-pixel a0, a1, b0, b1 (with the ray quotients)
+for the numpy oracle. For Eq. (5):
 
 For a fixed pixel (u', v') the numerator and denominator of Eq. (5) are linear in φ':
 
@@ -20,13 +24,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-if TYPE_CHECKING:
-    from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
+from app.core.depth_model import HeightTables
+from app.core.eq5 import Eq5Model
 
 SINGULAR_RTOL = 1e-5
 
@@ -38,6 +43,7 @@ class ModelTables:
     Attributes:
         a0, a1, b0, b1: (H, W) arrays (float32 or float64).
         phi0, inv_sphi: phase normalisation, ``φ' = (φ − phi0)·inv_sphi``.
+        cubic: ``t = φ' + cubic·φ'³`` enters the rational form (0 for Eq. (5)).
     """
 
     a0: npt.NDArray[Any]
@@ -46,6 +52,7 @@ class ModelTables:
     b1: npt.NDArray[Any]
     phi0: float
     inv_sphi: float
+    cubic: float = 0.0
 
 
 def model_tables(
@@ -81,11 +88,40 @@ def model_tables(
 
 
 def calibration_model_tables(calibration: Calibration, *, dtype: Any = np.float64) -> ModelTables:
-    """:func:`model_tables` for a :class:`~app.calib.calibration.Calibration`."""
-    return model_tables(
-        calibration.numerator, calibration.denominator, calibration.normalization,
-        calibration.image_size, dtype=dtype,
-    )
+    """Per-pixel tables of the calibration's depth model (any model)."""
+    from app.recon.points import calibration_ray_tables, ray_quotients
+
+    tables = calibration_height_tables(calibration)
+    q = ray_quotients(calibration_ray_tables(calibration), dtype=np.float64)
+    return pixel_tables(tables, q, dtype=dtype)
+
+
+def calibration_height_tables(calibration: Calibration) -> HeightTables:
+    """The kernel's :class:`~app.core.depth_model.HeightTables` of the calibration's model."""
+    return calibration.model.height_tables(calibration.image_size, calibration.reference_plane)
+
+
+def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *, dtype: Any = np.float64) -> ModelTables:
+    """Per-pixel a0, a1, b0, b1 from row and ray coefficients.
+
+    Args:
+        tables: the model's height tables (float32 numbers are widened to float64).
+        ray_q: (H, W, 3) ray quotients ``r/(n·r)``.
+    """
+    q = np.asarray(ray_q, np.float64)
+    x = np.asarray(tables.u_norm, np.float64)[None, :]
+    k = np.asarray(tables.row_coefs, np.float64)
+    g = np.asarray(tables.ray_coefs, np.float64).reshape(4, 3)
+    if q.shape != (k.shape[0], x.shape[1], 3):
+        raise ValueError(f"ray_q: shape {q.shape} does not match the tables' {(k.shape[0], x.shape[1], 3)}")
+    out = []
+    for i in range(4):
+        row = (k[:, 3 * i + 2, None] * x + k[:, 3 * i + 1, None]) * x + k[:, 3 * i, None]
+        if np.any(g[i]):
+            row = row + np.nan_to_num(q @ g[i], nan=np.nan)
+        out.append(np.asarray(row, dtype=dtype))
+    return ModelTables(out[0], out[1], out[2], out[3], float(tables.phi0), float(tables.inv_sphi),
+                       float(tables.cubic))
 
 
 def _checked_model(
@@ -142,20 +178,16 @@ def row_coefficients(
 ) -> RowCoefficients:
     """The Eq. (5) u/v parts of a ``(width, height)`` image as per-row quadratics in u'
     (same arguments as :func:`model_tables`)."""
-    polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator, normalization, image_size)
-    vp = (np.arange(h) - v0) / sv
-    cols: list[npt.NDArray[Any]] = []
-    for k1, ku, kv, kuu, kvv, kuv in polys:
-        cols += [k1 + kv * vp + kvv * vp**2, ku + kuv * vp, np.full(h, kuu)]
-    return RowCoefficients(
-        u_norm=((np.arange(w) - u0) / su).astype(np.float32),
-        coefs=np.ascontiguousarray(np.stack(cols, axis=1), dtype=np.float32),
-        phi0=float(p0), inv_sphi=1.0 / float(sp),
-    )
+    _checked_model(numerator, denominator, normalization, image_size)
+    t = Eq5Model(np.asarray(numerator), np.asarray(denominator), dict(normalization)).height_tables(
+        image_size, None)  # type: ignore[arg-type]  # Eq. (5) does not use the plane
+    return RowCoefficients(u_norm=t.u_norm.astype(np.float32),
+                           coefs=np.ascontiguousarray(t.row_coefs, dtype=np.float32),
+                           phi0=t.phi0, inv_sphi=t.inv_sphi)
 
 
 def calibration_row_coefficients(calibration: Calibration) -> RowCoefficients:
-    """:func:`row_coefficients` for a :class:`~app.calib.calibration.Calibration`."""
+    """:func:`row_coefficients` of an Eq. (5) calibration."""
     return row_coefficients(
         calibration.numerator, calibration.denominator, calibration.normalization, calibration.image_size,
     )
@@ -177,14 +209,28 @@ def evaluate_height(
     phi = np.asarray(phase, dtype=np.float64)
     if phi.shape != tables.a0.shape:
         raise ValueError(f"phase: shape {phi.shape} does not match the tables' {tables.a0.shape}")
-    pp = (phi - tables.phi0) * tables.inv_sphi
-    b1p = tables.b1 * pp
-    den = tables.b0 + b1p
-    num = tables.a0 + tables.a1 * pp
-    singular = np.abs(den) <= SINGULAR_RTOL * (np.abs(tables.b0) + np.abs(b1p))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        height = num / den
+    height, singular, _ = evaluate_height_slope(tables, phi)
     return height, singular
+
+
+def evaluate_height_slope(
+    tables: ModelTables, phase: npt.ArrayLike
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.float64]]:
+    """:func:`evaluate_height` and ∂height/∂φ (mm/rad) of the closed form."""
+    phi = np.asarray(phase, dtype=np.float64)
+    if phi.shape != tables.a0.shape:
+        raise ValueError(f"phase: shape {phi.shape} does not match the tables' {tables.a0.shape}")
+    pp = (phi - tables.phi0) * tables.inv_sphi
+    t = pp + tables.cubic * pp**3
+    b1p = tables.b1 * t
+    den = tables.b0 + b1p
+    num = tables.a0 + tables.a1 * t
+    singular = np.abs(den) <= SINGULAR_RTOL * (np.abs(tables.b0) + np.abs(b1p))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        height = num / den
+        slope = (tables.a1 * tables.b0 - tables.a0 * tables.b1) / (den * den) * tables.inv_sphi * (
+            1.0 + 3.0 * tables.cubic * pp * pp)
+    return height, singular, slope
 
 
 def outside_volume(

@@ -9,6 +9,13 @@ For frames ``I_n = A + B cos(φ + δ_n)``, ``δ_n = 2π n / N`` (the projected p
 
 Phases are returned in ``[0, 2π)`` so that the k = 1 phase is directly the absolute
 projector coordinate ``2π x / w``.
+
+Saturation: where some samples of a frequency are clipped (at or above ``max_code``),
+A, B and φ come from a least-squares fit of ``A + a cos δ_n + b sin δ_n`` to the
+unclipped samples (φ = atan2(−b, a), B = |(a, b)|) while at least three remain; three
+samples determine the three unknowns exactly, so one clipped shift of four costs only
+noise. Only pixels with fewer than three unclipped samples in some frequency are
+saturated.
 """
 
 from __future__ import annotations
@@ -96,13 +103,39 @@ class WrappedPhase:
         phase: (K, H, W) float64 wrapped phase in [0, 2π), radians.
         modulation: (K, H, W) float64 B, sensor codes.
         background: (H, W) float64 A averaged over all frames, codes.
-        saturated: (H, W) bool, any frame at or above ``max_code``.
+        saturated: (H, W) bool, fewer than three samples below ``max_code`` in some frequency.
+        recovered: (H, W) bool, some sample clipped but every frequency fitted from the rest.
     """
 
     phase: F64
     modulation: F64
     background: F64
     saturated: npt.NDArray[np.bool_]
+    recovered: npt.NDArray[np.bool_] | None = None
+
+
+def fit_unclipped(samples: npt.ArrayLike, ok: npt.ArrayLike, delta: npt.ArrayLike) -> tuple[F64, F64]:
+    """Least-squares ``I_n = A + a cos δ_n + b sin δ_n`` over the samples with ``ok``.
+
+    Args:
+        samples: (P, N) intensities, codes.
+        ok: (P, N) bool, the samples to use (at least three per row).
+        delta: (N,) phase shifts, radians.
+
+    Returns:
+        ``(phase, modulation)``: (P,) wrapped φ = atan2(−b, a) in [0, 2π), rad, and
+        B = hypot(a, b), codes.
+    """
+    i = np.asarray(samples, dtype=np.float64)
+    m = np.asarray(ok, dtype=np.float64)
+    d = np.asarray(delta, dtype=np.float64)
+    basis = np.stack([np.ones_like(d), np.cos(d), np.sin(d)])  # (3, N)
+    normal = np.einsum("pn,in,jn->pij", m, basis, basis)
+    rhs = np.einsum("pn,pn,in->pi", m, i, basis)
+    coef = np.linalg.solve(normal, rhs[..., None])[..., 0]
+    phase = np.mod(np.arctan2(-coef[:, 2], coef[:, 1]), TWO_PI)
+    phase[phase >= TWO_PI] = 0.0
+    return phase, np.hypot(coef[:, 1], coef[:, 2])
 
 
 def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> WrappedPhase:
@@ -111,7 +144,8 @@ def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> Wr
     Args:
         frames: (K·N, H, W) uint8/uint16, frequency-major, shift-minor.
         steps: N ≥ 3 phase shifts per frequency.
-        max_code: saturation code (default 255 / 65535 by dtype).
+        max_code: saturation code (default 255 / 65535 by dtype); clipped samples are
+            left out of the fit (see the module docstring).
 
     Returns:
         :class:`WrappedPhase`.
@@ -129,6 +163,7 @@ def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> Wr
     phase = np.empty(shape)
     modulation = np.empty(shape)
     total = np.zeros(frames.shape[1:])
+    clipped = np.zeros((n_freq, *frames.shape[1:]), np.int32)
     for k in range(n_freq):
         stack = frames[k * steps : (k + 1) * steps].astype(np.float64)
         s = np.tensordot(sin_d, stack, axes=1)
@@ -136,7 +171,16 @@ def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> Wr
         phase[k] = np.mod(np.arctan2(-s, c), TWO_PI)
         modulation[k] = (2.0 / steps) * np.hypot(s, c)
         total += stack.sum(axis=0)
+        clipped[k] = (frames[k * steps : (k + 1) * steps] >= max_code).sum(axis=0)
     # np.mod can return exactly 2π for tiny negative inputs; keep the half-open range.
     phase[phase >= TWO_PI] = 0.0
-    saturated = (frames >= max_code).any(axis=0)
-    return WrappedPhase(phase, modulation, total / frames.shape[0], saturated)
+    saturated: npt.NDArray[np.bool_] = np.asarray((clipped > steps - 3).any(axis=0))
+    recovered: npt.NDArray[np.bool_] = np.asarray((clipped > 0).any(axis=0) & ~saturated)
+    vv, uu = np.nonzero(recovered)
+    for k in range(n_freq):
+        some = clipped[k, vv, uu] > 0
+        if some.any():
+            samples = frames[k * steps : (k + 1) * steps, vv[some], uu[some]].T
+            phase[k, vv[some], uu[some]], modulation[k, vv[some], uu[some]] = fit_unclipped(
+                samples, samples < max_code, delta)
+    return WrappedPhase(phase, modulation, total / frames.shape[0], saturated, recovered)

@@ -9,14 +9,13 @@ point of height ``h`` on it lies on the plane parallel to the reference plane,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-if TYPE_CHECKING:
-    from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 
 
 @dataclass(frozen=True)
@@ -83,18 +82,18 @@ def _undistort(pix: npt.NDArray[np.float64], k: npt.NDArray[np.float64], dist: A
 
 
 def calibration_ray_tables(calibration: Calibration, *, dtype: Any = np.float64) -> RayTables:
-    """:func:`ray_tables` for a :class:`~app.calib.calibration.Calibration`."""
+    """:func:`ray_tables` for a :class:`~app.core.calibration.Calibration`."""
     return ray_tables(
         calibration.camera_matrix, calibration.dist_coeffs, calibration.image_size,
         calibration.plane_normal, dtype=dtype,
     )
 
 
-def ray_quotients(rays: RayTables) -> npt.NDArray[np.float32]:
-    """(H, W, 3) float32 ``(x, y, 1)/(n·r)`` per pixel: a point is ``(h − offset)`` times it."""
+def ray_quotients(rays: RayTables, *, dtype: Any = np.float32) -> npt.NDArray[Any]:
+    """(H, W, 3) ``(x, y, 1)/(n·r)`` per pixel (float32 by default): a point is ``(h − offset)`` times it."""
     inv_m = np.asarray(rays.inv_m, np.float64)
     q = np.stack([np.asarray(rays.rx, np.float64) * inv_m, np.asarray(rays.ry, np.float64) * inv_m, inv_m], axis=-1)
-    return np.ascontiguousarray(q, dtype=np.float32)
+    return np.ascontiguousarray(q, dtype=dtype)
 
 
 def points_from_height(

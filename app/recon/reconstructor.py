@@ -7,38 +7,38 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from app.core.calibration import Calibration
+from app.core.depth_model import HeightTables
 from app.core.reasons import assign_reasons
 from app.core.schedule import PatternSchedule
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
-    RowCoefficients,
-    calibration_model_tables,
-    calibration_row_coefficients,
-    evaluate_height,
+    calibration_height_tables,
+    evaluate_height_slope,
     outside_volume,
+    pixel_tables,
 )
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     check_consistency_rad,
-    unwrap_hierarchical,
+    unwrap_chain,
+    unwrap_phases,
 )
 from app.recon.unwrap import (
     combine_frequencies as combine_phases,
 )
-
-if TYPE_CHECKING:
-    from app.calib.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,40 @@ except ImportError as exc:  # numba missing or broken: the numpy oracle still wo
     _fast = None
 
 
+@dataclass(frozen=True)
+class SensorNoise:
+    """Temporal noise of the camera: ``σ_I² = read_noise_dn² + gain_dn_per_e·I`` (DN², I in DN).
+
+    ``read_noise_dn`` includes everything independent of the signal (read noise, dark
+    current, ADC quantisation 1/12 DN²). :meth:`typical` is a generic CMOS/CCD at the
+    ADC's full range: full well 16 000 e⁻, read noise 12 e⁻.
+    """
+
+    gain_dn_per_e: float
+    read_noise_dn: float
+
+    def __post_init__(self) -> None:
+        for name in ("gain_dn_per_e", "read_noise_dn"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0.0):
+                raise ValueError(f"{name}: must be finite and >= 0, got {val}")
+
+    @classmethod
+    def typical(cls, max_code: int, *, full_well_e: float = 16000.0, read_noise_e: float = 12.0) -> SensorNoise:
+        g = max_code / full_well_e
+        return cls(g, math.sqrt((g * read_noise_e) ** 2 + 1.0 / 12.0))
+
+    def variance_dn2(self, mean_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        return self.read_noise_dn**2 + self.gain_dn_per_e * np.maximum(np.asarray(mean_dn, np.float64), 0.0)
+
+
+def phase_variance_factor(modulation_sq: npt.ArrayLike, steps: int) -> npt.NDArray[np.float64]:
+    """var(φ)/σ_I² of the N-step phase: ``N / (2·m2)`` with ``m2 = (Σ I cosδ)² + (Σ I sinδ)²
+    = (N·B/2)²`` (so ``2 / (N·B²)``)."""
+    with np.errstate(divide="ignore"):
+        return steps / (2.0 * np.asarray(modulation_sq, np.float64))
+
+
 @dataclass
 class PhaseResult:
     """Calibration-free phase of one fringe set (all (H, W)).
@@ -63,6 +97,7 @@ class PhaseResult:
         texture: float32 A + B (finest frequency), codes, for display.
         reason: uint8 :class:`~app.core.reasons.Reason` (OK, SATURATED,
             LOW_MODULATION or UNWRAP_INCONSISTENT).
+        recovered: pixels with clipped samples whose phase was fitted from the rest.
     """
 
     phase: F32
@@ -70,6 +105,7 @@ class PhaseResult:
     background: F32
     texture: F32
     reason: npt.NDArray[np.uint8]
+    recovered: int = 0
 
 
 @dataclass
@@ -86,6 +122,10 @@ class ReconResult:
         phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;
             None unless the reconstructor was made with ``with_phase=True``.
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
+        sigma: float32 1-σ depth noise, mm, NaN invalid: the sensor noise of the pixel's
+            intensities through the modulation to the phase and through the model's ∂z/∂φ.
+        recovered: pixels with clipped samples whose phase was fitted from the rest
+            (see :mod:`app.recon.phase`).
     """
 
     depth: F32
@@ -96,16 +136,20 @@ class ReconResult:
     texture: F32
     phase: F32 | None
     elapsed_ms: float
+    sigma: F32 = field(default_factory=lambda: np.empty((0, 0), np.float32))
+    recovered: int = 0
 
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool,
+    consistency_rad: float, combine: bool, phase_error: Any = None,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
-    unwrapped, consistent = unwrap_hierarchical(
-        wp.phase, schedule.frequencies, consistency_rad=consistency_rad
+    if phase_error is not None:
+        wp = replace(wp, phase=phase_error.apply(wp.phase))
+    unwrapped, consistent = unwrap_phases(
+        wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad
     )
     if combine:
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
@@ -128,6 +172,7 @@ def compute_phase(
     min_modulation: float | None = None,
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
     combine_frequencies: bool = False,
+    phase_error: PhaseErrorLUT | None = None,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
 
@@ -139,6 +184,8 @@ def compute_phase(
             (see :func:`app.recon.phase.resolve_levels`).
         consistency_rad: unwrapping consistency threshold, radians.
         combine_frequencies: use the noise-optimal combination of all frequencies.
+        phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
+            wrapped phases before unwrapping (projector-gamma correction).
 
     Returns:
         :class:`PhaseResult`.
@@ -151,7 +198,7 @@ def compute_phase(
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error
     )
     mod = wp.modulation[-1]
     return PhaseResult(
@@ -160,6 +207,7 @@ def compute_phase(
         background=wp.background.astype(np.float32),
         texture=(wp.background + mod).astype(np.float32),
         reason=reason,
+        recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
     )
 
 
@@ -167,7 +215,7 @@ class Reconstructor:
     """Turns fringe sets into depth maps and point clouds for one calibration.
 
     Args:
-        calibration: a :class:`~app.calib.calibration.Calibration`.
+        calibration: a :class:`~app.core.calibration.Calibration` (any depth model).
         max_code: sensor maximum code; None → 255 (uint8) / 65535 (uint16). Pass 4095
             for 12-bit data delivered in uint16.
         min_modulation: minimum modulation B (codes) over all frequencies; None → 2 %
@@ -179,6 +227,9 @@ class Reconstructor:
         fast: use the fused numba kernel (falls back to numpy if numba is missing).
         with_phase: also return the unwrapped phase (calibration and noise analysis
             need it; live depth does not, and it costs a full-frame write).
+        noise: the camera's :class:`SensorNoise` for ``ReconResult.sigma``; None →
+            :meth:`SensorNoise.typical` for the frames' maximum code.
+        max_sigma_mm: pixels whose σ exceeds this are UNCERTAIN (None: no such rule).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -195,9 +246,15 @@ class Reconstructor:
         combine_frequencies: bool = False,
         fast: bool = True,
         with_phase: bool = False,
+        noise: SensorNoise | None = None,
+        max_sigma_mm: float | None = None,
     ) -> None:
-        if not all(hasattr(calibration, a) for a in ("check_frames", "numerator", "pattern")):
+        if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
+        if noise is not None and not isinstance(noise, SensorNoise):
+            raise ValueError("noise: expected a SensorNoise")
+        if max_sigma_mm is not None and not (math.isfinite(max_sigma_mm) and max_sigma_mm > 0.0):
+            raise ValueError(f"max_sigma_mm: must be finite and > 0, got {max_sigma_mm}")
         if not (math.isfinite(height_margin_mm) and height_margin_mm >= 0.0):
             raise ValueError(f"height_margin_mm: must be finite and >= 0, got {height_margin_mm}")
         if min_modulation is not None and not (math.isfinite(min_modulation) and min_modulation >= 0):
@@ -211,6 +268,8 @@ class Reconstructor:
         self.height_margin_mm = float(height_margin_mm)
         self.combine_frequencies = bool(combine_frequencies)
         self.with_phase = bool(with_phase)
+        self.noise = noise
+        self.max_sigma_mm = None if max_sigma_mm is None else float(max_sigma_mm)
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
@@ -221,35 +280,65 @@ class Reconstructor:
             _ = self._fast_tables
 
     @cached_property
-    def _fast_tables(self) -> tuple[RowCoefficients, npt.NDArray[np.float32]]:
-        return calibration_row_coefficients(self.calibration), ray_quotients(calibration_ray_tables(self.calibration))
+    def _height_tables(self) -> HeightTables:
+        return calibration_height_tables(self.calibration)
 
     @cached_property
-    def _fast_schedule(self) -> tuple[F32, F32, F32]:
-        """float32 (cos δ_n, sin δ_n, frequencies) of the calibration's pattern."""
+    def _fast_tables(self) -> tuple[HeightTables, npt.NDArray[np.float32]]:
+        t = self._height_tables
+        f32 = HeightTables(
+            np.ascontiguousarray(t.u_norm, np.float32), np.ascontiguousarray(t.row_coefs, np.float32),
+            np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
+        )
+        return f32, ray_quotients(calibration_ray_tables(self.calibration))
+
+    @cached_property
+    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32]:
+        """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies) of the pattern."""
         sched = self.calibration.pattern
         delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
+        coefs, steps = unwrap_chain(sched.frequencies, sched.unwrap)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-                np.asarray(sched.frequencies, np.float32))
+                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
-        return calibration_model_tables(self.calibration), calibration_ray_tables(self.calibration)
+        rays = calibration_ray_tables(self.calibration)
+        return pixel_tables(self._height_tables, ray_quotients(rays, dtype=np.float64)), rays
 
-    def run(self, frames: Any, *, fast: bool | None = None) -> ReconResult:
+    @cached_property
+    def _region_columns(self) -> tuple[F32, F32, npt.NDArray[np.int64], float, float]:
+        """The supported region for the kernel: (gh, W) float32 lower and upper height bounds per
+        grid row and column, (H,) grid row of every image row, phase range (cells as in
+        :meth:`~app.core.depth_model.SupportedRegion.outside`)."""
+        grid, inv_w, inv_h, p_lo, p_hi = self.calibration.model.region.kernel_bounds()
+        w, h = self.calibration.image_size
+        cols = np.minimum((np.arange(w) * inv_w).astype(np.int64), grid.shape[1] - 1)
+        rows = np.minimum((np.arange(h) * inv_h).astype(np.int64), grid.shape[0] - 1)
+        per_col = grid[:, cols, :]
+        return (np.ascontiguousarray(per_col[..., 0], np.float32), np.ascontiguousarray(per_col[..., 1], np.float32),
+                rows, p_lo, p_hi)
+
+    def _noise(self, max_code: int) -> SensorNoise:
+        return self.noise if self.noise is not None else SensorNoise.typical(max_code)
+
+    def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None) -> ReconResult:
         """Reconstruct one fringe set.
 
         Args:
             frames: (F, H, W) uint8/uint16 in capture-set order (F = the calibration's
                 ``pattern.n_frames``, H×W its image size), or a sequence of 2-D frames.
             fast: override the constructor's choice of path for this call.
+            max_code: override the constructor's sensor maximum code for this call
+                (a capture set's ``max_code``, from its ``bit_depth``).
 
         Returns:
             :class:`ReconResult`.
         """
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
-        max_code, min_mod = resolve_levels(frames.dtype, self.max_code, self.min_modulation)
+        max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
+                                           self.min_modulation)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
             return self._run_fast(frames, max_code, min_mod)
@@ -262,9 +351,21 @@ class Reconstructor:
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies
         )
-        height, singular = evaluate_height(model, phi)
+        height, singular, slope = evaluate_height_slope(model, phi)
         lo, hi = self._bounds_mm
         outside = outside_volume(height, (lo, hi), 0.0)
+        outside_field = cal.model.region.outside(height, phi)
+        steps = cal.pattern.steps
+        m2 = (wp.modulation * (steps / 2.0)) ** 2  # (K, H, W) (Σ I cosδ)² + (Σ I sinδ)²
+        if self.combine_frequencies:
+            k = np.asarray(cal.pattern.frequencies, np.float64)[:, None, None]
+            with np.errstate(divide="ignore"):
+                vfac = 0.5 * steps * k[-1] ** 2 / (k**2 * m2).sum(axis=0)
+        else:
+            vfac = phase_variance_factor(m2[-1], steps)
+        with np.errstate(invalid="ignore"):
+            sigma = np.abs(slope) * np.sqrt(self._noise(max_code).variance_dn2(wp.background) * vfac)
+            uncertain = sigma > self.max_sigma_mm if self.max_sigma_mm is not None else None
         reason = assign_reasons(
             phi.shape,
             saturated=reason == 2,
@@ -272,6 +373,8 @@ class Reconstructor:
             inconsistent=reason == 3,
             singular=singular,
             outside=outside,
+            outside_field=outside_field,
+            uncertain=uncertain,
         )
         valid = reason == 0
         depth = np.where(valid, height, np.nan)
@@ -286,6 +389,8 @@ class Reconstructor:
             texture=(wp.background + mod).astype(np.float32),
             phase=np.where(valid, phi, np.nan).astype(np.float32) if self.with_phase else None,
             elapsed_ms=(time.perf_counter() - t0) * 1e3,
+            sigma=np.where(valid, sigma, np.nan).astype(np.float32),
+            recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
         )
 
     def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
@@ -301,18 +406,27 @@ class Reconstructor:
     def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult) -> None:
         assert _fast is not None
         cal = self.calibration
-        rows, ray_q = self._fast_tables
-        cos_d, sin_d, freqs = self._fast_schedule
+        tables, ray_q = self._fast_tables
+        cos_d, sin_d, freqs, chain_c, chain_f = self._fast_schedule
         lo, hi = self._bounds_mm
-        _fast.fused_kernel(
-            np.ascontiguousarray(frames), cos_d, sin_d, freqs,
-            np.int32(max_code), np.float32(min_mod), np.float32(self.consistency_rad),
-            self.combine_frequencies,
-            rows.u_norm, rows.coefs, np.float32(rows.phi0), np.float32(rows.inv_sphi),
-            np.float32(lo), np.float32(hi), np.float32(SINGULAR_RTOL), ray_q, np.float32(cal.plane_offset_mm),
-            out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
-            out.phase if out.phase is not None else _NO_PHASE,
+        r_lo, r_hi, rows, p_lo, p_hi = self._region_columns
+        noise = self._noise(max_code)
+        f32 = np.float32
+        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
+                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne")
+        m = _fast.HeightArgs(
+            tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
+            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
+            ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi),
+            f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
+            f32(self.max_sigma_mm if self.max_sigma_mm is not None else np.inf),
+            self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
         )
+        recovered = np.zeros(frames.shape[1], np.int32)
+        o = _fast.Outputs(out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
+                          out.phase if out.phase is not None else _NO_PHASE, out.sigma, recovered)
+        _fast.fused_kernel(np.ascontiguousarray(frames), ph, m, o)
+        out.recovered = int(recovered.sum())
 
 
 _NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows
@@ -358,13 +472,14 @@ def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
         texture=np.empty((h, w), np.float32),
         phase=np.empty((h, w), np.float32) if with_phase else None,
         elapsed_ms=0.0,
+        sigma=np.empty((h, w), np.float32),
     )
 
 
 def _reference_counts(res: ReconResult) -> tuple[int, int]:
     """(references to ``res``, most references to any of its arrays)."""
-    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase)
-              if a is not None]
+    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase,
+                          res.sigma) if a is not None]
     return sys.getrefcount(res), max(sys.getrefcount(a) for a in arrays)
 
 

@@ -35,12 +35,14 @@ def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = 
     from app.analysis.feature import feature_height
 
     try:
-        res = feature_height(result.depth, result.texture, result.valid, roi=roi, polarity=polarity)
+        res = feature_height(result.depth, result.texture, result.valid, roi=roi,
+                             polarity=None if polarity == "auto" else polarity)
     except ValueError as exc:  # the ROI / polarity (user input) does not fit the result
         raise InvalidRequest(str(exc)) from None
     return {
         "height_mm": _f(res.height_mm), "height_std_mm": _f(res.height_std_mm),
         "count": int(res.count),
         "extra": {"seq": result.seq, "baseline_rms_mm": _f(res.baseline_rms_mm),
+                  "height_se_mm": _f(res.height_se_mm), "polarity": res.polarity,
                   "feature_pixels": int(res.mask.sum())},
     }

@@ -68,7 +68,7 @@ class CalibrationSession:
 
     def add(self, capture: CaptureSet) -> tuple[int, Pose]:
         """Detect the board in ``capture`` and keep it as the next pose."""
-        res = compute_phase(capture.frames, capture.schedule)
+        res = compute_phase(capture.frames, capture.schedule, max_code=capture.max_code)
         tex = texture_to_u8(res.texture)
         det = detect_board(tex, self.board)
         pose = Pose(capture, det, preview_png(tex, self.board, det))

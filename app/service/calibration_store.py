@@ -31,7 +31,7 @@ def initial_path(settings: Settings) -> Path | None:
         if not path.is_file():
             raise ValueError(f"{path}: calibration file not found")
         return path
-    for name in ("active.json", "sim.json") if settings.camera == "sim" else ("active.json",):
+    for name in ("active.json", sim_file_name(settings)) if settings.camera == "sim" else ("active.json",):
         path = folder(settings) / name
         if path.is_file():
             return path
@@ -51,8 +51,13 @@ def save_active(settings: Settings, cal: Calibration, name: str) -> Path:
     return save_calibration(cal, folder(settings) / "active.json")
 
 
+def sim_file_name(settings: Settings) -> str:
+    """The simulator's own calibration file: ``sim.json`` for the default rig, ``sim-<rig>.json`` else."""
+    return "sim.json" if settings.sim_rig == "default" else f"sim-{settings.sim_rig}.json"
+
+
 def create_sim_calibration(settings: Settings) -> Calibration:
-    """Simulate board poses, calibrate from them and store ``sim.json`` (minutes at most)."""
+    """Simulate board poses of the configured rig, calibrate from them and store them (minutes at most)."""
     from app.calib.fitting import calibrate_folder
     from app.devices.sim import simulate_calibration_folder
 
@@ -61,9 +66,9 @@ def create_sim_calibration(settings: Settings) -> Calibration:
     work = Path(tempfile.mkdtemp(prefix=".sim-calib-", dir=out))
     try:
         log.info("creating the simulator's calibration in %s", work)
-        simulate_calibration_folder(work / "poses", seed=settings.sim_seed)
+        simulate_calibration_folder(work / "poses", seed=settings.sim_seed, rig=settings.sim_rig)
         report = calibrate_folder(work / "poses")
-        save_calibration(report.calibration, out / "sim.json")
+        save_calibration(report.calibration, out / sim_file_name(settings))
         return report.calibration
     finally:
         shutil.rmtree(work, ignore_errors=True)

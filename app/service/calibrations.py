@@ -17,7 +17,7 @@ from app.config import Settings
 from app.core.board import BoardSpec
 from app.core.errors import Conflict, InvalidRequest
 from app.core.records import CalibrationSummary
-from app.core.schedule import PatternSchedule
+from app.core.schedule import PatternSchedule, check_pattern
 from app.recon import ReconResult, Reconstructor
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
@@ -92,6 +92,7 @@ class CalibrationManager:
     # -- activation --------------------------------------------------------------------------
     def activate(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
+        check_pattern(cal.pattern, self.schedule, "projector")  # names orientation/unwrap mismatches
         if cal.pattern != self.schedule:
             raise ValueError("calibration: its pattern schedule differs from the projector's")
         size = self.pipeline.image_size()
@@ -100,7 +101,8 @@ class CalibrationManager:
                 f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
                 f"the camera's {size[0]}x{size[1]}"
             )
-        engine = Reconstructor(cal, fast=True)
+        bits = self.settings.bit_depth
+        engine = Reconstructor(cal, fast=True, max_code=None if bits == 8 else 2**bits - 1)
         if persist:
             calibration_store.save_active(self.settings, cal, name)
         with self._lock:
@@ -118,6 +120,7 @@ class CalibrationManager:
         return CalibrationSummary(
             name=self.name, created=cal.created, height_range_mm=(float(lo), float(hi)), image_size=(int(w), int(h)),
             software_version=cal.software_version, poses=len(cal.pose_residuals),
+            model=cal.model.name, held_out=cal.held_out,
         )
 
     # -- uploaded sets -----------------------------------------------------------------------
@@ -126,9 +129,8 @@ class CalibrationManager:
         cal = self.calibration
         if cal is None:
             raise Conflict("no calibration is active: load or create one first")
-        if capture.schedule != cal.pattern:
-            raise InvalidRequest("capture: pattern schedule differs from the calibration's")
         try:
+            check_pattern(cal.pattern, capture.schedule)
             cal.check_frames(capture.frames.shape)
         except ValueError as exc:
             raise InvalidRequest(str(exc)) from None
@@ -136,7 +138,7 @@ class CalibrationManager:
             if self._upload_engine is None or self._upload_engine_cal is not cal:
                 self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames)
+            return self._upload_engine.run(capture.frames, max_code=capture.max_code)
 
     # -- the session (the REST wizard) -------------------------------------------------------
     def start_session(self, board: dict[str, Any]) -> CalibrationSession:

@@ -57,7 +57,7 @@ def device_specs(settings: Settings) -> DeviceSpecs:
         sim=SimSpec(
             scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,
             drop_rate=settings.sim_drop_rate, timeout_rate=settings.sim_timeout_rate,
-            disconnect_every_s=settings.sim_disconnect_every_s, realtime=True,
+            disconnect_every_s=settings.sim_disconnect_every_s, realtime=True, rig=settings.sim_rig,
         ),
     )
 

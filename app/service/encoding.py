@@ -106,10 +106,11 @@ def reason_png(reason: npt.NDArray[np.uint8]) -> bytes:
     return png_bytes(lut[np.asarray(reason, np.uint8)])
 
 
-def ply_bytes(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_], intensity: Any) -> bytes:
+def ply_bytes(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_], intensity: Any,
+              sigma: npt.NDArray[np.float32] | None = None) -> bytes:
     from app.capture.ply import ply_bytes as encode
 
-    return bytes(encode(points, valid, intensity))
+    return bytes(encode(points, valid, intensity, sigma))
 
 
 def legend_header() -> str:

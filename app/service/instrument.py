@@ -238,6 +238,8 @@ class Instrument:
             frames_dropped=acq.frames_dropped if acq else 0,
             faults=acq.faults if acq else 0,
             recording=None if self.recorder is None else self.recorder.active_name,
+            bit_depth=s.bit_depth,
+            schedule=self.schedule.to_dict(),
             warnings=tuple(warnings),
         )
 

@@ -145,7 +145,7 @@ class LivePipeline:
                 break
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
                 return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
-                                  extra={"frame_indices": fs.frame_indices})
+                                  bit_depth=self.config.bit_depth, extra={"frame_indices": fs.frame_indices})
         raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
 
     def auto_exposure(self, *, saturation_limit: float, max_exposure_ms: float) -> AutoExposureResult:

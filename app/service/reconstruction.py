@@ -31,6 +31,7 @@ class LiveResult:
 
     Arrays as ``ReconResult``: depth (H, W) f32 mm NaN-invalid, points (H, W, 3) f32 mm,
     valid (H, W) bool, reason (H, W) uint8, texture/modulation (H, W) f32 in sensor units.
+    ``sigma`` (H, W) f32 1-σ depth noise, mm, NaN invalid (None when not computed).
     ``motion`` is the rolling-mode motion mask (None in set mode). Times: ``received_s``
     is when the newest frame arrived, ``published_s`` when the result was ready
     (``time.monotonic``); ``latency_ms`` their difference.
@@ -54,6 +55,7 @@ class LiveResult:
     recon_ms: float
     created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
     seq: int = 0
+    sigma: npt.NDArray[np.float32] | None = None
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -148,13 +150,15 @@ class Reconstruction:
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
         res = engine.run(frames)  # the engine serialises its parallel kernel itself
-        depth, points, valid, reason = res.depth, res.points, res.valid, res.reason
+        depth, points, valid, reason, sigma = res.depth, res.points, res.valid, res.reason, res.sigma
         motion = None
         if fs.mode == "rolling":
             motion = motion_mask(frames, self.n_frequencies, full_scale=full_scale)
             moving = motion & valid
             if moving.any():
                 depth, points, valid, reason = depth.copy(), points.copy(), valid.copy(), reason.copy()
+                sigma = sigma.copy()
+                sigma[moving] = np.nan
                 depth[moving] = np.nan
                 points[moving] = np.nan
                 valid[moving] = False
@@ -165,5 +169,5 @@ class Reconstruction:
             texture=res.texture, modulation=res.modulation, motion=motion, mode=fs.mode,
             frame_indices=fs.frame_indices, timestamps=fs.timestamps,
             exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
-            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms,
+            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms, sigma=sigma,
         )

@@ -271,6 +271,7 @@ class Recorder:
             capture = CaptureSet(
                 frames=fs.stack(), schedule=self.instrument.schedule, exposure_ms=float(fs.exposure_ms),
                 led=fs.led or "green", extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
+                bit_depth=self.instrument.settings.bit_depth,
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}
             poses = self.pose_source() if self.pose_source is not None else None

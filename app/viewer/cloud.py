@@ -18,7 +18,8 @@ from app.service.encoding import DEFAULT_RANGE_MM
 from app.service.encoding import texture_u8 as _texture_u8
 from app.service.reconstruction import LiveResult
 
-COLOR_MODES = ("height", "texture")
+COLOR_MODES = ("height", "texture", "sigma")
+SIGMA_RANGE_MM = (0.0, 0.1)  # colour range of the 1-σ depth noise
 PANEL_WIDTH_PX = 360  # GUI images are downscaled to this width: they are previews
 
 
@@ -49,7 +50,8 @@ def cloud_arrays(
     max_points : int
         Upper bound on the returned count (a regular grid stride, so the cloud keeps
         the image's sampling pattern).
-    color_mode : {"height", "texture"}
+    color_mode : {"height", "texture", "sigma"}
+        ``sigma``: the 1-σ depth noise (``result.sigma``, mm) over 0–0.1 mm.
     range_mm : (float, float)
         Height colour range.
 
@@ -71,6 +73,10 @@ def cloud_arrays(
     xyz = np.ascontiguousarray(sub[keep], dtype=np.float32)
     if color_mode == "height":
         colors = depth_colormap(np.asarray(result.depth)[::step, ::step], range_mm)[keep]
+    elif color_mode == "sigma":
+        sigma = getattr(result, "sigma", None)
+        sig = np.full((h, w), np.nan, np.float32) if sigma is None else np.asarray(sigma)
+        colors = depth_colormap(sig[::step, ::step], SIGMA_RANGE_MM)[keep]
     else:
         gray = texture_u8(result)[::step, ::step][keep]
         colors = np.repeat(gray[:, None], 3, axis=1)

@@ -39,3 +39,46 @@ def test_bad_input_names_the_argument():
         projector_incidence_cos(p, np.zeros((4, 2)), [0, 0, 1])
     with pytest.raises(ValueError, match="projector_centre_mm"):
         projector_incidence_cos(p, p, [0, np.nan, 1])
+
+
+def _fake_result(depth, valid, reason=None):
+    from types import SimpleNamespace
+
+    r = np.zeros(depth.shape, np.uint8) if reason is None else reason
+    return SimpleNamespace(depth=np.where(valid, depth, np.nan), valid=valid, reason=r)
+
+
+def test_ninths_on_a_constructed_case():
+    from app.analysis.acceptance import ninths_report
+
+    rng = np.random.default_rng(0)
+    h, w = 90, 120
+    truth = np.tile(np.linspace(-2.0, 22.0, w), (h, 1))  # left columns below the volume
+    sigma = np.full((h, w), 0.02)
+    noise = rng.normal(0.0, 0.02, (h, w))
+    depth = truth + noise
+    depth[:30, 80:] += 0.3  # top-right ninth biased
+    depth[60:, 40:80][::10, ::10] += 1.0  # bottom-centre ninth: 3 × 4 gross pixels
+    valid = np.ones((h, w), bool)
+    valid[30:60, :40][:, ::2] = False  # middle-left ninth: half invalid
+    reason = np.zeros((h, w), np.uint8)
+    reason[30:60, :40][:, ::2] = 2  # … because saturated: excluded from its valid fraction
+    cells = ninths_report(_fake_result(depth, valid, reason), truth, (0.0, 20.0), sigma)
+    assert [(c["row"], c["col"]) for c in cells] == [(r, c) for r in range(3) for c in range(3)]
+    top_right, mid_left, bottom_mid = cells[2], cells[3], cells[7]
+    assert top_right["mean_error_mm"] == pytest.approx(0.3, abs=0.005)
+    assert top_right["rms_ratio"] == pytest.approx(np.hypot(0.3, 0.02) / 0.02, rel=0.02)
+    assert top_right["std_ratio"] == pytest.approx(1.0, abs=0.1)
+    assert cells[4]["rms_ratio"] == pytest.approx(1.0, abs=0.1) and cells[4]["gross"] == 0
+    assert mid_left["valid_fraction"] == 1.0  # the invalid ones were saturated
+    assert bottom_mid["gross"] == 12
+    cols_out = truth[0] < 0.0  # columns below the volume: all in the left third
+    assert cells[0]["outside_pixels"] == 30 * int(cols_out.sum()) and cells[1]["outside_pixels"] == 0
+    assert cells[0]["outside_valid"] == cells[0]["outside_pixels"] and cells[0]["outside_gross"] == 0
+    lit = np.zeros((h, w), bool)
+    empty = ninths_report(_fake_result(depth, valid), truth, (0.0, 20.0), sigma, lit=lit)
+    assert all(c["pixels"] == 0 and np.isnan(c["valid_fraction"]) for c in empty)
+    with pytest.raises(ValueError, match="sigma_mm"):
+        ninths_report(_fake_result(depth, valid), truth, (0.0, 20.0), sigma[:10])
+    with pytest.raises(ValueError, match="height_range_mm"):
+        ninths_report(_fake_result(depth, valid), truth, (5.0, 1.0), sigma)

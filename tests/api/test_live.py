@@ -116,6 +116,23 @@ def test_depth_formats_agree(live: TestClient) -> None:
     assert color.shape[0] >= depth.shape[0] and color.shape[1] > depth.shape[1]  # image + colour bar
 
 
+def test_sigma_field_matches_depth(live: TestClient) -> None:
+    for _ in range(50):
+        d = live.get("/api/depth/latest?format=npy")
+        s = live.get("/api/depth/latest?format=npy&field=sigma")
+        if d.headers["x-fringescope-seq"] == s.headers["x-fringescope-seq"]:
+            break
+    depth, sigma = np.load(io.BytesIO(d.content)), np.load(io.BytesIO(s.content))
+    assert sigma.dtype == np.float32 and sigma.shape == depth.shape
+    assert np.array_equal(np.isfinite(sigma), np.isfinite(depth))
+    assert 0.0 < np.nanmedian(sigma) < 0.5
+    r = live.get("/api/depth/latest?format=color&field=sigma")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert live.get("/api/depth/latest?field=noise").status_code == 422
+    ply = live.get("/api/pointcloud/latest.ply")
+    assert b"property float sigma_mm" in ply.content[:400]
+
+
 def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     tex = live.get("/api/texture/latest.png")
     assert tex.status_code == 200 and tex.headers["content-type"] == "image/png"
@@ -187,7 +204,13 @@ def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
     r = live.get("/api/calibration/file")
     assert r.status_code == 200
     data = r.json()
-    assert data["format"] == "fringescope.calibration/1"
+    assert data["format"] == "fringescope.calibration/2"
+    summary = live.get("/api/calibration").json()
+    assert summary["model"] == data["model"]["name"] and set(summary["held_out"]) <= {"eq5", "geometric"}
+    other = "eq5" if data["model"]["name"] == "geometric" else "geometric"
+    corrupted = dict(data, model=dict(data["model"], name=other))  # one model's numbers under the other's name
+    r = live.put("/api/calibration/file", json=corrupted)
+    assert r.status_code == 422 and "model" in r.json()["detail"] and "\n" not in r.json()["detail"]
     bad = dict(data, format="something/9")
     r = live.put("/api/calibration/file", json=bad)
     assert r.status_code == 422 and "format" in r.json()["detail"]

@@ -50,7 +50,12 @@ def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
     assert main(["calibrate", str(d), "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "pose_05" in text and "reproj_px" in text and "fit_rms_mm" in text and "wrote" in text
+    assert "held-out rms_mm" in text and "\neq5 " in text and "\ngeometric " in text and "<- active" in text
     cal = load_calibration(out)
+    assert set(cal.held_out) == {"eq5", "geometric"}
+    eq5, geo = cal.held_out["eq5"]["rms_mm"], cal.held_out["geometric"]["rms_mm"]
+    best = "eq5" if eq5 < 0.98 * geo else "geometric"
+    assert cal.model.name == best and f"active model: {best}" in text
     assert len(cal.pose_residuals) == len(STANDARD_POSES)
     assert all(p["corners"] == BOARD.n_points for p in cal.pose_residuals)
     # Heights of a fresh plane 10 mm above the reference, from its exact phase.
@@ -61,6 +66,39 @@ def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
     vv, uu = np.mgrid[150:330, 220:420]
     z = height_mm(cal, uu, vv, phase[150:330, 220:420])
     assert abs(np.mean(z) - 10.0) < 0.05 and np.abs(z - 10.0).max() < 0.2
+
+
+@pytest.mark.parametrize("model", ["eq5", "geometric"])
+def test_cli_calibrate_forced_model(calib_dir, tmp_path, capsys, model):
+    d, rig, truth = calib_dir
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(d), "-o", str(out), "--model", model]) == 0
+    assert f"active model: {model}" in capsys.readouterr().out
+    cal = load_calibration(out)
+    assert cal.model.name == model
+    r0, t0 = truth[0]
+    n = r0[:, 2] if r0[:, 2] @ t0 < 0 else -r0[:, 2]
+    phase = rig.plane_phase_map(n, t0 + 10.0 * n)
+    vv, uu = np.mgrid[150:330, 220:420]
+    z = height_mm(cal, uu, vv, phase[150:330, 220:420])
+    assert abs(np.mean(z) - 10.0) < 0.05 and np.abs(z - 10.0).max() < 0.2
+
+
+def test_boards_covering_too_little_name_the_missing_region():
+    from app.calib.fitting import _check_coverage
+    from app.core.depth_model import BoardSamples
+
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0, 300, 500), rng.uniform(0, 200, 500)  # top left of a 640 x 480 image
+    s = BoardSamples(u, v, np.zeros((500, 2)), np.ones(500), np.ones(500), np.zeros(500, np.int64),
+                     (640, 480), 36, 608)
+    with pytest.raises(ValueError, match=r"no control point in the .*bottom right.*ninths"):
+        _check_coverage(s)
+    u2 = np.r_[u, rng.uniform(0, 639, 500)]
+    v2 = np.r_[v, rng.uniform(0, 479, 500)]
+    s2 = BoardSamples(u2, v2, np.zeros((1000, 2)), np.ones(1000), np.ones(1000), np.zeros(1000, np.int64),
+                      (640, 480), 36, 608)
+    assert _check_coverage(s2) == []
 
 
 def test_calibrate_sets_errors_name_the_pose(calib_dir):

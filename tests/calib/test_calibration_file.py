@@ -30,7 +30,7 @@ def test_round_trip(tmp_path, cal):
     assert back.height_range_mm == (0.0, 28.5) and back.pose_residuals == cal.pose_residuals
     assert back.created == cal.created
     data = json.loads(path.read_text())
-    assert data["format"] == "fringescope.calibration/1"
+    assert data["format"] == "fringescope.calibration/2"
     assert len(data["model"]["numerator"]) + len(data["model"]["denominator"]) == 23
 
 
@@ -46,7 +46,7 @@ def test_unknown_keys_kept(tmp_path, cal):
 
 def test_wrong_format_version(tmp_path, cal):
     data = cal.to_dict()
-    data["format"] = "fringescope.calibration/2"
+    data["format"] = "fringescope.calibration/3"
     (tmp_path / "c.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match="c.json.*unsupported format"):
         load_calibration(tmp_path / "c.json")

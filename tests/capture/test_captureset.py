@@ -78,3 +78,64 @@ def test_frame_count_and_format_checked(tmp_path):
         read_capture_set(tmp_path / "s")
     with pytest.raises(ValueError, match="not a capture-set folder"):
         read_capture_set(tmp_path / "nope")
+
+
+def test_bit_depth_round_trip_and_max_code(tmp_path):
+    frames = _frames(np.uint16) >> 4  # 12-bit codes in 16-bit frames
+    cap = CaptureSet(frames, bit_depth=12)
+    assert cap.max_code == 4095 and CaptureSet(frames).max_code == 65535
+    write_capture_set(tmp_path / "s", cap)
+    assert json.loads((tmp_path / "s" / "capture.json").read_text())["bit_depth"] == 12
+    back = read_capture_set(tmp_path / "s")
+    assert back.bit_depth == 12 and back.max_code == 4095 and "bit_depth" not in back.extra
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ("bit_depth", 10, "bit_depth: frames hold values up to"),
+    ("bit_depth", 11, "bit_depth: must be one of"),
+    ("channel", "infrared", "channel: must be one of"),
+])
+def test_bad_format_keys_name_the_key(tmp_path, key, value, message):
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint16)))
+    meta_path = tmp_path / "s" / "capture.json"
+    meta = json.loads(meta_path.read_text())
+    meta[key] = value
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=message):
+        read_capture_set(tmp_path / "s")
+
+
+@pytest.mark.parametrize(("led", "channel", "plane"), [
+    ("red", None, 2), ("blue", None, 0), ("green", "red", 2), ("green", "luminance", None)])
+def test_colour_frames_decode_one_channel(tmp_path, led, channel, plane):
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8), led=led))
+    rng = np.random.default_rng(3)
+    colour = rng.integers(0, 256, (16, 12, 17, 3), dtype=np.uint8)
+    for i in range(16):  # frames stay on disk as a colour camera wrote them
+        cv2.imwrite(str(tmp_path / "s" / f"frame_{i:02d}.png"), colour[i])
+    meta_path = tmp_path / "s" / "capture.json"
+    meta = json.loads(meta_path.read_text())
+    if channel:
+        meta["channel"] = channel
+    meta_path.write_text(json.dumps(meta))
+    back = read_capture_set(tmp_path / "s")
+    assert back.frames.shape == (16, 12, 17) and back.channel == (channel or led)
+    if plane is None:
+        expected = np.stack([cv2.cvtColor(c, cv2.COLOR_BGR2GRAY) for c in colour])
+    else:
+        expected = colour[..., plane]
+    assert np.array_equal(back.frames, expected)
+
+
+def test_heterodyne_and_horizontal_pattern_keys(tmp_path):
+    sched = PatternSchedule(frequencies=(1920 / 48, 1920 / 45, 1920 / 42), steps=3, width=1920, height=1080,
+                            orientation="horizontal", unwrap="heterodyne")
+    assert sched.axis_length == 1080
+    write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8, 9), schedule=sched))
+    back = read_capture_set(tmp_path / "s")
+    assert back.schedule == sched and back.schedule.unwrap == "heterodyne"
+    meta = json.loads((tmp_path / "s" / "capture.json").read_text())
+    meta["pattern"]["frequencies"] = [40, 42.5]
+    (tmp_path / "s" / "capture.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="frequencies: heterodyne unwrapping needs at least 3"):
+        read_capture_set(tmp_path / "s")

@@ -17,9 +17,11 @@ APP = Path(__file__).resolve().parents[2] / "app"
 
 #: layer of each top-level part of ``app``, bottom first; a module may import its own
 #: package and any lower layer. ``capture`` (capture-set I/O) sits under ``calib``:
-#: the calibration fit reads capture sets.
+#: the calibration fit reads capture sets. ``app/__init__.py`` holds only the version and
+#: imports nothing, so every layer may read it.
 LAYERS: dict[str, int] = {
-    "core": 0, "atomic": 0, "__init__": 0,
+    "__init__": -1,
+    "core": 0, "atomic": 0,
     "recon": 1, "capture": 1,
     "calib": 2,
     "analysis": 3, "devices": 3,
@@ -29,15 +31,6 @@ LAYERS: dict[str, int] = {
     "main": 7,
     "cli": 8,
     "__main__": 9,
-}
-
-#: imports that still run up (module, imported module); each one is removed by ongoing
-#: work and must then leave this list (the test below fails while a listed one is gone).
-#: recon → calib: the calibration record moves to app.core (issue 12, depth-model contract).
-PENDING: set[tuple[str, str]] = {
-    ("app.recon.model", "app.calib.calibration"),
-    ("app.recon.points", "app.calib.calibration"),
-    ("app.recon.reconstructor", "app.calib.calibration"),
 }
 
 
@@ -82,24 +75,18 @@ def test_no_import_runs_up_the_layers():
     bad = []
     for module, target, line in _all_imports():
         src, dst = _part(module), _part(target)
-        if src == dst or (module, target) in PENDING:
+        if src == dst:
             continue
         if LAYERS[dst] >= LAYERS[src]:
             bad.append(f"{module}:{line} imports {target} ({src} layer {LAYERS[src]} → {dst} layer {LAYERS[dst]})")
     assert not bad, "imports up or across the layers:\n" + "\n".join(bad)
 
 
-def test_pending_exceptions_still_exist():
-    seen = {(m, t) for m, t, _ in _all_imports()}
-    gone = PENDING - seen
-    assert not gone, f"these no longer occur: remove them from PENDING: {sorted(gone)}"
-
-
 def test_no_cycle_between_packages():
     graph: dict[str, set[str]] = {}
     for module, target, _ in _all_imports():
         src, dst = _part(module), _part(target)
-        if src != dst and (module, target) not in PENDING:
+        if src != dst:
             graph.setdefault(src, set()).add(dst)
     try:
         tuple(graphlib.TopologicalSorter(graph).static_order())

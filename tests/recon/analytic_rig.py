@@ -19,8 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from app.calib.calibration import Calibration
+from app.core.geometric import GeometricModel
 from app.core.schedule import PatternSchedule
 
 F64 = npt.NDArray[np.float64]
@@ -146,6 +148,22 @@ class Rig:
             height_range_mm=height_range_mm,
         )
 
+    def geometric_model(self, k1: float = 0.0) -> GeometricModel:
+        """The projector (P = Kp [R | t]) as the geometric depth model, exactly (``k1`` added)."""
+        fp = self.projector_focal_px
+        w, h = self.schedule.width, self.schedule.height
+        kp = np.array([[fp, 0.0, w / 2], [0.0, fp, h / 2], [0, 0, 1.0]])
+        rt = np.linalg.solve(kp, self.P)
+        rvec = Rotation.from_matrix(rt[:, :3]).as_rotvec()
+        t = rt[:, 3].copy()
+        t[1] = 0.0  # not observable along the fringe lines
+        return GeometricModel(rvec, t, fp, w / 2, k1, w, self.schedule.frequencies[-1])
+
+    def geometric_calibration(self, height_range_mm: tuple[float, float] = (0.0, 30.0)) -> Calibration:
+        """:meth:`calibration` with the geometric model instead of Eq. (5)."""
+        return Calibration(self.K, np.zeros(5), (self.width, self.height), self.n, self.plane_offset_mm,
+                           model=self.geometric_model(), pattern=self.schedule, height_range_mm=height_range_mm)
+
     # --- images ---------------------------------------------------------------------
     def render(
         self,
@@ -202,7 +220,9 @@ def reason_scene(
     rng = np.random.default_rng(seed)
     frames = rig.render(h, background=110 * scale, amplitude=90 * scale, noise=noise * scale,
                         dtype=dtype, rng=rng, max_code=top)
-    frames[5, patches["SATURATED"][0], patches["SATURATED"][1]] = top
+    # all but two shifts of the second frequency clipped: fewer than three left to fit
+    n = rig.schedule.steps
+    frames[n + 1 : 2 * n - 1, patches["SATURATED"][0], patches["SATURATED"][1]] = top
     flat = np.clip(np.rint(100 * scale + rng.normal(0, noise * scale, (rig.schedule.n_frames, 20, 25))), 0, top)
     frames[:, patches["LOW_MODULATION"][0], patches["LOW_MODULATION"][1]] = flat.astype(dtype)
     # shift the k = 4 fringes by π (N = 4: frame n ↔ n + 2): the 1 → 4 residual becomes ≈ π

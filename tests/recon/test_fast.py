@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from app.recon import Reconstructor, fast
-from tests.recon.analytic_rig import Rig, reason_scene
+from tests.recon.analytic_rig import Rig, bump_surface, reason_scene
 
 
 def test_polynomial_atan2_error():
@@ -137,3 +137,74 @@ def test_phase_is_optional():
     frames, _, _ = reason_scene(rig)
     for fast_path in (True, False):
         assert Reconstructor(rig.calibration(), fast=fast_path).run(frames).phase is None
+
+
+@pytest.mark.parametrize("combine", [False, True])
+@pytest.mark.parametrize("steps", [3, 4, 6])
+def test_fast_agrees_with_numpy_heterodyne(steps, combine):
+    from app.recon import PatternSchedule
+
+    sched = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=steps, unwrap="heterodyne")
+    rig = Rig(schedule=sched)
+    frames = rig.render(bump_surface(rig), background=110, amplitude=90, noise=0.5,
+                        rng=np.random.default_rng(5))
+    rec = Reconstructor(rig.calibration(), with_phase=True, combine_frequencies=combine)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    assert a.valid.mean() > 0.99
+    assert np.array_equal(a.reason, b.reason)
+    ok = a.valid
+    assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
+    assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
+    assert np.max(np.abs(a.phase[ok] - rig.finest_phase(bump_surface(rig))[ok])) < 0.1
+
+
+@pytest.mark.parametrize(("steps", "frequencies", "combine"),
+                         [(4, (1, 4, 12, 36), False), (4, (1, 4, 12, 36), True), (5, (1, 6, 36), False)])
+def test_fast_agrees_with_numpy_on_clipped_samples(steps, frequencies, combine):
+    """One clipped shift per frequency in a band of pixels: both paths refit it from the rest."""
+    from app.recon import PatternSchedule
+
+    rig = Rig(schedule=PatternSchedule(frequencies=frequencies, steps=steps))
+    h = bump_surface(rig)
+    clean = rig.render(h, background=130, amplitude=110, noise=0.5, rng=np.random.default_rng(2))
+    frames = clean.copy()
+    frames[::steps, 30:90] = 255  # shift 0 of every frequency clipped in rows 30..89
+    rec = Reconstructor(rig.calibration(), with_phase=True, combine_frequencies=combine)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    ref = rec.run(clean, fast=False)
+    assert np.array_equal(a.reason, b.reason)
+    band = np.zeros(a.valid.shape, bool)
+    band[30:90] = True
+    assert a.recovered == b.recovered == int((band & ref.valid).sum() + (band & ~ref.valid & a.valid).sum())
+    ok = a.valid
+    assert (a.valid[band] == ref.valid[band]).mean() > 0.99
+    assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
+    assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
+    both = ok & ref.valid & band
+    assert abs(float(np.mean(a.depth[both] - ref.depth[both]))) < 0.01  # no bias from the refit
+
+
+@pytest.mark.parametrize(("schedule", "combine"), [
+    (dict(frequencies=(1, 4, 12, 36), steps=4), False),
+    (dict(frequencies=(1, 4, 12, 36), steps=4), True),
+    (dict(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwrap="heterodyne"), False),
+    (dict(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=5, unwrap="heterodyne"), True),
+])
+def test_fast_sigma_agrees_with_numpy_on_refitted_and_heterodyne_pixels(schedule, combine):
+    """The merged kernel: σ of the height stage follows the phase stage's refit and heterodyne chain."""
+    from app.recon import PatternSchedule
+
+    rig = Rig(schedule=PatternSchedule(**schedule))
+    steps = rig.schedule.steps
+    frames = rig.render(bump_surface(rig), background=130, amplitude=110, noise=0.5, rng=np.random.default_rng(3))
+    frames[::steps, 30:90] = 255  # one clipped shift per frequency: refitted
+    rec = Reconstructor(rig.calibration(), combine_frequencies=combine)
+    a = rec.run(frames, fast=False)
+    b = rec.run(frames, fast=True)
+    assert np.array_equal(a.reason, b.reason) and a.recovered == b.recovered > 0
+    ok = a.valid
+    assert ok[30:90].mean() > 0.99
+    np.testing.assert_allclose(b.sigma[ok], a.sigma[ok], rtol=1e-4)
+    assert np.isnan(b.sigma[~ok]).all()

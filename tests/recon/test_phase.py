@@ -47,15 +47,37 @@ def test_k1_phase_is_absolute_projector_column():
 
 
 def test_saturation_uint8_and_12bit():
+    # saturated only when fewer than three unclipped samples remain in a frequency
     f8 = np.full((4, 3, 3), 100, np.uint8)
     f8[2, 1, 1] = 255
-    assert wrapped_phase(f8, 4).saturated.tolist() == [[0, 0, 0], [0, 1, 0], [0, 0, 0]]
+    f8[0, 0, 0] = f8[1, 0, 0] = 255
+    wp = wrapped_phase(f8, 4)
+    assert wp.saturated.tolist() == [[1, 0, 0], [0, 0, 0], [0, 0, 0]]
+    assert wp.recovered.tolist() == [[0, 0, 0], [0, 1, 0], [0, 0, 0]]
     f16 = np.full((4, 2, 2), 1000, np.uint16)
-    f16[0, 0, 0] = 4095
+    f16[0:2, 0, 0] = 4095
     f16[1, 1, 1] = 4094
     sat = wrapped_phase(f16, 4, max_code=4095).saturated
     assert sat.tolist() == [[True, False], [False, False]]
     assert not wrapped_phase(f16, 4).saturated.any()  # default 65535
+
+
+@pytest.mark.parametrize("steps", [4, 5, 8])
+def test_one_clipped_shift_is_fitted_exactly(steps):
+    """Three unclipped samples determine A, B, φ: with one shift clipped the phase is exact."""
+    phi = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)[None, :].repeat(2, 0)
+    delta = 2 * math.pi * np.arange(steps) / steps
+    img = 30000.0 + 20000.0 * np.cos(phi[None] + delta[:, None, None])
+    frames = np.rint(img).astype(np.uint16)
+    clip_at = int(img.max() - 3000)  # clips the brightest sample of most pixels
+    clipped = np.minimum(frames, clip_at)
+    wp = wrapped_phase(clipped, steps, max_code=clip_at)
+    n_clipped = (clipped >= clip_at).sum(axis=0)
+    assert (n_clipped == 1).mean() > 0.3
+    assert (wp.recovered == (n_clipped >= 1)).all() and not wp.saturated.any()
+    err = np.angle(np.exp(1j * (wp.phase[0] - phi)))
+    assert np.abs(err).max() < 2e-4  # rounding to integer codes only
+    assert np.allclose(wp.modulation[0], 20000.0, rtol=1e-3)
 
 
 def test_default_levels():

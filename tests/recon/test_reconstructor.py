@@ -108,8 +108,12 @@ def test_nan_calibration_rejected(rig):
 
 def test_12bit_saturation_needs_max_code(rig):
     frames = rig.render(bump_surface(rig), background=2000, amplitude=1200, dtype=np.uint16, max_code=4095)
-    frames[3, 50, 60] = 4095
-    assert Reconstructor(rig.calibration(), max_code=4095).run(frames).reason[50, 60] == Reason.SATURATED
+    frames[2:4, 50, 60] = 4095  # two of four shifts clipped: φ is undetermined
+    frames[5, 20, 30] = 4095  # one clipped: refitted from the other three
+    for fast in (True, False):
+        res = Reconstructor(rig.calibration(), max_code=4095).run(frames, fast=fast)
+        assert res.reason[50, 60] == Reason.SATURATED
+        assert res.reason[20, 30] == Reason.OK and res.recovered == 1
     # default 65535: the clipped pixel is not flagged, and min_modulation defaults to 2 % of 65535
     assert (Reconstructor(rig.calibration()).run(frames).reason == Reason.LOW_MODULATION).all()
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from app.recon import compute_phase
-from app.recon.unwrap import combine_frequencies, unwrap_hierarchical
+from app.recon.unwrap import combine_frequencies, unwrap_chain, unwrap_hierarchical, unwrap_phases
 from tests.recon.analytic_rig import Rig, bump_surface
 
 FREQS = (1, 4, 12, 36)
@@ -92,3 +92,41 @@ def test_combined_weights_follow_modulation():
     k = np.array(FREQS, float)
     expected = exact[-1, 0, 0] + 0.1 * 36 * 1 / np.sum(k**2)
     assert combine_frequencies(biased, mod, FREQS, 4)[0, 0] == pytest.approx(expected, abs=1e-12)
+
+
+HET = (1920 / 48, 1920 / 45, 1920 / 42)  # the CFPE rig's periods of 48, 45 and 42 px
+
+
+def test_heterodyne_chain_of_three_periods():
+    coefs, steps = unwrap_chain(HET, "heterodyne")
+    # φ_a − 2φ_b + φ_c spans 0.381 fringe (absolute), φ_c − φ_b 3.05 fringes, then φ_c
+    assert coefs.tolist() == [[1, -2, 1], [0, -1, 1], [0, 0, 1]]
+    assert np.allclose(steps, [1920 / 42 - 2 * 1920 / 45 + 1920 / 48, 1920 / 42 - 1920 / 45, 1920 / 42])
+    assert unwrap_chain(FREQS)[0].tolist() == np.eye(4).tolist()
+
+
+@pytest.mark.parametrize("noise_rad", [0.0, 0.01])  # residual σ ≈ 20 × noise at the first step
+def test_heterodyne_exact_orders(noise_rad):
+    x = np.linspace(0.0, 1919.0, 40000).reshape(200, 200)
+    rng = np.random.default_rng(4)
+    wrapped = np.stack([np.mod(TWO_PI * k * x / 1920 + rng.normal(0, noise_rad, x.shape), TWO_PI) for k in HET])
+    unwrapped, ok = unwrap_phases(wrapped, HET, "heterodyne")
+    assert ok.all()
+    for i, k in enumerate(HET):
+        assert np.max(np.abs(unwrapped[i] - TWO_PI * k * x / 1920)) < 6 * noise_rad + 1e-9
+
+
+def test_heterodyne_flags_inconsistent_pixels():
+    x = np.full((1, 1), 700.0)
+    wrapped = np.stack([np.mod(TWO_PI * k * x / 1920, TWO_PI) for k in HET])
+    wrapped[1] = np.mod(wrapped[1] + 1.0, TWO_PI)  # 1 rad on φ_b reaches the first beat doubled
+    assert not unwrap_phases(wrapped, HET, "heterodyne")[1].all()
+
+
+@pytest.mark.parametrize(
+    ("freqs", "message"),
+    [((40.0, 42.0), "at least 3"), ((40.0, 42.0, 44.0), "zero beat"), ((10.0, 13.0, 19.0), "not <= 1")],
+)
+def test_heterodyne_bad_schedules(freqs, message):
+    with pytest.raises(ValueError, match=f"^frequencies: .*{message}"):
+        unwrap_chain(freqs, "heterodyne")

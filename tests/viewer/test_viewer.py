@@ -57,6 +57,16 @@ def test_cloud_arrays_texture_mode_is_gray_by_full_scale() -> None:
         cloud_arrays(res, 100, color_mode="rainbow")
 
 
+def test_cloud_arrays_sigma_mode_colours_the_noise() -> None:
+    res = surface_result(40, 60, invalid_border=0)
+    res.sigma = np.linspace(0.0, 0.1, res.depth.size, dtype=np.float32).reshape(res.depth.shape)
+    _, rgb, _ = cloud_arrays(res, max_points=10_000, color_mode="sigma")
+    np.testing.assert_array_equal(rgb, depth_colormap(res.sigma, (0.0, 0.1)).reshape(-1, 3))
+    res.sigma = None  # a result without σ: the NaN colour, no error
+    _, rgb, _ = cloud_arrays(res, max_points=10_000, color_mode="sigma")
+    assert len(rgb) == res.valid.sum()
+
+
 @pytest.fixture()
 def source() -> SurfaceSource:
     return SurfaceSource()

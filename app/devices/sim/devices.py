@@ -106,7 +106,8 @@ class SimulatedCamera(Camera):
                                      bits=s.bit_depth)
             return Frame(data=data, index=index, timestamp=mid, pattern_index=pattern, exposure_ms=s.exposure_ms,
                          gain=s.gain, led=self.world.led if pattern >= 0 else "",
-                         meta={"scene_time_s": mid - self.world.epoch, "current": self.world.current})
+                         meta={"scene_time_s": mid - self.world.epoch, "current": self.world.current},
+                         bit_depth=s.bit_depth)
 
 
 class SimulatedProjector(Projector):
@@ -199,13 +200,19 @@ class SimDevices:
     world: SimulatedWorld
 
 
-def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, bit_depth: int = 8,
+def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, bit_depth: int | None = None,
                        drop_rate: float = 0.0, timeout_rate: float = 0.0, disconnect_every_s: float = 0.0,
-                       realtime: bool = True, distortion: bool = True, reconnect_delay_s: float = 0.5) -> SimDevices:
-    """Camera, projector and controller sharing one simulated world (nothing opened yet)."""
+                       realtime: bool = True, distortion: bool = True, reconnect_delay_s: float = 0.5,
+                       rig: str = "default") -> SimDevices:
+    """Camera, projector and controller sharing one simulated world (nothing opened yet).
+
+    ``rig``: the rig preset (optics.RIG_NAMES); ``bit_depth`` None: the rig sensor's native depth.
+    """
+    world = SimulatedWorld(scene, seed=seed, distortion=distortion, rig=rig)
+    if bit_depth is None:
+        bit_depth = world.rig.bit_depth
     if bit_depth not in LIVE_BIT_DEPTHS:
         raise ValueError(f"bit_depth: must be one of {LIVE_BIT_DEPTHS}, got {bit_depth}")
-    world = SimulatedWorld(scene, seed=seed, distortion=distortion)
     fault_seed = world.seed_seq.spawn(1)[0]
     camera = SimulatedCamera(world, realtime=realtime,
                              faults=FrameFaults(drop_rate=drop_rate, timeout_rate=timeout_rate, seed=fault_seed),

@@ -47,9 +47,9 @@ def ideal_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
     K = cam.K
     w, h = cam.image_size
     k_max = schedule.frequencies[-1]
-    # Phase per projector column, radians (the projector is assumed to have schedule.width columns).
-    phi_per_col = 2.0 * math.pi * k_max / schedule.width
-    alpha, aC, gamma, gC = proj.column_coefficients()
+    # Phase per projector pixel along the fringe axis (columns for vertical fringes), radians.
+    phi_per_col = 2.0 * math.pi * k_max / schedule.axis_length
+    alpha, aC, gamma, gC = proj.fringe_coefficients(schedule.orientation)
     n, off = plane.normal, plane.offset_mm
 
     # Normalisation from the image centre and the calibrated height range.
@@ -57,7 +57,7 @@ def ideal_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
     phis = []
     for hh in height_range_mm:
         t = (hh - off) / (n @ centre_ray)
-        phis.append(phi_per_col * float(proj.column(t * centre_ray)))
+        phis.append(phi_per_col * float(proj.fringe_coordinate(t * centre_ray, schedule.orientation)))
     phi0, sphi = 0.5 * (phis[0] + phis[1]), 0.5 * abs(phis[1] - phis[0])
     norm = {"u": (w / 2.0, w / 2.0), "v": (h / 2.0, h / 2.0), "phi": (phi0, sphi)}
 

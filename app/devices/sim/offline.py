@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -12,14 +13,16 @@ import numpy.typing as npt
 
 from app.atomic import atomic_write_text
 from app.capture.captureset import CaptureSet, write_capture_set
+from app.core.board import BoardSpec
 from app.core.encoding import npy_bytes
 from app.core.limits import EXPOSURE_RANGE_MS, LIVE_BIT_DEPTHS, check_exposure_ms
 from app.core.schedule import PatternSchedule
-from app.devices.sim.optics import default_rig
+from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.scenes import Scene, board_poses, board_scene, sim_board
 from app.devices.sim.world import READOUT_MS, SimulatedWorld
 
 F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 
 
 def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0,
@@ -29,12 +32,15 @@ def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0,
     return t0_s + period * np.arange(n_frames, dtype=np.float64) + exposure_ms / 2000.0
 
 
-def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: str = "green", bit_depth: int = 8,
-                       seed: int | None = None, t0_s: float = 0.0, distortion: bool = True,
-                       schedule: PatternSchedule | None = None, current: float = 0.5,
-                       world: SimulatedWorld | None = None, frame_period_ms: float | None = None
-                       ) -> tuple[CaptureSet, F32, F32]:
+def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: str = "green",
+                       bit_depth: int | None = None, seed: int | None = None, t0_s: float = 0.0,
+                       distortion: bool = True, schedule: PatternSchedule | None = None, current: float = 0.5,
+                       world: SimulatedWorld | None = None, frame_period_ms: float | None = None,
+                       rig: str = "default") -> tuple[CaptureSet, F32, F32]:
     """One capture set of ``scene``, each frame rendered at its own time, plus ground truth.
+
+    ``rig``: the rig preset (optics.RIG_NAMES) when no ``world`` is given; ``bit_depth`` None:
+    the rig sensor's native depth (8 for ``default``, 12 for ``endoscope``).
 
     Returns:
         (capture set, truth depth (H, W) float32 mm above the reference plane, NaN off-object,
@@ -42,11 +48,13 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
         the set — halfway between the first and last exposure mid-points — recorded in
         ``capture.extra["simulated"]["truth_time_s"]``.
     """
-    if bit_depth not in LIVE_BIT_DEPTHS:
+    if bit_depth is not None and bit_depth not in LIVE_BIT_DEPTHS:
         raise ValueError(f"bit_depth: must be one of {LIVE_BIT_DEPTHS}, got {bit_depth}")
     check_exposure_ms(exposure_ms)
     if world is None:
-        world = SimulatedWorld(scene, seed=seed, distortion=distortion, schedule=schedule)
+        world = SimulatedWorld(scene, seed=seed, distortion=distortion, schedule=schedule, rig=rig)
+    if bit_depth is None:
+        bit_depth = world.rig.bit_depth
     world.led, world.current = led, current
     sched = world.schedule
     times = frame_times(sched.n_frames, exposure_ms, t0_s, frame_period_ms)
@@ -54,9 +62,15 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
                        for i, t in enumerate(times)])
     t_truth = 0.5 * (times[0] + times[-1])
     depth, points = world.truth(float(t_truth))
-    meta = {"simulated": {"scene": world.scene.name, "seed": seed, "t0_s": t0_s, "truth_time_s": float(t_truth),
-                          "distortion": bool(np.any(world.rig.dist != 0)), "current": current}}
-    return CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta), depth, points
+    meta: dict[str, object] = {
+        "simulated": {"scene": world.scene.name, "seed": seed, "t0_s": t0_s, "truth_time_s": float(t_truth),
+                      "distortion": bool(np.any(world.rig.dist != 0)), "current": current}}
+    sim_meta: dict[str, object] = meta["simulated"]  # type: ignore[assignment]
+    if world.rig.name != "default":  # the default rig's capture.json stays as it was
+        sim_meta["rig"] = world.rig.name
+    # bit_depth: the capture set's own key (DESIGN.md: 12-bit codes in 16-bit PNGs)
+    return (CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta,
+                       bit_depth=bit_depth), depth, points)
 
 
 def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 8, current: float = 0.5,
@@ -69,27 +83,83 @@ def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 
     return float(np.clip(10.0 * target * (2**bits - 1) / max(peak, 1e-6), *EXPOSURE_RANGE_MS))
 
 
+def central_fraction(rig: SimRig, pitch_mm: float, spec: BoardSpec, poses: list[tuple[F64, F64]]) -> float:
+    """How far the printed grid of ``spec`` (at ``pitch_mm``) reaches from the image centre over ``poses``:
+    max over poses and grid corners of max(|u − cx|/(W/2), |v − cy|/(H/2)) (1 = the image edge)."""
+    cols, rows = spec.cols, spec.rows
+    hs, ht = (cols + 1) * pitch_mm / 2, (rows + 1) * pitch_mm / 2
+    edge = np.linspace(-1.0, 1.0, 9)
+    outline = np.concatenate([np.stack([edge * hs, np.full(9, ht)], 1), np.stack([edge * hs, np.full(9, -ht)], 1),
+                              np.stack([np.full(9, hs), edge * ht], 1), np.stack([np.full(9, -hs), edge * ht], 1)])
+    w, h = rig.image_size
+    worst = 0.0
+    for origin, axes in poses:
+        pts = origin + outline[:, :1] * axes[:, 0] + outline[:, 1:] * axes[:, 1]
+        uv = rig.camera.project(pts)
+        worst = max(worst, float(np.max(np.abs(uv[:, 0] - (w - 1) / 2) / (w / 2))),
+                    float(np.max(np.abs(uv[:, 1] - (h - 1) / 2) / (h / 2))))
+    return worst
+
+
+def partial_board_spec(rig: SimRig, spec: BoardSpec, poses: list[tuple[F64, F64]], fraction: float = 0.5
+                       ) -> BoardSpec:
+    """``spec`` with its pitch shrunk (to 0.001 mm) so that at every pose its printed grid stays in the
+    central ``fraction`` of the image width and height, as a bench board that covers only the centre."""
+    if not 0.05 <= fraction <= 1.0:
+        raise ValueError(f"fraction: must be within 0.05–1, got {fraction}")
+    pitch = spec.pitch_mm
+    for _ in range(50):
+        reach = central_fraction(rig, pitch, spec, poses)
+        if reach <= fraction:
+            return BoardSpec(spec.type, spec.cols, spec.rows, pitch)
+        pitch = math.floor(1000.0 * pitch * min(0.999, 0.995 * fraction / reach)) / 1000.0
+    raise ValueError(f"fraction: the board cannot be made to fit the central {fraction:.2f} of the field")
+
+
 def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str = "checkerboard", poses: int = 8,
-                                seed: int | None = None, bit_depth: int = 8, distortion: bool = True,
-                                overwrite: bool = False) -> Path:
+                                seed: int | None = None, bit_depth: int | None = None, distortion: bool = True,
+                                overwrite: bool = False, rig: str = "default",
+                                partial_boards: bool | None = None) -> Path:
     """Write ``board.json`` and ``pose_00/`` … capture sets of a board at ``poses`` poses.
 
     Pose 0 lies in the scenes' default reference plane. Each pose's exposure is set so the
     white paper stays below saturation; its ``capture.json`` records the board pose
     (``simulated.board_origin_mm``, ``simulated.board_axes``: columns e_s, e_t, normal).
+
+    Args:
+        rig: the rig preset (optics.RIG_NAMES).
+        bit_depth: 8 or 12; None: the rig sensor's native depth.
+        partial_boards: True: the board (its pitch scaled down, its paper cut to a margin around
+            the print) covers only the central half of the image width and height at every pose,
+            as on a real bench, so the outer field is never calibrated; None: the rig's default
+            (off for ``default``, on for ``endoscope``).
     """
     spec = sim_board(board)
+    sim_rig = rig_by_name(rig, distortion=distortion)
+    if bit_depth is None:
+        bit_depth = sim_rig.bit_depth
+    if bit_depth not in LIVE_BIT_DEPTHS:
+        raise ValueError(f"bit_depth: must be one of {LIVE_BIT_DEPTHS}, got {bit_depth}")
+    partial = sim_rig.partial_boards if partial_boards is None else bool(partial_boards)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rig = default_rig(distortion=distortion)
-    atomic_write_text(out / "board.json", json.dumps(spec.to_dict(), indent=2) + "\n")
     rng = np.random.default_rng(seed)
-    for k, pose in enumerate(board_poses(rig, poses, seed=int(rng.integers(2**31)))):
-        world = SimulatedWorld(board_scene(rig, spec, pose), rig=rig, seed=int(rng.integers(2**31)))
+    pose_list = board_poses(sim_rig, poses, seed=int(rng.integers(2**31)))
+    paper_half_mm = 11.0
+    if partial:
+        spec = partial_board_spec(sim_rig, spec, pose_list)
+        cols, rows = spec.cols, spec.rows
+        paper_half_mm = (max(cols, rows) + 1) * spec.pitch_mm / 2 + 1.5 * spec.pitch_mm
+    atomic_write_text(out / "board.json", json.dumps(spec.to_dict(), indent=2) + "\n")
+    for k, pose in enumerate(pose_list):
+        scene = board_scene(sim_rig, spec, pose, paper_half_mm=paper_half_mm)
+        world = SimulatedWorld(scene, rig=sim_rig, seed=int(rng.integers(2**31)))
         exposure = round(auto_exposure_ms(world, bits=bit_depth), 2)
         cap, depth, _ = render_capture_set(world.scene, exposure_ms=exposure, bit_depth=bit_depth, world=world)
-        cap.extra["simulated"].update({"board_origin_mm": pose[0].tolist(), "board_axes": pose[1].tolist(),
-                                       "pose": k})
+        sim_meta = cap.extra["simulated"]
+        sim_meta.update({"board_origin_mm": pose[0].tolist(), "board_axes": pose[1].tolist(), "pose": k})
+        if partial:
+            sim_meta["partial_board"] = True
         write_capture_set(out / f"pose_{k:02d}", cap, overwrite=overwrite,
                           extra_files={"truth_depth.npy": npy_bytes(depth)})
     return out

@@ -4,12 +4,20 @@ Camera frame as in DESIGN.md: x right, y down, z along the optical axis, millime
 The projector sits ``baseline_mm`` to the right of the camera, its axis turned by
 ``convergence_deg`` toward the camera axis, so the two axes cross at
 ``baseline / tan(convergence)`` (≈ 28 mm, inside the 25–50 mm working distance).
+
+Rig presets, by name (:func:`rig_by_name`, :data:`RIG_NAMES`):
+
+- ``default``: the paper's rig (1384 × 1032 camera, 12° / 6 mm, mild barrel distortion, 8-bit).
+- ``endoscope``: another sensor and lens (1280 × 1024, f = 1200 px), a wider triangulation
+  (16° / 10 mm), endoscope-like barrel distortion k1 = −0.25 (normalised coordinates), a
+  12-bit sensor, and calibration boards that cover only the central half of the field.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -144,6 +152,18 @@ class ProjectorModel:
         g = self.R[:, 2].copy()
         return a, float(a @ self.centre), g, float(g @ self.centre)
 
+    def fringe_coordinate(self, points: F64, orientation: str = "vertical") -> F64:
+        """Projector coordinate along which the fringe phase grows: column (vertical fringes) or row."""
+        return self.column(points) if orientation == "vertical" else self.row(points)
+
+    def fringe_coefficients(self, orientation: str = "vertical") -> tuple[F64, float, F64, float]:
+        """:meth:`column_coefficients`, or for horizontal fringes the same for the projector row."""
+        if orientation == "vertical":
+            return self.column_coefficients()
+        a = self.K[1, 1] * self.R[:, 1] + self.K[1, 2] * self.R[:, 2]
+        g = self.R[:, 2].copy()
+        return a, float(a @ self.centre), g, float(g @ self.centre)
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -183,6 +203,9 @@ class SimRig:
     projector_focus_mm: float = 35.0
     projector_blur_per_inv_mm: float = 60.0
     extra: dict[str, float] = field(default_factory=dict)
+    name: str = "default"
+    bit_depth: int = 8  # the sensor's native ADC depth: offline rendering uses it unless told otherwise
+    partial_boards: bool = False  # simulated calibration boards cover only the central half of the field
 
     @property
     def K(self) -> F64:
@@ -198,8 +221,7 @@ class SimRig:
 
     def without_distortion(self) -> SimRig:
         cam = CameraModel(self.camera.K, np.zeros(5), self.camera.image_size)
-        return SimRig(cam, self.projector, self.reference, self.reference_point_mm, self.focus_mm,
-                      self.blur_per_inv_mm, self.projector_focus_mm, self.projector_blur_per_inv_mm, self.extra)
+        return replace(self, camera=cam)
 
     def ideal_calibration(self, schedule: PatternSchedule | None = None) -> Calibration:
         """The exact Eq. (5) calibration of this pinhole geometry (oracle for tests; see ideal.py)."""
@@ -222,3 +244,38 @@ def default_rig(*, distortion: bool = True) -> SimRig:
     normal = rotation_x(4.0) @ rotation_y(-3.0) @ np.array([0.0, 0.0, -1.0])
     point = np.array([0.0, 0.0, 45.0])
     return SimRig(camera, projector, plane_through(point, normal), point)
+
+
+def endoscope_rig(*, distortion: bool = True) -> SimRig:
+    """A second rig: conditions the default one lacks (issue 13, part 6).
+
+    1280 × 1024 sensor, f = 1200 px, principal point a little off centre; endoscope-like
+    barrel distortion k1 = −0.25 in normalised coordinates (monotonic out to the image
+    corners, r_d ≈ 0.68); the projector 10 mm to the right turned 16° toward the camera
+    (triangulation ≈ 14° at the reference plane against the default's ≈ 8°), with a wider
+    field (f = 380 px) so it lights the camera's field over the working distance; a 12-bit
+    sensor; reference plane 40 mm away; partial calibration boards by default.
+    """
+    f_px = 1200.0
+    K = np.array([[f_px, 0.0, 645.0], [0.0, f_px, 508.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.25, 0.0, 0.0, 0.0, 0.0]) if distortion else np.zeros(5)
+    camera = CameraModel(K, dist, (1280, 1024))
+    Kp = np.array([[380.0, 0.0, 303.5], [0.0, 380.0, 341.5], [0.0, 0.0, 1.0]])
+    projector = ProjectorModel(Kp, rotation_y(-16.0), np.array([10.0, 0.0, 0.0]))
+    normal = rotation_x(-3.0) @ rotation_y(4.0) @ np.array([0.0, 0.0, -1.0])
+    point = np.array([0.0, 0.0, 40.0])
+    return SimRig(camera, projector, plane_through(point, normal), point, focus_mm=30.0, blur_per_inv_mm=150.0,
+                  projector_focus_mm=32.0, name="endoscope", bit_depth=12, partial_boards=True)
+
+
+RIGS: dict[str, Callable[..., SimRig]] = {"default": default_rig, "endoscope": endoscope_rig}
+RIG_NAMES = tuple(RIGS)
+
+
+def rig_by_name(name: str, *, distortion: bool = True) -> SimRig:
+    """The rig preset ``name`` (one of :data:`RIG_NAMES`); ValueError naming ``rig`` otherwise."""
+    try:
+        make = RIGS[name]
+    except KeyError:
+        raise ValueError(f"rig: unknown {name!r}; choose from {', '.join(RIG_NAMES)}") from None
+    return make(distortion=distortion)

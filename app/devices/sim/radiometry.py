@@ -39,6 +39,8 @@ REFLECTANCE = {
     "suture": {"red": 0.10, "green": 0.08, "blue": 0.20},  # violet-dyed polyglactin
     "metal": {"red": 0.35, "green": 0.35, "blue": 0.35},
     "background": {"red": 0.02, "green": 0.02, "blue": 0.02},
+    # appended last so the other materials keep their ids
+    "suture_bright": {"red": 0.72, "green": 0.68, "blue": 0.62},  # undyed braided suture, brighter than tissue
 }
 # Subsurface-scattering blur of the projected light (Gaussian σ, mm, per LED colour).
 SSS_MM = {
@@ -49,7 +51,8 @@ SSS_MM = {
 }
 # Specular (wet surface) weight and Blinn–Phong exponent.
 SPECULAR = {"skin": (0.15, 60.0), "intestine": (0.6, 120.0), "intestine_dark": (0.6, 120.0),
-            "intestine_pale": (0.6, 120.0), "metal": (1.5, 30.0), "suture": (0.1, 40.0)}
+            "intestine_pale": (0.6, 120.0), "metal": (1.5, 30.0), "suture": (0.1, 40.0),
+            "suture_bright": (0.1, 40.0)}
 
 MATERIALS = tuple(REFLECTANCE)
 

@@ -70,7 +70,8 @@ class Renderer:
         z = self.points[..., 2]
         self.sigma_cam = defocus_sigma_px(np.nan_to_num(z, nan=rig.focus_mm), rig.focus_mm, rig.blur_per_inv_mm)
         self.albedo = blur_varying(alb, self.sigma_cam).ravel()
-        self.xp = rig.projector.column(self.points)  # (H, W) continuous projector column
+        # (H, W) continuous projector coordinate along the fringe axis (the column for vertical fringes)
+        self.xp = rig.projector.fringe_coordinate(self.points, self.schedule.orientation)
         gu, gv = np.gradient(self.xp, axis=1), np.gradient(self.xp, axis=0)
         grad = np.hypot(gu, gv)
         self.grad_median = float(np.nanmedian(grad))
@@ -131,7 +132,7 @@ class Renderer:
         sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
         var_s = sigma_cam**2 + sig_p_cam**2
         var_d = var_s + (sss * f_px / z) ** 2
-        ang = (2 * math.pi * k[:, None] * grad_xp[None] / wp) ** 2 / 2.0  # σ² → attenuation exponent
+        ang = (2 * math.pi * k[:, None] * grad_xp[None] / self.schedule.axis_length) ** 2 / 2.0  # σ² → attenuation exponent
         fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
         base = g_d + g_s
         return np.nan_to_num(base), np.nan_to_num(fringe)
@@ -157,7 +158,7 @@ class Renderer:
     def _phase_tables_locked(self) -> tuple[F32, F32]:
         if self._trig is None:
             k = np.asarray(self.schedule.frequencies, np.float64)[:, None]
-            phi = 2 * math.pi * k * np.nan_to_num(self.xp.ravel())[None] / self.schedule.width
+            phi = 2 * math.pi * k * np.nan_to_num(self.xp.ravel())[None] / self.schedule.axis_length
             self._trig = (np.cos(phi).astype(np.float32), np.sin(phi).astype(np.float32))
         return self._trig
 
@@ -197,12 +198,12 @@ class Renderer:
         """Mean (``noisy`` False, float32 ``out``) or noisy frame of the moving scene and its tool, one pass."""
         h, w = self.shape
         base, fringe = self._led_arrays(led)
-        alpha, _, gam, _ = self.rig.projector.column_coefficients()
+        alpha, _, gam, _ = self.rig.projector.fringe_coefficients(self.schedule.orientation)
         k = self.schedule.frequencies[fi]
         delta = self.scene.offset(t_s)
         scene = (self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta), BLOCK,
-                 float(alpha @ delta), float(gam @ delta), k / self.schedule.width, shift / (2 * math.pi),
-                 float(self.schedule.width), self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+                 float(alpha @ delta), float(gam @ delta), k / self.schedule.axis_length, shift / (2 * math.pi),
+                 float(self.schedule.axis_length), self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
         band, zbuf, kk, qv = self._scratch_rows()
         if self.scene.tool is None:
             kernels.moving_frame(out, noisy, band, zbuf, kk, qv, *scene)
@@ -238,7 +239,7 @@ class Renderer:
 
     def _nd_table_locked(self) -> F32:
         if self._nd is None:
-            alpha, a_c, gam, g_c = self.rig.projector.column_coefficients()
+            alpha, a_c, gam, g_c = self.rig.projector.fringe_coefficients(self.schedule.orientation)
             # (2, H, W): numerator and denominator planes, contiguous rows for the vectorised kernels
             self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c]).astype(np.float32)
         return self._nd
@@ -284,20 +285,23 @@ class Renderer:
                                      ) if len(ends) else (0, np.zeros((0, 2), np.int64))
         axis = p1 - p0
         length = float(np.linalg.norm(axis))
-        alpha, a_c, gam, g_c = proj.column_coefficients()
+        alpha, a_c, gam, g_c = proj.fringe_coefficients(self.schedule.orientation)
         k = self.schedule.frequencies[fi]
         ks, shin = SPECULAR.get(tool.material, (0.0, 1.0))
         assert shin == int(shin) and 0 <= shin < 1024, "tool_kernels._tool_dn_run takes a whole specular exponent"
         # Fringe attenuation on the tool from camera defocus at its mean depth.
         z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0)) if len(ends) else self.rig.focus_mm
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
-        atten = math.exp(-((2 * math.pi * k * self.grad_median / self.schedule.width) ** 2) * sig**2 / 2)
-        # The projector row is not traced (the tool stays inside the DMD's rows); only its centre row is tested.
-        rows_lit = -0.5 <= proj.K[1, 2] <= float(proj.size[1])
+        axis_px = self.schedule.axis_length
+        atten = math.exp(-((2 * math.pi * k * self.grad_median / axis_px) ** 2) * sig**2 / 2)
+        # The projector coordinate across the fringes is not traced (the tool stays inside the DMD);
+        # only its centre line is tested.
+        across = 1 if self.schedule.orientation == "vertical" else 0
+        rows_lit = -0.5 <= proj.K[across, 2] <= float(proj.size[across])
         return v0, spans, tool_kernels.ToolFrame(
             p0, axis / length, length, float(tool.radius_mm), float(REFLECTANCE[tool.material][led]), float(ks),
-            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(self.schedule.width),
-            bool(rows_lit), 2 * math.pi * k / self.schedule.width, shift, atten, dz)
+            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(axis_px),
+            bool(rows_lit), 2 * math.pi * k / axis_px, shift, atten, dz)
 
     def _tool_spans(self, uv: F64, rad_px: float) -> tuple[int, npt.NDArray[np.int64]]:
         """Row spans (v0, (n, 2) first/last column) of the stadium of radius ``rad_px`` swept by a disc

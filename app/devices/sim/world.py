@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.schedule import PatternSchedule
-from app.devices.sim.optics import SimRig, default_rig
+from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.radiometry import SensorModel
 from app.devices.sim.render import Renderer
 from app.devices.sim.scenes import Scene, build_scene
@@ -24,7 +24,7 @@ _MAX_RENDERERS = 3
 
 def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: SensorModel, gamma: float,
                     distortion: bool) -> Renderer:
-    key = (name, distortion, schedule, sensor, gamma)
+    key = (name, rig.name, distortion, schedule, sensor, gamma)
     with _RENDERERS_LOCK:
         r = _RENDERERS.get(key)
         if r is None:
@@ -44,12 +44,13 @@ class SimulatedWorld:
         led, current: the projector's LED and its current fraction.
     """
 
-    def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | None = None,
+    def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | str | None = None,
                  schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
                  seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0) -> None:
-        self._named = scene if isinstance(scene, str) and rig is None else None
+        """``rig``: a rig preset's name (see optics.RIG_NAMES; default ``"default"``) or a SimRig."""
+        self._named = scene if isinstance(scene, str) and not isinstance(rig, SimRig) else None
         self._distortion = distortion
-        self.rig = rig or default_rig(distortion=distortion)
+        self.rig = rig if isinstance(rig, SimRig) else rig_by_name(rig or "default", distortion=distortion)
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
         self.schedule = schedule or PatternSchedule()
         self.sensor = sensor or SensorModel()

@@ -84,3 +84,16 @@ def test_running_stitches_stand_072_mm(rig):
         best.append(hf.heights[r, cols].max() - side)
     assert len(best) > 5
     assert np.median(best) == pytest.approx(0.72, abs=0.08)
+
+
+def test_bright_suture_variant_differs_only_in_the_thread(rig):
+    from app.devices.sim.radiometry import REFLECTANCE
+
+    dark, bright = build_scene("anastomosis", rig), build_scene("anastomosis_bright", rig)
+    assert bright.name == "anastomosis_bright"
+    np.testing.assert_array_equal(dark.surface.heights, bright.surface.heights)
+    thread = dark.surface.material == material_id("suture")
+    np.testing.assert_array_equal(thread, bright.surface.material == material_id("suture_bright"))
+    np.testing.assert_array_equal(dark.surface.material[~thread], bright.surface.material[~thread])
+    # in the green light used for measurement the violet thread is darker, the undyed one brighter
+    assert REFLECTANCE["suture"]["green"] < REFLECTANCE["intestine"]["green"] < REFLECTANCE["suture_bright"]["green"]

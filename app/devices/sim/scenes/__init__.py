@@ -26,6 +26,7 @@ SCENES: dict[str, Callable[[SimRig], Scene]] = {
     "intestine_flap": lambda rig: flap_scene(rig, "intestine"),
     "intestine_pile": pile_scene,
     "anastomosis": anastomosis_scene,
+    "anastomosis_bright": lambda rig: anastomosis_scene(rig, suture="suture_bright"),
     "sphere": sphere_scene,
 }
 

@@ -94,9 +94,10 @@ def board_poses(rig: SimRig, poses: int, seed: int | None = 0) -> list[tuple[F64
     return out
 
 
-def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64]) -> Scene:
+def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64], *, paper_half_mm: float = 11.0) -> Scene:
+    """The board printed on white paper (a square of side 2·paper_half_mm) at ``pose``."""
     origin, axes = pose
-    return Scene(f"board_{spec.type}", flat_field(origin, axes, 11.0, "white", board_printer(spec), ds=1.0),
+    return Scene(f"board_{spec.type}", flat_field(origin, axes, paper_half_mm, "white", board_printer(spec), ds=1.0),
                  description="calibration board")
 
 

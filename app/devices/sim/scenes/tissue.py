@@ -98,9 +98,14 @@ def pile_scene(rig: SimRig, seed: int = 5) -> Scene:
                  description="intestine loops of three pigments on a translating platform")
 
 
-def anastomosis_scene(rig: SimRig, seed: int = 7) -> Scene:
+def anastomosis_scene(rig: SimRig, seed: int = 7, suture: str = "suture") -> Scene:
     """Bowel end opened in a diamond by four stay sutures, running stitches 0.72 mm high,
-    breathing (0.25 Hz, 1.5 mm peak-to-peak) and forceps moving through the view."""
+    breathing (0.25 Hz, 1.5 mm peak-to-peak) and forceps moving through the view.
+
+    ``suture``: the thread's material — ``"suture"`` (violet-dyed, darker than the tissue in
+    green light) or ``"suture_bright"`` (undyed, brighter than the tissue): scene
+    ``anastomosis_bright``.
+    """
     rng = np.random.default_rng(seed)
     ds = 0.08  # 9 samples across a 0.72 mm stitch
     ref = rig.reference
@@ -128,8 +133,8 @@ def anastomosis_scene(rig: SimRig, seed: int = 7) -> Scene:
         tube = _tube_heights(ss, tt, ds, curve, r, base)
         on = np.isfinite(tube)
         h = np.maximum(h, tube)
-        mat[on] = material_id("suture")
-    tex = np.where(mat == material_id("suture"), 1.0, _vessels(ss.shape, rng, ds)).astype(np.float32)
+        mat[on] = material_id(suture)
+    tex = np.where(mat == material_id(suture), 1.0, _vessels(ss.shape, rng, ds)).astype(np.float32)
     hf = HeightField(origin, axes, h, float(ss[0, 0]), float(tt[0, 0]), ds, mat, tex)
     n = ref.normal.copy()
 
@@ -139,6 +144,7 @@ def anastomosis_scene(rig: SimRig, seed: int = 7) -> Scene:
         direction = np.array([1.0, -0.35, -0.45])
         return tip, tip + 40.0 * direction / np.linalg.norm(direction)
 
-    return Scene("anastomosis", hf, tool=Tool(forceps, 1.3),
+    name = "anastomosis" if suture == "suture" else "anastomosis_bright"
+    return Scene(name, hf, tool=Tool(forceps, 1.3),
                  motion=lambda t: 0.75 * math.sin(2 * math.pi * 0.25 * t) * n,
                  description="end-to-end anastomosis with stay sutures, running stitches and forceps")

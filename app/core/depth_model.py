@@ -1,0 +1,299 @@
+"""The depth-model contract: unwrapped phase → height above the reference plane, per pixel.
+
+Every model maps the finest-frequency unwrapped phase φ (rad) at pixel (u, v) to a height
+in one closed form that the fused kernel evaluates:
+
+    φ' = (φ − phi0)·inv_sphi,   t = φ' + cubic·φ'³
+    height = (a0 + a1·t) / (b0 + b1·t)
+
+where each of a0, a1, b0, b1 is a per-row quadratic in the normalised column u' plus a
+linear form in the pixel's ray quotient ``q = r/(n·r)`` (``r = (x, y, 1)`` the undistorted
+camera ray, ``n`` the reference-plane normal):
+
+    a_i = α_i(v) + β_i(v)·u' + γ_i(v)·u'² + ρ_i·q_x + σ_i·q_y + τ_i·q_z
+
+Eq. (5) uses the row quadratics only (``cubic`` 0); the geometric model the ray terms
+only. :class:`HeightTables` carries both parts; a model says which by its numbers.
+
+A model also records its :class:`SupportedRegion` (where its fit data reach) and
+serialises to a JSON object ``{"name": ..., **params, "supported_region": {...}}``.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+MODEL_NAMES = ("eq5", "geometric")
+
+
+@dataclass(frozen=True)
+class ReferencePlane:
+    """``normal · X + offset_mm = height`` in the camera frame; normal toward the scope."""
+
+    normal: F64
+    offset_mm: float
+
+
+class HeightTables(NamedTuple):
+    """The closed form of the module docstring for one image size (float64; the kernel casts).
+
+    Attributes:
+        u_norm: (W,) normalised column u'.
+        row_coefs: (H, 12) (α, β, γ) of a0, a1, b0, b1 per row.
+        ray_coefs: (12,) (ρ, σ, τ) of a0, a1, b0, b1 on the ray quotient q.
+        phi0, inv_sphi: phase normalisation.
+        cubic: coefficient of φ'³ in t.
+    """
+
+    u_norm: F64
+    row_coefs: F64
+    ray_coefs: F64
+    phi0: float
+    inv_sphi: float
+    cubic: float
+
+
+@dataclass
+class BoardSamples:
+    """Phase control points from the calibration boards (all (n,) unless noted).
+
+    Attributes:
+        u, v: pixel coordinates (column, row).
+        ray_xy: (n, 2) undistorted normalised camera ray (x, y) of each point (z = 1).
+        phi: finest-frequency unwrapped phase, rad.
+        z_mm: height above the reference plane, mm.
+        pose: pose index of each point.
+        image_size: (width, height) of the camera, px.
+        fringes: fringe count of the finest frequency across the projector.
+        projector_width_px: projector extent along the fringe axis, px.
+    """
+
+    u: F64
+    v: F64
+    ray_xy: F64
+    phi: F64
+    z_mm: F64
+    pose: npt.NDArray[np.int64]
+    image_size: tuple[int, int]
+    fringes: int
+    projector_width_px: int
+
+    def __post_init__(self) -> None:
+        n = len(self.z_mm)
+        for name in ("u", "v", "phi", "z_mm", "pose"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"{name}: {len(getattr(self, name))} values for {n} samples")
+        if np.shape(self.ray_xy) != (n, 2):
+            raise ValueError(f"ray_xy: expected shape ({n}, 2), got {np.shape(self.ray_xy)}")
+
+    def subset(self, mask: npt.NDArray[np.bool_]) -> BoardSamples:
+        """The samples where ``mask`` is True."""
+        return BoardSamples(self.u[mask], self.v[mask], self.ray_xy[mask], self.phi[mask], self.z_mm[mask],
+                            self.pose[mask], self.image_size, self.fringes, self.projector_width_px)
+
+    def points_mm(self, plane: ReferencePlane) -> F64:
+        """(n, 3) camera-frame points: the height ``z`` on each ray."""
+        r = np.concatenate([self.ray_xy, np.ones((len(self.z_mm), 1))], axis=1)
+        s = (self.z_mm - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64))
+        return np.asarray(r * s[:, None], np.float64)
+
+
+@dataclass
+class SupportedRegion:
+    """Where a model's fit data reach.
+
+    Attributes:
+        phase_rad: (lo, hi) finest phase range the data covered (with a margin), or None
+            for any phase.
+        height_grid_mm: (gh, gw, 2) per image cell (lo, hi) height bounds (with a margin;
+            lo > hi marks a cell without data), or None for no per-cell bound.
+        cell_px: (cell width, cell height) of the grid, px.
+    """
+
+    phase_rad: tuple[float, float] | None = None
+    height_grid_mm: F64 | None = None
+    cell_px: tuple[float, float] = (1.0, 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "phase_rad": None if self.phase_rad is None else list(self.phase_rad),
+            "height_grid_mm": None if self.height_grid_mm is None else np.round(self.height_grid_mm, 6).tolist(),
+            "cell_px": list(self.cell_px),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> SupportedRegion:
+        if data is None:
+            return cls()
+        if not isinstance(data, dict):
+            raise ValueError("supported_region: expected an object")
+        phase = data.get("phase_rad")
+        grid = data.get("height_grid_mm")
+        try:
+            g = None if grid is None else np.asarray(grid, np.float64)
+            if g is not None and (g.ndim != 3 or g.shape[2] != 2):
+                raise ValueError(f"height_grid_mm: expected (gh, gw, 2), got {g.shape}")
+            cw, ch = (float(x) for x in data.get("cell_px", (1.0, 1.0)))
+            ph = None if phase is None else (float(phase[0]), float(phase[1]))
+        except (TypeError, IndexError) as exc:
+            raise ValueError(f"supported_region: malformed ({exc})") from None
+        if cw <= 0 or ch <= 0:
+            raise ValueError("supported_region: cell_px must be positive")
+        return cls(ph, g, (cw, ch))
+
+    def kernel_bounds(self) -> tuple[F32, float, float, float, float]:
+        """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the kernel;
+        an unbounded region is a 1×1 grid of (−inf, inf)."""
+        if self.height_grid_mm is None:
+            grid = np.array([[[-np.inf, np.inf]]], np.float32)
+            inv_w = inv_h = 0.0
+        else:
+            grid = np.ascontiguousarray(self.height_grid_mm, np.float32)
+            inv_w, inv_h = 1.0 / self.cell_px[0], 1.0 / self.cell_px[1]
+        lo, hi = self.phase_rad if self.phase_rad is not None else (-math.inf, math.inf)
+        return grid, inv_w, inv_h, lo, hi
+
+    def outside(self, height_mm: npt.ArrayLike, phase: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """(H, W) True where (pixel, height, phase) is outside the region (NaN counts as outside)."""
+        h = np.asarray(height_mm, np.float64)
+        p = np.asarray(phase, np.float64)
+        grid, inv_w, inv_h, lo, hi = self.kernel_bounds()
+        rows, cols = h.shape
+        ci = np.minimum((np.arange(rows) * inv_h).astype(np.int64), grid.shape[0] - 1)
+        cj = np.minimum((np.arange(cols) * inv_w).astype(np.int64), grid.shape[1] - 1)
+        g = grid.astype(np.float64)[ci][:, cj]
+        inside = (h >= g[..., 0]) & (h <= g[..., 1]) & (p >= lo) & (p <= hi)
+        return np.asarray(~inside, np.bool_)
+
+
+def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0,
+                        dilate: int = 1) -> SupportedRegion:
+    """The (u, v, height) region the board samples cover: per grid cell the samples' height
+    range ± ``margin_mm``; cells within ``dilate`` cells of covered ones take their
+    neighbours' union; cells farther away support nothing. Phase: the samples' range."""
+    w, h = samples.image_size
+    gw, gh = cells
+    cw, ch = w / gw, h / gh
+    ok = np.isfinite(samples.z_mm) & np.isfinite(samples.phi)
+    ci = np.clip((samples.v[ok] / ch).astype(np.int64), 0, gh - 1)
+    cj = np.clip((samples.u[ok] / cw).astype(np.int64), 0, gw - 1)
+    lo = np.full((gh, gw), np.inf)
+    hi = np.full((gh, gw), -np.inf)
+    np.minimum.at(lo, (ci, cj), samples.z_mm[ok])
+    np.maximum.at(hi, (ci, cj), samples.z_mm[ok])
+    lo2, hi2 = lo.copy(), hi.copy()
+    for di in range(-dilate, dilate + 1):
+        for dj in range(-dilate, dilate + 1):
+            sl = np.roll(np.roll(lo, di, 0), dj, 1)
+            sh = np.roll(np.roll(hi, di, 0), dj, 1)
+            if di > 0:
+                sl[:di], sh[:di] = np.inf, -np.inf
+            if di < 0:
+                sl[di:], sh[di:] = np.inf, -np.inf
+            if dj > 0:
+                sl[:, :dj], sh[:, :dj] = np.inf, -np.inf
+            if dj < 0:
+                sl[:, dj:], sh[:, dj:] = np.inf, -np.inf
+            lo2 = np.minimum(lo2, sl)
+            hi2 = np.maximum(hi2, sh)
+    covered = hi2 >= lo2
+    grid = np.stack([np.where(covered, lo2 - margin_mm, 1.0), np.where(covered, hi2 + margin_mm, -1.0)], axis=-1)
+    p = samples.phi[ok]
+    return SupportedRegion((float(p.min()), float(p.max())) if p.size else None, grid, (cw, ch))
+
+
+def missing_cells(region: SupportedRegion) -> list[str]:
+    """Names of the image ninths (``"top left"`` … ``"bottom right"``) with no supported cell."""
+    if region.height_grid_mm is None:
+        return []
+    g = region.height_grid_mm
+    covered = g[..., 1] >= g[..., 0]
+    gh, gw = covered.shape
+    names = []
+    for i, rn in enumerate(("top", "middle", "bottom")):
+        for j, cn in enumerate(("left", "centre", "right")):
+            block = covered[i * gh // 3:(i + 1) * gh // 3, j * gw // 3:(j + 1) * gw // 3]
+            if block.size and not block.any():
+                names.append("centre" if (rn, cn) == ("middle", "centre") else f"{rn} {cn}")
+    return names
+
+
+class DepthModel(ABC):
+    """One phase-to-height model: fitted from board samples, evaluated through :class:`HeightTables`.
+
+    Implementations: :class:`app.core.eq5.Eq5Model` (``"eq5"``, Le et al. 2018 Eq. (5)) and
+    :class:`app.core.geometric.GeometricModel` (``"geometric"``).
+    """
+
+    name: ClassVar[str]
+    region: SupportedRegion
+
+    @classmethod
+    @abstractmethod
+    def fit(cls, samples: BoardSamples, plane: ReferencePlane) -> DepthModel:
+        """Fit to board samples; ``ValueError`` if they do not determine the model."""
+
+    @abstractmethod
+    def height_tables(self, image_size: tuple[int, int], plane: ReferencePlane) -> HeightTables:
+        """Kernel tables for a ``(width, height)`` image and the record's reference plane."""
+
+    @abstractmethod
+    def height_at(self, u: F64, v: F64, ray_xy: F64, phi: F64, plane: ReferencePlane) -> F64:
+        """Reference float64 heights (mm) at pixels (u, v) with rays ``ray_xy`` (n, 2) and phases φ."""
+
+    @abstractmethod
+    def params(self) -> dict[str, Any]:
+        """The model's parameters as a JSON object (without name and region)."""
+
+    @classmethod
+    @abstractmethod
+    def from_params(cls, params: dict[str, Any], region: SupportedRegion) -> DepthModel:
+        """Inverse of :meth:`params`; ``ValueError`` naming what is wrong."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, **self.params(), "supported_region": self.region.to_dict()}
+
+
+def depth_model_from_dict(data: Any) -> DepthModel:
+    """Parse a ``model`` object of a version-2 calibration file."""
+    from app.core.eq5 import Eq5Model
+    from app.core.geometric import GeometricModel
+
+    if not isinstance(data, dict):
+        raise ValueError("model: expected an object")
+    kinds: dict[str, type[DepthModel]] = {"eq5": Eq5Model, "geometric": GeometricModel}
+    name = data.get("name")
+    if name not in kinds:
+        raise ValueError(f"model: unknown name {name!r} (expected one of {list(kinds)})")
+    region = SupportedRegion.from_dict(data.get("supported_region"))
+    return kinds[name].from_params(data, region)
+
+
+def row_tables_zero(image_size: tuple[int, int]) -> tuple[F64, F64]:
+    """(u_norm zeros (W,), row_coefs zeros (H, 12)) for a model without row terms."""
+    w, h = (int(x) for x in image_size)
+    if w <= 0 or h <= 0:
+        raise ValueError(f"image_size: invalid {image_size}")
+    return np.zeros(w), np.zeros((h, 12))
+
+
+__all__ = [
+    "MODEL_NAMES",
+    "BoardSamples",
+    "DepthModel",
+    "HeightTables",
+    "ReferencePlane",
+    "SupportedRegion",
+    "depth_model_from_dict",
+    "missing_cells",
+    "region_from_samples",
+]

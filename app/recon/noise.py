@@ -1,0 +1,69 @@
+"""The camera's temporal noise from one fringe set: the residual of the N-step fit.
+
+With N > 3 phase steps the sinusoid ``A + B cos(φ + δ_n)`` leaves N − 3 degrees of freedom
+per frequency and pixel; their residual sum of squares estimates σ_I² there. Regressing
+it on the pixel's mean intensity over the whole image gives the shot + read model
+``σ_I² = read² + gain·I`` (:class:`~app.recon.reconstructor.SensorNoise`), which then
+gives every pixel its σ_I from its own intensity.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from app.core.schedule import PatternSchedule
+from app.recon.phase import check_stack
+from app.recon.reconstructor import SensorNoise
+
+MAX_PIXELS = 200_000  # a regular subsample is plenty for two parameters
+
+
+def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: int | None = None) -> SensorNoise:
+    """Shot + read noise of the camera from the N-step fit residual of one fringe set.
+
+    Args:
+        frames: (F, H, W) uint8/uint16 in capture-set order, F = ``schedule.n_frames``.
+        schedule: the pattern schedule; needs ``steps`` N > 3.
+        max_code: sensor maximum code (pixels reaching it are left out); None → dtype max.
+
+    Returns:
+        :class:`~app.recon.reconstructor.SensorNoise` fitted to the residual variance
+        against mean intensity (gain and read noise clipped at 0).
+
+    Raises:
+        ValueError: N = 3 (no residual), wrong frame count, or too few usable pixels.
+    """
+    stack = check_stack(frames)
+    n = schedule.steps
+    if n <= 3:
+        raise ValueError(f"schedule: the N-step residual needs N > 3 steps, got {n}")
+    if stack.shape[0] != schedule.n_frames:
+        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {stack.shape[0]}")
+    top = int(max_code) if max_code is not None else int(np.iinfo(stack.dtype).max)
+    h, w = stack.shape[1:]
+    step = max(1, math.isqrt(max(1, h * w // MAX_PIXELS)))
+    sub = stack[:, ::step, ::step].astype(np.float64)
+    delta = 2.0 * np.pi * np.arange(n) / n
+    c, s = np.cos(delta), np.sin(delta)
+    var_sum = np.zeros(sub.shape[1:])
+    k = len(schedule.frequencies)
+    for fi in range(k):
+        block = sub[fi * n:(fi + 1) * n]
+        mean = block.mean(axis=0)
+        x = np.tensordot(c, block, axes=1)
+        y = np.tensordot(s, block, axes=1)
+        fit = mean[None] + (2.0 / n) * (c[:, None, None] * x[None] + s[:, None, None] * y[None])
+        var_sum += ((block - fit) ** 2).sum(axis=0) / (n - 3)
+    var = var_sum / k
+    intensity = sub.mean(axis=0)
+    usable = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
+    if usable.sum() < 100:
+        raise ValueError("frames: fewer than 100 unsaturated, non-black pixels to estimate the noise from")
+    design = np.stack([np.ones(int(usable.sum())), intensity[usable]], axis=1)
+    (read_var, gain), *_ = np.linalg.lstsq(design, var[usable], rcond=None)
+    return SensorNoise(gain_dn_per_e=max(float(gain), 0.0), read_noise_dn=math.sqrt(max(float(read_var), 0.0)))
+
+

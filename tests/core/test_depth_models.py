@@ -1,0 +1,212 @@
+"""The depth-model contract: the geometric model against closed-form rigs, brute-force
+equal-phase intersections, the fit, serialisation and the supported region."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from app.calib.calibration import Calibration, load_calibration, save_calibration
+from app.calib.model import undistort_points
+from app.core.depth_model import (
+    BoardSamples,
+    ReferencePlane,
+    SupportedRegion,
+    depth_model_from_dict,
+)
+from app.core.eq5 import Eq5Model
+from app.core.geometric import GeometricModel
+from app.core.reasons import Reason
+from app.recon import Reconstructor
+from app.recon.model import calibration_model_tables, evaluate_height
+from tests.recon.analytic_rig import Rig, bump_surface
+
+
+def _geometric_of(rig: Rig, k1: float = 0.0) -> GeometricModel:
+    return rig.geometric_model(k1)
+
+
+def _calibration(rig: Rig, model, dist=None, height_range_mm=(0.0, 30.0)) -> Calibration:
+    return Calibration(rig.K, np.zeros(5) if dist is None else dist, (rig.width, rig.height), rig.n,
+                       rig.plane_offset_mm, model=model, pattern=rig.schedule, height_range_mm=height_range_mm)
+
+
+def test_geometric_model_matches_the_closed_form_pinhole_rig():
+    rig = Rig()
+    cal = _calibration(rig, _geometric_of(rig))
+    tables = calibration_model_tables(cal)
+    for h in (bump_surface(rig), np.zeros((rig.height, rig.width)), np.full((rig.height, rig.width), 30.0)):
+        height, singular = evaluate_height(tables, rig.finest_phase(h))
+        assert not singular.any()
+        assert np.max(np.abs(height - h)) < 1e-6  # mm
+
+
+def _projector_phase(model: GeometricModel, x: np.ndarray) -> np.ndarray:
+    """Forward model: camera-frame points (n, 3) → finest phase, through the distortion."""
+    r = model.rotation
+    xn = (x @ r[0] + model.t_mm[0]) / (x @ r[2] + model.t_mm[2])
+    xd = np.array([brentq(lambda d, target=t: d * (1 + model.k1 * d * d) - target, -1.0, 1.0) for t in xn])
+    xp = model.focal_px * xd + model.principal_px
+    return 2 * math.pi * model.fringes * xp / model.projector_width_px
+
+
+def test_equal_phase_intersection_against_brute_force():
+    """Camera with barrel distortion, projector with k1: the closed form equals a root search
+    along each undistorted ray for the point whose projector phase is φ."""
+    rig = Rig()
+    model = _geometric_of(rig, k1=-0.08)
+    dist = np.array([-0.25, 0.05, 0.0, 0.0, 0.0])
+    cal = _calibration(rig, model, dist)
+    plane = cal.reference_plane
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0, rig.width - 1, 300), rng.uniform(0, rig.height - 1, 300)
+    h_true = rng.uniform(0.0, 30.0, 300)
+    rays = undistort_points(np.stack([u, v], 1), rig.K, dist)
+    r3 = np.concatenate([rays, np.ones((300, 1))], axis=1)
+    x = r3 * ((h_true - plane.offset_mm) / (r3 @ plane.normal))[:, None]
+    phi = _projector_phase(model, x)
+    # brute force: for the measured φ find s on the ray with phase(s·r) = φ
+    brute = []
+    for ri, pi, xi in zip(r3, phi, x, strict=True):
+        s0 = xi[2]
+        s = brentq(lambda s, ri=ri, pi=pi: _projector_phase(model, (s * ri)[None])[0] - pi, 0.5 * s0, 1.5 * s0,
+                   xtol=1e-13)
+        brute.append((s * ri) @ plane.normal + plane.offset_mm)
+    closed = model.height_at(u, v, rays, phi, plane)
+    np.testing.assert_allclose(closed, brute, atol=1e-6)
+    np.testing.assert_allclose(closed, h_true, atol=1e-6)
+    # and the per-pixel tables of the reconstructor at integer pixels
+    tables = calibration_model_tables(cal)
+    ui, vi = np.rint(u).astype(int), np.rint(v).astype(int)
+    _, first = np.unique(vi * rig.width + ui, return_index=True)
+    ui, vi, phi = ui[first], vi[first], phi[first]
+    rays_i = undistort_points(np.stack([ui, vi], 1), rig.K, dist)
+    phi_i = np.full((rig.height, rig.width), np.nan)
+    phi_i[vi, ui] = phi
+    h_tab, _ = evaluate_height(tables, phi_i)
+    np.testing.assert_allclose(h_tab[vi, ui], model.height_at(ui, vi, rays_i, phi, plane), atol=1e-6)
+
+
+def _samples(rig: Rig, model: GeometricModel, dist: np.ndarray, plane: ReferencePlane, n: int = 3000,
+             seed: int = 2) -> BoardSamples:
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, rig.width - 1, n), rng.uniform(0, rig.height - 1, n)
+    z = rng.uniform(0.0, 30.0, n)
+    rays = undistort_points(np.stack([u, v], 1), rig.K, dist)
+    r3 = np.concatenate([rays, np.ones((n, 1))], axis=1)
+    x = r3 * ((z - plane.offset_mm) / (r3 @ plane.normal))[:, None]
+    phi = _projector_phase(model, x)
+    return BoardSamples(u, v, rays, phi, z, (np.arange(n) % 6).astype(np.int64), (rig.width, rig.height),
+                        rig.schedule.frequencies[-1], rig.schedule.width)
+
+
+def test_geometric_fit_recovers_the_projector():
+    rig = Rig()
+    truth = _geometric_of(rig, k1=-0.05)
+    dist = np.array([-0.2, 0.0, 0.0, 0.0, 0.0])
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    samples = _samples(rig, truth, dist, plane)
+    fitted = GeometricModel.fit(samples, plane)
+    assert fitted.focal_px == pytest.approx(truth.focal_px, rel=1e-6)
+    assert fitted.principal_px == pytest.approx(truth.principal_px, abs=1e-4)
+    assert fitted.k1 == pytest.approx(truth.k1, abs=1e-7)
+    err = fitted.height_at(samples.u, samples.v, samples.ray_xy, samples.phi, plane) - samples.z_mm
+    assert np.max(np.abs(err)) < 1e-6
+    lo, hi = fitted.region.phase_rad
+    assert lo < samples.phi.min() and hi > samples.phi.max()
+
+
+def test_geometric_fit_refuses_too_few_points():
+    rig = Rig()
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    s = _samples(rig, _geometric_of(rig), np.zeros(5), plane, n=10)
+    with pytest.raises(ValueError, match="at least 20 control points"):
+        GeometricModel.fit(s, plane)
+
+
+def test_models_serialise_and_v2_file_round_trips(tmp_path):
+    rig = Rig()
+    geo = _geometric_of(rig, k1=-0.01)
+    geo.region = SupportedRegion(phase_rad=(10.0, 200.0))
+    back = depth_model_from_dict(json.loads(json.dumps(geo.to_dict())))
+    assert isinstance(back, GeometricModel) and back.region.phase_rad == (10.0, 200.0)
+    np.testing.assert_array_equal(back.rvec, geo.rvec)
+    cal = _calibration(rig, geo)
+    cal.held_out = {"eq5": {"rms_mm": 0.01}, "geometric": {"rms_mm": 0.005}}
+    path = save_calibration(cal, tmp_path / "c.json")
+    data = json.loads(path.read_text())
+    assert data["format"] == "fringescope.calibration/2" and data["model"]["name"] == "geometric"
+    loaded = load_calibration(path)
+    assert loaded.model.name == "geometric" and loaded.held_out == cal.held_out
+    with pytest.raises(ValueError, match="not 'eq5'"):
+        _ = loaded.numerator
+    with pytest.raises(ValueError, match="unknown name"):
+        depth_model_from_dict({"name": "magic"})
+
+
+def test_version_1_file_loads(tmp_path):
+    rig = Rig()
+    cal = rig.calibration()
+    data = cal.to_dict()
+    data["format"] = "fringescope.calibration/1"
+    data["model"] = {k: v for k, v in data["model"].items() if k not in ("name", "supported_region")}
+    del data["held_out"]
+    (tmp_path / "v1.json").write_text(json.dumps(data))
+    back = load_calibration(tmp_path / "v1.json")
+    assert isinstance(back.model, Eq5Model)
+    np.testing.assert_array_equal(back.numerator, cal.numerator)
+    assert back.model.region.height_grid_mm is None
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_supported_region_mask_on_a_constructed_case(fast):
+    """A 2×2 grid: left column supports 0..30 mm, the top right only 0..5 mm, the bottom right
+    nothing. The bump (6..28 mm) is OUTSIDE_FIELD exactly where the grid says so."""
+    rig = Rig()
+    cal = rig.calibration(height_range_mm=(0.0, 30.0))
+    grid = np.array([[[0.0, 30.0], [0.0, 5.0]], [[0.0, 30.0], [1.0, -1.0]]])
+    cal.model.region = SupportedRegion(None, grid, (rig.width / 2, rig.height / 2))
+    h = bump_surface(rig)
+    frames = rig.render(h, noise=0.0)
+    res = Reconstructor(cal, fast=fast).run(frames)
+    vv, uu = np.mgrid[0:rig.height, 0:rig.width]
+    right = uu >= rig.width / 2
+    bottom = vv >= rig.height / 2
+    expect_out = right & (bottom | (h > 5.0 + 0.05))
+    clear = right & ~bottom & (np.abs(h - 5.0) < 0.05)  # rounding at the bound
+    got_out = res.reason == Reason.OUTSIDE_FIELD
+    assert np.array_equal(got_out[~clear], expect_out[~clear])
+    assert res.valid[~right].all()
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_geometric_model_reconstructs_in_both_paths(fast):
+    rig = Rig()
+    cal = _calibration(rig, _geometric_of(rig))
+    h = bump_surface(rig)
+    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
+                                                       amplitude=90 * 256))
+    assert res.valid.mean() > 0.99
+    err = np.abs(res.depth - h)[res.valid]
+    assert np.percentile(err, 99) < 0.01
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_projector_field_bounds_the_geometric_model(fast):
+    """Phases outside the calibrated projector field are OUTSIDE_FIELD, inside they are valid."""
+    rig = Rig()
+    cal = rig.geometric_calibration()
+    h = bump_surface(rig)
+    phi = rig.finest_phase(h)
+    cut = float(np.median(phi))
+    cal.model.region = SupportedRegion(phase_rad=(-1.0, cut))
+    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
+                                                       amplitude=90 * 256))
+    clear = np.abs(phi - cut) > 1e-3
+    out = res.reason == Reason.OUTSIDE_FIELD
+    assert np.array_equal(out[clear], (phi > cut)[clear])
+    assert res.valid[clear & (phi < cut)].all()
