@@ -180,3 +180,23 @@ def test_cli_validate_plane_sphere_feature(calib_dir, tmp_path, capsys):
     # Bad input: one line, exit 2.
     assert main(["validate", str(tmp_path / "plane"), "-c", str(cal_path), "--plane", "--roi", "1,2,3"]) == 2
     assert "roi" in capsys.readouterr().err
+
+
+def test_a_board_on_the_central_half_is_accepted_and_its_gaps_named():
+    """A bench board that reaches only the central half of the field calibrates; the ninths it
+    misses are returned (the supported region leaves them out), not refused."""
+    from app.calib.fitting import _check_coverage
+    from app.core.depth_model import BoardSamples
+
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(160, 480, 800), rng.uniform(120, 360, 800)  # central half of 640 x 480
+    s = BoardSamples(u, v, np.zeros((800, 2)), np.ones(800), np.ones(800), np.zeros(800, np.int64),
+                     (640, 480), 36, 608)
+    missing = _check_coverage(s)
+    assert "centre" not in missing and set(missing) <= {
+        "top left", "top right", "bottom left", "bottom right", "top centre", "bottom centre",
+        "middle left", "middle right"}
+    small = BoardSamples(u[:50] * 0.2 + 256, v[:50] * 0.2 + 192, np.zeros((50, 2)), np.ones(50), np.ones(50),
+                         np.zeros(50, np.int64), (640, 480), 36, 608)  # a patch of 64 x 48 px at the centre
+    with pytest.raises(ValueError, match="cover too little"):
+        _check_coverage(small)

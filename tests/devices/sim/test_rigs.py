@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from app.calib import calibrate_folder
-from app.calib.board import BoardSpec as CalBoard
 from app.calib.board import detect_board, texture_to_u8
 from app.capture.captureset import read_capture_set
 from app.cli import main
@@ -23,7 +22,8 @@ from app.devices.sim import (
     simulate_calibration_folder,
 )
 from app.devices.sim.offline import central_fraction, partial_board_spec
-from app.devices.sim.scenes import BoardSpec, board_poses
+from app.core.board import BoardSpec
+from app.devices.sim.scenes import board_points_mm, board_poses, sim_board
 from app.devices.sim.scenes.base import frame_from_normal
 
 
@@ -112,9 +112,9 @@ def test_default_rig_capture_meta_unchanged(plane_world):
 def test_partial_board_spec_keeps_the_grid_in_the_central_half(name):
     rig = rig_by_name(name)
     poses = board_poses(rig, 8, seed=3)
-    full = BoardSpec()
+    full = sim_board("checkerboard")
     spec = partial_board_spec(rig, full, poses)
-    assert spec.pitch_mm < full.pitch_mm and spec.inner_corners == full.inner_corners
+    assert spec.pitch_mm < full.pitch_mm and (spec.cols, spec.rows) == (full.cols, full.rows)
     assert 0.45 < central_fraction(rig, spec.pitch_mm, spec, poses) <= 0.5
     with pytest.raises(ValueError, match="fraction"):
         partial_board_spec(rig, full, poses, fraction=2.0)
@@ -137,8 +137,8 @@ def test_partial_boards_detected_in_the_central_half(endo_calibration):
     cv2.projectPoints puts the true board corners through the distorted lens."""
     rig = rig_by_name("endoscope")
     spec_json = json.loads((endo_calibration / "board.json").read_text())
-    spec = BoardSpec(inner_corners=tuple(spec_json["inner_corners"]), pitch_mm=spec_json["square_mm"])
-    cal_board = CalBoard.from_dict(spec_json)
+    spec = BoardSpec.from_dict(spec_json)
+    cal_board = spec
     w, h = rig.image_size
     for k in range(6):
         cs = read_capture_set(endo_calibration / f"pose_{k:02d}")
@@ -150,7 +150,7 @@ def test_partial_boards_detected_in_the_central_half(endo_calibration):
         assert np.all(np.abs(uv[:, 0] - (w - 1) / 2) <= w / 4) and np.all(np.abs(uv[:, 1] - (h - 1) / 2) <= h / 4)
         sim = cs.extra["simulated"]
         assert sim["partial_board"] is True
-        truth = rig.camera.project(np.array(sim["board_origin_mm"]) + spec.object_points()
+        truth = rig.camera.project(np.array(sim["board_origin_mm"]) + board_points_mm(spec)
                                    @ np.array(sim["board_axes"]).T)
         nearest = np.linalg.norm(uv[:, None] - truth[None], axis=2).min(axis=1)  # detection order is free
         assert np.max(nearest) < 0.3
