@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import io
 import math
 from pathlib import Path
 from typing import Any
@@ -25,14 +24,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def phase_files(res: Any) -> dict[str, bytes]:
     """The output files of ``fringescope phase`` (name → bytes) for a :class:`PhaseResult`."""
+    from app.core.encoding import npy_bytes
     from app.recon import render_depth_png
 
     out: dict[str, bytes] = {}
     for name, arr in (("phase.npy", res.phase.astype(np.float32)), ("modulation.npy", res.modulation),
                       ("reason.npy", res.reason.astype(np.uint8))):
-        buf = io.BytesIO()
-        np.save(buf, arr)
-        out[name] = buf.getvalue()
+        out[name] = npy_bytes(arr)
     out["phase.png"] = render_depth_png(res.phase, phase_range(res.phase), unit="rad")
     return out
 

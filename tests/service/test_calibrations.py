@@ -41,7 +41,7 @@ def test_activation_installs_the_engine_and_summarises(tmp_path, calibration):
 def test_activation_rejects_another_schedule(tmp_path, calibration):
     mgr = _manager(tmp_path)
     other = dataclasses.replace(calibration, pattern=PatternSchedule(frequencies=(1, 8, 32)))
-    with pytest.raises(ValueError, match="pattern schedule"):
+    with pytest.raises(ValueError, match="differs from the calibration"):
         mgr.activate(other, name="x", persist=False)
     assert mgr.calibration is None and not mgr.pipeline.has_engine
 

@@ -181,9 +181,10 @@ def test_rig_selected_by_settings_everywhere_the_simulator_is_built(tmp_path):
     from app.devices.factory import create_devices as factory_devices
     from app.service.calibration_store import sim_file_name
     from app.service.devices import create_devices as service_devices
+    from app.service.devices import device_specs
 
     settings = Settings(data_dir=tmp_path, sim_rig="endoscope", bit_depth=12, viewer=False)
-    for devs in (factory_devices(settings), service_devices(settings)):
+    for devs in (factory_devices(device_specs(settings)), service_devices(settings)):
         cam = devs.camera
         assert cam.world.rig.name == "endoscope"
         caps = cam.capabilities
