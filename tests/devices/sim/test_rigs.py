@@ -13,6 +13,7 @@ from app.calib import calibrate_folder
 from app.calib.board import detect_board, texture_to_u8
 from app.capture.captureset import read_capture_set
 from app.cli import main
+from app.core.board import BoardSpec
 from app.devices.sim import (
     RIG_NAMES,
     SimulatedWorld,
@@ -22,7 +23,6 @@ from app.devices.sim import (
     simulate_calibration_folder,
 )
 from app.devices.sim.offline import central_fraction, partial_board_spec
-from app.core.board import BoardSpec
 from app.devices.sim.scenes import board_points_mm, board_poses, sim_board
 from app.devices.sim.scenes.base import frame_from_normal
 
