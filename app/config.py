@@ -6,6 +6,7 @@ service layer imports settings.
 
 from __future__ import annotations
 
+import ipaddress
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -92,3 +93,15 @@ def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Se
     merged = {k: v for k, v in file_values.items() if k not in env_set}
     merged.update({k: v for k, v in overrides.items() if v is not None})
     return Settings(**merged)
+
+
+def is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback IP literals (127.0.0.0/8, ::1): a bind address that
+    only this machine reaches (the HTTP server's token rule and the OpenIGTLink port's)."""
+    name = host.strip().strip("[]").lower()
+    if name == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(name).is_loopback
+    except ValueError:
+        return False

@@ -51,6 +51,7 @@ import numpy as np
 import numpy.typing as npt
 import pyigtl
 
+from app.config import is_loopback
 from app.service.store import LatestSlot, NewestQueue
 
 log = logging.getLogger("fringescope.service.igtl")
@@ -65,23 +66,11 @@ HEADER_SIZE = pyigtl.MessageBase.IGTL_HEADER_SIZE
 MAX_BODY_BYTES = 1 << 20  # received messages are small (TRANSFORM: 48 bytes); refuse floods
 
 
-def is_loopback_host(host: str) -> bool:
-    import ipaddress
-
-    name = host.strip().strip("[]").lower()
-    if name == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False
-
-
 def check_igtl_settings(host: str, port: int | None, allow_remote: bool) -> None:
     """Raise ``ValueError`` if the OpenIGTLink port would open off loopback without consent."""
     if port is None:
         return
-    if not is_loopback_host(host) and not allow_remote:
+    if not is_loopback(host) and not allow_remote:
         raise ValueError(
             f"igtl_host: refusing to open OpenIGTLink (no authentication) on {host}; set "
             "FRINGESCOPE_IGTL_ALLOW_REMOTE=true to allow it, or use 127.0.0.1"
