@@ -405,7 +405,7 @@ def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
 
 
 #: the boards' control points must span at least this fraction of the image width and height
-MIN_COVERED_SPAN = 1.0 / 3.0
+MIN_COVERED_SPAN = 0.25
 
 
 def _check_coverage(samples: BoardSamples) -> list[str]:
