@@ -49,6 +49,7 @@ from app.core.reasons import Reason
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
+REFIT_SPAN = 96  # pixels: the saturation refit skips spans of a row without a clipped sample
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
 KERNEL_LOCK = threading.Lock()
@@ -516,12 +517,12 @@ def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pra
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2, weighted, first):  # type: ignore[no-untyped-def]
     # pragma: no cover - compiled
-    """Three of the nine float64 normal-equation sums: x_i (+)= k_i·w (or k_i·w·I if ``weighted``) with
+    """Three of the nine float32 normal-equation sums: x_i (+)= k_i·w (or k_i·w·I if ``weighted``) with
     w = 1 where the sample is unclipped (I < ``top_code``), else 0. Three at a time: few enough
     buffers that LLVM's run-time alias checks still let it vectorise."""
     for u in range(row.shape[0]):
-        i = float(row[u])
-        w = 1.0 if i < top_code else 0.0
+        i = np.float32(row[u])
+        w = _F1 if i < top_code else _F0
         t = w * i if weighted else w
         if first:
             x0[u] = k0 * t
@@ -535,19 +536,19 @@ def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2, weighted, first):  # type:
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Cramer's rule on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
-    (right-hand side [r1, rc, rs]; ``sums`` (9, W) in that order), scaled like (Σ I sin δ, Σ I cos δ)
+    """Cramer's rule (float64) on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
+    (right-hand side [r1, rc, rs]; ``sums`` (9, ≥ W) in that order), scaled like (Σ I sin δ, Σ I cos δ)
     (``half`` = N/2): ``s_acc`` = b·N/2, ``c_acc`` = a·N/2, ``nmin`` = min(nmin, samples used)."""
     for u in range(s_acc.shape[0]):
-        s1 = sums[0, u]
-        sc = sums[1, u]
-        ss = sums[2, u]
-        scc = sums[3, u]
-        sss = sums[4, u]
-        scs = sums[5, u]
-        q1 = sums[6, u]
-        qc = sums[7, u]
-        qs = sums[8, u]
+        s1 = float(sums[0, u])
+        sc = float(sums[1, u])
+        ss = float(sums[2, u])
+        scc = float(sums[3, u])
+        sss = float(sums[4, u])
+        scs = float(sums[5, u])
+        q1 = float(sums[6, u])
+        qc = float(sums[7, u])
+        qs = float(sums[8, u])
         m0 = scc * sss - scs * scs
         m1 = sc * sss - scs * ss
         m2 = sc * scs - scc * ss
@@ -561,20 +562,21 @@ def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def] 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _fit_row(frames, b, v, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
+def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
     # pragma: no cover - compiled
     """Least squares A + a cos δ + b sin δ over the unclipped samples (I < ``top_code``) of frames
-    ``b``.. of row ``v``, for every pixel of the row at once (float64 sums ``sums`` (9, W)):
-    ``s_acc`` = b·N/2, ``c_acc`` = a·N/2; ``nmin`` = min(nmin, samples used)."""
+    ``b``.. of row ``v``, for every pixel u0.. u0 + m of a span at once (m = len(``s_acc``); float32
+    sums ``sums`` (9, ≥ m)): ``s_acc`` = b·N/2, ``c_acc`` = a·N/2; ``nmin`` = min(nmin, samples used)."""
     n_steps = cos_t.shape[0]
+    m = s_acc.shape[0]
     for n in range(n_steps):
-        row = frames[b + n, v]
-        c = float(cos_t[n])
-        s = float(sin_t[n])
+        row = frames[b + n, v, u0:u0 + m]
+        c = cos_t[n]
+        s = sin_t[n]
         first = n == 0
-        _fit_sums3(row, top_code, 1.0, c, s, sums[0], sums[1], sums[2], False, first)
-        _fit_sums3(row, top_code, c * c, s * s, c * s, sums[3], sums[4], sums[5], False, first)
-        _fit_sums3(row, top_code, 1.0, c, s, sums[6], sums[7], sums[8], True, first)
+        _fit_sums3(row, top_code, _F1, c, s, sums[0, :m], sums[1, :m], sums[2, :m], False, first)
+        _fit_sums3(row, top_code, c * c, s * s, c * s, sums[3, :m], sums[4, :m], sums[5, :m], False, first)
+        _fit_sums3(row, top_code, _F1, c, s, sums[6, :m], sums[7, :m], sums[8, :m], True, first)
     _fit_solve(sums, 0.5 * n_steps, s_acc, c_acc, nmin)
 
 
@@ -604,28 +606,31 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
-    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency (phase stage:
+def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
+                top_code, m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+    """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
+    ``code``: the span's views) that keep three unclipped samples per frequency (phase stage:
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
 
-    The whole row is fitted (float64 sums ``sums`` (9, W)) and unwrapped like :func:`_general_row`
-    in the float32 rows of ``rscratch`` (9 + 2K, W); then only those pixels take the result."""
+    The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
+    :func:`_general_row` in the float32 rows of ``rscratch`` (9 + 2K, ≥ m); then only those
+    pixels take the result."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
-    s_acc, c_acc, m2min, dev, wsum, wphi, r_prev, r_m2, nmin = (rscratch[0], rscratch[1], rscratch[2], rscratch[3],
-                                                               rscratch[4], rscratch[5], rscratch[6], rscratch[7],
-                                                               rscratch[8])
-    wphs = rscratch[9:9 + n_freq]
-    m2s = rscratch[9 + n_freq:9 + 2 * n_freq]
+    m = code.shape[0]
+    s_acc, c_acc, m2min, dev, wsum, wphi, r_prev, r_m2, nmin = (
+        rscratch[0, :m], rscratch[1, :m], rscratch[2, :m], rscratch[3, :m], rscratch[4, :m], rscratch[5, :m],
+        rscratch[6, :m], rscratch[7, :m], rscratch[8, :m])
+    wphs = rscratch[9:9 + n_freq, :m]
+    m2s = rscratch[9 + n_freq:9 + 2 * n_freq, :m]
     m2min[:] = _INF
     dev[:] = _F0
     wsum[:] = _F0
     wphi[:] = _F0
     nmin[:] = _INF
     for ki in range(n_freq):
-        _fit_row(frames, ki * n_steps, v, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin)
+        _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin)
         if heterodyne:
             _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
         else:
@@ -650,6 +655,23 @@ def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, com
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
                            cons_rad, m2_min, top_code)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+               m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
+    Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
+    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (9 + 2K, REFIT_SPAN)
+    float32, ``sums`` (9, REFIT_SPAN) float32)."""
+    width = code.shape[0]
+    n = 0
+    for u0 in range(0, width, REFIT_SPAN):
+        u1 = min(width, u0 + REFIT_SPAN)
+        if _count_saturated(code[u0:u1]) > 0:
+            n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
+                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums)
+    return n
 
 
 # Phase 2: outputs from the block buffers.
@@ -712,8 +734,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
-        rscratch = np.empty((9 + 2 * n_freq, width), np.float32)  # the saturation refit's rows
-        sums = np.empty((9, width), np.float64)
+        rscratch = np.empty((9 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        sums = np.empty((9, REFIT_SPAN), np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
