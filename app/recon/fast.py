@@ -49,7 +49,7 @@ from app.core.reasons import Reason
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
-REFIT_SPAN = 96  # pixels: the saturation refit skips spans of a row without a clipped sample
+REFIT_SPAN = 512  # pixels: the saturation refit skips spans of a row without a clipped sample
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
 KERNEL_LOCK = threading.Lock()
@@ -562,11 +562,12 @@ def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def] 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
+def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
     # pragma: no cover - compiled
     """Least squares A + a cos δ + b sin δ over the unclipped samples (I < ``top_code``) of frames
     ``b``.. of row ``v``, for every pixel u0.. u0 + m of a span at once (m = len(``s_acc``); float32
-    sums ``sums`` (9, ≥ m)): ``s_acc`` = b·N/2, ``c_acc`` = a·N/2; ``nmin`` = min(nmin, samples used)."""
+    sums ``sums`` (9, ≥ m), ``sv``: the tuple of its nine rows' first m, made once per span):
+    ``s_acc`` = b·N/2, ``c_acc`` = a·N/2; ``nmin`` = min(nmin, samples used)."""
     n_steps = cos_t.shape[0]
     m = s_acc.shape[0]
     for n in range(n_steps):
@@ -574,9 +575,9 @@ def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin)
         c = cos_t[n]
         s = sin_t[n]
         first = n == 0
-        _fit_sums3(row, top_code, _F1, c, s, sums[0, :m], sums[1, :m], sums[2, :m], False, first)
-        _fit_sums3(row, top_code, c * c, s * s, c * s, sums[3, :m], sums[4, :m], sums[5, :m], False, first)
-        _fit_sums3(row, top_code, _F1, c, s, sums[6, :m], sums[7, :m], sums[8, :m], True, first)
+        _fit_sums3(row, top_code, _F1, c, s, sv[0], sv[1], sv[2], False, first)
+        _fit_sums3(row, top_code, c * c, s * s, c * s, sv[3], sv[4], sv[5], False, first)
+        _fit_sums3(row, top_code, _F1, c, s, sv[6], sv[7], sv[8], True, first)
     _fit_solve(sums, 0.5 * n_steps, s_acc, c_acc, nmin)
 
 
@@ -624,13 +625,15 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
         rscratch[6, :m], rscratch[7, :m], rscratch[8, :m])
     wphs = rscratch[9:9 + n_freq, :m]
     m2s = rscratch[9 + n_freq:9 + 2 * n_freq, :m]
+    sv = (sums[0, :m], sums[1, :m], sums[2, :m], sums[3, :m], sums[4, :m], sums[5, :m], sums[6, :m], sums[7, :m],
+          sums[8, :m])
     m2min[:] = _INF
     dev[:] = _F0
     wsum[:] = _F0
     wphi[:] = _F0
     nmin[:] = _INF
     for ki in range(n_freq):
-        _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, s_acc, c_acc, nmin)
+        _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin)
         if heterodyne:
             _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
         else:
