@@ -10,8 +10,9 @@ streams few arrays at a time:
    precise one, the hierarchical unwrapping with its consistency test and the phase
    stage's reason code. Any other schedule (any N ≥ 3, heterodyne unwrapping), and the
    noise-optimal combination of frequencies, takes a general row-by-row path with the
-   same semantics. Then a scan of the row's codes refits, pixel by pixel, the few pixels
-   with a clipped sample from their unclipped ones (saturation-tolerant phase); on
+   same semantics. Then a scan of the row's codes finds pixels with a clipped sample; a
+   row that has some is refitted whole, branch-free, from the unclipped samples
+   (saturation-tolerant phase), and its SATURATED pixels take the result; on
    unsaturated data that scan is all it costs. The height
    stage (:func:`_height_row`, both paths) evaluates the depth model's closed form
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
@@ -48,6 +49,7 @@ from app.core.reasons import Reason
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
+REFIT_SPAN = 512  # pixels: the saturation refit skips spans of a row without a clipped sample
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
 KERNEL_LOCK = threading.Lock()
@@ -132,6 +134,7 @@ _UNCERTAIN = np.uint8(Reason.UNCERTAIN)
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
+_F3 = np.float32(3.0)
 _PI = np.float32(math.pi)
 _HALF_PI = np.float32(0.5 * math.pi)
 _TWO_PI = np.float32(2.0 * math.pi)
@@ -509,90 +512,73 @@ def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pra
     return np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum if wsum > _F0 else _INF
 
 
-# Saturation-tolerant phase: the pixels of a row coded SATURATED are refitted one by one.
+# Saturation-tolerant phase: a row with SATURATED pixels is refitted whole, branch-free, from the
+# unclipped samples of every pixel; only its SATURATED pixels with enough samples take the result.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _fit_unclipped(frames, b, v, u, cos_t, sin_t, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Least squares A + a cos δ + b sin δ over the unclipped samples of frames b.. at (v, u), float64:
-    (ok = at least three samples, y = −b, x = a) with (x, y) scaled like (Σ I cos δ, −Σ I sin δ)."""
+def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2, weighted, first):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """Three of the nine float32 normal-equation sums: x_i (+)= k_i·w (or k_i·w·I if ``weighted``) with
+    w = 1 where the sample is unclipped (I < ``top_code``), else 0. Three at a time: few enough
+    buffers that LLVM's run-time alias checks still let it vectorise."""
+    for u in range(row.shape[0]):
+        i = np.float32(row[u])
+        w = _F1 if i < top_code else _F0
+        t = w * i if weighted else w
+        if first:
+            x0[u] = k0 * t
+            x1[u] = k1 * t
+            x2[u] = k2 * t
+        else:
+            x0[u] += k0 * t
+            x1[u] += k1 * t
+            x2[u] += k2 * t
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Cramer's rule (float64) on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
+    (right-hand side [r1, rc, rs]; ``sums`` (9, ≥ W) in that order), scaled like (Σ I sin δ, Σ I cos δ)
+    (``half`` = N/2): ``s_acc`` = b·N/2, ``c_acc`` = a·N/2, ``nmin`` = min(nmin, samples used)."""
+    for u in range(s_acc.shape[0]):
+        s1 = float(sums[0, u])
+        sc = float(sums[1, u])
+        ss = float(sums[2, u])
+        scc = float(sums[3, u])
+        sss = float(sums[4, u])
+        scs = float(sums[5, u])
+        q1 = float(sums[6, u])
+        qc = float(sums[7, u])
+        qs = float(sums[8, u])
+        m0 = scc * sss - scs * scs
+        m1 = sc * sss - scs * ss
+        m2 = sc * scs - scc * ss
+        det = s1 * m0 - sc * m1 + ss * m2
+        da = s1 * (qc * sss - scs * qs) - q1 * m1 + ss * (sc * qs - qc * ss)
+        db = s1 * (scc * qs - qc * scs) - sc * (sc * qs - qc * ss) + q1 * m2
+        half_n = half / det  # ±∞/NaN where < 3 samples: those pixels are not taken
+        s_acc[u] = np.float32(db * half_n)
+        c_acc[u] = np.float32(da * half_n)
+        nmin[u] = min(nmin[u], np.float32(s1))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """Least squares A + a cos δ + b sin δ over the unclipped samples (I < ``top_code``) of frames
+    ``b``.. of row ``v``, for every pixel u0.. u0 + m of a span at once (m = len(``s_acc``); float32
+    sums ``sums`` (9, ≥ m), ``sv``: the tuple of its nine rows' first m, made once per span):
+    ``s_acc`` = b·N/2, ``c_acc`` = a·N/2; ``nmin`` = min(nmin, samples used)."""
     n_steps = cos_t.shape[0]
-    s1 = sc = ss = scc = sss = scs = r1 = rc = rs = 0.0
+    m = s_acc.shape[0]
     for n in range(n_steps):
-        i = float(frames[b + n, v, u])
-        if i < top_code:
-            c = float(cos_t[n])
-            s = float(sin_t[n])
-            s1 += 1.0
-            sc += c
-            ss += s
-            scc += c * c
-            sss += s * s
-            scs += c * s
-            r1 += i
-            rc += i * c
-            rs += i * s
-    if s1 < 3.0:
-        return False, _F0, _F0
-    # Cramer's rule on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
-    det = s1 * (scc * sss - scs * scs) - sc * (sc * sss - scs * ss) + ss * (sc * scs - scc * ss)
-    da = s1 * (rc * sss - scs * rs) - r1 * (sc * sss - scs * ss) + ss * (sc * rs - rc * ss)
-    db = s1 * (scc * rs - rc * scs) - sc * (sc * rs - rc * ss) + r1 * (sc * scs - scc * ss)
-    half_n = 0.5 * n_steps / det
-    return True, np.float32(-db * half_n), np.float32(da * half_n)
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, top_code,  # type: ignore[no-untyped-def]
-                 cons_rad, wphs, m2s):  # pragma: no cover - compiled
-    """A saturated pixel from its unclipped samples: (ok, phase, finest m2, min m2, max |residual|,
-    weight sum of the noise-optimal combination)."""
-    n_steps = cos_t.shape[0]
-    n_freq = freqs.shape[0]
-    m2min = _INF
-    for ki in range(n_freq):
-        ok, yy, xx = _fit_unclipped(frames, ki * n_steps, v, u, cos_t, sin_t, top_code)
-        if not ok:
-            return False, _F0, _F0, _F0, _F0, _F0
-        wphs[ki] = atan2_0_2pi(yy, xx)
-        m2s[ki] = xx * xx + yy * yy
-        m2min = min(m2min, m2s[ki])
-    k_max = freqs[n_freq - 1]
-    dev = _F0
-    wsum = _F0
-    wphi = _F0
-    if heterodyne:
-        p = _F0
-        for s in range(chain_f.shape[0]):
-            x = _F0
-            for i in range(n_freq):
-                x += chain_c[s, i] * wphs[i]
-            ph = _wrap(x)
-            if s == 0:
-                p = _absolute(ph, chain_f[0])
-                dev = _outside_field(p, chain_f[0], cons_rad * chain_f[0] / chain_f[1])
-            else:
-                p, d = _order_step(p, ph, chain_f[s] / chain_f[s - 1])
-                dev = max(dev, d)
-        if combine:
-            for ki in range(n_freq):
-                kk = freqs[ki]
-                pk, _ = _order_step(p, wphs[ki], kk / k_max)
-                w = np.float32(n_steps) * kk * kk * m2s[ki]
-                wsum += w
-                wphi += w * (k_max / kk) * pk
-    else:
-        p = wphs[0]
-        for ki in range(n_freq):
-            if ki > 0:
-                p, d = _order_step(p, wphs[ki], freqs[ki] / freqs[ki - 1])
-                dev = max(dev, d)
-            if combine:
-                kk = freqs[ki]
-                w = np.float32(n_steps) * kk * kk * m2s[ki]
-                wsum += w
-                wphi += w * (k_max / kk) * p
-    if combine:
-        p = wphi / wsum if wsum > _F0 else _NAN
-    return True, p, m2s[n_freq - 1], m2min, dev, wsum
+        row = frames[b + n, v, u0:u0 + m]
+        c = cos_t[n]
+        s = sin_t[n]
+        first = n == 0
+        _fit_sums3(row, top_code, _F1, c, s, sv[0], sv[1], sv[2], False, first)
+        _fit_sums3(row, top_code, c * c, s * s, c * s, sv[3], sv[4], sv[5], False, first)
+        _fit_sums3(row, top_code, _F1, c, s, sv[6], sv[7], sv[8], True, first)
+    _fit_solve(sums, 0.5 * n_steps, s_acc, c_acc, nmin)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -604,26 +590,90 @@ def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, wphs, m2s):  # pragma: no cover - compiled
-    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency (phase stage:
-    phase, finest m2, σ factor and phase-stage code; the height stage follows); their count."""
-    n_steps = cos_t.shape[0]
-    k_max = freqs[freqs.shape[0] - 1]
+def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, nmin, n_steps, k_max, combine,  # type: ignore[no-untyped-def]
+                    cons_rad, m2_min, top_code):  # pragma: no cover - compiled
+    """The refitted values where the phase-stage code is SATURATED and every frequency kept ≥ 3
+    samples (phase, finest m2, σ factor, phase-stage code); their count."""
     n = 0
     for u in range(code.shape[0]):
-        if code[u] != _SATURATED:
-            continue
-        ok, p, q, qmin, dev, wsum = _refit_pixel(frames, v, u, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne,
-                                                 combine, top_code, cons_rad, wphs, m2s)
-        if not ok:
-            continue
-        prev[u] = p
-        m2[u] = q
+        if (code[u] == _SATURATED) & (nmin[u] >= _F3):
+            prev[u] = r_prev[u]
+            m2[u] = r_m2[u]
+            if combine:
+                vfac[u] = _combined_vfac(n_steps, k_max, r_wsum[u])
+            code[u] = _mask(_OK, r_dev[u], r_m2min[u], _F0, cons_rad, m2_min, top_code)
+            n += 1
+    return n
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
+                top_code, m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+    """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
+    ``code``: the span's views) that keep three unclipped samples per frequency (phase stage:
+    phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
+
+    The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
+    :func:`_general_row` in the float32 rows of ``rscratch`` (9 + 2K, ≥ m); then only those
+    pixels take the result."""
+    n_steps = cos_t.shape[0]
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    m = code.shape[0]
+    s_acc, c_acc, m2min, dev, wsum, wphi, r_prev, r_m2, nmin = (
+        rscratch[0, :m], rscratch[1, :m], rscratch[2, :m], rscratch[3, :m], rscratch[4, :m], rscratch[5, :m],
+        rscratch[6, :m], rscratch[7, :m], rscratch[8, :m])
+    wphs = rscratch[9:9 + n_freq, :m]
+    m2s = rscratch[9 + n_freq:9 + 2 * n_freq, :m]
+    sv = (sums[0, :m], sums[1, :m], sums[2, :m], sums[3, :m], sums[4, :m], sums[5, :m], sums[6, :m], sums[7, :m],
+          sums[8, :m])
+    m2min[:] = _INF
+    dev[:] = _F0
+    wsum[:] = _F0
+    wphi[:] = _F0
+    nmin[:] = _INF
+    for ki in range(n_freq):
+        _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin)
+        if heterodyne:
+            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+        else:
+            _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+            if combine:
+                kk = freqs[ki]
+                _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
+    if heterodyne:
+        slack = cons_rad * chain_f[0] / chain_f[1]
+        for s in range(chain_f.shape[0]):
+            _chain_row(wphs, chain_c[s], r_prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+        r_m2[:] = m2s[n_freq - 1]
         if combine:
-            vfac[u] = _combined_vfac(n_steps, k_max, wsum)
-        code[u] = _mask(_OK, dev, qmin, _F0, cons_rad, m2_min, top_code)
-        n += 1
+            for ki in range(n_freq):
+                kk = freqs[ki]
+                for u in range(r_prev.shape[0]):
+                    p, _ = _order_step(r_prev[u], wphs[ki, u], kk / k_max)
+                    w = np.float32(n_steps) * kk * kk * m2s[ki, u]
+                    wsum[u] += w
+                    wphi[u] += w * (k_max / kk) * p
+    if combine:
+        _combined_row(r_prev, wsum, wphi)
+    return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
+                           cons_rad, m2_min, top_code)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+               m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
+    Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
+    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (9 + 2K, REFIT_SPAN)
+    float32, ``sums`` (9, REFIT_SPAN) float32)."""
+    width = code.shape[0]
+    n = 0
+    for u0 in range(0, width, REFIT_SPAN):
+        u1 = min(width, u0 + REFIT_SPAN)
+        if _count_saturated(code[u0:u1]) > 0:
+            n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
+                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums)
     return n
 
 
@@ -687,8 +737,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
-        wphs = np.empty(n_freq, np.float32)
-        m2s = np.empty(n_freq, np.float32)
+        rscratch = np.empty((9 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        sums = np.empty((9, REFIT_SPAN), np.float32)
         for r in range(n_rows):
             v = v0 + r
             if paper:
@@ -700,7 +750,7 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
                 n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
                                               m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], wphs, m2s)
+                                              code[r], rscratch, sums)
             recovered[v] = n_refit
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
