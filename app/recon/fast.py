@@ -439,13 +439,13 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             sbuf[u] = sig
             code[u] = c
 
+
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):  # type: ignore[no-untyped-def]
     # pragma: no cover - compiled
     """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
-    k_max = freqs[n_freq - 1]
     s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
                                                  scratch[4], scratch[5], scratch[6])
     wphs = scratch[7:7 + n_freq]
@@ -454,6 +454,18 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi)
+    if combine:
+        _combined_row(prev, wsum, wphi)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,  # type: ignore[no-untyped-def]
+                     prev, dev, m2, wsum, wphi):  # pragma: no cover - compiled
+    """The heterodyne beat chain over a row's wrapped phases ``wphs`` (K, W) into ``prev``/``dev``,
+    the finest m2, and with ``combine`` every frequency unwrapped by the finest and weighed."""
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
     slack = cons_rad * chain_f[0] / chain_f[1]
     for s in range(chain_f.shape[0]):
         _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
@@ -467,7 +479,6 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
                 w = np.float32(n_steps) * kk * kk * m2s[ki, u]
                 wsum[u] += w
                 wphi[u] += w * (k_max / kk) * p
-        _combined_row(prev, wsum, wphi)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -642,18 +653,8 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if heterodyne:
-        slack = cons_rad * chain_f[0] / chain_f[1]
-        for s in range(chain_f.shape[0]):
-            _chain_row(wphs, chain_c[s], r_prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
-        r_m2[:] = m2s[n_freq - 1]
-        if combine:
-            for ki in range(n_freq):
-                kk = freqs[ki]
-                for u in range(r_prev.shape[0]):
-                    p, _ = _order_step(r_prev[u], wphs[ki, u], kk / k_max)
-                    w = np.float32(n_steps) * kk * kk * m2s[ki, u]
-                    wsum[u] += w
-                    wphi[u] += w * (k_max / kk) * p
+        _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev, dev, r_m2,
+                         wsum, wphi)
     if combine:
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
