@@ -7,6 +7,7 @@ from typing import Any, Literal
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import binary, get_instrument, result_headers
 from app.api.errors import COMMON, R400, R409, R413, R415, R422
@@ -14,9 +15,17 @@ from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.service import encoding
 from app.service.instrument import Instrument
+from app.service.phase import decode_capture
 
 router = APIRouter(prefix="/api", tags=["results"])
 
+
+#: the request body of a capture-set upload: its files as multipart, or one .zip
+CAPTURE_UPLOAD: dict[str, Any] = {"requestBody": {"content": {
+    "multipart/form-data": {"schema": {"type": "object", "properties": {
+        "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
+    "application/zip": {"schema": {"type": "string", "format": "binary"}},
+}}}
 
 @router.get("/result/latest", response_model=ResultMeta, responses={**R409, **COMMON})
 def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
@@ -107,18 +116,12 @@ def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     "/reconstruct",
     response_model=ReconstructSummary,
     responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R409, **R413, **R415, **R422, **COMMON},
-    openapi_extra={"requestBody": {"content": {
-        "multipart/form-data": {"schema": {"type": "object", "properties": {
-            "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
-        "application/zip": {"schema": {"type": "string", "format": "binary"}},
-    }}},
+    openapi_extra=CAPTURE_UPLOAD,
 )
 async def reconstruct(
     request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
 ) -> Any:
     """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip)."""
-    from starlette.concurrency import run_in_threadpool
-
     limit = int(inst.settings.max_upload_mb * 1024 * 1024)
     capture = await capture_from_request(request, limit)
     res = await run_in_threadpool(inst.reconstruct_capture, capture)
@@ -138,20 +141,12 @@ async def reconstruct(
     "/phase",
     response_model=PhaseSummary,
     responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R413, **R415, **R422, **COMMON},
-    openapi_extra={"requestBody": {"content": {
-        "multipart/form-data": {"schema": {"type": "object", "properties": {
-            "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
-        "application/zip": {"schema": {"type": "string", "format": "binary"}},
-    }}},
+    openapi_extra=CAPTURE_UPLOAD,
 )
 async def phase(
     request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
 ) -> Any:
     """Unwrapped phase of an uploaded capture set, no calibration needed (``format=npy``: phase.npy)."""
-    from starlette.concurrency import run_in_threadpool
-
-    from app.service.phase import decode_capture
-
     capture = await capture_from_request(request, int(inst.settings.max_upload_mb * 1024 * 1024))
     res = await run_in_threadpool(decode_capture, capture)
     if format == "npy":

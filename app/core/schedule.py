@@ -123,8 +123,8 @@ def check_pattern(cal_s: PatternSchedule, cap_s: PatternSchedule, where: str = "
         if getattr(cal_s, key) != getattr(cap_s, key):
             raise ValueError(f"{where}: pattern.{key} is {getattr(cap_s, key)!r} but the calibration was made "
                              f"with {getattr(cal_s, key)!r}")
-    if (cal_s.frequencies, cal_s.steps) != (cap_s.frequencies, cap_s.steps):
+    if cal_s != cap_s:  # fringe counts, steps or projector size
         raise ValueError(
-            f"{where}: pattern {list(cap_s.frequencies)}x{cap_s.steps} differs from the "
-            f"calibration's {list(cal_s.frequencies)}x{cal_s.steps}"
+            f"{where}: pattern {list(cap_s.frequencies)}x{cap_s.steps} on {cap_s.width}x{cap_s.height} px differs "
+            f"from the calibration's {list(cal_s.frequencies)}x{cal_s.steps} on {cal_s.width}x{cal_s.height} px"
         )

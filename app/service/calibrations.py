@@ -92,9 +92,7 @@ class CalibrationManager:
     # -- activation --------------------------------------------------------------------------
     def activate(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
-        check_pattern(cal.pattern, self.schedule, "projector")  # names orientation/unwrap mismatches
-        if cal.pattern != self.schedule:
-            raise ValueError("calibration: its pattern schedule differs from the projector's")
+        check_pattern(cal.pattern, self.schedule, "projector")
         size = self.pipeline.image_size()
         if size is not None and tuple(cal.image_size) != size:
             raise ValueError(
