@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import socket
 from typing import Any
 
 
@@ -26,5 +27,27 @@ def run(args: argparse.Namespace) -> int:
     settings = load_settings(
         args.config, host=args.host, port=args.port, data_dir=args.data_dir, insecure=args.insecure
     )
+    check_port_free("HTTP", settings.host, settings.port)
+    if settings.igtl_port is not None:
+        check_port_free("OpenIGTLink", settings.igtl_host, settings.igtl_port)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     return 0
+
+
+def check_port_free(what: str, host: str, port: int) -> None:
+    """Raise ``OSError`` with one readable line when ``host:port`` cannot be bound.
+
+    Checked before the service starts so a taken port is one line and exit code 2, not the
+    traceback of a failed ASGI lifespan; the bind uses SO_REUSEADDR as the servers do, so
+    a port in TIME_WAIT is not mistaken for a taken one.
+    """
+    if port == 0:
+        return
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise OSError(f"{what} port {port} on {host} is not available ({exc.strerror or exc}); "
+                          f"stop the program using it or choose another port") from None

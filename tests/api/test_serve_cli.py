@@ -56,3 +56,18 @@ def test_serve_bad_config_is_one_line_and_exit_2(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert "config file not found" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_serve_with_the_igtl_port_taken_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = int(taken.getsockname()[1])
+        env = dict(os.environ, FRINGESCOPE_IGTL_PORT=str(port), FRINGESCOPE_VIEWER="false",
+                   NUMBA_THREADING_LAYER="workqueue")
+        r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(_free_port()),
+                            "--data-dir", str(tmp_path / "data")],
+                           capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 2, r.stderr
+    assert f"OpenIGTLink port {port} on 127.0.0.1 is not available" in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
