@@ -19,6 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("set_dir", metavar="SET_DIR", help="capture-set folder (capture.json + frames)")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
+    p.add_argument("--phase-error", metavar="FILE", default=None,
+                   help="projector-gamma table from `fringescope gamma`, subtracted before unwrapping")
     p.set_defaults(func=run)
 
 
@@ -59,13 +61,15 @@ def summary(name: str, capture: Any, res: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     from app.atomic import atomic_write_bytes
     from app.capture import read_capture_set
+    from app.cli.gamma import read_phase_error
     from app.service.phase import decode_capture
 
     set_dir = Path(args.set_dir)
     if not set_dir.is_dir():
         raise ValueError(f"{set_dir}: capture-set folder not found")
+    lut = read_phase_error(args.phase_error) if args.phase_error else None
     capture = read_capture_set(set_dir)
-    res = decode_capture(capture)
+    res = decode_capture(capture, lut)
     files = phase_files(res)  # everything computed before anything is written
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,13 +13,16 @@ Here the table is learned per frequency against a reference phase of many more s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 TWO_PI = 2.0 * math.pi
 F64 = npt.NDArray[np.float64]
+#: ``format`` of a saved table (``fringescope gamma``)
+LUT_FORMAT = "fringescope-phase-error"
 
 
 @dataclass(frozen=True)
@@ -31,6 +34,10 @@ class PhaseErrorLUT:
     """
 
     error_rad: F64
+    #: the N of the decoder the table corrects, and the fringe counts it was learned at
+    #: (empty / 0 when not recorded); :meth:`check_schedule` refuses another schedule
+    steps: int = 0
+    frequencies: tuple[float, ...] = field(default=())
 
     @classmethod
     def fit(cls, wrapped: npt.ArrayLike, reference: npt.ArrayLike, mask: npt.ArrayLike | None = None,
@@ -63,6 +70,87 @@ class PhaseErrorLUT:
             count = np.bincount(idx, None, bins)
             table[k] = total / np.maximum(count, 1)
         return cls(table)
+
+    @classmethod
+    def learn(cls, frames: npt.ArrayLike, reference_steps: int, steps: int, *,
+              frequencies: tuple[float, ...] = (), max_code: int | None = None,
+              min_modulation: float = 10.0, bins: int = 128) -> PhaseErrorLUT:
+        """Learn the ``steps``-step table from one capture with ``reference_steps`` shifts.
+
+        The ``steps``-step subset (every ``reference_steps // steps``-th shift) is decoded
+        and compared with the phase of all shifts, whose harmonic error is far smaller
+        (an N-step decoder is blind to harmonics below N − 1).
+
+        Args:
+            frames: (K·reference_steps, H, W) uint8/uint16, frequency-major, shift-minor.
+            reference_steps: shifts per frequency in ``frames``; a multiple of ``steps``.
+            steps: the N of the decoder to correct, ≥ 3.
+            frequencies: the K fringe counts (recorded in the table), or ().
+            max_code: saturation code (default by dtype); clipped pixels are not learned from.
+            min_modulation: reference modulation below this (codes) is not learned from.
+            bins: table entries per frequency.
+        """
+        from app.recon.phase import wrapped_phase
+
+        a = np.asarray(frames)
+        if int(steps) != steps or steps < 3:
+            raise ValueError(f"steps: need an integer N >= 3, got {steps}")
+        if int(reference_steps) != reference_steps or reference_steps % steps or reference_steps <= steps:
+            raise ValueError(f"reference_steps: {reference_steps} must be a larger multiple of steps={steps}")
+        if a.ndim != 3 or a.shape[0] % reference_steps:
+            raise ValueError(f"frames: expected (K·{reference_steps}, H, W), got shape {a.shape}")
+        k_n = a.shape[0] // reference_steps
+        if frequencies and len(frequencies) != k_n:
+            raise ValueError(f"frequencies: {len(frequencies)} given for {k_n} frequencies in frames")
+        stride = reference_steps // steps
+        subset = a.reshape(k_n, reference_steps, *a.shape[1:])[:, ::stride].reshape(k_n * steps, *a.shape[1:])
+        ref = wrapped_phase(a, reference_steps, max_code=max_code)
+        few = wrapped_phase(subset, steps, max_code=max_code)
+        clipped = ref.saturated if ref.recovered is None else ref.saturated | ref.recovered
+        mask = (ref.modulation.min(axis=0) >= min_modulation) & ~clipped
+        if not mask.any():
+            raise ValueError("frames: no pixel has reference modulation >= "
+                             f"{min_modulation:g} codes without clipping; nothing to learn from")
+        lut = cls.fit(few.phase, ref.phase, mask, bins=bins)
+        return cls(lut.error_rad, int(steps), tuple(float(k) for k in frequencies))
+
+    def check_schedule(self, steps: int, frequencies: tuple[float, ...]) -> None:
+        """Raise ``ValueError`` (naming the key) unless the table fits a schedule."""
+        if self.steps and steps != self.steps:
+            raise ValueError(f"steps: the phase-error table corrects {self.steps}-step phase, the set has {steps}")
+        if len(frequencies) != self.error_rad.shape[0] or (
+                self.frequencies and not np.allclose(self.frequencies, frequencies, rtol=1e-9)):
+            want = list(self.frequencies) or f"{self.error_rad.shape[0]} frequencies"
+            raise ValueError(f"frequencies: the phase-error table was learned at {want}, the set has "
+                             f"{list(frequencies)}")
+
+    def amplitude_rad(self) -> F64:
+        """(K,) RMS of the table per frequency, radians (the error it removes)."""
+        return np.asarray(np.sqrt(np.mean(self.error_rad**2, axis=1)), np.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": LUT_FORMAT, "version": 1, "steps": self.steps,
+                "frequencies": list(self.frequencies), "bins": int(self.error_rad.shape[1]),
+                "error_rad": np.round(self.error_rad, 7).tolist()}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> PhaseErrorLUT:
+        """The table of :meth:`to_dict` (``ValueError`` naming the key when malformed)."""
+        if not isinstance(data, dict) or data.get("format") != LUT_FORMAT:
+            raise ValueError(f"format: not a phase-error table (expected \"{LUT_FORMAT}\")")
+        if data.get("version") != 1:
+            raise ValueError(f"version: unsupported phase-error table version {data.get('version')!r}")
+        try:
+            table = np.asarray(data["error_rad"], np.float64)
+            steps = int(data.get("steps", 0))
+            freqs = tuple(float(k) for k in data.get("frequencies", ()))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"error_rad: malformed phase-error table ({exc})") from None
+        if table.ndim != 2 or table.shape[1] < 8 or not np.isfinite(table).all():
+            raise ValueError(f"error_rad: expected a finite (K, bins >= 8) table, got shape {table.shape}")
+        if freqs and len(freqs) != table.shape[0]:
+            raise ValueError(f"frequencies: {len(freqs)} listed for a table of {table.shape[0]} rows")
+        return cls(table, steps, freqs)
 
     def apply(self, wrapped: npt.ArrayLike) -> F64:
         """Corrected wrapped phases: ``wrapped − error(wrapped)`` (linear interpolation, circular), in [0, 2π).

@@ -5,16 +5,20 @@ from __future__ import annotations
 from app.capture.captureset import CaptureSet
 from app.core.errors import InvalidRequest
 from app.recon import compute_phase
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.reconstructor import PhaseResult
 
 
-def decode_capture(capture: CaptureSet) -> PhaseResult:
-    """:func:`app.recon.compute_phase` of a capture set at its own bit depth and schedule.
+def decode_capture(capture: CaptureSet, phase_error: PhaseErrorLUT | None = None) -> PhaseResult:
+    """:func:`app.recon.compute_phase` of a capture set at its own bit depth and schedule,
+    with a projector-gamma table (``fringescope gamma``) subtracted when given.
 
     Raises:
         InvalidRequest: the frames do not fit the set's schedule (the reason names the key).
     """
     try:
-        return compute_phase(capture.frames, capture.schedule, max_code=capture.max_code)
+        if phase_error is not None:
+            phase_error.check_schedule(capture.schedule.steps, capture.schedule.frequencies)
+        return compute_phase(capture.frames, capture.schedule, max_code=capture.max_code, phase_error=phase_error)
     except ValueError as exc:
         raise InvalidRequest(str(exc)) from None
