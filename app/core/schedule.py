@@ -188,6 +188,6 @@ def calibration_mismatch(cal_s: PatternSchedule, s: PatternSchedule) -> str | No
             return (f"pattern.{key} is {getattr(s, key)!r} but the calibration was made with "
                     f"{getattr(cal_s, key)!r}")
     if cal_s.frequencies[-1] != s.frequencies[-1]:
-        return (f"the finest pattern has {s.frequencies[-1]} fringes but the calibration was made with "
+        return (f"the finest pattern, {s.frequencies[-1]} fringes, differs from the calibration's "
                 f"{cal_s.frequencies[-1]} (its phase means another projector coordinate)")
     return None
