@@ -104,7 +104,11 @@ class LivePipeline:
         def swap(new: PatternSchedule) -> None:
             self.schedule = new
             self.reconstruction.n_frequencies = len(new.frequencies)
-            self.use_engine(engine, note)
+            # the newest map stays until the first of the new schedule (same calibration, still true
+            # depth); none stays when no map can follow (the calibration does not apply)
+            self._engine, self.engine_note = engine, (note if engine is None else None)
+            if engine is None:
+                self.results.clear()
 
         if self.acquisition is None:
             swap(schedule)
