@@ -17,7 +17,7 @@ Live (the instrument behind uvicorn on the twin, as benchmarks/bench_live.py; PU
 (target ≤ 20 ms).
 
     python benchmarks/bench_schedules.py [--seconds 15] [--exposure-ms 30] [--calibration FILE]
-                                         [--scenes dof_target intestine_flap] [--no-live]
+                                         [--scenes dof_target intestine_flap] [--no-live] [--no-still]
 """
 
 from __future__ import annotations
@@ -144,33 +144,7 @@ def live(args: argparse.Namespace, cal_file: Path, data_dir: Path) -> list[tuple
     return rows
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seconds", type=float, default=15.0, help="live measuring time per schedule")
-    ap.add_argument("--exposure-ms", type=float, default=30.0)
-    ap.add_argument("--calibration", help="a calibration file made with the paper's schedule (default: make one)")
-    ap.add_argument("--save-calibration", help="write the calibration made here to this file")
-    ap.add_argument("--scenes", nargs="+", default=["dof_target", "intestine_flap"])
-    ap.add_argument("--live-scene", default="intestine_flap")
-    ap.add_argument("--no-live", action="store_true")
-    args = ap.parse_args()
-
-    tmp = tempfile.TemporaryDirectory(prefix="bench_schedules_")
-    if args.calibration:
-        cal_file = Path(args.calibration)
-        cal = load_calibration(cal_file)
-    else:
-        t = time.perf_counter()
-        folder = simulate_calibration_folder(Path(tmp.name) / "calib", poses=8, seed=1, overwrite=True)
-        cal = calibrate_folder(folder).calibration
-        cal_file = Path(args.save_calibration or Path(tmp.name) / "calibration.json")
-        save_calibration(cal, cal_file)
-        print(f"calibrated on 8 simulated poses ({list(cal.pattern.frequencies)} x {cal.pattern.steps}) "
-              f"in {time.perf_counter() - t:.0f} s")
-
-    rows = []
-    for i, scene in enumerate(args.scenes):
-        rows += still_table(scene, still(cal, scene, (11 + 2 * i, 12 + 2 * i)))
+def print_still(rows: list[tuple]) -> None:
     print("\nstill scenes: RMS over pixels valid in every schedule; floor = the 16-frame RMS; order = |err| > "
           "half a fringe period; gross = |err| > 0.5 mm")
     head = (f"{'scene':<15}{'schedule':<14}{'frames':>6}{'RMS mm':>9}{'/floor':>8}{'order':>6}{'gross':>6}"
@@ -187,6 +161,37 @@ def main() -> int:
     for name, ok in sorted(ok9.items()):
         print(f"target (<= 9 frames, RMS <= 1.3 x floor, 0 order errors), {name}: {'ok' if ok else 'MISSED'}")
 
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=15.0, help="live measuring time per schedule")
+    ap.add_argument("--exposure-ms", type=float, default=30.0)
+    ap.add_argument("--calibration", help="a calibration file made with the paper's schedule (default: make one)")
+    ap.add_argument("--save-calibration", help="write the calibration made here to this file")
+    ap.add_argument("--scenes", nargs="+", default=["dof_target", "intestine_flap"])
+    ap.add_argument("--live-scene", default="intestine_flap")
+    ap.add_argument("--no-live", action="store_true")
+    ap.add_argument("--no-still", action="store_true")
+    args = ap.parse_args()
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench_schedules_")
+    if args.calibration:
+        cal_file = Path(args.calibration)
+        cal = load_calibration(cal_file)
+    else:
+        t = time.perf_counter()
+        folder = simulate_calibration_folder(Path(tmp.name) / "calib", poses=8, seed=1, overwrite=True)
+        cal = calibrate_folder(folder).calibration
+        cal_file = Path(args.save_calibration or Path(tmp.name) / "calibration.json")
+        save_calibration(cal, cal_file)
+        print(f"calibrated on 8 simulated poses ({list(cal.pattern.frequencies)} x {cal.pattern.steps}) "
+              f"in {time.perf_counter() - t:.0f} s")
+
+    rows = []
+    for i, scene in enumerate([] if args.no_still else args.scenes):
+        rows += still_table(scene, still(cal, scene, (11 + 2 * i, 12 + 2 * i)))
+    if rows:
+        print_still(rows)
     if not args.no_live:
         lrows = live(args, cal_file, Path(tmp.name) / "data")
         print(f"\nlive on the twin ({args.live_scene}, {args.exposure_ms:g} ms exposure, {args.seconds:g} s each)")
