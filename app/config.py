@@ -11,10 +11,11 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from app.core.limits import EXPOSURE_RANGE_MS, BitDepth, Led
+from app.core.schedule import DEFAULT_SCHEDULE, schedule_by_name
 
 
 class Settings(BaseSettings):
@@ -57,6 +58,9 @@ class Settings(BaseSettings):
     bit_depth: BitDepth = 8
     rolling: bool = False
     autostart: bool = True
+    # the fringe pattern schedule by name (app/core/schedule.py SCHEDULES): "paper-16" (the
+    # paper's [1, 4, 12, 36] x 4), "geometric-12", "geometric-9", "heterodyne-9"; GET /api/schedules
+    schedule: str = DEFAULT_SCHEDULE
 
     # viewer
     viewer: bool = True
@@ -70,6 +74,13 @@ class Settings(BaseSettings):
     igtl_host: str = "127.0.0.1"
     igtl_allow_remote: bool = False
     igtl_max_points: int = Field(100_000, ge=1)
+
+
+    @field_validator("schedule")
+    @classmethod
+    def _known_schedule(cls, value: str) -> str:
+        schedule_by_name(value)  # ValueError naming the known ones
+        return value
 
 
 def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Settings:

@@ -9,6 +9,7 @@ from app.calib import save_calibration
 from app.capture import CaptureSet, write_capture_set
 from app.capture.ply import read_ply
 from app.cli import main
+from app.core.schedule import SCHEDULES, PatternSchedule
 from tests.recon.analytic_rig import Rig, bump_surface
 
 
@@ -87,3 +88,24 @@ def test_corrupted_geometric_calibration_is_one_line_error(tmp_path, capsys):
                "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "model" in err[0], err
+
+
+
+def test_reconstruct_applies_the_calibration_carry_over_rule(tmp_path, capsys):
+    """A 9-frame set reconstructs with a calibration made with the paper's 16 frames (same finest
+    pattern, same depth); a set whose finest pattern differs is refused with one line, exit 2."""
+    h = _setup(tmp_path)
+    cal = str(tmp_path / "calibration.json")
+    for name, schedule in (("nine", SCHEDULES["geometric-9"]), ("finest12", PatternSchedule((1, 4, 12), 4))):
+        rig = Rig(schedule=schedule)
+        write_capture_set(tmp_path / name, CaptureSet(rig.render(h, noise=0.5, rng=np.random.default_rng(5)),
+                                                      schedule))
+    assert main(["reconstruct", str(tmp_path / "nine"), "-c", cal, "-o", str(tmp_path / "out9")]) == 0
+    depth = np.load(tmp_path / "out9" / "depth.npy")
+    ok = np.isfinite(depth)
+    assert ok.mean() > 0.95 and np.max(np.abs(depth[ok] - h[ok])) < 0.1
+    capsys.readouterr()
+    rc = main(["reconstruct", str(tmp_path / "finest12"), "-c", cal, "-o", str(tmp_path / "out12")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "finest pattern" in err[0] and "finest12" in err[0]
+    assert not (tmp_path / "out12").exists()

@@ -41,7 +41,6 @@ def run(args: argparse.Namespace) -> int:
     from app.capture import read_capture_set
     from app.capture.ply import write_ply
     from app.core.encoding import npy_bytes
-    from app.core.schedule import check_pattern
     from app.recon import Reconstructor, reason_png, render_depth_png
 
     set_dir = Path(args.set_dir)
@@ -49,7 +48,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{set_dir}: capture-set folder not found")
     capture = read_capture_set(set_dir)
     calibration = load_calibration(args.calibration)
-    check_pattern(calibration.pattern, capture.schedule, str(set_dir))
+    from app.service.schedules import calibration_for_schedule
+
+    try:  # a set of another schedule with the same finest pattern: the calibration carries over
+        calibration = calibration_for_schedule(calibration, capture.schedule)
+    except ValueError as exc:
+        raise ValueError(f"{set_dir}: {exc}") from None
     from app.recon.noise import estimate_sensor_noise
 
     max_code = args.max_code or capture.max_code  # the set's bit_depth unless told

@@ -128,3 +128,66 @@ def check_pattern(cal_s: PatternSchedule, cap_s: PatternSchedule, where: str = "
             f"{where}: pattern {list(cap_s.frequencies)}x{cap_s.steps} on {cap_s.width}x{cap_s.height} px differs "
             f"from the calibration's {list(cal_s.frequencies)}x{cal_s.steps} on {cal_s.width}x{cal_s.height} px"
         )
+
+
+# -- the named schedules ------------------------------------------------------------------------
+# One home for every schedule the instrument can run. The reduced ones keep the paper's finest
+# pattern (36 fringes across the DMD width): the depth noise is set by the finest phase, and a
+# calibration carries over between schedules with the same finest fringe count, orientation and
+# projector size (:func:`calibration_mismatch`). Their coarser frequencies follow the hierarchical
+# order-error condition (Zuo et al., "Temporal phase unwrapping algorithms for fringe projection
+# profilometry: a comparative review", Opt. Lasers Eng. 85, 84–103, 2016, Sec. 3): at step n the
+# error of ``(k_n/k_{n−1})·φ_uw(k_{n−1}) − φ_w(k_n)`` has σ_n = σ_φ·√(r_n² + 1), r_n = k_n/k_{n−1},
+# and must stay well below π; for a fixed frame budget and finest count the largest σ_n is
+# smallest with equal ratios (a geometric sequence), hence 1 → 6 → 36. See app/analysis/schedules.py
+# for the predicted σ and order-error rate of each at the rig's noise, and the README.
+DEFAULT_SCHEDULE = "paper-16"
+
+SCHEDULES: dict[str, PatternSchedule] = {
+    # Le et al. 2018: 4 frequencies × 4 steps, ratios 4, 3, 3
+    "paper-16": PatternSchedule((1, 4, 12, 36), 4),
+    # three frequencies, geometric ratios 6, 6; 4 steps (the N-step residual still gives σ_I)
+    "geometric-12": PatternSchedule((1, 6, 36), 4),
+    # the same three frequencies with 3 steps: 9 frames a depth map
+    "geometric-9": PatternSchedule((1, 6, 36), 3),
+    # heterodyne (multi-wavelength): no single-fringe pattern; 36 − 35 = 1 is absolute, 35 − 30 = 5 beat
+    "heterodyne-9": PatternSchedule((30, 35, 36), 3, unwrap="heterodyne"),
+}
+
+
+def schedule_names() -> list[str]:
+    """The registered schedule names, the default first."""
+    return list(SCHEDULES)
+
+
+def schedule_by_name(name: str) -> PatternSchedule:
+    """The registered schedule ``name``; ``ValueError`` naming ``schedule`` if there is none."""
+    try:
+        return SCHEDULES[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"schedule: unknown name {name!r}; known: {', '.join(SCHEDULES)}") from None
+
+
+def schedule_name_of(schedule: PatternSchedule) -> str | None:
+    """The registered name of ``schedule`` (None if it is not one of them)."""
+    return next((n for n, s in SCHEDULES.items() if s == schedule), None)
+
+
+def calibration_mismatch(cal_s: PatternSchedule, s: PatternSchedule) -> str | None:
+    """Why a calibration made with ``cal_s`` cannot map the phase of ``s`` to depth (None: it can).
+
+    A calibration's depth model (Eq. (5) or the geometric model) takes the unwrapped phase
+    of the finest pattern, in radians: φ = 2π·k_max·x/L of the projector coordinate x along
+    the fringe axis of length L. The same (k_max, orientation, L, projector size) gives the
+    same φ at every projector point, so the model carries over whatever the coarser
+    frequencies, the number of steps or the unwrapping method. Any of those four different
+    changes what φ means (a rescaled or rotated projector coordinate): not applied.
+    """
+    for key in ("orientation", "width", "height"):
+        if getattr(cal_s, key) != getattr(s, key):
+            return (f"pattern.{key} is {getattr(s, key)!r} but the calibration was made with "
+                    f"{getattr(cal_s, key)!r}")
+    if cal_s.frequencies[-1] != s.frequencies[-1]:
+        return (f"the finest pattern, {s.frequencies[-1]} fringes, differs from the calibration's "
+                f"{cal_s.frequencies[-1]} (its phase means another projector coordinate)")
+    return None

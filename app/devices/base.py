@@ -340,6 +340,23 @@ class Controller(Device):
         self.led = "green"
         self.current = 0.5
         self.armed = False
+        self.frames_per_set = 16  # camera triggers per armed sequence: the schedule's frames
+
+    def set_sequence_length(self, n_frames: int) -> None:
+        """Camera triggers per armed sequence: the frames of one depth map (a schedule's ``n_frames``).
+
+        Refused while armed (the firmware changes no timing while armed); a closed device
+        only remembers it and sends it when opened.
+        """
+        if isinstance(n_frames, bool) or int(n_frames) != n_frames or not 1 <= int(n_frames) <= 65535:
+            raise ValueError(f"n_frames: need an integer within 1–65535, got {n_frames!r}")
+        n = int(n_frames)
+        with self._lock:
+            if self.armed:
+                raise DeviceStateError(f"{self.name}: cannot change the sequence length while armed")
+            if self._state is not DeviceState.CLOSED:
+                self._call("sequence", self._do_set_sequence_length, n)
+            self.frames_per_set = n
 
     def identify(self) -> str:
         with self._lock:
@@ -378,6 +395,9 @@ class Controller(Device):
 
     def _do_stop(self) -> None:
         self._do_arm(False)
+
+    def _do_set_sequence_length(self, n_frames: int) -> None:  # optional hook (a box without a counter)
+        pass
 
     @abstractmethod
     def _do_identify(self) -> str: ...

@@ -201,7 +201,7 @@ class SerialController(Controller):
         self.port, self.baudrate = port, baudrate
         self.reset_wait_s, self.timeout_s = reset_wait_s, timeout_s
         self.watchdog_ms, self.auto_reconnect, self.backoff_s = watchdog_ms, auto_reconnect, backoff_s
-        self.trigger_mode, self.pulses_per_set = trigger_mode, pulses_per_set
+        self.trigger_mode, self.frames_per_set = trigger_mode, pulses_per_set
         self.list_ports_fn = list_ports_fn
         self.identity = ""
         self.reconnects = 0
@@ -227,7 +227,7 @@ class SerialController(Controller):
             link.command(f"WDT {self.watchdog_ms}")
             link.command("DISARM")
             link.command(f"TMODE {self.trigger_mode}")
-            link.command(f"TCNT {self.pulses_per_set}")
+            link.command(f"TCNT {self.frames_per_set}")
             self._apply_led(link, self.led, self.current)
         except BaseException:
             link.close()
@@ -259,6 +259,9 @@ class SerialController(Controller):
 
     def _do_heartbeat(self) -> None:
         self._require_link().command("HB")
+
+    def _do_set_sequence_length(self, n_frames: int) -> None:
+        self._require_link().command(f"TCNT {n_frames}")
 
     def status(self) -> dict[str, str]:
         """``STAT?`` parsed into a dict (led, cur, armed, mode, intlk, wdt, pulses)."""

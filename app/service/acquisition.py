@@ -69,6 +69,7 @@ class Acquisition:
         self.last_error: str | None = None
         self._last_index: int | None = None
         self._pending: dict[str, object] = {}
+        self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None], threading.Event] | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._want_running = threading.Event()
@@ -113,6 +114,40 @@ class Acquisition:
                 self.led = led
                 self._pending["led"] = led
 
+    def request_schedule(self, schedule: PatternSchedule, on_swap: Callable[[PatternSchedule], None],
+                         timeout_s: float = 10.0) -> bool:
+        """Switch to ``schedule`` at the next set boundary and wait for it (True: switched).
+
+        The loop stops the devices, swaps the schedule and the set assembly, calls
+        ``on_swap(schedule)`` (nothing of the old schedule is produced after it), and starts
+        the devices again, which loads the new patterns into the projector and the sequence
+        length into the controller. Without a running loop the swap happens here.
+        """
+        done = threading.Event()
+        with self._lock:
+            self._pending_schedule = (schedule, on_swap, done)
+        if not self._thread.is_alive():
+            self._apply_schedule()
+        return done.wait(timeout_s)
+
+    def _apply_schedule(self) -> None:
+        with self._lock:
+            pending, self._pending_schedule = self._pending_schedule, None
+        if pending is None:
+            return
+        schedule, on_swap, done = pending
+        try:
+            if self._started:
+                stop_devices(self.devices)
+                self._started = False  # the loop starts them again with the new patterns
+            self.schedule = schedule
+            self.assembler = SetAssembler(schedule.n_frames)
+            self.window = RollingWindow(schedule.n_frames)
+            self.queue.clear()
+            on_swap(schedule)
+        finally:
+            done.set()
+
     def set_rolling(self, rolling: bool) -> None:
         with self._lock:
             self.rolling = bool(rolling)
@@ -124,6 +159,8 @@ class Acquisition:
         timeouts = 0
         last_beat = 0.0
         while not self._stop.is_set():
+            if self._pending_schedule is not None and self.assembler.in_progress == 0:
+                self._apply_schedule()
             if not self._want_running.is_set():
                 if self._started:
                     stop_devices(self.devices)

@@ -17,11 +17,12 @@ from app.config import Settings
 from app.core.board import BoardSpec
 from app.core.errors import Conflict, InvalidRequest
 from app.core.records import CalibrationSummary
-from app.core.schedule import PatternSchedule, check_pattern
+from app.core.schedule import PatternSchedule, calibration_mismatch
 from app.recon import ReconResult, Reconstructor
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
 from app.service.pipeline import LivePipeline
+from app.service.schedules import calibration_for_schedule
 
 log = logging.getLogger("fringescope.service")
 
@@ -32,7 +33,6 @@ class CalibrationManager:
     def __init__(self, settings: Settings, pipeline: LivePipeline) -> None:
         self.settings = settings
         self.pipeline = pipeline
-        self.schedule: PatternSchedule = pipeline.schedule
         self.calibration: Calibration | None = None
         self.name: str | None = None
         self.session: CalibrationSession | None = None
@@ -43,6 +43,11 @@ class CalibrationManager:
         self._upload_lock = threading.Lock()
         self._lock = threading.Lock()
         self._creating: threading.Thread | None = None
+
+    @property
+    def schedule(self) -> PatternSchedule:
+        """The schedule the live pipeline runs now."""
+        return self.pipeline.schedule
 
     # -- loading and creation ----------------------------------------------------------------
     def load_initial(self, *, is_sim: bool) -> None:
@@ -92,15 +97,16 @@ class CalibrationManager:
     # -- activation --------------------------------------------------------------------------
     def activate(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
         """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
-        check_pattern(cal.pattern, self.schedule, "projector")
+        reason = calibration_mismatch(cal.pattern, self.schedule)
+        if reason is not None:
+            raise ValueError(f"projector: {reason}")
         size = self.pipeline.image_size()
         if size is not None and tuple(cal.image_size) != size:
             raise ValueError(
                 f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
                 f"the camera's {size[0]}x{size[1]}"
             )
-        bits = self.settings.bit_depth
-        engine = Reconstructor(cal, fast=True, max_code=None if bits == 8 else 2**bits - 1)
+        engine = self._engine(cal, self.schedule)
         if persist:
             calibration_store.save_active(self.settings, cal, name)
         with self._lock:
@@ -108,6 +114,21 @@ class CalibrationManager:
             self._upload_engine = None
             self.warnings = [w for w in self.warnings if not w.startswith("no calibration")]
         self.pipeline.use_engine(engine)
+
+    def _engine(self, cal: Calibration, schedule: PatternSchedule) -> Reconstructor:
+        bits = self.settings.bit_depth
+        return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
+                             max_code=None if bits == 8 else 2**bits - 1)
+
+    def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
+        """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""
+        cal, name = self.calibration, self.name
+        if cal is None:
+            return None, None
+        reason = calibration_mismatch(cal.pattern, schedule)
+        if reason is not None:
+            return None, f"calibration {name!r} does not apply to this schedule: {reason}"
+        return self._engine(cal, schedule), None
 
     def summary(self) -> CalibrationSummary | None:
         cal = self.calibration
@@ -124,19 +145,20 @@ class CalibrationManager:
     # -- uploaded sets -----------------------------------------------------------------------
     def reconstruct(self, capture: CaptureSet) -> ReconResult:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
-        cal = self.calibration
-        if cal is None:
+        active = self.calibration
+        if active is None:
             raise Conflict("no calibration is active: load or create one first")
-        try:
-            check_pattern(cal.pattern, capture.schedule)
+        try:  # a set of another schedule with the same finest pattern: the carry-over rule
+            cal = calibration_for_schedule(active, capture.schedule)
             cal.check_frames(capture.frames.shape)
         except ValueError as exc:
             raise InvalidRequest(str(exc)) from None
         with self._upload_lock:
-            if self._upload_engine is None or self._upload_engine_cal is not cal:
-                self._upload_engine = Reconstructor(cal, fast=True)
-                self._upload_engine_cal = cal
-            return self._upload_engine.run(capture.frames, max_code=capture.max_code)
+            engine = self._upload_engine
+            if engine is None or self._upload_engine_cal is not active or engine.calibration.pattern != cal.pattern:
+                engine = self._upload_engine = Reconstructor(cal, fast=True)
+                self._upload_engine_cal = active
+            return engine.run(capture.frames, max_code=capture.max_code)
 
     # -- the session (the REST wizard) -------------------------------------------------------
     def start_session(self, board: dict[str, Any]) -> CalibrationSession:

@@ -78,6 +78,7 @@ def start_devices(
     devs.camera.configure(exposure_ms=exposure_ms, bit_depth=bit_depth)
     if devs.controller is not None:
         devs.controller.set_led(led)
+        devs.controller.set_sequence_length(schedule.n_frames)
     if devs.projector is not None:
         devs.projector.set_led(led)
         devs.projector.load_schedule(schedule, exposure_ms=exposure_ms)

@@ -16,17 +16,19 @@ from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
-from app.core.errors import DeviceUnavailable
+from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
-from app.core.schedule import PatternSchedule
+from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
 from app.recon import ReconResult
+from app.recon.reconstructor import SensorNoise
 from app.service.autoexposure import AutoExposureResult
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
 from app.service.pipeline import LivePipeline, PipelineConfig
 from app.service.reconstruction import LiveResult
+from app.service.schedules import rig_pixels, schedule_table, sensor_noise_of
 
 if TYPE_CHECKING:
     from app.service.acquisition import Acquisition
@@ -48,16 +50,26 @@ class Instrument:
 
     def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None) -> None:
         self.settings = settings
-        self.schedule = PatternSchedule()
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
                                 rolling=settings.rolling, autostart=settings.autostart)
-        self.pipeline = LivePipeline(config, self.schedule, devices)
+        self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app
         self._closed = False
         self._started = False
+        self._schedule_lock = threading.Lock()
+        self._noise: tuple[int, SensorNoise | None] = (-1, None)  # (raw set seq, its fitted noise)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
+    @property
+    def schedule(self) -> PatternSchedule:
+        """The fringe pattern schedule the instrument runs now."""
+        return self.pipeline.schedule
+
+    @property
+    def schedule_name(self) -> str | None:
+        return schedule_name_of(self.schedule)
+
     @property
     def devices(self) -> DeviceBundle | None:
         return self.pipeline.devices
@@ -171,6 +183,49 @@ class Instrument:
         """Search exposures on real sets, then keep the chosen one."""
         return self.pipeline.auto_exposure(saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
 
+    # -- schedules ---------------------------------------------------------------------------
+    def set_schedule(self, name: str) -> str:
+        """Run the registered schedule ``name`` from the next set boundary.
+
+        The projector and the controller get its patterns and sequence length; the active
+        calibration carries over when its finest pattern is the same (else no depth, and
+        the status says why).
+
+        Raises:
+            InvalidRequest: no schedule of that name.
+            Conflict: a recording runs or a calibration is being made (their sets must share one schedule).
+        """
+        try:
+            schedule = schedule_by_name(name)
+        except ValueError as exc:
+            raise InvalidRequest(str(exc)) from None
+        with self._schedule_lock:
+            if self.recorder is not None and self.recorder.active_name is not None:
+                raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
+            if self.calibrating or self.session is not None:
+                raise Conflict("schedule: a calibration is being made with the current schedule; finish it first")
+            self.pipeline.set_schedule(schedule, self.calibrations.engine_for)
+        return name
+
+    def schedules(self) -> list[dict[str, Any]]:
+        """Every registered schedule with its predicted depth σ and order-error rate at the rig's noise."""
+        schedule = self.schedule
+        full_scale = 255 if self.settings.bit_depth == 8 else 2**self.settings.bit_depth - 1
+        _, res = self.results.latest()
+        return schedule_table(rig_pixels(res, schedule, full_scale, self._sensor_noise(schedule, full_scale)),
+                              schedule, self.calibration)
+
+    def _sensor_noise(self, schedule: PatternSchedule, full_scale: int) -> SensorNoise | None:
+        acq = self.acquisition
+        if acq is None:
+            return None
+        seq, fs = acq.sets.latest()
+        if fs is None or len(fs.frame_indices) != schedule.n_frames:
+            return None
+        if self._noise[0] != seq:
+            self._noise = (seq, sensor_noise_of(fs.stack(), schedule, full_scale))
+        return self._noise[1]
+
     # -- results -----------------------------------------------------------------------------
     def latest_result(self) -> LiveResult:
         _, res = self.results.latest()
@@ -212,6 +267,8 @@ class Instrument:
         warnings = list(self.warnings)
         if acq is not None and not acq.assembler.completed and acq.frames_received > 3 * self.schedule.n_frames:
             warnings.append("no complete fringe set in the frames so far (missing pattern indices or drops)")
+        if self.pipeline.engine_note:
+            warnings.append(self.pipeline.engine_note)
         last_error = self.calibrations.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:
@@ -239,7 +296,9 @@ class Instrument:
             faults=acq.faults if acq else 0,
             recording=None if self.recorder is None else self.recorder.active_name,
             bit_depth=s.bit_depth,
-            schedule=self.schedule.to_dict(),
+            schedule={"name": self.schedule_name, **self.schedule.to_dict(),
+                      "frames_per_depth": self.schedule.n_frames,
+                      "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
             warnings=tuple(warnings),
         )
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from app.capture.captureset import CaptureSet
@@ -49,6 +50,7 @@ class LivePipeline:
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None
+        self.engine_note: str | None = None  # why there is no engine although a calibration is loaded
         self.closed = False
 
     # -- lifecycle -------------------------------------------------------------------------
@@ -79,10 +81,39 @@ class LivePipeline:
         return out
 
     # -- the engine ------------------------------------------------------------------------
-    def use_engine(self, engine: Reconstructor) -> None:
-        """Reconstruct from now on with ``engine``; older results are dropped."""
+    def use_engine(self, engine: Reconstructor | None, note: str | None = None) -> None:
+        """Reconstruct from now on with ``engine`` (None: not at all, because of ``note``); older results are dropped."""
         self._engine = engine
+        self.engine_note = note if engine is None else None
         self.results.clear()
+
+    def set_schedule(self, schedule: PatternSchedule, engine_for: Callable[[PatternSchedule], tuple[Reconstructor | None,
+                     str | None]], timeout_s: float = 10.0) -> None:
+        """Run ``schedule`` from the next set boundary, reconstructing with ``engine_for(schedule)``.
+
+        The engine is built first (it takes a moment); the acquisition then swaps the schedule
+        between two sets, installs the engine, and reloads the devices' patterns.
+
+        Raises:
+            DeviceUnavailable: the acquisition did not reach a set boundary within ``timeout_s``.
+        """
+        if schedule == self.schedule:
+            return
+        engine, note = engine_for(schedule)
+
+        def swap(new: PatternSchedule) -> None:
+            self.schedule = new
+            self.reconstruction.n_frequencies = len(new.frequencies)
+            # the newest map stays until the first of the new schedule (same calibration, still true
+            # depth); none stays when no map can follow (the calibration does not apply)
+            self._engine, self.engine_note = engine, (note if engine is None else None)
+            if engine is None:
+                self.results.clear()
+
+        if self.acquisition is None:
+            swap(schedule)
+        elif not self.acquisition.request_schedule(schedule, swap, timeout_s):
+            raise DeviceUnavailable(f"schedule: the acquisition reached no set boundary within {timeout_s:.0f} s")
 
     @property
     def has_engine(self) -> bool:
@@ -125,7 +156,7 @@ class LivePipeline:
     def why_no_result(self) -> Conflict | DeviceUnavailable | None:
         """Why no result can come now: a state the client can change (409) or a fault (503); None: one is on its way."""
         if not self.has_engine:
-            return Conflict("no depth result: no calibration is active")
+            return Conflict(f"no depth result: {self.engine_note or 'no calibration is active'}")
         if self.acquisition is None or not self.acquisition.acquiring:
             return Conflict("no depth result: acquisition is stopped")
         if self.acquisition.fault:

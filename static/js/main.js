@@ -6,6 +6,7 @@ import { setupAnalysis } from "./analysis.js";
 import { applyLimits as controlsLimits, setupControls } from "./controls.js";
 import { applyLimits as depthLimits, setupDepth } from "./depth.js";
 import { setupRecording } from "./recording.js";
+import { setupSchedule } from "./schedule.js";
 import { signedIn, ui } from "./state.js";
 import { pollStatus } from "./status.js";
 import { setupTexture } from "./texture.js";
@@ -27,6 +28,7 @@ function start() {
   setupAnalysis();
   setupControls();
   setupRecording();
+  setupSchedule();
   setupWizard();
   setupTexture();
   setupView3d();

@@ -175,6 +175,27 @@ def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str
     assert errors == []
 
 
+def test_schedule_selector_lists_predictions_and_switches(page: tuple[Any, list[str]], server: str) -> None:
+    """The selector shows every registered schedule with its predicted σ and order-error rate; choosing
+    one reaches the status, and the schedule line follows."""
+    pg, errors = page
+    rows = httpx.get(f"{server}/api/schedules").json()
+    pg.wait_for_function("document.querySelectorAll('#schedule option').length > 0", timeout=10_000)
+    options = pg.evaluate("[...document.querySelectorAll('#schedule option')].map(o => [o.value, o.textContent])")
+    assert [v for v, _ in options] == [r["name"] for r in rows]
+    assert all("frames" in text and "order err" in text and "σ" in text for _, text in options)
+    try:
+        pg.select_option("#schedule", "geometric-9")
+        ok = wait_for(lambda: httpx.get(f"{server}/api/status").json()["schedule"]["name"] == "geometric-9", 20, 0.2)
+        assert ok, httpx.get(f"{server}/api/status").json()["schedule"]
+        pg.wait_for_function("document.querySelector('#schedule-line').textContent.includes('[1, 6, 36] × 3')",
+                             timeout=10_000)
+    finally:
+        httpx.put(f"{server}/api/schedule", json={"name": "paper-16"}, timeout=30)  # builds an engine, waits a set
+        assert wait_for(lambda: len(httpx.get(f"{server}/api/result/latest").json()["frame_indices"]) == 16, 60, 0.2)
+    assert errors == []
+
+
 def test_roi_drag_maps_to_sensor_pixels_and_measures(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
     pg.evaluate("window.scrollTo(0, 0)")  # earlier tests may have scrolled to the controls

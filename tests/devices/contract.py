@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from app.core.schedule import PatternSchedule
+from app.core.schedule import PatternSchedule, schedule_by_name
 from app.devices import (
     Camera,
     Controller,
@@ -192,6 +192,23 @@ class ProjectorContract(_Common):
         with pytest.raises(ValueError, match="current"):
             device.set_led("green", current=1.5)
 
+    def test_schedule_switch(self, device: Projector):
+        """A running projector takes another schedule: its patterns replace the old ones."""
+        reduced = schedule_by_name("geometric-9")
+        device.open()
+        device.load_schedule(self.schedule, exposure_ms=20.0)
+        device.start()
+        device.load_schedule(reduced, exposure_ms=20.0)
+        assert device.schedule == reduced and device.state is DeviceState.RUNNING
+        self.check_loaded(device, reduced)
+        device.stop()
+        device.load_schedule(self.schedule, exposure_ms=20.0)
+        self.check_loaded(device, self.schedule)
+        device.close()
+
+    def check_loaded(self, device: Projector, schedule: PatternSchedule) -> None:
+        """Backends that can show what they hold check it here (the emulator's patterns, the twin's)."""
+
     def test_trigger_mode(self, device: Projector):
         device.open()
         device.set_trigger_mode("external")
@@ -228,6 +245,27 @@ class ControllerContract(_Common):
         device.disarm()
         assert not device.armed and device.state is DeviceState.OPEN
         device.close()
+
+    def test_sequence_length(self, device: Controller):
+        """Triggers per armed sequence follow the schedule's frame count; not while armed."""
+        device.set_sequence_length(12)  # closed: remembered, sent on open
+        device.open()
+        self.check_sequence_length(device, 12)
+        device.set_sequence_length(9)
+        assert device.frames_per_set == 9
+        self.check_sequence_length(device, 9)
+        device.arm()
+        with pytest.raises(DeviceStateError):
+            device.set_sequence_length(16)
+        assert device.frames_per_set == 9
+        device.disarm()
+        for bad in (0, 2.5, 70000, True):
+            with pytest.raises(ValueError, match="n_frames"):
+                device.set_sequence_length(bad)
+        device.close()
+
+    def check_sequence_length(self, device: Controller, n_frames: int) -> None:
+        """Backends that can show the device's own counter check it here."""
 
     def test_identify_when_closed_is_a_state_error(self, device: Controller):
         with pytest.raises(DeviceStateError):

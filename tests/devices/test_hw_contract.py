@@ -5,15 +5,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.devices.controller_emulator import PtyControllerEmulator
 from app.devices.genicam_camera import GenICamCamera
-from app.devices.lightcrafter import LightCrafterProjector
+from app.devices.lightcrafter import LightCrafterProjector, sequence_bit_depth
 from app.devices.lightcrafter_emulator import LightCrafterEmulator
 from app.devices.opencv_camera import OpenCVCamera
 from app.devices.replay import ReplayCamera
 from app.devices.serial_controller import SerialController
+from app.recon.patterns import generate_patterns
 from tests.devices.contract import CameraContract, ControllerContract, ProjectorContract
 from tests.devices.test_opencv_camera import write_video
 from tests.devices.test_replay import make_recording
@@ -29,6 +31,9 @@ class TestSerialControllerContract(ControllerContract):
         yield dev
         dev.close()
         self.emu.stop()
+
+    def check_sequence_length(self, device, n_frames):
+        assert self.emu.protocol.settings["count"] == n_frames  # TCNT reached the firmware
 
     def disconnect(self, device):
         self.emu.vanish()
@@ -47,6 +52,14 @@ class TestLightCrafterContract(ProjectorContract):
         yield dev
         dev.close()
         self.emu.stop()
+
+    def check_loaded(self, device, schedule):
+        st = self.emu.state
+        bits = sequence_bit_depth(schedule.n_frames)
+        assert st.sequence["count"] == schedule.n_frames and st.sequence["bit_depth"] == bits
+        keep = np.uint8((0xFF << (8 - bits)) & 0xFF)
+        expected = generate_patterns(schedule) & keep
+        assert all(np.array_equal(st.patterns[i], expected[i]) for i in range(schedule.n_frames))
 
     def disconnect(self, device):
         self.emu.stop()

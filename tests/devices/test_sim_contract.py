@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from app.devices import DeviceState
 from app.devices.sim import create_sim_devices
 from tests.devices.contract import CameraContract, ControllerContract, ProjectorContract
 
@@ -29,9 +30,24 @@ class TestSimulatedCamera(_SimUnplug, CameraContract):
 class TestSimulatedProjector(_SimUnplug, ProjectorContract):
     @pytest.fixture
     def device(self):
-        dev = create_sim_devices(scene="plane", seed=0, realtime=False).projector
+        self.devs = create_sim_devices(scene="plane", seed=0, realtime=False)
+        dev = self.devs.projector
         yield dev
         dev.close()
+        self.devs.camera.close()
+
+    def check_loaded(self, device, schedule):
+        """The twin's camera then sees the new schedule's patterns, one cycle per its frame count."""
+        assert self.devs.world.schedule == schedule
+        if device.state is not DeviceState.RUNNING:
+            return
+        cam = self.devs.camera
+        cam.open()
+        cam.start()
+        indices = [cam.grab(timeout_s=5.0).pattern_index for _ in range(schedule.n_frames + 1)]
+        cam.close()
+        first = indices[0]
+        assert indices == [(first + i) % schedule.n_frames for i in range(schedule.n_frames + 1)]
 
 
 class TestSimulatedController(_SimUnplug, ControllerContract):

@@ -191,6 +191,9 @@ class SimulatedController(Controller):
         self.link.check()
         self.last_heartbeat = time.monotonic()
 
+    def _do_set_sequence_length(self, n_frames: int) -> None:
+        self.link.check()
+
 
 @dataclass
 class SimDevices:
