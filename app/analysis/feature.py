@@ -5,12 +5,15 @@ also by its height over a first baseline); its polarity (darker or brighter than
 surroundings) is, unless given, the one whose segment stands above the surface. The segment
 is then widened to, and cut down to, the pixels standing above half its median height (a
 bright thread's obliquely lit flanks are dark, a dark thread's shading spills onto the
-tissue). A smooth baseline surface is fitted to a ring of pixels around it (outside the
-depth map's blur skirt of the thread), and each cross-section across the feature's long axis
+tissue). A smooth baseline surface (quadratic in the section coordinates) is fitted to a
+ring of pixels around it (outside the depth map's blur skirt of the thread), and each
+cross-section across the feature's long axis
 is levelled by a quadratic through its two flanks (a caliper rests on both sides; the
 quadratic follows the tissue's curvature under the thread). Cross-sections are taken in
 pixel coordinates or, given the pixels' in-plane coordinates (``coords_mm``), across the
-feature as it lies on the surface, free of the raised crest's parallax. Then one crest
+feature as it lies on the surface, free of the raised crest's parallax (seen obliquely over
+sloping tissue, the crest's pixel is not where the tissue under it is imaged: image-space
+sections are off by about slope·height·tan(view angle)). Then one crest
 profile — a parabola across the feature about a straight crest axis,
 h = H_i − k·(t − a − b·s)², one curvature and axis for all sections and a crest height per
 section — is fitted by least squares to the central part of *all* cross-sections at once:
@@ -144,7 +147,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: only {int(ok.sum())} valid pixels in the ROI")
     if threshold is None:
         threshold = _otsu(tex[ok])
-    first, _ = _fit_baseline(z, ok)  # robust quadratic over the ROI: the surface the feature lies on
+    first, _ = _fit_baseline(z, ok, coords)  # robust quadratic over the ROI: the surface the feature lies on
     if polarity is None:
         polarity = _find_polarity(z - first, tex, ok, threshold)
     mask = area & ((tex > threshold) if polarity == "bright" else (tex < threshold))
@@ -161,11 +164,14 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     ring = far & ~near & ok & ~raised  # raised pixels are no ground for a caliper
     if ring.sum() < 20:
         raise ValueError("ring_px: too few valid baseline pixels around the feature")
-    baseline, rms = _fit_baseline(z, ring)
+    baseline, rms = _fit_baseline(z, ring, coords)
     resid = z - baseline
+    # each segment's own flanks (its ring, by image distance: not a neighbour's, and not cut where
+    # the thread hides the tissue right behind it, which metric coordinates would show as a gap)
+    rings = [ring & (cv2.dilate((labels == c).astype(np.uint8), _disk(outer)) > 0) for c in comps]
     sections: list[_Section] = []
     for i, c in enumerate(comps):
-        sections += _sections(resid, coords, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i,
+        sections += _sections(resid, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
                               flank_degree)
     if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
@@ -173,12 +179,12 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     # The jackknife over sections cannot see the baseline surface's own error, common to all of
     # them where the flank lines do not absorb it (its curvature across the feature): add it,
     # propagated linearly through the same sections.
-    basis, cov = _baseline_covariance(z, ring, baseline, rms)
+    basis, cov = _baseline_covariance(z, ring, baseline, rms, coords)
     effect = np.zeros(len(basis))
     for m, phi in enumerate(basis):
         moved: list[_Section] = []
         for i, c in enumerate(comps):
-            moved += _sections(phi, coords, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i,
+            moved += _sections(phi, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
                                flank_degree)
         hm = np.concatenate([sec.h for sec in moved])
         effect[m] = -float(hm.mean())
@@ -294,7 +300,7 @@ def _pixel_coordinates(shape: tuple[int, ...], coords_mm: npt.ArrayLike | None) 
 
 
 def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-              slab_px: float, reach_px: float, comp: int, flank_degree: int = 1) -> list[_Section]:
+              slab_px: float, comp: int, flank_degree: int = 1) -> list[_Section]:
     """Cross-sections (one pixel pitch along the segment's long axis) levelled through both flanks.
 
     In each cross-section the baseline is refined by a polynomial of ``flank_degree`` (a line
@@ -311,18 +317,15 @@ def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDA
     step = float(np.nanmedian(np.linalg.norm(coords[ys, np.minimum(xs + 1, coords.shape[1] - 1)] - xy, axis=1)))
     if not step > 0:
         step = 1.0
-    slab, reach = slab_px * step, reach_px * step
+    slab = slab_px * step
     centre = xy.mean(axis=0)
     _, _, vt = np.linalg.svd(xy - centre, full_matrices=False)
     along = (xy - centre) @ vt[0]
     across = (xy - centre) @ vt[1]
-    width = float(np.ptp(across))
     r = resid[ys, xs]
     ry, rx = np.nonzero(ring)
     rxy = coords[ry, rx] - centre
-    r_along, r_across = rxy @ vt[0], rxy @ vt[1]
-    near = np.abs(r_across) <= 0.5 * width + reach  # flanks of this segment, not of a neighbour
-    r_along, r_across, r_val = r_along[near], r_across[near], resid[ry, rx][near]
+    r_along, r_across, r_val = rxy @ vt[0], rxy @ vt[1], resid[ry, rx]
     r_order = np.argsort(r_along)
     r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]
     section = np.rint(along / step).astype(np.int64)
@@ -443,20 +446,26 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
     return height(x, use), k, per[keep], w[keep], se
 
 
-def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
-    """Quadratic surface z(u, v) fitted to ``sel`` pixels with 3σ clipping; (H, W) and RMS."""
-    h, w = z.shape
-    ys, xs = np.nonzero(sel)
-    if len(xs) < 6:
+def _quadratic_basis(coords: F64, sel: npt.NDArray[np.bool_]) -> F64:
+    """(6, H, W) images 1, x, y, x², xy, y² of the section coordinates (pixel or in-plane), centred
+    and scaled over the ``sel`` pixels (NaN where the coordinates are)."""
+    c = coords[sel]
+    centre = c.mean(axis=0)
+    scale = max(float(np.ptp(c[:, 0])), float(np.ptp(c[:, 1])), 1e-12) / 2.0
+    x, y = (coords[..., 0] - centre[0]) / scale, (coords[..., 1] - centre[1]) / scale
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+
+
+def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_], coords: F64) -> tuple[F64, float]:
+    """Quadratic surface in the section coordinates fitted to ``sel`` pixels with 3σ clipping;
+    (H, W) and RMS. In the same coordinates as the sections: an image-space surface subtracted
+    under metric sections would bring back the crest's parallax (its pixel is not above its
+    base point)."""
+    if int(sel.sum()) < 6:
         raise ValueError("depth: too few pixels for a baseline surface")
-    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
-
-    def design(x: F64, y: F64) -> F64:
-        x, y = (x - cx) / s, (y - cy) / s
-        return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
-
-    a = design(xs.astype(np.float64), ys.astype(np.float64))
-    zz = z[ys, xs]
+    basis = _quadratic_basis(coords, sel)
+    a = basis[:, sel].T
+    zz = z[sel]
     keep = np.ones(len(zz), bool)
     for _ in range(5):
         coef, *_ = np.linalg.lstsq(a[keep], zz[keep], rcond=None)
@@ -466,21 +475,19 @@ def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
         if np.array_equal(new, keep):
             break
         keep = new
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    return design(xx, yy) @ coef, float(np.sqrt(np.mean(e[keep] ** 2)))
+    return np.tensordot(coef, basis, axes=1), float(np.sqrt(np.mean(e[keep] ** 2)))
 
 
-def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float) -> tuple[F64, F64]:
+def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float,
+                         coords: F64) -> tuple[F64, F64]:
     """Basis images (6, H, W) of :func:`_fit_baseline`'s quadratic and the covariance (6, 6) of its
     coefficients, rms²·(AᵀA)⁻¹ over the pixels it kept (|residual| ≤ 3·rms, as its clipping)."""
-    h, w = z.shape
-    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    x, y = (xx - cx) / s, (yy - cy) / s
-    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-    kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
+    basis = _quadratic_basis(coords, sel)
+    with np.errstate(invalid="ignore"):
+        kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
     a = basis[:, kept].T
-    return basis, rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+    cov = rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+    return basis, np.asarray(cov, np.float64)
 
 
 def _correlation_factor(resid: F64, sel: npt.NDArray[np.bool_], box: int = 5) -> float:

@@ -200,3 +200,50 @@ def test_plane_coordinates_keep_distances_on_the_plane():
         feature_height(depth, tex, coords_mm=coords[:10])
     with pytest.raises(ValueError, match="^flank_degree"):
         feature_height(depth, tex, flank_degree=3)
+
+
+def _oblique_view(slope=0.25, view_deg=30.0, diameter=0.72, px_mm=0.03):
+    """A thread lying along y on tissue sloping across it (z = slope·x), seen by an orthographic
+    camera tilted by ``view_deg`` about the thread's axis: each image column looks along a slanted
+    ray, so the crest's pixel sees the crest, while the tissue *under* the crest is imaged
+    elsewhere (parallax ≈ height·tan(view)). Returns depth (height), texture and the visible
+    points' (x, y) in the surface plane, mm, per pixel (z-buffered: the thread hides tissue)."""
+    r = diameter / 2
+    x = np.linspace(-3.0, 3.0, 60001)
+    cap = np.where(np.abs(x) < r, r + np.sqrt(np.clip(r * r - x * x, 0, None)), 0.0)
+    z = slope * x + cap
+    th = np.radians(view_deg)
+    u = x * np.cos(th) + z * np.sin(th)  # image coordinate across the thread
+    near = -x * np.sin(th) + z * np.cos(th)  # toward the camera
+    cols = np.arange(int((u.min() + 0.3) / px_mm), int((u.max() - 0.3) / px_mm))
+    depth_row, x_row, on_row = [], [], []
+    for c in cols:
+        m = np.abs(u - c * px_mm) <= 0.02 * px_mm  # the samples on (about) this pixel's central ray
+        if not m.any():  # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+            depth_row.append((c * px_mm + r * np.cos(th)) / np.sin(th))
+            x_row.append(-r)
+            on_row.append(True)
+            continue
+        i = np.flatnonzero(m)[np.argmax(near[m])]  # the first surface the ray meets
+        depth_row.append(z[i])
+        x_row.append(x[i])
+        on_row.append(abs(x[i]) < r)
+    rows = 200
+    depth = np.tile(np.array(depth_row), (rows, 1)) + 5.0
+    xs = np.tile(np.array(x_row), (rows, 1))
+    ys = np.tile(np.arange(rows, dtype=np.float64)[:, None] * px_mm, (1, len(cols)))
+    on = np.tile(np.array(on_row), (rows, 1))
+    texture = np.where(on, 200.0, 80.0) + np.random.default_rng(0).normal(0, 3, depth.shape)
+    return depth, texture, np.stack([xs, ys], axis=-1)
+
+
+def test_metric_sections_remove_the_crest_parallax():
+    """Seen obliquely over sloping tissue, image-space sections pair the crest with tissue beside
+    the point under it (error slope·height·tan(view)); in-plane coordinates pair it with its own."""
+    for slope in (0.25, 0.0, -0.25):
+        depth, tex, coords = _oblique_view(slope=slope)
+        metric = feature_height(depth, tex, coords_mm=coords)
+        image = feature_height(depth, tex)
+        assert metric.height_mm == pytest.approx(0.72, abs=0.004), slope
+        # image space: off by about −slope · 0.72 · tan 30° (0.10 mm), right only on level tissue
+        assert image.height_mm - 0.72 == pytest.approx(-slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03), slope
