@@ -18,6 +18,8 @@ from app.analysis.noise import height_noise_mm
 from app.analysis.plane import plane_accuracy
 from app.analysis.sphere import sphere_figures
 from app.calib.calibration import Calibration
+from app.core.depth_model import SupportedRegion
+from app.core.schedule import PatternSchedule
 
 
 def background_codes(result: Any) -> npt.NDArray[np.float64]:
@@ -33,7 +35,8 @@ def noise_floor_mm(calibration: Calibration, result: Any, sigma_i_dn: npt.ArrayL
 
 
 def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
-                        sigma_i_dn: npt.ArrayLike, *, exclude: npt.ArrayLike | None = None) -> dict[str, Any]:
+                        sigma_i_dn: npt.ArrayLike, *, exclude: npt.ArrayLike | None = None,
+                        supported: npt.ArrayLike | None = None) -> dict[str, Any]:
     """Figures of a flat target (e.g. the 45° DOF target) against its true depth.
 
     Args:
@@ -43,6 +46,9 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
         sigma_i_dn: (H, W) or scalar intensity noise σ_I, codes.
         exclude: optional (H, W) bool pixels left out of the valid-fraction figure
             (e.g. black print, where low modulation is the correct answer).
+        supported: optional (H, W) bool pixels whose true (height, phase) lie inside the
+            calibration's supported region (:func:`supported_mask`): the valid fraction counts
+            only those (the acceptance's "lit, unsaturated pixels inside the supported region").
 
     Returns:
         dict with ``valid_fraction`` (inside the calibrated volume, after ``exclude``),
@@ -57,6 +63,8 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
     lo, hi = calibration.height_range_mm
     inside = np.isfinite(truth) & (truth >= lo) & (truth <= hi)
     keep = inside if exclude is None else inside & ~np.asarray(exclude, bool)
+    if supported is not None:
+        keep = keep & np.asarray(supported, bool)
     sz = noise_floor_mm(calibration, result, sigma_i_dn)
     valid_in = np.asarray(result.valid, bool) & inside
     pa = plane_accuracy(result.points, valid_in)
@@ -87,7 +95,8 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
 def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
                          truth_points: npt.ArrayLike, centres: list[npt.ArrayLike], radius_mm: float,
                          *, surface_tol_mm: float = 0.02, projector_centre_mm: npt.ArrayLike | None = None,
-                         incidence_limits_deg: tuple[float, ...] = (80.0, 87.0)) -> dict[str, Any]:
+                         incidence_limits_deg: tuple[float, ...] = (80.0, 87.0),
+                         supported: npt.ArrayLike | None = None) -> dict[str, Any]:
     """Figures of sphere targets: validity and error on sphere pixels, then PS/PF per sphere.
 
     Args:
@@ -96,6 +105,9 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
         projector_centre_mm: optional (3,) projector centre, camera frame, mm: adds the
             ``incidence`` breakdown (how obliquely the fringes light each sphere pixel).
         incidence_limits_deg: the incidence angles of that breakdown, degrees.
+        supported: optional (H, W) bool pixels whose true (height, phase) lie inside the
+            calibration's supported region: then ``valid_fraction`` and the breakdowns count
+            only those, and ``off_region_pixels`` / ``off_region_valid`` the rest.
 
     Returns:
         dict with ``valid_fraction`` and error figures over sphere pixels inside the
@@ -115,6 +127,7 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
         masks.append(m)
         on_any |= m
         normals[m] = (tp[m] - c) / radius_mm
+    sup = np.ones(on_any.shape, bool) if supported is None else np.asarray(supported, bool)
     errs = depth_errors(result.depth, truth_depth, calibration.height_range_mm, mask=on_any)
     spheres = []
     for m in masks:
@@ -124,16 +137,21 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
                         "n_points": f.n_points})
     lo, hi = calibration.height_range_mm
     t = np.asarray(truth_depth, np.float64)
-    inside = on_any & np.isfinite(t) & (t >= lo) & (t <= hi)
+    with np.errstate(invalid="ignore"):
+        in_volume = on_any & np.isfinite(t) & (t >= lo) & (t <= hi)
+    inside = in_volume & sup
     bad = inside & ~np.asarray(result.valid, bool)
     codes, counts = np.unique(np.asarray(result.reason)[bad], return_counts=True)
     report: dict[str, Any] = {
-        "valid_fraction": errs.valid_fraction,
+        "valid_fraction": (float(np.asarray(result.valid, bool)[inside].mean()) if inside.any() else math.nan)
+        if supported is not None else errs.valid_fraction,
         "invalid_reasons": {int(c): int(n) for c, n in zip(codes, counts, strict=True)},
         "inside_pixels": errs.inside_pixels,
         "mean_error_mm": errs.mean_error_mm,
         "max_abs_error_mm": errs.max_abs_error_mm,
         "spheres": spheres,
+        "off_region_pixels": int((in_volume & ~sup).sum()),
+        "off_region_valid": int((in_volume & ~sup & np.asarray(result.valid, bool)).sum()),
     }
     if projector_centre_mm is not None:
         cos_inc = projector_incidence_cos(tp, normals, projector_centre_mm)
@@ -172,9 +190,40 @@ def projector_incidence_cos(points: npt.ArrayLike, normals: npt.ArrayLike,
         return np.asarray((n * to_projector).sum(-1) / dist, np.float64)
 
 
+def true_phase_rad(fringe_coordinate_px: npt.ArrayLike, schedule: PatternSchedule) -> npt.NDArray[np.float64]:
+    """The finest frequency's unwrapped phase (rad) a projector coordinate carries.
+
+    Args:
+        fringe_coordinate_px: (...) continuous projector coordinate along the fringe axis
+            (pixel centres at integers), e.g. a simulator's true projector column of each pixel.
+        schedule: the pattern schedule (its last frequency K and axis length L).
+
+    Returns:
+        (...) float64 ``2π·K·x / L`` (the pattern of DESIGN.md: ``cos(2π k x / w + δ)``).
+    """
+    x = np.asarray(fringe_coordinate_px, np.float64)
+    return np.asarray(2.0 * math.pi * float(schedule.frequencies[-1]) / float(schedule.axis_length) * x, np.float64)
+
+
+def supported_mask(region: SupportedRegion, truth_depth: npt.ArrayLike,
+                   phase_rad: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+    """(H, W) True where the true (height, phase) of a pixel lies inside a calibration's supported region.
+
+    Args:
+        region: the depth model's :class:`~app.core.depth_model.SupportedRegion`.
+        truth_depth: (H, W) true height, mm (NaN off-object: not supported).
+        phase_rad: (H, W) true finest unwrapped phase, rad (:func:`true_phase_rad`).
+    """
+    t = np.asarray(truth_depth, np.float64)
+    p = np.asarray(phase_rad, np.float64)
+    if t.ndim != 2 or p.shape != t.shape:
+        raise ValueError(f"phase_rad: shape {p.shape} does not match truth_depth {t.shape} (H, W)")
+    return np.asarray(~region.outside(t, p) & np.isfinite(t) & np.isfinite(p), np.bool_)
+
+
 def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tuple[float, float],
                   sigma_mm: npt.ArrayLike, *, lit: npt.ArrayLike | None = None, gross_mm: float = 0.5,
-                  grid: tuple[int, int] = (3, 3)) -> list[dict[str, Any]]:
+                  grid: tuple[int, int] = (3, 3), supported: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
     """Acceptance figures in each cell of a ``grid`` (rows, cols) split of the image — every ninth by default.
 
     Args:
@@ -186,13 +235,18 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
         lit: optional (H, W) bool: pixels the projector lights (default: every pixel with a truth).
         gross_mm: an error beyond this on a valid pixel is gross.
         grid: (rows, cols) of the split.
+        supported: optional (H, W) bool: pixels whose TRUE (height, phase) lie inside the
+            calibration's supported region (:func:`supported_mask`); default: all.
 
     Returns:
-        One dict per cell, row-major: ``row``, ``col``; in the volume: ``pixels`` (lit, unsaturated),
+        One dict per cell, row-major: ``row``, ``col``; inside (in the volume and the supported
+        region): ``pixels`` (lit, unsaturated),
         ``valid_fraction``, ``mean_error_mm``, ``rms_mm``, ``floor_mm`` (RMS of ``sigma_mm`` over the
         same valid pixels), ``rms_ratio`` (rms / floor), ``std_ratio`` (std / floor), ``gross``
         (valid pixels with |error| > gross_mm), ``max_abs_error_mm``; outside the volume:
-        ``outside_pixels``, ``outside_valid``, ``outside_gross``, ``outside_max_abs_error_mm``.
+        ``outside_pixels``, ``outside_valid``, ``outside_gross``, ``outside_max_abs_error_mm``;
+        in the volume but outside the supported region (lit): ``off_region_pixels``,
+        ``off_region_valid``, ``off_region_gross``, ``off_region_max_abs_error_mm``.
         Figures of an empty set are NaN.
     """
     from app.core.reasons import Reason
@@ -212,9 +266,14 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
     if not lo < hi:
         raise ValueError(f"height_range_mm: need lo < hi, got {height_range_mm}")
     lit_m = np.isfinite(truth) if lit is None else np.asarray(lit, bool) & np.isfinite(truth)
+    sup = np.ones(depth.shape, bool) if supported is None else np.asarray(supported, bool)
+    if sup.shape != depth.shape:
+        raise ValueError(f"supported: shape {sup.shape} does not match depth {depth.shape}")
     unsat = np.asarray(result.reason) != Reason.SATURATED
     with np.errstate(invalid="ignore"):
-        inside = lit_m & (truth >= lo) & (truth <= hi)
+        in_volume = lit_m & (truth >= lo) & (truth <= hi)
+        inside = in_volume & sup
+        off_region = in_volume & ~sup
         outside = lit_m & ~((truth >= lo) & (truth <= hi))
     err = depth - truth
     h, w = depth.shape
@@ -235,6 +294,9 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
             out_m = outside[win]
             out_ok = out_m & valid[win]
             eo = np.abs(err[win][out_ok])
+            off_m = off_region[win]
+            off_ok = off_m & valid[win]
+            ef = np.abs(err[win][off_ok])
             cells.append({
                 "row": r, "col": c, "pixels": int(ins.sum()),
                 "valid_fraction": float(ok.sum() / ins.sum()) if ins.any() else nan,
@@ -249,5 +311,9 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
                 "outside_valid": int(out_ok.sum()),
                 "outside_gross": int((eo > gross_mm).sum()),
                 "outside_max_abs_error_mm": float(eo.max()) if eo.size else nan,
+                "off_region_pixels": int(off_m.sum()),
+                "off_region_valid": int(off_ok.sum()),
+                "off_region_gross": int((ef > gross_mm).sum()),
+                "off_region_max_abs_error_mm": float(ef.max()) if ef.size else nan,
             })
     return cells

@@ -2,16 +2,26 @@
 
 The feature is segmented by an intensity threshold on the texture image (optionally
 also by its height over a first baseline); its polarity (darker or brighter than the
-surroundings) is, unless given, the one whose segment stands above the surface. A smooth
-baseline surface is fitted to a ring of pixels around it, and each 1-px cross-section
-across the feature's long axis is levelled by a line through its two flanks (a caliper
-rests on both sides). Then one crest profile — a parabola across the feature about a
-straight crest axis, h = H − k·(t − a − b·s)² — is fitted by least squares to the central
-part of *all* cross-sections at once: the height H is a linear least-squares estimate
-given the shared shape, so its expectation does not move with the depth noise (the apex
-of a per-section parabola, c + b²/4|a|, is pushed up by var(b)/4|a|; a maximum is pushed
-up by the noise itself). Its standard error comes from a block jackknife over the
-cross-sections (neighbouring sections share blur, so blocks, not single sections).
+surroundings) is, unless given, the one whose segment stands above the surface. The segment
+is then widened to, and cut down to, the pixels standing above half its median height (a
+bright thread's obliquely lit flanks are dark, a dark thread's shading spills onto the
+tissue). A smooth baseline surface (quadratic in the section coordinates) is fitted to a
+ring of pixels around it (outside the depth map's blur skirt of the thread), and each
+cross-section across the feature's long axis
+is levelled by a quadratic through its two flanks (a caliper rests on both sides; the
+quadratic follows the tissue's curvature under the thread). Cross-sections are taken in
+pixel coordinates or, given the pixels' in-plane coordinates (``coords_mm``), across the
+feature as it lies on the surface, free of the raised crest's parallax (seen obliquely over
+sloping tissue, the crest's pixel is not where the tissue under it is imaged: image-space
+sections are off by about slope·height·tan(view angle)). Then one crest
+profile — a parabola across the feature about a straight crest axis,
+h = H_i − k·(t − a − b·s)², one curvature and axis for all sections and a crest height per
+section — is fitted by least squares to the central part of *all* cross-sections at once:
+each H_i is linear in the data given the shared shape, so its expectation does not move with
+the depth noise (the apex of a per-section parabola, c + b²/4|a|, is pushed up by
+var(b)/4|a|; a maximum is pushed up by the noise itself). The height is the mean of the H_i
+(one vote per section: per unit length). Its standard error comes from a block jackknife
+over the cross-sections (neighbouring sections share blur and tissue, so blocks).
 """
 
 from __future__ import annotations
@@ -34,17 +44,19 @@ class FeatureHeight:
     """Result of :func:`feature_height`.
 
     Attributes:
-        height_mm: crest height H of the profile fitted to all cross-sections, mm.
+        height_mm: crest height of the profile fitted to all cross-sections (mean of the
+            sections' crest heights), mm.
         height_std_mm: standard deviation of the per-section crest heights, mm (the spread a
             caliper would see along the feature).
         count: cross-sections measured.
         mask: (H, W) bool segmented feature pixels.
-        crest_heights_mm: (count,) per cross-section crest heights, mm: each section's mean
-            of h + k·(t − axis)² with the shared profile (their pixel-weighted mean is H).
+        crest_heights_mm: (count,) per cross-section crest heights H_i, mm: each section's
+            mean of h + k·(t − axis)² with the shared profile (their mean is ``height_mm``).
         baseline_rms_mm: RMS residual of the baseline surface fit, mm.
         height_se_mm: standard error of ``height_mm``, mm (block jackknife over sections).
         polarity: ``"bright"`` or ``"dark"`` (as given, or as found).
-        curvature_per_px2: k of the fitted profile, mm/px².
+        curvature_per_px2: k of the fitted profile, mm per squared unit of the section
+            coordinates (px², or mm² with ``coords_mm``).
     """
 
     height_mm: float
@@ -69,8 +81,9 @@ class _Section:
 def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.ArrayLike | None = None, *,
                    roi: tuple[int, int, int, int] | None = None, threshold: float | None = None,
                    polarity: str | None = None, height_threshold_mm: float | None = None,
-                   ring_px: tuple[int, int] = (4, 16), min_area_px: int = 30,
-                   min_section_px: int = 3, slab_px: float = 3.0, block_sections: int = 10) -> FeatureHeight:
+                   ring_px: tuple[int, int] = (8, 24), min_area_px: int = 30,
+                   min_section_px: int = 3, slab_px: float = 3.0, block_sections: int = 10,
+                   coords_mm: npt.ArrayLike | None = None, flank_degree: int = 2) -> FeatureHeight:
     """Crest height of a feature over a fitted baseline (noise-unbiased, with its standard error).
 
     Args:
@@ -84,12 +97,25 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
             fitted to the whole ROI (a suture lies *on* the tissue).
         height_threshold_mm: if given, feature pixels must also stand this high above a
             first baseline fitted to the whole ROI.
-        ring_px: (inner, outer) distance in pixels of the baseline ring from the feature.
+        ring_px: (inner, outer) distance in pixels of the baseline ring from the feature; the
+            inner gap keeps the flank fit out of the depth map's blur skirt around the thread
+            (a quadratic flank fit bends up into it).
         min_area_px: connected segments smaller than this are ignored.
         min_section_px: cross-sections with fewer feature pixels are skipped.
         slab_px: half-length along the feature of the flank pixels used for each
             cross-section's local baseline line.
         block_sections: consecutive sections per jackknife block (≥ the blur's correlation length).
+        coords_mm: optional (H, W, 2) in-plane coordinates of each pixel's surface point, mm
+            (:func:`plane_coordinates` of the result's points and the reference-plane normal).
+            The cross-sections are then taken in these metric coordinates, across the feature
+            as it lies on the surface: seen obliquely, the raised crest's pixel looks at the
+            tissue *beside* the point under the crest (parallax ≈ height·tan(view angle)), so on
+            a sloping surface image-space sections read the height of the wrong base point.
+            Sections are then one pixel pitch (the median spacing of neighbouring pixels) apart,
+            and ``slab_px`` / ``ring_px`` stay in pixels (converted with that pitch where needed).
+        flank_degree: degree (1 or 2) of each section's baseline through its two flanks: 2
+            follows the tissue's curvature under the thread (used only where each flank has
+            enough pixels; else 1).
 
     Returns:
         A :class:`FeatureHeight`.
@@ -107,8 +133,11 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"ring_px: need 0 <= inner < outer, got {ring_px}")
     if int(block_sections) != block_sections or block_sections < 1:
         raise ValueError(f"block_sections: need a positive integer, got {block_sections}")
+    if flank_degree not in (1, 2):
+        raise ValueError(f"flank_degree: must be 1 or 2, got {flank_degree!r}")
+    coords = _pixel_coordinates(z.shape, coords_mm)
     area = roi_mask(z.shape, roi)
-    ok = area & np.isfinite(z) & np.isfinite(tex)
+    ok = area & np.isfinite(z) & np.isfinite(tex) & np.isfinite(coords).all(axis=-1)
     if valid is not None:
         v = np.asarray(valid, bool)
         if v.shape != z.shape:
@@ -118,7 +147,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: only {int(ok.sum())} valid pixels in the ROI")
     if threshold is None:
         threshold = _otsu(tex[ok])
-    first, _ = _fit_baseline(z, ok)  # robust quadratic over the ROI: the surface the feature lies on
+    first, _ = _fit_baseline(z, ok, coords)  # robust quadratic over the ROI: the surface the feature lies on
     if polarity is None:
         polarity = _find_polarity(z - first, tex, ok, threshold)
     mask = area & ((tex > threshold) if polarity == "bright" else (tex < threshold))
@@ -128,29 +157,35 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     if not comps:
         raise ValueError("threshold: no feature segment found in the ROI")
     labels = _grow_by_height(labels, comps, z - first, ok, outer)
+    labels, raised = _trim_to_height(labels, comps, z - first, ok, min_area_px)
     mask = np.isin(labels, comps)
     near = cv2.dilate(mask.astype(np.uint8), _disk(inner)) > 0 if inner else mask
     far = cv2.dilate(mask.astype(np.uint8), _disk(outer)) > 0
-    ring = far & ~near & ok
+    ring = far & ~near & ok & ~raised  # raised pixels are no ground for a caliper
     if ring.sum() < 20:
         raise ValueError("ring_px: too few valid baseline pixels around the feature")
-    baseline, rms = _fit_baseline(z, ring)
+    baseline, rms = _fit_baseline(z, ring, coords)
     resid = z - baseline
+    # each segment's own flanks (its ring, by image distance: not a neighbour's, and not cut where
+    # the thread hides the tissue right behind it, which metric coordinates would show as a gap)
+    rings = [ring & (cv2.dilate((labels == c).astype(np.uint8), _disk(outer)) > 0) for c in comps]
     sections: list[_Section] = []
     for i, c in enumerate(comps):
-        sections += _sections(resid, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i)
+        sections += _sections(resid, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
+                              flank_degree)
     if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
     height, k, per_section, _, se = _joint_profile(sections, int(block_sections))
     # The jackknife over sections cannot see the baseline surface's own error, common to all of
     # them where the flank lines do not absorb it (its curvature across the feature): add it,
     # propagated linearly through the same sections.
-    basis, cov = _baseline_covariance(z, ring, baseline, rms)
+    basis, cov = _baseline_covariance(z, ring, baseline, rms, coords)
     effect = np.zeros(len(basis))
     for m, phi in enumerate(basis):
         moved: list[_Section] = []
         for i, c in enumerate(comps):
-            moved += _sections(phi, (labels == c) & ok, ring, min_section_px, slab_px, outer + 1, i)
+            moved += _sections(phi, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
+                               flank_degree)
         hm = np.concatenate([sec.h for sec in moved])
         effect[m] = -float(hm.mean())
     se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0))) if math.isfinite(se) else se
@@ -197,6 +232,26 @@ def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
     return out
 
 
+def _trim_to_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64, ok: npt.NDArray[np.bool_],
+                    min_area: int) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.bool_]]:
+    """Each segment cut to its pixels standing above half its median height (a dark thread's
+    rim of shading on the tissue beside it is dark but not raised), unless that leaves fewer
+    than ``min_area`` pixels; also the (H, W) mask of all raised pixels (ground for no ring)."""
+    sel = np.isin(labels, comps) & ok
+    if not sel.any():
+        return labels, np.zeros(labels.shape, bool)
+    level = 0.5 * float(np.median(resid[sel]))
+    if not level > 0:
+        return labels, np.zeros(labels.shape, bool)
+    raised = ok & (resid > level)
+    out = labels.copy()
+    for c in comps:
+        seg = labels == c
+        if int((seg & raised).sum()) >= min_area:
+            out[seg & ~raised] = 0
+    return out, raised
+
+
 def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: float) -> str:
     """``"bright"`` if the pixels above the threshold stand higher (median) over the ROI baseline than
     those below it, else ``"dark"``: the raised feature is the side of the threshold that stands up."""
@@ -207,46 +262,87 @@ def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: f
     return "bright" if float(np.median(resid[bright])) > float(np.median(resid[dark])) else "dark"
 
 
-def _sections(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-              slab_px: float, reach_px: float, comp: int) -> list[_Section]:
-    """Cross-sections (1 px along the segment's long axis) levelled by a line through both flanks.
+def plane_coordinates(points: npt.ArrayLike, normal: npt.ArrayLike) -> F64:
+    """In-plane coordinates (mm) of camera-frame points on a plane with ``normal``.
 
-    In each cross-section the baseline is refined by a line through the ring pixels on both
-    flanks (within ``slab_px`` along the axis), as a caliper rests on both sides; the central
+    Args:
+        points: (H, W, 3) camera-frame points, mm (NaN where invalid).
+        normal: (3,) plane normal (e.g. the calibration's reference-plane normal).
+
+    Returns:
+        (H, W, 2) float64: the points' components along two orthonormal axes of the plane
+        (the camera x axis made orthogonal to the normal, and normal × that), mm.
+    """
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normal, np.float64).ravel()
+    if p.ndim != 3 or p.shape[-1] != 3:
+        raise ValueError(f"points: expected (H, W, 3), got shape {p.shape}")
+    if n.shape != (3,) or not np.isfinite(n).all() or not np.linalg.norm(n) > 0:
+        raise ValueError(f"normal: expected 3 finite numbers, not all zero, got {n.tolist()}")
+    n = n / np.linalg.norm(n)
+    e1 = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    return np.stack([p @ e1, p @ e2], axis=-1)
+
+
+def _pixel_coordinates(shape: tuple[int, ...], coords_mm: npt.ArrayLike | None) -> F64:
+    """(H, W, 2) section coordinates: pixel (column, row), or the given metric ones."""
+    if coords_mm is None:
+        yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+        return np.stack([xx, yy], axis=-1)
+    c = np.asarray(coords_mm, np.float64)
+    if c.shape != (*shape, 2):
+        raise ValueError(f"coords_mm: expected shape {(*shape, 2)}, got {c.shape}")
+    return c
+
+
+def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
+              slab_px: float, comp: int, flank_degree: int = 1) -> list[_Section]:
+    """Cross-sections (one pixel pitch along the segment's long axis) levelled through both flanks.
+
+    In each cross-section the baseline is refined by a polynomial of ``flank_degree`` (a line
+    where a flank has too few pixels for more) through the ring pixels on both flanks (within
+    ``slab_px`` along the axis), as a caliper rests on both sides; the central
     60 % of the section, chosen by position (not by value, which would favour upward noise),
     is kept — the part of a round thread a parabola describes well.
     """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
         return []
-    xy = np.stack([xs, ys], axis=1).astype(np.float64)
+    xy = coords[ys, xs]
+    # one section per pixel pitch (1 in pixel coordinates; the median neighbour spacing in metric ones)
+    step = float(np.nanmedian(np.linalg.norm(coords[ys, np.minimum(xs + 1, coords.shape[1] - 1)] - xy, axis=1)))
+    if not step > 0:
+        step = 1.0
+    slab = slab_px * step
     centre = xy.mean(axis=0)
     _, _, vt = np.linalg.svd(xy - centre, full_matrices=False)
     along = (xy - centre) @ vt[0]
     across = (xy - centre) @ vt[1]
-    width = float(np.ptp(across))
     r = resid[ys, xs]
     ry, rx = np.nonzero(ring)
-    rxy = np.stack([rx, ry], axis=1).astype(np.float64) - centre
-    r_along, r_across = rxy @ vt[0], rxy @ vt[1]
-    near = np.abs(r_across) <= 0.5 * width + reach_px  # flanks of this segment, not of a neighbour
-    r_along, r_across, r_val = r_along[near], r_across[near], resid[ry, rx][near]
+    rxy = coords[ry, rx] - centre
+    r_along, r_across, r_val = rxy @ vt[0], rxy @ vt[1], resid[ry, rx]
     r_order = np.argsort(r_along)
     r_along, r_across, r_val = r_along[r_order], r_across[r_order], r_val[r_order]
-    section = np.rint(along).astype(np.int64)
+    section = np.rint(along / step).astype(np.int64)
     out: list[_Section] = []
     order = np.argsort(section, kind="stable")
     bounds = np.flatnonzero(np.diff(section[order])) + 1
     for idx in np.split(order, bounds):
         if len(idx) < min_px:
             continue
-        s0 = float(section[idx[0]])
-        lo, hi = np.searchsorted(r_along, [s0 - slab_px, s0 + slab_px])
+        s0 = float(section[idx[0]]) * step
+        lo, hi = np.searchsorted(r_along, [s0 - slab, s0 + slab])
         fa, fv = r_across[lo:hi], r_val[lo:hi]
         if (fa < across[idx].min()).sum() < 2 or (fa > across[idx].max()).sum() < 2:
             continue  # a caliper needs ground on both sides
-        slope, inter = np.polyfit(fa, fv, 1)
-        t, h = across[idx], r[idx] - (slope * across[idx] + inter)
+        left, right = int((fa < across[idx].min()).sum()), int((fa > across[idx].max()).sum())
+        deg = flank_degree if min(left, right) >= 3 * flank_degree else 1
+        t, h = across[idx], r[idx] - np.polyval(np.polyfit(fa, fv, deg), across[idx])
         t_c, half = 0.5 * (t.max() + t.min()), 0.5 * float(np.ptp(t))
         top = np.abs(t - t_c) <= 0.6 * half
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
@@ -255,10 +351,14 @@ def _sections(resid: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_
 
 
 def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, F64, F64, float]:
-    """Fit h = H − k·(t − a_c − b_c·s)² to every section's central pixels at once (one H and k;
-    a crest axis a_c + b_c·s per segment c); 4σ (MAD) outliers are dropped once and the fit redone.
-    The standard error of H is a delete-one-block jackknife (blocks of ``block`` consecutive
-    sections in a segment), each block's fit redone, so the shape's own uncertainty counts.
+    """Fit h = H_i − k·(t − a_c − b_c·s)² to every section's central pixels at once: one curvature
+    k and one crest axis a_c + b_c·s per segment c shared by all sections, a crest height H_i per
+    section i. H_i is eliminated in closed form (for a given shape it is the section's mean of
+    h + k·d², linear in the data), so k is set by the curvature *within* sections only: the
+    section-to-section wander of the tissue under the thread does not flatten it. H is the
+    pixel-weighted mean of the H_i. 4σ (MAD) outliers are dropped once and the fit redone. The
+    standard error of H is a delete-one-block jackknife (blocks of ``block`` consecutive sections
+    in a segment), each block's fit redone, so the shape's own uncertainty counts.
 
     Returns (H, k, per-section heights (n,), their weights (n,) = pixels used, standard error of H).
     """
@@ -267,55 +367,69 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
     s_pos = np.concatenate([np.full(len(s.t), s.s0) for s in sections])
     t = np.concatenate([s.t for s in sections])
     h = np.concatenate([s.h for s in sections])
+    n_sec = len(sections)
     n_comp = int(comp.max()) + 1
     s_ref = np.array([s_pos[comp == c].mean() if np.any(comp == c) else 0.0 for c in range(n_comp)])
     ds = s_pos - s_ref[comp]
 
-    def model(x: F64, sel: npt.NDArray[np.bool_]) -> F64:
-        a, b = x[2 : 2 + n_comp], x[2 + n_comp :]
-        d = t[sel] - a[comp[sel]] - b[comp[sel]] * ds[sel]
-        return x[0] - x[1] * d * d
+    def lifted(x: F64) -> F64:
+        """h + k·d²: each pixel's estimate of its section's crest height."""
+        a, b = x[1 : 1 + n_comp], x[1 + n_comp :]
+        d = t - a[comp] - b[comp] * ds
+        return np.asarray(h + x[0] * d * d, np.float64)
+
+    def section_means(values: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, F64]:
+        w = np.bincount(sec[sel], minlength=n_sec).astype(np.float64)
+        tot = np.bincount(sec[sel], weights=values[sel], minlength=n_sec)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return tot / w, w
+
+    def residuals(x: F64, sel: npt.NDArray[np.bool_]) -> F64:
+        lv = lifted(x)
+        mean, _ = section_means(lv, sel)
+        return np.asarray((lv - mean[sec])[sel], np.float64)
 
     # The crest axis stays among the sections' central pixels and the profile curves down: a
     # free axis far to one side with k → 0 would turn the parabola into a tilted line.
     t_lo = np.array([t[comp == c].min() if np.any(comp == c) else -1.0 for c in range(n_comp)])
     t_hi = np.array([t[comp == c].max() if np.any(comp == c) else 1.0 for c in range(n_comp)])
-    lower = np.concatenate([[-np.inf, 0.0], t_lo, np.full(n_comp, -0.5)])
-    upper = np.concatenate([[np.inf, np.inf], t_hi, np.full(n_comp, 0.5)])
+    lower = np.concatenate([[0.0], t_lo, np.full(n_comp, -0.5)])
+    upper = np.concatenate([[np.inf], t_hi, np.full(n_comp, 0.5)])
 
     def solve(x_start: F64, sel: npt.NDArray[np.bool_]) -> F64:
         x_start = np.clip(x_start, np.nextafter(lower, upper), np.nextafter(upper, lower))
-        return np.asarray(least_squares(lambda p: model(p, sel) - h[sel], x_start, bounds=(lower, upper),
+        return np.asarray(least_squares(lambda p: residuals(p, sel), x_start, bounds=(lower, upper),
                                         method="trf", x_scale="jac").x)
 
-    # start: a shared parabola in t about each segment's mean position
+    def height(x: F64, sel: npt.NDArray[np.bool_]) -> float:
+        """Mean of the sections' crest heights, each section one vote: sections are spaced evenly
+        along the feature, so this is its mean height per unit length (pixel weights would favour
+        where the image happens to sample the surface densely)."""
+        mean, w = section_means(lifted(x), sel)
+        return float(mean[w > 0].mean())
+
+    # start: a shared parabola in t about each segment's mean position, sections levelled
     a0 = np.array([t[comp == c].mean() if np.any(comp == c) else 0.0 for c in range(n_comp)])
-    c2, _, c0 = np.polyfit(t - a0[comp], h, 2)
-    x = np.concatenate([[c0, max(-c2, 1e-6)], a0, np.zeros(n_comp)])
+    h_mean, _ = section_means(h, np.ones(len(h), bool))
+    c2, _, _ = np.polyfit(t - a0[comp], h - h_mean[sec], 2)
+    x = np.concatenate([[max(-c2, 1e-6)], a0, np.zeros(n_comp)])
     use = np.ones(len(h), bool)
-    everything = np.ones(len(h), bool)
     for _ in range(2):
         x = solve(x, use)
-        e = h - model(x, everything)
+        lv = lifted(x)
+        mean, _ = section_means(lv, use)
+        e = lv - np.where(np.isfinite(mean), mean, np.nanmean(mean))[sec]
         sigma = 1.4826 * float(np.median(np.abs(e[use])))
         new = np.abs(e) <= max(4.0 * sigma, 1e-9)
-        if np.array_equal(new, use) or new.sum() <= len(x):
+        if np.array_equal(new, use) or new.sum() <= len(x) + n_sec:
             break
         use = new
-    k = float(x[1])
-    lifted = h + (x[0] - model(x, everything))  # h + k·d²: each pixel's estimate of H
-    n = len(sections)
-    per = np.full(n, np.nan)
-    w = np.zeros(n)
-    for i in range(n):
-        m = (sec == i) & use
-        if m.any():
-            per[i] = float(lifted[m].mean())
-            w[i] = float(m.sum())
+    k = float(x[0])
+    per, w = section_means(lifted(x), use)
     keep = w > 0
     # jackknife blocks: consecutive sections of one segment (sections are in order along each)
     sec_comp = np.array([s.comp for s in sections], np.int64)
-    labels = np.zeros(n, np.int64)
+    labels = np.zeros(n_sec, np.int64)
     nxt = 0
     for c in np.unique(sec_comp):
         idx = np.flatnonzero(sec_comp == c)
@@ -323,25 +437,35 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
         nxt = int(labels[idx].max()) + 1
     se = math.nan
     if nxt >= 2:
-        est = np.array([solve(x, use & (labels[sec] != j))[0] for j in range(nxt)])
-        se = float(math.sqrt((nxt - 1) / nxt * np.sum((est - est.mean()) ** 2)))
-    return float(x[0]), k, per[keep], w[keep], se
+        est = []
+        for j in range(nxt):
+            sel = use & (labels[sec] != j)
+            est.append(height(solve(x, sel), sel))
+        e_j = np.array(est)
+        se = float(math.sqrt((nxt - 1) / nxt * np.sum((e_j - e_j.mean()) ** 2)))
+    return height(x, use), k, per[keep], w[keep], se
 
 
-def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
-    """Quadratic surface z(u, v) fitted to ``sel`` pixels with 3σ clipping; (H, W) and RMS."""
-    h, w = z.shape
-    ys, xs = np.nonzero(sel)
-    if len(xs) < 6:
+def _quadratic_basis(coords: F64, sel: npt.NDArray[np.bool_]) -> F64:
+    """(6, H, W) images 1, x, y, x², xy, y² of the section coordinates (pixel or in-plane), centred
+    and scaled over the ``sel`` pixels (NaN where the coordinates are)."""
+    c = coords[sel]
+    centre = c.mean(axis=0)
+    scale = max(float(np.ptp(c[:, 0])), float(np.ptp(c[:, 1])), 1e-12) / 2.0
+    x, y = (coords[..., 0] - centre[0]) / scale, (coords[..., 1] - centre[1]) / scale
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+
+
+def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_], coords: F64) -> tuple[F64, float]:
+    """Quadratic surface in the section coordinates fitted to ``sel`` pixels with 3σ clipping;
+    (H, W) and RMS. In the same coordinates as the sections: an image-space surface subtracted
+    under metric sections would bring back the crest's parallax (its pixel is not above its
+    base point)."""
+    if int(sel.sum()) < 6:
         raise ValueError("depth: too few pixels for a baseline surface")
-    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
-
-    def design(x: F64, y: F64) -> F64:
-        x, y = (x - cx) / s, (y - cy) / s
-        return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
-
-    a = design(xs.astype(np.float64), ys.astype(np.float64))
-    zz = z[ys, xs]
+    basis = _quadratic_basis(coords, sel)
+    a = basis[:, sel].T
+    zz = z[sel]
     keep = np.ones(len(zz), bool)
     for _ in range(5):
         coef, *_ = np.linalg.lstsq(a[keep], zz[keep], rcond=None)
@@ -351,21 +475,19 @@ def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_]) -> tuple[F64, float]:
         if np.array_equal(new, keep):
             break
         keep = new
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    return design(xx, yy) @ coef, float(np.sqrt(np.mean(e[keep] ** 2)))
+    return np.tensordot(coef, basis, axes=1), float(np.sqrt(np.mean(e[keep] ** 2)))
 
 
-def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float) -> tuple[F64, F64]:
+def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms: float,
+                         coords: F64) -> tuple[F64, F64]:
     """Basis images (6, H, W) of :func:`_fit_baseline`'s quadratic and the covariance (6, 6) of its
     coefficients, rms²·(AᵀA)⁻¹ over the pixels it kept (|residual| ≤ 3·rms, as its clipping)."""
-    h, w = z.shape
-    cx, cy, s = w / 2.0, h / 2.0, max(w, h) / 2.0
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    x, y = (xx - cx) / s, (yy - cy) / s
-    basis = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-    kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
+    basis = _quadratic_basis(coords, sel)
+    with np.errstate(invalid="ignore"):
+        kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
     a = basis[:, kept].T
-    return basis, rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+    cov = rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+    return basis, np.asarray(cov, np.float64)
 
 
 def _correlation_factor(resid: F64, sel: npt.NDArray[np.bool_], box: int = 5) -> float:
@@ -402,4 +524,4 @@ def _otsu(values: F64) -> float:
     return lo + (float(t) + 0.5) / 255.0 * (hi - lo)
 
 
-__all__ = ["FeatureHeight", "feature_height"]
+__all__ = ["FeatureHeight", "feature_height", "plane_coordinates"]

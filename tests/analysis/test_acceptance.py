@@ -82,3 +82,42 @@ def test_ninths_on_a_constructed_case():
         ninths_report(_fake_result(depth, valid), truth, (0.0, 20.0), sigma[:10])
     with pytest.raises(ValueError, match="height_range_mm"):
         ninths_report(_fake_result(depth, valid), truth, (5.0, 1.0), sigma)
+
+
+def test_ninths_count_only_the_supported_region_as_inside():
+    """Pixels outside the supported region leave the "inside" figures and are reported apart."""
+    from app.analysis.acceptance import ninths_report, supported_mask, true_phase_rad
+    from app.core.depth_model import SupportedRegion
+    from app.core.schedule import PatternSchedule
+
+    h, w = 90, 120
+    truth = np.full((h, w), 5.0)
+    schedule = PatternSchedule()
+    k, length = schedule.frequencies[-1], schedule.axis_length
+    xp = np.tile(np.linspace(0.0, length - 1.0, w), (h, 1))  # projector column grows with u
+    phase = true_phase_rad(xp, schedule)
+    np.testing.assert_allclose(phase, 2 * np.pi * k * xp / length)
+    hi = float(phase[0, 99])  # the region ends at image column 99 (in the right third)
+    region = SupportedRegion(phase_rad=(-1.0, hi))
+    sup = supported_mask(region, truth, phase)
+    assert sup[:, :100].all() and not sup[:, 100:].any()
+    depth = truth + 0.01
+    valid = np.ones((h, w), bool)
+    valid[:, 100:] = False  # the reconstruction refuses the unsupported columns …
+    valid[:30, 110] = True  # … but for one column of the top right ninth,
+    depth[:30, 110] += 0.7  # which is wrong by more than 0.5 mm
+    res = _fake_result(depth, valid)
+    plain = ninths_report(res, truth, (0.0, 20.0), np.full((h, w), 0.01))
+    assert plain[2]["valid_fraction"] < 0.99 and plain[2]["off_region_pixels"] == 0
+    cells = ninths_report(res, truth, (0.0, 20.0), np.full((h, w), 0.01), supported=sup)
+    for c in cells[2::3]:  # the right column of ninths
+        assert c["pixels"] == 30 * 20 and c["valid_fraction"] == 1.0
+        assert c["off_region_pixels"] == 30 * 20
+    assert cells[2]["off_region_valid"] == 30 and cells[2]["off_region_gross"] == 30
+    assert cells[2]["off_region_max_abs_error_mm"] == pytest.approx(0.71)
+    assert cells[5]["off_region_valid"] == 0 and np.isnan(cells[5]["off_region_max_abs_error_mm"])
+    assert cells[0]["off_region_pixels"] == 0 and cells[0]["pixels"] == 30 * 40
+    with pytest.raises(ValueError, match="supported"):
+        ninths_report(res, truth, (0.0, 20.0), np.full((h, w), 0.01), supported=sup[:, :10])
+    with pytest.raises(ValueError, match="phase_rad"):
+        supported_mask(region, truth, phase[:, :10])

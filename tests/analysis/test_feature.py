@@ -113,3 +113,137 @@ def test_polarity_found_or_given():
         feature_height(depth, tex).height_mm)
     depth, tex, _ = _noisy(0.02, 3, dark=False)
     assert feature_height(depth, tex).polarity == "bright"
+
+
+def _thread_on(base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False):
+    """A thread of ``diameter`` lying on the surface ``base_fn(along_mm, across_mm)``, imaged with
+    pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates, mm."""
+    h, w = 220, 260
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x_mm, y_mm = (xx - 130) * px_mm[0], (yy - 110) * px_mm[1]
+    a = np.radians(angle_deg)
+    t = -x_mm * np.sin(a) + y_mm * np.cos(a)
+    along = x_mm * np.cos(a) + y_mm * np.sin(a)
+    r = diameter / 2
+    on = (np.abs(t) < r) & (np.abs(along) < 3.0)
+    bump = np.where(on, r + np.sqrt(np.clip(r * r - t * t, 0, None)), 0.0)
+    depth = 5.0 + base_fn(along, t) + bump
+    if sigma:
+        depth = depth + np.random.default_rng(seed).normal(0.0, sigma, depth.shape)
+    texture = np.where(on, 200.0, 80.0) + np.random.default_rng(seed + 1).normal(0, 3, depth.shape)
+    return depth, (280.0 - texture) if dark else texture, np.stack([x_mm, y_mm], axis=-1)
+
+
+def test_tissue_curving_under_the_thread():
+    """Tissue whose curvature across the thread changes along it (folds): a line through the flanks
+    misses the tissue under the crest by curvature·gap²/8; the quadratic flank fit follows it."""
+    def folds(s, t):
+        return 0.3 * np.cos(2 * np.pi * s / 3.0) * t * t + 0.05 * t
+    depth, tex, _ = _thread_on(folds)
+    quad = feature_height(depth, tex)
+    line = feature_height(depth, tex, flank_degree=1)
+    assert quad.height_mm == pytest.approx(0.72, abs=0.006)
+    assert quad.height_std_mm < 0.01  # every section reads the same crest over its own tissue
+    assert line.height_std_mm > 2 * quad.height_std_mm  # … where a line's error follows the folds
+
+
+def test_section_offsets_do_not_flatten_the_profile():
+    """Tissue steps along the thread (each section's crest at another height): the profile's
+    curvature comes from within the sections, so it is the thread's (about 1/(2r) on the central
+    part), not flattened by the section-to-section wander."""
+    def steps(s, t):
+        return 0.1 * np.sign(np.sin(2 * np.pi * s / 1.5)) + 0.0 * t
+    depth, tex, coords = _thread_on(steps)
+    res = feature_height(depth, tex, coords_mm=coords)
+    assert res.height_mm == pytest.approx(0.72, abs=0.006)
+    assert res.curvature_per_px2 == pytest.approx(1.0 / 0.72, rel=0.15)  # mm⁻¹ in mm coordinates
+
+
+@pytest.mark.parametrize("px_mm", [(0.025, 0.025), (0.035, 0.02)], ids=["fine", "anisotropic"])
+def test_metric_sections_on_other_pixel_pitches(px_mm):
+    """Another camera (pitch, anisotropic foreshortening): in-plane coordinates give the thread's
+    height and its true curvature; the expectation does not move with noise (dark thread)."""
+    def flat(s, t):
+        return 0.02 * s + 0.03 * t
+    clean = feature_height(*_thread_on(flat, px_mm=px_mm, dark=True)[:2], polarity="dark",
+                           coords_mm=_thread_on(flat, px_mm=px_mm)[2])
+    assert clean.height_mm == pytest.approx(0.72, abs=0.006)
+    assert clean.curvature_per_px2 == pytest.approx(1.0 / 0.72, rel=0.15)
+    h = []
+    for seed in range(8):
+        depth, tex, coords = _thread_on(flat, px_mm=px_mm, sigma=0.06, seed=seed, dark=True)
+        h.append(feature_height(depth, tex, coords_mm=coords).height_mm)
+    se = float(np.std(h, ddof=1) / np.sqrt(len(h)))
+    assert abs(np.mean(h) - clean.height_mm) <= max(3 * se, 0.004)
+
+
+def test_plane_coordinates_keep_distances_on_the_plane():
+    from app.analysis.feature import plane_coordinates
+
+    rng = np.random.default_rng(2)
+    n = np.array([0.2, -0.3, -0.93])
+    n /= np.linalg.norm(n)
+    e = np.cross(n, [1.0, 0.0, 0.0])
+    e /= np.linalg.norm(e)
+    f = np.cross(n, e)
+    uv = rng.uniform(-10, 10, (5, 7, 2))
+    pts = np.array([1.0, 2.0, 40.0]) + uv[..., :1] * e + uv[..., 1:] * f + 3.0 * n  # on a plane ⟂ n
+    c = plane_coordinates(pts, n)
+    d3 = np.linalg.norm(pts[0, 0] - pts, axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(c[0, 0] - c, axis=-1), d3, atol=1e-9)
+    with pytest.raises(ValueError, match="^points"):
+        plane_coordinates(pts[..., :2], n)
+    with pytest.raises(ValueError, match="^normal"):
+        plane_coordinates(pts, [0.0, 0.0, 0.0])
+    depth, tex, coords = _thread_on(lambda s, t: 0.0 * s)
+    with pytest.raises(ValueError, match="^coords_mm"):
+        feature_height(depth, tex, coords_mm=coords[:10])
+    with pytest.raises(ValueError, match="^flank_degree"):
+        feature_height(depth, tex, flank_degree=3)
+
+
+def _oblique_view(slope=0.25, view_deg=30.0, diameter=0.72, px_mm=0.03):
+    """A thread lying along y on tissue sloping across it (z = slope·x), seen by an orthographic
+    camera tilted by ``view_deg`` about the thread's axis: each image column looks along a slanted
+    ray, so the crest's pixel sees the crest, while the tissue *under* the crest is imaged
+    elsewhere (parallax ≈ height·tan(view)). Returns depth (height), texture and the visible
+    points' (x, y) in the surface plane, mm, per pixel (z-buffered: the thread hides tissue)."""
+    r = diameter / 2
+    x = np.linspace(-3.0, 3.0, 60001)
+    cap = np.where(np.abs(x) < r, r + np.sqrt(np.clip(r * r - x * x, 0, None)), 0.0)
+    z = slope * x + cap
+    th = np.radians(view_deg)
+    u = x * np.cos(th) + z * np.sin(th)  # image coordinate across the thread
+    near = -x * np.sin(th) + z * np.cos(th)  # toward the camera
+    cols = np.arange(int((u.min() + 0.3) / px_mm), int((u.max() - 0.3) / px_mm))
+    depth_row, x_row, on_row = [], [], []
+    for c in cols:
+        m = np.abs(u - c * px_mm) <= 0.02 * px_mm  # the samples on (about) this pixel's central ray
+        if not m.any():  # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+            depth_row.append((c * px_mm + r * np.cos(th)) / np.sin(th))
+            x_row.append(-r)
+            on_row.append(True)
+            continue
+        i = np.flatnonzero(m)[np.argmax(near[m])]  # the first surface the ray meets
+        depth_row.append(z[i])
+        x_row.append(x[i])
+        on_row.append(abs(x[i]) < r)
+    rows = 200
+    depth = np.tile(np.array(depth_row), (rows, 1)) + 5.0
+    xs = np.tile(np.array(x_row), (rows, 1))
+    ys = np.tile(np.arange(rows, dtype=np.float64)[:, None] * px_mm, (1, len(cols)))
+    on = np.tile(np.array(on_row), (rows, 1))
+    texture = np.where(on, 200.0, 80.0) + np.random.default_rng(0).normal(0, 3, depth.shape)
+    return depth, texture, np.stack([xs, ys], axis=-1)
+
+
+def test_metric_sections_remove_the_crest_parallax():
+    """Seen obliquely over sloping tissue, image-space sections pair the crest with tissue beside
+    the point under it (error slope·height·tan(view)); in-plane coordinates pair it with its own."""
+    for slope in (0.25, 0.0, -0.25):
+        depth, tex, coords = _oblique_view(slope=slope)
+        metric = feature_height(depth, tex, coords_mm=coords)
+        image = feature_height(depth, tex)
+        assert metric.height_mm == pytest.approx(0.72, abs=0.004), slope
+        # image space: off by about −slope · 0.72 · tan 30° (0.10 mm), right only on level tissue
+        assert image.height_mm - 0.72 == pytest.approx(-slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03), slope
