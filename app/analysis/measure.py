@@ -1,0 +1,660 @@
+"""Measurements in 3-D where the user clicks: length, point-to-line, depth, profile, area.
+
+Pure functions on one result — ``points`` (H, W, 3) float mm (camera frame, NaN invalid),
+``valid`` (H, W) bool and ``sigma`` (H, W) float mm (the per-pixel 1-σ *height* noise,
+``ReconResult.sigma``) — and pixel coordinates ``(u, v)`` (column, row). Each returns a
+:class:`Measurement`: the value in mm and its 1-σ uncertainty, propagated to first order
+from the per-pixel σ.
+
+Noise model (what the uncertainty assumes):
+
+- A pixel's height noise moves its point along the pixel's camera ray: a height change
+  ``dh`` moves ``X`` by ``X / (n·X) · dh`` (``n`` the reference-plane normal, see
+  :mod:`app.recon.points`; without a calibration ``n`` is taken as the optical axis, so the
+  ray's z component moves by ``dh``). The ray's direction comes from the point itself.
+- Noise is independent between pixels (the sensor's shot and read noise is per pixel and
+  the phase of each pixel is computed from that pixel alone). Two clicks share noise only
+  when they are the same pixel; that is accounted for exactly.
+- ``profile`` samples are neighbours: each sample's σ is right on its own, and the
+  samples' errors are correlated through the shared reference points (the chord's ends or
+  the plane's three points), not through each other.
+- ``area`` does not triangulate raw pixels (pixel noise would roughen the surface and
+  inflate the area by ~σ²/pitch²): it triangulates samples of the surface smoothed over a
+  ``window_px`` box, on a ``window_px`` grid inside the polygon plus its edges. Its σ is the
+  exact first-order propagation of every pixel's noise through the box means and the
+  bilinear sampling; the expected second-order inflation from the remaining roughness
+  (E|∇h|²/2 per triangle) is subtracted.
+
+Picking: a click on an invalid pixel snaps to the nearest valid pixel within ``snap_px``
+(reported per point with the distance) or raises ``ValueError`` naming the point and why.
+Every error names the point (1-based, in the order given) and the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+KINDS = ("length", "point_to_line", "depth", "profile", "area")
+#: how many points each kind needs (profile/area: at least)
+MIN_POINTS = {"length": 2, "point_to_line": 3, "depth": 4, "profile": 2, "area": 3}
+EXACT_POINTS = {"length": 2, "point_to_line": 3, "depth": 4}
+
+
+@dataclass(frozen=True)
+class PickedPoint:
+    """One clicked point as measured.
+
+    Attributes:
+        requested: (u, v) as given, pixels.
+        pixel: (u, v) of the pixel used (the nearest valid one if ``snapped``).
+        point_mm: (x, y, z) camera-frame point, mm.
+        sigma_mm: the pixel's 1-σ height noise, mm (NaN if unknown).
+        snapped: the requested pixel was invalid (or not a whole pixel away from ``pixel``).
+        snap_px: distance from the rounded request to ``pixel``, px.
+    """
+
+    requested: tuple[float, float]
+    pixel: tuple[int, int]
+    point_mm: tuple[float, float, float]
+    sigma_mm: float
+    snapped: bool
+    snap_px: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"requested": list(self.requested), "pixel": list(self.pixel),
+                "point_mm": [_j(x) for x in self.point_mm], "sigma_mm": _j(self.sigma_mm),
+                "snapped": self.snapped, "snap_px": round(self.snap_px, 3)}
+
+
+@dataclass(frozen=True)
+class ProfileSamples:
+    """Every pixel along a profile's polyline.
+
+    Attributes:
+        pixels: (n, 2) int (u, v).
+        distance_mm: (n,) position along the reference (chord direction, or the 3-D path
+            length for a plane reference), mm; NaN where the pixel is invalid.
+        height_mm: (n,) signed height over the reference, positive toward the scope, mm; NaN invalid.
+        sigma_mm: (n,) 1-σ of each height, mm (including the reference points' noise).
+    """
+
+    pixels: npt.NDArray[np.int64]
+    distance_mm: F64
+    height_mm: F64
+    sigma_mm: F64
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"pixels": self.pixels.tolist(), "distance_mm": [_j(x) for x in self.distance_mm],
+                "height_mm": [_j(x) for x in self.height_mm], "sigma_mm": [_j(x) for x in self.sigma_mm]}
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A measurement with its 1-σ uncertainty.
+
+    Attributes:
+        kind: one of :data:`KINDS`.
+        value_mm: the value (mm; area in mm²). ``profile``: the height farthest from the
+            reference (signed). ``depth``: signed, positive toward the scope.
+        sigma_mm: 1-σ of ``value_mm`` (mm; mm² for area), NaN if σ is unknown.
+        points: the picked points, in the order given (a profile's reference points last).
+        profile: the samples (``profile`` only).
+        extra: kind-specific figures (e.g. the area's raw value and roughness correction).
+    """
+
+    kind: str
+    value_mm: float
+    sigma_mm: float
+    points: list[PickedPoint]
+    profile: ProfileSamples | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"kind": self.kind, "value_mm": _j(self.value_mm), "sigma_mm": _j(self.sigma_mm),
+                               "unit": "mm2" if self.kind == "area" else "mm",
+                               "points": [p.to_dict() for p in self.points],
+                               "snapped": any(p.snapped for p in self.points), "extra": self.extra}
+        if self.profile is not None:
+            out["profile"] = self.profile.to_dict()
+        return out
+
+
+def _j(x: float) -> float | None:
+    """JSON has no NaN: undefined figures are None."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+# -- inputs ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Surface:
+    points: F64  # (H, W, 3)
+    valid: npt.NDArray[np.bool_]
+    sigma: F64  # (H, W), 0 where unknown/invalid
+    sigma_known: bool
+    normal: F64  # (3,) reference-plane normal (noise direction X/(n·X))
+    reason: npt.NDArray[np.uint8] | None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.valid.shape[0]), int(self.valid.shape[1]))
+
+
+def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None) -> _Surface:
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        raise ValueError(f"points: expected (H, W, 3), got {pts.shape}")
+    ok = np.asarray(valid, bool)
+    if ok.shape != pts.shape[:2]:
+        raise ValueError(f"valid: shape {ok.shape} does not match points {pts.shape[:2]}")
+    ok = ok & np.all(np.isfinite(pts), axis=-1)
+    known = sigma is not None
+    if sigma is None:
+        sig = np.zeros(ok.shape)
+    else:
+        sig = np.asarray(sigma, np.float64)
+        if sig.shape != ok.shape:
+            raise ValueError(f"sigma: shape {sig.shape} does not match points {pts.shape[:2]}")
+        if np.any(sig[ok] < 0):
+            raise ValueError("sigma: negative values")
+        known = bool(np.all(np.isfinite(sig[ok])))
+        sig = np.where(ok & np.isfinite(sig), sig, 0.0)
+    n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64).ravel()
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
+        raise ValueError(f"plane_normal: need 3 finite values, not all zero, got {n!r}")
+    r = None if reason is None else np.asarray(reason, np.uint8)
+    if r is not None and r.shape != ok.shape:
+        raise ValueError(f"reason: shape {r.shape} does not match points {pts.shape[:2]}")
+    return _Surface(pts, ok, sig, known, n / np.linalg.norm(n), r)
+
+
+def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
+    px = np.asarray(pixels, np.float64)
+    if px.ndim != 2 or px.shape[1] != 2:
+        raise ValueError(f"{what}: expected a list of (u, v) pixel coordinates, got shape {px.shape}")
+    for i, (u, v) in enumerate(px):
+        if not (math.isfinite(u) and math.isfinite(v)):
+            raise ValueError(f"{what}: point {i + 1} ({u}, {v}) is not finite")
+    return px
+
+
+def _why(surf: _Surface, u: int, v: int) -> str:
+    if surf.reason is not None and int(surf.reason[v, u]) != 0:
+        from app.core.reasons import Reason
+
+        try:
+            return f"invalid pixel ({Reason(int(surf.reason[v, u])).name})"
+        except ValueError:
+            pass
+    return "invalid pixel"
+
+
+def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> PickedPoint:
+    """The valid pixel for a click at (u, v), snapping within ``snap_px`` (ValueError naming ``label``)."""
+    h, w = surf.shape
+    if not (-0.5 <= u < w - 0.5 and -0.5 <= v < h - 0.5):
+        raise ValueError(f"{label} ({u:g}, {v:g}): outside the {w}x{h} image")
+    iu, iv = int(round(u)), int(round(v))
+    if surf.valid[iv, iu]:
+        pu, pv, dist = iu, iv, 0.0
+    else:
+        r = int(math.floor(snap_px))
+        u0, u1, v0, v1 = max(0, iu - r), min(w, iu + r + 1), max(0, iv - r), min(h, iv + r + 1)
+        vv, uu = np.nonzero(surf.valid[v0:v1, u0:u1])
+        d2 = (uu + u0 - iu) ** 2 + (vv + v0 - iv) ** 2
+        near = d2 <= snap_px**2
+        if r < 1 or not np.any(near):
+            raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} and no valid pixel within "
+                             f"{snap_px:g} px")
+        k = int(np.flatnonzero(near)[np.argmin(d2[near])])
+        pu, pv, dist = int(uu[k] + u0), int(vv[k] + v0), float(math.sqrt(d2[k]))
+    x = surf.points[pv, pu]
+    return PickedPoint((float(u), float(v)), (pu, pv), (float(x[0]), float(x[1]), float(x[2])),
+                       float(surf.sigma[pv, pu]) if surf.sigma_known else math.nan, dist > 0, dist)
+
+
+def _direction(surf: _Surface, x: F64) -> F64:
+    """Displacement of point(s) ``x`` (..., 3) per unit height change: X / (n·X)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(x / (x @ surf.normal)[..., None], np.float64)
+
+
+def _propagate(f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Sequence[Any]) -> float:
+    """1-σ of f(points) for independent height noise per distinct pixel id (first order, central differences)."""
+    grads: dict[Any, float] = {}
+    scale = max(1e-6, float(np.max(np.abs(pts))) * 1e-7)
+    for i in range(len(pts)):
+        step = scale * 10.0
+        p1, p2 = pts.copy(), pts.copy()
+        p1[i] += step * dirs[i]
+        p2[i] -= step * dirs[i]
+        g = (f(p1) - f(p2)) / (2 * step)
+        grads[ids[i]] = grads.get(ids[i], 0.0) + g * sig[i]
+    return float(math.sqrt(sum(g * g for g in grads.values())))
+
+
+def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
+    return [pick(surf, float(u), float(v), snap_px, f"point {first + i}") for i, (u, v) in enumerate(pixels)]
+
+
+def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
+    pts = np.array([p.point_mm for p in picks], np.float64)
+    sig = np.array([surf.sigma[p.pixel[1], p.pixel[0]] for p in picks], np.float64)
+    return pts, _direction(surf, pts), sig, [p.pixel for p in picks]
+
+
+def _count(kind: str, px: F64) -> None:
+    need = MIN_POINTS[kind]
+    exact = EXACT_POINTS.get(kind)
+    if exact is not None and len(px) != exact:
+        raise ValueError(f"{kind}: needs exactly {exact} points, got {len(px)}")
+    if len(px) < need:
+        raise ValueError(f"{kind}: needs at least {need} points, got {len(px)}")
+
+
+def _sigma_or_nan(surf: _Surface, s: float) -> float:
+    return s if surf.sigma_known else math.nan
+
+
+# -- the five measurements -------------------------------------------------------------------------
+def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+           pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
+           plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """3-D distance between two clicked pixels.
+
+    Args:
+        points: (H, W, 3) camera-frame points, mm, NaN invalid.
+        valid: (H, W) bool.
+        sigma: (H, W) per-pixel 1-σ height noise, mm (None: σ unknown, reported NaN).
+        pixels: two (u, v) pixel coordinates.
+        snap_px: an invalid click snaps to the nearest valid pixel within this radius, px.
+        plane_normal: (3,) reference-plane normal (the direction height noise is measured
+            along); None: the optical axis.
+        reason: optional (H, W) uint8 reason codes, to name why a click is invalid.
+
+    Returns:
+        :class:`Measurement`, value and σ in mm.
+    """
+    surf = _surface(points, valid, sigma, plane_normal, reason)
+    px = _pixels(pixels)
+    _count("length", px)
+    picks = _picks(surf, px, snap_px)
+    if picks[0].pixel == picks[1].pixel:
+        raise ValueError(f"point 2 {picks[1].pixel}: same pixel as point 1; a length needs two distinct points")
+    pts, dirs, sig, ids = _arrays(surf, picks)
+
+    def f(p: F64) -> float:
+        return float(np.linalg.norm(p[1] - p[0]))
+
+    return Measurement("length", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+
+
+def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+                  pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
+                  plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """Distance (mm, ≥ 0) of point 1 from the 3-D line through points 2 and 3.
+
+    Arguments as :func:`length`, with three pixels: the point, then two on the line.
+    """
+    surf = _surface(points, valid, sigma, plane_normal, reason)
+    px = _pixels(pixels)
+    _count("point_to_line", px)
+    picks = _picks(surf, px, snap_px)
+    pts, dirs, sig, ids = _arrays(surf, picks)
+    if np.linalg.norm(pts[2] - pts[1]) < 1e-6:
+        raise ValueError(f"points 2 and 3 {picks[1].pixel}, {picks[2].pixel}: coincide; they do not define a line")
+
+    def f(p: F64) -> float:
+        d = p[2] - p[1]
+        return float(np.linalg.norm(np.cross(p[0] - p[1], d)) / np.linalg.norm(d))
+
+    return Measurement("point_to_line", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+
+
+def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
+    """Unit normal of the plane through three points, oriented toward the camera (origin)."""
+    n = np.cross(p2 - p1, p3 - p1)
+    n = n / np.linalg.norm(n)
+    return -n if float(n @ p1) > 0 else n
+
+
+def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
+    a, b, c = pts
+    ab, ac = b - a, c - a
+    cross = float(np.linalg.norm(np.cross(ab, ac)))
+    scale = float(np.linalg.norm(ab) * np.linalg.norm(ac))
+    if scale < 1e-12 or cross < 1e-3 * scale:  # sin(angle) < 1e-3: collinear or coincident
+        names = ", ".join(f"{first + i} {p.pixel}" for i, p in enumerate(picks))
+        raise ValueError(f"points {names}: collinear or coincident; they do not define a plane")
+
+
+def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+          pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
+          plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """Signed distance (mm) of point 1 from the plane through points 2, 3, 4.
+
+    Positive toward the scope (above the reference, as heights in the depth map); a pit
+    below the plane reads negative. Arguments as :func:`length`, with four pixels.
+    """
+    surf = _surface(points, valid, sigma, plane_normal, reason)
+    px = _pixels(pixels)
+    _count("depth", px)
+    picks = _picks(surf, px, snap_px)
+    pts, dirs, sig, ids = _arrays(surf, picks)
+    _check_plane(pts[1:], picks[1:], 2)
+
+    def f(p: F64) -> float:
+        return float((p[0] - p[1]) @ _plane_normal(p[1], p[2], p[3]))
+
+    return Measurement("depth", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+
+
+def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
+    """Every pixel along a polyline (u, v): one sample per pixel step along each segment, no repeats."""
+    out: list[tuple[int, int]] = []
+    for (u0, v0), (u1, v1) in zip(vertices[:-1], vertices[1:], strict=True):
+        n = max(1, int(math.ceil(max(abs(u1 - u0), abs(v1 - v0)))))
+        t = np.arange(n + 1) / n
+        for u, v in zip(np.rint(u0 + t * (u1 - u0)).astype(int), np.rint(v0 + t * (v1 - v0)).astype(int),
+                        strict=True):
+            if not out or out[-1] != (u, v):
+                out.append((int(u), int(v)))
+    return np.array(out, np.int64).reshape(-1, 2)
+
+
+def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
+            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
+            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
+
+    Without ``reference`` the heights are distances from the 3-D chord between the
+    polyline's first and last points, measured in the plane of the chord and the viewing
+    direction (positive toward the scope); ``distance_mm`` runs along the chord. With
+    ``reference`` (three pixels) they are signed distances from that plane (positive toward
+    the scope) and ``distance_mm`` is the 3-D path length along the valid samples.
+
+    Invalid pixels along the way are NaN in the samples (a gap), not snapped; the
+    polyline's vertices and the reference points are picked (snapped) like other clicks.
+    ``value_mm`` is the height of the sample farthest from the reference, its ``sigma_mm``
+    that sample's σ (the σ of a single height, not of a maximum over noisy samples).
+
+    Args:
+        pixels: the polyline's vertices, ≥ 2 (u, v).
+        reference: None, or three (u, v) pixels spanning the reference plane.
+        others: as :func:`length`.
+    """
+    surf = _surface(points, valid, sigma, plane_normal, reason)
+    px = _pixels(pixels)
+    _count("profile", px)
+    picks = _picks(surf, px, snap_px)
+    ref_picks: list[PickedPoint] = []
+    if reference is not None:
+        rp = _pixels(reference, "reference")
+        if len(rp) != 3:
+            raise ValueError(f"reference: needs exactly 3 points for a plane, got {len(rp)}")
+        ref_picks = _picks(surf, rp, snap_px, first=len(px) + 1)
+    verts = np.array([p.pixel for p in picks], np.float64)
+    samples = polyline_pixels(verts)
+    if len(samples) < 2:
+        raise ValueError("points: the polyline's vertices are all the same pixel")
+    su, sv = samples[:, 0], samples[:, 1]
+    ok = surf.valid[sv, su]
+    sp = surf.points[sv, su]
+    ssig = surf.sigma[sv, su]
+    sdir = _direction(surf, np.where(ok[:, None], sp, 0.0))
+    if reference is None:
+        ref_list = [picks[0], picks[-1]]
+        rpts, rdir, rsig, rids = _arrays(surf, ref_list)
+        if np.linalg.norm(rpts[1] - rpts[0]) < 1e-6:
+            raise ValueError(f"points 1 and {len(px)}: the chord's ends coincide")
+
+        def heights(p: F64, r: F64) -> tuple[F64, F64]:
+            a, b = r[0], r[1]
+            c = (b - a) / np.linalg.norm(b - a)
+            view = -(a + b) / 2.0  # toward the camera from the chord's middle
+            up = view - (view @ c) * c
+            up = up / np.linalg.norm(up)
+            return (p - a) @ up, (p - a) @ c
+    else:
+        rpts, rdir, rsig, rids = _arrays(surf, ref_picks)
+        _check_plane(rpts, ref_picks, len(px) + 1)
+
+        def heights(p: F64, r: F64) -> tuple[F64, F64]:
+            n = _plane_normal(r[0], r[1], r[2])
+            return (p - r[0]) @ n, np.zeros(len(p))
+
+    h, dist = heights(sp, rpts)
+    if reference is not None:  # path length along the valid samples
+        step = np.zeros(len(sp))
+        good = np.flatnonzero(ok)
+        if len(good) > 1:
+            step[good[1:]] = np.linalg.norm(np.diff(sp[good], axis=0), axis=1)
+        dist = np.cumsum(step)
+    # first-order σ per sample: its own pixel plus the reference points (merged where they are the same pixel)
+    eps = max(1e-6, float(np.nanmax(np.abs(sp[ok]))) * 1e-6) if ok.any() else 1e-6
+    g_self = (heights(sp + eps * sdir, rpts)[0] - heights(sp - eps * sdir, rpts)[0]) / (2 * eps)
+    g_ref = []
+    for j in range(len(rpts)):
+        r1, r2 = rpts.copy(), rpts.copy()
+        r1[j] += eps * rdir[j]
+        r2[j] -= eps * rdir[j]
+        g_ref.append((heights(sp, r1)[0] - heights(sp, r2)[0]) / (2 * eps))
+    contrib = {"self": g_self * ssig}
+    var = np.zeros(len(sp))
+    for j, (pu, pv) in enumerate(rids):
+        same = (su == pu) & (sv == pv)
+        g = g_ref[j] * rsig[j]
+        contrib["self"] = np.where(same, contrib["self"] + g, contrib["self"])
+        var += np.where(same, 0.0, g**2)
+    var += contrib["self"] ** 2
+    s = np.where(ok, np.sqrt(var), np.nan) if surf.sigma_known else np.full(len(sp), np.nan)
+    h = np.where(ok, h, np.nan)
+    dist = np.where(ok, dist, np.nan)
+    if not ok.any():
+        raise ValueError("points: no valid pixel along the polyline")
+    k = int(np.nanargmax(np.abs(h)))
+    samples_out = ProfileSamples(samples, dist, h, s)
+    extra = {"reference": "chord" if reference is None else "plane", "samples": int(len(samples)),
+             "valid_samples": int(ok.sum()), "at_pixel": [int(su[k]), int(sv[k])]}
+    return Measurement("profile", float(h[k]), float(s[k]), picks + ref_picks, samples_out, extra)
+
+
+# -- area ------------------------------------------------------------------------------------------
+def _inside(poly: F64, u: F64, v: F64) -> npt.NDArray[np.bool_]:
+    """Even-odd point-in-polygon test, vectorised over the query points."""
+    inside = np.zeros(u.shape, bool)
+    x1, y1 = poly[-1]
+    for x2, y2 in poly:
+        crosses = (y1 > v) != (y2 > v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = x1 + (v - y1) * (x2 - x1) / (y2 - y1)
+        inside ^= crosses & (u < xc)
+        x1, y1 = x2, y2
+    return inside
+
+
+def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
+    def orient(p: F64, q: F64, r: F64) -> float:
+        return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+
+    return (orient(a, b, c) * orient(a, b, d) < 0) and (orient(c, d, a) * orient(c, d, b) < 0)
+
+
+def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+         pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5, snap_px: float = 3.0,
+         plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
+
+    The surface, smoothed by a ``window_px`` box mean of the valid points, is sampled on a
+    ``window_px`` grid inside the polygon and every ``window_px`` along its edges, the
+    samples are triangulated (Delaunay in the image, triangles outside a concave polygon
+    dropped) and the 3-D triangle areas summed. σ is the first-order propagation of every
+    pixel's height noise; the expected area inflation from the smoothed surface's residual
+    roughness is subtracted (``extra.roughness_correction_mm2``).
+
+    Args:
+        pixels: the polygon's vertices, ≥ 3 (u, v), not self-intersecting.
+        window_px: smoothing box and sampling step, px (odd, ≥ 1).
+        others: as :func:`length`.
+    """
+    from scipy.spatial import Delaunay
+
+    surf = _surface(points, valid, sigma, plane_normal, reason)
+    px = _pixels(pixels)
+    _count("area", px)
+    if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
+        raise ValueError(f"window_px: need an odd integer >= 1, got {window_px!r}")
+    picks = _picks(surf, px, snap_px)
+    # sub-pixel vertices as clicked; a snapped vertex moves to its valid pixel
+    poly = np.array([p.pixel if p.snapped else p.requested for p in picks], np.float64)
+    m = len(poly)
+    for i in range(m):
+        for j in range(i + 1, m):
+            if j == i + 1 or (i == 0 and j == m - 1):
+                continue
+            if _segments_cross(poly[i], poly[(i + 1) % m], poly[j], poly[(j + 1) % m]):
+                raise ValueError(f"points: the polygon's edges {i + 1}-{(i + 1) % m + 1} and {j + 1}-{(j + 1) % m + 1} "
+                                 "cross")
+    signed = 0.5 * float(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
+    if abs(signed) < 1.0:
+        raise ValueError("points: the polygon encloses less than one pixel (collinear or coincident vertices)")
+    h, w = surf.shape
+    half = window_px // 2
+    u_lo, v_lo = int(poly[:, 0].min()) - half - 1, int(poly[:, 1].min()) - half - 1
+    u_hi, v_hi = int(math.ceil(poly[:, 0].max())) + half + 2, int(math.ceil(poly[:, 1].max())) + half + 2
+    bu0, bv0, bu1, bv1 = max(0, u_lo), max(0, v_lo), min(w, u_hi), min(h, v_hi)
+    # box means over the bounding box (+ margin): sums via an integral image
+    okb = surf.valid[bv0:bv1, bu0:bu1]
+    pb = np.where(okb[..., None], surf.points[bv0:bv1, bu0:bu1], 0.0)
+    cnt = _box_sum(okb.astype(np.float64), half)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = _box_sum(pb, half) / cnt[..., None]
+    # samples: interior grid + edges
+    step = float(window_px)
+    gu = np.arange(math.ceil(poly[:, 0].min() / step) * step, poly[:, 0].max() + 1e-9, step)
+    gv = np.arange(math.ceil(poly[:, 1].min() / step) * step, poly[:, 1].max() + 1e-9, step)
+    grid_u, grid_v = np.meshgrid(gu, gv)
+    uu, vv = grid_u.ravel(), grid_v.ravel()
+    keep = _inside(poly, uu, vv)
+    edge: list[tuple[float, float]] = []
+    for i in range(m):
+        a, b = poly[i], poly[(i + 1) % m]
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+        for t in np.arange(n) / n:
+            edge.append((float(a[0] + t * (b[0] - a[0])), float(a[1] + t * (b[1] - a[1]))))
+    e = np.array(edge)
+    # interior samples too close to the edge make slivers: drop those within step/2 of an edge sample
+    su, sv = uu[keep], vv[keep]
+    if len(su):
+        d2 = ((su[:, None] - e[None, :, 0]) ** 2 + (sv[:, None] - e[None, :, 1]) ** 2).min(axis=1)
+        su, sv = su[d2 > (0.5 * step) ** 2], sv[d2 > (0.5 * step) ** 2]
+    su = np.concatenate([e[:, 0], su])
+    sv = np.concatenate([e[:, 1], sv])
+    # bilinear sampling of the smoothed surface; the weight of every pixel in every sample
+    lu, lv = su - bu0, sv - bv0
+    iu0 = np.clip(np.floor(lu).astype(int), 0, bu1 - bu0 - 2)
+    iv0 = np.clip(np.floor(lv).astype(int), 0, bv1 - bv0 - 2)
+    fu, fv = lu - iu0, lv - iv0
+    corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)]
+    X = np.zeros((len(su), 3))
+    for du, dv, wgt in corners:
+        c = cnt[iv0 + dv, iu0 + du]
+        bad = (wgt > 1e-12) & ~(c > 0)
+        if np.any(bad):
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"points: the polygon covers invalid surface near pixel ({su[k]:.0f}, {sv[k]:.0f}) "
+                             f"(no valid pixel within {half} px)")
+        X += wgt[:, None] * np.nan_to_num(smooth[iv0 + dv, iu0 + du])
+    tri = Delaunay(np.column_stack([su, sv]))
+    simp = tri.simplices
+    cu, cv = su[simp].mean(axis=1), sv[simp].mean(axis=1)
+    simp = simp[_inside(poly, cu, cv)]
+    a_, b_, c_ = X[simp[:, 0]], X[simp[:, 1]], X[simp[:, 2]]
+    cross = np.cross(b_ - a_, c_ - a_)
+    norm = np.linalg.norm(cross, axis=1)
+    raw = 0.5 * float(norm.sum())
+    # gradient of the area with respect to each sample's position: ∂A_t/∂a = ½ n̂ × (c − b), cyclic
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nh = np.where(norm[:, None] > 0, cross / norm[:, None], 0.0)
+    grad = np.zeros_like(X)
+    for k, (p, q) in enumerate(((1, 2), (2, 0), (0, 1))):
+        g = 0.5 * np.cross(nh, X[simp[:, q]] - X[simp[:, p]])
+        np.add.at(grad, simp[:, k], g)
+    dirs = _direction(surf, X)
+    coef = np.einsum("ij,ij->i", grad, dirs)  # ∂A/∂(height noise of sample i)
+    # spread each sample's coefficient over the pixels of its box means: c_p = Σ_i coef_i w_ip
+    cimg = np.zeros(cnt.shape)
+    for du, dv, wgt in corners:
+        ci, cj = iv0 + dv, iu0 + du
+        share = coef * wgt / np.maximum(cnt[ci, cj], 1.0)
+        for oy in range(-half, half + 1):
+            for ox in range(-half, half + 1):
+                y, x = ci + oy, cj + ox
+                inb = (y >= 0) & (y < cnt.shape[0]) & (x >= 0) & (x < cnt.shape[1])
+                np.add.at(cimg, (y[inb], x[inb]), share[inb])
+    sig_b = surf.sigma[bv0:bv1, bu0:bu1]
+    sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
+    # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
+    var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
+    var_s = np.zeros(len(su))
+    for du, dv, wgt in corners:
+        var_s += wgt**2 * var_box[iv0 + dv, iu0 + du]
+    # roughness inflation: E[ΔA_t] = A_t · E|∇h_n|² / 2, h_n the noise's normal component
+    a_vec, b_vec = b_ - a_, c_ - a_
+    gmat = np.stack([np.stack([np.einsum("ij,ij->i", a_vec, a_vec), np.einsum("ij,ij->i", a_vec, b_vec)], -1),
+                     np.stack([np.einsum("ij,ij->i", a_vec, b_vec), np.einsum("ij,ij->i", b_vec, b_vec)], -1)], -2)
+    vn = var_s[simp] * np.einsum("tkj,tj->tk", dirs[simp], nh) ** 2  # (T, 3) normal-component variances
+    cov = np.stack([np.stack([vn[:, 1] + vn[:, 0], vn[:, 0]], -1), np.stack([vn[:, 0], vn[:, 2] + vn[:, 0]], -1)], -2)
+    good = norm > 0
+    corr = 0.0
+    if np.any(good):
+        tr = np.einsum("tij,tji->t", np.linalg.inv(gmat[good]), cov[good])
+        corr = float(np.sum(0.5 * norm[good] * tr / 2.0))
+    value = raw - (corr if surf.sigma_known else 0.0)
+    extra = {"raw_mm2": raw, "roughness_correction_mm2": corr if surf.sigma_known else None,
+             "samples": int(len(su)), "triangles": int(len(simp)), "window_px": int(window_px),
+             "projected_px2": abs(signed)}
+    return Measurement("area", value, _sigma_or_nan(surf, sigma_a), picks, None, extra)
+
+
+def _box_sum(a: F64, half: int) -> F64:
+    """Sum over the (2·half+1)² box around each pixel (clipped at the borders), via an integral image."""
+    h, w = a.shape[:2]
+    pad = np.zeros((h + 1, w + 1) + a.shape[2:])
+    pad[1:, 1:] = np.cumsum(np.cumsum(a, axis=0), axis=1)
+    y0 = np.clip(np.arange(h) - half, 0, h)
+    y1 = np.clip(np.arange(h) + half + 1, 0, h)
+    x0 = np.clip(np.arange(w) - half, 0, w)
+    x1 = np.clip(np.arange(w) + half + 1, 0, w)
+    return np.asarray(pad[y1][:, x1] - pad[y0][:, x1] - pad[y1][:, x0] + pad[y0][:, x0], np.float64)
+
+
+# -- dispatch --------------------------------------------------------------------------------------
+Kind = Literal["length", "point_to_line", "depth", "profile", "area"]
+
+
+def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
+            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
+            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
+            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+    """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``."""
+    if kind not in KINDS:
+        raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+    if not (math.isfinite(snap_px) and snap_px >= 0):
+        raise ValueError(f"snap_px: need a finite value >= 0, got {snap_px}")
+    if reference is not None and kind != "profile":
+        raise ValueError(f"reference: only a profile takes reference points, not {kind}")
+    kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason}
+    if kind == "profile":
+        return profile(points, valid, sigma, pixels, reference=reference, **kw)
+    fn = {"length": length, "point_to_line": point_to_line, "depth": depth, "area": area}[kind]
+    return fn(points, valid, sigma, pixels, **kw)  # type: ignore[operator]
