@@ -135,45 +135,50 @@ def _j(x: float) -> float | None:
 # -- inputs ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class _Surface:
-    points: F64  # (H, W, 3)
+    """The result's arrays as given (no whole-image copies: a click must answer in milliseconds)."""
+
+    points: npt.NDArray[Any]  # (H, W, 3)
     valid: npt.NDArray[np.bool_]
-    sigma: F64  # (H, W), 0 where unknown/invalid
-    sigma_known: bool
+    sigma: npt.NDArray[Any] | None  # (H, W) or None (unknown)
     normal: F64  # (3,) reference-plane normal (noise direction X/(n·X))
-    reason: npt.NDArray[np.uint8] | None
+    reason: npt.NDArray[Any] | None
 
     @property
     def shape(self) -> tuple[int, int]:
         return (int(self.valid.shape[0]), int(self.valid.shape[1]))
 
+    def ok(self, rows: Any, cols: Any) -> npt.NDArray[np.bool_]:
+        """Valid with a finite point, at ``[rows, cols]`` (indices or slices)."""
+        return np.asarray(self.valid[rows, cols] & np.all(np.isfinite(self.points[rows, cols]), axis=-1))
+
+    def pts(self, rows: Any, cols: Any) -> F64:
+        return np.asarray(self.points[rows, cols], np.float64)
+
+    def sig(self, rows: Any, cols: Any) -> F64:
+        """σ at ``[rows, cols]``, mm (NaN where unknown: it propagates into the result's σ)."""
+        if self.sigma is None:
+            return np.full(np.shape(self.valid[rows, cols]), np.nan)
+        return np.asarray(self.sigma[rows, cols], np.float64)
+
 
 def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
              plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None) -> _Surface:
-    pts = np.asarray(points, np.float64)
-    if pts.ndim != 3 or pts.shape[2] != 3:
-        raise ValueError(f"points: expected (H, W, 3), got {pts.shape}")
-    ok = np.asarray(valid, bool)
-    if ok.shape != pts.shape[:2]:
-        raise ValueError(f"valid: shape {ok.shape} does not match points {pts.shape[:2]}")
-    ok = ok & np.all(np.isfinite(pts), axis=-1)
-    known = sigma is not None
-    if sigma is None:
-        sig = np.zeros(ok.shape)
-    else:
-        sig = np.asarray(sigma, np.float64)
-        if sig.shape != ok.shape:
-            raise ValueError(f"sigma: shape {sig.shape} does not match points {pts.shape[:2]}")
-        if np.any(sig[ok] < 0):
-            raise ValueError("sigma: negative values")
-        known = bool(np.all(np.isfinite(sig[ok])))
-        sig = np.where(ok & np.isfinite(sig), sig, 0.0)
+    pts = np.asarray(points)
+    if pts.ndim != 3 or pts.shape[2] != 3 or not np.issubdtype(pts.dtype, np.floating):
+        raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
+    ok = np.asarray(valid)
+    if ok.shape != pts.shape[:2] or ok.dtype != np.bool_:
+        raise ValueError(f"valid: need a bool array of shape {pts.shape[:2]}, got {ok.dtype} {ok.shape}")
+    sig = None if sigma is None else np.asarray(sigma)
+    if sig is not None and sig.shape != ok.shape:
+        raise ValueError(f"sigma: shape {sig.shape} does not match points {pts.shape[:2]}")
     n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64).ravel()
     if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
         raise ValueError(f"plane_normal: need 3 finite values, not all zero, got {n!r}")
-    r = None if reason is None else np.asarray(reason, np.uint8)
+    r = None if reason is None else np.asarray(reason)
     if r is not None and r.shape != ok.shape:
         raise ValueError(f"reason: shape {r.shape} does not match points {pts.shape[:2]}")
-    return _Surface(pts, ok, sig, known, n / np.linalg.norm(n), r)
+    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r)
 
 
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
@@ -203,12 +208,12 @@ def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> Pick
     if not (-0.5 <= u < w - 0.5 and -0.5 <= v < h - 0.5):
         raise ValueError(f"{label} ({u:g}, {v:g}): outside the {w}x{h} image")
     iu, iv = int(round(u)), int(round(v))
-    if surf.valid[iv, iu]:
+    if surf.ok(iv, iu):
         pu, pv, dist = iu, iv, 0.0
     else:
         r = int(math.floor(snap_px))
         u0, u1, v0, v1 = max(0, iu - r), min(w, iu + r + 1), max(0, iv - r), min(h, iv + r + 1)
-        vv, uu = np.nonzero(surf.valid[v0:v1, u0:u1])
+        vv, uu = np.nonzero(surf.ok(slice(v0, v1), slice(u0, u1)))
         d2 = (uu + u0 - iu) ** 2 + (vv + v0 - iv) ** 2
         near = d2 <= snap_px**2
         if r < 1 or not np.any(near):
@@ -216,9 +221,9 @@ def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> Pick
                              f"{snap_px:g} px")
         k = int(np.flatnonzero(near)[np.argmin(d2[near])])
         pu, pv, dist = int(uu[k] + u0), int(vv[k] + v0), float(math.sqrt(d2[k]))
-    x = surf.points[pv, pu]
+    x = surf.pts(pv, pu)
     return PickedPoint((float(u), float(v)), (pu, pv), (float(x[0]), float(x[1]), float(x[2])),
-                       float(surf.sigma[pv, pu]) if surf.sigma_known else math.nan, dist > 0, dist)
+                       float(surf.sig(pv, pu)), dist > 0, dist)
 
 
 def _direction(surf: _Surface, x: F64) -> F64:
@@ -247,7 +252,7 @@ def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[
 
 def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
     pts = np.array([p.point_mm for p in picks], np.float64)
-    sig = np.array([surf.sigma[p.pixel[1], p.pixel[0]] for p in picks], np.float64)
+    sig = np.array([p.sigma_mm for p in picks], np.float64)
     return pts, _direction(surf, pts), sig, [p.pixel for p in picks]
 
 
@@ -258,10 +263,6 @@ def _count(kind: str, px: F64) -> None:
         raise ValueError(f"{kind}: needs exactly {exact} points, got {len(px)}")
     if len(px) < need:
         raise ValueError(f"{kind}: needs at least {need} points, got {len(px)}")
-
-
-def _sigma_or_nan(surf: _Surface, s: float) -> float:
-    return s if surf.sigma_known else math.nan
 
 
 # -- the five measurements -------------------------------------------------------------------------
@@ -294,7 +295,7 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     def f(p: F64) -> float:
         return float(np.linalg.norm(p[1] - p[0]))
 
-    return Measurement("length", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+    return Measurement("length", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
 
 
 def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
@@ -316,7 +317,7 @@ def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayL
         d = p[2] - p[1]
         return float(np.linalg.norm(np.cross(p[0] - p[1], d)) / np.linalg.norm(d))
 
-    return Measurement("point_to_line", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+    return Measurement("point_to_line", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
 
 
 def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
@@ -354,7 +355,7 @@ def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | No
     def f(p: F64) -> float:
         return float((p[0] - p[1]) @ _plane_normal(p[1], p[2], p[3]))
 
-    return Measurement("depth", f(pts), _sigma_or_nan(surf, _propagate(f, pts, dirs, sig, ids)), picks)
+    return Measurement("depth", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
 
 
 def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
@@ -407,9 +408,9 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     if len(samples) < 2:
         raise ValueError("points: the polyline's vertices are all the same pixel")
     su, sv = samples[:, 0], samples[:, 1]
-    ok = surf.valid[sv, su]
-    sp = surf.points[sv, su]
-    ssig = surf.sigma[sv, su]
+    ok = surf.ok(sv, su)
+    sp = surf.pts(sv, su)
+    ssig = surf.sig(sv, su)
     sdir = _direction(surf, np.where(ok[:, None], sp, 0.0))
     if reference is None:
         ref_list = [picks[0], picks[-1]]
@@ -456,7 +457,7 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         contrib["self"] = np.where(same, contrib["self"] + g, contrib["self"])
         var += np.where(same, 0.0, g**2)
     var += contrib["self"] ** 2
-    s = np.where(ok, np.sqrt(var), np.nan) if surf.sigma_known else np.full(len(sp), np.nan)
+    s = np.where(ok, np.sqrt(var), np.nan)
     h = np.where(ok, h, np.nan)
     dist = np.where(ok, dist, np.nan)
     if not ok.any():
@@ -482,6 +483,16 @@ def _inside(poly: F64, u: F64, v: F64) -> npt.NDArray[np.bool_]:
     return inside
 
 
+def _edge_distance(poly: F64, u: F64, v: F64) -> F64:
+    """Distance (px) of each query point from the polygon's boundary."""
+    best = np.full(u.shape, np.inf)
+    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+        d = b - a
+        t = np.clip(((u - a[0]) * d[0] + (v - a[1]) * d[1]) / max(float(d @ d), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.hypot(u - a[0] - t * d[0], v - a[1] - t * d[1]))
+    return best
+
+
 def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
     def orient(p: F64, q: F64, r: F64) -> float:
         return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
@@ -495,7 +506,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
 
     The surface, smoothed by a ``window_px`` box mean of the valid points, is sampled on a
-    ``window_px`` grid inside the polygon and every ``window_px`` along its edges, the
+    grid inside the polygon and along its edges (step ``window_px``, coarser for polygons of
+    more than ~4000 steps² so that a click answers in milliseconds), the
     samples are triangulated (Delaunay in the image, triangles outside a concave polygon
     dropped) and the 3-D triangle areas summed. σ is the first-order propagation of every
     pixel's height noise; the expected area inflation from the smoothed surface's residual
@@ -533,13 +545,13 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     u_hi, v_hi = int(math.ceil(poly[:, 0].max())) + half + 2, int(math.ceil(poly[:, 1].max())) + half + 2
     bu0, bv0, bu1, bv1 = max(0, u_lo), max(0, v_lo), min(w, u_hi), min(h, v_hi)
     # box means over the bounding box (+ margin): sums via an integral image
-    okb = surf.valid[bv0:bv1, bu0:bu1]
-    pb = np.where(okb[..., None], surf.points[bv0:bv1, bu0:bu1], 0.0)
+    okb = surf.ok(slice(bv0, bv1), slice(bu0, bu1))
+    pb = np.where(okb[..., None], surf.pts(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     cnt = _box_sum(okb.astype(np.float64), half)
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = _box_sum(pb, half) / cnt[..., None]
-    # samples: interior grid + edges
-    step = float(window_px)
+    # samples: interior grid + edges, at most ~4000 inside (a large polygon is sampled more coarsely)
+    step = max(float(window_px), math.sqrt(abs(signed) / 4000.0))
     gu = np.arange(math.ceil(poly[:, 0].min() / step) * step, poly[:, 0].max() + 1e-9, step)
     gv = np.arange(math.ceil(poly[:, 1].min() / step) * step, poly[:, 1].max() + 1e-9, step)
     grid_u, grid_v = np.meshgrid(gu, gv)
@@ -554,9 +566,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     e = np.array(edge)
     # interior samples too close to the edge make slivers: drop those within step/2 of an edge sample
     su, sv = uu[keep], vv[keep]
-    if len(su):
-        d2 = ((su[:, None] - e[None, :, 0]) ** 2 + (sv[:, None] - e[None, :, 1]) ** 2).min(axis=1)
-        su, sv = su[d2 > (0.5 * step) ** 2], sv[d2 > (0.5 * step) ** 2]
+    far = _edge_distance(poly, su, sv) > 0.5 * step
+    su, sv = su[far], sv[far]
     su = np.concatenate([e[:, 0], su])
     sv = np.concatenate([e[:, 1], sv])
     # bilinear sampling of the smoothed surface; the weight of every pixel in every sample
@@ -601,7 +612,7 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 y, x = ci + oy, cj + ox
                 inb = (y >= 0) & (y < cnt.shape[0]) & (x >= 0) & (x < cnt.shape[1])
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
-    sig_b = surf.sigma[bv0:bv1, bu0:bu1]
+    sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
     # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
@@ -619,23 +630,22 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     if np.any(good):
         tr = np.einsum("tij,tji->t", np.linalg.inv(gmat[good]), cov[good])
         corr = float(np.sum(0.5 * norm[good] * tr / 2.0))
-    value = raw - (corr if surf.sigma_known else 0.0)
-    extra = {"raw_mm2": raw, "roughness_correction_mm2": corr if surf.sigma_known else None,
+    known = math.isfinite(corr) and math.isfinite(sigma_a)
+    value = raw - (corr if known else 0.0)
+    extra = {"raw_mm2": raw, "roughness_correction_mm2": corr if known else None,
              "samples": int(len(su)), "triangles": int(len(simp)), "window_px": int(window_px),
+             "step_px": round(step, 3),
              "projected_px2": abs(signed)}
-    return Measurement("area", value, _sigma_or_nan(surf, sigma_a), picks, None, extra)
+    return Measurement("area", value, sigma_a, picks, None, extra)
 
 
 def _box_sum(a: F64, half: int) -> F64:
-    """Sum over the (2·half+1)² box around each pixel (clipped at the borders), via an integral image."""
-    h, w = a.shape[:2]
-    pad = np.zeros((h + 1, w + 1) + a.shape[2:])
-    pad[1:, 1:] = np.cumsum(np.cumsum(a, axis=0), axis=1)
-    y0 = np.clip(np.arange(h) - half, 0, h)
-    y1 = np.clip(np.arange(h) + half + 1, 0, h)
-    x0 = np.clip(np.arange(w) - half, 0, w)
-    x1 = np.clip(np.arange(w) + half + 1, 0, w)
-    return np.asarray(pad[y1][:, x1] - pad[y0][:, x1] - pad[y1][:, x0] + pad[y0][:, x0], np.float64)
+    """Sum over the (2·half+1)² box around each pixel (zero outside the array)."""
+    import cv2
+
+    k = 2 * half + 1
+    return np.asarray(cv2.boxFilter(np.ascontiguousarray(a, np.float64), -1, (k, k), normalize=False,
+                                    borderType=cv2.BORDER_CONSTANT), np.float64)
 
 
 # -- dispatch --------------------------------------------------------------------------------------
