@@ -37,8 +37,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import Delaunay
 
 F64 = npt.NDArray[np.float64]
 KINDS = ("length", "point_to_line", "depth", "profile", "area")
@@ -518,8 +520,6 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
-    from scipy.spatial import Delaunay
-
     surf = _surface(points, valid, sigma, plane_normal, reason)
     px = _pixels(pixels)
     _count("area", px)
@@ -585,17 +585,24 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
             raise ValueError(f"points: the polygon covers invalid surface near pixel ({su[k]:.0f}, {sv[k]:.0f}) "
                              f"(no valid pixel within {half} px)")
         X += wgt[:, None] * np.nan_to_num(smooth[iv0 + dv, iu0 + du])
-    tri = Delaunay(np.column_stack([su, sv]))
+    # a regular grid is all cocircular quadruples, slow for Qhull: triangulate the samples nudged by
+    # 1e-3 px (a valid triangulation of the exact samples too), sample the surface at the exact ones
+    nudge = np.random.default_rng(0).uniform(-1e-3, 1e-3, (len(su), 2))
+    tri = Delaunay(np.column_stack([su, sv]) + nudge)
     simp = tri.simplices
     cu, cv = su[simp].mean(axis=1), sv[simp].mean(axis=1)
     simp = simp[_inside(poly, cu, cv)]
+    # slivers of collinear samples (along an edge) cover no image area: their 3-D area is only noise
+    e1u, e1v = su[simp[:, 1]] - su[simp[:, 0]], sv[simp[:, 1]] - sv[simp[:, 0]]
+    e2u, e2v = su[simp[:, 2]] - su[simp[:, 0]], sv[simp[:, 2]] - sv[simp[:, 0]]
+    simp = simp[np.abs(e1u * e2v - e1v * e2u) > 1e-3 * step]
     a_, b_, c_ = X[simp[:, 0]], X[simp[:, 1]], X[simp[:, 2]]
     cross = np.cross(b_ - a_, c_ - a_)
     norm = np.linalg.norm(cross, axis=1)
     raw = 0.5 * float(norm.sum())
     # gradient of the area with respect to each sample's position: ∂A_t/∂a = ½ n̂ × (c − b), cyclic
     with np.errstate(invalid="ignore", divide="ignore"):
-        nh = np.where(norm[:, None] > 0, cross / norm[:, None], 0.0)
+        nh = np.where(norm[:, None] > 1e-6 * float(np.median(norm)), cross / norm[:, None], 0.0)
     grad = np.zeros_like(X)
     for k, (p, q) in enumerate(((1, 2), (2, 0), (0, 1))):
         g = 0.5 * np.cross(nh, X[simp[:, q]] - X[simp[:, p]])
@@ -625,7 +632,7 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                      np.stack([np.einsum("ij,ij->i", a_vec, b_vec), np.einsum("ij,ij->i", b_vec, b_vec)], -1)], -2)
     vn = var_s[simp] * np.einsum("tkj,tj->tk", dirs[simp], nh) ** 2  # (T, 3) normal-component variances
     cov = np.stack([np.stack([vn[:, 1] + vn[:, 0], vn[:, 0]], -1), np.stack([vn[:, 0], vn[:, 2] + vn[:, 0]], -1)], -2)
-    good = norm > 0
+    good = norm > 1e-6 * float(np.median(norm))  # slivers of collinear edge samples: no area, no roughness
     corr = 0.0
     if np.any(good):
         tr = np.einsum("tij,tji->t", np.linalg.inv(gmat[good]), cov[good])
@@ -641,8 +648,6 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
 
 def _box_sum(a: F64, half: int) -> F64:
     """Sum over the (2·half+1)² box around each pixel (zero outside the array)."""
-    import cv2
-
     k = 2 * half + 1
     return np.asarray(cv2.boxFilter(np.ascontiguousarray(a, np.float64), -1, (k, k), normalize=False,
                                     borderType=cv2.BORDER_CONSTANT), np.float64)

@@ -1,0 +1,62 @@
+"""3-D measurements (issue 17) on the latest result or on a recorded set, delegating to
+:mod:`app.analysis.measure`; bad clicks become ``InvalidRequest`` (HTTP 422) with one line."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from app.analysis.measure import measure
+from app.core.errors import InvalidRequest
+
+
+class MeasurableResult(Protocol):
+    """What a measurement reads of a result (``LiveResult`` and ``ReconResult`` both have it)."""
+
+    points: npt.NDArray[np.float32]
+    valid: npt.NDArray[np.bool_]
+    reason: npt.NDArray[np.uint8]
+    sigma: npt.NDArray[np.float32] | None
+
+
+def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal: npt.ArrayLike | None = None,
+                   ) -> dict[str, Any]:
+    """One measurement (``spec``: kind, points, optional reference and snap_px) as a JSON-able dict.
+
+    ``plane_normal`` is the calibration's reference-plane normal (the direction of the
+    per-pixel height noise); None takes the optical axis.
+    """
+    t0 = time.perf_counter()
+    sigma = result.sigma if result.sigma is not None and result.sigma.size else None
+    try:
+        m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
+                    reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
+                    plane_normal=plane_normal, reason=result.reason)
+    except ValueError as exc:  # the clicks (the only user input) do not fit this result
+        raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
+    out = m.to_dict()
+    out["elapsed_ms"] = round(1e3 * (time.perf_counter() - t0), 3)
+    return out
+
+
+def summary(measured: dict[str, Any]) -> dict[str, Any]:
+    """The compact form kept in a recording's metadata (no profile samples)."""
+    keep = ("kind", "value_mm", "sigma_mm", "unit", "snapped")
+    out = {k: measured[k] for k in keep}
+    out["pixels"] = [p["pixel"] for p in measured["points"]]
+    return out
+
+
+def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
+                  plane_normal: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
+    """Every spec measured on ``result`` (compact); one that does not fit says why in ``error``."""
+    out: list[dict[str, Any]] = []
+    for spec in specs:
+        try:
+            out.append(summary(measure_result(result, spec, plane_normal)))
+        except InvalidRequest as exc:
+            out.append({"kind": spec.get("kind"), "pixels": spec.get("points"), "error": exc.detail})
+    return out
