@@ -60,3 +60,49 @@ def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
         except InvalidRequest as exc:
             out.append({"kind": spec.get("kind"), "pixels": spec.get("points"), "error": exc.detail})
     return out
+
+
+def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
+                         plane_normal: npt.ArrayLike | None = None,
+                         ) -> tuple[npt.NDArray[np.float32], list[tuple[npt.NDArray[np.float32], str]]]:
+    """What the 3-D view draws for ``specs`` on ``result``: line segments and labels, camera frame, mm.
+
+    Returns (segments (N, 2, 3) float32, [(label position (3,), "value ± σ unit"), …]); a
+    spec that does not fit the result draws nothing.
+    """
+    from app.analysis.measure import measure as measure_fn
+
+    segs: list[tuple[Any, Any]] = []
+    labels: list[tuple[npt.NDArray[np.float32], str]] = []
+    sigma = result.sigma if result.sigma is not None and result.sigma.size else None
+    for spec in specs:
+        try:
+            m = measure_fn(spec["kind"], result.points, result.valid, sigma, spec["points"],
+                           reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
+                           plane_normal=plane_normal)
+        except (ValueError, KeyError):
+            continue
+        p = np.array([q.point_mm for q in m.points], np.float64)
+        kind = m.kind
+        if kind == "length":
+            segs.append((p[0], p[1]))
+        elif kind == "point_to_line":
+            d = (p[2] - p[1]) / np.linalg.norm(p[2] - p[1])
+            foot = p[1] + ((p[0] - p[1]) @ d) * d
+            segs += [(p[1], p[2]), (p[0], foot)]
+        elif kind == "depth":
+            n = np.cross(p[2] - p[1], p[3] - p[1])
+            n /= np.linalg.norm(n)
+            segs += [(p[1], p[2]), (p[2], p[3]), (p[3], p[1]), (p[0], p[0] - ((p[0] - p[1]) @ n) * n)]
+        elif kind == "area":
+            segs += [(p[i], p[(i + 1) % len(p)]) for i in range(len(p))]
+        elif kind == "profile" and m.profile is not None:
+            uv = m.profile.pixels
+            ok = np.isfinite(m.profile.height_mm)
+            pts = np.asarray(result.points[uv[:, 1], uv[:, 0]], np.float64)
+            segs += [(pts[i], pts[i + 1]) for i in range(len(pts) - 1) if ok[i] and ok[i + 1]]
+        unit = "mm²" if kind == "area" else "mm"
+        sig = "?" if not np.isfinite(m.sigma_mm) else f"{m.sigma_mm:.3f}"
+        labels.append((p.mean(axis=0).astype(np.float32), f"{m.value_mm:.3f} ± {sig} {unit}"))
+    arr = np.array(segs, np.float32).reshape(-1, 2, 3)
+    return arr, labels
