@@ -360,17 +360,21 @@ def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | No
     return Measurement("depth", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
 
 
+#: the most samples a profile takes (a polyline across a 1384 x 1032 image a dozen times)
+MAX_PROFILE_SAMPLES = 20_000
+
+
 def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
     """Every pixel along a polyline (u, v): one sample per pixel step along each segment, no repeats."""
-    out: list[tuple[int, int]] = []
+    parts = []
     for (u0, v0), (u1, v1) in zip(vertices[:-1], vertices[1:], strict=True):
         n = max(1, int(math.ceil(max(abs(u1 - u0), abs(v1 - v0)))))
         t = np.arange(n + 1) / n
-        for u, v in zip(np.rint(u0 + t * (u1 - u0)).astype(int), np.rint(v0 + t * (v1 - v0)).astype(int),
-                        strict=True):
-            if not out or out[-1] != (u, v):
-                out.append((int(u), int(v)))
-    return np.array(out, np.int64).reshape(-1, 2)
+        parts.append(np.column_stack([np.rint(u0 + t * (u1 - u0)), np.rint(v0 + t * (v1 - v0))]))
+    px = np.concatenate(parts).astype(np.int64)
+    keep = np.ones(len(px), bool)
+    keep[1:] = np.any(px[1:] != px[:-1], axis=1)
+    return px[keep]
 
 
 def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
@@ -406,6 +410,10 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
             raise ValueError(f"reference: needs exactly 3 points for a plane, got {len(rp)}")
         ref_picks = _picks(surf, rp, snap_px, first=len(px) + 1)
     verts = np.array([p.pixel for p in picks], np.float64)
+    steps = np.abs(np.diff(verts, axis=0)).max(axis=1).sum()
+    if steps > MAX_PROFILE_SAMPLES:
+        raise ValueError(f"points: the polyline is {steps:.0f} px long; a profile takes at most "
+                         f"{MAX_PROFILE_SAMPLES} samples")
     samples = polyline_pixels(verts)
     if len(samples) < 2:
         raise ValueError("points: the polyline's vertices are all the same pixel")

@@ -301,7 +301,11 @@ class Recorder:
                     from app.service.measure import measure_specs
 
                     cal = getattr(self.instrument, "calibration", None)
-                    info["measurements"] = measure_specs(res, specs, None if cal is None else cal.plane_normal)
+                    try:
+                        info["measurements"] = measure_specs(res, specs, None if cal is None else cal.plane_normal)
+                    except Exception as exc:  # a measurement fault must not stop the recording
+                        log.exception("measurements of a recorded set failed")
+                        info["measurements"] = [{"error": f"measurement failed: {exc}"}]
                     capture.extra["measurements"] = info["measurements"]
             rec.add_set(capture, depth_mm=None if res is None else res.depth,
                         timestamp=now_wall - (now_mono - fs.received_s), info=info)

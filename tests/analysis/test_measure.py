@@ -177,6 +177,8 @@ def test_snapping_and_refusals_name_the_point():
         big = ok.copy()
         big[90:110, 90:110] = False
         M.area(p, big, None, [(60, 60), (140, 60), (140, 140), (60, 140)])
+    with pytest.raises(ValueError, match="a profile takes at most 20000 samples"):
+        M.profile(p, ok, None, [(10, 10), (190, 150)] * 120)
     with pytest.raises(ValueError, match="kind: expected one of"):
         M.measure("volume", p, ok, None, [(1, 1)])
     with pytest.raises(ValueError, match="reference: only a profile"):
