@@ -6,13 +6,17 @@ point_to_line, depth, profile, area) on valid surface, each re-measured on every
 realisation and compared with the same measurement on the simulator's true points.
 
 Figures per rig and kind:
-- ``|Δ|≤3σ``: fraction of measurements with |measured − true| ≤ 3 σ (target ≥ 99 %). The
-  truth is the simulator's, so calibration bias counts as error.
-- ``scatter/σ``: observed noise scatter over the reported σ, √mean(s²/σ²) with s² the variance
+- ``|Δ|≤3σ``: fraction of measurements with |measured − true| ≤ 3 σ (target ≥ 99 %), σ as the
+  API reports it: the pixels' noise and, in quadrature, the calibration's held-out RMS per
+  point (``--noise-only``: without); ``(noise)``: the same with the noise's σ alone. The truth
+  is the simulator's, so calibration bias counts as error.
+- ``scatter/σn``: observed noise scatter over the noise's σ, √mean(s²/σ²) with s² the variance
   over the noise realisations of one measurement (each measurement weighs the same; target
-  1/1.3 … 1.3).
+  1/1.3 … 1.3), over the measurements that picked the same pixels in every realisation;
+  ``moved``: how many did not (a click on an invalid pixel snapped to a pixel that differs
+  between realisations: a different measurement), ``(all)``: the ratio over all of them.
 - ``rms(z)``: RMS of (measured − true)/σ, bias included (1 if σ told the whole error).
-- ``bias/σ``: RMS over measurements of the mean error over realisations, in σ (the part of
+- ``bias/σn``: RMS over measurements of the mean error over realisations, in σ of the noise (the part of
   the error σ does not describe: calibration and model bias).
 ``profile`` checks one sample's height (a random position along the profile, the same pixel
 in every realisation); ``profile_peak`` (reported, no target) checks the profile's reported
@@ -47,6 +51,7 @@ from app.calib import calibrate_folder, save_calibration  # noqa: E402
 from app.devices.sim import RIG_NAMES, render_capture_set, rig_by_name, simulate_calibration_folder  # noqa: E402
 from app.devices.sim.world import SimulatedWorld  # noqa: E402
 from app.recon import Reconstructor  # noqa: E402
+from app.service.measure import calibration_terms  # noqa: E402
 
 LENGTH_MM = 10.0
 
@@ -93,21 +98,26 @@ def length_spec(truth_pts: np.ndarray, ok: np.ndarray, rng: np.random.Generator)
 
 
 def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarray, normal: np.ndarray,
-            sample: float | None = None) -> tuple[list[float], list[float], list[float]] | None:
-    """(measured, true, σ) over the noise realisations, or None if the clicks do not fit (refused).
+            cal_sigma: float, sample: float | None = None
+            ) -> tuple[list[float], list[float], list[float], list[float], bool] | None:
+    """(measured, true, σ, σ of the noise alone) over the noise realisations and whether every
+    realisation picked the same pixels (an invalid click snaps to a pixel that may differ), or
+    None if the clicks do not fit.
 
     ``profile``: with ``sample`` (0..1) the height of that sample along the profile (the
     same pixel in every realisation); None: the reported value (the sample farthest from
     the reference, chosen anew in every realisation: a maximum over noisy samples)."""
     finite = np.all(np.isfinite(truth), -1)
-    meas, true, sig = [], [], []
+    meas, true, sig, sig_noise, picked = [], [], [], [], set()
     for res in results:
         tok = finite & res.valid  # the truth on the same pixels (an area's box means see the same holes)
         try:
-            m = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal, reason=res.reason)
+            m = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal, reason=res.reason,
+                        calibration_sigma_mm=cal_sigma)
         except ValueError:
             return None
         used = [list(p.pixel) for p in m.points]
+        picked.add(tuple(p.pixel for p in m.points))
         try:
             t = measure(kind, truth, tok, None, used, snap_px=0.0, plane_normal=normal)
         except ValueError:
@@ -118,14 +128,17 @@ def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarr
                 k = int(np.flatnonzero((m.profile.pixels == m.extra["at_pixel"]).all(1))[0])
             else:
                 k = int(round(sample * (len(m.profile.pixels) - 1)))
-            tv, mv, sv = (float(x[k]) for x in (t.profile.height_mm, m.profile.height_mm, m.profile.sigma_mm))
+            assert m.profile.sigma_noise_mm is not None
+            tv, mv, sv, nv = (float(x[k]) for x in (t.profile.height_mm, m.profile.height_mm, m.profile.sigma_mm,
+                                                     m.profile.sigma_noise_mm))
             if not (math.isfinite(tv) and math.isfinite(mv)):
                 return None
-            meas.append(mv), true.append(tv), sig.append(sv)
+            meas.append(mv), true.append(tv), sig.append(sv), sig_noise.append(nv)
         else:
             tv = float(t.extra["raw_mm2"]) if kind == "area" else t.value_mm
             meas.append(m.value_mm), true.append(tv), sig.append(m.sigma_mm)
-    return meas, true, sig
+            sig_noise.append(m.extra["sigma_noise_mm"])
+    return meas, true, sig, sig_noise, len(picked) == 1
 
 
 def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, Any]:
@@ -137,9 +150,11 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
                                          rig=rig_name, partial_boards=rig.partial_boards)
     cal = calibrate_folder(folder).calibration
     cal_path = save_calibration(cal, base / f"calibration_{rig_name}.json")
-    held = cal.held_out.get(getattr(cal.model, "name", ""), {}) if cal.held_out else {}
-    print(f"calibrated in {time.perf_counter() - t0:.0f} s; held-out RMS {held.get('rms_mm', float('nan')):.4f} mm",
-          flush=True)
+    normal, cal_sigma = calibration_terms(cal)
+    if args.noise_only:
+        cal_sigma = 0.0
+    print(f"calibrated in {time.perf_counter() - t0:.0f} s; calibration term (held-out RMS, {cal.model.name}) "
+          f"{cal_sigma:.4f} mm per point", flush=True)
     rec = Reconstructor(cal, max_code=2**bits - 1)
     world = SimulatedWorld(args.scene, seed=3, rig=rig_name)
     results, truth = [], None
@@ -152,37 +167,42 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
     ok = results[0].valid & np.all(np.isfinite(truth), -1)
     print(f"{args.noise} noise realisations of {args.scene!r}: valid {ok.mean():.3f}, median σ "
           f"{np.nanmedian(results[0].sigma):.4f} mm", flush=True)
-    normal = cal.plane_normal
     rng = np.random.default_rng(17)
     rows: dict[str, Any] = {}
-    head = f"{'kind':<14}{'n':>5}{'refused':>8}{'|Δ|≤3σ':>9}{'scatter/σ':>10}{'rms(z)':>8}{'bias/σ':>8}{'med σ':>9}  result"
+    head = (f"{'kind':<14}{'n':>5}{'refused':>8}{'|Δ|≤3σ':>9}{'(noise)':>8}{'scatter/σn':>11}{'moved':>6}{'(all)':>7}"
+            f"{'rms(z)':>8}{'bias/σn':>8}{'med σ':>9}  result")
     print(head)
     print("-" * len(head))
     for kind in (*KINDS, "profile_peak"):
-        z, ratio, bias_z, sigmas = [], [], [], []
+        z, z_noise, ratio, same, bias_z, sigmas = [], [], [], [], [], []
         refused = tries = 0
         while len(sigmas) < args.n and tries < 20 * args.n:
             tries += 1
             if kind.startswith("profile"):
                 at = None if kind == "profile_peak" else float(rng.uniform(0.05, 0.95))
-                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal, at)
+                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal, cal_sigma, at)
             else:
-                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal)
+                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal, cal_sigma)
             if got is None:
                 refused += 1
                 continue
-            meas, true, sig = (np.asarray(x) for x in got)
-            if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+            meas, true, sig, sig_n = (np.asarray(x) for x in got[:4])
+            if not np.all(np.isfinite(sig)) or np.any(sig_n <= 0):
                 refused += 1
                 continue
             err = meas - true
             z.extend(err / sig)
-            ratio.append(np.var(meas, ddof=1) / np.mean(sig**2))
-            bias_z.append(np.mean(err) / np.sqrt(np.mean(sig**2)))
+            z_noise.extend(err / sig_n)
+            ratio.append(np.var(meas, ddof=1) / np.mean(sig_n**2))  # the scatter is the noise's alone
+            same.append(got[4])
+            bias_z.append(np.mean(err) / np.sqrt(np.mean(sig_n**2)))
             sigmas.append(float(np.median(sig)))
         za = np.asarray(z)
         frac = float(np.mean(np.abs(za) <= 3.0))
-        scatter = math.sqrt(float(np.mean(ratio)))
+        frac_noise = float(np.mean(np.abs(np.asarray(z_noise)) <= 3.0))
+        ra, sa = np.asarray(ratio), np.asarray(same, bool)
+        scatter = math.sqrt(float(np.mean(ra[sa])))  # the same measurement in every realisation
+        scatter_all = math.sqrt(float(np.mean(ra)))
         rms_z = float(np.sqrt(np.mean(za**2)))
         bias = float(np.sqrt(np.mean(np.square(bias_z))))
         ok_frac, ok_ratio = frac >= 0.99, 1 / 1.3 <= scatter <= 1.3
@@ -190,9 +210,12 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
             n for n, good in (("3σ", ok_frac), ("σ-ratio", ok_ratio)) if not good)
         if kind == "profile_peak":
             verdict = "(no target: a maximum over noisy samples)"
-        print(f"{kind:<14}{len(sigmas):>5}{refused:>8}{100 * frac:>8.1f}%{scatter:>10.3f}{rms_z:>8.2f}{bias:>8.2f}"
+        print(f"{kind:<14}{len(sigmas):>5}{refused:>8}{100 * frac:>8.1f}%{100 * frac_noise:>7.1f}%{scatter:>11.3f}"
+              f"{int((~sa).sum()):>6}{scatter_all:>7.2f}{rms_z:>8.2f}{bias:>8.2f}"
               f"{np.median(sigmas):>9.4f}  {verdict}", flush=True)
-        rows[kind] = {"n": len(sigmas), "within_3sigma": frac, "scatter_ratio": scatter, "rms_z": rms_z,
+        rows[kind] = {"n": len(sigmas), "within_3sigma": frac, "within_3sigma_noise": frac_noise,
+                      "scatter_ratio": scatter,
+                      "scatter_ratio_all": scatter_all, "moved": int((~sa).sum()), "rms_z": rms_z,
                       "bias_z": bias, "pass": (ok_frac and ok_ratio) or kind == "profile_peak"}
     # 10 mm lengths on tissue
     errs, sig10 = [], []
@@ -202,10 +225,10 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
         pix = length_spec(truth, ok, rng)
         if pix is None:
             continue
-        got = compare("length", pix, results, truth, normal)
+        got = compare("length", pix, results, truth, normal, cal_sigma)
         if got is None:
             continue
-        meas, true, sig = (np.asarray(x) for x in got)
+        meas, true, sig = (np.asarray(x) for x in got[:3])
         errs.extend(meas - true)
         sig10.append(float(np.median(sig)))
     e = np.asarray(errs)
@@ -267,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--poses", type=int, default=8)
     ap.add_argument("--no-live", action="store_true", help="skip the live-service latency")
+    ap.add_argument("--noise-only", action="store_true", help="σ without the calibration term")
     ap.add_argument("--latency-n", type=int, default=40)
     ap.add_argument("--strict", action="store_true", help="exit 1 if a target is missed")
     args = ap.parse_args(argv)

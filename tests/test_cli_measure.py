@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from app.capture import read_capture_set
 from app.cli import main
 from app.recon import Reconstructor
 from app.recon.noise import estimate_sensor_noise
+from app.service.measure import calibration_terms
 from tests.test_cli_reconstruct import _setup
 
 
@@ -42,11 +44,23 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
         lines = out.strip().splitlines()
         assert len(lines) == 1
         got = json.loads(lines[0])
-        ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=cal.plane_normal)
+        ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=cal.plane_normal,
+                      calibration_sigma_mm=calibration_terms(cal)[1])
         assert got["kind"] == kind and got["set"] == "set"
         assert got["value_mm"] == pytest.approx(ref.value_mm, rel=1e-6)
         assert got["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-6) and got["sigma_mm"] > 0
         assert ("profile" in got) == (kind == "profile")
+
+
+def test_noise_only_leaves_out_the_calibration_term(tmp_path, capsys):
+    _setup(tmp_path)
+    cal = load_calibration(tmp_path / "calibration.json")
+    with_cal = json.loads(_run(tmp_path, capsys, "--length", "20,20,100,90")[1])
+    noise = json.loads(_run(tmp_path, capsys, "--length", "20,20,100,90", "--noise-only")[1])
+    assert noise["sigma_mm"] == pytest.approx(with_cal["extra"]["sigma_noise_mm"], rel=1e-9)
+    c = calibration_terms(cal)[1]
+    expected = noise["sigma_mm"] if c == 0 else math.hypot(noise["sigma_mm"], with_cal["extra"]["sigma_calibration_mm"])
+    assert with_cal["sigma_mm"] == pytest.approx(expected, rel=1e-9)
 
 
 def test_invalid_click_snaps(tmp_path, capsys):

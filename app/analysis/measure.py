@@ -25,6 +25,10 @@ Noise model (what the uncertainty assumes):
   bilinear sampling; the expected second-order inflation from the remaining roughness
   (E|∇h|²/2 per triangle) is subtracted.
 
+Calibration: ``calibration_sigma_mm`` (the calibration's held-out RMS height error, say) adds a
+per-point height uncertainty in quadrature, as if independent between points — an
+approximation: calibration error is systematic and smooth, so nearby points share it.
+
 Picking: a click on an invalid pixel snaps to the nearest valid pixel within ``snap_px``
 (reported per point with the distance) or raises ``ValueError`` naming the point and why.
 Every error names the point (1-based, in the order given) and the reason.
@@ -84,13 +88,16 @@ class ProfileSamples:
         distance_mm: (n,) position along the reference (chord direction, or the 3-D path
             length for a plane reference), mm; NaN where the pixel is invalid.
         height_mm: (n,) signed height over the reference, positive toward the scope, mm; NaN invalid.
-        sigma_mm: (n,) 1-σ of each height, mm (including the reference points' noise).
+        sigma_mm: (n,) 1-σ of each height, mm (including the reference points' noise and the
+            calibration term).
+        sigma_noise_mm: (n,) the part of ``sigma_mm`` from the pixels' noise alone.
     """
 
     pixels: npt.NDArray[np.int64]
     distance_mm: F64
     height_mm: F64
     sigma_mm: F64
+    sigma_noise_mm: F64 | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"pixels": self.pixels.tolist(), "distance_mm": [_j(x) for x in self.distance_mm],
@@ -144,6 +151,7 @@ class _Surface:
     sigma: npt.NDArray[Any] | None  # (H, W) or None (unknown)
     normal: F64  # (3,) reference-plane normal (noise direction X/(n·X))
     reason: npt.NDArray[Any] | None
+    cal_sigma: float = 0.0  # per-point calibration height uncertainty, mm
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -164,7 +172,7 @@ class _Surface:
 
 
 def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
-             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None) -> _Surface:
+             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None, cal_sigma: float = 0.0) -> _Surface:
     pts = np.asarray(points)
     if pts.ndim != 3 or pts.shape[2] != 3 or not np.issubdtype(pts.dtype, np.floating):
         raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
@@ -180,7 +188,9 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
     r = None if reason is None else np.asarray(reason)
     if r is not None and r.shape != ok.shape:
         raise ValueError(f"reason: shape {r.shape} does not match points {pts.shape[:2]}")
-    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r)
+    if not (math.isfinite(cal_sigma) and cal_sigma >= 0):
+        raise ValueError(f"calibration_sigma_mm: need a finite value >= 0, got {cal_sigma}")
+    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma))
 
 
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
@@ -258,6 +268,15 @@ def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, li
     return pts, _direction(surf, pts), sig, [p.pixel for p in picks]
 
 
+def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Sequence[Any],
+                       picks: list[PickedPoint], cal_sigma: float) -> Measurement:
+    """The value, its σ from the pixels' noise and, in quadrature, from the calibration term."""
+    noise = _propagate(f, pts, dirs, sig, ids)
+    cal = _propagate(f, pts, dirs, np.full(len(pts), cal_sigma), ids) if cal_sigma > 0 else 0.0
+    return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
+                       extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal})
+
+
 def _count(kind: str, px: F64) -> None:
     need = MIN_POINTS[kind]
     exact = EXACT_POINTS.get(kind)
@@ -270,7 +289,8 @@ def _count(kind: str, px: F64) -> None:
 # -- the five measurements -------------------------------------------------------------------------
 def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
-           plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+           plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """3-D distance between two clicked pixels.
 
     Args:
@@ -282,11 +302,14 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
         plane_normal: (3,) reference-plane normal (the direction height noise is measured
             along); None: the optical axis.
         reason: optional (H, W) uint8 reason codes, to name why a click is invalid.
+        calibration_sigma_mm: a calibration height uncertainty per point, mm (e.g. the
+            calibration's held-out RMS), added in quadrature as if independent between
+            points; ``extra`` splits σ into ``sigma_noise_mm`` and ``sigma_calibration_mm``.
 
     Returns:
         :class:`Measurement`, value and σ in mm.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
     px = _pixels(pixels)
     _count("length", px)
     picks = _picks(surf, px, snap_px)
@@ -297,17 +320,18 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     def f(p: F64) -> float:
         return float(np.linalg.norm(p[1] - p[0]))
 
-    return Measurement("length", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
+    return _point_measurement("length", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
 
 
 def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
                   pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
-                  plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+                  plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """Distance (mm, ≥ 0) of point 1 from the 3-D line through points 2 and 3.
 
     Arguments as :func:`length`, with three pixels: the point, then two on the line.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
     px = _pixels(pixels)
     _count("point_to_line", px)
     picks = _picks(surf, px, snap_px)
@@ -319,7 +343,7 @@ def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayL
         d = p[2] - p[1]
         return float(np.linalg.norm(np.cross(p[0] - p[1], d)) / np.linalg.norm(d))
 
-    return Measurement("point_to_line", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
+    return _point_measurement("point_to_line", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
 
 
 def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
@@ -341,13 +365,14 @@ def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
 
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
           pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
-          plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+          plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """Signed distance (mm) of point 1 from the plane through points 2, 3, 4.
 
     Positive toward the scope (above the reference, as heights in the depth map); a pit
     below the plane reads negative. Arguments as :func:`length`, with four pixels.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
     px = _pixels(pixels)
     _count("depth", px)
     picks = _picks(surf, px, snap_px)
@@ -357,7 +382,7 @@ def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | No
     def f(p: F64) -> float:
         return float((p[0] - p[1]) @ _plane_normal(p[1], p[2], p[3]))
 
-    return Measurement("depth", f(pts), _propagate(f, pts, dirs, sig, ids), picks)
+    return _point_measurement("depth", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
 
 
 #: the most samples a profile takes (a polyline across a 1384 x 1032 image a dozen times)
@@ -380,7 +405,8 @@ def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
 def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
-            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
     Without ``reference`` the heights are distances from the 3-D chord between the
@@ -399,7 +425,7 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         reference: None, or three (u, v) pixels spanning the reference plane.
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
     px = _pixels(pixels)
     _count("profile", px)
     picks = _picks(surf, px, snap_px)
@@ -459,23 +485,31 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         r1[j] += eps * rdir[j]
         r2[j] -= eps * rdir[j]
         g_ref.append((heights(sp, r1)[0] - heights(sp, r2)[0]) / (2 * eps))
-    contrib = {"self": g_self * ssig}
-    var = np.zeros(len(sp))
-    for j, (pu, pv) in enumerate(rids):
-        same = (su == pu) & (sv == pv)
-        g = g_ref[j] * rsig[j]
-        contrib["self"] = np.where(same, contrib["self"] + g, contrib["self"])
-        var += np.where(same, 0.0, g**2)
-    var += contrib["self"] ** 2
-    s = np.where(ok, np.sqrt(var), np.nan)
+
+    def variance(self_sig: F64, ref_sig: F64) -> F64:
+        own = g_self * self_sig
+        var = np.zeros(len(sp))
+        for j, (pu, pv) in enumerate(rids):
+            same = (su == pu) & (sv == pv)
+            g = g_ref[j] * ref_sig[j]
+            own = np.where(same, own + g, own)
+            var += np.where(same, 0.0, g**2)
+        return np.asarray(var + own**2, np.float64)
+
+    var_noise = variance(ssig, rsig)
+    c = surf.cal_sigma
+    var_cal = variance(np.full(len(sp), c), np.full(len(rpts), c)) if c > 0 else np.zeros(len(sp))
+    s = np.where(ok, np.sqrt(var_noise + var_cal), np.nan)
+    s_noise = np.where(ok, np.sqrt(var_noise), np.nan)
     h = np.where(ok, h, np.nan)
     dist = np.where(ok, dist, np.nan)
     if not ok.any():
         raise ValueError("points: no valid pixel along the polyline")
     k = int(np.nanargmax(np.abs(h)))
-    samples_out = ProfileSamples(samples, dist, h, s)
+    samples_out = ProfileSamples(samples, dist, h, s, s_noise)
     extra = {"reference": "chord" if reference is None else "plane", "samples": int(len(samples)),
-             "valid_samples": int(ok.sum()), "at_pixel": [int(su[k]), int(sv[k])]}
+             "valid_samples": int(ok.sum()), "at_pixel": [int(su[k]), int(sv[k])],
+             "sigma_noise_mm": float(s_noise[k]), "sigma_calibration_mm": float(np.sqrt(var_cal[k]))}
     return Measurement("profile", float(h[k]), float(s[k]), picks + ref_picks, samples_out, extra)
 
 
@@ -512,7 +546,8 @@ def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
 
 def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
          pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5, snap_px: float = 3.0,
-         plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+         plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
 
     The surface, smoothed by a ``window_px`` box mean of the valid points, is sampled on a
@@ -528,7 +563,7 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
     px = _pixels(pixels)
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
@@ -629,6 +664,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
+    # the calibration term: per sample (it does not average out over a box: it is systematic)
+    sigma_cal = float(np.sqrt(np.sum(coef**2)) * surf.cal_sigma)
     # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
     var_s = np.zeros(len(su))
@@ -651,7 +688,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
              "samples": int(len(su)), "triangles": int(len(simp)), "window_px": int(window_px),
              "step_px": round(step, 3),
              "projected_px2": abs(signed)}
-    return Measurement("area", value, sigma_a, picks, None, extra)
+    extra.update(sigma_noise_mm=sigma_a, sigma_calibration_mm=sigma_cal)
+    return Measurement("area", value, math.hypot(sigma_a, sigma_cal), picks, None, extra)
 
 
 def _box_sum(a: F64, half: int) -> F64:
@@ -668,7 +706,8 @@ Kind = Literal["length", "point_to_line", "depth", "profile", "area"]
 def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
-            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None) -> Measurement:
+            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+           calibration_sigma_mm: float = 0.0) -> Measurement:
     """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``."""
     if kind not in KINDS:
         raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
@@ -676,7 +715,8 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
         raise ValueError(f"snap_px: need a finite value >= 0, got {snap_px}")
     if reference is not None and kind != "profile":
         raise ValueError(f"reference: only a profile takes reference points, not {kind}")
-    kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason}
+    kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
+                          "calibration_sigma_mm": calibration_sigma_mm}
     if kind == "profile":
         return profile(points, valid, sigma, pixels, reference=reference, **kw)
     fn = {"length": length, "point_to_line": point_to_line, "depth": depth, "area": area}[kind]

@@ -11,7 +11,7 @@ from app.api.deps import get_instrument, get_recorder
 from app.api.errors import COMMON, R404, R409, R422
 from app.api.schemas import MeasureIn, MeasureOut, MeasureToolIn, MeasureToolOut
 from app.service.instrument import Instrument
-from app.service.measure import measure_result
+from app.service.measure import calibration_terms, measure_result
 from app.service.recorder import Recorder
 
 router = APIRouter(prefix="/api", tags=["measure"])
@@ -19,15 +19,14 @@ router = APIRouter(prefix="/api", tags=["measure"])
 
 def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str, Any]:
     spec = body.model_dump(exclude={"recording", "index"})
-    cal = inst.calibration
-    normal = None if cal is None else cal.plane_normal
+    normal, cal_sigma = calibration_terms(inst.calibration)
     if body.recording is not None and body.index is not None:
         res: Any = inst.reconstruct_capture(recorder.set_capture(body.recording, body.index))
         source: dict[str, Any] = {"recording": body.recording, "index": body.index}
     else:
         res = inst.latest_result()
         source = {"seq": res.seq, "created": res.created}
-    out = measure_result(res, spec, normal)
+    out = measure_result(res, spec, normal, cal_sigma)
     out["source"] = source
     return out
 

@@ -22,19 +22,33 @@ class MeasurableResult(Protocol):
     sigma: npt.NDArray[np.float32] | None
 
 
+def calibration_terms(cal: Any) -> tuple[npt.NDArray[np.float64] | None, float]:
+    """(reference-plane normal, calibration σ in mm) of a calibration (None: (None, 0)).
+
+    The σ is the active depth model's held-out-pose RMS height error (an upper bound: it
+    includes the board points' own noise); 0 when the file has none.
+    """
+    if cal is None:
+        return None, 0.0
+    held = (getattr(cal, "held_out", None) or {}).get(getattr(cal.model, "name", ""), {})
+    rms = held.get("rms_mm")
+    return np.asarray(cal.plane_normal, np.float64), float(rms) if isinstance(rms, int | float) and rms >= 0 else 0.0
+
+
 def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal: npt.ArrayLike | None = None,
-                   ) -> dict[str, Any]:
+                   calibration_sigma_mm: float = 0.0) -> dict[str, Any]:
     """One measurement (``spec``: kind, points, optional reference and snap_px) as a JSON-able dict.
 
     ``plane_normal`` is the calibration's reference-plane normal (the direction of the
-    per-pixel height noise); None takes the optical axis.
+    per-pixel height noise); None takes the optical axis. ``calibration_sigma_mm``: see
+    :func:`calibration_terms`.
     """
     t0 = time.perf_counter()
     sigma = result.sigma if result.sigma is not None and result.sigma.size else None
     try:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
-                    plane_normal=plane_normal, reason=result.reason)
+                    plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
         raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()
@@ -46,24 +60,25 @@ def summary(measured: dict[str, Any]) -> dict[str, Any]:
     """The compact form kept in a recording's metadata (no profile samples)."""
     keep = ("kind", "value_mm", "sigma_mm", "unit", "snapped")
     out = {k: measured[k] for k in keep}
+    out["sigma_noise_mm"] = measured["extra"].get("sigma_noise_mm")
     out["pixels"] = [p["pixel"] for p in measured["points"]]
     return out
 
 
 def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
-                  plane_normal: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
+                  plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0) -> list[dict[str, Any]]:
     """Every spec measured on ``result`` (compact); one that does not fit says why in ``error``."""
     out: list[dict[str, Any]] = []
     for spec in specs:
         try:
-            out.append(summary(measure_result(result, spec, plane_normal)))
+            out.append(summary(measure_result(result, spec, plane_normal, calibration_sigma_mm)))
         except InvalidRequest as exc:
             out.append({"kind": spec.get("kind"), "pixels": spec.get("points"), "error": exc.detail})
     return out
 
 
 def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
-                         plane_normal: npt.ArrayLike | None = None,
+                         plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
                          ) -> tuple[npt.NDArray[np.float32], list[tuple[npt.NDArray[np.float32], str]]]:
     """What the 3-D view draws for ``specs`` on ``result``: line segments and labels, camera frame, mm.
 
@@ -79,7 +94,7 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
         try:
             m = measure_fn(spec["kind"], result.points, result.valid, sigma, spec["points"],
                            reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
-                           plane_normal=plane_normal)
+                           plane_normal=plane_normal, calibration_sigma_mm=calibration_sigma_mm)
         except (ValueError, KeyError):
             continue
         p = np.array([q.point_mm for q in m.points], np.float64)

@@ -298,11 +298,11 @@ class Recorder:
                             valid_fraction=round(float(res.valid.mean()), 6))
                 specs = list(self.measurements)
                 if specs:  # issue 17: the dashboard's measurements on this set's depth map
-                    from app.service.measure import measure_specs
+                    from app.service.measure import calibration_terms, measure_specs
 
-                    cal = getattr(self.instrument, "calibration", None)
+                    normal, cal_sigma = calibration_terms(getattr(self.instrument, "calibration", None))
                     try:
-                        info["measurements"] = measure_specs(res, specs, None if cal is None else cal.plane_normal)
+                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma)
                     except Exception as exc:  # a measurement fault must not stop the recording
                         log.exception("measurements of a recorded set failed")
                         info["measurements"] = [{"error": f"measurement failed: {exc}"}]

@@ -345,10 +345,10 @@ class Viewer:
         specs = self.measure_source() if self.measure_source is not None else []
         if not specs:
             return
-        from app.service.measure import measurement_segments
+        from app.service.measure import calibration_terms, measurement_segments
 
-        cal = getattr(self._instrument, "calibration", None)
-        segs, labels = measurement_segments(result, specs, None if cal is None else cal.plane_normal)
+        segs, labels = measurement_segments(result, specs, *calibration_terms(getattr(self._instrument, "calibration",
+                                                                                       None)))
         if len(segs):
             self._measure_nodes.append(server.scene.add_line_segments(
                 "/measure/lines", segs, (255, 255, 255), thickness=3.0, thickness_units="screen"))

@@ -149,6 +149,25 @@ def test_sigma_matches_monte_carlo(kind):
         assert abs(np.mean(vals) - m.extra["raw_mm2"]) < 3 * observed / math.sqrt(300) + 1e-3 * m.value_mm
 
 
+def test_calibration_term_adds_in_quadrature():
+    p = plane((0.3, 0.1, 1.0), 40.0)
+    ok = ones(p)
+    sig = np.full((H, W), 0.02)
+    for kind, pix in (("length", [(30, 40), (160, 120)]), ("depth", [(100, 80), (30, 30), (170, 40), (90, 140)]),
+                      ("profile", [(40, 80), (160, 80)]), ("area", [(60, 50), (140, 55), (130, 110), (70, 105)])):
+        base = M.measure(kind, p, ok, sig, pix)
+        m = M.measure(kind, p, ok, sig, pix, calibration_sigma_mm=0.01)
+        assert m.value_mm == base.value_mm
+        assert m.extra["sigma_noise_mm"] == pytest.approx(base.sigma_mm, rel=1e-9)
+        assert m.sigma_mm == pytest.approx(math.hypot(base.sigma_mm, m.extra["sigma_calibration_mm"]), rel=1e-9)
+        if kind != "area":  # the same propagation with σ 0.01 for every point: half the noise's
+            assert m.extra["sigma_calibration_mm"] == pytest.approx(0.5 * base.sigma_mm, rel=1e-6)
+        else:  # systematic: not reduced by the box means, so larger than the noise's half
+            assert m.extra["sigma_calibration_mm"] > 0.5 * base.sigma_mm
+    with pytest.raises(ValueError, match="calibration_sigma_mm"):
+        M.length(p, ok, sig, [(1, 1), (5, 5)], calibration_sigma_mm=-1)
+
+
 def test_snapping_and_refusals_name_the_point():
     p = plane()
     ok = ones(p)

@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from app.analysis.measure import measure
 from app.capture.captureset import read_capture_set
 from app.main import create_app
+from app.service.measure import calibration_terms
 from tests.api.conftest import live_settings, wait_for
 
 
@@ -40,9 +41,13 @@ def test_measure_on_the_latest_result_matches_the_functions(live: TestClient) ->
             assert r.status_code == 200, r.text
             body = r.json()
             assert body["source"]["seq"] == res.seq
-            ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=inst.calibration.plane_normal)
+            normal, cal_sigma = calibration_terms(inst.calibration)
+            assert cal_sigma > 0  # the simulator's calibration has held-out figures
+            ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal,
+                          calibration_sigma_mm=cal_sigma)
             assert body["value_mm"] == pytest.approx(ref.value_mm, rel=1e-9)
             assert body["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-9) and body["sigma_mm"] > 0
+            assert 0 < body["extra"]["sigma_noise_mm"] < body["sigma_mm"]
             assert [p["pixel"] for p in body["points"]] == pix
             assert all(np.isfinite(p["point_mm"]).all() for p in body["points"])
             assert (body["profile"] is not None) == (kind == "profile")
