@@ -664,8 +664,9 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
-    # the calibration term: per sample (it does not average out over a box: it is systematic)
-    sigma_cal = float(np.sqrt(np.sum(coef**2)) * surf.cal_sigma)
+    # the calibration term: systematic, so not reduced by the box means; the larger of independent per
+    # sample and common to all samples (a height error shared by the whole polygon scales its area)
+    sigma_cal = float(max(np.sqrt(np.sum(coef**2)), abs(np.sum(coef))) * surf.cal_sigma)
     # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
     var_s = np.zeros(len(su))
