@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import get_instrument, get_recorder
-from app.api.errors import COMMON, R404, R409, R422
+from app.api.errors import COMMON, R400, R404, R409, R422
 from app.api.schemas import MeasureIn, MeasureOut, MeasureToolIn, MeasureToolOut
 from app.service.instrument import Instrument
 from app.service.measure import calibration_terms, measure_result
@@ -31,7 +31,7 @@ def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str,
     return out
 
 
-@router.post("/measure", response_model=MeasureOut, responses={**R404, **R409, **R422, **COMMON})
+@router.post("/measure", response_model=MeasureOut, responses={**R400, **R404, **R409, **R422, **COMMON})
 async def measure(body: MeasureIn, inst: Instrument = Depends(get_instrument),
                   recorder: Recorder = Depends(get_recorder)) -> Any:
     """Measure in 3-D between clicked pixels, with the 1-σ uncertainty from the per-pixel σ.
@@ -48,7 +48,7 @@ def tool_get(recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]:
     return {"measurements": recorder.measurements}
 
 
-@router.put("/measure/tool", response_model=MeasureToolOut, responses={**R422, **COMMON})
+@router.put("/measure/tool", response_model=MeasureToolOut, responses={**R400, **R422, **COMMON})
 def tool_put(body: MeasureToolIn, recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]:
     """Replace the measurements kept on screen; while recording, each recorded set's
     ``session.json`` entry and ``capture.json`` carry them, measured on that set's depth map."""

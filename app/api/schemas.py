@@ -303,7 +303,7 @@ class LimitsOut(BaseModel):
 
 
 # -- measure (issue 17) ----------------------------------------------------------------------------
-Pixel = Annotated[list[Annotated[float, Field(ge=-1e6, le=1e6)]], Field(min_length=2, max_length=2)]
+Pixel = Annotated[list[Annotated[float, Field(strict=True, ge=-1e6, le=1e6)]], Field(min_length=2, max_length=2)]
 MEASURE_KINDS = Literal["length", "point_to_line", "depth", "profile", "area"]
 
 
@@ -315,14 +315,14 @@ class MeasureSpec(Strict):
     points: list[Pixel] = Field(..., max_length=256, description="[[u, v], …] image pixels (column, row)")
     reference: list[Pixel] | None = Field(None, max_length=3, description="profile only: 3 pixels of a "
                                                                           "reference plane (default: the chord)")
-    snap_px: float = Field(3.0, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
+    snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
                                                              "within this radius, px")
 
 
 class MeasureIn(MeasureSpec):
     recording: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
                                   description="measure on this recording's set (default: the latest live result)")
-    index: int | None = Field(None, ge=0, le=999_999, description="the recording's set index (with `recording`)")
+    index: int | None = Field(None, strict=True, ge=0, le=999_999, description="the recording's set index (with `recording`)")
 
     @model_validator(mode="after")
     def _both(self) -> MeasureIn:

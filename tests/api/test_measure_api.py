@@ -122,7 +122,7 @@ def test_recorded_sets_carry_the_tool_measurements(tmp_path: Path, sim_calibrati
         assert r.status_code == 200 and len(r.json()["measurements"]) == 2
         assert client.get("/api/measure/tool").json()["measurements"][0]["points"] == pix
         assert client.post("/api/recording/start", json={"name": "m-1"}).status_code == 200
-        wait_for(client, lambda s: client.get("/api/recording").json()["sets_with_depth"] >= 2, 90, "two sets")
+        wait_for(client, lambda s: client.get("/api/recording").json()["sets_with_depth"] >= 2, 180, "two sets")
         session = client.post("/api/recording/stop").json()["stopped"]
         sets = [s for s in session["sets"] if s["depth"]]
         assert sets and all(len(s["measurements"]) == 2 for s in sets)
