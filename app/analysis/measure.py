@@ -353,14 +353,22 @@ def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
     return -n if float(n @ p1) > 0 else n
 
 
+#: a reference triangle with a smaller angle leaves its plane ill-defined: its tilt follows the noise,
+#: far beyond what a first-order σ describes (seen on the twin at 1°)
+MIN_PLANE_ANGLE_DEG = 5.0
+
+
 def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
-    a, b, c = pts
-    ab, ac = b - a, c - a
-    cross = float(np.linalg.norm(np.cross(ab, ac)))
-    scale = float(np.linalg.norm(ab) * np.linalg.norm(ac))
-    if scale < 1e-12 or cross < 1e-3 * scale:  # sin(angle) < 1e-3: collinear or coincident
-        names = ", ".join(f"{first + i} {p.pixel}" for i, p in enumerate(picks))
+    names = ", ".join(f"{first + i} {p.pixel}" for i, p in enumerate(picks))
+    edges = [pts[(i + 1) % 3] - pts[i] for i in range(3)]
+    lengths = [float(np.linalg.norm(e)) for e in edges]
+    if min(lengths) < 1e-9:
         raise ValueError(f"points {names}: collinear or coincident; they do not define a plane")
+    angles = [math.degrees(math.acos(float(np.clip(-(edges[i - 1] @ edges[i]) / (lengths[i - 1] * lengths[i]),
+                                                   -1.0, 1.0)))) for i in range(3)]
+    if min(angles) < MIN_PLANE_ANGLE_DEG:
+        raise ValueError(f"points {names}: collinear or coincident (the triangle's smallest angle is "
+                         f"{min(angles):.1f}° < {MIN_PLANE_ANGLE_DEG:g}°); they do not define a plane well")
 
 
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,

@@ -188,6 +188,9 @@ def test_snapping_and_refusals_name_the_point():
         M.point_to_line(p, ok, None, [(100, 100), (10, 10), (10, 10)])
     with pytest.raises(ValueError, match="points 2 .*, 3 .*, 4 .*: collinear"):
         M.depth(p, ok, None, [(100, 100), (10, 10), (20, 20), (30, 30)])
+    with pytest.raises(ValueError, match=r"smallest angle is 2\.\d° < 5°"):  # nearly collinear: ill-defined
+        M.depth(p, ok, None, [(100, 100), (10, 10), (110, 10), (60, 12)])
+    assert M.depth(p, ok, None, [(100, 100), (10, 10), (110, 10), (60, 20)]).value_mm == pytest.approx(0, abs=1e-9)
     with pytest.raises(ValueError, match="area: needs at least 3 points, got 2"):
         M.area(p, ok, None, [(10, 10), (20, 20)])
     with pytest.raises(ValueError, match="edges 1-2 and 3-4 cross"):
