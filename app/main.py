@@ -74,6 +74,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     recorder = Recorder(instrument)  # issue 7: recordings of the live sets
     instrument.recorder = recorder  # issue 7: status shows `recording`
     viewer, viewer_routes = _make_viewer(settings, instrument)
+    if viewer is not None:  # issue 17: the dashboard's measurements in the 3-D view too
+        viewer.measure_source = lambda: recorder.measurements
     igtl = _make_igtl(settings, instrument)  # issue 16
     if igtl is not None:
         recorder.pose_source = igtl.latest_transforms

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api import analysis, calibration, control, limits, recordings, results, schedules, stream
+from app.api import analysis, calibration, control, limits, measure, recordings, results, schedules, stream
 
 
 def api_router() -> APIRouter:
     router = APIRouter()
-    for module in (control, limits, results, calibration, analysis, recordings, schedules, stream):
+    for module in (control, limits, results, calibration, analysis, measure, recordings, schedules, stream):
         router.include_router(module.router)
     return router
 

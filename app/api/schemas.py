@@ -300,3 +300,70 @@ class LimitsOut(BaseModel):
     exposure_ms: list[float] = Field(..., min_length=2, max_length=2, description="[min, max] camera exposure, ms")
     bit_depths: list[int] = Field(..., description="sensor bit depths the camera offers")
     depth_range_mm: list[float] = Field(..., min_length=2, max_length=2, description="default colormap [min, max], mm")
+
+
+# -- measure (issue 17) ----------------------------------------------------------------------------
+Pixel = Annotated[list[Annotated[float, Field(strict=True, ge=-1e6, le=1e6)]], Field(min_length=2, max_length=2)]
+MEASURE_KINDS = Literal["length", "point_to_line", "depth", "profile", "area"]
+
+
+class MeasureSpec(Strict):
+    kind: MEASURE_KINDS = Field(..., description=(
+        "length: 2 points; point_to_line: the point, then 2 on the line; depth: the point, then 3 spanning "
+        "the plane (signed, + toward the scope); profile: a polyline of ≥ 2 points (heights against its chord, "
+        "or against `reference`); area: a polygon of ≥ 3 points, on the surface (mm²)"))
+    points: list[Pixel] = Field(..., max_length=256, description="[[u, v], …] image pixels (column, row)")
+    reference: list[Pixel] | None = Field(None, max_length=3, description="profile only: 3 pixels of a "
+                                                                          "reference plane (default: the chord)")
+    snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
+                                                             "within this radius, px")
+
+
+class MeasureIn(MeasureSpec):
+    recording: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
+                                  description="measure on this recording's set (default: the latest live result)")
+    index: int | None = Field(None, strict=True, ge=0, le=999_999, description="the recording's set index (with `recording`)")
+
+    @model_validator(mode="after")
+    def _both(self) -> MeasureIn:
+        if (self.recording is None) != (self.index is None):
+            raise ValueError("recording and index: give both (a recorded set) or neither (the live result)")
+        return self
+
+
+class PickedOut(BaseModel):
+    requested: list[float]
+    pixel: list[int]
+    point_mm: list[float | None]
+    sigma_mm: float | None
+    snapped: bool
+    snap_px: float
+
+
+class ProfileOut(BaseModel):
+    pixels: list[list[int]]
+    distance_mm: list[float | None]
+    height_mm: list[float | None]
+    sigma_mm: list[float | None]
+
+
+class MeasureOut(BaseModel):
+    kind: str
+    value_mm: float | None = Field(..., description="mm (area: mm²)")
+    sigma_mm: float | None = Field(..., description="1-σ of value_mm, from the per-pixel σ")
+    unit: str
+    points: list[PickedOut]
+    snapped: bool
+    profile: ProfileOut | None = None
+    extra: dict[str, Any] = {}
+    source: dict[str, Any] = {}
+    elapsed_ms: float
+
+
+class MeasureToolIn(Strict):
+    measurements: list[MeasureSpec] = Field(..., max_length=32,
+                                            description="kept and re-measured on every recorded depth map")
+
+
+class MeasureToolOut(BaseModel):
+    measurements: list[MeasureSpec]

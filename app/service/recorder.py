@@ -87,6 +87,8 @@ class Recorder:
         self._cleaned = False
         # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source: Callable[[], dict[str, Any]] | None = None
+        # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
+        self.measurements: list[dict[str, Any]] = []
 
     # -- control (any thread) --------------------------------------------------------------
     @property
@@ -207,6 +209,19 @@ class Recorder:
             raise NotFound(f"set {index} of {name!r} was recorded without a depth map")
         return np.asarray(np.load(path, allow_pickle=False))
 
+    def set_capture(self, name: str, index: int) -> CaptureSet:
+        """The raw capture set (frames + metadata) of set ``index`` of recording ``name``."""
+        from app.capture.captureset import read_capture_set
+
+        session = self.session(name)
+        folder = f"set_{index:04d}"
+        if not any(s["folder"] == folder for s in session["sets"]):
+            raise NotFound(f"recording {name!r} has no set {index}")
+        try:
+            return read_capture_set(rec_io.safe_child(self.root, name) / folder)
+        except ValueError as exc:
+            raise NotFound(f"set {index} of {name!r} cannot be read: {exc}") from None
+
     # -- the thread ------------------------------------------------------------------------------
     def _run(self, rec: Recording) -> None:
         inst = self.instrument
@@ -281,6 +296,17 @@ class Recorder:
             if res is not None:
                 info.update(result_seq=res.seq, latency_ms=round(res.latency_ms, 3),
                             valid_fraction=round(float(res.valid.mean()), 6))
+                specs = list(self.measurements)
+                if specs:  # issue 17: the dashboard's measurements on this set's depth map
+                    from app.service.measure import calibration_terms, measure_specs
+
+                    normal, cal_sigma = calibration_terms(getattr(self.instrument, "calibration", None))
+                    try:
+                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma)
+                    except Exception as exc:  # a measurement fault must not stop the recording
+                        log.exception("measurements of a recorded set failed")
+                        info["measurements"] = [{"error": f"measurement failed: {exc}"}]
+                    capture.extra["measurements"] = info["measurements"]
             rec.add_set(capture, depth_mm=None if res is None else res.depth,
                         timestamp=now_wall - (now_mono - fs.received_s), info=info)
         except (OSError, ValueError) as exc:

@@ -15,6 +15,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -109,6 +110,9 @@ class Viewer:
         self._texture_image: Any = None
         self._camera_placed = False
         self._gui: dict[str, Any] = {}
+        # issue 17: the dashboard's measurements (kind + pixels) drawn on the cloud; set by the app
+        self.measure_source: Callable[[], list[dict[str, Any]]] | None = None
+        self._measure_nodes: list[Any] = []
         self.updates = 0  # results pushed to viser
         self.last_seq = 0
         self.last_point_count = 0
@@ -329,8 +333,27 @@ class Viewer:
                 self._texture_image.image = texture
             if not self._camera_placed and len(xyz) > 0:
                 self._place_camera(server, xyz)
+            self._show_measurements(server, result)
         self.updates += 1
         self.last_point_count = len(xyz)
+
+    def _show_measurements(self, server: viser.ViserServer, result: LiveResult) -> None:
+        """The measure tool's lines and values (issue 17), re-measured on this result."""
+        for node in self._measure_nodes:
+            node.remove()
+        self._measure_nodes = []
+        specs = self.measure_source() if self.measure_source is not None else []
+        if not specs:
+            return
+        from app.service.measure import calibration_terms, measurement_segments
+
+        segs, labels = measurement_segments(result, specs, *calibration_terms(getattr(self._instrument, "calibration",
+                                                                                       None)))
+        if len(segs):
+            self._measure_nodes.append(server.scene.add_line_segments(
+                "/measure/lines", segs, (255, 255, 255), thickness=3.0, thickness_units="screen"))
+        for i, (pos, text) in enumerate(labels):
+            self._measure_nodes.append(server.scene.add_label(f"/measure/label_{i}", text, position=pos))
 
     def _place_camera(self, server: viser.ViserServer, xyz: npt.NDArray[np.float32]) -> None:
         """Start every browser near the scope's own viewpoint, tilted to show the relief."""

@@ -5,6 +5,7 @@ import { api, say } from "./api.js";
 import { setupAnalysis } from "./analysis.js";
 import { applyLimits as controlsLimits, setupControls } from "./controls.js";
 import { applyLimits as depthLimits, setupDepth } from "./depth.js";
+import { setupMeasure } from "./measure.js";
 import { setupRecording } from "./recording.js";
 import { setupSchedule } from "./schedule.js";
 import { signedIn, ui } from "./state.js";
@@ -26,6 +27,7 @@ async function loadLimits() {
 function start() {
   setupDepth();
   setupAnalysis();
+  setupMeasure();
   setupControls();
   setupRecording();
   setupSchedule();

@@ -44,6 +44,7 @@ HYPOTHESIS = {"deadline": None, "derandomize": True, "suppress_health_check": li
 #: live image / an uploaded file's content): a schema-valid request may still be refused, with a
 #: 422 naming the reason, so schemathesis' "valid data accepted" check is not run on them alone.
 SEMANTIC_422 = {
+    "POST /api/measure": "clicks on valid pixels of the live image, enough of them, not degenerate",
     "GET /api/depth/latest": "min_mm < max_mm",
     "POST /api/analysis/plane": "x0 < x1, y0 < y1, ROI inside the depth map",
     "POST /api/analysis/feature": "x0 < x1, y0 < y1, ROI inside the depth map",
