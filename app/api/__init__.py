@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api import analysis, calibration, control, limits, measure, recordings, results, schedules, stream
+from app.api import (
+    analysis,
+    calibration,
+    control,
+    limits,
+    measure,
+    recordings,
+    results,
+    schedules,
+    stream,
+)
 
 
 def api_router() -> APIRouter:
