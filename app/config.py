@@ -56,6 +56,9 @@ class Settings(BaseSettings):
     led: Led = "green"
     bit_depth: BitDepth = 8
     rolling: bool = False
+    # per-pixel false-alarm rate of the motion test on a still scene (both modes): the
+    # threshold on the frequency groups' background difference is set from it and the noise
+    motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
     autostart: bool = True
 
     # viewer

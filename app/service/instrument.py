@@ -50,7 +50,8 @@ class Instrument:
         self.settings = settings
         self.schedule = PatternSchedule()
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
-                                rolling=settings.rolling, autostart=settings.autostart)
+                                rolling=settings.rolling, autostart=settings.autostart,
+                                motion_false_alarm_rate=settings.motion_false_alarm_rate)
         self.pipeline = LivePipeline(config, self.schedule, devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app

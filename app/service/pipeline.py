@@ -20,6 +20,7 @@ from app.service.acquisition import Acquisition
 from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
 from app.service.devices import DeviceBundle
 from app.service.framesets import FrameSet
+from app.service.motion import DEFAULT_FALSE_ALARM_RATE
 from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import LatestSlot, NewestQueue
 
@@ -33,6 +34,7 @@ class PipelineConfig:
     bit_depth: int
     rolling: bool
     autostart: bool
+    motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE
 
 
 class LivePipeline:
@@ -46,6 +48,7 @@ class LivePipeline:
         self.acquisition: Acquisition | None = None
         self.reconstruction = Reconstruction(
             self.queue, self._live_engine, n_frequencies=len(schedule.frequencies), bit_depth=config.bit_depth,
+            motion_false_alarm_rate=config.motion_false_alarm_rate,
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None
