@@ -51,7 +51,8 @@ class Instrument:
         self.schedule = PatternSchedule()
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
                                 rolling=settings.rolling, autostart=settings.autostart,
-                                motion_false_alarm_rate=settings.motion_false_alarm_rate)
+                                motion_false_alarm_rate=settings.motion_false_alarm_rate,
+                                motion_grow_px=settings.motion_grow_px)
         self.pipeline = LivePipeline(config, self.schedule, devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app

@@ -16,8 +16,14 @@ What the test cannot see: motion that leaves the background unchanged (a heave o
 evenly lit, untextured surface). Such motion still changes the phase; the engine's
 unwrapping consistency test flags it when it breaks the frequency chain.
 
-The test runs as one parallel numba pass over the frames (each pixel's group sums in
-registers) and invalidates moved pixels in place in the engine's output arrays.
+Motion is spatially coherent and at the rim of a moved region the background change drops
+below the threshold while the phase error can still exceed 0.5 mm, so the flagged pixels are
+grown by ``grow_px`` (a (2r+1)² square) before they are invalidated. On a still scene the
+invalidated fraction is then at most (2r+1)²·α (isolated false alarms grow to squares).
+
+The test is one parallel numba pass over the frames (group sums of a row in a small
+buffer), the growth a second pass over the (H, W) mask that invalidates in place in the
+engine's output arrays.
 """
 
 from __future__ import annotations
@@ -38,6 +44,9 @@ _SATURATED = int(Reason.SATURATED)
 
 #: default per-pixel false-alarm rate of the motion test on a still scene (per set)
 DEFAULT_FALSE_ALARM_RATE = 1e-4
+#: moved regions are grown by this many pixels before invalidating: at a region's rim the
+#: background change falls below the threshold before the phase change becomes harmless
+DEFAULT_GROW_PX = 2
 
 
 def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
@@ -57,35 +66,69 @@ def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) 
     return float(NormalDist().inv_cdf(1.0 - false_alarm_rate / (2.0 * (n_groups - 1))))
 
 
+_ROWS = 16  # rows per parallel chunk (one scratch allocation per chunk)
+
+
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, apply,  # type: ignore[no-untyped-def]
-                   depth, points, valid, reason, sigma, motion_code, saturated_code):  # pragma: no cover
+def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A."""
     f, h, w = frames.shape
-    counts = np.zeros(h, np.int64)
     var_scale = np.float32(2 * steps)  # Var(S_g − S_new) = 2·N·σ_I²(Ā), S = sum of N frames
     half_inv_n = np.float32(0.5 / steps)
-    for v in prange(h):
-        sums = np.zeros((n_groups, w), np.float32)  # group sums of this row, contiguous
-        for g in range(n_groups):
-            row = sums[g]
-            for n in range(steps):
-                src = frames[g * steps + n, v]
-                for u in range(w):
-                    row[u] += np.float32(src[u])
-        moved_row = mask[v]
-        for u in range(w):
-            moved_row[u] = False
-        ref = sums[newest]
-        for g in range(n_groups):
-            if g != newest:
+    c0 = k2 * var_scale * read2
+    c1 = k2 * var_scale * gain * half_inv_n
+    n_chunks = (h + _ROWS - 1) // _ROWS
+    for chunk in prange(n_chunks):
+        sums = np.empty((n_groups, w), np.int32)  # integer group sums of one row: exact
+        for v in range(chunk * _ROWS, min((chunk + 1) * _ROWS, h)):
+            for g in range(n_groups):
                 row = sums[g]
+                src = frames[g * steps, v]
                 for u in range(w):
-                    d = row[u] - ref[u]
-                    mean_i = max((row[u] + ref[u]) * half_inv_n, np.float32(0.0))
-                    moved_row[u] |= d * d > k2 * var_scale * (read2 + gain * mean_i)
+                    row[u] = np.int32(src[u])
+                for n in range(1, steps):
+                    src = frames[g * steps + n, v]
+                    for u in range(w):
+                        row[u] += np.int32(src[u])
+            moved_row = mask[v]
+            ref = sums[newest]
+            for u in range(w):
+                moved_row[u] = False
+            for g in range(n_groups):
+                if g != newest:
+                    row = sums[g]
+                    for u in range(w):
+                        d = np.float32(row[u] - ref[u])
+                        # threshold² = k²·2N·(read² + gain·Ā), Ā = (S_g + S_new)/(2N) ≥ 0
+                        moved_row[u] |= d * d > c0 + c1 * np.float32(row[u] + ref[u])
+
+
+@njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _grow_kernel(mask, radius, tmp, out, apply, depth, points, valid, reason, sigma,  # type: ignore[no-untyped-def]
+                 motion_code, saturated_code):  # pragma: no cover - compiled
+    """out = mask dilated by a (2r+1)² square (separable); with ``apply`` invalidate ``out`` in place."""
+    h, w = mask.shape
+    for v in prange(h):
+        src = mask[v]
+        dst = tmp[v]
+        for u in range(w):
+            dst[u] = False
+        for u in range(w):
+            if src[u]:
+                for x in range(max(u - radius, 0), min(u + radius + 1, w)):
+                    dst[x] = True
+    counts = np.zeros(h, np.int64)
+    for v in prange(h):
+        row = out[v]
+        for u in range(w):
+            row[u] = False
+        for y in range(max(v - radius, 0), min(v + radius + 1, h)):
+            t = tmp[y]
+            for u in range(w):
+                row[u] |= t[u]
         c = 0
         for u in range(w):
-            if moved_row[u]:
+            if row[u]:
                 c += 1
                 if apply and reason[v, u] != saturated_code:
                     depth[v, u] = np.nan
@@ -118,6 +161,7 @@ def motion_mask(
     noise: SensorNoise,
     newest: int = -1,
     false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    grow_px: int = 0,
 ) -> npt.NDArray[np.bool_]:
     """Pixels whose background A differs between a group and the newest group beyond the noise.
 
@@ -126,20 +170,38 @@ def motion_mask(
         n_groups: frequency groups in the set (consecutive blocks of ``steps`` frames).
         noise: the camera's temporal noise model (DN).
         newest: index (capture-set order) of the group taken last; −1 for a whole set.
-        false_alarm_rate: per-pixel false-alarm rate α on a still scene (see :func:`motion_k`).
+        false_alarm_rate: per-pixel false-alarm rate α of the test on a still scene (see :func:`motion_k`).
+        grow_px: also flag every pixel within this many pixels (a (2r+1)² square) of a flagged one.
 
     Returns:
-        (H, W) bool, True where ``|A_g − A_newest| > k·√2·σ_A`` for some group g.
+        (H, W) bool, True where ``|A_g − A_newest| > k·√2·σ_A`` for some group g (then grown).
     """
     steps, newest = _check(frames, n_groups, newest)
-    k = motion_k(n_groups, false_alarm_rate)
-    h, w = frames.shape[1:]
-    mask = np.empty((h, w), np.bool_)
+    grow = _check_grow(grow_px)
+    mask = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    if grow == 0:
+        return mask
+    out = np.empty_like(mask)
     d = np.empty((1, 1), np.float32)
-    p = np.empty((1, 1, 3), np.float32)
+    _grow_kernel(mask, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
+                 np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
+    return out
+
+
+def _check_grow(grow_px: int) -> int:
+    if int(grow_px) != grow_px or not 0 <= grow_px <= 16:
+        raise ValueError(f"grow_px: must be an integer in 0..16, got {grow_px}")
+    return int(grow_px)
+
+
+def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, newest: int, noise: SensorNoise,
+              false_alarm_rate: float) -> npt.NDArray[np.bool_]:
+    if not isinstance(noise, SensorNoise):
+        raise ValueError("noise: expected a SensorNoise")
+    k = motion_k(n_groups, false_alarm_rate)
+    mask = np.empty(frames.shape[1:], np.bool_)
     _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
-                   np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, False, d, p, np.empty((1, 1), np.bool_),
-                   np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
+                   np.float32(noise.gain_dn_per_e), np.float32(k * k), mask)
     return mask
 
 
@@ -155,8 +217,9 @@ def invalidate_motion(
     sigma: npt.NDArray[np.float32],
     newest: int = -1,
     false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    grow_px: int = DEFAULT_GROW_PX,
 ) -> tuple[npt.NDArray[np.bool_], int]:
-    """:func:`motion_mask`, and in the same pass mark moved pixels invalid IN PLACE.
+    """:func:`motion_mask` (grown by ``grow_px``), then mark those pixels invalid IN PLACE.
 
     Moved pixels get depth/points/sigma NaN, valid False and reason MOTION, except where the
     engine said SATURATED (the earlier cause, see :mod:`app.core.reasons`).
@@ -167,9 +230,10 @@ def invalidate_motion(
         (the rest as :func:`motion_mask`)
 
     Returns:
-        (mask, number of moved pixels).
+        (the grown mask, its number of pixels).
     """
     steps, newest = _check(frames, n_groups, newest)
+    grow = _check_grow(grow_px)
     h, w = frames.shape[1:]
     for name, arr, shape, dt in (("depth", depth, (h, w), np.float32), ("sigma", sigma, (h, w), np.float32),
                                  ("points", points, (h, w, 3), np.float32), ("valid", valid, (h, w), np.bool_),
@@ -177,12 +241,10 @@ def invalidate_motion(
         if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dt:
             raise ValueError(f"{name}: expected {np.dtype(dt).name} {shape}, got "
                              f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")
-    k = motion_k(n_groups, false_alarm_rate)
-    mask = np.empty((h, w), np.bool_)
-    n = _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
-                       np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, True, depth, points, valid, reason,
-                       sigma, MOTION, _SATURATED)
-    return mask, int(n)
+    raw = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    out = np.empty_like(raw)
+    n = _grow_kernel(raw, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma, MOTION, _SATURATED)
+    return out, int(n)
 
 
 def group_mid_times(timestamps: list[float] | npt.NDArray[np.float64], n_groups: int) -> npt.NDArray[np.float64]:
@@ -218,6 +280,6 @@ def newest_group(frame_indices: list[int], n_groups: int) -> int:
     return int(np.argmax(frame_indices)) // (len(frame_indices) // n_groups)
 
 
-__all__ = ["DEFAULT_FALSE_ALARM_RATE", "MOTION", "group_mid_times", "invalidate_motion", "map_time", "motion_k",
+__all__ = ["DEFAULT_FALSE_ALARM_RATE", "DEFAULT_GROW_PX", "MOTION", "group_mid_times", "invalidate_motion", "map_time", "motion_k",
            "motion_mask", "newest_group"]
 

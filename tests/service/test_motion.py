@@ -107,7 +107,7 @@ def test_invalidate_marks_moved_pixels_in_place_except_saturated():
     reason[:2, :2] = Reason.SATURATED
     valid[:2, :2] = False
     mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=points, valid=valid, reason=reason,
-                                sigma=sigma)
+                                sigma=sigma, grow_px=0)
     assert n == 100 and mask[:10, :10].all() and mask.sum() == 100
     assert (reason[:2, :2] == Reason.SATURATED).all()
     moved = mask.copy()
@@ -115,6 +115,27 @@ def test_invalidate_marks_moved_pixels_in_place_except_saturated():
     assert (reason[moved] == Reason.MOTION).all() and not valid[mask].any()
     assert np.isnan(depth[moved]).all() and np.isnan(sigma[moved]).all() and np.isnan(points[moved]).all()
     assert (depth[~mask] == 5.0).all() and valid[~mask].all() and (reason[~mask] == 0).all()
+
+
+def test_moved_regions_grow_by_grow_px():
+    s = PatternSchedule()
+    bg = np.full((4, 40, 50), 100.0)
+    bg[0, 10:20, 30:35] = 160.0
+    bg[0, 0, 0] = 160.0  # at the corner the square is cut by the image edge
+    frames = fringe_set(bg, s)
+    raw = motion_mask(frames, 4, noise=NOISE)
+    grown = motion_mask(frames, 4, noise=NOISE, grow_px=2)
+    assert raw.sum() == 51
+    expected = np.zeros_like(raw)
+    expected[8:22, 28:37] = True
+    expected[:3, :3] = True
+    assert np.array_equal(grown, expected)
+    z = np.zeros((40, 50), np.float32)
+    mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=z.copy(), points=np.zeros((40, 50, 3), np.float32),
+                                valid=np.ones((40, 50), bool), reason=z.astype(np.uint8), sigma=z.copy(), grow_px=2)
+    assert np.array_equal(mask, expected) and n == expected.sum()
+    with pytest.raises(ValueError, match="grow_px"):
+        motion_mask(frames, 4, noise=NOISE, grow_px=-1)
 
 
 def test_invalid_arguments():
