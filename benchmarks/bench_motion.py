@@ -45,8 +45,9 @@ from app.devices.sim.ideal import ideal_calibration
 from app.devices.sim.optics import rig_by_name
 from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
+from app.recon.reconstructor import SensorNoise
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
-from app.service.motion import DEFAULT_FALSE_ALARM_RATE, motion_k
+from app.service.motion import DEFAULT_FALSE_ALARM_RATE, motion_k, motion_mask
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
@@ -104,6 +105,10 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
                           led="green") for i in range(schedule.n_frames))
     for _ in range(3):
         recon.process(engine, FrameSet(frames0, time.monotonic()))
+    # the test's false-alarm rate on the twin: a set of still frames (all rendered at t0)
+    still = motion_mask(warm, g, noise=SensorNoise.typical(255), false_alarm_rate=DEFAULT_FALSE_ALARM_RATE)
+    print(f"  {name}: still set at t = 0: raw motion-test false alarms {still.mean():.2e} "
+          f"(stated rate {DEFAULT_FALSE_ALARM_RATE:g})", flush=True)
 
     for i in range(n_frames):
         t = args.t0 + i * period_s + args.exposure_ms / 2000.0  # mid-exposure, scene time

@@ -96,7 +96,7 @@ class LiveResult:
             "frame_indices": self.frame_indices, "timestamps": self.timestamps,
             "latency_ms": round(self.latency_ms, 3), "recon_ms": round(self.recon_ms, 3),
             "valid_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
-            "map_time": self.map_time_s, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
+            "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
             "shape": list(self.shape),
         }
 
