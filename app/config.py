@@ -60,7 +60,7 @@ class Settings(BaseSettings):
     # threshold on the frequency groups' background difference is set from it and the noise
     motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
     # moved regions grow by this many pixels before they are invalidated (their rims)
-    motion_grow_px: int = Field(2, ge=0, le=16)
+    motion_grow_px: int = Field(4, ge=0, le=16)
     autostart: bool = True
 
     # viewer

@@ -47,7 +47,7 @@ from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
-from app.service.motion import DEFAULT_FALSE_ALARM_RATE, motion_k, motion_mask
+from app.service.motion import DEFAULT_FALSE_ALARM_RATE, DEFAULT_GROW_PX, motion_k, motion_mask
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
@@ -85,7 +85,8 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
     print(f"  {name}: {schedule.n_frames} frames {list(schedule.frequencies)} x {schedule.steps}, "
           f"max_sigma_mm {max_sigma if max_sigma is None else round(max_sigma, 4)}", flush=True)
     g = len(schedule.frequencies)
-    recon = Reconstruction(NewestQueue(maxsize=1), lambda: engine, n_frequencies=g, bit_depth=8)
+    recon = Reconstruction(NewestQueue(maxsize=1), lambda: engine, n_frequencies=g, bit_depth=8,
+                           motion_grow_px=args.grow_px)
     period_s = max(args.exposure_ms, READOUT_MS) / 1000.0
     n_frames = int(round(args.seconds / period_s))
     grouping = {"set": SetAssembler(schedule.n_frames), "rolling": GroupWindow(g, schedule.steps)}
@@ -154,6 +155,7 @@ def main() -> int:
                     help="engine's UNCERTAIN limit on the predicted depth σ, mm (0: none); default "
                          "0.5 mm / (k + 5): motion just below the test's threshold k·√2·σ_A can shift the phase by "
                          "up to about k σ, and noise adds 5 σ")
+    ap.add_argument("--grow-px", type=int, default=DEFAULT_GROW_PX, help="motion regions grow by this many pixels")
     ap.add_argument("--schedules", default=",".join(SCHEDULES), help=f"comma-separated of {', '.join(SCHEDULES)}")
     args = ap.parse_args()
     names = [s.strip() for s in args.schedules.split(",") if s.strip()]
@@ -163,7 +165,8 @@ def main() -> int:
             return 2
     fps = 1000.0 / max(args.exposure_ms, READOUT_MS)
     print(f"bench_motion: scene {args.scene}, {args.seconds:g} s from t = {args.t0:g} s, {args.exposure_ms:g} ms "
-          f"exposure ({fps:.2f} camera fps), truth at each map's instant (its finest group's mid-exposure)")
+          f"exposure ({fps:.2f} camera fps), motion regions grown by {args.grow_px} px, truth at each map's instant "
+          f"(its finest group's mid-exposure)")
     results = [(name, SCHEDULES[name], run_schedule(name, SCHEDULES[name], args)) for name in names]
     print(f"{'schedule':<11} {'mode':<8} {'maps':>4} {'maps/s':>7} {'lat med':>8} {'lat max':>8} {'motion':>6} "
           f"{'valid':>6} {'moved':>7} {'rms mm':>7} {'gross':>6} {'worst':>6} | {'rms@newest':>10} {'gross@newest':>12}")

@@ -46,7 +46,7 @@ _SATURATED = int(Reason.SATURATED)
 DEFAULT_FALSE_ALARM_RATE = 1e-4
 #: moved regions are grown by this many pixels before invalidating: at a region's rim the
 #: background change falls below the threshold before the phase change becomes harmless
-DEFAULT_GROW_PX = 2
+DEFAULT_GROW_PX = 4
 
 
 def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
