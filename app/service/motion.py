@@ -70,8 +70,9 @@ _ROWS = 16  # rows per parallel chunk (one scratch allocation per chunk)
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A."""
+def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, row_any):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A;
+    row_any[v] = row v has such a pixel."""
     f, h, w = frames.shape
     var_scale = np.float32(2 * steps)  # Var(S_g − S_new) = 2·N·σ_I²(Ā), S = sum of N frames
     half_inv_n = np.float32(0.5 / steps)
@@ -101,14 +102,21 @@ def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask):  # t
                         d = np.float32(row[u] - ref[u])
                         # threshold² = k²·2N·(read² + gain·Ā), Ā = (S_g + S_new)/(2N) ≥ 0
                         moved_row[u] |= d * d > c0 + c1 * np.float32(row[u] + ref[u])
+            hits = 0
+            for u in range(w):
+                hits += moved_row[u]
+            row_any[v] = hits > 0
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _grow_kernel(mask, radius, tmp, out, apply, depth, points, valid, reason, sigma,  # type: ignore[no-untyped-def]
-                 motion_code, saturated_code):  # pragma: no cover - compiled
-    """out = mask dilated by a (2r+1)² square (separable); with ``apply`` invalidate ``out`` in place."""
+def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, reason,  # type: ignore[no-untyped-def]
+                 sigma, motion_code, saturated_code):  # pragma: no cover - compiled
+    """out = mask dilated by a (2r+1)² square (separable; rows without a flagged pixel,
+    ``row_any`` False, are skipped); with ``apply`` invalidate ``out`` in place."""
     h, w = mask.shape
     for v in prange(h):
+        if not row_any[v]:
+            continue
         src = mask[v]
         dst = tmp[v]
         for u in range(w):
@@ -122,10 +130,15 @@ def _grow_kernel(mask, radius, tmp, out, apply, depth, points, valid, reason, si
         row = out[v]
         for u in range(w):
             row[u] = False
+        touched = False
         for y in range(max(v - radius, 0), min(v + radius + 1, h)):
-            t = tmp[y]
-            for u in range(w):
-                row[u] |= t[u]
+            if row_any[y]:
+                touched = True
+                t = tmp[y]
+                for u in range(w):
+                    row[u] |= t[u]
+        if not touched:
+            continue
         c = 0
         for u in range(w):
             if row[u]:
@@ -178,12 +191,12 @@ def motion_mask(
     """
     steps, newest = _check(frames, n_groups, newest)
     grow = _check_grow(grow_px)
-    mask = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    mask, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
     if grow == 0:
         return mask
     out = np.empty_like(mask)
     d = np.empty((1, 1), np.float32)
-    _grow_kernel(mask, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
+    _grow_kernel(mask, row_any, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
                  np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
     return out
 
@@ -195,14 +208,15 @@ def _check_grow(grow_px: int) -> int:
 
 
 def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, newest: int, noise: SensorNoise,
-              false_alarm_rate: float) -> npt.NDArray[np.bool_]:
+              false_alarm_rate: float) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
     if not isinstance(noise, SensorNoise):
         raise ValueError("noise: expected a SensorNoise")
     k = motion_k(n_groups, false_alarm_rate)
     mask = np.empty(frames.shape[1:], np.bool_)
+    row_any = np.empty(frames.shape[1], np.bool_)
     _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
-                   np.float32(noise.gain_dn_per_e), np.float32(k * k), mask)
-    return mask
+                   np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, row_any)
+    return mask, row_any
 
 
 def invalidate_motion(
@@ -241,9 +255,10 @@ def invalidate_motion(
         if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dt:
             raise ValueError(f"{name}: expected {np.dtype(dt).name} {shape}, got "
                              f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")
-    raw = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    raw, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
     out = np.empty_like(raw)
-    n = _grow_kernel(raw, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma, MOTION, _SATURATED)
+    n = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma, MOTION,
+                     _SATURATED)
     return out, int(n)
 
 
