@@ -119,12 +119,15 @@ def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, r
             continue
         src = mask[v]
         dst = tmp[v]
+        count = 0  # flagged pixels in the window u − r … u + r: O(W) whatever the density
+        for x in range(min(radius, w)):
+            count += src[x]
         for u in range(w):
-            dst[u] = False
-        for u in range(w):
-            if src[u]:
-                for x in range(max(u - radius, 0), min(u + radius + 1, w)):
-                    dst[x] = True
+            if u + radius < w:
+                count += src[u + radius]
+            if u - radius - 1 >= 0:
+                count -= src[u - radius - 1]
+            dst[u] = count > 0
     counts = np.zeros(h, np.int64)
     for v in prange(h):
         row = out[v]
