@@ -75,8 +75,9 @@ def stream_client(url: str, stop: threading.Event, arrivals: list[float], sizes:
             sizes.append(len(msg))
 
 
-def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list[float]]]:
-    """Per mode: depth rate (/s), frames per map, and the latency of every result seen (ms)."""
+def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list[float], list[float]]]:
+    """Per mode: depth rate (/s), frames per map, the latency of every result seen and of it
+    the motion test's time (ms)."""
     out = []
     with httpx.Client(base_url=base, timeout=5) as http:
         st = http.get("/api/status").json()
@@ -90,17 +91,20 @@ def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list
             s0 = http.get("/api/status").json()
             t0 = time.monotonic()
             lat: dict[int, float] = {}
+            mot: dict[int, float] = {}
             while time.monotonic() - t0 < seconds:
                 r = http.get("/api/result/latest")
                 if r.status_code == 200:
                     m = r.json()
                     if m["mode"] == mode:
                         lat[m["seq"]] = m["latency_ms"]
+                        mot[m["seq"]] = m.get("motion_ms", 0.0)
                 time.sleep(0.01)
             span = time.monotonic() - t0
             s1 = http.get("/api/status").json()
             rate = (s1["results_published"] - s0["results_published"]) / span
-            out.append((mode, rate, steps if mode == "rolling" else n_freq * steps, list(lat.values())))
+            out.append((mode, rate, steps if mode == "rolling" else n_freq * steps, list(lat.values()),
+                        list(mot.values())))
         http.put("/api/mode", json={"rolling": start_mode == "rolling"})
     return out
 
@@ -182,12 +186,13 @@ def main() -> int:
           f"min/depth ratio {stream_ratio:.3f} (target >= 0.97: {verdict(stream_ratio >= 0.97)})  "
           f"mean JPEG {np.mean(sizes) / 1024 if sizes else 0:.0f} KiB")
     print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the machine skews every figure)")
-    for mode, rate, per_map, lat in per_mode:
+    for mode, rate, per_map, lat, mot in per_mode:
         ideal_m = camera_fps / per_map if per_map else 0.0
         med, p95 = (np.percentile(lat, [50, 95]) if lat else (float("nan"), float("nan")))
         print(f"  mode {mode:<8} depth rate {rate:7.3f} /s  ideal camera/{per_map} = {ideal_m:.3f} /s  "
               f"ratio {rate / ideal_m if ideal_m else 0.0:.3f};  latency median {med:6.2f} ms  p95 {p95:6.2f} ms  "
-              f"n={len(lat)} (target median <= 20: {verdict(bool(lat) and med <= 20)})")
+              f"(motion test {np.median(mot) if mot else float('nan'):.2f}) n={len(lat)} "
+              f"(target median <= 20: {verdict(bool(lat) and med <= 20)})")
     print(f"  sets dropped (newest wins) {s1['dropped_sets'] - s0['dropped_sets']}, incomplete "
           f"{s1['incomplete_sets'] - s0['incomplete_sets']}, frames dropped {s1['frames_dropped'] - s0['frames_dropped']}")
     return 0

@@ -35,7 +35,7 @@ import numpy.typing as npt
 from numba import njit, prange
 
 from app.core.reasons import Reason
-from app.recon.fast import FASTMATH
+from app.recon.fast import FASTMATH, KERNEL_LOCK
 from app.recon.reconstructor import SensorNoise
 
 #: reason code for "moved during the set"
@@ -199,8 +199,9 @@ def motion_mask(
         return mask
     out = np.empty_like(mask)
     d = np.empty((1, 1), np.float32)
-    _grow_kernel(mask, row_any, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
-                 np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
+    with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
+        _grow_kernel(mask, row_any, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
+                     np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
     return out
 
 
@@ -217,8 +218,9 @@ def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, newest
     k = motion_k(n_groups, false_alarm_rate)
     mask = np.empty(frames.shape[1:], np.bool_)
     row_any = np.empty(frames.shape[1], np.bool_)
-    _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
-                   np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, row_any)
+    with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
+        _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
+                       np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, row_any)
     return mask, row_any
 
 
@@ -260,8 +262,9 @@ def invalidate_motion(
                              f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")
     raw, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
     out = np.empty_like(raw)
-    n = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma, MOTION,
-                     _SATURATED)
+    with KERNEL_LOCK:
+        n = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma,
+                         MOTION, _SATURATED)
     return out, int(n)
 
 
