@@ -57,6 +57,11 @@ class Settings(BaseSettings):
     led: Led = "green"
     bit_depth: BitDepth = 8
     rolling: bool = False
+    # per-pixel false-alarm rate of the motion test on a still scene (both modes): the
+    # threshold on the frequency groups' background difference is set from it and the noise
+    motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
+    # moved regions grow by this many pixels before they are invalidated (their rims)
+    motion_grow_px: int = Field(4, ge=0, le=16)
     autostart: bool = True
     # the fringe pattern schedule by name (app/core/schedule.py SCHEDULES): "paper-16" (the
     # paper's [1, 4, 12, 36] x 4), "geometric-12", "geometric-9", "heterodyne-9"; GET /api/schedules

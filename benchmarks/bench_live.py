@@ -3,9 +3,12 @@
 At 30 ms exposure: camera fps, depth rate and its ratio to camera fps / 16 (target
 ≥ 0.97), median latency last frame → result (target ≤ 20 ms), p99 of GET /api/status
 while 4 WebSocket clients stream the depth colormap (target < 50 ms), and the rate each
-stream client receives compared with the depth rate (target ≥ 0.97).
+stream client receives compared with the depth rate (target ≥ 0.97). Then, per mode
+(whole set; rolling: a map after every frequency group), the depth rate against its ideal
+(camera fps / frames per map) and the latency of every result (median, p95; target median
+≤ 20 ms in every mode).
 
-    python benchmarks/bench_live.py [--seconds 20] [--exposure-ms 30] [--data-dir data]
+    python benchmarks/bench_live.py [--seconds 20] [--mode-seconds 10] [--exposure-ms 30] [--data-dir data]
 
 The first run creates the simulator's calibration in DATA_DIR (a minute or two).
 """
@@ -72,11 +75,46 @@ def stream_client(url: str, stop: threading.Event, arrivals: list[float], sizes:
             sizes.append(len(msg))
 
 
+def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list[float], list[float]]]:
+    """Per mode: depth rate (/s), frames per map, the latency of every result seen and of it
+    the motion test's time (ms)."""
+    out = []
+    with httpx.Client(base_url=base, timeout=5) as http:
+        st = http.get("/api/status").json()
+        start_mode = st["mode"]
+        sched = st.get("schedule") or {}
+        n_freq = len(sched.get("frequencies", [1, 4, 12, 36]))
+        steps = int(sched.get("steps", 4))
+        for mode in ("set", "rolling"):
+            http.put("/api/mode", json={"rolling": mode == "rolling"}).raise_for_status()
+            time.sleep(3.0)  # the window refills; older results drain
+            s0 = http.get("/api/status").json()
+            t0 = time.monotonic()
+            lat: dict[int, float] = {}
+            mot: dict[int, float] = {}
+            while time.monotonic() - t0 < seconds:
+                r = http.get("/api/result/latest")
+                if r.status_code == 200:
+                    m = r.json()
+                    if m["mode"] == mode:
+                        lat[m["seq"]] = m["latency_ms"]
+                        mot[m["seq"]] = m.get("motion_ms", 0.0)
+                time.sleep(0.01)
+            span = time.monotonic() - t0
+            s1 = http.get("/api/status").json()
+            rate = (s1["results_published"] - s0["results_published"]) / span
+            out.append((mode, rate, steps if mode == "rolling" else n_freq * steps, list(lat.values()),
+                        list(mot.values())))
+        http.put("/api/mode", json={"rolling": start_mode == "rolling"})
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--clients", type=int, default=4)
+    ap.add_argument("--mode-seconds", type=float, default=10.0, help="per-mode latency measurement, s (0: skip)")
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--scene", default="intestine_flap", help="simulator scene (the serve default)")
     ap.add_argument("--viewer", action="store_true", help="also run the viser 3-D viewer")
@@ -117,6 +155,7 @@ def main() -> int:
         stop.set()
         for c in clients:
             c.join(5)
+        per_mode = measure_modes(base, args.mode_seconds) if args.mode_seconds > 0 else []
     finally:
         server.should_exit = True
         thread.join(30)
@@ -147,6 +186,13 @@ def main() -> int:
           f"min/depth ratio {stream_ratio:.3f} (target >= 0.97: {verdict(stream_ratio >= 0.97)})  "
           f"mean JPEG {np.mean(sizes) / 1024 if sizes else 0:.0f} KiB")
     print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the machine skews every figure)")
+    for mode, rate, per_map, lat, mot in per_mode:
+        ideal_m = camera_fps / per_map if per_map else 0.0
+        med, p95 = (np.percentile(lat, [50, 95]) if lat else (float("nan"), float("nan")))
+        print(f"  mode {mode:<8} depth rate {rate:7.3f} /s  ideal camera/{per_map} = {ideal_m:.3f} /s  "
+              f"ratio {rate / ideal_m if ideal_m else 0.0:.3f};  latency median {med:6.2f} ms  p95 {p95:6.2f} ms  "
+              f"(motion test {np.median(mot) if mot else float('nan'):.2f}) n={len(lat)} "
+              f"(target median <= 20: {verdict(bool(lat) and med <= 20)})")
     print(f"  sets dropped (newest wins) {s1['dropped_sets'] - s0['dropped_sets']}, incomplete "
           f"{s1['incomplete_sets'] - s0['incomplete_sets']}, frames dropped {s1['frames_dropped'] - s0['frames_dropped']}")
     return 0

@@ -126,6 +126,10 @@ class ResultMeta(BaseModel):
     recon_ms: float
     valid_fraction: float
     shape: list[int]
+    map_time: float | None = Field(None, description="the instant the depth stands for (frame timestamp clock, s): "
+                                   "its finest frequency group's mid-exposure")
+    moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")
+    motion_ms: float = Field(0.0, description="of recon_ms, the motion test")
 
 
 class PhaseSummary(BaseModel):

@@ -2,9 +2,13 @@
 
 When several apply, the reported code follows the chain of causes, first match wins:
 
-    SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
+    SATURATED > MOTION > LOW_MODULATION > UNWRAP_INCONSISTENT > MODEL_SINGULAR > OUTSIDE_VOLUME
     > OUTSIDE_FIELD > UNCERTAIN
 
+MOTION (the scene moved while the set was taken: the background of the frequency groups
+disagrees beyond the sensor noise, see :mod:`app.service.motion`) is set by the live
+service after the engine; a pixel that moved has a meaningless phase, so it outranks every
+phase-derived code, but a clipped frame is the earlier cause.
 A clipped pixel has a meaningless phase and so usually also low modulation or a bad
 unwrap; a pixel without fringe contrast usually also unwraps badly; a singular model
 yields a height far outside the volume; a height outside the calibrated volume is also
@@ -33,11 +37,13 @@ class Reason(IntEnum):
     MODEL_SINGULAR = 5
     OUTSIDE_FIELD = 6
     UNCERTAIN = 7
+    MOTION = 8
 
 
 #: Codes ordered from highest to lowest precedence (OK last).
 PRECEDENCE: tuple[Reason, ...] = (
     Reason.SATURATED,
+    Reason.MOTION,
     Reason.LOW_MODULATION,
     Reason.UNWRAP_INCONSISTENT,
     Reason.MODEL_SINGULAR,
@@ -58,6 +64,7 @@ def assign_reasons(
     outside: npt.ArrayLike | None = None,
     outside_field: npt.ArrayLike | None = None,
     uncertain: npt.ArrayLike | None = None,
+    motion: npt.ArrayLike | None = None,
 ) -> npt.NDArray[np.uint8]:
     """Combine boolean masks into one uint8 reason map, honouring :data:`PRECEDENCE`."""
     out = np.zeros(shape, dtype=np.uint8)
@@ -69,6 +76,7 @@ def assign_reasons(
         (singular, Reason.MODEL_SINGULAR),
         (inconsistent, Reason.UNWRAP_INCONSISTENT),
         (low_modulation, Reason.LOW_MODULATION),
+        (motion, Reason.MOTION),
         (saturated, Reason.SATURATED),
     ):
         if mask is not None:

@@ -24,6 +24,7 @@ REASON_COLORS: dict[Reason, tuple[int, int, int]] = {
     Reason.MODEL_SINGULAR: (240, 200, 0),
     Reason.OUTSIDE_FIELD: (150, 60, 200),
     Reason.UNCERTAIN: (240, 140, 30),
+    Reason.MOTION: (0, 230, 255),
 }
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 

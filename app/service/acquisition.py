@@ -23,7 +23,7 @@ from app.service.devices import (
     start_devices,
     stop_devices,
 )
-from app.service.framesets import FrameSet, RollingWindow, SetAssembler
+from app.service.framesets import FrameSet, GroupWindow, SetAssembler
 from app.service.store import LatestSlot, NewestQueue, RateMeter
 
 log = logging.getLogger("fringescope.service.acquisition")
@@ -36,7 +36,7 @@ TIMEOUTS_BEFORE_RESTART = 3
 
 class Acquisition:
     """Owns the grab loop. Whole sets go to ``sets`` (latest) and, in set mode, ``queue``;
-    in rolling mode the queue gets a set after every frame."""
+    in rolling mode the queue gets a set after every completed frequency group."""
 
     def __init__(
         self,
@@ -60,7 +60,7 @@ class Acquisition:
         self.rolling = rolling
         self.on_frame = on_frame
         self.assembler = SetAssembler(schedule.n_frames)
-        self.window = RollingWindow(schedule.n_frames)
+        self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
         self.camera_rate = RateMeter()
         self.frames_received = 0
         self.frames_dropped = 0
@@ -142,7 +142,7 @@ class Acquisition:
                 self._started = False  # the loop starts them again with the new patterns
             self.schedule = schedule
             self.assembler = SetAssembler(schedule.n_frames)
-            self.window = RollingWindow(schedule.n_frames)
+            self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
             self.queue.clear()
             on_swap(schedule)
         finally:

@@ -15,20 +15,14 @@ import numpy.typing as npt
 from app.core.encoding import npy_bytes as npy_bytes  # re-exported for the result routes
 from app.core.encoding import png_bytes
 from app.core.errors import InvalidRequest
-from app.service.motion import MOTION
 
 DEFAULT_RANGE_MM = (0.0, 35.0)
 
-#: motion (rolling mode) is not an engine code; it gets its own colour
-MOTION_RGB = (0, 230, 255)
-
-
 def reason_colors() -> dict[int, tuple[str, tuple[int, int, int]]]:
-    """reason code → (name, RGB): the engine's colours plus motion."""
+    """reason code → (name, RGB), every :class:`~app.core.reasons.Reason` (MOTION included)."""
     from app.recon.colormap import REASON_COLORS
 
     out = {int(code): (code.name.lower(), tuple(int(c) for c in rgb)) for code, rgb in REASON_COLORS.items()}
-    out[MOTION] = ("motion", MOTION_RGB)
     return out  # type: ignore[return-value]
 
 

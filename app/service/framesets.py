@@ -1,4 +1,4 @@
-"""Grouping camera frames into fringe sets (whole sets, or a rolling window of the last F).
+"""Grouping camera frames into fringe sets (whole sets, or rolling sets per frequency group).
 
 A set is reconstructed only if its frames carry pattern indices 0..F-1 in order, with
 consecutive frame counters (a gap is a dropped frame) and one exposure/LED setting;
@@ -8,7 +8,6 @@ anything else is discarded and counted, never reconstructed.
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +24,8 @@ class FrameSet:
     Attributes:
         frames: the F :class:`Frame` objects, ordered by pattern index.
         received_s: ``time.monotonic()`` when the newest frame arrived (latency origin).
-        mode: ``"set"`` (a whole projected sequence) or ``"rolling"`` (the last F frames).
+        mode: ``"set"`` (a whole projected sequence) or ``"rolling"`` (the newest group of each
+            frequency, emitted when a group completes).
     """
 
     frames: tuple[Frame, ...]
@@ -119,35 +119,54 @@ class SetAssembler:
         return FrameSet(frames, received_s, "set")
 
 
-class RollingWindow:
-    """The last F frames, re-ordered into a set after every frame (rolling mode).
+class GroupWindow:
+    """Rolling mode: a set after every completed frequency group, from the newest groups.
 
-    The window yields a set only when its F frames have consecutive frame counters, a
-    cyclic run of pattern indices covering 0..F-1 once each, and one setting.
+    A group is the ``steps`` frames of one frequency (pattern indices g·N … g·N + N − 1)
+    with consecutive frame counters. When a group completes, the newest complete group of
+    every frequency forms a set if together they are F frames with consecutive counters
+    (no frame dropped in between, so no group is stale) and one exposure/LED setting. With
+    the projector cycling through the schedule that is one new set per group: G times the
+    whole-set rate, each set sharing G − 1 groups with the one before.
     """
 
-    def __init__(self, n_frames: int) -> None:
-        if n_frames < 1:
-            raise ValueError(f"n_frames: must be >= 1, got {n_frames}")
-        self.n_frames = n_frames
-        self._window: deque[Frame] = deque(maxlen=n_frames)
+    def __init__(self, n_groups: int, steps: int) -> None:
+        if n_groups < 1:
+            raise ValueError(f"n_groups: must be >= 1, got {n_groups}")
+        if steps < 1:
+            raise ValueError(f"steps: must be >= 1, got {steps}")
+        self.n_groups = n_groups
+        self.steps = steps
+        self._groups: list[tuple[Frame, ...] | None] = [None] * n_groups
+        self._pending: list[Frame] = []
 
     def clear(self) -> None:
-        self._window.clear()
+        self._groups = [None] * self.n_groups
+        self._pending = []
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
-        self._window.append(frame)
-        n = self.n_frames
-        if len(self._window) < n:
+        """Add one frame; returns a set when ``frame`` completes a group and the newest groups form one."""
+        p = frame.pattern_index
+        if p < 0 or p >= self.n_groups * self.steps:
+            self._pending = []
             return None
-        w = list(self._window)
-        first = w[0]
-        if first.pattern_index < 0:
+        g, n = divmod(p, self.steps)
+        if n == 0:
+            self._pending = [frame]
+        elif self._pending and p == self._pending[-1].pattern_index + 1 and frame.index == self._pending[-1].index + 1:
+            self._pending.append(frame)
+        else:
+            self._pending = []
             return None
-        for i, f in enumerate(w):
-            if f.index != first.index + i or f.pattern_index != (first.pattern_index + i) % n:
-                return None
-        if not _same_settings(w):
+        if len(self._pending) < self.steps:
             return None
-        ordered = tuple(sorted(w, key=lambda f: f.pattern_index))
-        return FrameSet(ordered, received_s, "rolling")
+        self._groups[g], self._pending = tuple(self._pending), []
+        if any(grp is None for grp in self._groups):
+            return None
+        frames = tuple(f for grp in self._groups if grp is not None for f in grp)
+        idx = [f.index for f in frames]
+        if max(idx) - min(idx) + 1 != len(frames) or len(set(idx)) != len(frames):
+            return None
+        if not _same_settings(frames):
+            return None
+        return FrameSet(frames, received_s, "rolling")

@@ -51,7 +51,9 @@ class Instrument:
     def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None) -> None:
         self.settings = settings
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
-                                rolling=settings.rolling, autostart=settings.autostart)
+                                rolling=settings.rolling, autostart=settings.autostart,
+                                motion_false_alarm_rate=settings.motion_false_alarm_rate,
+                                motion_grow_px=settings.motion_grow_px)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app

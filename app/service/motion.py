@@ -1,52 +1,306 @@
-"""Per-pixel motion detection for rolling mode.
+"""Per-pixel motion test between the frequency groups of one fringe set.
 
-The background A = mean of the N shifted images of one frequency does not depend on the
-fringe frequency for a still scene, so when the A of the frequencies in one set differ by
-more than noise, the scene moved while the set was taken and the phase is untrustworthy.
+For a still scene the background ``A = mean of the N shifted images`` of a frequency group
+does not depend on the fringe frequency (the shifts cancel the fringe). Each group's A is
+the mean of N frames, so with the camera's noise model ``σ_I² = read² + gain·I``
+(:class:`~app.recon.reconstructor.SensorNoise`, DN) its noise is ``σ_A = σ_I/√N`` and the
+difference of two groups' A has σ ``√2·σ_A``. A pixel *moved* when the background of some
+group differs from the newest group's by more than ``k·√2·σ_A``.
+
+``k`` follows from a stated per-pixel false-alarm rate α (the chance that a still pixel of
+one set is flagged): each of the G − 1 older groups is tested against the newest at the
+two-sided level α/(G − 1) (Bonferroni), ``k = Φ⁻¹(1 − α / (2(G − 1)))``. The tests share the
+newest group, so the true rate is a little below α.
+
+What the test cannot see: motion that leaves the background unchanged (a heave of an
+evenly lit, untextured surface). Such motion still changes the phase; the engine's
+unwrapping consistency test flags it when it breaks the frequency chain.
+
+Motion is spatially coherent and at the rim of a moved region the background change drops
+below the threshold while the phase error can still exceed 0.5 mm, so the flagged pixels are
+grown by ``grow_px`` (a (2r+1)² square) before they are invalidated. On a still scene the
+invalidated fraction is then at most (2r+1)²·α (isolated false alarms grow to squares).
+
+The test is one parallel numba pass over the frames (group sums of a row in a small
+buffer), the growth a second pass over the (H, W) mask that invalidates in place in the
+engine's output arrays.
 """
 
 from __future__ import annotations
 
+from statistics import NormalDist
+
 import numpy as np
 import numpy.typing as npt
+from numba import njit, prange
 
 from app.core.reasons import Reason
+from app.recon.fast import FASTMATH, KERNEL_LOCK
+from app.recon.reconstructor import SensorNoise
 
-#: reason code for "moved during the set" (after the engine's own codes)
-MOTION = int(getattr(Reason, "MOTION", max(int(r) for r in Reason) + 1))
+#: reason code for "moved during the set"
+MOTION = int(Reason.MOTION)
+_SATURATED = int(Reason.SATURATED)
+
+#: default per-pixel false-alarm rate of the motion test on a still scene (per set)
+DEFAULT_FALSE_ALARM_RATE = 1e-4
+#: moved regions are grown by this many pixels before invalidating: at a region's rim the
+#: background change falls below the threshold before the phase change becomes harmless
+DEFAULT_GROW_PX = 4
+
+
+def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
+    """Threshold in units of the difference's σ for ``n_groups`` groups at a per-pixel rate.
+
+    Args:
+        n_groups: frequency groups in a set (G ≥ 2); G − 1 tests are made per pixel.
+        false_alarm_rate: α, the per-pixel probability that a still pixel is flagged, in (0, 1).
+
+    Returns:
+        ``k = Φ⁻¹(1 − α / (2(G − 1)))`` (Gaussian noise, two-sided, Bonferroni over the tests).
+    """
+    if int(n_groups) != n_groups or n_groups < 2:
+        raise ValueError(f"n_groups: need an integer >= 2, got {n_groups}")
+    if not (0.0 < false_alarm_rate < 1.0):
+        raise ValueError(f"false_alarm_rate: must be in (0, 1), got {false_alarm_rate}")
+    return float(NormalDist().inv_cdf(1.0 - false_alarm_rate / (2.0 * (n_groups - 1))))
+
+
+_ROWS = 16  # rows per parallel chunk (one scratch allocation per chunk)
+
+
+@njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, row_any):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A;
+    row_any[v] = row v has such a pixel."""
+    f, h, w = frames.shape
+    var_scale = np.float32(2 * steps)  # Var(S_g − S_new) = 2·N·σ_I²(Ā), S = sum of N frames
+    half_inv_n = np.float32(0.5 / steps)
+    c0 = k2 * var_scale * read2
+    c1 = k2 * var_scale * gain * half_inv_n
+    n_chunks = (h + _ROWS - 1) // _ROWS
+    for chunk in prange(n_chunks):
+        sums = np.empty((n_groups, w), np.int32)  # integer group sums of one row: exact
+        for v in range(chunk * _ROWS, min((chunk + 1) * _ROWS, h)):
+            for g in range(n_groups):
+                row = sums[g]
+                src = frames[g * steps, v]
+                for u in range(w):
+                    row[u] = np.int32(src[u])
+                for n in range(1, steps):
+                    src = frames[g * steps + n, v]
+                    for u in range(w):
+                        row[u] += np.int32(src[u])
+            moved_row = mask[v]
+            ref = sums[newest]
+            for u in range(w):
+                moved_row[u] = False
+            for g in range(n_groups):
+                if g != newest:
+                    row = sums[g]
+                    for u in range(w):
+                        d = np.float32(row[u] - ref[u])
+                        # threshold² = k²·2N·(read² + gain·Ā), Ā = (S_g + S_new)/(2N) ≥ 0
+                        moved_row[u] |= d * d > c0 + c1 * np.float32(row[u] + ref[u])
+            hits = 0
+            for u in range(w):
+                hits += moved_row[u]
+            row_any[v] = hits > 0
+
+
+@njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, reason,  # type: ignore[no-untyped-def]
+                 sigma, motion_code, saturated_code):  # pragma: no cover - compiled
+    """out = mask dilated by a (2r+1)² square (separable; rows without a flagged pixel,
+    ``row_any`` False, are skipped); with ``apply`` invalidate ``out`` in place."""
+    h, w = mask.shape
+    for v in prange(h):
+        if not row_any[v]:
+            continue
+        src = mask[v]
+        dst = tmp[v]
+        count = 0  # flagged pixels in the window u − r … u + r: O(W) whatever the density
+        for x in range(min(radius, w)):
+            count += src[x]
+        for u in range(w):
+            if u + radius < w:
+                count += src[u + radius]
+            if u - radius - 1 >= 0:
+                count -= src[u - radius - 1]
+            dst[u] = count > 0
+    counts = np.zeros(h, np.int64)
+    for v in prange(h):
+        row = out[v]
+        for u in range(w):
+            row[u] = False
+        touched = False
+        for y in range(max(v - radius, 0), min(v + radius + 1, h)):
+            if row_any[y]:
+                touched = True
+                t = tmp[y]
+                for u in range(w):
+                    row[u] |= t[u]
+        if not touched:
+            continue
+        c = 0
+        for u in range(w):
+            if row[u]:
+                c += 1
+                if apply and reason[v, u] != saturated_code:
+                    depth[v, u] = np.nan
+                    sigma[v, u] = np.nan
+                    points[v, u, 0] = np.nan
+                    points[v, u, 1] = np.nan
+                    points[v, u, 2] = np.nan
+                    valid[v, u] = False
+                    reason[v, u] = motion_code
+        counts[v] = c
+    return counts.sum()
+
+
+def _check(frames: npt.NDArray[np.generic], n_groups: int, newest: int) -> tuple[int, int]:
+    if not isinstance(frames, np.ndarray) or frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"frames: expected (F, H, W) uint8/uint16, got {getattr(frames, 'dtype', type(frames))} "
+                         f"{getattr(frames, 'shape', '')}")
+    f = frames.shape[0]
+    if int(n_groups) != n_groups or n_groups < 2 or f % n_groups:
+        raise ValueError(f"n_groups: {n_groups} groups do not divide {f} frames (need >= 2)")
+    if not -n_groups <= newest < n_groups:
+        raise ValueError(f"newest: group index out of range for {n_groups} groups, got {newest}")
+    return f // n_groups, newest % n_groups
 
 
 def motion_mask(
     frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
-    n_frequencies: int,
+    n_groups: int,
     *,
-    full_scale: float,
-    rel_threshold: float = 0.15,
-    abs_threshold: float = 0.04,
+    noise: SensorNoise,
+    newest: int = -1,
+    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    grow_px: int = 0,
 ) -> npt.NDArray[np.bool_]:
-    """Pixels whose background differs between frequencies (the scene moved).
+    """Pixels whose background A differs between a group and the newest group beyond the noise.
 
     Args:
-        frames: (F, H, W) uint8/uint16 in capture-set order, F = n_frequencies × steps.
-        n_frequencies: number of fringe frequencies in the set.
-        full_scale: the sensor's maximum value (255 for 8-bit, 4095 for 12-bit).
-        rel_threshold: allowed spread of A as a fraction of the mean A.
-        abs_threshold: allowed spread as a fraction of ``full_scale`` (the noise floor).
+        frames: (F, H, W) uint8/uint16 in capture-set order, F = n_groups × steps.
+        n_groups: frequency groups in the set (consecutive blocks of ``steps`` frames).
+        noise: the camera's temporal noise model (DN).
+        newest: index (capture-set order) of the group taken last; −1 for a whole set.
+        false_alarm_rate: per-pixel false-alarm rate α of the test on a still scene (see :func:`motion_k`).
+        grow_px: also flag every pixel within this many pixels (a (2r+1)² square) of a flagged one.
 
     Returns:
-        (H, W) bool, True where max_k A_k − min_k A_k exceeds both thresholds.
+        (H, W) bool, True where ``|A_g − A_newest| > k·√2·σ_A`` for some group g (then grown).
     """
-    if frames.ndim != 3:
-        raise ValueError(f"frames: expected (F, H, W), got shape {frames.shape}")
-    f, h, w = frames.shape
-    if n_frequencies < 2 or f % n_frequencies:
-        raise ValueError(f"n_frequencies: {n_frequencies} does not divide {f} frames")
-    steps = f // n_frequencies
-    # Sums of N frames in uint32 (exact, and much cheaper than float means).
-    sums = frames.reshape(n_frequencies, steps, h, w).sum(axis=1, dtype=np.uint32)
-    hi = sums.max(axis=0)
-    lo = sums.min(axis=0)
-    spread = (hi - lo).astype(np.float32) / steps
-    mean_a = sums.sum(axis=0, dtype=np.float32) / (steps * n_frequencies)
-    thr = np.maximum(rel_threshold * mean_a, abs_threshold * float(full_scale))
-    return spread > thr
+    steps, newest = _check(frames, n_groups, newest)
+    grow = _check_grow(grow_px)
+    mask, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    if grow == 0:
+        return mask
+    out = np.empty_like(mask)
+    d = np.empty((1, 1), np.float32)
+    with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
+        _grow_kernel(mask, row_any, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
+                     np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
+    return out
+
+
+def _check_grow(grow_px: int) -> int:
+    if int(grow_px) != grow_px or not 0 <= grow_px <= 16:
+        raise ValueError(f"grow_px: must be an integer in 0..16, got {grow_px}")
+    return int(grow_px)
+
+
+def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, newest: int, noise: SensorNoise,
+              false_alarm_rate: float) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    if not isinstance(noise, SensorNoise):
+        raise ValueError("noise: expected a SensorNoise")
+    k = motion_k(n_groups, false_alarm_rate)
+    mask = np.empty(frames.shape[1:], np.bool_)
+    row_any = np.empty(frames.shape[1], np.bool_)
+    with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
+        _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
+                       np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, row_any)
+    return mask, row_any
+
+
+def invalidate_motion(
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
+    n_groups: int,
+    *,
+    noise: SensorNoise,
+    depth: npt.NDArray[np.float32],
+    points: npt.NDArray[np.float32],
+    valid: npt.NDArray[np.bool_],
+    reason: npt.NDArray[np.uint8],
+    sigma: npt.NDArray[np.float32],
+    newest: int = -1,
+    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    grow_px: int = DEFAULT_GROW_PX,
+) -> tuple[npt.NDArray[np.bool_], int]:
+    """:func:`motion_mask` (grown by ``grow_px``), then mark those pixels invalid IN PLACE.
+
+    Moved pixels get depth/points/sigma NaN, valid False and reason MOTION, except where the
+    engine said SATURATED (the earlier cause, see :mod:`app.core.reasons`).
+
+    Args:
+        depth, sigma: (H, W) float32; points: (H, W, 3) float32; valid: (H, W) bool;
+            reason: (H, W) uint8 — a :class:`~app.recon.reconstructor.ReconResult`'s arrays.
+        (the rest as :func:`motion_mask`)
+
+    Returns:
+        (the grown mask, its number of pixels).
+    """
+    steps, newest = _check(frames, n_groups, newest)
+    grow = _check_grow(grow_px)
+    h, w = frames.shape[1:]
+    for name, arr, shape, dt in (("depth", depth, (h, w), np.float32), ("sigma", sigma, (h, w), np.float32),
+                                 ("points", points, (h, w, 3), np.float32), ("valid", valid, (h, w), np.bool_),
+                                 ("reason", reason, (h, w), np.uint8)):
+        if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dt:
+            raise ValueError(f"{name}: expected {np.dtype(dt).name} {shape}, got "
+                             f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")
+    raw, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    out = np.empty_like(raw)
+    with KERNEL_LOCK:
+        n = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma,
+                         MOTION, _SATURATED)
+    return out, int(n)
+
+
+def group_mid_times(timestamps: list[float] | npt.NDArray[np.float64], n_groups: int) -> npt.NDArray[np.float64]:
+    """(G,) mean timestamp of each group's frames (capture-set order), the groups' instants."""
+    t = np.asarray(timestamps, np.float64)
+    if t.ndim != 1 or t.size % n_groups:
+        raise ValueError(f"timestamps: {t.size} do not split into {n_groups} groups")
+    return t.reshape(n_groups, -1).mean(axis=1)
+
+
+def map_time(timestamps: list[float] | npt.NDArray[np.float64], frequencies: tuple[float, ...], *,
+             combined: bool) -> float:
+    """The instant a depth map stands for.
+
+    The depth comes from the finest frequency's unwrapped phase (the coarser ones only pick
+    its fringe order), so the map's instant is the finest group's mid time. With the
+    noise-optimal combination (``combined``) each frequency's phase enters with weight
+    ∝ k²·B²; for equal modulation that is k², and the instant is the k²-weighted mean of the
+    groups' mid times.
+    """
+    mids = group_mid_times(timestamps, len(frequencies))
+    k = np.asarray(frequencies, np.float64)
+    if not combined:
+        return float(mids[int(np.argmax(k))])
+    wts = k * k
+    return float((wts * mids).sum() / wts.sum())
+
+
+def newest_group(frame_indices: list[int], n_groups: int) -> int:
+    """Capture-set index of the group holding the frame with the highest counter."""
+    if not frame_indices or len(frame_indices) % n_groups:
+        raise ValueError(f"frame_indices: {len(frame_indices)} do not split into {n_groups} groups")
+    return int(np.argmax(frame_indices)) // (len(frame_indices) // n_groups)
+
+
+__all__ = ["DEFAULT_FALSE_ALARM_RATE", "DEFAULT_GROW_PX", "MOTION", "group_mid_times", "invalidate_motion", "map_time", "motion_k",
+           "motion_mask", "newest_group"]
+

@@ -19,8 +19,15 @@ import numpy as np
 import numpy.typing as npt
 
 from app.recon import Reconstructor
+from app.recon.reconstructor import SensorNoise
 from app.service.framesets import FrameSet
-from app.service.motion import MOTION, motion_mask
+from app.service.motion import (
+    DEFAULT_FALSE_ALARM_RATE,
+    DEFAULT_GROW_PX,
+    invalidate_motion,
+    map_time,
+    newest_group,
+)
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.reconstruction")
@@ -32,9 +39,12 @@ class LiveResult:
     Arrays as ``ReconResult``: depth (H, W) f32 mm NaN-invalid, points (H, W, 3) f32 mm,
     valid (H, W) bool, reason (H, W) uint8, texture/modulation (H, W) f32 in sensor units.
     ``sigma`` (H, W) f32 1-σ depth noise, mm, NaN invalid (None when not computed).
-    ``motion`` is the rolling-mode motion mask (None in set mode). Times: ``received_s``
-    is when the newest frame arrived, ``published_s`` when the result was ready
-    (``time.monotonic``); ``latency_ms`` their difference.
+    ``motion`` (H, W) bool: pixels whose frequency groups disagree beyond the sensor noise
+    (:mod:`app.service.motion`; invalid with reason MOTION unless saturated), in both modes.
+    Times: ``received_s`` is when the newest frame arrived, ``published_s`` when the result
+    was ready (``time.monotonic``); ``latency_ms`` their difference. ``map_time_s`` is the
+    instant the depth stands for, on the frames' timestamp clock: the mid time of the finest
+    frequency's group (see :func:`app.service.motion.map_time`).
     """
 
     depth: npt.NDArray[np.float32]
@@ -56,6 +66,9 @@ class LiveResult:
     created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
     seq: int = 0
     sigma: npt.NDArray[np.float32] | None = None
+    map_time_s: float = float("nan")
+    moved_pixels: int = 0
+    motion_ms: float = 0.0
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -83,6 +96,7 @@ class LiveResult:
             "frame_indices": self.frame_indices, "timestamps": self.timestamps,
             "latency_ms": round(self.latency_ms, 3), "recon_ms": round(self.recon_ms, 3),
             "valid_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
+            "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
             "shape": list(self.shape),
         }
 
@@ -97,11 +111,15 @@ class Reconstruction:
         *,
         n_frequencies: int,
         bit_depth: int = 8,
+        motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+        motion_grow_px: int = DEFAULT_GROW_PX,
     ) -> None:
         self.queue = queue
         self.reconstructor = reconstructor
         self.n_frequencies = n_frequencies
         self.bit_depth = bit_depth
+        self.motion_false_alarm_rate = float(motion_false_alarm_rate)
+        self.motion_grow_px = int(motion_grow_px)
         self.results: LatestSlot[LiveResult] = LatestSlot()
         self.depth_rate = RateMeter()
         self.latencies = RecentValues(100)
@@ -145,29 +163,29 @@ class Reconstruction:
             self.recon_times.add(result.recon_ms)
 
     def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
-        """Reconstruct one set (motion-masked in rolling mode) into a :class:`LiveResult`."""
+        """Reconstruct one set and invalidate the pixels that moved during it (both modes)."""
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
         res = engine.run(frames)  # the engine serialises its parallel kernel itself
-        depth, points, valid, reason, sigma = res.depth, res.points, res.valid, res.reason, res.sigma
-        motion = None
-        if fs.mode == "rolling":
-            motion = motion_mask(frames, self.n_frequencies, full_scale=full_scale)
-            moving = motion & valid
-            if moving.any():
-                depth, points, valid, reason = depth.copy(), points.copy(), valid.copy(), reason.copy()
-                sigma = sigma.copy()
-                sigma[moving] = np.nan
-                depth[moving] = np.nan
-                points[moving] = np.nan
-                valid[moving] = False
-                reason[moving] = MOTION
-        recon_ms = 1000.0 * (time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        # The engine's arrays are this result's own: the motion pass edits them in place.
+        noise = engine.noise if engine.noise is not None else SensorNoise.typical(int(full_scale))
+        newest = newest_group(fs.frame_indices, self.n_frequencies)
+        motion, moved = invalidate_motion(
+            frames, self.n_frequencies, noise=noise, newest=newest, false_alarm_rate=self.motion_false_alarm_rate,
+            grow_px=self.motion_grow_px,
+            depth=res.depth, points=res.points, valid=res.valid, reason=res.reason, sigma=res.sigma,
+        )
+        t2 = time.perf_counter()
+        recon_ms = 1000.0 * (t2 - t0)
+        sched = engine.calibration.pattern
         return LiveResult(
-            depth=depth, points=points, valid=valid, reason=reason,
+            depth=res.depth, points=res.points, valid=res.valid, reason=res.reason,
             texture=res.texture, modulation=res.modulation, motion=motion, mode=fs.mode,
             frame_indices=fs.frame_indices, timestamps=fs.timestamps,
             exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
-            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms, sigma=sigma,
+            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms, sigma=res.sigma,
+            map_time_s=map_time(fs.timestamps, tuple(sched.frequencies), combined=engine.combine_frequencies),
+            moved_pixels=moved, motion_ms=1000.0 * (t2 - t1),
         )

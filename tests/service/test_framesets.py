@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from app.devices.base import Frame
-from app.service.framesets import RollingWindow, SetAssembler
+from app.service.framesets import GroupWindow, SetAssembler
 
 N = 16
 
@@ -75,26 +75,40 @@ def test_abort_counts_only_a_started_set():
     assert asm.incomplete == 1 and asm.in_progress == 0
 
 
-def test_rolling_window_after_every_frame_in_capture_order():
-    win = RollingWindow(N)
+def test_rolling_set_after_every_completed_group_from_the_newest_groups():
+    win = GroupWindow(4, 4)
     out = [(i, s) for i, f in enumerate(frames(range(40), [i % N for i in range(40)]))
            if (s := win.feed(f, 0.0)) is not None]
-    assert [i for i, _ in out] == list(range(15, 40))
-    _, s = out[5]  # window of frames 5..20: patterns 5..15 then 0..4
+    # the first set once all four groups exist (frame 15), then one per group of 4 frames
+    assert [i for i, _ in out] == [15, 19, 23, 27, 31, 35, 39]
+    _, s = out[1]  # after frame 19: groups 1..3 of frames 4..15 and the new group 0 (frames 16..19)
     assert s.mode == "rolling"
     assert [f.pattern_index for f in s.frames] == list(range(N))
-    assert s.frame_indices == list(range(16, 21)) + list(range(5, 16))
+    assert s.frame_indices == list(range(16, 20)) + list(range(4, 16))
 
 
-def test_rolling_window_skips_windows_with_a_drop():
-    win = RollingWindow(N)
-    idx = [i for i in range(40) if i != 20]
+def test_rolling_sets_skip_a_drop_until_every_group_is_newer_than_it():
+    win = GroupWindow(4, 4)
+    idx = [i for i in range(48) if i != 21]  # frame 21 (group 1, step 1) lost
     out = [f.index for f in frames(idx, [i % N for i in idx]) if win.feed(f, 0.0) is not None]
-    assert out == list(range(15, 20)) + list(range(36, 40))
+    # group 1 of frames 20..23 never completes; the sets 23..35 would mix in the stale group 1
+    # of frames 4..7 (a counter gap), so the next set is after group 1 of frames 36..39
+    assert out == [15, 19, 39, 43, 47]
+
+
+def test_rolling_sets_do_not_mix_settings():
+    win = GroupWindow(4, 4)
+    fs = frames(range(20), [i % N for i in range(20)], exposure_ms=20.0)
+    fs += frames(range(20, 40), [i % N for i in range(20, 40)], exposure_ms=30.0)
+    out = [s for f in fs if (s := win.feed(f, 0.0)) is not None]
+    assert [max(s.frame_indices) for s in out] == [15, 19, 35, 39]  # 23..31 mix 20 and 30 ms
+    assert [s.exposure_ms for s in out] == [20.0, 20.0, 30.0, 30.0]
 
 
 def test_invalid_sizes():
     with pytest.raises(ValueError, match="n_frames"):
         SetAssembler(0)
-    with pytest.raises(ValueError, match="n_frames"):
-        RollingWindow(0)
+    with pytest.raises(ValueError, match="n_groups"):
+        GroupWindow(0, 4)
+    with pytest.raises(ValueError, match="steps"):
+        GroupWindow(4, 0)

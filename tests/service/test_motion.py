@@ -1,43 +1,164 @@
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
+from app.core.reasons import Reason
 from app.recon.patterns import PatternSchedule, fringe_profile
-from app.service.motion import motion_mask
+from app.recon.reconstructor import SensorNoise
+from app.service.motion import (
+    group_mid_times,
+    invalidate_motion,
+    map_time,
+    motion_k,
+    motion_mask,
+    newest_group,
+)
+
+NOISE = SensorNoise(gain_dn_per_e=0.5, read_noise_dn=2.0)
 
 
-def fringe_set(background: np.ndarray, schedule: PatternSchedule) -> np.ndarray:
-    """(16, H, W) uint8 with background A per frequency given as (K, H, W)."""
-    k, h, w = background.shape
+def fringe_set(background: np.ndarray, schedule: PatternSchedule, *, modulation: float = 40.0,
+               noise: SensorNoise | None = None, seed: int = 0) -> np.ndarray:
+    """(F, H, W) uint8 fringe set with background A per group given as (G, H, W), plus sensor noise."""
+    g, h, w = background.shape
     cols = np.linspace(0, schedule.width - 1, w)
+    rng = np.random.default_rng(seed)
     out = []
-    for fi in range(k):
+    for fi in range(g):
         for n in range(schedule.steps):
             prof = fringe_profile(schedule, fi, n, columns=cols)[None, :]
-            out.append(background[fi] + 40.0 * (prof - 0.5))
+            img = background[fi] + modulation * (prof - 0.5) * 2.0
+            if noise is not None:
+                # σ_I² = read² + gain·I; rounding adds the 1/12 DN² the read term already holds
+                var = np.maximum(noise.read_noise_dn**2 - 1.0 / 12.0 + noise.gain_dn_per_e * img, 0.0)
+                img = img + rng.standard_normal(img.shape) * np.sqrt(var)
+            out.append(img)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
-def test_still_scene_has_no_motion_and_a_moved_patch_is_found():
-    s = PatternSchedule()
-    bg = np.full((4, 30, 50), 100.0)
-    assert not motion_mask(fringe_set(bg, s), 4, full_scale=255).any()
-    bg[2:, 10:20, 20:30] = 160.0  # the scene changed after the second frequency
-    mask = motion_mask(fringe_set(bg, s), 4, full_scale=255)
-    assert mask[10:20, 20:30].all() and mask.sum() == 100
+def test_k_is_the_gaussian_quantile_of_the_bonferroni_level():
+    assert motion_k(2, 0.05) == pytest.approx(1.959964, abs=1e-6)  # one two-sided test at 5 %
+    assert motion_k(4, 0.06) == pytest.approx(2.326348, abs=1e-6)  # three tests at 2 % each
+    with pytest.raises(ValueError, match="n_groups"):
+        motion_k(1)
+    with pytest.raises(ValueError, match="false_alarm_rate"):
+        motion_k(4, 0.0)
 
 
-def test_noise_below_the_floor_is_not_motion():
+@pytest.mark.parametrize("frequencies, steps", [((1, 4, 12, 36), 4), ((1, 6, 36), 3)])
+@pytest.mark.parametrize("rate", [1e-2, 1e-3])
+def test_false_alarm_rate_on_still_noisy_frames_matches_the_stated_rate(frequencies, steps, rate):
+    s = PatternSchedule(frequencies=frequencies, steps=steps)
+    g = len(frequencies)
+    h, w = 300, 600
+    # backgrounds from dark to bright (the noise grows with intensity: the model must follow)
+    bg = np.broadcast_to(np.linspace(60.0, 190.0, h)[:, None], (g, h, w)).copy()
+    frames = fringe_set(bg, s, noise=NOISE, seed=int(rate * 1e4) + g)
+    got = motion_mask(frames, g, noise=NOISE, false_alarm_rate=rate).mean()
+    # Bonferroni over tests that share the newest group: at most α, not far below it
+    n = h * w
+    assert got <= rate + 4 * math.sqrt(rate / n), got
+    assert got >= 0.5 * rate, got
+
+
+def test_a_wrong_noise_model_is_visible_in_the_rate():
     s = PatternSchedule()
-    rng = np.random.default_rng(1)
-    frames = fringe_set(np.full((4, 30, 50), 80.0), s).astype(np.float64)
-    frames += rng.normal(0, 2.0, frames.shape)
-    assert motion_mask(np.clip(frames, 0, 255).astype(np.uint8), 4, full_scale=255).mean() < 0.001
+    bg = np.full((4, 200, 400), 120.0)
+    frames = fringe_set(bg, s, noise=NOISE, seed=3)
+    underestimated = SensorNoise(gain_dn_per_e=0.1, read_noise_dn=1.0)
+    assert motion_mask(frames, 4, noise=underestimated, false_alarm_rate=1e-3).mean() > 0.05
+
+
+@pytest.mark.parametrize("moved_group, newest", [(2, -1), (0, 0), (3, 0)])
+def test_a_moved_group_is_detected(moved_group, newest):
+    s = PatternSchedule()
+    bg = np.full((4, 60, 80), 100.0)
+    bg[moved_group, 10:30, 20:50] += 60.0  # 12 σ of the difference: the patch's background changed in one group
+    frames = fringe_set(bg, s, noise=NOISE, seed=5)
+    mask = motion_mask(frames, 4, noise=NOISE, newest=newest, false_alarm_rate=1e-4)
+    assert mask[10:30, 20:50].all()
+    outside = np.ones_like(mask)
+    outside[10:30, 20:50] = False
+    assert mask[outside].sum() <= 2  # rate 1e-4 of 4200 pixels
+
+
+def test_a_change_below_the_noise_is_not_motion():
+    s = PatternSchedule()
+    bg = np.full((4, 100, 200), 100.0)
+    bg[1:] += 1.0  # σ of a group mean here is √(4 + 50)/2 ≈ 3.7 DN: one DN is noise
+    frames = fringe_set(bg, s, noise=NOISE, seed=6)
+    assert motion_mask(frames, 4, noise=NOISE, false_alarm_rate=1e-4).mean() < 1e-3
+
+
+def test_invalidate_marks_moved_pixels_in_place_except_saturated():
+    s = PatternSchedule()
+    h, w = 40, 50
+    bg = np.full((4, h, w), 100.0)
+    bg[3, :10, :10] = 160.0
+    frames = fringe_set(bg, s)
+    depth = np.full((h, w), 5.0, np.float32)
+    sigma = np.full((h, w), 0.01, np.float32)
+    points = np.ones((h, w, 3), np.float32)
+    valid = np.ones((h, w), bool)
+    reason = np.zeros((h, w), np.uint8)
+    reason[:2, :2] = Reason.SATURATED
+    valid[:2, :2] = False
+    mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=points, valid=valid, reason=reason,
+                                sigma=sigma, grow_px=0)
+    assert n == 100 and mask[:10, :10].all() and mask.sum() == 100
+    assert (reason[:2, :2] == Reason.SATURATED).all()
+    moved = mask.copy()
+    moved[:2, :2] = False
+    assert (reason[moved] == Reason.MOTION).all() and not valid[mask].any()
+    assert np.isnan(depth[moved]).all() and np.isnan(sigma[moved]).all() and np.isnan(points[moved]).all()
+    assert (depth[~mask] == 5.0).all() and valid[~mask].all() and (reason[~mask] == 0).all()
+
+
+def test_moved_regions_grow_by_grow_px():
+    s = PatternSchedule()
+    bg = np.full((4, 40, 50), 100.0)
+    bg[0, 10:20, 30:35] = 160.0
+    bg[0, 0, 0] = 160.0  # at the corner the square is cut by the image edge
+    frames = fringe_set(bg, s)
+    raw = motion_mask(frames, 4, noise=NOISE)
+    grown = motion_mask(frames, 4, noise=NOISE, grow_px=2)
+    assert raw.sum() == 51
+    expected = np.zeros_like(raw)
+    expected[8:22, 28:37] = True
+    expected[:3, :3] = True
+    assert np.array_equal(grown, expected)
+    z = np.zeros((40, 50), np.float32)
+    mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=z.copy(), points=np.zeros((40, 50, 3), np.float32),
+                                valid=np.ones((40, 50), bool), reason=z.astype(np.uint8), sigma=z.copy(), grow_px=2)
+    assert np.array_equal(mask, expected) and n == expected.sum()
+    with pytest.raises(ValueError, match="grow_px"):
+        motion_mask(frames, 4, noise=NOISE, grow_px=-1)
 
 
 def test_invalid_arguments():
     with pytest.raises(ValueError, match="frames"):
-        motion_mask(np.zeros((16, 4), np.uint8), 4, full_scale=255)
-    with pytest.raises(ValueError, match="n_frequencies"):
-        motion_mask(np.zeros((16, 4, 4), np.uint8), 3, full_scale=255)
+        motion_mask(np.zeros((16, 4), np.uint8), 4, noise=NOISE)
+    with pytest.raises(ValueError, match="frames"):
+        motion_mask(np.zeros((16, 4, 4), np.float32), 4, noise=NOISE)
+    with pytest.raises(ValueError, match="n_groups"):
+        motion_mask(np.zeros((16, 4, 4), np.uint8), 3, noise=NOISE)
+    with pytest.raises(ValueError, match="newest"):
+        motion_mask(np.zeros((16, 4, 4), np.uint8), 4, noise=NOISE, newest=4)
+    z = np.zeros((4, 4), np.float32)
+    with pytest.raises(ValueError, match="points"):
+        invalidate_motion(np.zeros((16, 4, 4), np.uint8), 4, noise=NOISE, depth=z, points=z, valid=z > 0,
+                          reason=z.astype(np.uint8), sigma=z)
+
+
+def test_group_times_and_the_map_instant():
+    t = np.arange(16) * 0.03  # frames 30 ms apart, capture-set order
+    assert group_mid_times(t, 4) == pytest.approx([0.045, 0.165, 0.285, 0.405])
+    assert map_time(t, (1, 4, 12, 36), combined=False) == pytest.approx(0.405)  # the finest group
+    w = np.array([1, 16, 144, 1296], float)
+    assert map_time(t, (1, 4, 12, 36), combined=True) == pytest.approx((w * [0.045, 0.165, 0.285, 0.405]).sum() / w.sum())
+    # rolling: the newest group is group 0 (frames 16..19 after 4..15)
+    idx = list(range(16, 20)) + list(range(4, 16))
+    assert newest_group(idx, 4) == 0 and newest_group(list(range(9)), 3) == 2

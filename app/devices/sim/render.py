@@ -24,6 +24,7 @@ from app.devices.sim.radiometry import (
     gaussian_quantile_table,
     projector_response_lut,
 )
+from app.devices.sim.raycast import raycast_capsule
 from app.devices.sim.scenes.base import F64, Scene
 from app.devices.sim.trace import integrate_print, trace
 
@@ -361,11 +362,48 @@ class Renderer:
     # -- truth -----------------------------------------------------------------------------
     def truth(self, t_s: float = 0.0) -> tuple[F32, F32]:
         """True depth (H, W) float32 mm above the reference plane (NaN off-object) and true
-        points (H, W, 3) float32 mm in the camera frame, for the instant ``t_s``."""
+        points (H, W, 3) float32 mm in the camera frame, for the instant ``t_s``.
+
+        This is the surface the frames rendered at ``t_s`` show. A rigidly moving scene is
+        rendered from its rest pose through a per-tile (``BLOCK`` px) integer image flow
+        (:func:`kernels.moving_frame`): pixel p gets the projector coordinate of the rest-pose
+        point of pixel p − flow moved by δ(t), a point near (not on) p's ray. The truth is the
+        point on p's ray with that projector coordinate — what the frames encode; the tool is
+        ray-traced at ``t_s`` over it. :meth:`traced_truth` is the exact ray-traced scene (it
+        differs from the rendered one by the tile flow's error times the triangulation gain).
+        """
         if self.scene.is_static:
             if self._truth_static is None:
                 self._truth_static = self._truth_from(self.points)
             return self._truth_static
+        h, w = self.shape
+        delta = self.scene.offset(t_s)
+        flow = np.repeat(np.repeat(self._block_flow(delta), BLOCK, axis=0), BLOCK, axis=1)[:h, :w]
+        sv = np.clip(np.arange(h)[:, None] - flow[..., 1], 0, h - 1)
+        su = np.clip(np.arange(w)[None, :] - flow[..., 0], 0, w - 1)
+        moved = self.points[sv, su] + delta
+        # The pixel shows that point's projector coordinate; the point on the pixel's own ray
+        # with that coordinate is what the frames encode (the flow is integer per tile).
+        alpha, a_c, gam, g_c = self.rig.projector.fringe_coefficients(self.schedule.orientation)
+        dirs = self.rays.reshape(h, w, 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            xp = (mat3(moved, alpha) - a_c) / (mat3(moved, gam) - g_c)
+            t_ray = (a_c - xp * g_c) / (mat3(dirs, alpha) - xp * mat3(dirs, gam))
+        points = t_ray[..., None] * dirs
+        if self.scene.tool is not None:
+            p0, p1 = (np.asarray(p, np.float64) for p in self.scene.tool.path(t_s))
+            tt, _ = raycast_capsule(np.zeros(3), self.rays, p0, p1, self.scene.tool.radius_mm)
+            tt = tt.reshape(h, w)
+            with np.errstate(invalid="ignore"):
+                t_surface = points[..., 2] / dirs[..., 2]
+                closer = np.isfinite(tt) & ~(t_surface <= tt)  # in front of the surface, or over nothing
+            points[closer] = tt[closer, None] * dirs[closer]
+        return self._truth_from(points)
+
+    def traced_truth(self, t_s: float = 0.0) -> tuple[F32, F32]:
+        """As :meth:`truth`, but the scene ray-traced exactly at ``t_s`` (not the rendered warp)."""
+        if self.scene.is_static:
+            return self.truth(t_s)
         hits = trace(self.scene, self.rays, t_s)
         return self._truth_from(hits.points.reshape(*self.shape, 3))
 

@@ -16,7 +16,13 @@ from app.devices.sim.scenes.targets import (
     sim_board,
     sphere_scene,
 )
-from app.devices.sim.scenes.tissue import anastomosis_scene, flap_scene, pile_scene
+from app.devices.sim.scenes.tissue import (
+    anastomosis_scene,
+    breathing_scene,
+    flap_scene,
+    pile_scene,
+    tool_scene,
+)
 
 SCENES: dict[str, Callable[[SimRig], Scene]] = {
     "plane": plane_scene,
@@ -28,6 +34,8 @@ SCENES: dict[str, Callable[[SimRig], Scene]] = {
     "anastomosis": anastomosis_scene,
     "anastomosis_bright": lambda rig: anastomosis_scene(rig, suture="suture_bright"),
     "sphere": sphere_scene,
+    "breathing": breathing_scene,
+    "tool": tool_scene,
 }
 
 

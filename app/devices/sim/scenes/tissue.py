@@ -148,3 +148,35 @@ def anastomosis_scene(rig: SimRig, seed: int = 7, suture: str = "suture") -> Sce
     return Scene(name, hf, tool=Tool(forceps, 1.3),
                  motion=lambda t: 0.75 * math.sin(2 * math.pi * 0.25 * t) * n,
                  description="end-to-end anastomosis with stay sutures, running stitches and forceps")
+
+
+#: breathing: heave of the tissue along the reference normal (mm, amplitude) and its rate (Hz)
+BREATHING_AMPLITUDE_MM = 2.0  # 4 mm peak to peak
+BREATHING_HZ = 0.25
+
+
+def breathing_scene(rig: SimRig, seed: int = 5) -> Scene:
+    """The intestine loops of :func:`pile_scene` heaving with breathing: 4 mm peak to peak along
+    the reference normal at 0.25 Hz (peak speed 3.1 mm/s), no tool."""
+    base = pile_scene(rig, seed)
+    n = rig.reference.normal.copy()
+    amp, hz = BREATHING_AMPLITUDE_MM, BREATHING_HZ
+    return Scene("breathing", base.surface,
+                 motion=lambda t: amp * math.sin(2 * math.pi * hz * t) * n,
+                 description="intestine loops heaving 4 mm peak to peak at 0.25 Hz (breathing)")
+
+
+def tool_scene(rig: SimRig, seed: int = 5) -> Scene:
+    """Still intestine loops with forceps sweeping across them: the tip runs ±10 mm along the
+    surface's s axis, 8 mm above it, at 0.1 Hz (peak speed 6.3 mm/s)."""
+    base = pile_scene(rig, seed)
+    hf = base.surface
+    origin, axes = hf.origin, hf.axes
+
+    def forceps(t: float) -> tuple[F64, F64]:
+        tip = origin + axes @ np.array([10.0 * math.sin(2 * math.pi * 0.1 * t), 3.0, 14.0])
+        direction = np.array([0.3, -1.0, -0.5])  # the shaft rises toward the scope (camera z falls)
+        return tip, tip + 40.0 * direction / np.linalg.norm(direction)
+
+    return Scene("tool", hf, tool=Tool(forceps, 1.3),
+                 description="still intestine loops, forceps sweeping ±10 mm across them at 0.1 Hz")
