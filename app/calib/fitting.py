@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
+from app.calib.camera import SPLIT, CameraFit, calibrate_camera, field_shortfall
 from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
@@ -91,6 +92,7 @@ class CalibrationReport:
     reprojection_px: float = math.nan
     held_out: dict[str, dict[str, float | int | str | None]] = field(default_factory=dict)
     uncovered: list[str] = field(default_factory=list)
+    camera: CameraFit | None = None
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -111,6 +113,8 @@ class CalibrationReport:
         if self.uncovered:
             lines.append(f"no control points in the {', '.join(self.uncovered)} ninth(s) of the image: "
                          "Eq. (5) does not support depth there")
+        if self.camera is not None:
+            lines.extend(self._camera_lines(self.camera))
         if self.held_out:
             lines.append("")
             lines.append(f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  (leave one pose out)")
@@ -123,6 +127,18 @@ class CalibrationReport:
                 lines.append(f"{name:<10} {_fmt(h.get('rms_mm')):>15} {_fmt(h.get('max_mm')):>15} "
                              f"{h.get('points', 0):>7}{mark}")
         return "\n".join(lines)
+
+
+    def _camera_lines(self, cam: CameraFit) -> list[str]:
+        held = ", ".join(f"{k} {_fmt(v)}" for k, v in cam.held_out_px.items())
+        lines = [f"lens distortion: {cam.model} (held-out reprojection px, corners beyond "
+                 f"r = {SPLIT * cam.r_max:.3f} fitted from the inner ones: {held or 'not measurable'})"]
+        if math.isfinite(cam.field_radius):
+            short = field_shortfall(cam.field_px(), self.calibration.image_size)
+            where = ", ".join(f"{k} {100 * v:.0f} %" for k, v in short.items())
+            lines.append(f"supported field: normalised radius <= {cam.field_radius:.3f} (board corners reach "
+                         f"{cam.r_max:.3f}); " + (f"unsupported (no depth): {where}" if where else "the whole image"))
+        return lines
 
 
 def _fmt(x: object) -> str:
@@ -239,10 +255,8 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     obs = [observations[i] for i in found]
     obj = [np.ascontiguousarray(o.object_points, np.float32) for o in obs]  # type: ignore[union-attr]
     img = [np.ascontiguousarray(o.image_points, np.float32).reshape(-1, 1, 2) for o in obs]  # type: ignore[union-attr]
-    rms_px, cam, dist, rvecs, tvecs = cv2.calibrateCamera(
-        obj, img, image_size, None, None, flags=cv2.CALIB_FIX_K3,
-        criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12),
-    )
+    camfit = calibrate_camera(obj, img, image_size)
+    rms_px, cam, dist, rvecs, tvecs = camfit.rms_px, camfit.camera_matrix, camfit.dist_coeffs, camfit.rvecs, camfit.tvecs
     rots = [cv2.Rodrigues(r)[0] for r in rvecs]
     normals = np.array([r[:, 2] for r in rots])
     tilt = max(
@@ -336,11 +350,14 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
                            image_size, int(schedule.frequencies[-1]), int(schedule.width))
     uncovered = _check_coverage(samples)
     plane = ReferencePlane(normal, offset)
+    field_px = camfit.field_px()
     models: dict[str, DepthModel] = {"eq5": Eq5Model(fit.numerator, fit.denominator, norm,
-                                                      region_from_samples(samples))}
+                                                      region_from_samples(samples).field_limited(field_px))}
     held_out: dict[str, dict[str, float | int | str | None]] = {}
     try:
-        models["geometric"] = GeometricModel.fit(samples, plane)
+        geo = GeometricModel.fit(samples, plane)
+        geo.region = geo.region.field_limited(field_px)
+        models["geometric"] = geo
     except ValueError as exc:
         if model == "geometric":
             raise
@@ -358,9 +375,10 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
              "rms_mm": _num(r.rms_mm), "points": r.points, "dropped": r.dropped}
             for r in reports
         ],
+        extra={"camera_model": camfit.summary()},
     )
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
-                             held_out=held_out, uncovered=uncovered)
+                             held_out=held_out, uncovered=uncovered, camera=camfit)
 
 
 def _key(x: object) -> float:
