@@ -35,6 +35,10 @@ DISTORTION_MODELS: dict[str, int] = {
     "k1,k2,p1,p2": cv2.CALIB_FIX_K3,
     "k1,k2,k3,p1,p2": 0,
 }
+#: the free coefficients of each model, as indices into OpenCV's (k1, k2, p1, p2, k3)
+DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
+    "k1": (0,), "k1,k2": (0, 1), "k1,p1,p2": (0, 2, 3), "k1,k2,p1,p2": (0, 1, 2, 3), "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
+}
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
 TIE = 1.10  # a simpler model within 10 % of the best held-out error is preferred
 EXTRAPOLATION_TOLERANCE = 1.5  # held-out error / in-sample error on the same points that still counts as safe

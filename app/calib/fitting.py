@@ -19,8 +19,9 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
-from app.calib.camera import SPLIT, CameraFit, calibrate_camera, field_shortfall
+from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
 from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
+from app.calib.refine import RefinedPoses, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
 from app.core.depth_model import (
@@ -40,6 +41,7 @@ MIN_TILT_SPREAD_DEG = 2.0
 ROBUST_POINT_SIGMAS = 4.0
 ROBUST_POSE_FACTOR = 3.0
 DENSE_POINTS_PER_POSE = 1500
+REFINE_POINTS_PER_POSE = 12000  # board pixels per pose whose phase refines the board poses
 
 
 @dataclass
@@ -51,12 +53,15 @@ class PoseObservation:
         object_points: (n, 3) float32 board coordinates, mm.
         phase: (H, W) float32 unwrapped phase, radians, NaN where invalid.
         name: label for reports (e.g. ``pose_03``).
+        modulation: optional (H, W) float32 fringe modulation B of the finest frequency (codes):
+            weighs the phase of each board pixel when the poses are refined (σ_φ ∝ 1/B).
     """
 
     image_points: npt.NDArray[np.float32]
     object_points: npt.NDArray[np.float32]
     phase: npt.NDArray[np.float32]
     name: str = ""
+    modulation: npt.NDArray[np.float32] | None = None
 
 
 @dataclass
@@ -216,7 +221,7 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
                 raise ValueError(f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})")
             observations.append(None)
             continue
-        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name))
+        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name, res.modulation))
     image_size = (shape[2], shape[1])
     return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names,
                             model=model)
@@ -224,7 +229,8 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
 
 def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
                      schedule: PatternSchedule, *, robust: bool = False, dense: bool = True,
-                     names: list[str] | None = None, model: str | None = None) -> CalibrationReport:
+                     names: list[str] | None = None, model: str | None = None,
+                     refine: bool = True) -> CalibrationReport:
     """Camera calibration, reference plane and the depth models' fits from detected poses.
 
     Both models (Eq. (5) and the geometric one) are fitted and judged on held-out poses
@@ -243,6 +249,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             control points: their heights come from the board plane and the calibrated
             camera rays. Many more, better spread points than the corners alone (the
             paper's choice, ``dense=False``), hence a better conditioned Eq. (5) fit.
+        refine: with ``dense``, refine the board poses (and so the reference plane) jointly
+            with the projector by the phase over each board (:mod:`app.calib.refine`): a small
+            board's tilt from its corners alone is loose, and pose 0's tilt is the reference plane's.
     """
     if model is not None and model not in MODEL_NAMES:
         raise ValueError(f"model: must be one of {list(MODEL_NAMES)}, got {model!r}")
@@ -267,6 +276,15 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; tilt the board "
             f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses so the camera model is determined"
         )
+    refined = None
+    if dense and refine:
+        refined = _refine_with_phase(obs, obj, img, cam, dist, rvecs, tvecs, schedule, DISTORTION_TERMS[camfit.model])
+        if refined is not None:
+            rvecs, tvecs = refined.rvecs, refined.tvecs
+            rots = [cv2.Rodrigues(r)[0] for r in rvecs]
+            cam, dist = refined.camera_matrix, refined.dist_coeffs
+            camfit.camera_matrix, camfit.dist_coeffs = cam, dist
+            rms_px = refined.reprojection_px
     # Reference plane: pose 0's board plane, unit normal toward the camera centre.
     normal = rots[0][:, 2].astype(np.float64)
     if float(normal @ tvecs[0].ravel()) > 0:
@@ -526,6 +544,28 @@ def capture_max_code(cs: CaptureSet) -> int | None:
     if isinstance(bits, bool) or not isinstance(bits, int) or not 8 <= bits <= 16:
         raise ValueError(f"bit_depth: must be an integer within 8–16, got {bits!r}")
     return int(2**bits - 1)
+
+
+def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[np.float32]],
+                       img: list[npt.NDArray[np.float32]], cam: npt.NDArray[np.float64],
+                       dist: npt.NDArray[np.float64], rvecs: list[npt.NDArray[np.float64]],
+                       tvecs: list[npt.NDArray[np.float64]], schedule: PatternSchedule,
+                       free_dist: tuple[int, ...]) -> RefinedPoses | None:
+    """Board poses refined jointly with the projector by the phase over each board
+    (:mod:`app.calib.refine`); None leaves the corner poses."""
+    pixels, proj_x, weights = [], [], []
+    scale = schedule.width / (2.0 * math.pi * float(schedule.frequencies[-1]))
+    for k, o in enumerate(obs):
+        assert o is not None
+        uv, _, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]), 0.0,
+                                      target=REFINE_POINTS_PER_POSE)
+        pixels.append(uv)
+        proj_x.append(phi_k * scale)
+        if o.modulation is not None:
+            b = o.modulation[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)].astype(np.float64)
+            weights.append(b / max(float(np.nanmedian(b)), 1e-9))
+    return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, pixels, proj_x,
+                              weights if len(weights) == len(obs) else None, free_dist)
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:
