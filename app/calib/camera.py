@@ -9,7 +9,8 @@ error at the image corners while the in-sample reprojection error stays at 0.06 
    centre) are left out, every candidate model (:data:`DISTORTION_MODELS`, fewest terms first) is
    fitted to the inner ones and judged by its reprojection error on the outer ones — the same
    extrapolation, by the factor ``1/SPLIT``, the calibration will need beyond its data.
-2. The simplest model within :data:`TIE` of the best held-out error is refitted to all corners.
+2. The simplest model within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
+   refitted to all corners.
 3. The supported field is the ellipse of normalised radius ``r_max`` — extended by the factor the
    held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed within
    :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else ``r_max``.
@@ -40,7 +41,8 @@ DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
     "k1": (0,), "k1,k2": (0, 1), "k1,p1,p2": (0, 2, 3), "k1,k2,p1,p2": (0, 1, 2, 3), "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
 }
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
-TIE = 1.10  # a simpler model within 10 % of the best held-out error is preferred
+TIE = 1.10  # a simpler model within 10 % of the best held-out error is preferred …
+TIE_PX = 0.005  # … or within 0.005 px of it (differences below that are immaterial)
 EXTRAPOLATION_TOLERANCE = 1.5  # held-out error / in-sample error on the same points that still counts as safe
 MIN_VIEW_POINTS = 6
 _CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12)
@@ -145,7 +147,7 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     finite = {k: v for k, v in held.items() if math.isfinite(v)}
     if finite:
         best = min(finite.values())
-        chosen = next(k for k, v in finite.items() if v <= TIE * best)
+        chosen = next(k for k, v in finite.items() if v <= max(TIE * best, best + TIE_PX))
     else:
         chosen = "k1,k2,p1,p2"
     rms, cam, dist, rv, tv = _calibrate(obj, img, image_size, DISTORTION_MODELS[chosen])
@@ -154,7 +156,7 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
         outer_err = np.concatenate([_reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[k], tv[k], cam, dist)
                                     for k in views if (~inner[k]).any()])
         in_sample[chosen] = float(np.sqrt(np.mean(outer_err**2)))
-        if finite[chosen] <= EXTRAPOLATION_TOLERANCE * in_sample[chosen]:
+        if finite[chosen] <= max(EXTRAPOLATION_TOLERANCE * in_sample[chosen], TIE_PX):
             radius = r_max / SPLIT
     return CameraFit(rms, cam, dist, rv, tv, chosen, held, r_max, radius)
 

@@ -120,6 +120,7 @@ class CalibrationReport:
                          "Eq. (5) does not support depth there")
         if self.camera is not None:
             lines.extend(self._camera_lines(self.camera))
+        lines.extend(self._projector_lines())
         if self.held_out:
             lines.append("")
             lines.append(f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  (leave one pose out)")
@@ -133,6 +134,20 @@ class CalibrationReport:
                              f"{h.get('points', 0):>7}{mark}")
         return "\n".join(lines)
 
+
+    def _projector_lines(self) -> list[str]:
+        """The projector columns (rows for horizontal fringes) the active model supports: a surface
+        lit from beyond them has no depth (OUTSIDE_FIELD) — place boards where those columns fall."""
+        rng = self.calibration.model.region.phase_rad
+        sched = self.calibration.pattern
+        if rng is None:
+            return []
+        extent = sched.axis_length
+        scale = extent / (2.0 * math.pi * float(sched.frequencies[-1]))
+        lo, hi = max(0.0, rng[0] * scale), min(float(extent), rng[1] * scale)
+        axis = "columns" if sched.orientation == "vertical" else "rows"
+        return [f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} (the boards' phase range "
+                "and its margin); surfaces lit from outside it have no depth"]
 
     def _camera_lines(self, cam: CameraFit) -> list[str]:
         held = ", ".join(f"{k} {_fmt(v)}" for k, v in cam.held_out_px.items())

@@ -66,8 +66,12 @@ def undistort_rays(uv: F64, cam: F64, dist: F64, iterations: int = 20) -> F64:
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x = (xd - dx) / radial
-        y = (yd - dy) / radial
+        xn = (xd - dx) / radial
+        yn = (yd - dy) / radial
+        step = float(np.max(np.abs(xn - x) + np.abs(yn - y))) if x.size else 0.0
+        x, y = xn, yn
+        if step < 1e-13:
+            break
     return np.stack([x, y, np.ones_like(x)], axis=1)
 
 

@@ -261,3 +261,19 @@ def test_field_ellipse_refuses_depth_beyond_it_in_both_paths(fast):
     clear = np.abs(e - 1.0) > 1e-3
     assert np.array_equal((res.reason == Reason.OUTSIDE_FIELD)[clear], (e > 1.0)[clear])
     assert res.valid[clear & (e < 1.0)].all()
+
+
+def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_out_phases():
+    """A pinhole projector, noisy phase: k1 cannot predict the outer phases (held out of a fit to
+    the inner ones) better, so it is fixed at 0; the field is the data's phase range extended
+    by the verified extrapolation, a sixth of the range each side."""
+    rig = Rig()
+    truth = _geometric_of(rig, k1=0.0)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    samples = _samples(rig, truth, np.zeros(5), plane)
+    samples.phi = samples.phi + np.random.default_rng(5).normal(0.0, 0.02, samples.phi.shape)
+    fitted = GeometricModel.fit(samples, plane)
+    assert fitted.k1 == 0.0
+    lo, hi = fitted.region.phase_rad
+    span = samples.phi.max() - samples.phi.min()
+    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(samples.phi.max() + span / 6.0)
