@@ -38,9 +38,8 @@ from app.core.depth_model import (
 F64 = npt.NDArray[np.float64]
 MIN_SAMPLES = 20
 #: the projector's k1 is judged on the boards' phase range: a fit to its central PHASE_SPLIT
-#: predicts the rest; k1 is kept only if it predicts it better by PHASE_TIE
+#: predicts the rest; k1 is dropped (a pinhole) only if the pinhole predicts it better
 PHASE_SPLIT = 0.75
-PHASE_TIE = 1.10
 #: held-out / in-sample error on the outer phases still counted as a safe extrapolation; then
 #: the supported phase range is the data's, extended by the verified factor 1/PHASE_SPLIT
 PHASE_EXTRAPOLATION_TOLERANCE = 1.5
@@ -151,9 +150,9 @@ class GeometricModel(DepthModel):
     @classmethod
     def fit(cls, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
         """Direct linear start for the 1-D camera, then ``least_squares`` on the projector
-        coordinate residual (px) over pose, focal length, principal point and k1 — k1 only when
-        it predicts the outer phases held out of a fit to the inner ones better (by
-        :data:`PHASE_TIE`); the supported phase range is the data's, extended by the verified
+        coordinate residual (px) over pose, focal length, principal point and k1 — k1 dropped
+        when a pinhole predicts the outer phases held out of a fit to the inner ones better; the
+        supported phase range is the data's, extended by the verified
         extrapolation (:data:`PHASE_SPLIT`, :data:`PHASE_EXTRAPOLATION_TOLERANCE`)."""
         from scipy.optimize import least_squares
 
@@ -187,7 +186,7 @@ class GeometricModel(DepthModel):
             return np.concatenate([r.x if np.all(np.isfinite(r.x)) else x0[:7], [0.0]])
 
         # Projector distortion by held-out phase: the outer parts of the boards' phase range
-        # predicted by a fit to the inner part, with and without k1; k1 only if it predicts better.
+        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts worse.
         phi = samples.phi[ok]
         lo, hi = float(np.min(phi)), float(np.max(phi))
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
@@ -198,7 +197,7 @@ class GeometricModel(DepthModel):
             for with_k1 in (False, True):
                 xi = solve(inner, with_k1)
                 held[with_k1] = float(np.sqrt(np.mean(residuals(xi)[~inner] ** 2)))
-        use_k1 = bool(held) and held[True] * PHASE_TIE < held[False]
+        use_k1 = not held or held[True] <= held[False]
         x = solve(everything, use_k1 or not held)
         # the field: the data's phase range, extended by the extrapolation the held-out test
         # verified (the outer parts predicted within tolerance of their in-sample error)

@@ -264,9 +264,9 @@ def test_field_ellipse_refuses_depth_beyond_it_in_both_paths(fast):
 
 
 def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_out_phases():
-    """A pinhole projector, noisy phase: k1 cannot predict the outer phases (held out of a fit to
-    the inner ones) better, so it is fixed at 0; the field is the data's phase range extended
-    by the verified extrapolation, a sixth of the range each side."""
+    """A pinhole projector, noisy phase: here k1 predicts the outer phases (held out of a fit to
+    the inner ones) worse than a pinhole, so it is fixed at 0; the field is the data's phase
+    range extended by the verified extrapolation, a sixth of the range each side."""
     rig = Rig()
     truth = _geometric_of(rig, k1=0.0)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
