@@ -19,7 +19,9 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.calibration import Calibration
+from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
 from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
+from app.calib.refine import RefinedPoses, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
 from app.core.depth_model import (
@@ -39,6 +41,7 @@ MIN_TILT_SPREAD_DEG = 2.0
 ROBUST_POINT_SIGMAS = 4.0
 ROBUST_POSE_FACTOR = 3.0
 DENSE_POINTS_PER_POSE = 1500
+REFINE_POINTS_PER_POSE = 12000  # board pixels per pose whose phase refines the board poses
 
 
 @dataclass
@@ -50,12 +53,15 @@ class PoseObservation:
         object_points: (n, 3) float32 board coordinates, mm.
         phase: (H, W) float32 unwrapped phase, radians, NaN where invalid.
         name: label for reports (e.g. ``pose_03``).
+        modulation: optional (H, W) float32 fringe modulation B of the finest frequency (codes):
+            weighs the phase of each board pixel when the poses are refined (σ_φ ∝ 1/B).
     """
 
     image_points: npt.NDArray[np.float32]
     object_points: npt.NDArray[np.float32]
     phase: npt.NDArray[np.float32]
     name: str = ""
+    modulation: npt.NDArray[np.float32] | None = None
 
 
 @dataclass
@@ -91,6 +97,7 @@ class CalibrationReport:
     reprojection_px: float = math.nan
     held_out: dict[str, dict[str, float | int | str | None]] = field(default_factory=dict)
     uncovered: list[str] = field(default_factory=list)
+    camera: CameraFit | None = None
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -111,6 +118,9 @@ class CalibrationReport:
         if self.uncovered:
             lines.append(f"no control points in the {', '.join(self.uncovered)} ninth(s) of the image: "
                          "Eq. (5) does not support depth there")
+        if self.camera is not None:
+            lines.extend(self._camera_lines(self.camera))
+        lines.extend(self._projector_lines())
         if self.held_out:
             lines.append("")
             lines.append(f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  (leave one pose out)")
@@ -123,6 +133,32 @@ class CalibrationReport:
                 lines.append(f"{name:<10} {_fmt(h.get('rms_mm')):>15} {_fmt(h.get('max_mm')):>15} "
                              f"{h.get('points', 0):>7}{mark}")
         return "\n".join(lines)
+
+
+    def _projector_lines(self) -> list[str]:
+        """The projector columns (rows for horizontal fringes) the active model supports: a surface
+        lit from beyond them has no depth (OUTSIDE_FIELD) — place boards where those columns fall."""
+        rng = self.calibration.model.region.phase_rad
+        sched = self.calibration.pattern
+        if rng is None:
+            return []
+        extent = sched.axis_length
+        scale = extent / (2.0 * math.pi * float(sched.frequencies[-1]))
+        lo, hi = max(0.0, rng[0] * scale), min(float(extent), rng[1] * scale)
+        axis = "columns" if sched.orientation == "vertical" else "rows"
+        return [f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} (the boards' phase range "
+                "and its margin); surfaces lit from outside it have no depth"]
+
+    def _camera_lines(self, cam: CameraFit) -> list[str]:
+        held = ", ".join(f"{k} {_fmt(v)}" for k, v in cam.held_out_px.items())
+        lines = [f"lens distortion: {cam.model} (held-out reprojection px, corners beyond "
+                 f"r = {SPLIT * cam.r_max:.3f} fitted from the inner ones: {held or 'not measurable'})"]
+        if math.isfinite(cam.field_radius):
+            short = field_shortfall(cam.field_px(), self.calibration.image_size)
+            where = ", ".join(f"{k} {100 * v:.0f} %" for k, v in short.items())
+            lines.append(f"supported field: normalised radius <= {cam.field_radius:.3f} (board corners reach "
+                         f"{cam.r_max:.3f}); " + (f"unsupported (no depth): {where}" if where else "the whole image"))
+        return lines
 
 
 def _fmt(x: object) -> str:
@@ -200,7 +236,7 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
                 raise ValueError(f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})")
             observations.append(None)
             continue
-        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name))
+        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name, res.modulation))
     image_size = (shape[2], shape[1])
     return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names,
                             model=model)
@@ -208,7 +244,8 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
 
 def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
                      schedule: PatternSchedule, *, robust: bool = False, dense: bool = True,
-                     names: list[str] | None = None, model: str | None = None) -> CalibrationReport:
+                     names: list[str] | None = None, model: str | None = None,
+                     refine: bool = True) -> CalibrationReport:
     """Camera calibration, reference plane and the depth models' fits from detected poses.
 
     Both models (Eq. (5) and the geometric one) are fitted and judged on held-out poses
@@ -227,6 +264,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             control points: their heights come from the board plane and the calibrated
             camera rays. Many more, better spread points than the corners alone (the
             paper's choice, ``dense=False``), hence a better conditioned Eq. (5) fit.
+        refine: with ``dense``, refine the board poses (and so the reference plane) jointly
+            with the projector by the phase over each board (:mod:`app.calib.refine`): a small
+            board's tilt from its corners alone is loose, and pose 0's tilt is the reference plane's.
     """
     if model is not None and model not in MODEL_NAMES:
         raise ValueError(f"model: must be one of {list(MODEL_NAMES)}, got {model!r}")
@@ -239,10 +279,8 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     obs = [observations[i] for i in found]
     obj = [np.ascontiguousarray(o.object_points, np.float32) for o in obs]  # type: ignore[union-attr]
     img = [np.ascontiguousarray(o.image_points, np.float32).reshape(-1, 1, 2) for o in obs]  # type: ignore[union-attr]
-    rms_px, cam, dist, rvecs, tvecs = cv2.calibrateCamera(
-        obj, img, image_size, None, None, flags=cv2.CALIB_FIX_K3,
-        criteria=(cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12),
-    )
+    camfit = calibrate_camera(obj, img, image_size)
+    rms_px, cam, dist, rvecs, tvecs = camfit.rms_px, camfit.camera_matrix, camfit.dist_coeffs, camfit.rvecs, camfit.tvecs
     rots = [cv2.Rodrigues(r)[0] for r in rvecs]
     normals = np.array([r[:, 2] for r in rots])
     tilt = max(
@@ -253,6 +291,15 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; tilt the board "
             f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses so the camera model is determined"
         )
+    refined = None
+    if dense and refine:
+        refined = _refine_with_phase(obs, obj, img, cam, dist, rvecs, tvecs, schedule, DISTORTION_TERMS[camfit.model])
+        if refined is not None:
+            rvecs, tvecs = refined.rvecs, refined.tvecs
+            rots = [cv2.Rodrigues(r)[0] for r in rvecs]
+            cam, dist = refined.camera_matrix, refined.dist_coeffs
+            camfit.camera_matrix, camfit.dist_coeffs = cam, dist
+            rms_px = refined.reprojection_px
     # Reference plane: pose 0's board plane, unit normal toward the camera centre.
     normal = rots[0][:, 2].astype(np.float64)
     if float(normal @ tvecs[0].ravel()) > 0:
@@ -336,11 +383,14 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
                            image_size, int(schedule.frequencies[-1]), int(schedule.width))
     uncovered = _check_coverage(samples)
     plane = ReferencePlane(normal, offset)
+    field_px = camfit.field_px()
     models: dict[str, DepthModel] = {"eq5": Eq5Model(fit.numerator, fit.denominator, norm,
-                                                      region_from_samples(samples))}
+                                                      region_from_samples(samples).field_limited(field_px))}
     held_out: dict[str, dict[str, float | int | str | None]] = {}
     try:
-        models["geometric"] = GeometricModel.fit(samples, plane)
+        geo = GeometricModel.fit(samples, plane)
+        geo.region = geo.region.field_limited(field_px)
+        models["geometric"] = geo
     except ValueError as exc:
         if model == "geometric":
             raise
@@ -358,9 +408,10 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
              "rms_mm": _num(r.rms_mm), "points": r.points, "dropped": r.dropped}
             for r in reports
         ],
+        extra={"camera_model": camfit.summary()},
     )
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
-                             held_out=held_out, uncovered=uncovered)
+                             held_out=held_out, uncovered=uncovered, camera=camfit)
 
 
 def _key(x: object) -> float:
@@ -508,6 +559,28 @@ def capture_max_code(cs: CaptureSet) -> int | None:
     if isinstance(bits, bool) or not isinstance(bits, int) or not 8 <= bits <= 16:
         raise ValueError(f"bit_depth: must be an integer within 8–16, got {bits!r}")
     return int(2**bits - 1)
+
+
+def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[np.float32]],
+                       img: list[npt.NDArray[np.float32]], cam: npt.NDArray[np.float64],
+                       dist: npt.NDArray[np.float64], rvecs: list[npt.NDArray[np.float64]],
+                       tvecs: list[npt.NDArray[np.float64]], schedule: PatternSchedule,
+                       free_dist: tuple[int, ...]) -> RefinedPoses | None:
+    """Board poses refined jointly with the projector by the phase over each board
+    (:mod:`app.calib.refine`); None leaves the corner poses."""
+    pixels, proj_x, weights = [], [], []
+    scale = schedule.width / (2.0 * math.pi * float(schedule.frequencies[-1]))
+    for k, o in enumerate(obs):
+        assert o is not None
+        uv, _, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]), 0.0,
+                                      target=REFINE_POINTS_PER_POSE)
+        pixels.append(uv)
+        proj_x.append(phi_k * scale)
+        if o.modulation is not None:
+            b = o.modulation[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)].astype(np.float64)
+            weights.append(b / max(float(np.nanmedian(b)), 1e-9))
+    return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, pixels, proj_x,
+                              weights if len(weights) == len(obs) else None, free_dist)
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

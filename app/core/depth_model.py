@@ -117,17 +117,24 @@ class SupportedRegion:
         height_grid_mm: (gh, gw, 2) per image cell (lo, hi) height bounds (with a margin;
             lo > hi marks a cell without data), or None for no per-cell bound.
         cell_px: (cell width, cell height) of the grid, px.
+        field_px: (cx, cy, rx, ry) the image ellipse, px, inside which the camera model is
+            supported (centre the distortion centre; semi-axes a normalised radius times the
+            focal lengths), or None for the whole image. The camera's lens distortion is fitted
+            from board points out to some radius only; beyond it (plus a margin the held-out
+            error justifies) its polynomial extrapolates and no depth is given there.
     """
 
     phase_rad: tuple[float, float] | None = None
     height_grid_mm: F64 | None = None
     cell_px: tuple[float, float] = (1.0, 1.0)
+    field_px: tuple[float, float, float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "phase_rad": None if self.phase_rad is None else list(self.phase_rad),
             "height_grid_mm": None if self.height_grid_mm is None else np.round(self.height_grid_mm, 6).tolist(),
             "cell_px": list(self.cell_px),
+            "field_px": None if self.field_px is None else [round(float(x), 4) for x in self.field_px],
         }
 
     @classmethod
@@ -144,11 +151,16 @@ class SupportedRegion:
                 raise ValueError(f"height_grid_mm: expected (gh, gw, 2), got {g.shape}")
             cw, ch = (float(x) for x in data.get("cell_px", (1.0, 1.0)))
             ph = None if phase is None else (float(phase[0]), float(phase[1]))
+            fp = data.get("field_px")
+            fpx = None if fp is None else tuple(float(x) for x in fp)
         except (TypeError, IndexError) as exc:
             raise ValueError(f"supported_region: malformed ({exc})") from None
         if cw <= 0 or ch <= 0:
             raise ValueError("supported_region: cell_px must be positive")
-        return cls(ph, g, (cw, ch))
+        if fpx is not None and (len(fpx) != 4 or not all(math.isfinite(x) for x in fpx)
+                                or fpx[2] <= 0 or fpx[3] <= 0):
+            raise ValueError("supported_region: field_px must be 4 finite numbers (cx, cy, rx, ry), rx, ry > 0")
+        return cls(ph, g, (cw, ch), fpx)
 
     def kernel_bounds(self) -> tuple[F32, float, float, float, float]:
         """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the kernel;
@@ -172,7 +184,27 @@ class SupportedRegion:
         cj = np.minimum((np.arange(cols) * inv_w).astype(np.int64), grid.shape[1] - 1)
         g = grid.astype(np.float64)[ci][:, cj]
         inside = (h >= g[..., 0]) & (h <= g[..., 1]) & (p >= lo) & (p <= hi)
+        u_lo, u_hi = self.column_bounds(rows, cols)
+        u = np.arange(cols, dtype=np.float32)
+        inside &= (u[None, :] >= u_lo[:, None]) & (u[None, :] <= u_hi[:, None])
         return np.asarray(~inside, np.bool_)
+
+    def column_bounds(self, rows: int, cols: int) -> tuple[F32, F32]:
+        """(rows,) float32 lowest and highest supported column of every image row (the
+        chord of :attr:`field_px`; lo > hi for a row that misses it; ±inf without a field limit).
+        The kernel and :meth:`outside` both test ``lo <= u <= hi``."""
+        if self.field_px is None:
+            return np.full(rows, -np.inf, np.float32), np.full(rows, np.inf, np.float32)
+        cx, cy, rx, ry = self.field_px
+        t = 1.0 - ((np.arange(rows, dtype=np.float64) - cy) / ry) ** 2
+        half = rx * np.sqrt(np.maximum(t, 0.0))
+        lo = np.where(t >= 0, cx - half, np.inf)
+        hi = np.where(t >= 0, cx + half, -np.inf)
+        return lo.astype(np.float32), hi.astype(np.float32)
+
+    def field_limited(self, field_px: tuple[float, float, float, float] | None) -> SupportedRegion:
+        """This region with the camera-field ellipse ``field_px`` (see the attributes)."""
+        return SupportedRegion(self.phase_rad, self.height_grid_mm, self.cell_px, field_px)
 
 
 def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0,

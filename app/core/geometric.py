@@ -37,7 +37,13 @@ from app.core.depth_model import (
 
 F64 = npt.NDArray[np.float64]
 MIN_SAMPLES = 20
-FIELD_MARGIN = 0.1  # of the projector's full phase range 2πK, each side of the calibrated range
+#: the projector's k1 is judged on the boards' phase range: a fit to its central PHASE_SPLIT
+#: predicts the rest; k1 is dropped (a pinhole) only if the pinhole predicts it better
+PHASE_SPLIT = 0.75
+#: held-out / in-sample error on the outer phases still counted as a safe extrapolation; then
+#: the supported phase range is the data's, extended by the verified factor 1/PHASE_SPLIT
+PHASE_EXTRAPOLATION_TOLERANCE = 1.5
+PHASE_FLOOR_PX = 0.01  # projector px: held-out errors below this count as exact (noise-free data)
 
 
 def _rotation(rvec: F64) -> F64:
@@ -144,7 +150,10 @@ class GeometricModel(DepthModel):
     @classmethod
     def fit(cls, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
         """Direct linear start for the 1-D camera, then ``least_squares`` on the projector
-        coordinate residual (px) over pose, focal length, principal point and k1."""
+        coordinate residual (px) over pose, focal length, principal point and k1 — k1 dropped
+        when a pinhole predicts the outer phases held out of a fit to the inner ones better; the
+        supported phase range is the data's, extended by the verified
+        extrapolation (:data:`PHASE_SPLIT`, :data:`PHASE_EXTRAPOLATION_TOLERANCE`)."""
         from scipy.optimize import least_squares
 
         ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
@@ -166,10 +175,37 @@ class GeometricModel(DepthModel):
             xd = (xp - x[6]) / x[5]
             return np.asarray(x[5] * (xd * (1.0 + x[7] * xd * xd) - xn), np.float64)
 
-        res = least_squares(residuals, x0, method="lm", x_scale="jac", max_nfev=5000)
-        x = res.x if np.all(np.isfinite(res.x)) else x0
-        margin = FIELD_MARGIN * 2.0 * math.pi * k
-        lo, hi = float(np.min(samples.phi[ok])), float(np.max(samples.phi[ok]))
+        def solve(sel: npt.NDArray[np.bool_], with_k1: bool) -> F64:
+            def res_k(x: F64) -> F64:
+                return residuals(np.concatenate([x, [0.0]]))[sel]
+
+            if with_k1:
+                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac", max_nfev=5000)
+                return np.asarray(r.x if np.all(np.isfinite(r.x)) else x0, np.float64)
+            r = least_squares(res_k, x0[:7], method="lm", x_scale="jac", max_nfev=5000)
+            return np.concatenate([r.x if np.all(np.isfinite(r.x)) else x0[:7], [0.0]])
+
+        # Projector distortion by held-out phase: the outer parts of the boards' phase range
+        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts worse.
+        phi = samples.phi[ok]
+        lo, hi = float(np.min(phi)), float(np.max(phi))
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        inner = np.abs(phi - mid) <= PHASE_SPLIT * half
+        everything = np.ones(len(phi), bool)
+        held = {}
+        if int(inner.sum()) >= MIN_SAMPLES and int((~inner).sum()) >= MIN_SAMPLES:
+            for with_k1 in (False, True):
+                xi = solve(inner, with_k1)
+                held[with_k1] = float(np.sqrt(np.mean(residuals(xi)[~inner] ** 2)))
+        use_k1 = not held or held[True] <= held[False]
+        x = solve(everything, use_k1 or not held)
+        # the field: the data's phase range, extended by the extrapolation the held-out test
+        # verified (the outer parts predicted within tolerance of their in-sample error)
+        margin = 0.0
+        if held:
+            in_sample = float(np.sqrt(np.mean(residuals(x)[~inner] ** 2)))
+            if held[use_k1] <= max(PHASE_EXTRAPOLATION_TOLERANCE * in_sample, PHASE_FLOOR_PX):
+                margin = half * (1.0 / PHASE_SPLIT - 1.0)
         region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
         return cls(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]), float(x[7]), w, k, region)
 

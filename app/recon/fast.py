@@ -79,7 +79,8 @@ class HeightArgs(NamedTuple):
     volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
     mm, the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
     grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
-    range rad), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    range rad, ``field_u_lo``/``field_u_hi`` (H,) the supported columns of every row: the
+    camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
 
     u_norm: npt.NDArray[np.float32]
@@ -99,6 +100,8 @@ class HeightArgs(NamedTuple):
     region_rows: npt.NDArray[np.int64]
     phase_lo: np.float32
     phase_hi: np.float32
+    field_u_lo: npt.NDArray[np.float32]
+    field_u_hi: npt.NDArray[np.float32]
     read_var: np.float32
     gain: np.float32
     max_sigma: np.float32
@@ -398,6 +401,7 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
     g6, g7, g8, g9, g10, g11 = g[6], g[7], g[8], g[9], g[10], g[11]
     r_lo = m.region_lo[m.region_rows[v]]
     r_hi = m.region_hi[m.region_rows[v]]
+    f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]  # outside the camera's supported field: no height bound holds
     phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
     p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
     inv_frames = m.inv_frames
@@ -419,8 +423,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 += (k5 * x + k4) * x + k3
             b0 += (k8 * x + k7) * x + k6
             b1 += (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
-                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma)
             hbuf[u] = h
             sbuf[u] = sig
@@ -432,8 +436,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 = (k5 * x + k4) * x + k3
             b0 = (k8 * x + k7) * x + k6
             b1 = (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u], r_lo[u],
-                                   r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma)
             hbuf[u] = h
             sbuf[u] = sig
@@ -790,6 +794,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
         np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32), np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
+        np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),

@@ -307,17 +307,20 @@ class Reconstructor:
         return pixel_tables(self._height_tables, ray_quotients(rays, dtype=np.float64)), rays
 
     @cached_property
-    def _region_columns(self) -> tuple[F32, F32, npt.NDArray[np.int64], float, float]:
+    def _region_columns(self) -> tuple[F32, F32, npt.NDArray[np.int64], float, float, F32, F32]:
         """The supported region for the kernel: (gh, W) float32 lower and upper height bounds per
-        grid row and column, (H,) grid row of every image row, phase range (cells as in
+        grid row and column, (H,) grid row of every image row, phase range, (H,) float32 lowest
+        and highest supported column of every row (cells and field as in
         :meth:`~app.core.depth_model.SupportedRegion.outside`)."""
-        grid, inv_w, inv_h, p_lo, p_hi = self.calibration.model.region.kernel_bounds()
+        region = self.calibration.model.region
+        grid, inv_w, inv_h, p_lo, p_hi = region.kernel_bounds()
         w, h = self.calibration.image_size
         cols = np.minimum((np.arange(w) * inv_w).astype(np.int64), grid.shape[1] - 1)
         rows = np.minimum((np.arange(h) * inv_h).astype(np.int64), grid.shape[0] - 1)
         per_col = grid[:, cols, :]
+        u_lo, u_hi = region.column_bounds(h, w)
         return (np.ascontiguousarray(per_col[..., 0], np.float32), np.ascontiguousarray(per_col[..., 1], np.float32),
-                rows, p_lo, p_hi)
+                rows, p_lo, p_hi, u_lo, u_hi)
 
     def _noise(self, max_code: int) -> SensorNoise:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
@@ -409,7 +412,7 @@ class Reconstructor:
         tables, ray_q = self._fast_tables
         cos_d, sin_d, freqs, chain_c, chain_f = self._fast_schedule
         lo, hi = self._bounds_mm
-        r_lo, r_hi, rows, p_lo, p_hi = self._region_columns
+        r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
         noise = self._noise(max_code)
         f32 = np.float32
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
@@ -417,7 +420,7 @@ class Reconstructor:
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
-            ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi),
+            ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self.max_sigma_mm if self.max_sigma_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),

@@ -210,3 +210,70 @@ def test_projector_field_bounds_the_geometric_model(fast):
     out = res.reason == Reason.OUTSIDE_FIELD
     assert np.array_equal(out[clear], (phi > cut)[clear])
     assert res.valid[clear & (phi < cut)].all()
+
+
+def test_field_ellipse_column_bounds_and_outside_on_a_constructed_case():
+    """Per row the supported columns are the ellipse's chord; ``outside`` flags exactly the
+    pixels beyond it (whatever height or phase), and rows that miss it entirely."""
+    region = SupportedRegion(field_px=(10.0, 5.0, 6.0, 3.0))
+    lo, hi = region.column_bounds(12, 24)
+    # row 5 (the centre): 4..16; row 8 (on the edge): the single column 10; row 9: none
+    assert (lo[5], hi[5]) == (4.0, 16.0)
+    assert lo[8] == hi[8] == 10.0
+    assert lo[9] > hi[9] and lo[0] > hi[0]
+    vv, uu = np.mgrid[0:12, 0:24]
+    expect = ((uu - 10.0) / 6.0) ** 2 + ((vv - 5.0) / 3.0) ** 2 > 1.0 + 1e-9
+    out = region.outside(np.zeros((12, 24)), np.zeros((12, 24)))
+    assert np.array_equal(out, expect)
+    unbounded = SupportedRegion()
+    assert not unbounded.outside(np.zeros((3, 4)), np.zeros((3, 4))).any()
+
+
+def test_field_ellipse_round_trips_and_old_version_2_files_load(tmp_path):
+    rig = Rig()
+    cal = _calibration(rig, _geometric_of(rig))
+    cal.model.region = SupportedRegion(phase_rad=(1.0, 2.0), field_px=(320.0, 240.0, 200.5, 150.25))
+    back = load_calibration(save_calibration(cal, tmp_path / "c.json"))
+    assert back.model.region.field_px == (320.0, 240.0, 200.5, 150.25)
+    data = json.loads((tmp_path / "c.json").read_text())
+    del data["model"]["supported_region"]["field_px"]  # written before the field limit existed
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    assert load_calibration(tmp_path / "old.json").model.region.field_px is None
+    data["model"]["supported_region"]["field_px"] = [1.0, 2.0, -3.0, 4.0]
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="field_px"):
+        load_calibration(tmp_path / "bad.json")
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_field_ellipse_refuses_depth_beyond_it_in_both_paths(fast):
+    """Pixels beyond the supported camera field are OUTSIDE_FIELD in the kernel and the numpy
+    path alike (the lens distortion is not extrapolated); inside, the depth is valid."""
+    rig = Rig()
+    cal = rig.geometric_calibration()
+    field = (rig.width * 0.45, rig.height * 0.55, rig.width * 0.3, rig.height * 0.35)
+    cal.model.region = SupportedRegion(field_px=field)
+    h = bump_surface(rig)
+    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
+                                                       amplitude=90 * 256))
+    vv, uu = np.mgrid[0:rig.height, 0:rig.width]
+    e = ((uu - field[0]) / field[2]) ** 2 + ((vv - field[1]) / field[3]) ** 2
+    clear = np.abs(e - 1.0) > 1e-3
+    assert np.array_equal((res.reason == Reason.OUTSIDE_FIELD)[clear], (e > 1.0)[clear])
+    assert res.valid[clear & (e < 1.0)].all()
+
+
+def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_out_phases():
+    """A pinhole projector, noisy phase: here k1 predicts the outer phases (held out of a fit to
+    the inner ones) worse than a pinhole, so it is fixed at 0; the field is the data's phase
+    range extended by the verified extrapolation, a sixth of the range each side."""
+    rig = Rig()
+    truth = _geometric_of(rig, k1=0.0)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    samples = _samples(rig, truth, np.zeros(5), plane)
+    samples.phi = samples.phi + np.random.default_rng(5).normal(0.0, 0.02, samples.phi.shape)
+    fitted = GeometricModel.fit(samples, plane)
+    assert fitted.k1 == 0.0
+    lo, hi = fitted.region.phase_rad
+    span = samples.phi.max() - samples.phi.min()
+    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(samples.phi.max() + span / 6.0)
