@@ -62,6 +62,9 @@ class Settings(BaseSettings):
     motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
     # moved regions grow by this many pixels before they are invalidated (their rims)
     motion_grow_px: int = Field(4, ge=0, le=16)
+    # optional validity rule: pixels whose 1-σ depth noise exceeds this (mm) are UNCERTAIN;
+    # benchmarks/bench_motion.py shows what it adds during motion (unset: no such rule)
+    max_sigma_mm: float | None = Field(None, gt=0, le=100)
     autostart: bool = True
     # the fringe pattern schedule by name (app/core/schedule.py SCHEDULES): "paper-16" (the
     # paper's [1, 4, 12, 36] x 4), "geometric-12", "geometric-9", "heterodyne-9"; GET /api/schedules

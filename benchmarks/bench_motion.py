@@ -38,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np
 
+from app.core.schedule import SCHEDULES as REGISTERED
 from app.core.schedule import PatternSchedule
 from app.devices.base import Frame
 from app.devices.sim import SimulatedWorld
@@ -52,11 +53,8 @@ from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
 GROSS_MM = 0.5
-#: the schedules measured: the paper's default and a 9-frame one (3 frequencies × 3 steps)
-SCHEDULES = {
-    "default_16": PatternSchedule(),
-    "three_9": PatternSchedule(frequencies=(1, 6, 36), steps=3),
-}
+#: the schedules measured: every registered one (app/core/schedule.py)
+SCHEDULES: dict[str, PatternSchedule] = dict(REGISTERED)
 
 
 @dataclass

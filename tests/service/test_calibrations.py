@@ -56,3 +56,19 @@ def test_conflict_without_calibration_or_session(tmp_path):
         mgr.activate_session("x")
     with pytest.raises(Conflict, match="no calibration is active"):
         mgr.reconstruct(None)  # type: ignore[arg-type]  # refused before the set is looked at
+
+
+@pytest.mark.parametrize("max_sigma_mm", [None, 0.05])
+def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm):
+    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
+    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm),
+                             LivePipeline(config, PatternSchedule(), None))
+    assert mgr.engine_for(PatternSchedule()) == (None, None)  # nothing active yet
+    mgr.activate(calibration, name="s", persist=False)
+    engine, why = mgr.engine_for(PatternSchedule())
+    assert why is None and engine is not None and engine.max_sigma_mm == max_sigma_mm
+
+
+def test_max_sigma_setting_is_validated():
+    with pytest.raises(ValueError, match="max_sigma_mm"):
+        Settings(max_sigma_mm=0)
