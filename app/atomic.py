@@ -1,13 +1,18 @@
-"""Atomic file and folder writes: a crash mid-write leaves the old data and no half file."""
+"""Atomic file and folder writes (a crash mid-write leaves the old data and no half file),
+and JSON reads whose every failure is one line naming the file."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 def _fsync_dir(path: Path) -> None:
@@ -74,3 +79,25 @@ def atomic_directory(path: str | os.PathLike[str], *, overwrite: bool = False) -
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def read_json(path: str | os.PathLike[str], what: str, parse: Callable[[Any], T] | None = None) -> Any:
+    """The JSON document at ``path`` (passed through ``parse`` when given).
+
+    Raises:
+        ValueError: one line naming the file — "PATH: WHAT not found", "PATH: unreadable
+            WHAT (why)", or "PATH: " + the ``ValueError`` of ``parse``.
+    """
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{p}: {what} not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: unreadable {what} ({exc})") from None
+    if parse is None:
+        return data
+    try:
+        return parse(data)
+    except ValueError as exc:
+        raise ValueError(f"{p}: {exc}") from None

@@ -54,7 +54,7 @@ def test_a_table_for_another_schedule_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("content", "expect"), [(None, "phase-error table not found"),
-                                                 ("{", "not a readable phase-error table"),
+                                                 ("{", "unreadable phase-error table"),
                                                  ('{"format": "x"}', "format: not a phase-error table")])
 def test_bad_table_file_is_one_line_and_exit_2(tmp_path, capsys, content, expect):
     table = tmp_path / "gamma.json"

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.atomic import read_json
 from app.core.board import BOARD_TYPES, BoardSpec
 
 __all__ = ["BOARD_TYPES", "BoardSpec", "Detection", "detect_board", "load_board", "texture_to_u8"]
@@ -18,17 +17,8 @@ __all__ = ["BOARD_TYPES", "BoardSpec", "Detection", "detect_board", "load_board"
 
 def load_board(path: str | os.PathLike[str]) -> BoardSpec:
     """Read ``board.json``; ``ValueError`` with the file name for anything wrong."""
-    p = Path(path)
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{p}: board spec not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{p}: unreadable board spec ({exc})") from None
-    try:
-        return BoardSpec.from_dict(data)
-    except ValueError as exc:
-        raise ValueError(f"{p}: {exc}") from None
+    spec: BoardSpec = read_json(path, "board spec", BoardSpec.from_dict)
+    return spec
 
 
 @dataclass

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from app.atomic import atomic_directory
+from app.atomic import atomic_directory, read_json
 from app.core.encoding import png_bytes
 from app.core.limits import CAPTURE_BIT_DEPTHS, CHANNELS, check_led
 from app.core.schedule import PatternSchedule
@@ -137,12 +137,7 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
     meta_path = folder / "capture.json"
     if not folder.is_dir():
         raise ValueError(f"{folder}: not a capture-set folder")
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{meta_path}: missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{meta_path}: unreadable ({exc})") from None
+    meta = read_json(meta_path, "capture-set metadata")
     if not isinstance(meta, dict):
         raise ValueError(f"{meta_path}: expected a JSON object")
     if meta.get("format") != FORMAT:

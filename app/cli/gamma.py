@@ -36,17 +36,10 @@ def register(subparsers: Any) -> None:
 
 def read_phase_error(path: str | Path) -> PhaseErrorLUT:
     """The table at ``path`` (``ValueError`` with one line when missing or malformed)."""
-    p = Path(path)
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{p}: phase-error table not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{p}: not a readable phase-error table ({exc})") from None
-    try:
-        return PhaseErrorLUT.from_dict(data)
-    except ValueError as exc:
-        raise ValueError(f"{p}: {exc}") from None
+    from app.atomic import read_json
+
+    table: PhaseErrorLUT = read_json(path, "phase-error table", PhaseErrorLUT.from_dict)
+    return table
 
 
 def run(args: argparse.Namespace) -> int:
