@@ -7,8 +7,8 @@ realisation and compared with the same measurement on the simulator's true point
 
 Figures per rig and kind:
 - ``|Δ|≤3σ``: fraction of measurements with |measured − true| ≤ 3 σ (target ≥ 99 %), σ as the
-  API reports it: the pixels' noise and, in quadrature, the calibration's held-out RMS per
-  point (``--noise-only``: without); ``(noise)``: the same with the noise's σ alone. The truth
+  API reports it: the pixels' noise and, in quadrature, the calibration's systematic error
+  (correlated between points by distance; :func:`app.service.measure.calibration_terms`) (``--noise-only``: without); ``(noise)``: the same with the noise's σ alone. The truth
   is the simulator's, so calibration bias counts as error.
 - ``scatter/σn``: observed noise scatter over the noise's σ, √mean(s²/σ²) with s² the variance
   over the noise realisations of one measurement (each measurement weighs the same; target
@@ -98,7 +98,7 @@ def length_spec(truth_pts: np.ndarray, ok: np.ndarray, rng: np.random.Generator)
 
 
 def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarray, normal: np.ndarray,
-            cal_sigma: float, sample: float | None = None
+            cal_sigma: float, sample: float | None = None, cal_length: float = 0.0
             ) -> tuple[list[float], list[float], list[float], list[float], bool] | None:
     """(measured, true, σ, σ of the noise alone) over the noise realisations and whether every
     realisation picked the same pixels (an invalid click snaps to a pixel that may differ), or
@@ -113,7 +113,7 @@ def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarr
         tok = finite & res.valid  # the truth on the same pixels (an area's box means see the same holes)
         try:
             m = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal, reason=res.reason,
-                        calibration_sigma_mm=cal_sigma)
+                        calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
         except ValueError:
             return None
         used = [list(p.pixel) for p in m.points]
@@ -150,11 +150,14 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
                                          rig=rig_name, partial_boards=rig.partial_boards)
     cal = calibrate_folder(folder).calibration
     cal_path = save_calibration(cal, base / f"calibration_{rig_name}.json")
-    normal, cal_sigma = calibration_terms(cal)
+    normal, cal_sigma, cal_length = calibration_terms(cal)
     if args.noise_only:
         cal_sigma = 0.0
-    print(f"calibrated in {time.perf_counter() - t0:.0f} s; calibration term (held-out RMS, {cal.model.name}) "
-          f"{cal_sigma:.4f} mm per point", flush=True)
+    held = cal.held_out.get(cal.model.name, {})
+    print(f"calibrated in {time.perf_counter() - t0:.0f} s; held-out ({cal.model.name}) RMS {held.get('rms_mm')} mm = "
+          f"noise {held.get('noise_mm')} (+) systematic {held.get('systematic_mm')} mm, correlation length "
+          f"{held.get('correlation_mm')} mm; calibration term {cal_sigma:.4f} mm per point, correlation "
+          f"{cal_length:.3g} mm", flush=True)
     rec = Reconstructor(cal, max_code=2**bits - 1)
     world = SimulatedWorld(args.scene, seed=3, rig=rig_name)
     results, truth = [], None
@@ -180,9 +183,9 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
             tries += 1
             if kind.startswith("profile"):
                 at = None if kind == "profile_peak" else float(rng.uniform(0.05, 0.95))
-                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal, cal_sigma, at)
+                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal, cal_sigma, at, cal_length)
             else:
-                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal, cal_sigma)
+                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal, cal_sigma, cal_length=cal_length)
             if got is None:
                 refused += 1
                 continue
@@ -225,7 +228,7 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
         pix = length_spec(truth, ok, rng)
         if pix is None:
             continue
-        got = compare("length", pix, results, truth, normal, cal_sigma)
+        got = compare("length", pix, results, truth, normal, cal_sigma, cal_length=cal_length)
         if got is None:
             continue
         meas, true, sig = (np.asarray(x) for x in got[:3])

@@ -45,7 +45,7 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
         assert len(lines) == 1
         got = json.loads(lines[0])
         ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=cal.plane_normal,
-                      calibration_sigma_mm=calibration_terms(cal)[1])
+                      calibration_sigma_mm=calibration_terms(cal)[1], calibration_length_mm=calibration_terms(cal)[2])
         assert got["kind"] == kind and got["set"] == "set"
         assert got["value_mm"] == pytest.approx(ref.value_mm, rel=1e-6)
         assert got["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-6) and got["sigma_mm"] > 0

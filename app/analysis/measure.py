@@ -25,9 +25,11 @@ Noise model (what the uncertainty assumes):
   bilinear sampling; the expected second-order inflation from the remaining roughness
   (E|∇h|²/2 per triangle) is subtracted.
 
-Calibration: ``calibration_sigma_mm`` (the calibration's held-out RMS height error, say) adds a
-per-point height uncertainty in quadrature, as if independent between points — an
-approximation: calibration error is systematic and smooth, so nearby points share it.
+Calibration: ``calibration_sigma_mm`` (the calibration's systematic height error per point,
+say) adds in quadrature a height error that is smooth, not independent: two points
+``d`` mm apart share it with correlation ``exp(−d / calibration_length_mm)`` (0: independent
+between points; the same pixel always shares it), so a short length or a small area
+feels little of it and a large one nearly all.
 
 Picking: a click on an invalid pixel snaps to the nearest valid pixel within ``snap_px``
 (reported per point with the distance) or raises ``ValueError`` naming the point and why.
@@ -152,6 +154,7 @@ class _Surface:
     normal: F64  # (3,) reference-plane normal (noise direction X/(n·X))
     reason: npt.NDArray[Any] | None
     cal_sigma: float = 0.0  # per-point calibration height uncertainty, mm
+    cal_length: float = 0.0  # its correlation length, mm (0: independent between points)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -172,7 +175,8 @@ class _Surface:
 
 
 def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
-             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None, cal_sigma: float = 0.0) -> _Surface:
+             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None, cal_sigma: float = 0.0,
+             cal_length: float = 0.0) -> _Surface:
     pts = np.asarray(points)
     if pts.ndim != 3 or pts.shape[2] != 3 or not np.issubdtype(pts.dtype, np.floating):
         raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
@@ -190,7 +194,9 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
         raise ValueError(f"reason: shape {r.shape} does not match points {pts.shape[:2]}")
     if not (math.isfinite(cal_sigma) and cal_sigma >= 0):
         raise ValueError(f"calibration_sigma_mm: need a finite value >= 0, got {cal_sigma}")
-    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma))
+    if not (math.isfinite(cal_length) and cal_length >= 0):
+        raise ValueError(f"calibration_length_mm: need a finite value >= 0, got {cal_length}")
+    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma), float(cal_length))
 
 
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
@@ -258,6 +264,15 @@ def _propagate(f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Se
     return float(math.sqrt(sum(g * g for g in grads.values())))
 
 
+def _slope(f: Callable[[F64], float], pts: F64, dirs: F64, i: int) -> float:
+    """∂f/∂(height of point i), central differences (the step as :func:`_propagate`)."""
+    step = max(1e-6, float(np.max(np.abs(pts))) * 1e-7) * 10.0
+    p1, p2 = pts.copy(), pts.copy()
+    p1[i] += step * dirs[i]
+    p2[i] -= step * dirs[i]
+    return (f(p1) - f(p2)) / (2 * step)
+
+
 def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
     return [pick(surf, float(u), float(v), snap_px, f"point {first + i}") for i, (u, v) in enumerate(pixels)]
 
@@ -268,11 +283,31 @@ def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, li
     return pts, _direction(surf, pts), sig, [p.pixel for p in picks]
 
 
+def _correlation(surf: _Surface, a: F64, b: F64) -> F64:
+    """Correlation (n, m) of the calibration error between 3-D points ``a`` (n, 3) and ``b`` (m, 3), mm."""
+    d = np.linalg.norm(np.asarray(a, np.float64)[:, None, :] - np.asarray(b, np.float64)[None, :, :], axis=-1)
+    if surf.cal_length <= 0:
+        return np.asarray(d == 0, np.float64)
+    return np.asarray(np.exp(-d / surf.cal_length), np.float64)
+
+
+def _cal_sigma(surf: _Surface, coef: F64, x: F64, chunk: int = 1024) -> float:
+    """σ of Σ_i coef_i · e_i for the calibration's height errors e_i at points ``x`` (n, 3), mm."""
+    coef = np.asarray(coef, np.float64)
+    if surf.cal_sigma <= 0 or len(coef) == 0:
+        return 0.0
+    var = 0.0
+    for i in range(0, len(coef), chunk):
+        var += float(coef[i:i + chunk] @ _correlation(surf, x[i:i + chunk], x) @ coef)
+    return surf.cal_sigma * math.sqrt(max(0.0, var))
+
+
 def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Sequence[Any],
-                       picks: list[PickedPoint], cal_sigma: float) -> Measurement:
+                       picks: list[PickedPoint], surf: _Surface) -> Measurement:
     """The value, its σ from the pixels' noise and, in quadrature, from the calibration term."""
     noise = _propagate(f, pts, dirs, sig, ids)
-    cal = _propagate(f, pts, dirs, np.full(len(pts), cal_sigma), ids) if cal_sigma > 0 else 0.0
+    cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts) \
+        if surf.cal_sigma > 0 else 0.0
     return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
                        extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal})
 
@@ -290,7 +325,7 @@ def _count(kind: str, px: F64) -> None:
 def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """3-D distance between two clicked pixels.
 
     Args:
@@ -302,14 +337,16 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
         plane_normal: (3,) reference-plane normal (the direction height noise is measured
             along); None: the optical axis.
         reason: optional (H, W) uint8 reason codes, to name why a click is invalid.
-        calibration_sigma_mm: a calibration height uncertainty per point, mm (e.g. the
-            calibration's held-out RMS), added in quadrature as if independent between
-            points; ``extra`` splits σ into ``sigma_noise_mm`` and ``sigma_calibration_mm``.
+        calibration_sigma_mm: the calibration's systematic height error per point, mm,
+            added in quadrature; ``extra`` splits σ into ``sigma_noise_mm`` and
+            ``sigma_calibration_mm``.
+        calibration_length_mm: its correlation length, mm: points ``d`` mm apart share it
+            with correlation ``exp(-d / calibration_length_mm)``; 0: independent between points.
 
     Returns:
         :class:`Measurement`, value and σ in mm.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("length", px)
     picks = _picks(surf, px, snap_px)
@@ -320,18 +357,18 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     def f(p: F64) -> float:
         return float(np.linalg.norm(p[1] - p[0]))
 
-    return _point_measurement("length", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
+    return _point_measurement("length", f, pts, dirs, sig, ids, picks, surf)
 
 
 def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
                   pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
                   plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """Distance (mm, ≥ 0) of point 1 from the 3-D line through points 2 and 3.
 
     Arguments as :func:`length`, with three pixels: the point, then two on the line.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("point_to_line", px)
     picks = _picks(surf, px, snap_px)
@@ -343,7 +380,7 @@ def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayL
         d = p[2] - p[1]
         return float(np.linalg.norm(np.cross(p[0] - p[1], d)) / np.linalg.norm(d))
 
-    return _point_measurement("point_to_line", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
+    return _point_measurement("point_to_line", f, pts, dirs, sig, ids, picks, surf)
 
 
 def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
@@ -374,13 +411,13 @@ def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
           pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
           plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """Signed distance (mm) of point 1 from the plane through points 2, 3, 4.
 
     Positive toward the scope (above the reference, as heights in the depth map); a pit
     below the plane reads negative. Arguments as :func:`length`, with four pixels.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("depth", px)
     picks = _picks(surf, px, snap_px)
@@ -390,7 +427,7 @@ def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | No
     def f(p: F64) -> float:
         return float((p[0] - p[1]) @ _plane_normal(p[1], p[2], p[3]))
 
-    return _point_measurement("depth", f, pts, dirs, sig, ids, picks, surf.cal_sigma)
+    return _point_measurement("depth", f, pts, dirs, sig, ids, picks, surf)
 
 
 #: the most samples a profile takes (a polyline across a 1384 x 1032 image a dozen times)
@@ -414,7 +451,7 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
     Without ``reference`` the heights are distances from the 3-D chord between the
@@ -433,7 +470,7 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         reference: None, or three (u, v) pixels spanning the reference plane.
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("profile", px)
     picks = _picks(surf, px, snap_px)
@@ -505,8 +542,13 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         return np.asarray(var + own**2, np.float64)
 
     var_noise = variance(ssig, rsig)
-    c = surf.cal_sigma
-    var_cal = variance(np.full(len(sp), c), np.full(len(rpts), c)) if c > 0 else np.zeros(len(sp))
+    var_cal = np.zeros(len(sp))
+    if surf.cal_sigma > 0:  # Σ over the sample and the reference points of g_a g_b ρ(a, b), times s²
+        gr = np.array(g_ref)  # (R, S)
+        rho_sr = _correlation(surf, np.where(ok[:, None], sp, 0.0), rpts)  # (S, R)
+        var_cal = (g_self**2 + 2.0 * g_self * np.einsum("rs,sr->s", gr, rho_sr)
+                   + np.einsum("rs,rq,qs->s", gr, _correlation(surf, rpts, rpts), gr)) * surf.cal_sigma**2
+        var_cal = np.maximum(var_cal, 0.0)
     s = np.where(ok, np.sqrt(var_noise + var_cal), np.nan)
     s_noise = np.where(ok, np.sqrt(var_noise), np.nan)
     h = np.where(ok, h, np.nan)
@@ -555,7 +597,7 @@ def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
 def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
          pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5, snap_px: float = 3.0,
          plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
 
     The surface, smoothed by a ``window_px`` box mean of the valid points, is sampled on a
@@ -571,7 +613,7 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
@@ -672,9 +714,9 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
-    # the calibration term: systematic, so not reduced by the box means; the larger of independent per
-    # sample and common to all samples (a height error shared by the whole polygon scales its area)
-    sigma_cal = float(max(np.sqrt(np.sum(coef**2)), abs(np.sum(coef))) * surf.cal_sigma)
+    # the calibration term: systematic and smooth, so not reduced by the box means; correlated between
+    # samples by their distance (a height error shared by the whole polygon scales its area)
+    sigma_cal = _cal_sigma(surf, coef, X)
     # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
     var_s = np.zeros(len(su))
@@ -716,7 +758,7 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
     """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``."""
     if kind not in KINDS:
         raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
@@ -725,7 +767,7 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     if reference is not None and kind != "profile":
         raise ValueError(f"reference: only a profile takes reference points, not {kind}")
     kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
-                          "calibration_sigma_mm": calibration_sigma_mm}
+                          "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm}
     if kind == "profile":
         return profile(points, valid, sigma, pixels, reference=reference, **kw)
     fn = {"length": length, "point_to_line": point_to_line, "depth": depth, "area": area}[kind]

@@ -19,14 +19,14 @@ router = APIRouter(prefix="/api", tags=["measure"])
 
 def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str, Any]:
     spec = body.model_dump(exclude={"recording", "index"})
-    normal, cal_sigma = calibration_terms(inst.calibration)
+    normal, cal_sigma, cal_length = calibration_terms(inst.calibration)
     if body.recording is not None and body.index is not None:
         res: Any = inst.reconstruct_capture(recorder.set_capture(body.recording, body.index))
         source: dict[str, Any] = {"recording": body.recording, "index": body.index}
     else:
         res = inst.latest_result()
         source = {"seq": res.seq, "created": res.created}
-    out = measure_result(res, spec, normal, cal_sigma)
+    out = measure_result(res, spec, normal, cal_sigma, cal_length)
     out["source"] = source
     return out
 

@@ -436,7 +436,7 @@ def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
     """Leave-one-pose-out height errors (mm) of model ``name``: fit on the other poses,
     evaluate on the left-out one; RMS and max |error| over all left-out points."""
     kind: type[DepthModel] = Eq5Model if name == "eq5" else GeometricModel
-    errors = []
+    errors, where = [], []
     poses = np.unique(samples.pose)
     for k in poses:
         train = samples.subset(samples.pose != k)
@@ -447,12 +447,91 @@ def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
         except ValueError:
             continue  # the others alone do not determine the model
         errors.append(m.height_at(test.u, test.v, test.ray_xy, test.phi, plane) - test.z_mm)
+        where.append(_board_points(test, plane))
     if not errors:
         return {"rms_mm": None, "max_mm": None, "points": 0, "poses": 0}
     e = np.concatenate(errors)
     e = np.where(np.isfinite(e), e, np.inf)
-    return {"rms_mm": _num(_rms(e)) if np.all(np.isfinite(e)) else None,
-            "max_mm": _num(float(np.max(np.abs(e)))), "points": int(e.size), "poses": len(errors)}
+    out: dict[str, float | int | str | None] = {
+        "rms_mm": _num(_rms(e)) if np.all(np.isfinite(e)) else None,
+        "max_mm": _num(float(np.max(np.abs(e)))), "points": int(e.size), "poses": len(errors)}
+    if np.all(np.isfinite(e)):
+        out.update(error_structure(errors, where))
+    return out
+
+
+def _board_points(s: BoardSamples, plane: ReferencePlane) -> npt.NDArray[np.float64]:
+    """The 3-D points (camera frame, mm) of board samples: their rays at their board heights."""
+    rays = np.column_stack([s.ray_xy, np.ones(len(s.z_mm))])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (s.z_mm - plane.offset_mm) / (rays @ np.asarray(plane.normal, np.float64))
+    return np.asarray(rays * t[:, None], np.float64)
+
+
+#: distance bins (mm) of the held-out errors' variogram and the correlation lengths tried (mm)
+_VARIOGRAM_BINS_MM = np.geomspace(0.25, 256.0, 31)
+_CORRELATION_GRID_MM = np.geomspace(0.5, 500.0, 61)
+
+
+def error_structure(errors: list[npt.NDArray[np.float64]], points: list[npt.NDArray[np.float64]],
+                    max_points: int = 1500, seed: int = 0) -> dict[str, float | None]:
+    """Split held-out height errors into an independent and a smooth (correlated) part.
+
+    Fits the empirical semivariogram of the errors within each held-out pose,
+    ``γ(d) = ½ E[(e_i − e_j)²]`` over pairs ``d`` mm apart, with ``γ(d) = n² + s²(1 − exp(−d/L))``:
+    ``n`` the independent part (the board points' own phase noise, which a measurement's
+    noise σ already counts), ``s`` the calibration's systematic error per point and ``L``
+    its correlation length. ``s²`` is then the errors' mean square less ``n²``, so the
+    two parts add up to the held-out RMS.
+
+    Args:
+        errors: per held-out pose its height errors, mm, shape (N_k,).
+        points: per held-out pose the samples' 3-D points, mm, shape (N_k, 3).
+        max_points: at most this many samples per pose (a seeded random subset) enter the pairs.
+        seed: the subset's seed.
+
+    Returns:
+        ``{"noise_mm", "systematic_mm", "correlation_mm"}``; None each if too few pairs.
+    """
+    if len(errors) != len(points):
+        raise ValueError(f"points: need one array per pose of errors ({len(errors)}), got {len(points)}")
+    rng = np.random.default_rng(seed)
+    nb = len(_VARIOGRAM_BINS_MM) - 1
+    ssum, dsum, cnt = np.zeros(nb), np.zeros(nb), np.zeros(nb)
+    for e, x in zip(errors, points, strict=True):
+        e, x = np.asarray(e, np.float64), np.asarray(x, np.float64)
+        ok = np.isfinite(e) & np.all(np.isfinite(x), axis=1)
+        e, x = e[ok], x[ok]
+        if len(e) > max_points:
+            keep = rng.choice(len(e), max_points, replace=False)
+            e, x = e[keep], x[keep]
+        iu = np.triu_indices(len(e), 1)
+        d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)[iu]
+        g = 0.5 * (e[:, None] - e[None, :])[iu] ** 2
+        b = np.searchsorted(_VARIOGRAM_BINS_MM, d) - 1
+        inb = (b >= 0) & (b < nb)
+        np.add.at(ssum, b[inb], g[inb])
+        np.add.at(dsum, b[inb], d[inb])
+        np.add.at(cnt, b[inb], 1.0)
+    use = cnt >= 10
+    if use.sum() < 3:
+        return {"noise_mm": None, "systematic_mm": None, "correlation_mm": None}
+    gam, dist, w = ssum[use] / cnt[use], dsum[use] / cnt[use], np.sqrt(cnt[use])
+    allerr = np.concatenate([np.asarray(e, np.float64) for e in errors])
+    ms = float(np.mean(allerr[np.isfinite(allerr)] ** 2))
+    best: tuple[float, float, float] | None = None
+    for length_mm in _CORRELATION_GRID_MM:
+        a = np.column_stack([np.ones_like(dist), 1.0 - np.exp(-dist / length_mm)])
+        coef, *_ = np.linalg.lstsq(a * w[:, None], gam * w, rcond=None)
+        n2 = float(np.clip(coef[0], 0.0, ms))
+        s2 = max(0.0, float(coef[1]))
+        cost = float(np.sum((w * (a @ np.array([n2, s2]) - gam)) ** 2))
+        if best is None or cost < best[0]:
+            best = (cost, n2, float(length_mm))
+    assert best is not None
+    _, n2, length_mm = best
+    return {"noise_mm": _num(math.sqrt(n2)), "systematic_mm": _num(math.sqrt(max(0.0, ms - n2))),
+            "correlation_mm": _num(length_mm)}
 
 
 #: the boards' control points must span at least this fraction of the image width and height

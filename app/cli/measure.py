@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--reference", type=_pixels, metavar="U1,V1,U2,V2,U3,V3",
                    help="--profile only: heights against the plane through these three points")
     p.add_argument("--noise-only", action="store_true",
-                   help="σ from the pixels' noise alone (default: plus the calibration's held-out RMS per point)")
+                   help="σ from the pixels' noise alone (default: plus the calibration's systematic error)")
     p.add_argument("--snap-px", type=float, default=3.0, help="snap invalid clicks within this radius (default 3)")
     p.add_argument("--max-code", type=int, default=None,
                    help="sensor maximum code, e.g. 4095 for 12-bit data in 16-bit PNGs")
@@ -72,9 +72,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError:
         noise = None
     res = Reconstructor(calibration, max_code=args.max_code, noise=noise).run(capture.frames, max_code=max_code)
-    normal, cal_sigma = calibration_terms(calibration)
+    normal, cal_sigma, cal_length = calibration_terms(calibration)
     m = measure(KINDS[kind], res.points, res.valid, res.sigma, getattr(args, kind), reference=args.reference,
                 snap_px=args.snap_px, plane_normal=normal, reason=res.reason,
-                calibration_sigma_mm=0.0 if args.noise_only else cal_sigma)
+                calibration_sigma_mm=0.0 if args.noise_only else cal_sigma, calibration_length_mm=cal_length)
     print(json.dumps({"set": set_dir.name, **m.to_dict()}, separators=(",", ":")))
     return 0

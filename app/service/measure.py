@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, Protocol
 
@@ -22,33 +23,45 @@ class MeasurableResult(Protocol):
     sigma: npt.NDArray[np.float32] | None
 
 
-def calibration_terms(cal: Any) -> tuple[npt.NDArray[np.float64] | None, float]:
-    """(reference-plane normal, calibration σ in mm) of a calibration (None: (None, 0)).
+def _nonneg(x: Any) -> float | None:
+    return float(x) if isinstance(x, int | float) and math.isfinite(x) and x >= 0 else None
 
-    The σ is the active depth model's held-out-pose RMS height error (an upper bound: it
-    includes the board points' own noise); 0 when the file has none.
+
+def calibration_terms(cal: Any) -> tuple[npt.NDArray[np.float64] | None, float, float]:
+    """(reference-plane normal, calibration σ in mm, its correlation length in mm) of a
+    calibration (None: (None, 0, 0)).
+
+    σ is the active depth model's systematic held-out height error per point and the length
+    its correlation length (``held_out[model]["systematic_mm"]``, ``["correlation_mm"]``:
+    :func:`app.calib.fitting.error_structure`, which takes the board points' own noise out).
+    A file from before that split gives its held-out RMS, independent between points (an
+    upper bound: it includes the board points' noise); 0 when the file has neither.
     """
     if cal is None:
-        return None, 0.0
+        return None, 0.0, 0.0
     held = (getattr(cal, "held_out", None) or {}).get(getattr(cal.model, "name", ""), {})
-    rms = held.get("rms_mm")
-    return np.asarray(cal.plane_normal, np.float64), float(rms) if isinstance(rms, int | float) and rms >= 0 else 0.0
+    normal = np.asarray(cal.plane_normal, np.float64)
+    sys_mm, length_mm = _nonneg(held.get("systematic_mm")), _nonneg(held.get("correlation_mm"))
+    if sys_mm is not None and length_mm is not None:
+        return normal, sys_mm, length_mm
+    return normal, _nonneg(held.get("rms_mm")) or 0.0, 0.0
 
 
 def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal: npt.ArrayLike | None = None,
-                   calibration_sigma_mm: float = 0.0) -> dict[str, Any]:
+                   calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> dict[str, Any]:
     """One measurement (``spec``: kind, points, optional reference and snap_px) as a JSON-able dict.
 
     ``plane_normal`` is the calibration's reference-plane normal (the direction of the
-    per-pixel height noise); None takes the optical axis. ``calibration_sigma_mm``: see
-    :func:`calibration_terms`.
+    per-pixel height noise); None takes the optical axis. ``calibration_sigma_mm`` and
+    ``calibration_length_mm``: see :func:`calibration_terms`.
     """
     t0 = time.perf_counter()
     sigma = result.sigma if result.sigma is not None and result.sigma.size else None
     try:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
-                    plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm)
+                    plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm,
+                    calibration_length_mm=calibration_length_mm)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
         raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()
@@ -66,12 +79,14 @@ def summary(measured: dict[str, Any]) -> dict[str, Any]:
 
 
 def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
-                  plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0) -> list[dict[str, Any]]:
+                  plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+                  calibration_length_mm: float = 0.0) -> list[dict[str, Any]]:
     """Every spec measured on ``result`` (compact); one that does not fit says why in ``error``."""
     out: list[dict[str, Any]] = []
     for spec in specs:
         try:
-            out.append(summary(measure_result(result, spec, plane_normal, calibration_sigma_mm)))
+            out.append(summary(measure_result(result, spec, plane_normal, calibration_sigma_mm,
+                                                  calibration_length_mm)))
         except InvalidRequest as exc:
             out.append({"kind": spec.get("kind"), "pixels": spec.get("points"), "error": exc.detail})
     return out
@@ -79,7 +94,7 @@ def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
 
 def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
                          plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
-                         ) -> tuple[npt.NDArray[np.float32], list[tuple[npt.NDArray[np.float32], str]]]:
+                         calibration_length_mm: float = 0.0) -> tuple[npt.NDArray[np.float32], list[tuple[npt.NDArray[np.float32], str]]]:
     """What the 3-D view draws for ``specs`` on ``result``: line segments and labels, camera frame, mm.
 
     Returns (segments (N, 2, 3) float32, [(label position (3,), "value ± σ unit"), …]); a
@@ -94,7 +109,8 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
         try:
             m = measure_fn(spec["kind"], result.points, result.valid, sigma, spec["points"],
                            reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
-                           plane_normal=plane_normal, calibration_sigma_mm=calibration_sigma_mm)
+                           plane_normal=plane_normal, calibration_sigma_mm=calibration_sigma_mm,
+                           calibration_length_mm=calibration_length_mm)
         except (ValueError, KeyError):
             continue
         p = np.array([q.point_mm for q in m.points], np.float64)

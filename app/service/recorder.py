@@ -300,9 +300,9 @@ class Recorder:
                 if specs:  # issue 17: the dashboard's measurements on this set's depth map
                     from app.service.measure import calibration_terms, measure_specs
 
-                    normal, cal_sigma = calibration_terms(getattr(self.instrument, "calibration", None))
+                    normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))
                     try:
-                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma)
+                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma, cal_length)
                     except Exception as exc:  # a measurement fault must not stop the recording
                         log.exception("measurements of a recorded set failed")
                         info["measurements"] = [{"error": f"measurement failed: {exc}"}]

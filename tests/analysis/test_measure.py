@@ -217,3 +217,35 @@ def test_profile_gap_and_result_to_dict():
     d = m.to_dict()
     assert d["kind"] == "profile" and d["profile"]["height_mm"][50] is None and d["unit"] == "mm"
     assert len(d["points"]) == 2 and d["snapped"] is False
+
+
+def test_calibration_term_correlated_by_distance():
+    """Independent (length 0) → sqrt(Σ g²)·s; one shared height error (a huge length) → the
+    change of the value when every point's height moves by s; in between, in between."""
+    p = plane((0.3, 0.1, 1.0), 40.0)
+    ok = ones(p)
+    sig = np.full((H, W), 0.02)
+    pix = [(30, 40), (160, 120)]
+    s = 0.01
+    indep = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s).extra["sigma_calibration_mm"]
+    common = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s,
+                       calibration_length_mm=1e9).extra["sigma_calibration_mm"]
+    mid = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s,
+                    calibration_length_mm=5.0).extra["sigma_calibration_mm"]
+    x = np.array([p[v, u] for u, v in pix], np.float64)
+    n = np.array([0.0, 0.0, 1.0])
+
+    def moved(e):  # every point's height by e: along its ray by X / (n·X) per mm
+        y = x + e * x / (x @ n)[:, None]
+        return float(np.linalg.norm(y[1] - y[0]))
+
+    assert common == pytest.approx(abs(moved(s) - moved(-s)) / 2, rel=1e-4)
+    assert min(indep, common) < mid < max(indep, common)
+    # an area: a shared error scales it, independent ones mostly cancel
+    apix = [(60, 50), (140, 55), (130, 110), (70, 105)]
+    a0 = M.measure("area", p, ok, sig, apix, calibration_sigma_mm=s).extra["sigma_calibration_mm"]
+    a1 = M.measure("area", p, ok, sig, apix, calibration_sigma_mm=s,
+                   calibration_length_mm=1e9).extra["sigma_calibration_mm"]
+    assert a1 > 2 * a0 > 0
+    with pytest.raises(ValueError, match="calibration_length_mm"):
+        M.length(p, ok, sig, pix, calibration_sigma_mm=s, calibration_length_mm=-1.0)

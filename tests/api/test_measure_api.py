@@ -41,13 +41,14 @@ def test_measure_on_the_latest_result_matches_the_functions(live: TestClient) ->
             assert r.status_code == 200, r.text
             body = r.json()
             assert body["source"]["seq"] == res.seq
-            normal, cal_sigma = calibration_terms(inst.calibration)
-            assert cal_sigma > 0  # the simulator's calibration has held-out figures
+            normal, cal_sigma, cal_length = calibration_terms(inst.calibration)
+            held = inst.calibration.held_out[inst.calibration.model.name]
+            assert (cal_sigma, cal_length) == (held["systematic_mm"], held["correlation_mm"])
             ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal,
-                          calibration_sigma_mm=cal_sigma)
+                          calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
             assert body["value_mm"] == pytest.approx(ref.value_mm, rel=1e-9)
             assert body["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-9) and body["sigma_mm"] > 0
-            assert 0 < body["extra"]["sigma_noise_mm"] < body["sigma_mm"]
+            assert 0 < body["extra"]["sigma_noise_mm"] <= body["sigma_mm"]
             assert [p["pixel"] for p in body["points"]] == pix
             assert all(np.isfinite(p["point_mm"]).all() for p in body["points"])
             assert (body["profile"] is not None) == (kind == "profile")
