@@ -30,17 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import httpx  # noqa: E402
 import pyigtl  # noqa: E402
-import uvicorn  # noqa: E402
 
 from app.config import Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
 from app.service.igtl import CLOUD_DEVICE, DEPTH_DEVICE, STATUS_DEVICE, register_codecs  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from benchmarks.bench_live import free_port, start_server, wait_running  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -92,27 +85,12 @@ def main() -> int:
     settings = Settings(port=free_port(), igtl_port=free_port(), data_dir=Path(args.data_dir),
                         calibration_file=args.calibration, exposure_ms=args.exposure_ms, viewer=False,
                         sim_seed=1, sim_scene=args.scene, igtl_max_points=args.max_points)
-    app = create_app(settings)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning"))
-    thread = threading.Thread(target=server.run, name="bench-uvicorn", daemon=True)
-    thread.start()
+    server, thread = start_server(settings)
     base = f"http://127.0.0.1:{settings.port}"
     try:
-        while not server.started:
-            if not thread.is_alive():
-                raise SystemExit("server failed to start")
-            time.sleep(0.05)
-        deadline = time.monotonic() + 600
-        st: dict[str, Any] = {}
-        while time.monotonic() < deadline:
-            st = httpx.get(base + "/api/status", timeout=5).json()
-            if st["state"] == "running" and st["results_published"] >= 2:
-                break
-            time.sleep(0.5)
-        else:
-            raise SystemExit(f"not running: {st.get('state')} {st.get('last_error')}")
+        wait_running(base, timeout_s=600)
         time.sleep(2.0)  # warm-up
-        igtl = app.state.igtl
+        igtl = server.config.app.state.igtl
 
         lazy = socket.create_connection(("127.0.0.1", settings.igtl_port))  # never reads
         lazy.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
