@@ -25,4 +25,6 @@ async def plane(body: RoiIn, inst: Instrument = Depends(get_instrument)) -> Any:
 @router.post("/feature", response_model=FeatureOut, responses={**R409, **R400, **R422, **COMMON})
 async def feature(body: FeatureIn, inst: Instrument = Depends(get_instrument)) -> Any:
     """Height of a feature (e.g. a suture, bright or dark) above its surrounding baseline in the ROI."""
-    return await run_in_threadpool(analysis.feature, inst.latest_result(), body.box, body.polarity)
+    cal = inst.calibration
+    return await run_in_threadpool(analysis.feature, inst.latest_result(), body.box, body.polarity,
+                                   None if cal is None else cal.plane_normal)

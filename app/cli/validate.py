@@ -34,6 +34,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from app.analysis import feature_height, parse_roi, plane_accuracy, roi_mask, sphere_figures
+    from app.analysis.feature import plane_coordinates
     from app.atomic import atomic_write_text
     from app.calib import load_calibration
     from app.capture.captureset import read_capture_set
@@ -62,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         )
     elif args.feature:
         fh = feature_height(result.depth, result.texture, result.valid, roi=roi, threshold=args.threshold,
-                            polarity=None if args.polarity == "auto" else args.polarity)
+                            polarity=None if args.polarity == "auto" else args.polarity,
+                            coords_mm=plane_coordinates(result.points, calibration.plane_normal))
         figures.update(mode="feature", height_mm=fh.height_mm, height_se_mm=fh.height_se_mm,
                        polarity=fh.polarity, height_std_mm=fh.height_std_mm,
                        count=fh.count, baseline_rms_mm=fh.baseline_rms_mm, feature_pixels=int(fh.mask.sum()))

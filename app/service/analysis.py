@@ -5,6 +5,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from app.core.errors import InvalidRequest
 from app.service.reconstruction import LiveResult
 
@@ -30,13 +33,18 @@ def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
     }
 
 
-def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = "bright") -> dict[str, Any]:
-    """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``."""
-    from app.analysis.feature import feature_height
+def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = "bright",
+            plane_normal: npt.NDArray[np.float64] | None = None) -> dict[str, Any]:
+    """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``.
+
+    With the calibration's reference-plane ``plane_normal`` the cross-sections are taken in the
+    plane's millimetres, free of the raised crest's parallax (:func:`plane_coordinates`)."""
+    from app.analysis.feature import feature_height, plane_coordinates
 
     try:
+        coords = None if plane_normal is None else plane_coordinates(result.points, plane_normal)
         res = feature_height(result.depth, result.texture, result.valid, roi=roi,
-                             polarity=None if polarity == "auto" else polarity)
+                             polarity=None if polarity == "auto" else polarity, coords_mm=coords)
     except ValueError as exc:  # the ROI / polarity (user input) does not fit the result
         raise InvalidRequest(str(exc)) from None
     return {

@@ -1,0 +1,53 @@
+"""ROI analysis on a live result (app.service.analysis) with the engine's real output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.core.errors import InvalidRequest
+from app.devices.sim import default_rig, render_capture_set
+from app.devices.sim.scenes.base import frame_from_normal
+from app.devices.sim.world import READOUT_MS
+from app.recon import Reconstructor
+from app.service import analysis
+from app.service.reconstruction import LiveResult
+
+SUTURE_MM = 0.72  # the anastomosis scene's thread height
+
+
+@pytest.fixture(scope="module")
+def suture() -> tuple[LiveResult, tuple[int, int, int, int], np.ndarray]:
+    """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as published."""
+    rig = default_rig(distortion=False)
+    cal = rig.ideal_calibration()
+    # centred on a breathing extremum so that the tissue is nearly still during the set
+    t0 = 1.0 - 7.5 * max(30.0, READOUT_MS) / 1000.0 - 0.015
+    cs, _, points = render_capture_set("anastomosis", exposure_ms=30.0, current=1.0, seed=7, t0_s=t0,
+                                       distortion=False)
+    res = Reconstructor(cal).run(cs.frames)
+    origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
+    st = (points.astype(np.float64) - origin) @ axes
+    ys, xs = np.nonzero((st[..., 0] > -15.0) & (st[..., 0] < -9.0) & (np.abs(st[..., 1]) < 1.5))
+    roi = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    live = LiveResult(
+        depth=res.depth, points=res.points, valid=res.valid, reason=res.reason, texture=res.texture,
+        modulation=res.modulation, motion=None, mode="set", frame_indices=list(range(16)),
+        timestamps=[0.0] * 16, exposure_ms=30.0, led="green", full_scale=255.0, received_s=0.0,
+        published_s=0.0, recon_ms=0.0, sigma=res.sigma,
+    )
+    return live, roi, cal.plane_normal
+
+
+def test_feature_height_in_plane_coordinates_meets_the_suture_target(suture) -> None:
+    live, roi, normal = suture
+    out = analysis.feature(live, roi, "auto", normal)
+    assert out["height_mm"] == pytest.approx(SUTURE_MM, abs=0.01)
+    assert out["extra"]["polarity"] == "dark" and out["count"] > 50
+    assert 0 < out["extra"]["height_se_mm"] < 0.02
+
+
+def test_feature_outside_the_map_is_a_clear_request_error(suture) -> None:
+    live, _, normal = suture
+    with pytest.raises(InvalidRequest, match="roi"):
+        analysis.feature(live, (0, 0, 10**5, 10**5), "auto", normal)
