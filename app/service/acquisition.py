@@ -64,6 +64,10 @@ class Acquisition:
         self.camera_rate = RateMeter()
         self.frames_received = 0
         self.frames_dropped = 0
+        # since the last set that reached the reconstruction queue: a camera that drops frames
+        # often enough completes no set (each needs F consecutive frames) — status says so
+        self.frames_since_set = 0
+        self.dropped_since_set = 0
         self.faults = 0
         self.fault: str | None = None
         self.last_error: str | None = None
@@ -246,8 +250,10 @@ class Acquisition:
 
     def _on_frame(self, frame: Frame, received_s: float) -> None:
         self.frames_received += 1
+        self.frames_since_set += 1
         if self._last_index is not None and frame.index > self._last_index + 1:
             self.frames_dropped += frame.index - self._last_index - 1
+            self.dropped_since_set += frame.index - self._last_index - 1
         self._last_index = frame.index
         self.camera_rate.tick(received_s)
         if self.on_frame is not None:
@@ -258,6 +264,10 @@ class Acquisition:
         if self.rolling:
             rolled = self.window.feed(frame, received_s)
             if rolled is not None:
-                self.queue.put(rolled)
+                self._queue_set(rolled)
         elif whole is not None:
-            self.queue.put(whole)
+            self._queue_set(whole)
+
+    def _queue_set(self, frame_set: FrameSet) -> None:
+        self.frames_since_set = self.dropped_since_set = 0
+        self.queue.put(frame_set)

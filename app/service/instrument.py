@@ -267,8 +267,15 @@ class Instrument:
         acq, rec, s = self.acquisition, self.reconstruction, self.settings
         latency, recon = rec.latencies.median(), rec.recon_times.median()
         warnings = list(self.warnings)
-        if acq is not None and not acq.assembler.completed and acq.frames_received > 3 * self.schedule.n_frames:
-            warnings.append("no complete fringe set in the frames so far (missing pattern indices or drops)")
+        n_frames = self.schedule.n_frames
+        if acq is not None and acq.acquiring and acq.frames_since_set > 3 * n_frames:
+            # no depth rather than depth from frames that are not one gap-free sequence: say why
+            warnings.append(
+                f"no complete fringe set in the last {acq.frames_since_set} frames: the camera dropped "
+                f"{acq.dropped_since_set} of them and a set needs {n_frames} consecutive frames"
+                if acq.dropped_since_set else
+                f"no complete fringe set in the last {acq.frames_since_set} frames (pattern indices missing "
+                "or out of order, or the exposure/LED changing)")
         if self.pipeline.engine_note:
             warnings.append(self.pipeline.engine_note)
         last_error = self.calibrations.last_error

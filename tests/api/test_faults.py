@@ -28,6 +28,16 @@ def test_sets_with_dropped_frames_are_discarded(tmp_path: Path, sim_calibration_
             time.sleep(0.3)
 
 
+def test_a_camera_dropping_most_frames_gives_no_depth_and_says_why(tmp_path: Path, sim_calibration_file: Path) -> None:
+    # half the frames dropped: 16 consecutive ones (p = 2^-16 per set) practically never come
+    settings = live_settings(tmp_path, sim_calibration_file, sim_drop_rate=0.5)
+    with TestClient(create_app(settings)) as client:
+        st = wait_for(client, lambda s: any("dropped" in w for w in s["warnings"]), 60, "the drop warning")
+        warning = next(w for w in st["warnings"] if "dropped" in w)
+        assert "16 consecutive frames" in warning and st["frames_dropped"] > 0
+        assert st["results_published"] == 0  # no depth from frames that are not one gap-free set
+
+
 def test_disconnect_shows_a_fault_and_recovers(tmp_path: Path, sim_calibration_file: Path) -> None:
     settings = live_settings(tmp_path, sim_calibration_file, sim_disconnect_every_s=2.0)
     with TestClient(create_app(settings)) as client:
