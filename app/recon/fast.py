@@ -264,11 +264,12 @@ def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignor
         yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
         qmin = min(qmin, q)
         p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
-        total[u] = (tt + t1) + (t2 + t3)
+        tot = (tt + t1) + (t2 + t3)
+        total[u] = tot
         prev[u] = p
         m2[u] = q
         top = max(max(mx, m1), max(m2_, m3))
-        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, total[u])
+        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, tot)
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
