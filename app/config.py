@@ -65,6 +65,10 @@ class Settings(BaseSettings):
     # optional validity rule: pixels whose 1-σ depth noise exceeds this (mm) are UNCERTAIN;
     # benchmarks/bench_motion.py shows what it adds during motion (unset: no such rule)
     max_sigma_mm: float | None = Field(None, gt=0, le=100)
+    # optional explicit modulation threshold B (codes): replaces the default noise-aware validity
+    # rule (app/recon/validity.py: the schedule's order-error bound under the camera noise, and
+    # its depth-σ bound unless max_sigma_mm is set); unset: the rule
+    min_modulation: float | None = Field(None, ge=0, le=65535)
     autostart: bool = True
     # the fringe pattern schedule by name (app/core/schedule.py SCHEDULES): "paper-16" (the
     # paper's [1, 4, 12, 36] x 4), "geometric-12", "geometric-9", "heterodyne-9"; GET /api/schedules

@@ -198,7 +198,7 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
     res = rec.run(cs.frames)
     spheres = world.scene.spheres
     sph = sphere_target_report(cal, res, truth, points, [s.centre for s in spheres], spheres[0].radius_mm,
-                               projector_centre_mm=world.rig.projector.centre,
+                               projector_centre_mm=world.rig.projector.centre, incidence_limits_deg=(80.0, 87.0, 90.0),
                                supported=supported(cal, world, truth, points))
     seg = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)
 
@@ -249,6 +249,8 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
         ("  sphere px unlit / lit beyond 87 deg (projector)",
          f"{sph['unlit_fraction']:.4f} / {1 - sph['incidence'][87.0]['pixels_fraction']:.4f}", "", "", None),
         ("  sphere valid where lit at <= 80 deg", f"{sph['incidence'][80.0]['valid_fraction']:.4f}", "", "", None),
+        ("  sphere valid where lit at all (< 90 deg: the issue's 'lit')",
+         f"{sph['incidence'][90.0]['valid_fraction']:.4f}", "", "", None),
         ("sphere mean error (mm)", f"{sph['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
          abs(sph["mean_error_mm"]) <= 0.005),
         ("sphere max |error| (mm)", f"{sph['max_abs_error_mm']:.4f}", "", "<= 0.5", sph["max_abs_error_mm"] <= 0.5),

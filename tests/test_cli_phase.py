@@ -48,7 +48,9 @@ def test_phase_writes_outputs_for_a_12_bit_heterodyne_set(tmp_path, capsys):
 
 
 def test_12_bit_set_needs_its_bit_depth(tmp_path, capsys):
-    """Without ``bit_depth`` the 2 % modulation threshold is of 65535 (1311 codes > B = 1000): all dropped."""
+    """Without ``bit_depth`` the sensor is taken as 16-bit: the validity rule's noise model is then that of a
+    16-bit ADC (σ_I ≈ 100 codes at A = 2000), and B = 1000 is too weak for this heterodyne chain: all dropped.
+    An explicit ``--min-modulation`` replaces the rule."""
     _twelve_bit_set(tmp_path)
     meta_path = tmp_path / "set" / "capture.json"
     meta = json.loads(meta_path.read_text())
@@ -56,6 +58,9 @@ def test_12_bit_set_needs_its_bit_depth(tmp_path, capsys):
     meta_path.write_text(json.dumps(meta))
     assert main(["phase", str(tmp_path / "set"), "-o", str(tmp_path / "out")]) == 0
     assert np.isnan(np.load(tmp_path / "out" / "phase.npy")).all()
+    assert main(["phase", str(tmp_path / "set"), "-o", str(tmp_path / "out2"), "--min-modulation", "500"]) == 0
+    reason = np.load(tmp_path / "out2" / "reason.npy")
+    assert (reason[:8, :8] == 1).all() and (reason == 0).mean() > 0.9
 
 
 @pytest.mark.parametrize(("edit", "key"), [

@@ -109,3 +109,17 @@ def test_reconstruct_applies_the_calibration_carry_over_rule(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "finest pattern" in err[0] and "finest12" in err[0]
     assert not (tmp_path / "out12").exists()
+
+
+def test_explicit_min_modulation_replaces_the_validity_rule(tmp_path, capsys):
+    _setup(tmp_path)
+    args = ["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json")]
+    assert main([*args, "-o", str(tmp_path / "rule")]) == 0
+    assert main([*args, "-o", str(tmp_path / "high"), "--min-modulation", "200"]) == 0  # B = 90: none pass
+    assert np.isfinite(np.load(tmp_path / "rule" / "depth.npy")).mean() > 0.95
+    assert np.isnan(np.load(tmp_path / "high" / "depth.npy")).all()
+    capsys.readouterr()
+    rc = main([*args, "-o", str(tmp_path / "bad"), "--min-modulation", "-1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "min_modulation" in err[0]
+    assert not (tmp_path / "bad").exists()

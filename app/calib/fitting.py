@@ -36,6 +36,7 @@ from app.core.geometric import GeometricModel
 from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
+CALIBRATION_MIN_MODULATION_FRACTION = 0.02  # board phases: B ≥ 2 % of full scale (see calibrate_sets)
 MIN_HEIGHT_SPAN_MM = 1.0
 MIN_TILT_SPREAD_DEG = 2.0
 ROBUST_POINT_SIGMAS = 4.0
@@ -229,7 +230,12 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
     for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
         if cs.schedule != schedule or cs.frames.shape != shape:
             raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
-        res = compute_phase(cs.frames, cs.schedule, max_code=capture_max_code(cs))
+        # a fixed 2 % of full scale, not the noise-aware rule: the fit has plenty of bright board
+        # pixels and wants the least-biased ones (dim squares add noise, not information)
+        max_code = capture_max_code(cs)
+        res = compute_phase(cs.frames, cs.schedule, max_code=max_code,
+                            min_modulation=CALIBRATION_MIN_MODULATION_FRACTION
+                            * (max_code or np.iinfo(cs.frames.dtype).max))
         det = detect_board(texture_to_u8(res.texture), board)
         if not det.found:
             if not robust or i == 0:

@@ -21,6 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
     p.add_argument("--phase-error", metavar="FILE", default=None,
                    help="projector-gamma table from `fringescope gamma`, subtracted before unwrapping")
+    p.add_argument("--min-modulation", type=float, default=None, metavar="CODES",
+                   help="explicit modulation threshold B in sensor codes, replacing the default noise-aware rule")
     p.set_defaults(func=run)
 
 
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{set_dir}: capture-set folder not found")
     lut = read_phase_error(args.phase_error) if args.phase_error else None
     capture = read_capture_set(set_dir)
-    res = decode_capture(capture, lut)
+    res = decode_capture(capture, lut, min_modulation=args.min_modulation)
     files = phase_files(res)  # everything computed before anything is written
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

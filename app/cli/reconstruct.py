@@ -32,6 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--max-code", type=int, default=None,
                    help="sensor maximum code, e.g. 4095 for 12-bit data in 16-bit PNGs")
     p.add_argument("--numpy", action="store_true", help="use the numpy reference path instead of numba")
+    p.add_argument("--min-modulation", type=float, default=None, metavar="CODES",
+                   help="explicit modulation threshold B in sensor codes, replacing the default noise-aware rule (the schedule's order-error bound under the camera noise, and its depth-σ bound)")
     p.set_defaults(func=run)
 
 
@@ -61,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=max_code)
     except ValueError:
         noise = None  # N = 3 or too few usable pixels: the typical sensor
-    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise)
+    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise,
+                        min_modulation=args.min_modulation)
     res = rec.run(capture.frames, max_code=max_code)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

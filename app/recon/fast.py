@@ -59,7 +59,9 @@ class PhaseArgs(NamedTuple):
     """The phase stage's inputs: float32 cos δ_n, sin δ_n (N,), fringe counts (K,), sensor
     maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad);
     ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
-    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``."""
+    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``; ``snr_min2``: a_min² of
+    the noise-aware modulation rule (:mod:`app.recon.validity`; 0: ``min_mod`` alone). The
+    kernel's test is ``m2min < max(m2(min_mod), a_min²·(N/2)·(read_var + gain·A))``."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -70,6 +72,7 @@ class PhaseArgs(NamedTuple):
     chain_c: npt.NDArray[np.float32]
     chain_f: npt.NDArray[np.float32]
     heterodyne: bool
+    snr_min2: np.float32
 
 
 class HeightArgs(NamedTuple):
@@ -220,10 +223,11 @@ def _order_step(prev, phw, ratio):  # type: ignore[no-untyped-def]  # pragma: no
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code, tot):  # type: ignore[no-untyped-def]  # pragma: no cover
     # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT (> the height stage's)
+    # m2_min = (floor, k0, k1): LOW_MODULATION below max(floor, k0 + k1·Σ I) (PhaseArgs.snr_min2)
     c = _INCONSISTENT if dev >= cons_rad else c
-    c = _LOW_MODULATION if m2min < m2_min else c
+    c = _LOW_MODULATION if m2min < max(m2_min[0], m2_min[1] + m2_min[2] * tot) else c
     return _SATURATED if top >= top_code else c
 
 
@@ -260,11 +264,12 @@ def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignor
         yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
         qmin = min(qmin, q)
         p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
-        total[u] = (tt + t1) + (t2 + t3)
+        tot = (tt + t1) + (t2 + t3)
+        total[u] = tot
         prev[u] = p
         m2[u] = q
         top = max(max(mx, m1), max(m2_, m3))
-        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code)
+        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, tot)
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
@@ -518,7 +523,7 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
         for u in range(prev.shape[0]):
             vfac[u] = _combined_vfac(n_steps, k_max, wsum[u])
     for u in range(prev.shape[0]):
-        code[u] = _mask(_OK, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code)
+        code[u] = _mask(_OK, dev[u], m2min[u], top[u], cons_rad, m2_min, top_code, total[u])
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -606,7 +611,7 @@ def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, nmin, n_steps, k_max, combine,  # type: ignore[no-untyped-def]
-                    cons_rad, m2_min, top_code):  # pragma: no cover - compiled
+                    cons_rad, m2_min, top_code, total):  # pragma: no cover - compiled
     """The refitted values where the phase-stage code is SATURATED and every frequency kept ≥ 3
     samples (phase, finest m2, σ factor, phase-stage code); their count."""
     n = 0
@@ -616,16 +621,16 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
             m2[u] = r_m2[u]
             if combine:
                 vfac[u] = _combined_vfac(n_steps, k_max, r_wsum[u])
-            code[u] = _mask(_OK, r_dev[u], r_m2min[u], _F0, cons_rad, m2_min, top_code)
+            code[u] = _mask(_OK, r_dev[u], r_m2min[u], _F0, cons_rad, m2_min, top_code, total[u])
             n += 1
     return n
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
-                top_code, m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+                top_code, m2, prev, vfac, code, rscratch, sums, total):  # pragma: no cover - compiled
     """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
-    ``code``: the span's views) that keep three unclipped samples per frequency (phase stage:
+    ``code``, ``total``: the span's views) that keep three unclipped samples per frequency (phase stage:
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
 
     The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
@@ -662,12 +667,12 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
     if combine:
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
-                           cons_rad, m2_min, top_code)
+                           cons_rad, m2_min, top_code, total)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+               m2, prev, vfac, code, rscratch, sums, total):  # pragma: no cover - compiled
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
     Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
     the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (9 + 2K, REFIT_SPAN)
@@ -678,7 +683,8 @@ def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, com
         u1 = min(width, u0 + REFIT_SPAN)
         if _count_saturated(code[u0:u1]) > 0:
             n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
-                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums)
+                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums,
+                             total[u0:u1])
     return n
 
 
@@ -726,7 +732,10 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     mod_scale = np.float32(2.0) / np.float32(n_steps)
-    m2_min = (ph.min_mod / mod_scale) * (ph.min_mod / mod_scale)  # B < min_mod ⇔ x² + y² < m2_min
+    # B < min_mod ⇔ x² + y² < (min_mod/mod_scale)²; the noise-aware rule on top (PhaseArgs.snr_min2):
+    # m2 < a_min²·(N/2)·σ_I², σ_I² = read_var + gain·Σ I/F
+    k0 = ph.snr_min2 * m.half_steps * m.read_var
+    m2_min = ((ph.min_mod / mod_scale) * (ph.min_mod / mod_scale), k0, ph.snr_min2 * m.half_steps * m.gain * m.inv_frames)
     top_code = np.float32(ph.max_code)
     paper = n_steps == 4 and n_freq == 4 and not m.combine and not ph.heterodyne
     want_phase = out.phase.shape[0] == height
@@ -755,7 +764,7 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
                 n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
                                               m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], rscratch, sums)
+                                              code[r], rscratch, sums, total[r])
             recovered[v] = n_refit
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
@@ -788,7 +797,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
-                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False)
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0))
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

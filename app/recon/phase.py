@@ -28,8 +28,10 @@ import numpy as np
 import numpy.typing as npt
 
 TWO_PI = 2.0 * math.pi
-#: Default minimum modulation as a fraction of the sensor's maximum code.
-MIN_MODULATION_FRACTION = 0.02
+#: Least modulation B of the default (noise-aware) rule, codes: see :mod:`app.recon.validity`
+#: (2 codes, less a margin that keeps the threshold off the lattice of integer frames' N-step
+#: sums, where float64 and float32 would round a tie differently).
+MODULATION_FLOOR_DN = 1.95
 
 F64 = npt.NDArray[np.float64]
 
@@ -51,10 +53,10 @@ def default_max_code(dtype: Any) -> int:
 def resolve_levels(dtype: Any, max_code: int | None, min_modulation: float | None) -> tuple[int, float]:
     """Validated ``(max_code, min_modulation)`` for frames of ``dtype``.
 
-    ``max_code`` None → :func:`default_max_code`; ``min_modulation`` None → 2 % of
-    ``max_code`` (5.1 codes for 8-bit, 81.9 for 12-bit): below that the phase noise
-    σ_φ = σ_I·√(2/N)/B of a typical camera (σ_I ≈ 1 % of full scale) exceeds ~0.35 rad
-    and the finest fringe order can no longer be trusted.
+    ``max_code`` None → :func:`default_max_code`; ``min_modulation`` None →
+    :data:`MODULATION_FLOOR_DN`, the floor of the noise-aware rule (the per-pixel threshold
+    from the schedule and the sensor noise, :mod:`app.recon.validity`, applies on top of it;
+    an explicit value replaces the rule).
     """
     top = default_max_code(dtype)
     if max_code is None:
@@ -62,7 +64,7 @@ def resolve_levels(dtype: Any, max_code: int | None, min_modulation: float | Non
     if int(max_code) != max_code or not 1 <= max_code <= top:
         raise ValueError(f"max_code: must be an integer in 1..{top} for {np.dtype(dtype)} frames, got {max_code}")
     if min_modulation is None:
-        min_modulation = MIN_MODULATION_FRACTION * max_code
+        min_modulation = MODULATION_FLOOR_DN
     if not (math.isfinite(min_modulation) and min_modulation >= 0.0):
         raise ValueError(f"min_modulation: must be finite and >= 0, got {min_modulation}")
     return int(max_code), float(min_modulation)

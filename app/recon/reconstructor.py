@@ -39,6 +39,13 @@ from app.recon.unwrap import (
 from app.recon.unwrap import (
     combine_frequencies as combine_phases,
 )
+from app.recon.validity import (
+    DEFAULT_GROSS_ERROR_MM,
+    DEFAULT_ORDER_ERROR_RATE,
+    max_depth_sigma_mm,
+    min_phasor_snr,
+    modulation_threshold,
+)
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +150,13 @@ class ReconResult:
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
     consistency_rad: float, combine: bool, phase_error: Any = None,
+    noise_rule: tuple[float, SensorNoise] | None = None,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
-    """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason)."""
+    """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason).
+
+    ``noise_rule`` (a_min, camera noise): LOW_MODULATION where the weakest frequency's B is
+    below ``max(min_modulation, a_min·√(2/N)·σ_I(A))`` (:mod:`app.recon.validity`); None:
+    below ``min_modulation`` alone."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
     if phase_error is not None:
         wp = replace(wp, phase=phase_error.apply(wp.phase))
@@ -155,10 +167,16 @@ def _phase_numpy(
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
     else:
         phi = unwrapped[-1]
+    if noise_rule is None:
+        threshold: Any = min_modulation
+    else:
+        snr, noise = noise_rule
+        threshold = modulation_threshold(wp.background, schedule.steps, snr, noise.read_noise_dn**2,
+                                         noise.gain_dn_per_e, min_modulation)
     reason = assign_reasons(
         phi.shape,
         saturated=wp.saturated,
-        low_modulation=wp.modulation.min(axis=0) < min_modulation,
+        low_modulation=wp.modulation.min(axis=0) < threshold,
         inconsistent=~consistent,
     )
     return phi, wp, reason
@@ -173,6 +191,8 @@ def compute_phase(
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
     combine_frequencies: bool = False,
     phase_error: PhaseErrorLUT | None = None,
+    noise: SensorNoise | None = None,
+    order_error_rate: float = DEFAULT_ORDER_ERROR_RATE,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
 
@@ -180,12 +200,16 @@ def compute_phase(
         frames: (F, H, W) uint8/uint16 (or a sequence of equal 2-D frames),
             F = ``schedule.n_frames``, frequency-major, shift-minor.
         schedule: the pattern schedule.
-        max_code, min_modulation: sensor maximum code and modulation threshold
-            (see :func:`app.recon.phase.resolve_levels`).
+        max_code: sensor maximum code (see :func:`app.recon.phase.resolve_levels`).
+        min_modulation: an explicit modulation threshold, codes; None → the noise-aware
+            rule of :mod:`app.recon.validity` (per pixel, from the schedule and ``noise``).
         consistency_rad: unwrapping consistency threshold, radians.
         combine_frequencies: use the noise-optimal combination of all frequencies.
         phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
             wrapped phases before unwrapping (projector-gamma correction).
+        noise: the camera's :class:`SensorNoise` for the rule; None →
+            :meth:`SensorNoise.typical` for ``max_code``.
+        order_error_rate: the rule's bound on undetected fringe-order errors per pixel.
 
     Returns:
         :class:`PhaseResult`.
@@ -195,10 +219,16 @@ def compute_phase(
         raise ValueError("schedule: expected a PatternSchedule")
     if frames.shape[0] != schedule.n_frames:
         raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
+    if noise is not None and not isinstance(noise, SensorNoise):
+        raise ValueError("noise: expected a SensorNoise")
+    explicit = min_modulation is not None
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
+    rule = None if explicit else (
+        min_phasor_snr(schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad, rate=order_error_rate),
+        noise if noise is not None else SensorNoise.typical(max_code))
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error, rule
     )
     mod = wp.modulation[-1]
     return PhaseResult(
@@ -218,8 +248,13 @@ class Reconstructor:
         calibration: a :class:`~app.core.calibration.Calibration` (any depth model).
         max_code: sensor maximum code; None → 255 (uint8) / 65535 (uint16). Pass 4095
             for 12-bit data delivered in uint16.
-        min_modulation: minimum modulation B (codes) over all frequencies; None → 2 %
-            of ``max_code``.
+        min_modulation: minimum modulation B (codes) over all frequencies; None → the
+            noise-aware rule (:mod:`app.recon.validity`): per pixel, the least B at which the
+            schedule's unwrapping chain makes an undetected fringe-order error with
+            probability ≤ ``order_error_rate`` under the camera's ``noise``, and at least
+            2 codes; with it, unless ``max_sigma_mm`` is given, pixels whose depth σ makes
+            an error beyond ``gross_error_mm`` likelier than ``order_error_rate`` are
+            UNCERTAIN. An explicit value replaces the rule (both parts).
         consistency_rad: unwrapping consistency threshold, radians (default π/2).
         height_margin_mm: heights beyond the calibrated range by more than this are
             OUTSIDE_VOLUME, mm.
@@ -229,7 +264,12 @@ class Reconstructor:
             need it; live depth does not, and it costs a full-frame write).
         noise: the camera's :class:`SensorNoise` for ``ReconResult.sigma``; None →
             :meth:`SensorNoise.typical` for the frames' maximum code.
-        max_sigma_mm: pixels whose σ exceeds this are UNCERTAIN (None: no such rule).
+        max_sigma_mm: pixels whose σ exceeds this are UNCERTAIN (None: the noise-aware
+            rule's bound from ``gross_error_mm``, or no such rule with an explicit
+            ``min_modulation``).
+        order_error_rate: the noise-aware rule's bound per pixel, (0, 0.1].
+        gross_error_mm: the depth error the noise-aware rule keeps below
+            ``order_error_rate`` (None: no depth-σ part), mm.
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -248,6 +288,8 @@ class Reconstructor:
         with_phase: bool = False,
         noise: SensorNoise | None = None,
         max_sigma_mm: float | None = None,
+        order_error_rate: float = DEFAULT_ORDER_ERROR_RATE,
+        gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
@@ -261,7 +303,10 @@ class Reconstructor:
             raise ValueError(f"min_modulation: must be finite and >= 0, got {min_modulation}")
         if max_code is not None and (int(max_code) != max_code or not 1 <= max_code <= 65535):
             raise ValueError(f"max_code: must be an integer in 1..65535, got {max_code}")
+        if not (math.isfinite(order_error_rate) and 0.0 < order_error_rate <= 0.1):
+            raise ValueError(f"order_error_rate: must be in (0, 0.1], got {order_error_rate}")
         self.calibration = calibration
+        self.order_error_rate = float(order_error_rate)
         self.max_code = max_code
         self.min_modulation = min_modulation
         self.consistency_rad = check_consistency_rad(consistency_rad)
@@ -270,6 +315,10 @@ class Reconstructor:
         self.with_phase = bool(with_phase)
         self.noise = noise
         self.max_sigma_mm = None if max_sigma_mm is None else float(max_sigma_mm)
+        self.gross_error_mm = gross_error_mm
+        self._sigma_limit_mm = self.max_sigma_mm  # what the UNCERTAIN test uses
+        if max_sigma_mm is None and min_modulation is None and gross_error_mm is not None:
+            self._sigma_limit_mm = max_depth_sigma_mm(gross_error_mm, self.order_error_rate)
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
@@ -278,6 +327,8 @@ class Reconstructor:
         self._outputs = _OutputPool()
         if self.fast:
             _ = self._fast_tables
+        if self.min_modulation is None:
+            _ = self._snr_min  # the rule's bisection (cached per schedule) outside the first run
 
     @cached_property
     def _height_tables(self) -> HeightTables:
@@ -322,6 +373,16 @@ class Reconstructor:
         return (np.ascontiguousarray(per_col[..., 0], np.float32), np.ascontiguousarray(per_col[..., 1], np.float32),
                 rows, p_lo, p_hi, u_lo, u_hi)
 
+    @cached_property
+    def _snr_min(self) -> float:
+        """a_min of the noise-aware modulation rule for the calibration's schedule."""
+        sched = self.calibration.pattern
+        return min_phasor_snr(sched.frequencies, sched.unwrap, consistency_rad=self.consistency_rad,
+                              rate=self.order_error_rate)
+
+    def _noise_rule(self, max_code: int) -> tuple[float, SensorNoise] | None:
+        return None if self.min_modulation is not None else (self._snr_min, self._noise(max_code))
+
     def _noise(self, max_code: int) -> SensorNoise:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
 
@@ -352,7 +413,8 @@ class Reconstructor:
         cal = self.calibration
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
-            frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies
+            frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
+            noise_rule=self._noise_rule(max_code),
         )
         height, singular, slope = evaluate_height_slope(model, phi)
         lo, hi = self._bounds_mm
@@ -368,7 +430,7 @@ class Reconstructor:
             vfac = phase_variance_factor(m2[-1], steps)
         with np.errstate(invalid="ignore"):
             sigma = np.abs(slope) * np.sqrt(self._noise(max_code).variance_dn2(wp.background) * vfac)
-            uncertain = sigma > self.max_sigma_mm if self.max_sigma_mm is not None else None
+            uncertain = sigma > self._sigma_limit_mm if self._sigma_limit_mm is not None else None
         reason = assign_reasons(
             phi.shape,
             saturated=reason == 2,
@@ -415,14 +477,16 @@ class Reconstructor:
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
         noise = self._noise(max_code)
         f32 = np.float32
+        rule = self._noise_rule(max_code)
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
-                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne")
+                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
+                             f32(0.0 if rule is None else rule[0] ** 2))
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
             ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
-            f32(self.max_sigma_mm if self.max_sigma_mm is not None else np.inf),
+            f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
         )
         recovered = np.zeros(frames.shape[1], np.int32)

@@ -118,7 +118,8 @@ class CalibrationManager:
     def _engine(self, cal: Calibration, schedule: PatternSchedule) -> Reconstructor:
         bits = self.settings.bit_depth
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
-                             max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm)
+                             max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm,
+                             min_modulation=self.settings.min_modulation)
 
     def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
         """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""

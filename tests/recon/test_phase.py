@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from app.recon.patterns import PatternSchedule, fringe_profile
-from app.recon.phase import resolve_levels, wrapped_phase
+from app.recon.phase import MODULATION_FLOOR_DN, resolve_levels, wrapped_phase
 
 
 def _frames(phi, a, b, steps, noise, rng, dtype=np.uint16):
@@ -81,8 +81,9 @@ def test_one_clipped_shift_is_fitted_exactly(steps):
 
 
 def test_default_levels():
-    assert resolve_levels(np.uint8, None, None) == (255, pytest.approx(5.1))
-    assert resolve_levels(np.uint16, 4095, None) == (4095, pytest.approx(81.9))
+    # None: the floor of the noise-aware rule (app.recon.validity), in codes at any bit depth
+    assert resolve_levels(np.uint8, None, None) == (255, MODULATION_FLOOR_DN)
+    assert resolve_levels(np.uint16, 4095, None) == (4095, MODULATION_FLOOR_DN)
     assert resolve_levels(np.uint16, None, 3.0) == (65535, 3.0)
 
 

@@ -69,6 +69,18 @@ def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, ma
     assert why is None and engine is not None and engine.max_sigma_mm == max_sigma_mm
 
 
+@pytest.mark.parametrize("min_modulation", [None, 5.1])
+def test_the_live_engine_carries_the_min_modulation_setting(tmp_path, calibration, min_modulation):
+    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
+    mgr = CalibrationManager(Settings(data_dir=tmp_path, min_modulation=min_modulation),
+                             LivePipeline(config, PatternSchedule(), None))
+    mgr.activate(calibration, name="s", persist=False)
+    engine, why = mgr.engine_for(PatternSchedule())
+    assert why is None and engine is not None and engine.min_modulation == min_modulation
+    with pytest.raises(ValueError, match="min_modulation"):
+        Settings(min_modulation=-1)
+
+
 def test_max_sigma_setting_is_validated():
     with pytest.raises(ValueError, match="max_sigma_mm"):
         Settings(max_sigma_mm=0)
