@@ -21,10 +21,20 @@ from app.core.schedule import PatternSchedule, calibration_mismatch
 from app.recon import ReconResult, Reconstructor
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
+from app.service.motion import sigma_bounds
 from app.service.pipeline import LivePipeline
 from app.service.schedules import calibration_for_schedule
 
 log = logging.getLogger("fringescope.service")
+
+
+def engine_max_sigma_mm(settings: Settings, n_groups: int) -> float | None:
+    """The engine's UNCERTAIN limit: ``max_sigma_mm`` if set, tightened to the still-scene bound of the
+    gross-error tolerance (``gross_error_mm``; :func:`app.service.motion.sigma_bounds`) unless that is 0."""
+    limits = [settings.max_sigma_mm] if settings.max_sigma_mm is not None else []
+    if settings.gross_error_mm > 0 and n_groups >= 2:
+        limits.append(sigma_bounds(settings.gross_error_mm, n_groups, settings.motion_false_alarm_rate)[0])
+    return min(limits) if limits else None
 
 
 class CalibrationManager:
@@ -118,7 +128,8 @@ class CalibrationManager:
     def _engine(self, cal: Calibration, schedule: PatternSchedule) -> Reconstructor:
         bits = self.settings.bit_depth
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
-                             max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm)
+                             max_code=None if bits == 8 else 2**bits - 1,
+                             max_sigma_mm=engine_max_sigma_mm(self.settings, len(schedule.frequencies)))
 
     def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
         """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""

@@ -58,17 +58,31 @@ def test_conflict_without_calibration_or_session(tmp_path):
         mgr.reconstruct(None)  # type: ignore[arg-type]  # refused before the set is looked at
 
 
-@pytest.mark.parametrize("max_sigma_mm", [None, 0.05])
-def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm):
+@pytest.mark.parametrize("max_sigma_mm, gross_error_mm, expected", [
+    (None, 0.0, None), (0.05, 0.0, 0.05), (0.05, 0.5, 0.05), (None, 0.5, 0.5 / 4.891638)])
+def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm, gross_error_mm, expected):
     config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
-    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm),
+    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm, gross_error_mm=gross_error_mm),
                              LivePipeline(config, PatternSchedule(), None))
     assert mgr.engine_for(PatternSchedule()) == (None, None)  # nothing active yet
     mgr.activate(calibration, name="s", persist=False)
     engine, why = mgr.engine_for(PatternSchedule())
-    assert why is None and engine is not None and engine.max_sigma_mm == max_sigma_mm
+    assert why is None and engine is not None
+    assert engine.max_sigma_mm == (None if expected is None else pytest.approx(expected, rel=1e-6))
 
 
 def test_max_sigma_setting_is_validated():
     with pytest.raises(ValueError, match="max_sigma_mm"):
         Settings(max_sigma_mm=0)
+
+
+def test_the_engine_limit_is_the_explicit_one_tightened_to_the_gross_error_still_bound(tmp_path):
+    from app.service.calibrations import engine_max_sigma_mm
+    from app.service.motion import sigma_bounds
+
+    still = sigma_bounds(0.5, 4)[0]
+    assert engine_max_sigma_mm(Settings(data_dir=tmp_path), 4) == pytest.approx(still)  # the defaults: 0.102 mm
+    assert engine_max_sigma_mm(Settings(data_dir=tmp_path, max_sigma_mm=0.03), 4) == pytest.approx(0.03)
+    assert engine_max_sigma_mm(Settings(data_dir=tmp_path, max_sigma_mm=1.0), 4) == pytest.approx(still)
+    assert engine_max_sigma_mm(Settings(data_dir=tmp_path, gross_error_mm=0), 4) is None
+    assert engine_max_sigma_mm(Settings(data_dir=tmp_path, gross_error_mm=1.0), 3) == pytest.approx(2 * still)
