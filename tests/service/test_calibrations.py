@@ -86,3 +86,10 @@ def test_the_engine_limit_is_the_explicit_one_tightened_to_the_gross_error_still
     assert engine_max_sigma_mm(Settings(data_dir=tmp_path, max_sigma_mm=1.0), 4) == pytest.approx(still)
     assert engine_max_sigma_mm(Settings(data_dir=tmp_path, gross_error_mm=0), 4) is None
     assert engine_max_sigma_mm(Settings(data_dir=tmp_path, gross_error_mm=1.0), 3) == pytest.approx(2 * still)
+
+
+def test_gross_error_setting_is_validated_and_read_from_the_environment(monkeypatch, tmp_path):
+    with pytest.raises(ValueError, match="gross_error_mm"):
+        Settings(data_dir=tmp_path, gross_error_mm=-0.1)
+    monkeypatch.setenv("FRINGESCOPE_GROSS_ERROR_MM", "0")
+    assert Settings(data_dir=tmp_path).gross_error_mm == 0.0
