@@ -62,6 +62,10 @@ class Settings(BaseSettings):
     motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
     # moved regions grow by this many pixels before they are invalidated (their rims)
     motion_grow_px: int = Field(4, ge=0, le=16)
+    # gross-error tolerance, mm (0: off): a valid pixel's noise exceeds it only at rate 1e-6, so
+    # pixels with σ > E/4.89 are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
+    # (k: the motion test's threshold; app.service.motion.sigma_bounds, README "Rolling mode and motion")
+    gross_error_mm: float = Field(0.5, ge=0, le=100)
     # optional validity rule: pixels whose 1-σ depth noise exceeds this (mm) are UNCERTAIN;
     # benchmarks/bench_motion.py shows what it adds during motion (unset: no such rule)
     max_sigma_mm: float | None = Field(None, gt=0, le=100)

@@ -130,6 +130,9 @@ class ResultMeta(BaseModel):
                                    "its finest frequency group's mid-exposure")
     moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")
     motion_ms: float = Field(0.0, description="of recon_ms, the motion test")
+    scene_moved: bool = Field(False, description="the set's raw motion flags exceed a still scene's: valid pixels "
+                              "then need σ ≤ gross_error_mm / (z + k)")
+    uncertain_moving_pixels: int = Field(0, description="valid pixels made UNCERTAIN by that moving-scene σ bound")
 
 
 class PhaseSummary(BaseModel):

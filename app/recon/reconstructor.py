@@ -330,6 +330,12 @@ class Reconstructor:
         if self.min_modulation is None:
             _ = self._snr_min  # the rule's bisection (cached per schedule) outside the first run
 
+    @property
+    def sigma_limit_mm(self) -> float | None:
+        """The UNCERTAIN test's depth-σ limit, mm: ``max_sigma_mm`` if given, else the validity
+        rule's bound from ``gross_error_mm`` (None: no such test)."""
+        return self._sigma_limit_mm
+
     @cached_property
     def _height_tables(self) -> HeightTables:
         return calibration_height_tables(self.calibration)

@@ -63,6 +63,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from functools import lru_cache
+from statistics import NormalDist
 
 import numpy as np
 import numpy.typing as npt
@@ -200,8 +201,4 @@ def max_depth_sigma_mm(gross_error_mm: float = DEFAULT_GROSS_ERROR_MM, rate: flo
         raise ValueError(f"gross_error_mm: must be finite and > 0, got {gross_error_mm}")
     if not (math.isfinite(rate) and 0.0 < rate <= 0.1):
         raise ValueError(f"rate: must be in (0, 0.1], got {rate}")
-    lo, hi = 0.0, 10.0  # erfc⁻¹(rate) for rate ≥ 1e-40 lies in (0, 10)
-    for _ in range(80):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if math.erfc(mid) > rate else (lo, mid)
-    return gross_error_mm / (math.sqrt(2.0) * hi)
+    return gross_error_mm / NormalDist().inv_cdf(1.0 - rate / 2.0)  # √2·erfc⁻¹(rate) = Φ⁻¹(1 − rate/2)

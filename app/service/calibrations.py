@@ -119,7 +119,8 @@ class CalibrationManager:
         bits = self.settings.bit_depth
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
                              max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm,
-                             min_modulation=self.settings.min_modulation)
+                             min_modulation=self.settings.min_modulation,
+                             gross_error_mm=self.settings.gross_error_mm or None)
 
     def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
         """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""

@@ -53,7 +53,8 @@ class Instrument:
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
                                 rolling=settings.rolling, autostart=settings.autostart,
                                 motion_false_alarm_rate=settings.motion_false_alarm_rate,
-                                motion_grow_px=settings.motion_grow_px)
+                                motion_grow_px=settings.motion_grow_px,
+                                gross_error_mm=settings.gross_error_mm or None)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app

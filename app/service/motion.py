@@ -12,7 +12,9 @@ one set is flagged): each of the G − 1 older groups is tested against the newe
 two-sided level α/(G − 1) (Bonferroni), ``k = Φ⁻¹(1 − α / (2(G − 1)))``. The tests share the
 newest group, so the true rate is a little below α.
 
-What the test cannot see: motion that leaves the background unchanged (a heave of an
+What the test cannot see: pixels with a clipped sample (a clipped sinusoid's mean depends on its
+phase, so a still, over-exposed pixel would look moved: they are not tested; the engine refits
+them from their unclipped samples), and motion that leaves the background unchanged (a heave of an
 evenly lit, untextured surface). Such motion still changes the phase; the engine's
 unwrapping consistency test flags it when it breaks the frequency chain.
 
@@ -24,11 +26,25 @@ invalidated fraction is then at most (2r+1)²·α (isolated false alarms grow to
 The test is one parallel numba pass over the frames (group sums of a row in a small
 buffer), the growth a second pass over the (H, W) mask that invalidates in place in the
 engine's output arrays.
+
+**Gross-error bound.** A test in noise units cannot bound a depth error in millimetres: motion
+just below the threshold shifts the phase by up to about k·σ_φ (a background drift of
+k·√2·σ_A inside the finest group moves its phase by that order), so a pixel's error can reach
+(z + k)·σ_z with noise at z σ. Measured on the twin's breathing scene the gross errors
+(|error| > 0.5 mm) left by the test are all dark, weakly modulated pixels at 5–7 σ_z, and the
+same pixels give gross errors on a STILL scene (noise alone, σ_z up to 0.3 mm). So with a
+tolerance E (``gross_error_mm``, 0.5) and a per-pixel rate β (1e-6, z = Φ⁻¹(1 − β/2) = 4.89;
+both :mod:`app.recon.validity`'s) a valid pixel needs ``σ_z ≤ E / z`` always (the engine's own
+depth-σ rule: a still scene keeps all but its noisiest pixels) and
+``σ_z ≤ E / (z + k)`` in a set where the scene moved — more raw flags than a still scene gives
+at rate α (:func:`scene_moved`, a one-sided Poisson bound at level α) — with reason UNCERTAIN.
 """
 
 from __future__ import annotations
 
+import math
 from statistics import NormalDist
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -37,10 +53,12 @@ from numba import njit, prange
 from app.core.reasons import Reason
 from app.recon.fast import FASTMATH, KERNEL_LOCK
 from app.recon.reconstructor import SensorNoise
+from app.recon.validity import max_depth_sigma_mm
 
 #: reason code for "moved during the set"
 MOTION = int(Reason.MOTION)
 _SATURATED = int(Reason.SATURATED)
+_UNCERTAIN = int(Reason.UNCERTAIN)
 
 #: default per-pixel false-alarm rate of the motion test on a still scene (per set)
 DEFAULT_FALSE_ALARM_RATE = 1e-4
@@ -66,13 +84,51 @@ def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) 
     return float(NormalDist().inv_cdf(1.0 - false_alarm_rate / (2.0 * (n_groups - 1))))
 
 
+def sigma_bounds(gross_error_mm: float, n_groups: int,
+                 false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> tuple[float, float]:
+    """Largest 1-σ depth noise (mm) of a valid pixel: (still, moving) for a tolerance E.
+
+    Args:
+        gross_error_mm: E > 0, the error a valid pixel may exceed only at the rate β of
+            :func:`app.recon.validity.max_depth_sigma_mm`.
+        n_groups: frequency groups per set (fixes the motion test's k, :func:`motion_k`).
+        false_alarm_rate: the motion test's α.
+
+    Returns:
+        ``(E / z, E / (z + k))`` with ``z = Φ⁻¹(1 − β/2)``: noise alone at rate β, and noise plus a
+        motion just below the test's threshold (a phase shift of up to k·σ_φ).
+    """
+    still = max_depth_sigma_mm(gross_error_mm)  # E / z; raises naming gross_error_mm
+    z = gross_error_mm / still
+    k = motion_k(n_groups, false_alarm_rate)
+    return float(still), float(gross_error_mm / (z + k))
+
+
+def scene_moved(n_flagged: int, n_pixels: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> bool:
+    """Whether ``n_flagged`` raw motion flags among ``n_pixels`` exceed what a still scene gives.
+
+    Still, the count is about Poisson(λ = n·α); it is exceeded at level α when
+    ``n_flagged > λ + k·√λ + k²`` with ``k = Φ⁻¹(1 − α)`` (a Gaussian bound widened by k² for
+    small λ). A camera noisier than its model raises the count: the stricter bound then holds.
+    """
+    if n_pixels < 1 or n_flagged < 0:
+        raise ValueError(f"n_pixels/n_flagged: need n_pixels >= 1 and n_flagged >= 0, got {n_pixels}, {n_flagged}")
+    if not (0.0 < false_alarm_rate < 1.0):
+        raise ValueError(f"false_alarm_rate: must be in (0, 1), got {false_alarm_rate}")
+    lam = n_pixels * false_alarm_rate
+    k = NormalDist().inv_cdf(1.0 - false_alarm_rate)
+    return n_flagged > lam + k * math.sqrt(lam) + k * k
+
+
 _ROWS = 16  # rows per parallel chunk (one scratch allocation per chunk)
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, row_any):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A;
-    row_any[v] = row v has such a pixel."""
+def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, top_code, mask, row_any, row_tested):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """mask[v, u] = some group's background differs from the newest group's beyond k·√2·σ_A, for
+    pixels with no sample at ``top_code`` or above (a clipped sample biases its group's mean:
+    those are not tested); row_any[v] / row_tested[v] = how many pixels of row v are flagged /
+    were tested (int32)."""
     f, h, w = frames.shape
     var_scale = np.float32(2 * steps)  # Var(S_g − S_new) = 2·N·σ_I²(Ā), S = sum of N frames
     half_inv_n = np.float32(0.5 / steps)
@@ -81,16 +137,21 @@ def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, row_a
     n_chunks = (h + _ROWS - 1) // _ROWS
     for chunk in prange(n_chunks):
         sums = np.empty((n_groups, w), np.int32)  # integer group sums of one row: exact
+        top = np.empty(w, np.int32)
         for v in range(chunk * _ROWS, min((chunk + 1) * _ROWS, h)):
+            for u in range(w):
+                top[u] = 0
             for g in range(n_groups):
                 row = sums[g]
                 src = frames[g * steps, v]
                 for u in range(w):
                     row[u] = np.int32(src[u])
+                    top[u] = max(top[u], np.int32(src[u]))
                 for n in range(1, steps):
                     src = frames[g * steps + n, v]
                     for u in range(w):
                         row[u] += np.int32(src[u])
+                        top[u] = max(top[u], np.int32(src[u]))
             moved_row = mask[v]
             ref = sums[newest]
             for u in range(w):
@@ -103,16 +164,23 @@ def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, mask, row_a
                         # threshold² = k²·2N·(read² + gain·Ā), Ā = (S_g + S_new)/(2N) ≥ 0
                         moved_row[u] |= d * d > c0 + c1 * np.float32(row[u] + ref[u])
             hits = 0
+            tested = 0
             for u in range(w):
+                ok = top[u] < top_code
+                moved_row[u] &= ok
                 hits += moved_row[u]
-            row_any[v] = hits > 0
+                tested += ok
+            row_any[v] = hits
+            row_tested[v] = tested
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, reason,  # type: ignore[no-untyped-def]
-                 sigma, motion_code, saturated_code):  # pragma: no cover - compiled
+                 sigma, motion_code, saturated_code, strict_sigma, uncertain_code):  # pragma: no cover - compiled
     """out = mask dilated by a (2r+1)² square (separable; rows without a flagged pixel,
-    ``row_any`` False, are skipped); with ``apply`` invalidate ``out`` in place."""
+    ``row_any`` 0, are skipped); with ``apply`` invalidate ``out`` in place (MOTION), then every
+    other valid pixel whose σ exceeds ``strict_sigma`` (UNCERTAIN; ∞: none).
+    Returns (pixels in ``out``, pixels made UNCERTAIN)."""
     h, w = mask.shape
     for v in prange(h):
         if not row_any[v]:
@@ -129,6 +197,8 @@ def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, r
                 count -= src[u - radius - 1]
             dst[u] = count > 0
     counts = np.zeros(h, np.int64)
+    ucounts = np.zeros(h, np.int64)
+    strict = apply and strict_sigma < np.inf
     for v in prange(h):
         row = out[v]
         for u in range(w):
@@ -140,22 +210,45 @@ def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, r
                 t = tmp[y]
                 for u in range(w):
                     row[u] |= t[u]
-        if not touched:
-            continue
-        c = 0
-        for u in range(w):
-            if row[u]:
-                c += 1
-                if apply and reason[v, u] != saturated_code:
+        if touched:
+            c = 0
+            for u in range(w):
+                if row[u]:
+                    c += 1
+                    if apply and reason[v, u] != saturated_code:
+                        depth[v, u] = np.nan
+                        sigma[v, u] = np.nan
+                        points[v, u, 0] = np.nan
+                        points[v, u, 1] = np.nan
+                        points[v, u, 2] = np.nan
+                        valid[v, u] = False
+                        reason[v, u] = motion_code
+            counts[v] = c
+        if strict:
+            n = 0
+            for u in range(w):
+                if valid[v, u] and sigma[v, u] > strict_sigma:
                     depth[v, u] = np.nan
                     sigma[v, u] = np.nan
                     points[v, u, 0] = np.nan
                     points[v, u, 1] = np.nan
                     points[v, u, 2] = np.nan
                     valid[v, u] = False
-                    reason[v, u] = motion_code
-        counts[v] = c
-    return counts.sum()
+                    reason[v, u] = uncertain_code
+                    n += 1
+            ucounts[v] = n
+    return counts.sum(), ucounts.sum()
+
+
+class MotionPass(NamedTuple):
+    """What :func:`invalidate_motion` did: ``mask`` (H, W) bool the grown motion mask, ``moved`` its
+    pixel count, ``uncertain`` valid pixels made UNCERTAIN by the moving-scene σ bound,
+    ``scene_moved`` whether the raw flags exceeded a still scene's (:func:`scene_moved`)."""
+
+    mask: npt.NDArray[np.bool_]
+    moved: int
+    uncertain: int
+    scene_moved: bool
 
 
 def _check(frames: npt.NDArray[np.generic], n_groups: int, newest: int) -> tuple[int, int]:
@@ -178,6 +271,7 @@ def motion_mask(
     newest: int = -1,
     false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
     grow_px: int = 0,
+    max_code: int | None = None,
 ) -> npt.NDArray[np.bool_]:
     """Pixels whose background A differs between a group and the newest group beyond the noise.
 
@@ -188,20 +282,24 @@ def motion_mask(
         newest: index (capture-set order) of the group taken last; −1 for a whole set.
         false_alarm_rate: per-pixel false-alarm rate α of the test on a still scene (see :func:`motion_k`).
         grow_px: also flag every pixel within this many pixels (a (2r+1)² square) of a flagged one.
+        max_code: the sensor's clipping code (None: the dtype's maximum); a pixel with a sample at
+            or above it is not tested (clipping biases a group's mean; the engine's saturation
+            refit handles such pixels, and on a still scene they would all look moved).
 
     Returns:
         (H, W) bool, True where ``|A_g − A_newest| > k·√2·σ_A`` for some group g (then grown).
     """
     steps, newest = _check(frames, n_groups, newest)
     grow = _check_grow(grow_px)
-    mask, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    mask, row_any, _ = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate, max_code)
     if grow == 0:
         return mask
     out = np.empty_like(mask)
     d = np.empty((1, 1), np.float32)
     with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
         _grow_kernel(mask, row_any, grow, np.empty_like(mask), out, False, d, np.empty((1, 1, 3), np.float32),
-                     np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED)
+                     np.empty((1, 1), np.bool_), np.empty((1, 1), np.uint8), d, MOTION, _SATURATED,
+                     np.float32(np.inf), _UNCERTAIN)
     return out
 
 
@@ -212,16 +310,22 @@ def _check_grow(grow_px: int) -> int:
 
 
 def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, newest: int, noise: SensorNoise,
-              false_alarm_rate: float) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+              false_alarm_rate: float, max_code: int | None
+              ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
     if not isinstance(noise, SensorNoise):
         raise ValueError("noise: expected a SensorNoise")
+    top = 255 if frames.dtype == np.uint8 else 65535  # _check: uint8 or uint16
+    limit = top if max_code is None else int(max_code)
+    if not 1 <= limit <= top:
+        raise ValueError(f"max_code: must be in 1..{top} for {frames.dtype} frames, got {max_code}")
     k = motion_k(n_groups, false_alarm_rate)
     mask = np.empty(frames.shape[1:], np.bool_)
-    row_any = np.empty(frames.shape[1], np.bool_)
+    row_any = np.empty(frames.shape[1], np.int32)
+    row_tested = np.empty(frames.shape[1], np.int32)
     with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
         _motion_kernel(np.ascontiguousarray(frames), n_groups, steps, newest, np.float32(noise.read_noise_dn**2),
-                       np.float32(noise.gain_dn_per_e), np.float32(k * k), mask, row_any)
-    return mask, row_any
+                       np.float32(noise.gain_dn_per_e), np.float32(k * k), np.int32(limit), mask, row_any, row_tested)
+    return mask, row_any, row_tested
 
 
 def invalidate_motion(
@@ -237,11 +341,16 @@ def invalidate_motion(
     newest: int = -1,
     false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
     grow_px: int = DEFAULT_GROW_PX,
-) -> tuple[npt.NDArray[np.bool_], int]:
+    gross_error_mm: float | None = None,
+    max_code: int | None = None,
+) -> MotionPass:
     """:func:`motion_mask` (grown by ``grow_px``), then mark those pixels invalid IN PLACE.
 
     Moved pixels get depth/points/sigma NaN, valid False and reason MOTION, except where the
-    engine said SATURATED (the earlier cause, see :mod:`app.core.reasons`).
+    engine said SATURATED (the earlier cause, see :mod:`app.core.reasons`). With
+    ``gross_error_mm`` E, when the scene moved (:func:`scene_moved` on the raw flags) every other
+    valid pixel whose σ exceeds the moving bound of :func:`sigma_bounds` (E / (z + k)) is made
+    UNCERTAIN the same way (the still bound E / z is the engine's ``max_sigma_mm``).
 
     Args:
         depth, sigma: (H, W) float32; points: (H, W, 3) float32; valid: (H, W) bool;
@@ -249,7 +358,7 @@ def invalidate_motion(
         (the rest as :func:`motion_mask`)
 
     Returns:
-        (the grown mask, its number of pixels).
+        a :class:`MotionPass`.
     """
     steps, newest = _check(frames, n_groups, newest)
     grow = _check_grow(grow_px)
@@ -260,12 +369,16 @@ def invalidate_motion(
         if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dt:
             raise ValueError(f"{name}: expected {np.dtype(dt).name} {shape}, got "
                              f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")
-    raw, row_any = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate)
+    raw, row_any, row_tested = _raw_mask(frames, n_groups, steps, newest, noise, false_alarm_rate, max_code)
+    moving = scene_moved(int(row_any.sum()), max(int(row_tested.sum()), 1), false_alarm_rate)
+    strict = np.inf
+    if gross_error_mm is not None and moving:
+        strict = sigma_bounds(gross_error_mm, n_groups, false_alarm_rate)[1]
     out = np.empty_like(raw)
     with KERNEL_LOCK:
-        n = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason, sigma,
-                         MOTION, _SATURATED)
-    return out, int(n)
+        n, n_unc = _grow_kernel(raw, row_any, grow, np.empty_like(raw), out, True, depth, points, valid, reason,
+                                sigma, MOTION, _SATURATED, np.float32(strict), _UNCERTAIN)
+    return MotionPass(out, int(n), int(n_unc), moving)
 
 
 def group_mid_times(timestamps: list[float] | npt.NDArray[np.float64], n_groups: int) -> npt.NDArray[np.float64]:
@@ -301,6 +414,7 @@ def newest_group(frame_indices: list[int], n_groups: int) -> int:
     return int(np.argmax(frame_indices)) // (len(frame_indices) // n_groups)
 
 
-__all__ = ["DEFAULT_FALSE_ALARM_RATE", "DEFAULT_GROW_PX", "MOTION", "group_mid_times", "invalidate_motion", "map_time", "motion_k",
-           "motion_mask", "newest_group"]
+__all__ = ["DEFAULT_FALSE_ALARM_RATE", "DEFAULT_GROW_PX", "MOTION",
+           "MotionPass", "group_mid_times", "invalidate_motion", "map_time", "motion_k", "motion_mask", "newest_group",
+           "scene_moved", "sigma_bounds"]
 

@@ -17,6 +17,7 @@ from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import LEDS
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
+from app.recon.validity import DEFAULT_GROSS_ERROR_MM
 from app.service.acquisition import Acquisition
 from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
 from app.service.devices import DeviceBundle
@@ -37,6 +38,7 @@ class PipelineConfig:
     autostart: bool
     motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE
     motion_grow_px: int = DEFAULT_GROW_PX
+    gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM  # None: no σ bound while moving
 
 
 class LivePipeline:
@@ -51,6 +53,7 @@ class LivePipeline:
         self.reconstruction = Reconstruction(
             self.queue, self._live_engine, n_frequencies=len(schedule.frequencies), bit_depth=config.bit_depth,
             motion_false_alarm_rate=config.motion_false_alarm_rate, motion_grow_px=config.motion_grow_px,
+            gross_error_mm=config.gross_error_mm,
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None

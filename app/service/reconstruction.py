@@ -20,6 +20,7 @@ import numpy.typing as npt
 
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
+from app.recon.validity import DEFAULT_GROSS_ERROR_MM
 from app.service.framesets import FrameSet
 from app.service.motion import (
     DEFAULT_FALSE_ALARM_RATE,
@@ -69,6 +70,8 @@ class LiveResult:
     map_time_s: float = float("nan")
     moved_pixels: int = 0
     motion_ms: float = 0.0
+    scene_moved: bool = False
+    uncertain_moving_pixels: int = 0
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -97,6 +100,7 @@ class LiveResult:
             "latency_ms": round(self.latency_ms, 3), "recon_ms": round(self.recon_ms, 3),
             "valid_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
             "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
+            "scene_moved": self.scene_moved, "uncertain_moving_pixels": self.uncertain_moving_pixels,
             "shape": list(self.shape),
         }
 
@@ -113,6 +117,7 @@ class Reconstruction:
         bit_depth: int = 8,
         motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
         motion_grow_px: int = DEFAULT_GROW_PX,
+        gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
     ) -> None:
         self.queue = queue
         self.reconstructor = reconstructor
@@ -120,6 +125,8 @@ class Reconstruction:
         self.bit_depth = bit_depth
         self.motion_false_alarm_rate = float(motion_false_alarm_rate)
         self.motion_grow_px = int(motion_grow_px)
+        # valid pixels' σ bound while the scene moves (app.service.motion.sigma_bounds); None: off
+        self.gross_error_mm = gross_error_mm
         self.results: LatestSlot[LiveResult] = LatestSlot()
         self.depth_rate = RateMeter()
         self.latencies = RecentValues(100)
@@ -172,9 +179,9 @@ class Reconstruction:
         # The engine's arrays are this result's own: the motion pass edits them in place.
         noise = engine.noise if engine.noise is not None else SensorNoise.typical(int(full_scale))
         newest = newest_group(fs.frame_indices, self.n_frequencies)
-        motion, moved = invalidate_motion(
+        mp = invalidate_motion(
             frames, self.n_frequencies, noise=noise, newest=newest, false_alarm_rate=self.motion_false_alarm_rate,
-            grow_px=self.motion_grow_px,
+            grow_px=self.motion_grow_px, gross_error_mm=self.gross_error_mm, max_code=int(full_scale),
             depth=res.depth, points=res.points, valid=res.valid, reason=res.reason, sigma=res.sigma,
         )
         t2 = time.perf_counter()
@@ -182,10 +189,11 @@ class Reconstruction:
         sched = engine.calibration.pattern
         return LiveResult(
             depth=res.depth, points=res.points, valid=res.valid, reason=res.reason,
-            texture=res.texture, modulation=res.modulation, motion=motion, mode=fs.mode,
+            texture=res.texture, modulation=res.modulation, motion=mp.mask, mode=fs.mode,
             frame_indices=fs.frame_indices, timestamps=fs.timestamps,
             exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
             received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms, sigma=res.sigma,
             map_time_s=map_time(fs.timestamps, tuple(sched.frequencies), combined=engine.combine_frequencies),
-            moved_pixels=moved, motion_ms=1000.0 * (t2 - t1),
+            moved_pixels=mp.moved, motion_ms=1000.0 * (t2 - t1), scene_moved=mp.scene_moved,
+            uncertain_moving_pixels=mp.uncertain,
         )

@@ -148,6 +148,8 @@ def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     meta = live.get("/api/result/latest").json()
     h, w = meta["shape"]
     assert 0 < n <= h * w
+    # a still scene: the raw motion flags stay at the still rate, so no moving-scene σ bound was applied
+    assert meta["scene_moved"] is False and meta["uncertain_moving_pixels"] == 0
     assert n == pytest.approx(meta["valid_fraction"] * h * w, rel=0.2)
 
 

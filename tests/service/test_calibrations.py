@@ -58,15 +58,18 @@ def test_conflict_without_calibration_or_session(tmp_path):
         mgr.reconstruct(None)  # type: ignore[arg-type]  # refused before the set is looked at
 
 
-@pytest.mark.parametrize("max_sigma_mm", [None, 0.05])
-def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm):
+@pytest.mark.parametrize("max_sigma_mm, gross_error_mm, expected", [
+    (None, 0.0, None), (0.05, 0.0, 0.05), (0.05, 0.5, 0.05), (None, 0.5, 0.5 / 4.891638),
+    (None, 1.0, 1.0 / 4.891638), (1.0, 0.5, 1.0)])  # the explicit setting replaces the tolerance's bound
+def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm, gross_error_mm, expected):
     config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
-    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm),
+    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm, gross_error_mm=gross_error_mm),
                              LivePipeline(config, PatternSchedule(), None))
     assert mgr.engine_for(PatternSchedule()) == (None, None)  # nothing active yet
     mgr.activate(calibration, name="s", persist=False)
     engine, why = mgr.engine_for(PatternSchedule())
-    assert why is None and engine is not None and engine.max_sigma_mm == max_sigma_mm
+    assert why is None and engine is not None
+    assert engine.sigma_limit_mm == (None if expected is None else pytest.approx(expected, rel=1e-6))
 
 
 @pytest.mark.parametrize("min_modulation", [None, 5.1])
@@ -84,3 +87,10 @@ def test_the_live_engine_carries_the_min_modulation_setting(tmp_path, calibratio
 def test_max_sigma_setting_is_validated():
     with pytest.raises(ValueError, match="max_sigma_mm"):
         Settings(max_sigma_mm=0)
+
+
+def test_gross_error_setting_is_validated_and_read_from_the_environment(monkeypatch, tmp_path):
+    with pytest.raises(ValueError, match="gross_error_mm"):
+        Settings(data_dir=tmp_path, gross_error_mm=-0.1)
+    monkeypatch.setenv("FRINGESCOPE_GROSS_ERROR_MM", "0")
+    assert Settings(data_dir=tmp_path).gross_error_mm == 0.0

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 
 import numpy as np
 import pytest
@@ -15,6 +16,8 @@ from app.service.motion import (
     motion_k,
     motion_mask,
     newest_group,
+    scene_moved,
+    sigma_bounds,
 )
 
 NOISE = SensorNoise(gain_dn_per_e=0.5, read_noise_dn=2.0)
@@ -106,7 +109,7 @@ def test_invalidate_marks_moved_pixels_in_place_except_saturated():
     reason = np.zeros((h, w), np.uint8)
     reason[:2, :2] = Reason.SATURATED
     valid[:2, :2] = False
-    mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=points, valid=valid, reason=reason,
+    mask, n, _, _ = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=points, valid=valid, reason=reason,
                                 sigma=sigma, grow_px=0)
     assert n == 100 and mask[:10, :10].all() and mask.sum() == 100
     assert (reason[:2, :2] == Reason.SATURATED).all()
@@ -131,7 +134,7 @@ def test_moved_regions_grow_by_grow_px():
     expected[:3, :3] = True
     assert np.array_equal(grown, expected)
     z = np.zeros((40, 50), np.float32)
-    mask, n = invalidate_motion(frames, 4, noise=NOISE, depth=z.copy(), points=np.zeros((40, 50, 3), np.float32),
+    mask, n, _, _ = invalidate_motion(frames, 4, noise=NOISE, depth=z.copy(), points=np.zeros((40, 50, 3), np.float32),
                                 valid=np.ones((40, 50), bool), reason=z.astype(np.uint8), sigma=z.copy(), grow_px=2)
     assert np.array_equal(mask, expected) and n == expected.sum()
     with pytest.raises(ValueError, match="grow_px"):
@@ -162,3 +165,83 @@ def test_group_times_and_the_map_instant():
     # rolling: the newest group is group 0 (frames 16..19 after 4..15)
     idx = list(range(16, 20)) + list(range(4, 16))
     assert newest_group(idx, 4) == 0 and newest_group(list(range(9)), 3) == 2
+
+
+def test_sigma_bounds_are_the_tolerance_over_the_noise_and_motion_quantiles():
+    still, moving = sigma_bounds(0.5, 4, 1e-4)
+    z = 4.891638  # Φ⁻¹(1 − 1e-6 / 2)
+    k = 4.149410  # Φ⁻¹(1 − 1e-4 / 6): three tests against the newest group
+    assert still == pytest.approx(0.5 / z, rel=1e-5)
+    assert moving == pytest.approx(0.5 / (z + k), rel=1e-5)
+    # a Gaussian pixel at the still bound exceeds the tolerance at the stated rate 1e-6
+    assert 2 * NormalDist().cdf(-0.5 / still) == pytest.approx(1e-6, rel=1e-4)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="gross_error_mm"):
+            sigma_bounds(bad, 4)
+
+
+def test_scene_moved_holds_its_level_on_poisson_counts_and_sees_motion():
+    rng = np.random.default_rng(11)
+    alpha = 1e-2
+    for n_px in (2_000, 100_000, 1_400_000):
+        counts = rng.poisson(n_px * alpha, 20_000)
+        rate = np.mean([scene_moved(int(c), n_px, alpha) for c in counts])
+        assert rate <= alpha, (n_px, rate)  # a still scene is called moving at most at level α
+    assert scene_moved(3 * 1_400_000 // 1000, 1_400_000, 1e-4)  # 3e-3 flagged: 30 × the still rate
+    assert not scene_moved(140, 1_400_000, 1e-4)
+    with pytest.raises(ValueError, match="n_pixels"):
+        scene_moved(1, 0)
+    with pytest.raises(ValueError, match="false_alarm_rate"):
+        scene_moved(1, 10, 1.0)
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_the_moving_scene_sigma_bound_applies_only_when_the_scene_moved(moving):
+    s = PatternSchedule()
+    h, w = 60, 80
+    bg = np.full((4, h, w), 100.0)
+    if moving:
+        bg[3, :10, :10] = 160.0  # 100 flagged pixels: far above a still 4800-pixel set's ≈ 0.5
+    frames = fringe_set(bg, s, noise=NOISE, seed=8)
+    still_bound, moving_bound = sigma_bounds(0.5, 4)
+    sigma = np.full((h, w), 0.5 * (still_bound + moving_bound), np.float32)  # between the two bounds
+    sigma[:, w // 2:] = 0.5 * moving_bound  # well inside both
+    depth = np.full((h, w), 3.0, np.float32)
+    valid = np.ones((h, w), bool)
+    reason = np.zeros((h, w), np.uint8)
+    mp = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=np.zeros((h, w, 3), np.float32), valid=valid,
+                           reason=reason, sigma=sigma, grow_px=0, gross_error_mm=0.5)
+    assert mp.scene_moved == moving
+    left = np.zeros((h, w), bool)
+    left[:, : w // 2] = True
+    if moving:
+        assert (reason[left & ~mp.mask] == Reason.UNCERTAIN).all() and not valid[left].any()
+        assert np.isnan(depth[left]).all() and mp.uncertain == (left & ~mp.mask).sum()
+    else:
+        assert mp.uncertain == 0
+    keep = ~left & ~mp.mask
+    assert valid[keep].all() and (reason[keep] == 0).all() and (depth[keep] == 3.0).all()
+    # without a tolerance nothing is bounded
+    valid[:] = True
+    reason[:] = 0
+    mp = invalidate_motion(frames, 4, noise=NOISE, depth=depth, points=np.zeros((h, w, 3), np.float32), valid=valid,
+                           reason=reason, sigma=np.full((h, w), 1.0, np.float32), grow_px=0)
+    assert mp.uncertain == 0 and not (reason == Reason.UNCERTAIN).any()
+
+
+def test_clipped_pixels_are_not_tested():
+    # a still, over-exposed patch: each frequency's clipped sinusoid has its own mean (the clipping
+    # depends on the phase), so its groups' backgrounds disagree although nothing moved
+    s = PatternSchedule()
+    bg = np.full((4, 40, 600), 100.0)
+    bg[:, 10:30, 100:500] = 200.0
+    quiet = SensorNoise(gain_dn_per_e=0.02, read_noise_dn=0.5)
+    frames = fringe_set(bg, s, modulation=200.0, noise=quiet, seed=9)
+    clipped = (frames == 255).any(axis=0)
+    assert clipped[10:30, 100:500].mean() > 0.5
+    assert motion_mask(frames, 4, noise=quiet, max_code=255)[clipped].sum() == 0
+    # the bias is there: tested as if unclipped (a higher clipping code), many are flagged
+    frames16 = frames.astype(np.uint16)
+    assert motion_mask(frames16, 4, noise=quiet, max_code=4095)[clipped].mean() > 0.05
+    with pytest.raises(ValueError, match="max_code"):
+        motion_mask(frames, 4, noise=quiet, max_code=300)

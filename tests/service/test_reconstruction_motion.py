@@ -11,6 +11,7 @@ from app.devices.sim import SimulatedWorld
 from app.devices.sim.ideal import ideal_calibration
 from app.recon import Reconstructor
 from app.service.framesets import FrameSet
+from app.service.motion import sigma_bounds
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
@@ -35,6 +36,7 @@ def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(s
     assert still.valid.mean() > 0.5
     # false alarms only: each grows to a 5 × 5 square, so about 25·α of the pixels
     assert still.moved_pixels < 1.3 * 25 * rec.motion_false_alarm_rate * still.valid.size
+    assert not still.scene_moved and still.uncertain_moving_pixels == 0  # still: only the engine's σ limit
     moved = frames.copy()
     patch = (slice(400, 460), slice(600, 700))
     moved[4:8][(slice(None), *patch)] = np.clip(moved[4:8][(slice(None), *patch)].astype(int) + 40, 0, 255)
@@ -51,5 +53,9 @@ def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(s
     same = (res.valid == still.valid)[elsewhere].mean()
     assert same > 1.0 - 2 * 1.3 * 25 * rec.motion_false_alarm_rate  # only the two runs' false alarms differ
     assert res.moved_pixels >= 60 * 100 and res.mode == mode
+    # 6000 flagged pixels are far beyond a still set's count: the moving-scene σ bound applied
+    bound = sigma_bounds(rec.gross_error_mm, 4, rec.motion_false_alarm_rate)[1]
+    assert res.scene_moved and np.nanmax(res.sigma[res.valid]) <= bound
+    assert res.uncertain_moving_pixels == (still.valid & (still.sigma > bound) & ~res.motion).sum()
     # the map stands for the finest group's mid time: frames 12..15 in either order
     assert res.map_time_s == pytest.approx(0.03 * 13.5)
