@@ -66,6 +66,9 @@ class Settings(BaseSettings):
     # pixels with σ > E/4.89 are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
     # (k: the motion test's threshold; app.service.motion.sigma_bounds, README "Rolling mode and motion")
     gross_error_mm: float = Field(0.5, ge=0, le=100)
+    # the camera's noise (σ and the validity rule) is measured from a live set this often, s
+    # (0: the nominal SensorNoise.typical; app.service.sensor_noise)
+    noise_estimate_interval_s: float = Field(30.0, ge=0, le=3600)
     # optional validity rule: pixels whose 1-σ depth noise exceeds this (mm) are UNCERTAIN;
     # benchmarks/bench_motion.py shows what it adds during motion (unset: no such rule)
     max_sigma_mm: float | None = Field(None, gt=0, le=100)

@@ -112,6 +112,9 @@ class StatusOut(BaseModel):
     bit_depth: int | None = None  # issue 14: the camera's significant bits
     schedule: dict[str, Any] | None = None  # issue 14: the fringe pattern schedule in use
     warnings: list[str]
+    sensor_noise: dict[str, Any] | None = Field(
+        None, description="the camera noise model σ and the validity rule use: source (measured | nominal), "
+                          "read_noise_dn, gain_dn_per_e, estimates")
 
 
 class ResultMeta(BaseModel):

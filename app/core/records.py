@@ -71,6 +71,7 @@ class Status:
     bit_depth: int = 8  # the camera's significant bits
     schedule: dict[str, Any] = field(default_factory=dict)  # the fringe pattern schedule in use
     warnings: tuple[str, ...] = field(default=())
+    sensor_noise: dict[str, Any] = field(default_factory=dict)  # the camera noise model in use
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)

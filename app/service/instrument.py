@@ -54,7 +54,8 @@ class Instrument:
                                 rolling=settings.rolling, autostart=settings.autostart,
                                 motion_false_alarm_rate=settings.motion_false_alarm_rate,
                                 motion_grow_px=settings.motion_grow_px,
-                                gross_error_mm=settings.gross_error_mm or None)
+                                gross_error_mm=settings.gross_error_mm or None,
+                                noise_estimate_interval_s=settings.noise_estimate_interval_s)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
         self.recorder: RecordingState | None = None  # attached by create_app
@@ -219,6 +220,9 @@ class Instrument:
                               schedule, self.calibration)
 
     def _sensor_noise(self, schedule: PatternSchedule, full_scale: int) -> SensorNoise | None:
+        measured = self.reconstruction.noise.current  # what the live engine uses
+        if measured is not None:
+            return measured
         acq = self.acquisition
         if acq is None:
             return None
@@ -310,6 +314,7 @@ class Instrument:
                       "frames_per_depth": self.schedule.n_frames,
                       "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
             warnings=tuple(warnings),
+            sensor_noise=rec.noise.describe(),
         )
 
     def status(self) -> dict[str, Any]:

@@ -39,6 +39,7 @@ class PipelineConfig:
     motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE
     motion_grow_px: int = DEFAULT_GROW_PX
     gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM  # None: no σ bound while moving
+    noise_estimate_interval_s: float = 30.0  # the camera's noise measured this often (0: nominal)
 
 
 class LivePipeline:
@@ -53,7 +54,7 @@ class LivePipeline:
         self.reconstruction = Reconstruction(
             self.queue, self._live_engine, n_frequencies=len(schedule.frequencies), bit_depth=config.bit_depth,
             motion_false_alarm_rate=config.motion_false_alarm_rate, motion_grow_px=config.motion_grow_px,
-            gross_error_mm=config.gross_error_mm,
+            gross_error_mm=config.gross_error_mm, noise_estimate_interval_s=config.noise_estimate_interval_s,
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None

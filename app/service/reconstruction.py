@@ -29,6 +29,7 @@ from app.service.motion import (
     map_time,
     newest_group,
 )
+from app.service.sensor_noise import LiveNoise
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.reconstruction")
@@ -118,6 +119,7 @@ class Reconstruction:
         motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
         motion_grow_px: int = DEFAULT_GROW_PX,
         gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
+        noise_estimate_interval_s: float = 30.0,
     ) -> None:
         self.queue = queue
         self.reconstructor = reconstructor
@@ -127,6 +129,7 @@ class Reconstruction:
         self.motion_grow_px = int(motion_grow_px)
         # valid pixels' σ bound while the scene moves (app.service.motion.sigma_bounds); None: off
         self.gross_error_mm = gross_error_mm
+        self.noise = LiveNoise(noise_estimate_interval_s)  # the camera's, measured from the sets
         self.results: LatestSlot[LiveResult] = LatestSlot()
         self.depth_rate = RateMeter()
         self.latencies = RecentValues(100)
@@ -168,12 +171,18 @@ class Reconstruction:
             self.depth_rate.tick(result.published_s)
             self.latencies.add(result.latency_ms)
             self.recon_times.add(result.recon_ms)
+            schedule = engine.calibration.pattern
+            if self.noise.due(time.monotonic(), schedule):  # after publishing: no map waits for it
+                self.noise.update(fs.stack(), schedule, int(result.full_scale), time.monotonic())
 
     def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
         """Reconstruct one set and invalidate the pixels that moved during it (both modes)."""
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
+        measured = self.noise.current
+        if measured is not None and engine.noise is not measured:
+            engine.noise = measured  # read at every run: σ, the validity rule and the motion test use it
         res = engine.run(frames)  # the engine serialises its parallel kernel itself
         t1 = time.perf_counter()
         # The engine's arrays are this result's own: the motion pass edits them in place.

@@ -36,6 +36,18 @@ def test_status_reports_a_running_instrument(live: TestClient) -> None:
     assert s1["frames_received"] - st["frames_received"] >= 16 * sets
 
 
+def test_the_live_engine_uses_the_cameras_measured_noise(live: TestClient) -> None:
+    st = wait_for(live, lambda s: s["sensor_noise"]["source"] == "measured", 30, "a noise estimate")
+    noise = st["sensor_noise"]
+    # the simulated camera is SensorNoise.typical(255): read noise 12 e- at 16000 e- full well
+    # (0.19 DN; with quantisation, (0.19^2 + 1/12)^0.5 = 0.35 DN), gain 255/16000 DN/e-
+    assert noise["gain_dn_per_e"] == pytest.approx(255 / 16000, rel=0.15)
+    assert 0.2 < noise["read_noise_dn"] < 0.6 and noise["estimates"] >= 1
+    inst = live.app.state.instrument  # type: ignore[attr-defined]
+    wait_result(live, lambda m: True, 10)
+    assert inst.pipeline._engine.noise is inst.reconstruction.noise.current
+
+
 def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:
     try:
         r = live.put("/api/exposure", json={"exposure_ms": 14.5})

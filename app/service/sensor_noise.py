@@ -1,0 +1,86 @@
+"""The camera's temporal noise, measured from the live fringe sets.
+
+The live engine's σ and its validity rule (:mod:`app.recon.validity`) need the camera's
+noise, σ_I² = read² + gain·I. :meth:`SensorNoise.typical` is a guess (a generic sensor at the
+ADC's range); on the real CFPE captures it was 1.3–1.7× optimistic, which turns the rule's
+1e-6 order-error bound into ~1e-3. So the live service measures it: every
+``interval_s`` it fits the N-step residual of the newest set
+(:func:`app.recon.noise.estimate_sensor_noise`, N > 3) and installs the result in the engine.
+
+Read noise and gain belong to the sensor, not to the scene. Motion between a group's frames and
+projector harmonics only ADD to the residual, so the quietest estimate seen so far (compared at
+a quarter of full scale) is kept: a moving scene can make the noise model too pessimistic
+(fewer valid pixels, larger σ) until a stiller set is seen, never too optimistic by more than
+the estimate's own scatter (a few per cent in variance over thousands of pixels).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+
+from app.core.schedule import PatternSchedule
+from app.recon.noise import estimate_sensor_noise
+from app.recon.reconstructor import SensorNoise
+
+log = logging.getLogger(__name__)
+
+#: the intensity at which two estimates are compared, as a fraction of full scale
+REFERENCE_FRACTION = 0.25
+
+
+class LiveNoise:
+    """The quietest noise estimate from the live sets of one sensor range (thread-safe).
+
+    Args:
+        interval_s: seconds between estimates (each costs ~0.1 s of the reconstruction
+            thread, taken after a result is published); 0 turns measuring off (the engine
+            keeps its own model, :meth:`SensorNoise.typical` by default).
+    """
+
+    def __init__(self, interval_s: float = 30.0) -> None:
+        if not (math.isfinite(interval_s) and interval_s >= 0.0):
+            raise ValueError(f"interval_s: must be finite and >= 0, got {interval_s}")
+        self.interval_s = float(interval_s)
+        self._lock = threading.Lock()
+        self._noise: SensorNoise | None = None
+        self._max_code: int | None = None
+        self._next_s = -math.inf
+        self.estimates = 0
+
+    @property
+    def current(self) -> SensorNoise | None:
+        """The model in use (None: nothing measured yet, or measuring off)."""
+        with self._lock:
+            return self._noise
+
+    def due(self, now_s: float, schedule: PatternSchedule) -> bool:
+        """Whether a set taken now with ``schedule`` should be measured (N = 3 has no residual)."""
+        return self.interval_s > 0.0 and schedule.steps > 3 and now_s >= self._next_s
+
+    def update(self, frames: object, schedule: PatternSchedule, max_code: int, now_s: float) -> SensorNoise | None:
+        """Fit one set's residual; keep it if it is quieter than the model so far (or the sensor
+        range changed). Returns the model in use afterwards."""
+        self._next_s = now_s + self.interval_s
+        try:
+            est = estimate_sensor_noise(frames, schedule, max_code=max_code)
+        except ValueError as exc:  # too few usable pixels (dark, saturated): try again later
+            log.debug("live noise estimate: %s", exc)
+            return self.current
+        ref = REFERENCE_FRACTION * max_code
+        with self._lock:
+            self.estimates += 1
+            if (self._noise is None or self._max_code != max_code
+                    or float(est.variance_dn2(ref)) < float(self._noise.variance_dn2(ref))):
+                self._noise, self._max_code = est, max_code
+            return self._noise
+
+    def describe(self) -> dict[str, object]:
+        """For the status: the model in use and where it comes from."""
+        noise = self.current
+        if noise is None:
+            return {"source": "nominal" if self.interval_s > 0 else "nominal (measuring off)",
+                    "read_noise_dn": None, "gain_dn_per_e": None, "estimates": self.estimates}
+        return {"source": "measured", "read_noise_dn": round(noise.read_noise_dn, 4),
+                "gain_dn_per_e": round(noise.gain_dn_per_e, 6), "estimates": self.estimates}
