@@ -390,6 +390,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     try:
         geo = GeometricModel.fit(samples, plane)
         geo.region = geo.region.field_limited(field_px)
+        # where the model's own (jackknife) uncertainty meets the accuracy target, and no farther
+        geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
+                                         (float(z[use].min()), float(z[use].max())))
         models["geometric"] = geo
     except ValueError as exc:
         if model == "geometric":
