@@ -53,6 +53,7 @@ K1_CONFIDENCE = 0.95
 #: the depth model's own uncertainty (1 σ, jackknife over poses) allowed at a supported (pixel,
 #: height): half of issue 13's |mean error| <= 0.005 mm, so that a 2 σ calibration error still meets it
 MODEL_SIGMA_TOLERANCE_MM = 0.0025
+CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
 
 
 def _rotation(rvec: F64) -> F64:
@@ -182,7 +183,7 @@ class GeometricModel(DepthModel):
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
                         rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
-                        cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0, step_mm: float = 0.25,
+                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0, step_mm: float = 0.25,
                         tolerance_mm: float = MODEL_SIGMA_TOLERANCE_MM) -> SupportedRegion:
         """This model's region with each extrapolation verified to ``tolerance_mm``.
 
@@ -191,7 +192,7 @@ class GeometricModel(DepthModel):
         :attr:`region`, heights up to ``margin_mm`` past the calibrated range) only where the
         model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
-        (columns, rows) a 4 × 4 set of pixels over the cell (its edges included) is tested at
+        (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
         data, where every one of its pixels passes (none: the cell supports nothing), widened by
         one step each side for the noise of the measured height the reconstruction tests.
@@ -219,34 +220,43 @@ class GeometricModel(DepthModel):
         cw, ch = w / gw, h / gh
         hs = np.arange(lo - margin_mm, hi + margin_mm + 0.5 * step_mm, step_mm)
         in_range = (hs >= lo) & (hs <= hi)
-        frac = np.linspace(0.0, 1.0, 4)
+        # every cell's k × k test pixels (its edges included), all cells at once: (gh, gw, k·k)
+        frac = np.linspace(0.0, 1.0, CELL_TEST_PIXELS)
+        fu, fv = np.meshgrid(frac, frac)
+        uu = np.clip((np.arange(gw)[None, :, None] + fu.ravel()[None, None, :]) * cw, 0, w - 1)
+        vv = np.clip((np.arange(gh)[:, None, None] + fv.ravel()[None, None, :]) * ch, 0, h - 1)
+        uu, vv = np.broadcast_arrays(uu, vv)
+        uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
+        rxy = np.asarray(rays(uv), np.float64).reshape(-1, 2)
+        r3 = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
+        nr = r3 @ np.asarray(plane.normal, np.float64)
+        ok = np.empty((len(hs), gh, gw), bool)
+        in_data = np.empty((len(hs), gh, gw), bool)
+        for k, hk in enumerate(hs):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
+            phi = self.phase_of_points(pts)
+            data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
+            sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
+            good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
+            ok[k] = good.reshape(gh, gw, -1).all(axis=2)
+            in_data[k] = data.reshape(gh, gw, -1).any(axis=2)
         grid = np.empty((gh, gw, 2))
         for i in range(gh):
             for j in range(gw):
-                uu, vv = np.meshgrid(np.clip(j * cw + frac * cw, 0, w - 1), np.clip(i * ch + frac * ch, 0, h - 1))
-                uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
-                rxy = np.asarray(rays(uv), np.float64).reshape(-1, 2)
-                n = len(uv)
-                hh = np.repeat(hs, n)
-                r3 = np.concatenate([np.tile(rxy, (len(hs), 1)), np.ones((len(hh), 1))], axis=1)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    pts = r3 * ((hh - plane.offset_mm) / (r3 @ np.asarray(plane.normal, np.float64)))[:, None]
-                phi = self.phase_of_points(pts).reshape(len(hs), n)
-                in_data = in_range[:, None] & (phi >= p_lo) & (phi <= p_hi)
-                sig = self.height_sigma(np.tile(uv[:, 0], len(hs)), np.tile(uv[:, 1], len(hs)),
-                                        np.tile(rxy, (len(hs), 1)), hh, plane).reshape(len(hs), n)
-                ok = np.asarray((in_data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)).all(axis=1), bool)
-                seeds = np.flatnonzero(ok & in_data.any(axis=1))
+                okc = ok[:, i, j]
+                seeds = np.flatnonzero(okc & in_data[:, i, j])
                 if seeds.size == 0:
-                    worst = np.where(np.isfinite(sig), sig, np.inf).max(axis=1)
-                    if not ok.any():
+                    # no data in the cell: the verified heights nearest the calibrated range's middle
+                    seeds = np.flatnonzero(okc)
+                    if seeds.size == 0:
                         grid[i, j] = (1.0, -1.0)
                         continue
-                    seeds = np.array([int(np.argmin(np.where(ok, worst, np.inf)))])
+                    seeds = seeds[[int(np.argmin(np.abs(hs[seeds] - 0.5 * (lo + hi))))]]
                 a, b = int(seeds[0]), int(seeds[-1])
-                while a > 0 and ok[a - 1]:
+                while a > 0 and okc[a - 1]:
                     a -= 1
-                while b < len(hs) - 1 and ok[b + 1]:
+                while b < len(hs) - 1 and okc[b + 1]:
                     b += 1
                 # the kernel tests the MEASURED height: one step of allowance for its noise (σ
                 # changes little over it), else a surface on the verified end loses half its pixels

@@ -391,8 +391,8 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
     cw, ch = region.cell_px
     for i in range(3):
         for j in range(4):
-            uu, vv = np.meshgrid(np.linspace(j * cw, min((j + 1) * cw, rig.width - 1), 4),
-                                 np.linspace(i * ch, min((i + 1) * ch, rig.height - 1), 4))
+            uu, vv = np.meshgrid(np.linspace(j * cw, min((j + 1) * cw, rig.width - 1), 3),
+                                 np.linspace(i * ch, min((i + 1) * ch, rig.height - 1), 3))
             uv = np.stack([uu.ravel(), vv.ravel()], 1)
             r = rays(uv)
             checks = [(h, True) for h in g[i, j] if not 8.0 <= h <= 22.0]
