@@ -194,8 +194,8 @@ class GeometricModel(DepthModel):
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
         (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
-        data, where every one of its pixels passes (none: the cell supports nothing), widened by
-        one step each side for the noise of the measured height the reconstruction tests.
+        data, where every one of its pixels passes (none: the cell supports nothing); a measured
+        height may pass those bounds by one step (:attr:`SupportedRegion.height_allowance_mm`).
 
         Args:
             image_size: (width, height) of the camera, px.
@@ -258,10 +258,10 @@ class GeometricModel(DepthModel):
                     a -= 1
                 while b < len(hs) - 1 and okc[b + 1]:
                     b += 1
-                # the kernel tests the MEASURED height: one step of allowance for its noise (σ
-                # changes little over it), else a surface on the verified end loses half its pixels
-                grid[i, j] = (hs[a] - step_mm, hs[b] + step_mm)
-        return SupportedRegion(self.region.phase_rad, grid, (cw, ch), self.region.field_px)
+                grid[i, j] = (hs[a], hs[b])
+        # the kernel tests the MEASURED height: one step of allowance for its noise (σ changes
+        # little over it), else a surface on a verified end would lose half its pixels
+        return SupportedRegion(self.region.phase_rad, grid, (cw, ch), self.region.field_px, step_mm)
 
     def params(self) -> dict[str, Any]:
         return {

@@ -377,7 +377,8 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
     region = exact.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0)
     g = region.height_grid_mm
     assert g.shape == (3, 4, 2) and region.cell_px == (rig.width / 4, rig.height / 3)
-    assert np.all(g[..., 0] == -0.25) and np.all(g[..., 1] == 30.25)  # one step for the measured height's noise
+    assert np.all(g[..., 0] == 0.0) and np.all(g[..., 1] == 30.0)
+    assert region.height_allowance_mm == 0.25  # one step for the measured height's noise
     assert region.phase_rad == exact.region.phase_rad
 
     noisy = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.03, seed=1), plane)
@@ -386,7 +387,6 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
                                    tolerance_mm=tol)
     g = region.height_grid_mm
     assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)  # the middle of the boards kept …
-    g = g + np.array([0.25, -0.25])  # the verified heights, without the step for the noise
     assert np.sum(g[..., 0] > 0.0) + np.sum(g[..., 1] < 30.0) >= 6  # … the uncertain margin cut
     cw, ch = region.cell_px
     for i in range(3):
@@ -401,3 +401,22 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
             for h, inside in checks:
                 worst = noisy.height_sigma(uv[:, 0], uv[:, 1], r, np.full(len(uv), h), plane).max()
                 assert (worst <= tol) == inside, (i, j, h, worst)
+
+
+def test_height_allowance_widens_the_bounds_for_measured_heights_only(tmp_path):
+    """The grid bounds hold for true heights; a measured one may pass them by the allowance
+    (both reconstruction paths), and the allowance round-trips through the file."""
+    region = SupportedRegion(phase_rad=(0.0, 10.0), height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
+                             cell_px=(2.0, 2.0), height_allowance_mm=0.25)
+    h = np.array([[0.8, 2.2, 1.5, 1.5]])
+    p = np.full((1, 4), 5.0)
+    np.testing.assert_array_equal(region.outside(h, p), [[True, True, True, True]])
+    np.testing.assert_array_equal(region.outside(h, p, measured=True), [[False, False, True, True]])
+    grid, *_ = region.kernel_bounds()
+    np.testing.assert_allclose(grid[0, 0], (0.75, 2.25))
+    np.testing.assert_allclose(grid[0, 1], (1.0, -1.0))  # a cell without support stays without
+    back = SupportedRegion.from_dict(json.loads(json.dumps(region.to_dict())))
+    assert back.height_allowance_mm == 0.25
+    assert SupportedRegion.from_dict({"phase_rad": None}).height_allowance_mm == 0.0  # older files
+    with pytest.raises(ValueError, match="height_allowance_mm"):
+        SupportedRegion.from_dict({"height_allowance_mm": -1.0})
