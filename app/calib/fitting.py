@@ -32,7 +32,7 @@ from app.core.depth_model import (
     region_from_samples,
 )
 from app.core.eq5 import Eq5Model
-from app.core.geometric import GeometricModel
+from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
 from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
@@ -147,8 +147,17 @@ class CalibrationReport:
         scale = extent / (2.0 * math.pi * float(sched.frequencies[-1]))
         lo, hi = max(0.0, rng[0] * scale), min(float(extent), rng[1] * scale)
         axis = "columns" if sched.orientation == "vertical" else "rows"
-        return [f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} (the boards' phase range "
-                "and its margin); surfaces lit from outside it have no depth"]
+        lines = [f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} (the boards' phase range "
+                 "and its margin); surfaces lit from outside it have no depth"]
+        grid = self.calibration.model.region.height_grid_mm
+        if self.calibration.model.name == "geometric" and grid is not None:
+            z_lo, z_hi = self.calibration.height_range_mm
+            span = np.clip(np.minimum(grid[..., 1], z_hi) - np.maximum(grid[..., 0], z_lo), 0.0, None)
+            share = float(span.mean() / (z_hi - z_lo)) if z_hi > z_lo else math.nan
+            lines.append(f"depth model verified in {100 * share:.0f} % of the calibrated volume (image cells x "
+                         f"heights): the boards' data, and beyond them where its own 1-sigma uncertainty is "
+                         f"<= {1000 * MODEL_SIGMA_TOLERANCE_MM:.1f} um")
+        return lines
 
     def _camera_lines(self, cam: CameraFit) -> list[str]:
         held = ", ".join(f"{k} {_fmt(v)}" for k, v in cam.held_out_px.items())
@@ -396,6 +405,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     try:
         geo = GeometricModel.fit(samples, plane)
         geo.region = geo.region.field_limited(field_px)
+        # where the model's own (jackknife) uncertainty meets the accuracy target, and no farther
+        geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
+                                         (float(z[use].min()), float(z[use].max())))
         models["geometric"] = geo
     except ValueError as exc:
         if model == "geometric":

@@ -122,12 +122,15 @@ class SupportedRegion:
             focal lengths), or None for the whole image. The camera's lens distortion is fitted
             from board points out to some radius only; beyond it (plus a margin the held-out
             error justifies) its polynomial extrapolates and no depth is given there.
+        height_allowance_mm: a MEASURED height may pass the grid's bounds by this much (its noise:
+            a surface on a bound keeps its pixels); the bounds themselves hold for the true height.
     """
 
     phase_rad: tuple[float, float] | None = None
     height_grid_mm: F64 | None = None
     cell_px: tuple[float, float] = (1.0, 1.0)
     field_px: tuple[float, float, float, float] | None = None
+    height_allowance_mm: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -135,6 +138,7 @@ class SupportedRegion:
             "height_grid_mm": None if self.height_grid_mm is None else np.round(self.height_grid_mm, 6).tolist(),
             "cell_px": list(self.cell_px),
             "field_px": None if self.field_px is None else [round(float(x), 4) for x in self.field_px],
+            "height_allowance_mm": float(self.height_allowance_mm),
         }
 
     @classmethod
@@ -153,32 +157,43 @@ class SupportedRegion:
             ph = None if phase is None else (float(phase[0]), float(phase[1]))
             fp = data.get("field_px")
             fpx = None if fp is None else tuple(float(x) for x in fp)
-        except (TypeError, IndexError) as exc:
+            allowance = float(data.get("height_allowance_mm", 0.0))
+        except (TypeError, IndexError, ValueError) as exc:
             raise ValueError(f"supported_region: malformed ({exc})") from None
         if cw <= 0 or ch <= 0:
             raise ValueError("supported_region: cell_px must be positive")
         if fpx is not None and (len(fpx) != 4 or not all(math.isfinite(x) for x in fpx)
                                 or fpx[2] <= 0 or fpx[3] <= 0):
             raise ValueError("supported_region: field_px must be 4 finite numbers (cx, cy, rx, ry), rx, ry > 0")
-        return cls(ph, g, (cw, ch), fpx)
+        if not (math.isfinite(allowance) and allowance >= 0.0):
+            raise ValueError("supported_region: height_allowance_mm must be finite and >= 0")
+        return cls(ph, g, (cw, ch), fpx, allowance)
 
-    def kernel_bounds(self) -> tuple[F32, float, float, float, float]:
-        """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the kernel;
-        an unbounded region is a 1×1 grid of (−inf, inf)."""
+    def kernel_bounds(self, *, measured: bool = True) -> tuple[F32, float, float, float, float]:
+        """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the kernel
+        (``measured``: the grid widened by :attr:`height_allowance_mm`, as the kernel tests measured
+        heights); an unbounded region is a 1×1 grid of (−inf, inf)."""
         if self.height_grid_mm is None:
             grid = np.array([[[-np.inf, np.inf]]], np.float32)
             inv_w = inv_h = 0.0
         else:
-            grid = np.ascontiguousarray(self.height_grid_mm, np.float32)
+            g = np.array(self.height_grid_mm, np.float64)
+            if measured and self.height_allowance_mm > 0.0:
+                covered = g[..., 1] >= g[..., 0]
+                g[..., 0] = np.where(covered, g[..., 0] - self.height_allowance_mm, g[..., 0])
+                g[..., 1] = np.where(covered, g[..., 1] + self.height_allowance_mm, g[..., 1])
+            grid = np.ascontiguousarray(g, np.float32)
             inv_w, inv_h = 1.0 / self.cell_px[0], 1.0 / self.cell_px[1]
         lo, hi = self.phase_rad if self.phase_rad is not None else (-math.inf, math.inf)
         return grid, inv_w, inv_h, lo, hi
 
-    def outside(self, height_mm: npt.ArrayLike, phase: npt.ArrayLike) -> npt.NDArray[np.bool_]:
-        """(H, W) True where (pixel, height, phase) is outside the region (NaN counts as outside)."""
+    def outside(self, height_mm: npt.ArrayLike, phase: npt.ArrayLike, *, measured: bool = False
+                ) -> npt.NDArray[np.bool_]:
+        """(H, W) True where (pixel, height, phase) is outside the region (NaN counts as outside);
+        ``measured``: the heights are measured ones, allowed :attr:`height_allowance_mm` past the bounds."""
         h = np.asarray(height_mm, np.float64)
         p = np.asarray(phase, np.float64)
-        grid, inv_w, inv_h, lo, hi = self.kernel_bounds()
+        grid, inv_w, inv_h, lo, hi = self.kernel_bounds(measured=measured)
         rows, cols = h.shape
         ci = np.minimum((np.arange(rows) * inv_h).astype(np.int64), grid.shape[0] - 1)
         cj = np.minimum((np.arange(cols) * inv_w).astype(np.int64), grid.shape[1] - 1)
@@ -204,7 +219,7 @@ class SupportedRegion:
 
     def field_limited(self, field_px: tuple[float, float, float, float] | None) -> SupportedRegion:
         """This region with the camera-field ellipse ``field_px`` (see the attributes)."""
-        return SupportedRegion(self.phase_rad, self.height_grid_mm, self.cell_px, field_px)
+        return SupportedRegion(self.phase_rad, self.height_grid_mm, self.cell_px, field_px, self.height_allowance_mm)
 
 
 def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0,

@@ -20,6 +20,7 @@ with ray coefficients only and ``cubic = k1``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -44,6 +45,15 @@ PHASE_SPLIT = 0.75
 #: the supported phase range is the data's, extended by the verified factor 1/PHASE_SPLIT
 PHASE_EXTRAPOLATION_TOLERANCE = 1.5
 PHASE_FLOOR_PX = 0.01  # projector px: held-out errors below this count as exact (noise-free data)
+#: k1 is kept only when it differs from 0 at this confidence: |k1| beyond Student's t quantile
+#: (G − 1 degrees of freedom) times its standard error, the error estimated by the jackknife over
+#: the G board poses (a pose's points share its systematic errors, so the points are not
+#: independent; the poses are)
+K1_CONFIDENCE = 0.95
+#: the depth model's own uncertainty (1 σ, jackknife over poses) allowed at a supported (pixel,
+#: height): half of issue 13's |mean error| <= 0.005 mm, so that a 2 σ calibration error still meets it
+MODEL_SIGMA_TOLERANCE_MM = 0.0025
+CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
 
 
 def _rotation(rvec: F64) -> F64:
@@ -74,6 +84,14 @@ class GeometricModel(DepthModel):
     projector_width_px: int
     fringes: int
     region: SupportedRegion = field(default_factory=SupportedRegion)
+    #: the fits with one board pose left out each (set by :meth:`fit`; not serialised): their
+    #: spread is the model's own uncertainty (:meth:`height_sigma`)
+    jackknife: list[GeometricModel] = field(default_factory=list, repr=False, compare=False)
+    #: the other projector model fitted to the same data (with k1 for a pinhole, a pinhole for
+    #: k1; set by :meth:`fit`, not serialised): where the two disagree, the choice is uncertain
+    alternative: GeometricModel | None = field(default=None, repr=False, compare=False)
+    #: the boards' own phase range (no margin; set by :meth:`fit`, not serialised)
+    data_phase_rad: tuple[float, float] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.rvec = _vec("rvec", self.rvec)
@@ -128,6 +146,123 @@ class GeometricModel(DepthModel):
             xn = self.x_normalised(np.asarray(phi, np.float64).ravel())
             return np.asarray((a0 + a1 * xn) / (b0 + b1 * xn), np.float64)
 
+    def phase_of_points(self, points_mm: F64) -> F64:
+        """(n,) finest phase (rad) this model assigns to camera-frame points (n, 3), mm: the
+        inverse of the equal-phase surfaces (k1 inverted by Newton's method)."""
+        x = np.asarray(points_mm, np.float64).reshape(-1, 3)
+        r = self.rotation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = (x @ r[0] + self.t_mm[0]) / (x @ r[2] + self.t_mm[2])
+            xd = xn.copy()
+            for _ in range(8):
+                xd = xd - (xd * (1.0 + self.k1 * xd * xd) - xn) / (1.0 + 3.0 * self.k1 * xd * xd)
+        phi0, inv_sphi = self.phase_normalization()
+        return np.asarray(xd / inv_sphi + phi0, np.float64)
+
+    def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+        """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy`` (n, 2))
+        for a surface at ``height_mm``: the jackknife over board poses — each leave-one-pose-out fit
+        maps the phase this model gives there to a height; σ² = (G−1)/G·Σ(h_g − h̄)² — plus, in
+        quadrature, the difference to the :attr:`alternative` projector model's height (the
+        uncertainty of the choice between a pinhole and k1). NaN without a jackknife (a model
+        not made by :meth:`fit`, or fewer than 3 poses)."""
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        h = np.broadcast_to(np.asarray(height_mm, np.float64), (len(rxy),))
+        g = len(self.jackknife)
+        if g < 3:
+            return np.full(len(rxy), np.nan)
+        r = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pts = r * ((h - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64)))[:, None]
+        phi = self.phase_of_points(pts)
+        hs = np.stack([m.height_at(u, v, rxy, phi, plane) for m in self.jackknife])
+        var = (g - 1) / g * np.sum((hs - hs.mean(axis=0)) ** 2, axis=0)
+        if self.alternative is not None:
+            var = var + (self.alternative.height_at(u, v, rxy, phi, plane) - h) ** 2
+        return np.asarray(np.sqrt(var), np.float64)
+
+    def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
+                        rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
+                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0, step_mm: float = 0.25,
+                        tolerance_mm: float = MODEL_SIGMA_TOLERANCE_MM) -> SupportedRegion:
+        """This model's region with each extrapolation verified to ``tolerance_mm``.
+
+        Inside the boards' data — the calibrated height range and the boards' phase range
+        (:attr:`data_phase_rad`) — the model is supported. Beyond it (the phase margin of
+        :attr:`region`, heights up to ``margin_mm`` past the calibrated range) only where the
+        model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
+        pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
+        (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
+        heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
+        data, where every one of its pixels passes (none: the cell supports nothing); a measured
+        height may pass those bounds by one step (:attr:`SupportedRegion.height_allowance_mm`).
+
+        Args:
+            image_size: (width, height) of the camera, px.
+            plane: the reference plane.
+            rays: maps pixels (n, 2) (u, v) to undistorted normalised rays (n, 2) (the camera model).
+            height_range_mm: the calibrated (lo, hi) height range, mm.
+
+        Returns:
+            A :class:`SupportedRegion` with this region's phase range and field and the new
+            height grid; this region unchanged without a jackknife.
+        """
+        w, h = (int(x) for x in image_size)
+        gw, gh = (int(x) for x in cells)
+        if w <= 0 or h <= 0 or gw <= 0 or gh <= 0:
+            raise ValueError(f"image_size, cells: must be positive, got {image_size}, {cells}")
+        lo, hi = (float(x) for x in height_range_mm)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"height_range_mm: need finite lo < hi, got {height_range_mm}")
+        if len(self.jackknife) < 3:
+            return self.region
+        p_lo, p_hi = self.data_phase_rad if self.data_phase_rad is not None else (math.inf, -math.inf)
+        cw, ch = w / gw, h / gh
+        hs = np.arange(lo - margin_mm, hi + margin_mm + 0.5 * step_mm, step_mm)
+        in_range = (hs >= lo) & (hs <= hi)
+        # every cell's k × k test pixels (its edges included), all cells at once: (gh, gw, k·k)
+        frac = np.linspace(0.0, 1.0, CELL_TEST_PIXELS)
+        fu, fv = np.meshgrid(frac, frac)
+        uu = np.clip((np.arange(gw)[None, :, None] + fu.ravel()[None, None, :]) * cw, 0, w - 1)
+        vv = np.clip((np.arange(gh)[:, None, None] + fv.ravel()[None, None, :]) * ch, 0, h - 1)
+        uu, vv = np.broadcast_arrays(uu, vv)
+        uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
+        rxy = np.asarray(rays(uv), np.float64).reshape(-1, 2)
+        r3 = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
+        nr = r3 @ np.asarray(plane.normal, np.float64)
+        ok = np.empty((len(hs), gh, gw), bool)
+        in_data = np.empty((len(hs), gh, gw), bool)
+        for k, hk in enumerate(hs):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
+            phi = self.phase_of_points(pts)
+            data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
+            sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
+            good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
+            ok[k] = good.reshape(gh, gw, -1).all(axis=2)
+            in_data[k] = data.reshape(gh, gw, -1).any(axis=2)
+        grid = np.empty((gh, gw, 2))
+        for i in range(gh):
+            for j in range(gw):
+                okc = ok[:, i, j]
+                seeds = np.flatnonzero(okc & in_data[:, i, j])
+                if seeds.size == 0:
+                    # no data in the cell: the verified heights nearest the calibrated range's middle
+                    seeds = np.flatnonzero(okc)
+                    if seeds.size == 0:
+                        grid[i, j] = (1.0, -1.0)
+                        continue
+                    seeds = seeds[[int(np.argmin(np.abs(hs[seeds] - 0.5 * (lo + hi))))]]
+                a, b = int(seeds[0]), int(seeds[-1])
+                while a > 0 and okc[a - 1]:
+                    a -= 1
+                while b < len(hs) - 1 and okc[b + 1]:
+                    b += 1
+                grid[i, j] = (hs[a], hs[b])
+        # the kernel tests the MEASURED height: one step of allowance for its noise (σ changes
+        # little over it), else a surface on a verified end would lose half its pixels
+        return SupportedRegion(self.region.phase_rad, grid, (cw, ch), self.region.field_px, step_mm)
+
     def params(self) -> dict[str, Any]:
         return {
             "description": "projector as an inverse 1-D camera along the fringe axis",
@@ -155,6 +290,7 @@ class GeometricModel(DepthModel):
         supported phase range is the data's, extended by the verified
         extrapolation (:data:`PHASE_SPLIT`, :data:`PHASE_EXTRAPOLATION_TOLERANCE`)."""
         from scipy.optimize import least_squares
+        from scipy.stats import t as student_t
 
         ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
         if int(ok.sum()) < MIN_SAMPLES:
@@ -197,8 +333,23 @@ class GeometricModel(DepthModel):
             for with_k1 in (False, True):
                 xi = solve(inner, with_k1)
                 held[with_k1] = float(np.sqrt(np.mean(residuals(xi)[~inner] ** 2)))
+        # the jackknife over board poses: k1's standard error, and the model's own uncertainty
+        pose = samples.pose[ok]
+        poses = [p for p in np.unique(pose) if int((pose != p).sum()) >= MIN_SAMPLES]
+        jack = {}
+        if len(poses) >= 3:
+            jack[True] = [solve(pose != p, True) for p in poses]
+        x_k1 = solve(everything, True)
         use_k1 = not held or held[True] <= held[False]
-        x = solve(everything, use_k1 or not held)
+        if True in jack:
+            k1s = np.array([xj[7] for xj in jack[True]])
+            se_k1 = math.sqrt((len(k1s) - 1) / len(k1s) * float(np.sum((k1s - k1s.mean()) ** 2)))
+            t_crit = float(student_t.ppf(0.5 + 0.5 * K1_CONFIDENCE, len(k1s) - 1))
+            use_k1 = use_k1 and abs(float(x_k1[7])) >= t_crit * se_k1
+        x_pin = solve(everything, False)
+        x = x_k1 if use_k1 else x_pin
+        if not use_k1 and len(poses) >= 3:
+            jack[False] = [solve(pose != p, False) for p in poses]
         # the field: the data's phase range, extended by the extrapolation the held-out test
         # verified (the outer parts predicted within tolerance of their in-sample error)
         margin = 0.0
@@ -207,7 +358,15 @@ class GeometricModel(DepthModel):
             if held[use_k1] <= max(PHASE_EXTRAPOLATION_TOLERANCE * in_sample, PHASE_FLOOR_PX):
                 margin = half * (1.0 / PHASE_SPLIT - 1.0)
         region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
-        return cls(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]), float(x[7]), w, k, region)
+
+        def model(xm: F64, reg: SupportedRegion) -> GeometricModel:
+            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]), float(xm[7]), w, k, reg)
+
+        out = model(x, region)
+        out.jackknife = [model(xj, SupportedRegion()) for xj in jack.get(use_k1, [])]
+        out.alternative = model(x_pin if use_k1 else x_k1, SupportedRegion())
+        out.data_phase_rad = (lo, hi)
+        return out
 
 
 def _vec(name: str, value: Any) -> F64:

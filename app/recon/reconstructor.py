@@ -425,7 +425,7 @@ class Reconstructor:
         height, singular, slope = evaluate_height_slope(model, phi)
         lo, hi = self._bounds_mm
         outside = outside_volume(height, (lo, hi), 0.0)
-        outside_field = cal.model.region.outside(height, phi)
+        outside_field = cal.model.region.outside(height, phi, measured=True)
         steps = cal.pattern.steps
         m2 = (wp.modulation * (steps / 2.0)) ** 2  # (K, H, W) (Σ I cosδ)² + (Σ I sinδ)²
         if self.combine_frequencies:

@@ -159,3 +159,20 @@ def test_robust_drops_a_pose_with_an_unwrapping_error():
     assert rep.rms_mm < 1e-3
     assert _height_error(rig, rep.calibration, truth[0], 0.0, 20.0).max() < 5e-3
     assert "DROPPED" in rep.table() or p3.points < p3.corners
+
+
+def test_geometric_region_is_verified_per_cell():
+    """The calibration gives the geometric model a per-cell height range (32 × 24 cells): exact
+    boards verify the calibrated range with its 2 mm margin everywhere (a measured height may
+    pass it by the 0.25 mm step) — the leave-one-pose-out fits agree exactly there."""
+    rig = Rig()
+    obs, _ = _observations(rig)
+    cal = fit_observations(obs, (rig.width, rig.height), rig.schedule, model="geometric").calibration
+    g = cal.model.region.height_grid_mm
+    lo, hi = cal.height_range_mm
+    assert g is not None and g.shape == (24, 32, 2)
+    assert cal.model.region.cell_px == (rig.width / 32, rig.height / 24)
+    np.testing.assert_allclose(g[..., 0], lo - 2.0, atol=1e-6)
+    np.testing.assert_allclose(g[..., 1], hi + 2.0, atol=0.25 + 1e-6)  # the height grid's step
+    assert cal.model.region.height_allowance_mm == 0.25
+    assert cal.model.k1 == 0.0  # the rig's projector is a pinhole; k1's estimate is not significant

@@ -277,3 +277,146 @@ def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_o
     lo, hi = fitted.region.phase_rad
     span = samples.phi.max() - samples.phi.min()
     assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(samples.phi.max() + span / 6.0)
+
+
+def _band_samples(rig: Rig, model: GeometricModel, plane: ReferencePlane, z_mm: tuple[float, float],
+                  noise_rad: float, seed: int, n: int = 3000) -> BoardSamples:
+    """Samples over the whole image but only within the height band ``z_mm``, phase noise added."""
+    s = _samples(rig, model, np.zeros(5), plane, n=n, seed=seed)
+    rng = np.random.default_rng(seed + 1000)
+    z = rng.uniform(z_mm[0], z_mm[1], n)
+    r3 = np.concatenate([s.ray_xy, np.ones((n, 1))], axis=1)
+    x = r3 * ((z - plane.offset_mm) / (r3 @ plane.normal))[:, None]
+    phi = _projector_phase(model, x) + rng.normal(0.0, noise_rad, n)
+    return BoardSamples(s.u, s.v, s.ray_xy, phi, z, s.pose, s.image_size, s.fringes, s.projector_width_px)
+
+
+def test_phase_of_points_inverts_the_equal_phase_surfaces():
+    rig = Rig()
+    model = _geometric_of(rig, k1=-0.08)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    s = _samples(rig, model, np.zeros(5), plane, n=200)
+    np.testing.assert_allclose(model.phase_of_points(s.points_mm(plane)), s.phi, atol=1e-9)
+
+
+def test_geometric_fit_keeps_a_real_projector_distortion():
+    """k1 = −0.05 under phase noise: far beyond its jackknife standard error, so it is kept."""
+    rig = Rig()
+    truth = _geometric_of(rig, k1=-0.05)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    s = _band_samples(rig, truth, plane, (0.0, 30.0), 0.02, seed=3)
+    fitted = GeometricModel.fit(s, plane)
+    assert fitted.k1 == pytest.approx(-0.05, abs=0.005)
+    assert len(fitted.jackknife) == 6
+
+
+def test_geometric_fit_drops_an_insignificant_k1():
+    """A pinhole projector and noisy phase: k1's estimate is noise, so the model stays a pinhole
+    unless k1 is significant at 95 % (jackknife over poses): kept in at most 3 of 16 draws (the
+    jackknife's standard error is itself estimated from 6 groups), less than half as often as
+    the held-out outer phases alone keep it."""
+    import app.core.geometric as geometric
+
+    rig = Rig()
+    truth = _geometric_of(rig, k1=0.0)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    kept = kept_held_out_only = 0
+    for seed in range(10, 26):
+        s = _band_samples(rig, truth, plane, (0.0, 30.0), 0.05, seed=seed)
+        kept += GeometricModel.fit(s, plane).k1 != 0.0
+        confidence = geometric.K1_CONFIDENCE
+        try:
+            geometric.K1_CONFIDENCE = 0.0
+            kept_held_out_only += GeometricModel.fit(s, plane).k1 != 0.0
+        finally:
+            geometric.K1_CONFIDENCE = confidence
+    assert kept <= 3 and 2 * kept < kept_held_out_only, (kept, kept_held_out_only)
+
+
+def test_height_sigma_matches_the_monte_carlo_scatter_of_the_fit():
+    """The jackknife σ of the fitted model's height, inside the boards' heights and beyond them,
+    against the scatter of fits to independent noise draws."""
+    rig = Rig()
+    truth = _geometric_of(rig, k1=0.0)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    u = np.array([20.0, rig.width / 2, rig.width - 20.0])
+    v = np.array([20.0, rig.height / 2, rig.height - 20.0])
+    rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
+    heights, sig, fitted = (5.0, 15.0, 30.0), [], []
+    for seed in range(24):
+        m = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane)
+        assert m.k1 == 0.0
+        row_s, row_h = [], []
+        for h in heights:
+            r3 = np.concatenate([rays, np.ones((3, 1))], axis=1)
+            x = r3 * ((h - plane.offset_mm) / (r3 @ plane.normal))[:, None]
+            row_h.append(m.height_at(u, v, rays, _projector_phase(truth, x), plane))
+            row_s.append(m.height_sigma(u, v, rays, np.full(3, h), plane))
+        sig.append(row_s)
+        fitted.append(row_h)
+    mc = np.std(np.array(fitted), axis=0)  # (heights, pixels)
+    jack = np.sqrt(np.mean(np.array(sig) ** 2, axis=0))
+    ratio = jack / mc
+    assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
+    assert np.all(mc[2] > mc[1])  # beyond the boards' heights the model is less certain
+
+
+def test_verified_region_keeps_the_heights_where_the_model_is_certain():
+    """Boards between 8 and 22 mm, an 8 mm height margin to verify: every cell keeps the
+    middle of the boards' band; beyond the boards' heights and phases a cell supports the
+    heights where the model's σ meets the tolerance at its pixels, and no farther (an end
+    there is where σ crosses the tolerance); noise-free boards verify the whole margin."""
+    rig = Rig()
+    truth = _geometric_of(rig, k1=0.0)
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+
+    def rays(uv: np.ndarray) -> np.ndarray:
+        return undistort_points(uv, rig.K, np.zeros(5))
+
+    exact = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.0, seed=1), plane)
+    region = exact.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0)
+    g = region.height_grid_mm
+    assert g.shape == (3, 4, 2) and region.cell_px == (rig.width / 4, rig.height / 3)
+    assert np.all(g[..., 0] == 0.0) and np.all(g[..., 1] == 30.0)
+    assert region.height_allowance_mm == 0.25  # one step for the measured height's noise
+    assert region.phase_rad == exact.region.phase_rad
+
+    noisy = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.03, seed=1), plane)
+    tol = 0.004
+    region = noisy.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0,
+                                   tolerance_mm=tol)
+    g = region.height_grid_mm
+    assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)  # the middle of the boards kept …
+    assert np.sum(g[..., 0] > 0.0) + np.sum(g[..., 1] < 30.0) >= 6  # … the uncertain margin cut
+    cw, ch = region.cell_px
+    for i in range(3):
+        for j in range(4):
+            uu, vv = np.meshgrid(np.linspace(j * cw, min((j + 1) * cw, rig.width - 1), 3),
+                                 np.linspace(i * ch, min((i + 1) * ch, rig.height - 1), 3))
+            uv = np.stack([uu.ravel(), vv.ravel()], 1)
+            r = rays(uv)
+            checks = [(h, True) for h in g[i, j] if not 8.0 <= h <= 22.0]
+            checks += [(g[i, j, 0] - 0.25, False)] if g[i, j, 0] > 0.0 else []
+            checks += [(g[i, j, 1] + 0.25, False)] if g[i, j, 1] < 30.0 else []
+            for h, inside in checks:
+                worst = noisy.height_sigma(uv[:, 0], uv[:, 1], r, np.full(len(uv), h), plane).max()
+                assert (worst <= tol) == inside, (i, j, h, worst)
+
+
+def test_height_allowance_widens_the_bounds_for_measured_heights_only(tmp_path):
+    """The grid bounds hold for true heights; a measured one may pass them by the allowance
+    (both reconstruction paths), and the allowance round-trips through the file."""
+    region = SupportedRegion(phase_rad=(0.0, 10.0), height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
+                             cell_px=(2.0, 2.0), height_allowance_mm=0.25)
+    h = np.array([[0.8, 2.2, 1.5, 1.5]])
+    p = np.full((1, 4), 5.0)
+    np.testing.assert_array_equal(region.outside(h, p), [[True, True, True, True]])
+    np.testing.assert_array_equal(region.outside(h, p, measured=True), [[False, False, True, True]])
+    grid, *_ = region.kernel_bounds()
+    np.testing.assert_allclose(grid[0, 0], (0.75, 2.25))
+    np.testing.assert_allclose(grid[0, 1], (1.0, -1.0))  # a cell without support stays without
+    back = SupportedRegion.from_dict(json.loads(json.dumps(region.to_dict())))
+    assert back.height_allowance_mm == 0.25
+    assert SupportedRegion.from_dict({"phase_rad": None}).height_allowance_mm == 0.0  # older files
+    with pytest.raises(ValueError, match="height_allowance_mm"):
+        SupportedRegion.from_dict({"height_allowance_mm": -1.0})
