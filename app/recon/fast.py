@@ -335,18 +335,34 @@ def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _chain_row(wphs, coefs, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
-    for u in range(prev.shape[0]):
-        x = _F0
-        for i in range(coefs.shape[0]):
-            x += coefs[i] * wphs[i, u]
-        ph = _wrap(x)
-        if first:
-            prev[u] = _absolute(ph, f0)
-            dev[u] = _outside_field(prev[u], f0, slack)
-        else:
-            p, d = _order_step(prev[u], ph, ratio)
+def _scaled_row(beat, wph, c, first):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """beat (+)= c·wph over a row: one term of a beat, a plain 1-D loop that LLVM vectorises."""
+    if first:
+        for u in range(beat.shape[0]):
+            beat[u] = c * wph[u]
+    else:
+        for u in range(beat.shape[0]):
+            beat[u] += c * wph[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One heterodyne step over a row: the beat Σ c_i φ_i (into the scratch row ``beat``), then
+    absolute or unwrapped by ``prev``. Term by term and step by step in 1-D loops: a loop over the
+    K coefficients inside the pixel loop kept LLVM from vectorising (30× slower)."""
+    first_term = True
+    for i in range(coefs.shape[0]):
+        if coefs[i] != _F0:
+            _scaled_row(beat, wphs[i], coefs[i], first_term)
+            first_term = False
+    if first:
+        for u in range(prev.shape[0]):
+            p = _absolute(_wrap(beat[u]), f0)
+            prev[u] = p
+            dev[u] = _outside_field(p, f0, slack)
+    else:
+        for u in range(prev.shape[0]):
+            p, d = _order_step(prev[u], _wrap(beat[u]), ratio)
             prev[u] = p
             dev[u] = max(dev[u], d)
 
@@ -471,8 +487,8 @@ def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, comb
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
     slack = cons_rad * chain_f[0] / chain_f[1]
-    for s in range(chain_f.shape[0]):
-        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    for s in range(chain_f.shape[0]):  # m2 is free until the finest m2 is copied in: the beat's scratch row
+        _chain_row(wphs, chain_c[s], m2, prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
     m2[:] = m2s[n_freq - 1]
     if combine:
         for ki in range(n_freq):
