@@ -47,6 +47,7 @@ from app.devices.sim.optics import rig_by_name
 from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
+from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
 from app.service.motion import DEFAULT_FALSE_ALARM_RATE, DEFAULT_GROW_PX, motion_k, motion_mask
 from app.service.reconstruction import Reconstruction
@@ -79,7 +80,8 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
         max_sigma: float | None = GROSS_MM / (motion_k(len(schedule.frequencies), DEFAULT_FALSE_ALARM_RATE) + 5.0)
     else:
         max_sigma = args.max_sigma_mm or None
-    engine = Reconstructor(ideal_calibration(rig, schedule), fast=True, max_sigma_mm=max_sigma)
+    engine = Reconstructor(ideal_calibration(rig, schedule), fast=True, max_sigma_mm=max_sigma,
+                           order_max_motion_rad=LIVE_MAX_MOTION_RAD)  # as the live engine (service.calibrations)
     print(f"  {name}: {schedule.n_frames} frames {list(schedule.frequencies)} x {schedule.steps}, "
           f"max_sigma_mm {max_sigma if max_sigma is None else round(max_sigma, 4)}", flush=True)
     g = len(schedule.frequencies)

@@ -59,7 +59,9 @@ class PhaseArgs(NamedTuple):
     """The phase stage's inputs: float32 cos δ_n, sin δ_n (N,), fringe counts (K,), sensor
     maximum code, minimum modulation (codes) and unwrapping consistency threshold (rad);
     ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
-    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``."""
+    :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``, with the order test of
+    :func:`app.recon.unwrap.order_residuals_consistent`: ``order_z2`` z² of its bound and
+    ``order_var_max`` the largest residual variance that still shows a wrong order, rad²."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -70,6 +72,8 @@ class PhaseArgs(NamedTuple):
     chain_c: npt.NDArray[np.float32]
     chain_f: npt.NDArray[np.float32]
     heterodyne: bool
+    order_z2: np.float32
+    order_var_max: np.float32
 
 
 class HeightArgs(NamedTuple):
@@ -368,6 +372,32 @@ def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _residual_row(wph, m2k, m2f, prev, vq, dev, ratio, ratio2, z2, var_max):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The order test of one coarser frequency: v = var of r = wrap(φ_k − ratio·Φ) (``vq`` = σ_I²·N/2
+    over each m2); ``dev`` = ∞ where r² > z²·v or v > ``var_max``."""
+    for u in range(prev.shape[0]):
+        v = vq[u] / m2k[u] + ratio2 * (vq[u] / m2f[u])
+        r = _wrap(wph[u] - ratio * prev[u] + _PI) - _PI
+        dev[u] = _INF if (r * r > z2 * v) | (v > var_max) else dev[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _order_test(wphs, m2s, prev, total, dev, vq, freqs, order):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """:func:`app.recon.unwrap.order_residuals_consistent` over a row: ``dev`` = ∞ (inconsistent) where a
+    coarser phase disagrees with the finest ``prev`` beyond z·σ, or where σ is too large for a wrong
+    order to show. ``order`` = (z², largest variance, read_var, gain, 1/F, N/2); σ_I² from the mean
+    ``total``/F; ``vq`` a float32 scratch row. Row passes with scalar constants (vectorised)."""
+    z2, var_max, read_var, gain, inv_frames, half_n = order
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    for u in range(prev.shape[0]):
+        vq[u] = (read_var + gain * max(total[u] * inv_frames, _F0)) * half_n
+    for i in range(n_freq - 1):
+        ratio = freqs[i] / k_max
+        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, dev, ratio, ratio * ratio, z2, var_max)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
@@ -461,7 +491,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):  # type: ignore[no-untyped-def]
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,  # type: ignore[no-untyped-def]
+                    prev):
     # pragma: no cover - compiled
     """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
     n_steps = cos_t.shape[0]
@@ -474,21 +505,24 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
-    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi)
+    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi,
+                     total, order, scratch[7 + 2 * n_freq])
     if combine:
         _combined_row(prev, wsum, wphi)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,  # type: ignore[no-untyped-def]
-                     prev, dev, m2, wsum, wphi):  # pragma: no cover - compiled
+                     prev, dev, m2, wsum, wphi, total, order, work):  # pragma: no cover - compiled
     """The heterodyne beat chain over a row's wrapped phases ``wphs`` (K, W) into ``prev``/``dev``,
+    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` a scratch row),
     the finest m2, and with ``combine`` every frequency unwrapped by the finest and weighed."""
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
     slack = cons_rad * chain_f[0] / chain_f[1]
     for s in range(chain_f.shape[0]):  # m2 is free until the finest m2 is copied in: the beat's scratch row
         _chain_row(wphs, chain_c[s], m2, prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    _order_test(wphs, m2s, prev, total, dev, work, freqs, order)
     m2[:] = m2s[n_freq - 1]
     if combine:
         for ki in range(n_freq):
@@ -503,7 +537,7 @@ def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, comb
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,  # type: ignore[no-untyped-def]
-                 m2_min, top_code, scratch, total, m2, prev, vfac, code):  # pragma: no cover - compiled
+                 m2_min, top_code, scratch, total, m2, prev, vfac, code, order):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping)."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
@@ -517,7 +551,7 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
     wsum[:] = _F0
     wphi[:] = _F0
     if heterodyne:
-        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2,
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,
                         prev)
     else:
         for ki in range(n_freq):
@@ -639,14 +673,14 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
-                top_code, m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+                top_code, m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
     """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
     ``code``: the span's views) that keep three unclipped samples per frequency (phase stage:
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
 
     The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
-    :func:`_general_row` in the float32 rows of ``rscratch`` (9 + 2K, ≥ m); then only those
-    pixels take the result."""
+    :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 2K, ≥ m; ``total`` the span's
+    frame sums, ``order`` the heterodyne order test's constants); then only those pixels take the result."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -674,7 +708,7 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if heterodyne:
         _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev, dev, r_m2,
-                         wsum, wphi)
+                         wsum, wphi, total, order, rscratch[9 + 2 * n_freq, :m])
     if combine:
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
@@ -683,18 +717,19 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums):  # pragma: no cover - compiled
+               m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
     Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
-    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (9 + 2K, REFIT_SPAN)
-    float32, ``sums`` (9, REFIT_SPAN) float32)."""
+    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 2K, REFIT_SPAN)
+    float32, ``sums`` (9, REFIT_SPAN) float32; ``total`` the row's frame sums)."""
     width = code.shape[0]
     n = 0
     for u0 in range(0, width, REFIT_SPAN):
         u1 = min(width, u0 + REFIT_SPAN)
         if _count_saturated(code[u0:u1]) > 0:
             n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
-                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums)
+                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums,
+                             total[u0:u1], order)
     return n
 
 
@@ -751,14 +786,15 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
+    order = (ph.order_z2, ph.order_var_max, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
         buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
-        rscratch = np.empty((9 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        scratch = np.empty((0 if paper else 8 + 2 * n_freq, width), np.float32)
+        rscratch = np.empty((10 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
         for r in range(n_rows):
             v = v0 + r
@@ -766,12 +802,12 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
                 _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
             else:
                 _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
-                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r])
+                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order)
             n_refit = 0
             if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
                 n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
                                               m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], rscratch, sums)
+                                              code[r], rscratch, sums, total[r], order)
             recovered[v] = n_refit
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
@@ -804,7 +840,8 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
-                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False)
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(np.inf),
+                   np.float32(np.inf))
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

@@ -21,18 +21,38 @@ absolute). That phase then unwraps, by the same rounding rule and check, the hig
 beat of each level down to the finest pattern (Towers et al., Opt. Lett. 28(11) 887,
 2003; Reich et al., Opt. Eng. 36(5), 1997). :func:`unwrap_chain` lists the steps as
 integer combinations of the wrapped phases; the hierarchical chain is the identity.
+
+The fixed per-step threshold cannot see every wrong order of a heterodyne chain: when the
+scene moves between frequency groups the beats shift together and the chain can settle on
+an order m fine periods off with every step's residual small. After the chain, every
+coarser frequency is therefore tested against the solved finest phase Φ
+(:func:`order_residuals_consistent`): ``wrap(φ_k − Φ·k/k_max)`` must be noise within a stated
+false-alarm rate, and a pixel whose noise is too large for a slip of any m to show up, even
+when motion between the groups (up to a stated bound) moves the residuals, is inconsistent
+as well (:func:`order_slip_margin`).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from statistics import NormalDist
 
 import numpy as np
 import numpy.typing as npt
 
 TWO_PI = 2.0 * math.pi
 DEFAULT_CONSISTENCY_RAD = 0.5 * math.pi
+#: per-pixel false-alarm rate of the heterodyne order test on a still scene (the motion test's default)
+DEFAULT_FALSE_ALARM_RATE = 1e-4
+#: the heterodyne order test's guard against slips hidden by motion between the frequency groups:
+#: none by default (a still capture set); the live instrument guards against a change of the finest
+#: phase by up to LIVE_MAX_MOTION_RAD between consecutive groups (1/21 fringe). For [30, 35, 36] the
+#: margin is then 0.464 rad (0.276 from 0.47 rad up): wrong orders stay visible for σ(r) ≤ 0.057 rad,
+#: which keeps 84-87 % of the twin's breathing tissue at rest valid (0.29 at 0.9 rad, 0.94 at 0.2 rad,
+#: where slips in dark pixels passed during the breathing benchmark; see order_slip_margin)
+DEFAULT_MAX_MOTION_RAD = 0.0
+LIVE_MAX_MOTION_RAD = 0.3
 
 F64 = npt.NDArray[np.float64]
 
@@ -99,6 +119,9 @@ def unwrap_phases(
     method: str = "hierarchical",
     *,
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
+    phase_var: npt.ArrayLike | None = None,
+    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Unwrap every frequency, hierarchically or by heterodyne beats (see :func:`unwrap_chain`).
 
@@ -107,12 +130,17 @@ def unwrap_phases(
         frequencies: the K fringe counts, increasing.
         method: ``"hierarchical"`` or ``"heterodyne"``.
         consistency_rad: largest accepted |residual − rounded residual| at every step, (0, π].
+        phase_var: (K, H, W) variance of each wrapped phase, rad² (the sensor noise through
+            the modulation). Heterodyne only: with it, the chain's finest phase must also pass
+            :func:`order_residuals_consistent` (None: not tested).
+        false_alarm_rate: α of that test, (0, 1), and
+        max_motion_rad: the motion between groups it guards against (:func:`order_slip_margin`).
 
     Returns:
         ``(unwrapped, consistent)`` as :func:`unwrap_hierarchical`. For heterodyne, the
         finest phase comes from the chain and every other from it by the frequency ratio;
         a pixel is also inconsistent when its absolute beat phase lies outside the field,
-        [−s, 2π·f0 + s] with s = ``consistency_rad``·f0/f1.
+        [−s, 2π·f0 + s] with s = ``consistency_rad``·f0/f1, or fails the order test.
     """
     wrapped = np.asarray(wrapped, dtype=np.float64)
     if wrapped.ndim != 3:
@@ -135,12 +163,159 @@ def unwrap_phases(
         consistent &= np.abs(e - TWO_PI * order) < threshold
         prev = phw + TWO_PI * order
     freqs = np.asarray(frequencies, dtype=np.float64)
+    if phase_var is not None:
+        consistent &= order_residuals_consistent(wrapped, prev, phase_var, frequencies, false_alarm_rate,
+                                                 max_motion_rad)
     out = np.empty_like(wrapped)
     for i in range(len(freqs) - 1):
         e = (freqs[i] / freqs[-1]) * prev - wrapped[i]
         out[i] = wrapped[i] + TWO_PI * np.floor(e / TWO_PI + 0.5)
     out[-1] = prev
     return out, consistent
+
+
+def order_slip_residuals(frequencies: Sequence[float]) -> F64:
+    """The smallest residuals a wrong fringe order can leave, per frequency.
+
+    A finest phase Φ off by m whole periods (Φ + 2πm; |m| < k_max, the field) predicts
+    ``φ_k = Φ·k/k_max`` off by ``d_k(m) = |wrap(2π·m·k/k_max)|`` (wrapped to [−π, π)). The
+    rows returned are the Pareto-minimal vectors d(m), m = 1 … ⌈k_max⌉ − 1 (d(−m) = d(m)):
+    every slip displaces the residuals at least as far as one of them, in every frequency.
+
+    For [30, 35, 36]: m = 1 gives (2π/6, 2π/36, 0) = (1.047, 0.175, 0) rad (φ_35 hardly moves,
+    φ_30 by a sixth of a turn) and m = 6 gives (0, 2π/6, 0) (φ_30 back on its own fringe);
+    every other m is dominated by these two, so a slip always moves φ_35 by ≥ π/18 and by
+    ≥ π/3 unless it moves φ_30 by ≥ π/3.
+
+    Args:
+        frequencies: the K fringe counts, increasing.
+
+    Returns:
+        (P, K) float64 rad, last column 0 (Φ is the finest phase itself), rows sorted.
+    """
+    freqs = _check_frequencies(frequencies, len(frequencies), first_one=False)
+    k = np.asarray(freqs, dtype=np.float64)
+    m = np.arange(1, max(2, math.ceil(k[-1])), dtype=np.float64)[:, None]
+    x = TWO_PI * m * k[None, :] / k[-1]
+    d = np.round(np.abs(x - TWO_PI * np.floor(x / TWO_PI + 0.5)), 12)  # equal slips compare equal
+    d[:, -1] = 0.0
+    keep = [i for i in range(len(d))
+            if not any(np.all(d[j] <= d[i]) and np.any(d[j] < d[i]) for j in range(len(d)))]
+    return np.unique(d[keep], axis=0)
+
+
+def order_test_bound(n_frequencies: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
+    """z of the order test: ``Φ⁻¹(1 − α / (2(K − 1)))`` (two-sided, Bonferroni over K − 1 tests)."""
+    if int(n_frequencies) != n_frequencies or n_frequencies < 2:
+        raise ValueError(f"n_frequencies: need an integer >= 2, got {n_frequencies}")
+    if not (0.0 < false_alarm_rate < 1.0):
+        raise ValueError(f"false_alarm_rate: must be in (0, 1), got {false_alarm_rate}")
+    return float(NormalDist().inv_cdf(1.0 - false_alarm_rate / (2.0 * (n_frequencies - 1))))
+
+
+def order_slip_margin(frequencies: Sequence[float], max_motion_rad: float = DEFAULT_MAX_MOTION_RAD) -> float:
+    """How close to 0 an order slip can bring the residuals of :func:`order_residuals_consistent`, rad.
+
+    A slip of m finest periods moves the residuals ``r_k = wrap(φ_k − Φ·k/k_max)`` (k < K) by
+    ``d_k(m) = wrap(−2π·m·k/k_max)`` (:func:`order_slip_residuals`). When the scene moves
+    between the frequency groups, group k sees the finest phase changed by ρ·(t_k − t_K)
+    (ρ: change per group interval, t: the group's place in the set), which adds
+    ``ρ·μ_k``, ``μ_k = (k/k_max)·(t_k − t_K)``. The groups of a set are a cyclic order of the
+    schedule's (whole sets: frequency order; rolling: any rotation), so there are K
+    directions μ. Returned: the smallest Chebyshev norm ``max_k |wrap(d_k(m) + ρ·μ_k)|`` over
+    every m = ±1 … ±(⌈k_max⌉ − 1), every direction and |ρ| ≤ ``max_motion_rad`` (sampled, less
+    the sampling step's bound, so never above the true minimum).
+
+    For [30, 35, 36]: 2π/6 = 1.047 rad with no motion (m = ±1: φ_30 moves by a sixth of a
+    turn; m = ±6: φ_35 does), 0.46 for |ρ| ≤ 0.3, and 0.276 for every bound from 0.47 to 0.9 rad
+    (m = ∓35 ≡ ±1 with ρ = ∓0.46 in the rolling order newest-30: the motion cancels most of
+    φ_30's slip); above 0.9 it falls fast (0.05 at 1.2 rad: with unbounded motion a
+    heterodyne set cannot tell its orders apart, whatever its noise).
+
+    Args:
+        frequencies: the K ≥ 2 fringe counts, increasing.
+        max_motion_rad: the largest change of the finest phase between consecutive groups, ≥ 0.
+
+    Returns:
+        The margin, rad (0 if some slip can vanish).
+    """
+    freqs = _check_frequencies(frequencies, len(frequencies), first_one=False)
+    if not (math.isfinite(max_motion_rad) and max_motion_rad >= 0.0):
+        raise ValueError(f"max_motion_rad: must be finite and >= 0, got {max_motion_rad}")
+    k = np.asarray(freqs, dtype=np.float64)
+    n = len(k)
+    dirs = []
+    for newest in range(n):
+        place = {(newest + 1 + i) % n: i for i in range(n)}  # group -> its place, oldest first
+        dirs.append(np.array([k[g] / k[-1] * (place[g] - place[n - 1]) for g in range(n - 1)]))
+    n_rho = 4001
+    rho = np.linspace(-max_motion_rad, max_motion_rad, n_rho)
+    m = np.arange(1, max(2, math.ceil(k[-1])), dtype=np.float64)
+    m = np.concatenate([m, -m])[:, None, None]
+    d = -TWO_PI * m * k[None, None, :-1] / k[-1]
+    best = math.inf
+    for mu in dirs:
+        x = d + rho[None, :, None] * mu[None, None, :]
+        r = np.abs(x - TWO_PI * np.floor(x / TWO_PI + 0.5)).max(axis=2)
+        step = (2.0 * max_motion_rad / (n_rho - 1)) * float(np.abs(mu).max())  # between samples
+        best = min(best, float(r.min()) - 0.5 * step)
+    return max(best, 0.0)
+
+
+def order_residuals_consistent(
+    wrapped: npt.ArrayLike,
+    finest: npt.ArrayLike,
+    phase_var: npt.ArrayLike,
+    frequencies: Sequence[float],
+    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+) -> npt.NDArray[np.bool_]:
+    """Noise-aware test of a heterodyne chain's fringe order, per pixel.
+
+    Every coarser frequency's measured wrapped phase must agree with the one the solved
+    finest phase Φ predicts: ``r_k = wrap(φ_k − Φ·k/k_max)``, whose noise (independent
+    phases) has variance ``v_k = var φ_k + (k/k_max)²·var φ_K``. With z from
+    :func:`order_test_bound`, a pixel passes when ``|r_k| ≤ z·√v_k`` for every k < K: on a
+    still scene (Gaussian phase noise) it fails with probability ≤ α.
+
+    A wrong order (with motion between the groups up to ``max_motion_rad``) leaves the
+    residuals at Chebyshev distance ≥ D = :func:`order_slip_margin` from 0. A pixel is also
+    inconsistent unless ``2z·√v_k ≤ D`` for every k: then a slip lands at least z·σ beyond
+    the bound in some frequency and is missed with probability ≤ α/(2(K − 1)). For
+    [30, 35, 36] and α = 1e-4 (z = 4.06): without motion D = 1.047 rad, so σ(r_k) ≤ 0.129 rad;
+    with 0.3 rad between groups (the live instrument's) D = 0.464 rad and σ(r_k) ≤ 0.057 rad.
+
+    Args:
+        wrapped: (K, H, W) wrapped phases, radians.
+        finest: (H, W) unwrapped finest phase Φ, radians.
+        phase_var: (K, H, W) variance of each wrapped phase, rad² (inf/NaN: fails).
+        frequencies: the K fringe counts, increasing.
+        false_alarm_rate: α, (0, 1).
+        max_motion_rad: the motion between groups guarded against, rad (:func:`order_slip_margin`).
+
+    Returns:
+        (H, W) bool: the order is confirmed.
+    """
+    wrapped = np.asarray(wrapped, dtype=np.float64)
+    var = np.asarray(phase_var, dtype=np.float64)
+    phi = np.asarray(finest, dtype=np.float64)
+    if wrapped.ndim != 3 or var.shape != wrapped.shape:
+        raise ValueError(f"phase_var: shape {var.shape} must equal wrapped shape {wrapped.shape}")
+    if phi.shape != wrapped.shape[1:]:
+        raise ValueError(f"finest: shape {phi.shape} must be {wrapped.shape[1:]}")
+    freqs = _check_frequencies(frequencies, wrapped.shape[0], first_one=False)
+    k = np.asarray(freqs)
+    z = order_test_bound(len(k), false_alarm_rate)
+    var_max = (order_slip_margin(freqs, max_motion_rad) / (2.0 * z)) ** 2
+    ok = np.ones(phi.shape, dtype=bool)
+    for i in range(len(k) - 1):
+        ratio = k[i] / k[-1]
+        x = wrapped[i] - ratio * phi
+        r = x - TWO_PI * np.floor(x / TWO_PI + 0.5)
+        vi = var[i] + ratio**2 * var[-1]
+        with np.errstate(invalid="ignore"):
+            ok &= (r * r <= z * z * vi) & (vi <= var_max)
+    return ok
 
 
 def absolute_phase(wrapped: npt.ArrayLike, fringes: float) -> F64:
