@@ -61,7 +61,8 @@ class PhaseArgs(NamedTuple):
     ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
     :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``, with the order test of
     :func:`app.recon.unwrap.order_residuals_consistent`: ``order_z2`` z² of its bound and
-    ``order_var_max`` the largest residual variance that still shows a wrong order, rad²."""
+    ``order_front2`` (P, K − 1) the squared :func:`~app.recon.unwrap.order_slip_front`, ``order_floor2``
+    the unmodelled phase variance of every wrapped phase (``unwrap.PHASE_FLOOR_RAD``²), rad²."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -73,7 +74,8 @@ class PhaseArgs(NamedTuple):
     chain_f: npt.NDArray[np.float32]
     heterodyne: bool
     order_z2: np.float32
-    order_var_max: np.float32
+    order_front2: npt.NDArray[np.float32]
+    order_floor2: np.float32
 
 
 class HeightArgs(NamedTuple):
@@ -372,29 +374,57 @@ def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _residual_row(wph, m2k, m2f, prev, vq, dev, ratio, ratio2, z2, var_max):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The order test of one coarser frequency: v = var of r = wrap(φ_k − ratio·Φ) (``vq`` = σ_I²·N/2
-    over each m2); ``dev`` = ∞ where r² > z²·v or v > ``var_max``."""
+def _residual_row(wph, m2k, m2f, prev, vq, sd2, dev, ratio, ratio2, z2, floor):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """The order test of one coarser frequency: ``sd2`` = var of r = wrap(φ_k − ratio·Φ) (``vq`` =
+    σ_I²·N/2 over each m2, plus ``floor``, the unmodelled part); ``dev`` = ∞ where r² > z²·sd2."""
     for u in range(prev.shape[0]):
-        v = vq[u] / m2k[u] + ratio2 * (vq[u] / m2f[u])
+        v = vq[u] / m2k[u] + ratio2 * (vq[u] / m2f[u]) + floor
+        sd2[u] = v
         r = _wrap(wph[u] - ratio * prev[u] + _PI) - _PI
-        dev[u] = _INF if (r * r > z2 * v) | (v > var_max) else dev[u]
+        dev[u] = _INF if r * r > z2 * v else dev[u]
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _order_test(wphs, m2s, prev, total, dev, vq, freqs, order):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _seen_row(seen, sd2, q2, four_z2, first):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """seen (|)= a slip moving this frequency's residual by √q2 clears the bound by z·σ."""
+    if first:
+        for u in range(seen.shape[0]):
+            seen[u] = _F1 if q2 >= four_z2 * sd2[u] else _F0
+    else:
+        for u in range(seen.shape[0]):
+            seen[u] = _F1 if q2 >= four_z2 * sd2[u] else seen[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _unseen_row(seen, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for u in range(dev.shape[0]):
+        dev[u] = _INF if seen[u] == _F0 else dev[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignore[no-untyped-def]  # pragma: no cover
     """:func:`app.recon.unwrap.order_residuals_consistent` over a row: ``dev`` = ∞ (inconsistent) where a
-    coarser phase disagrees with the finest ``prev`` beyond z·σ, or where σ is too large for a wrong
-    order to show. ``order`` = (z², largest variance, read_var, gain, 1/F, N/2); σ_I² from the mean
-    ``total``/F; ``vq`` a float32 scratch row. Row passes with scalar constants (vectorised)."""
-    z2, var_max, read_var, gain, inv_frames, half_n = order
+    coarser phase disagrees with the finest ``prev`` beyond z·σ, or where σ is too large for some wrong
+    order to show. ``order`` = (z², squared slip front (P, K − 1), unmodelled variance, read_var, gain,
+    1/F, N/2); σ_I² from the mean ``total``/F; ``work`` (K + 1, ≥ W) float32 scratch. Row passes with
+    scalar constants (vectorised)."""
+    z2, front2, floor2, read_var, gain, inv_frames, half_n = order
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
+    vq = work[0]
+    seen = work[1]
     for u in range(prev.shape[0]):
         vq[u] = (read_var + gain * max(total[u] * inv_frames, _F0)) * half_n
     for i in range(n_freq - 1):
         ratio = freqs[i] / k_max
-        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, dev, ratio, ratio * ratio, z2, var_max)
+        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, work[2 + i], dev, ratio, ratio * ratio, z2,
+                      floor2 * (_F1 + ratio * ratio))
+    four_z2 = np.float32(4.0) * z2
+    for p in range(front2.shape[0]):
+        for i in range(n_freq - 1):
+            _seen_row(seen, work[2 + i], front2[p, i], four_z2, i == 0)
+        _unseen_row(seen, dev)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -506,7 +536,7 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
     _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi,
-                     total, order, scratch[7 + 2 * n_freq])
+                     total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
         _combined_row(prev, wsum, wphi)
 
@@ -515,7 +545,7 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
 def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,  # type: ignore[no-untyped-def]
                      prev, dev, m2, wsum, wphi, total, order, work):  # pragma: no cover - compiled
     """The heterodyne beat chain over a row's wrapped phases ``wphs`` (K, W) into ``prev``/``dev``,
-    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` a scratch row),
+    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` (K + 1, ≥ W) scratch),
     the finest m2, and with ``combine`` every frequency unwrapped by the finest and weighed."""
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -679,7 +709,7 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
 
     The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
-    :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 2K, ≥ m; ``total`` the span's
+    :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 3K, ≥ m; ``total`` the span's
     frame sums, ``order`` the heterodyne order test's constants); then only those pixels take the result."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
@@ -708,7 +738,7 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if heterodyne:
         _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev, dev, r_m2,
-                         wsum, wphi, total, order, rscratch[9 + 2 * n_freq, :m])
+                         wsum, wphi, total, order, rscratch[9 + 2 * n_freq:10 + 3 * n_freq, :m])
     if combine:
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
@@ -720,7 +750,7 @@ def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, com
                m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
     Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
-    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 2K, REFIT_SPAN)
+    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 3K, REFIT_SPAN)
     float32, ``sums`` (9, REFIT_SPAN) float32; ``total`` the row's frame sums)."""
     width = code.shape[0]
     n = 0
@@ -786,15 +816,15 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
-    order = (ph.order_z2, ph.order_var_max, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
+    order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
         buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 8 + 2 * n_freq, width), np.float32)
-        rscratch = np.empty((10 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
+        rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
         for r in range(n_rows):
             v = v0 + r
@@ -841,7 +871,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
                    np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(np.inf),
-                   np.float32(np.inf))
+                   np.zeros((1, 1), np.float32), np.float32(0))
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

@@ -34,8 +34,9 @@ from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     DEFAULT_FALSE_ALARM_RATE,
     DEFAULT_MAX_MOTION_RAD,
+    PHASE_FLOOR_RAD,
     check_consistency_rad,
-    order_slip_margin,
+    order_slip_front,
     order_test_bound,
     unwrap_chain,
     unwrap_phases,
@@ -147,22 +148,24 @@ class ReconResult:
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
     consistency_rad: float, combine: bool, phase_error: Any = None, noise: SensorNoise | None = None,
-    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE, max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+    false_alarm_rate: float | None = DEFAULT_FALSE_ALARM_RATE, max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason). Heterodyne
     orders are tested against ``noise`` (None: :meth:`SensorNoise.typical` of ``max_code``) at
-    ``false_alarm_rate`` and ``max_motion_rad`` (:func:`~app.recon.unwrap.order_residuals_consistent`)."""
+    ``false_alarm_rate`` (None: no such test) and ``max_motion_rad``
+    (:func:`~app.recon.unwrap.order_residuals_consistent`)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
     if phase_error is not None:
         wp = replace(wp, phase=phase_error.apply(wp.phase))
     phase_var = None
-    if schedule.unwrap == "heterodyne":
+    if schedule.unwrap == "heterodyne" and false_alarm_rate is not None:
         var_i = (noise if noise is not None else SensorNoise.typical(max_code)).variance_dn2(wp.background)
         with np.errstate(divide="ignore", invalid="ignore"):
             phase_var = var_i * phase_variance_factor((wp.modulation * (schedule.steps / 2.0)) ** 2, schedule.steps)
     unwrapped, consistent = unwrap_phases(
         wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad,
-        phase_var=phase_var, false_alarm_rate=false_alarm_rate, max_motion_rad=max_motion_rad,
+        phase_var=phase_var, false_alarm_rate=false_alarm_rate or DEFAULT_FALSE_ALARM_RATE,
+        max_motion_rad=max_motion_rad,
     )
     if combine:
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
@@ -187,7 +190,7 @@ def compute_phase(
     combine_frequencies: bool = False,
     phase_error: PhaseErrorLUT | None = None,
     noise: SensorNoise | None = None,
-    false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+    false_alarm_rate: float | None = None,
     max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
@@ -203,9 +206,12 @@ def compute_phase(
         phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
             wrapped phases before unwrapping (projector-gamma correction).
         noise: the camera's :class:`SensorNoise` (None: :meth:`SensorNoise.typical`),
-        false_alarm_rate: α of the heterodyne order test, and
+        false_alarm_rate: α of the heterodyne order test (None, the default: not made; a capture
+            set is one still instant, and on real frames projector-gamma errors beyond the noise
+            model fail it for a few % of pixels), and
         max_motion_rad: the motion between groups it guards against, rad
-            (:func:`~app.recon.unwrap.order_residuals_consistent`).
+            (:func:`~app.recon.unwrap.order_residuals_consistent`). The live engine
+            (:class:`Reconstructor`) always makes it.
 
     Returns:
         :class:`PhaseResult`.
@@ -301,7 +307,7 @@ class Reconstructor:
         self.order_false_alarm_rate = float(order_false_alarm_rate)
         order_test_bound(2, self.order_false_alarm_rate)  # ValueError naming false_alarm_rate
         self.order_max_motion_rad = float(order_max_motion_rad)
-        order_slip_margin((1.0, 2.0), self.order_max_motion_rad)  # ValueError naming max_motion_rad
+        order_slip_front((1.0, 2.0), self.order_max_motion_rad)  # ValueError naming max_motion_rad
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
@@ -325,17 +331,17 @@ class Reconstructor:
         return f32, ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
-    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32, np.float32, np.float32]:
+    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32, np.float32, F32]:
         """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies, z² of the
-        heterodyne order test and its largest residual variance, rad²) of the pattern."""
+        heterodyne order test and its squared slip front (P, K − 1), rad²) of the pattern."""
         sched = self.calibration.pattern
         delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
         coefs, steps = unwrap_chain(sched.frequencies, sched.unwrap)
         z = order_test_bound(len(sched.frequencies), self.order_false_alarm_rate)
-        var_max = (order_slip_margin(sched.frequencies, self.order_max_motion_rad) / (2.0 * z)) ** 2
+        front = order_slip_front(sched.frequencies, self.order_max_motion_rad)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
                 np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32),
-                np.float32(z * z), np.float32(var_max))
+                np.float32(z * z), np.ascontiguousarray(front**2, np.float32))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -448,13 +454,14 @@ class Reconstructor:
         assert _fast is not None
         cal = self.calibration
         tables, ray_q = self._fast_tables
-        cos_d, sin_d, freqs, chain_c, chain_f, order_z2, order_var_max = self._fast_schedule
+        cos_d, sin_d, freqs, chain_c, chain_f, order_z2, order_front2 = self._fast_schedule
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
         noise = self._noise(max_code)
         f32 = np.float32
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
-                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne", order_z2, order_var_max)
+                             chain_c, chain_f, cal.pattern.unwrap == "heterodyne", order_z2, order_front2,
+                             f32(PHASE_FLOOR_RAD**2))
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
