@@ -397,6 +397,14 @@ def _seen_row(seen, sd2, q2, four_z2, first):  # type: ignore[no-untyped-def]  #
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _seen2_row(sd0, sd1, q0, q1, four_z2, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Three frequencies (two residuals): ``dev`` = ∞ where neither clears the bound by z·σ; one pass."""
+    for u in range(dev.shape[0]):
+        seen = (q0 >= four_z2 * sd0[u]) | (q1 >= four_z2 * sd1[u])
+        dev[u] = dev[u] if seen else _INF
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _unseen_row(seen, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(dev.shape[0]):
         dev[u] = _INF if seen[u] == _F0 else dev[u]
@@ -422,6 +430,9 @@ def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignor
                       floor2 * (_F1 + ratio * ratio))
     four_z2 = np.float32(4.0) * z2
     for p in range(front2.shape[0]):
+        if n_freq == 3:
+            _seen2_row(work[2], work[3], front2[p, 0], front2[p, 1], four_z2, dev)
+            continue
         for i in range(n_freq - 1):
             _seen_row(seen, work[2 + i], front2[p, i], four_z2, i == 0)
         _unseen_row(seen, dev)
