@@ -845,7 +845,9 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
                 _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
                              ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order)
             n_refit = 0
-            if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
+            # a vectorised byte count; the refit scan only where needed. With N = 3 a clipped sample leaves 2
+            # in its frequency, fewer than a fit needs: nothing to refit (the scan cost 2-3× the whole kernel)
+            if n_steps > 3 and _count_saturated(code[r]) > 0:
                 n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
                                               m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
                                               code[r], rscratch, sums, total[r], order)
