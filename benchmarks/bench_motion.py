@@ -50,6 +50,7 @@ from app.devices.sim.optics import rig_by_name
 from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
+from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
 from app.service.motion import (
     DEFAULT_FALSE_ALARM_RATE,
@@ -91,7 +92,7 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
     gross = args.gross_error_mm or None
     bounds = sigma_bounds(gross, g, DEFAULT_FALSE_ALARM_RATE) if gross else None
     engine = Reconstructor(ideal_calibration(rig, schedule), fast=True, max_sigma_mm=args.max_sigma_mm or None,
-                           gross_error_mm=gross)
+                           gross_error_mm=gross, order_max_motion_rad=LIVE_MAX_MOTION_RAD)
     max_sigma = engine.sigma_limit_mm
     print(f"  {name}: {schedule.n_frames} frames {list(schedule.frequencies)} x {schedule.steps}, engine σ limit "
           f"{max_sigma if max_sigma is None else round(max_sigma, 4)} mm, moving-scene bound "

@@ -45,6 +45,7 @@ from app.core.schedule import DEFAULT_SCHEDULE, SCHEDULES  # noqa: E402
 from app.devices.sim import render_capture_set, simulate_calibration_folder  # noqa: E402
 from app.devices.sim.world import SimulatedWorld  # noqa: E402
 from app.recon import Reconstructor  # noqa: E402
+from app.recon.unwrap import LIVE_MAX_MOTION_RAD  # noqa: E402
 from app.service.schedules import calibration_for_schedule  # noqa: E402
 from benchmarks.bench_live import free_port, start_server, wait_running  # noqa: E402
 
@@ -55,7 +56,9 @@ def still(cal, scene: str, seeds: tuple[int, int]) -> dict[str, dict]:  # noqa: 
     """Per schedule: two renders of ``scene`` (same scene, other noise) reconstructed with ``cal`` carried over."""
     out: dict[str, dict] = {}
     for name, s in SCHEDULES.items():
-        rec = Reconstructor(calibration_for_schedule(cal, s), with_phase=True, max_code=255)
+        # as the live engine (service.calibrations): heterodyne orders guarded against motion between groups
+        rec = Reconstructor(calibration_for_schedule(cal, s), with_phase=True, max_code=255,
+                            order_max_motion_rad=LIVE_MAX_MOTION_RAD)
         runs = []
         for seed in seeds:
             world = SimulatedWorld(scene, seed=seed, schedule=s)

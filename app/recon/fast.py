@@ -61,7 +61,11 @@ class PhaseArgs(NamedTuple):
     ``chain_c`` (S, K), ``chain_f`` (S,) float32: the unwrapping steps of
     :func:`app.recon.unwrap.unwrap_chain`, used when ``heterodyne``; ``snr_min2``: a_min² of
     the noise-aware modulation rule (:mod:`app.recon.validity`; 0: ``min_mod`` alone). The
-    kernel's test is ``m2min < max(m2(min_mod), a_min²·(N/2)·(read_var + gain·A))``."""
+    kernel's test is ``m2min < max(m2(min_mod), a_min²·(N/2)·(read_var + gain·A))``. The
+    heterodyne chain's order test (:func:`app.recon.unwrap.order_residuals_consistent`):
+    ``order_z2`` z² of its bound and ``order_front2`` (P, K − 1) the squared
+    :func:`~app.recon.unwrap.order_slip_front`, ``order_floor2`` the unmodelled phase variance of
+    every wrapped phase (``unwrap.PHASE_FLOOR_RAD``²), rad²."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -73,6 +77,9 @@ class PhaseArgs(NamedTuple):
     chain_f: npt.NDArray[np.float32]
     heterodyne: bool
     snr_min2: np.float32
+    order_z2: np.float32
+    order_front2: npt.NDArray[np.float32]
+    order_floor2: np.float32
 
 
 class HeightArgs(NamedTuple):
@@ -340,20 +347,101 @@ def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _chain_row(wphs, coefs, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """One heterodyne step over a row: the beat Σ c_i φ_i, then absolute or unwrapped by ``prev``."""
-    for u in range(prev.shape[0]):
-        x = _F0
-        for i in range(coefs.shape[0]):
-            x += coefs[i] * wphs[i, u]
-        ph = _wrap(x)
-        if first:
-            prev[u] = _absolute(ph, f0)
-            dev[u] = _outside_field(prev[u], f0, slack)
-        else:
-            p, d = _order_step(prev[u], ph, ratio)
+def _scaled_row(beat, wph, c, first):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """beat (+)= c·wph over a row: one term of a beat, a plain 1-D loop that LLVM vectorises."""
+    if first:
+        for u in range(beat.shape[0]):
+            beat[u] = c * wph[u]
+    else:
+        for u in range(beat.shape[0]):
+            beat[u] += c * wph[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """One heterodyne step over a row: the beat Σ c_i φ_i (into the scratch row ``beat``), then
+    absolute or unwrapped by ``prev``. Term by term and step by step in 1-D loops: a loop over the
+    K coefficients inside the pixel loop kept LLVM from vectorising (30× slower)."""
+    first_term = True
+    for i in range(coefs.shape[0]):
+        if coefs[i] != _F0:
+            _scaled_row(beat, wphs[i], coefs[i], first_term)
+            first_term = False
+    if first:
+        for u in range(prev.shape[0]):
+            p = _absolute(_wrap(beat[u]), f0)
+            prev[u] = p
+            dev[u] = _outside_field(p, f0, slack)
+    else:
+        for u in range(prev.shape[0]):
+            p, d = _order_step(prev[u], _wrap(beat[u]), ratio)
             prev[u] = p
             dev[u] = max(dev[u], d)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _residual_row(wph, m2k, m2f, prev, vq, sd2, dev, ratio, ratio2, z2, floor):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """The order test of one coarser frequency: ``sd2`` = var of r = wrap(φ_k − ratio·Φ) (``vq`` =
+    σ_I²·N/2 over each m2, plus ``floor``, the unmodelled part); ``dev`` = ∞ where r² > z²·sd2."""
+    for u in range(prev.shape[0]):
+        v = vq[u] / m2k[u] + ratio2 * (vq[u] / m2f[u]) + floor
+        sd2[u] = v
+        r = _wrap(wph[u] - ratio * prev[u] + _PI) - _PI
+        dev[u] = _INF if r * r > z2 * v else dev[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _seen_row(seen, sd2, q2, four_z2, first):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """seen (|)= a slip moving this frequency's residual by √q2 clears the bound by z·σ."""
+    if first:
+        for u in range(seen.shape[0]):
+            seen[u] = _F1 if q2 >= four_z2 * sd2[u] else _F0
+    else:
+        for u in range(seen.shape[0]):
+            seen[u] = _F1 if q2 >= four_z2 * sd2[u] else seen[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _seen2_row(sd0, sd1, q0, q1, four_z2, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Three frequencies (two residuals): ``dev`` = ∞ where neither clears the bound by z·σ; one pass."""
+    for u in range(dev.shape[0]):
+        seen = (q0 >= four_z2 * sd0[u]) | (q1 >= four_z2 * sd1[u])
+        dev[u] = dev[u] if seen else _INF
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _unseen_row(seen, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
+    for u in range(dev.shape[0]):
+        dev[u] = _INF if seen[u] == _F0 else dev[u]
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """:func:`app.recon.unwrap.order_residuals_consistent` over a row: ``dev`` = ∞ (inconsistent) where a
+    coarser phase disagrees with the finest ``prev`` beyond z·σ, or where σ is too large for some wrong
+    order to show. ``order`` = (z², squared slip front (P, K − 1), unmodelled variance, read_var, gain,
+    1/F, N/2); σ_I² from the mean ``total``/F; ``work`` (K + 1, ≥ W) float32 scratch. Row passes with
+    scalar constants (vectorised)."""
+    z2, front2, floor2, read_var, gain, inv_frames, half_n = order
+    n_freq = freqs.shape[0]
+    k_max = freqs[n_freq - 1]
+    vq = work[0]
+    seen = work[1]
+    for u in range(prev.shape[0]):
+        vq[u] = (read_var + gain * max(total[u] * inv_frames, _F0)) * half_n
+    for i in range(n_freq - 1):
+        ratio = freqs[i] / k_max
+        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, work[2 + i], dev, ratio, ratio * ratio, z2,
+                      floor2 * (_F1 + ratio * ratio))
+    four_z2 = np.float32(4.0) * z2
+    for p in range(front2.shape[0]):
+        if n_freq == 3:
+            _seen2_row(work[2], work[3], front2[p, 0], front2[p, 1], four_z2, dev)
+            continue
+        for i in range(n_freq - 1):
+            _seen_row(seen, work[2 + i], front2[p, i], four_z2, i == 0)
+        _unseen_row(seen, dev)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -450,7 +538,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2, prev):  # type: ignore[no-untyped-def]
+def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,  # type: ignore[no-untyped-def]
+                    prev):
     # pragma: no cover - compiled
     """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
     n_steps = cos_t.shape[0]
@@ -463,21 +552,24 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
-    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi)
+    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi,
+                     total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
         _combined_row(prev, wsum, wphi)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,  # type: ignore[no-untyped-def]
-                     prev, dev, m2, wsum, wphi):  # pragma: no cover - compiled
+                     prev, dev, m2, wsum, wphi, total, order, work):  # pragma: no cover - compiled
     """The heterodyne beat chain over a row's wrapped phases ``wphs`` (K, W) into ``prev``/``dev``,
+    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` (K + 1, ≥ W) scratch),
     the finest m2, and with ``combine`` every frequency unwrapped by the finest and weighed."""
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
     slack = cons_rad * chain_f[0] / chain_f[1]
-    for s in range(chain_f.shape[0]):
-        _chain_row(wphs, chain_c[s], prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    for s in range(chain_f.shape[0]):  # m2 is free until the finest m2 is copied in: the beat's scratch row
+        _chain_row(wphs, chain_c[s], m2, prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    _order_test(wphs, m2s, prev, total, dev, work, freqs, order)
     m2[:] = m2s[n_freq - 1]
     if combine:
         for ki in range(n_freq):
@@ -492,7 +584,7 @@ def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, comb
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,  # type: ignore[no-untyped-def]
-                 m2_min, top_code, scratch, total, m2, prev, vfac, code):  # pragma: no cover - compiled
+                 m2_min, top_code, scratch, total, m2, prev, vfac, code, order):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping)."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
@@ -506,7 +598,7 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
     wsum[:] = _F0
     wphi[:] = _F0
     if heterodyne:
-        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, scratch, total, m2,
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,
                         prev)
     else:
         for ki in range(n_freq):
@@ -628,14 +720,14 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
-                top_code, m2, prev, vfac, code, rscratch, sums, total):  # pragma: no cover - compiled
+                top_code, m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
     """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
     ``code``, ``total``: the span's views) that keep three unclipped samples per frequency (phase stage:
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
 
     The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
-    :func:`_general_row` in the float32 rows of ``rscratch`` (9 + 2K, ≥ m); then only those
-    pixels take the result."""
+    :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 3K, ≥ m; ``total`` the span's
+    frame sums, ``order`` the heterodyne order test's constants); then only those pixels take the result."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -663,7 +755,7 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if heterodyne:
         _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev, dev, r_m2,
-                         wsum, wphi)
+                         wsum, wphi, total, order, rscratch[9 + 2 * n_freq:10 + 3 * n_freq, :m])
     if combine:
         _combined_row(r_prev, wsum, wphi)
     return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
@@ -672,11 +764,11 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums, total):  # pragma: no cover - compiled
+               m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
     Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
-    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (9 + 2K, REFIT_SPAN)
-    float32, ``sums`` (9, REFIT_SPAN) float32)."""
+    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 3K, REFIT_SPAN)
+    float32, ``sums`` (9, REFIT_SPAN) float32; ``total`` the row's frame sums)."""
     width = code.shape[0]
     n = 0
     for u0 in range(0, width, REFIT_SPAN):
@@ -684,7 +776,7 @@ def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, com
         if _count_saturated(code[u0:u1]) > 0:
             n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
                              m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums,
-                             total[u0:u1])
+                             total[u0:u1], order)
     return n
 
 
@@ -744,14 +836,15 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
+    order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
         buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
         total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
-        scratch = np.empty((0 if paper else 7 + 2 * n_freq, width), np.float32)
-        rscratch = np.empty((9 + 2 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
+        rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
         for r in range(n_rows):
             v = v0 + r
@@ -759,12 +852,14 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
                 _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
             else:
                 _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
-                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r])
+                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order)
             n_refit = 0
-            if _count_saturated(code[r]) > 0:  # a vectorised byte count; the refit scan only where needed
+            # a vectorised byte count; the refit scan only where needed. With N = 3 a clipped sample leaves 2
+            # in its frequency, fewer than a fit needs: nothing to refit (the scan cost 2-3× the whole kernel)
+            if n_steps > 3 and _count_saturated(code[r]) > 0:
                 n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
                                               m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], rscratch, sums, total[r])
+                                              code[r], rscratch, sums, total[r], order)
             recovered[v] = n_refit
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
@@ -797,7 +892,8 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
-                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0))
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0), np.float32(np.inf),
+                   np.zeros((1, 1), np.float32), np.float32(0))
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

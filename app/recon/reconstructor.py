@@ -32,7 +32,12 @@ from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
+    DEFAULT_FALSE_ALARM_RATE,
+    DEFAULT_MAX_MOTION_RAD,
+    PHASE_FLOOR_RAD,
     check_consistency_rad,
+    order_slip_front,
+    order_test_bound,
     unwrap_chain,
     unwrap_phases,
 )
@@ -149,30 +154,41 @@ class ReconResult:
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool, phase_error: Any = None,
-    noise_rule: tuple[float, SensorNoise] | None = None,
+    consistency_rad: float, combine: bool, phase_error: Any = None, noise: SensorNoise | None = None,
+    snr_min: float | None = None,
+    false_alarm_rate: float | None = DEFAULT_FALSE_ALARM_RATE, max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason).
 
-    ``noise_rule`` (a_min, camera noise): LOW_MODULATION where the weakest frequency's B is
-    below ``max(min_modulation, a_min·√(2/N)·σ_I(A))`` (:mod:`app.recon.validity`); None:
-    below ``min_modulation`` alone."""
+    ``noise``: the camera's (None: :meth:`SensorNoise.typical` of ``max_code``). ``snr_min``
+    (a_min): LOW_MODULATION where the weakest frequency's B is below
+    ``max(min_modulation, a_min·√(2/N)·σ_I(A))`` (:mod:`app.recon.validity`); None: below
+    ``min_modulation`` alone. Heterodyne orders are tested against ``noise`` at
+    ``false_alarm_rate`` (None: no such test) and ``max_motion_rad``
+    (:func:`~app.recon.unwrap.order_residuals_consistent`)."""
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
     if phase_error is not None:
         wp = replace(wp, phase=phase_error.apply(wp.phase))
+    phase_var = None
+    if schedule.unwrap == "heterodyne" and false_alarm_rate is not None:
+        var_i = (noise if noise is not None else SensorNoise.typical(max_code)).variance_dn2(wp.background)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            phase_var = var_i * phase_variance_factor((wp.modulation * (schedule.steps / 2.0)) ** 2, schedule.steps)
     unwrapped, consistent = unwrap_phases(
-        wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad
+        wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad,
+        phase_var=phase_var, false_alarm_rate=false_alarm_rate or DEFAULT_FALSE_ALARM_RATE,
+        max_motion_rad=max_motion_rad,
     )
     if combine:
         phi = combine_phases(unwrapped, wp.modulation, schedule.frequencies, schedule.steps)
     else:
         phi = unwrapped[-1]
-    if noise_rule is None:
+    if snr_min is None:
         threshold: Any = min_modulation
     else:
-        snr, noise = noise_rule
-        threshold = modulation_threshold(wp.background, schedule.steps, snr, noise.read_noise_dn**2,
-                                         noise.gain_dn_per_e, min_modulation)
+        camera = noise if noise is not None else SensorNoise.typical(max_code)
+        threshold = modulation_threshold(wp.background, schedule.steps, snr_min, camera.read_noise_dn**2,
+                                         camera.gain_dn_per_e, min_modulation)
     reason = assign_reasons(
         phi.shape,
         saturated=wp.saturated,
@@ -193,6 +209,8 @@ def compute_phase(
     phase_error: PhaseErrorLUT | None = None,
     noise: SensorNoise | None = None,
     order_error_rate: float = DEFAULT_ORDER_ERROR_RATE,
+    false_alarm_rate: float | None = None,
+    max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> PhaseResult:
     """Unwrapped finest phase of a fringe set, without a calibration (numpy path).
 
@@ -207,9 +225,15 @@ def compute_phase(
         combine_frequencies: use the noise-optimal combination of all frequencies.
         phase_error: a learned :class:`~app.recon.gamma.PhaseErrorLUT` subtracted from the
             wrapped phases before unwrapping (projector-gamma correction).
-        noise: the camera's :class:`SensorNoise` for the rule; None →
+        noise: the camera's :class:`SensorNoise` for the rule and the order test; None →
             :meth:`SensorNoise.typical` for ``max_code``.
         order_error_rate: the rule's bound on undetected fringe-order errors per pixel.
+        false_alarm_rate: α of the heterodyne order test (None, the default: not made; a capture
+            set is one still instant, and on real frames projector-gamma errors beyond the noise
+            model fail it for a few % of pixels), and
+        max_motion_rad: the motion between groups it guards against, rad
+            (:func:`~app.recon.unwrap.order_residuals_consistent`). The live engine
+            (:class:`Reconstructor`) always makes it.
 
     Returns:
         :class:`PhaseResult`.
@@ -224,11 +248,11 @@ def compute_phase(
     explicit = min_modulation is not None
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
-    rule = None if explicit else (
-        min_phasor_snr(schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad, rate=order_error_rate),
-        noise if noise is not None else SensorNoise.typical(max_code))
+    snr_min = None if explicit else min_phasor_snr(schedule.frequencies, schedule.unwrap,
+                                                   consistency_rad=consistency_rad, rate=order_error_rate)
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error, rule
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error, noise,
+        snr_min, false_alarm_rate, max_motion_rad,
     )
     mod = wp.modulation[-1]
     return PhaseResult(
@@ -270,6 +294,11 @@ class Reconstructor:
         order_error_rate: the noise-aware rule's bound per pixel, (0, 0.1].
         gross_error_mm: the depth error the noise-aware rule keeps below
             ``order_error_rate`` (None: no depth-σ part), mm.
+        order_false_alarm_rate: α of the heterodyne order test (a still pixel fails it with
+            probability ≤ α; :func:`~app.recon.unwrap.order_residuals_consistent`), (0, 1).
+        order_max_motion_rad: the change of the finest phase between consecutive frequency
+            groups against which that test still guarantees to see a wrong order, rad (0: a
+            still scene; the live instrument uses ``unwrap.LIVE_MAX_MOTION_RAD``).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -290,6 +319,8 @@ class Reconstructor:
         max_sigma_mm: float | None = None,
         order_error_rate: float = DEFAULT_ORDER_ERROR_RATE,
         gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
+        order_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
+        order_max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
@@ -319,6 +350,10 @@ class Reconstructor:
         self._sigma_limit_mm = self.max_sigma_mm  # what the UNCERTAIN test uses
         if max_sigma_mm is None and min_modulation is None and gross_error_mm is not None:
             self._sigma_limit_mm = max_depth_sigma_mm(gross_error_mm, self.order_error_rate)
+        self.order_false_alarm_rate = float(order_false_alarm_rate)
+        order_test_bound(2, self.order_false_alarm_rate)  # ValueError naming false_alarm_rate
+        self.order_max_motion_rad = float(order_max_motion_rad)
+        order_slip_front((1.0, 2.0), self.order_max_motion_rad)  # ValueError naming max_motion_rad
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
@@ -350,13 +385,17 @@ class Reconstructor:
         return f32, ray_quotients(calibration_ray_tables(self.calibration))
 
     @cached_property
-    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32]:
-        """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies) of the pattern."""
+    def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32, np.float32, F32]:
+        """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies, z² of the
+        heterodyne order test and its squared slip front (P, K − 1), rad²) of the pattern."""
         sched = self.calibration.pattern
         delta = 2.0 * np.pi * np.arange(sched.steps) / sched.steps
         coefs, steps = unwrap_chain(sched.frequencies, sched.unwrap)
+        z = order_test_bound(len(sched.frequencies), self.order_false_alarm_rate)
+        front = order_slip_front(sched.frequencies, self.order_max_motion_rad)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32))
+                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32),
+                np.float32(z * z), np.ascontiguousarray(front**2, np.float32))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -385,9 +424,6 @@ class Reconstructor:
         sched = self.calibration.pattern
         return min_phasor_snr(sched.frequencies, sched.unwrap, consistency_rad=self.consistency_rad,
                               rate=self.order_error_rate)
-
-    def _noise_rule(self, max_code: int) -> tuple[float, SensorNoise] | None:
-        return None if self.min_modulation is not None else (self._snr_min, self._noise(max_code))
 
     def _noise(self, max_code: int) -> SensorNoise:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
@@ -420,7 +456,8 @@ class Reconstructor:
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
-            noise_rule=self._noise_rule(max_code),
+            noise=self._noise(max_code), snr_min=None if self.min_modulation is not None else self._snr_min,
+            false_alarm_rate=self.order_false_alarm_rate, max_motion_rad=self.order_max_motion_rad,
         )
         height, singular, slope = evaluate_height_slope(model, phi)
         lo, hi = self._bounds_mm
@@ -478,15 +515,15 @@ class Reconstructor:
         assert _fast is not None
         cal = self.calibration
         tables, ray_q = self._fast_tables
-        cos_d, sin_d, freqs, chain_c, chain_f = self._fast_schedule
+        cos_d, sin_d, freqs, chain_c, chain_f, order_z2, order_front2 = self._fast_schedule
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
         noise = self._noise(max_code)
         f32 = np.float32
-        rule = self._noise_rule(max_code)
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
                              chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
-                             f32(0.0 if rule is None else rule[0] ** 2))
+                             f32(0.0 if self.min_modulation is not None else self._snr_min ** 2),
+                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2))
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),

@@ -19,6 +19,7 @@ from app.core.errors import Conflict, InvalidRequest
 from app.core.records import CalibrationSummary
 from app.core.schedule import PatternSchedule, calibration_mismatch
 from app.recon import ReconResult, Reconstructor
+from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
 from app.service.pipeline import LivePipeline
@@ -117,10 +118,12 @@ class CalibrationManager:
 
     def _engine(self, cal: Calibration, schedule: PatternSchedule) -> Reconstructor:
         bits = self.settings.bit_depth
+        # live scenes move: heterodyne orders are guarded against motion between the groups
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
                              max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm,
                              min_modulation=self.settings.min_modulation,
-                             gross_error_mm=self.settings.gross_error_mm or None)
+                             gross_error_mm=self.settings.gross_error_mm or None,
+                             order_max_motion_rad=LIVE_MAX_MOTION_RAD)
 
     def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
         """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""

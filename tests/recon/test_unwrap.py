@@ -130,3 +130,94 @@ def test_heterodyne_flags_inconsistent_pixels():
 def test_heterodyne_bad_schedules(freqs, message):
     with pytest.raises(ValueError, match=f"^frequencies: .*{message}"):
         unwrap_chain(freqs, "heterodyne")
+
+
+# -- the heterodyne order test (issue 15: a wrong order under motion must not pass) -------------
+HET9 = (30, 35, 36)  # the registered heterodyne-9 schedule's fringe counts
+
+
+def _het9_wrapped(x, w=608.0):
+    return np.stack([np.mod(TWO_PI * k * x / w, TWO_PI) for k in HET9])
+
+
+def test_slip_front_of_30_35_36_is_the_analytic_one():
+    from app.recon.unwrap import order_slip_front, order_slip_margin
+
+    # m = ±6: φ_30 unmoved, φ_35 by 2π·6/36; m = ±1: φ_30 by 2π/6, φ_35 by 2π/36 (grid 0.005 rad, rounded down)
+    front = order_slip_front(HET9)
+    np.testing.assert_allclose(front, [[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]], atol=0.005)
+    assert (front <= np.array([[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]]) + 1e-12).all()  # never looser
+    assert order_slip_margin(HET9) == pytest.approx(TWO_PI / 6)
+    # motion between the groups can cancel part of a slip: the margin shrinks as the bound grows
+    margins = [order_slip_margin(HET9, r) for r in (0.0, 0.1, 0.3, 0.6, 1.2)]
+    assert all(b < a for a, b in zip(margins, margins[1:], strict=False))
+    assert margins[-1] < 0.1  # unbounded motion: no heterodyne set can tell its orders apart
+    with pytest.raises(ValueError, match="^max_motion_rad"):
+        order_slip_margin(HET9, -0.1)
+
+
+@pytest.mark.parametrize("slip", [m for m in range(-35, 36) if m != 0])
+def test_a_constructed_order_slip_is_caught(slip):
+    from app.recon.unwrap import order_residuals_consistent
+
+    x = np.linspace(3.0, 600.0, 300).reshape(10, 30)
+    wrapped = _het9_wrapped(x)
+    finest = TWO_PI * 36 * x / 608.0
+    var = np.full(wrapped.shape, 0.02**2)  # a well-modulated pixel's phase variance
+    assert order_residuals_consistent(wrapped, finest, var, HET9).all()
+    assert not order_residuals_consistent(wrapped, finest + TWO_PI * slip, var, HET9).any()
+
+
+def test_order_test_refuses_pixels_too_noisy_to_show_a_slip():
+    from app.recon.unwrap import PHASE_FLOOR_RAD, order_residuals_consistent, order_test_bound
+
+    x = np.full((1, 2), 300.0)
+    wrapped = _het9_wrapped(x)
+    finest = TWO_PI * 36 * x / 608.0
+    z = order_test_bound(3)
+    # σ(r_35) just below / above (π/3)/(2z) with σ(r_30) large: only the first can show m = ±6
+    lim = (TWO_PI / 6 - 0.005) / (2 * z)
+    r35 = np.array([0.97, 1.03]) * lim
+    ratio = 35 / 36
+    v_fine = 1e-6
+    var = np.empty((3, 1, 2))
+    var[2] = v_fine
+    var[1] = r35**2 - ratio**2 * v_fine - PHASE_FLOOR_RAD**2 * (1 + ratio**2)
+    var[0] = 0.05**2
+    assert order_residuals_consistent(wrapped, finest, var, HET9).tolist() == [[True, False]]
+
+
+def test_order_test_false_alarm_rate_on_a_still_noisy_scene(monkeypatch):
+    import app.recon.unwrap as unwrap
+
+    monkeypatch.setattr(unwrap, "PHASE_FLOOR_RAD", 0.0)  # pure Gaussian noise: the stated rate holds
+    rng = np.random.default_rng(12)
+    x = rng.uniform(20.0, 588.0, (500, 1000))  # away from the ends, where the 1-fringe beat wraps
+    sigma = 0.02
+    wrapped = np.mod(_het9_wrapped(x) + rng.normal(0.0, sigma, (3, *x.shape)), TWO_PI)
+    alpha = 1e-2
+    unwrapped, ok = unwrap_phases(wrapped, HET9, "heterodyne", phase_var=np.full(wrapped.shape, sigma**2),
+                                  false_alarm_rate=alpha)
+    assert np.all(np.abs(unwrapped[-1] - TWO_PI * 36 * x / 608.0) < 1.0)  # no order errors at this noise
+    rate = 1.0 - ok.mean()
+    assert 0.6 * alpha < rate < 1.05 * alpha  # Bonferroni over 2 correlated tests: a little below α
+
+
+def test_motion_between_groups_slips_the_chain_and_the_order_test_catches_it():
+    """Each group sees the surface at another instant: the beats move 35× the fine phase's
+    change, the chain picks a wrong order at some pixels and still passes its π/2 step test."""
+    from app.recon.unwrap import LIVE_MAX_MOTION_RAD
+
+    x = np.linspace(20.0, 588.0, 200_000).reshape(400, 500)  # the 1-fringe beat wraps at the field ends
+    rng = np.random.default_rng(3)
+    rho = rng.uniform(-0.3, 0.3, x.shape)  # finest-phase change per group interval, rad
+    wrapped = np.stack([np.mod(TWO_PI * k * x / 608.0 + (k / 36) * rho * (g - 2), TWO_PI)  # groups 30, 35, 36
+                        for g, k in enumerate(HET9)])
+    truth = TWO_PI * 36 * x / 608.0
+    chain, chain_ok = unwrap_phases(wrapped, HET9, "heterodyne")
+    slipped = chain_ok & (np.abs(chain[-1] - truth) > math.pi)
+    assert slipped.sum() > 100
+    var = np.full(wrapped.shape, 0.01**2)
+    tested, ok = unwrap_phases(wrapped, HET9, "heterodyne", phase_var=var, max_motion_rad=LIVE_MAX_MOTION_RAD)
+    assert not (ok & (np.abs(tested[-1] - truth) > math.pi)).any()
+    assert not ok[slipped].any()
