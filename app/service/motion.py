@@ -174,6 +174,18 @@ def _motion_kernel(frames, n_groups, steps, newest, read2, gain, k2, top_code, m
             row_tested[v] = tested
 
 
+@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _invalidate(depth, sigma, points, valid, reason, v, u, code):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """Pixel (v, u) has no depth, for reason ``code``."""
+    depth[v, u] = np.nan
+    sigma[v, u] = np.nan
+    points[v, u, 0] = np.nan
+    points[v, u, 1] = np.nan
+    points[v, u, 2] = np.nan
+    valid[v, u] = False
+    reason[v, u] = code
+
+
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, reason,  # type: ignore[no-untyped-def]
                  sigma, motion_code, saturated_code, strict_sigma, uncertain_code):  # pragma: no cover - compiled
@@ -216,25 +228,13 @@ def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, r
                 if row[u]:
                     c += 1
                     if apply and reason[v, u] != saturated_code:
-                        depth[v, u] = np.nan
-                        sigma[v, u] = np.nan
-                        points[v, u, 0] = np.nan
-                        points[v, u, 1] = np.nan
-                        points[v, u, 2] = np.nan
-                        valid[v, u] = False
-                        reason[v, u] = motion_code
+                        _invalidate(depth, sigma, points, valid, reason, v, u, motion_code)
             counts[v] = c
         if strict:
             n = 0
             for u in range(w):
                 if valid[v, u] and sigma[v, u] > strict_sigma:
-                    depth[v, u] = np.nan
-                    sigma[v, u] = np.nan
-                    points[v, u, 0] = np.nan
-                    points[v, u, 1] = np.nan
-                    points[v, u, 2] = np.nan
-                    valid[v, u] = False
-                    reason[v, u] = uncertain_code
+                    _invalidate(depth, sigma, points, valid, reason, v, u, uncertain_code)
                     n += 1
             ucounts[v] = n
     return counts.sum(), ucounts.sum()
