@@ -51,10 +51,10 @@ from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
 from app.recon.unwrap import LIVE_MAX_MOTION_RAD
+from app.recon.validity import DEFAULT_GROSS_ERROR_MM
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
 from app.service.motion import (
     DEFAULT_FALSE_ALARM_RATE,
-    DEFAULT_GROSS_ERROR_MM,
     DEFAULT_GROW_PX,
     motion_mask,
     sigma_bounds,
