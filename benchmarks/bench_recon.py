@@ -9,6 +9,7 @@ the memory pass (``frames.sum()``).
 
 from __future__ import annotations
 
+import argparse
 import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
@@ -42,6 +43,7 @@ def median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
 
 
 def main() -> int:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()  # --help; no options
     rig = Rig(width=WIDTH, height=HEIGHT, focal_px=200.0 * WIDTH / 160)
     height_mm = bump_surface(rig)
     print(f"bench_recon: 16 frames {WIDTH}x{HEIGHT}, {os.cpu_count()} CPUs, "
