@@ -169,9 +169,10 @@ def _phase_numpy(
     wp = wrapped_phase(frames, schedule.steps, max_code=max_code)
     if phase_error is not None:
         wp = replace(wp, phase=phase_error.apply(wp.phase))
+    camera = noise if noise is not None else SensorNoise.typical(max_code)
     phase_var = None
     if schedule.unwrap == "heterodyne" and false_alarm_rate is not None:
-        var_i = (noise if noise is not None else SensorNoise.typical(max_code)).variance_dn2(wp.background)
+        var_i = camera.variance_dn2(wp.background)
         with np.errstate(divide="ignore", invalid="ignore"):
             phase_var = var_i * phase_variance_factor((wp.modulation * (schedule.steps / 2.0)) ** 2, schedule.steps)
     unwrapped, consistent = unwrap_phases(
@@ -186,7 +187,6 @@ def _phase_numpy(
     if snr_min is None:
         threshold: Any = min_modulation
     else:
-        camera = noise if noise is not None else SensorNoise.typical(max_code)
         threshold = modulation_threshold(wp.background, schedule.steps, snr_min, camera.read_noise_dn**2,
                                          camera.gain_dn_per_e, min_modulation)
     reason = assign_reasons(

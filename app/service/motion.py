@@ -53,6 +53,7 @@ from numba import njit, prange
 from app.core.reasons import Reason
 from app.recon.fast import FASTMATH, KERNEL_LOCK
 from app.recon.reconstructor import SensorNoise
+from app.recon.unwrap import order_test_bound
 from app.recon.validity import max_depth_sigma_mm
 
 #: reason code for "moved during the set"
@@ -79,9 +80,7 @@ def motion_k(n_groups: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) 
     """
     if int(n_groups) != n_groups or n_groups < 2:
         raise ValueError(f"n_groups: need an integer >= 2, got {n_groups}")
-    if not (0.0 < false_alarm_rate < 1.0):
-        raise ValueError(f"false_alarm_rate: must be in (0, 1), got {false_alarm_rate}")
-    return float(NormalDist().inv_cdf(1.0 - false_alarm_rate / (2.0 * (n_groups - 1))))
+    return order_test_bound(n_groups, false_alarm_rate)  # the same Bonferroni bound as the order test's
 
 
 def sigma_bounds(gross_error_mm: float, n_groups: int,
@@ -350,7 +349,7 @@ def invalidate_motion(
     engine said SATURATED (the earlier cause, see :mod:`app.core.reasons`). With
     ``gross_error_mm`` E, when the scene moved (:func:`scene_moved` on the raw flags) every other
     valid pixel whose σ exceeds the moving bound of :func:`sigma_bounds` (E / (z + k)) is made
-    UNCERTAIN the same way (the still bound E / z is the engine's ``max_sigma_mm``).
+    UNCERTAIN the same way (the still bound E / z is the engine's own validity rule, ``Reconstructor.sigma_limit_mm``).
 
     Args:
         depth, sigma: (H, W) float32; points: (H, W, 3) float32; valid: (H, W) bool;
