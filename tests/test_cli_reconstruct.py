@@ -123,3 +123,49 @@ def test_explicit_min_modulation_replaces_the_validity_rule(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "min_modulation" in err[0]
     assert not (tmp_path / "bad").exists()
+
+
+def _bracket(tmp_path):
+    """Two sets of one scene, left half white and right half 1/50 as bright, at 10 and 40 ms:
+    neither alone measures the whole scene."""
+    rig = Rig()
+    h = bump_surface(rig)
+    albedo = np.where(np.arange(rig.width) < rig.width // 2, 1.0, 0.02)[None, :] * np.ones((rig.height, 1))
+    for exposure_ms, seed in ((10.0, 1), (40.0, 2)):
+        gain = exposure_ms / 10.0
+        frames = rig.render(h, background=110.0 * gain * albedo, amplitude=90.0 * gain * albedo, noise=0.6,
+                            rng=np.random.default_rng(seed))
+        write_capture_set(tmp_path / f"set{exposure_ms:g}", CaptureSet(frames, rig.schedule, exposure_ms=exposure_ms))
+    save_calibration(rig.calibration(), tmp_path / "calibration.json")
+    return h
+
+
+def test_an_exposure_bracket_is_fused(tmp_path, capsys):
+    h = _bracket(tmp_path)
+    cal = str(tmp_path / "calibration.json")
+    for sets, sub in (([tmp_path / "set10"], "short"), ([tmp_path / "set40"], "long"),
+                      ([tmp_path / "set10", tmp_path / "set40"], "both")):
+        assert main(["reconstruct", *map(str, sets), "-c", cal, "-o", str(tmp_path / sub)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and "fused from 10 ms" in lines[2] and "40 ms" in lines[2]
+    valid = {sub: np.isfinite(np.load(tmp_path / sub / "depth.npy")) for sub in ("short", "long", "both")}
+    assert valid["short"].mean() < 0.6 and valid["long"].mean() < 0.6
+    assert valid["both"].mean() > 0.99
+    depth = np.load(tmp_path / "both" / "depth.npy")
+    assert np.nanmax(np.abs(depth - h)) < 0.5
+    sigma = np.load(tmp_path / "both" / "sigma.npy")
+    assert np.array_equal(np.isfinite(sigma), valid["both"])
+    assert read_ply(tmp_path / "both" / "points.ply").size == valid["both"].sum()
+
+
+def test_a_bracket_of_different_schedules_is_one_line_error(tmp_path, capsys):
+    _bracket(tmp_path)
+    rig = Rig()
+    nine = SCHEDULES["geometric-9"]
+    frames = np.zeros((nine.n_frames, rig.height, rig.width), np.uint8)
+    write_capture_set(tmp_path / "nine", CaptureSet(frames, nine))
+    rc = main(["reconstruct", str(tmp_path / "set10"), str(tmp_path / "nine"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "nine" in err[0] and "schedule" in err[0], err
+    assert not (tmp_path / "out").exists()

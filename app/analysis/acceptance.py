@@ -19,6 +19,7 @@ from app.analysis.plane import plane_accuracy
 from app.analysis.sphere import sphere_figures
 from app.calib.calibration import Calibration
 from app.core.depth_model import SupportedRegion
+from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
 
 
@@ -114,8 +115,10 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
         calibrated volume, and ``spheres``: per sphere ``diameter_mm``, ``ps_mm``, ``pf_mm``,
         ``rms_mm``, ``n_points``. With ``projector_centre_mm``, ``incidence``: per limit
         ``{"pixels_fraction", "valid_fraction"}`` of the in-volume sphere pixels the
-        projector lights at or below that angle, and ``unlit_fraction`` (at or beyond 90°:
-        in the sphere's own shadow).
+        projector lights at or below that angle, ``unlit_fraction`` (at or beyond 90°:
+        in the sphere's own shadow) and ``lit_valid_fraction``: the valid fraction of the
+        lit, unsaturated sphere pixels inside the volume (and ``supported``), the whole-field
+        issue's acceptance figure.
     """
     tp = np.asarray(truth_points, np.float64)
     on_any = np.zeros(tp.shape[:2], bool)
@@ -156,6 +159,9 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
     if projector_centre_mm is not None:
         cos_inc = projector_incidence_cos(tp, normals, projector_centre_mm)
         report["unlit_fraction"] = float((cos_inc[inside] <= 0.0).mean()) if inside.any() else math.nan
+        lit_unsat = inside & (cos_inc > 0.0) & (np.asarray(result.reason) != Reason.SATURATED)
+        report["lit_valid_fraction"] = (float(np.asarray(result.valid, bool)[lit_unsat].mean()) if lit_unsat.any()
+                                        else math.nan)
         report["incidence"] = {}
         for deg in incidence_limits_deg:
             lit = inside & (cos_inc >= math.cos(math.radians(deg)))
@@ -249,8 +255,6 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
         ``off_region_valid``, ``off_region_gross``, ``off_region_max_abs_error_mm``.
         Figures of an empty set are NaN.
     """
-    from app.core.reasons import Reason
-
     depth = np.asarray(result.depth, np.float64)
     truth = np.asarray(truth_depth, np.float64)
     sig = np.asarray(sigma_mm, np.float64)

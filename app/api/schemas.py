@@ -8,6 +8,7 @@ from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, mod
 
 from app.capture.recording import NAME_PATTERN
 from app.core.limits import EXPOSURE_RANGE_MS, Led
+from app.recon.exposure import DEFAULT_SATURATION_LIMIT
 
 EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
 
@@ -27,7 +28,7 @@ class ExposureOut(BaseModel):
 
 
 class AutoExposureIn(Strict):
-    saturation_limit: float = Field(0.005, ge=0.0, lt=1.0, description="allowed saturated fraction")
+    saturation_limit: float = Field(DEFAULT_SATURATION_LIMIT, ge=0.0, lt=1.0, description="allowed saturated fraction")
     max_exposure_ms: float = Field(EXPOSURE_MAX_MS, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS)
 
 

@@ -1,4 +1,9 @@
-"""``fringescope reconstruct SET_DIR -c calibration.json -o OUT_DIR``: one capture set → depth files."""
+"""``fringescope reconstruct SET_DIR [SET_DIR ...] -c calibration.json -o OUT_DIR``: capture sets → depth files.
+
+One set gives its depth. Several sets of one scene at different exposures (an exposure
+bracket) are fused: each pixel from the set that measures it with the smallest σ
+(:mod:`app.recon.fusion`).
+"""
 
 from __future__ import annotations
 
@@ -21,10 +26,13 @@ def _range(text: str) -> tuple[float, float]:
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "reconstruct",
-        help="turn one capture set into depth.npy, sigma.npy, points.ply, depth.png and reason.png",
-        description="Reconstruct one capture-set folder with a calibration file.",
+        help="turn a capture set (or an exposure bracket of sets) into depth.npy, sigma.npy, points.ply, "
+             "depth.png and reason.png",
+        description="Reconstruct one capture-set folder with a calibration file; several folders of one scene "
+                    "at different exposures are fused (each pixel from the set that measures it best).",
     )
-    p.add_argument("set_dir", metavar="SET_DIR", help="capture-set folder (capture.json + frames)")
+    p.add_argument("set_dirs", nargs="+", metavar="SET_DIR",
+                   help="capture-set folder (capture.json + frames); more than one: an exposure bracket")
     p.add_argument("-c", "--calibration", required=True, help="calibration.json")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
     p.add_argument("--range", type=_range, default=(0.0, 35.0), metavar="MIN,MAX",
@@ -45,27 +53,45 @@ def run(args: argparse.Namespace) -> int:
     from app.core.encoding import npy_bytes
     from app.recon import Reconstructor, reason_png, render_depth_png
 
-    set_dir = Path(args.set_dir)
-    if not set_dir.is_dir():
-        raise ValueError(f"{set_dir}: capture-set folder not found")
-    capture = read_capture_set(set_dir)
+    dirs = [Path(d) for d in args.set_dirs]
+    for d in dirs:
+        if not d.is_dir():
+            raise ValueError(f"{d}: capture-set folder not found")
+    captures = [read_capture_set(d) for d in dirs]
     calibration = load_calibration(args.calibration)
     from app.service.schedules import calibration_for_schedule
 
     try:  # a set of another schedule with the same finest pattern: the calibration carries over
-        calibration = calibration_for_schedule(calibration, capture.schedule)
+        calibration = calibration_for_schedule(calibration, captures[0].schedule)
     except ValueError as exc:
-        raise ValueError(f"{set_dir}: {exc}") from None
+        raise ValueError(f"{dirs[0]}: {exc}") from None
+    for d, c in zip(dirs[1:], captures[1:], strict=True):
+        if c.schedule != captures[0].schedule:
+            raise ValueError(f"{d}: a bracket's sets need one schedule; {dirs[0].name} has another")
+        if c.frames.shape != captures[0].frames.shape:
+            raise ValueError(f"{d}: frames {c.frames.shape[1:]} differ from {dirs[0].name}'s "
+                             f"{captures[0].frames.shape[1:]}")
     from app.recon.noise import estimate_sensor_noise
 
-    max_code = args.max_code or capture.max_code  # the set's bit_depth unless told
-    try:  # σ from the camera noise this set shows (the N-step residual, N > 3)
-        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=max_code)
-    except ValueError:
-        noise = None  # N = 3 or too few usable pixels: the typical sensor
+    noise = None  # σ from the camera noise the sets show (the N-step residual, N > 3): the first that has it
+    for c in captures:
+        try:
+            noise = estimate_sensor_noise(c.frames, c.schedule, max_code=args.max_code or c.max_code)
+            break
+        except ValueError:
+            continue  # N = 3 or too few usable pixels; none: the typical sensor
     rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise,
                         min_modulation=args.min_modulation)
-    res = rec.run(capture.frames, max_code=max_code)
+    members = [rec.run(c.frames, max_code=args.max_code or c.max_code) for c in captures]  # the set's bit_depth unless told
+    if len(members) == 1:
+        res, bracket = members[0], ""
+    else:
+        from app.recon.fusion import fuse_exposures
+
+        fused = fuse_exposures(members, [c.exposure_ms for c in captures])
+        res = fused.result
+        bracket = " fused from " + ", ".join(f"{c.exposure_ms:g} ms ({100 * fused.valid_from(i) / res.valid.size:.1f}%)"
+                                            for i, c in enumerate(captures)) + ";"
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "depth.npy", npy_bytes(res.depth))
@@ -80,5 +106,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         span = "height n/a"
     path = "numpy" if args.numpy or not rec.fast else "fast"
-    print(f"{set_dir.name}: valid {100 * frac:.1f}% of {w}x{h} px, {span}, {res.elapsed_ms:.1f} ms ({path}) -> {out}")
+    print(f"{dirs[0].name}: valid {100 * frac:.1f}% of {w}x{h} px,{bracket} {span}, {res.elapsed_ms:.1f} ms ({path}) "
+          f"-> {out}")
     return 0

@@ -21,8 +21,8 @@ from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
 from app.recon import ReconResult
+from app.recon.exposure import DEFAULT_SATURATION_LIMIT, AutoExposureResult
 from app.recon.reconstructor import SensorNoise
-from app.service.autoexposure import AutoExposureResult
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
@@ -182,7 +182,7 @@ class Instrument:
     def set_acquiring(self, on: bool) -> None:
         self.pipeline.set_acquiring(on)
 
-    def auto_exposure(self, *, saturation_limit: float = 0.005,
+    def auto_exposure(self, *, saturation_limit: float = DEFAULT_SATURATION_LIMIT,
                       max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
         return self.pipeline.auto_exposure(saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)

@@ -17,9 +17,9 @@ from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import LEDS
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
+from app.recon.exposure import AutoExposureResult, choose_exposure, set_statistics
 from app.recon.validity import DEFAULT_GROSS_ERROR_MM
 from app.service.acquisition import Acquisition
-from app.service.autoexposure import AutoExposureResult, choose_exposure, set_statistics
 from app.service.devices import DeviceBundle
 from app.service.framesets import FrameSet
 from app.service.motion import DEFAULT_FALSE_ALARM_RATE, DEFAULT_GROW_PX

@@ -9,6 +9,7 @@ Public API (other modules code against these names)::
     create_sim_devices(*, scene, seed, bit_depth, drop_rate, timeout_rate, disconnect_every_s,
                        realtime, distortion) -> SimDevices(camera, projector, controller, world)
     render_capture_set(scene, ..., rig="default") -> (CaptureSet, truth_depth, truth_points)
+    instrument_exposure(scene, *, seed, rig, ...) -> the instrument's auto-exposure choice
     simulate_calibration_folder(out_dir, *, board, poses, seed, bit_depth, rig, partial_boards) -> Path
 """
 
@@ -19,7 +20,11 @@ from app.devices.sim.devices import (
     SimulatedProjector,
     create_sim_devices,
 )
-from app.devices.sim.offline import render_capture_set, simulate_calibration_folder
+from app.devices.sim.offline import (
+    instrument_exposure,
+    render_capture_set,
+    simulate_calibration_folder,
+)
 from app.devices.sim.optics import RIG_NAMES, SimRig, default_rig, endoscope_rig, rig_by_name
 from app.devices.sim.scenes import list_scenes, sim_board
 from app.devices.sim.world import READOUT_MS, SimulatedWorld
@@ -28,5 +33,5 @@ __all__ = [
     "READOUT_MS", "RIG_NAMES", "SimDevices", "SimRig", "SimulatedCamera", "SimulatedController",
     "endoscope_rig", "rig_by_name",
     "SimulatedProjector", "SimulatedWorld", "create_sim_devices", "default_rig", "list_scenes",
-    "render_capture_set", "sim_board", "simulate_calibration_folder",
+    "instrument_exposure", "render_capture_set", "sim_board", "simulate_calibration_folder",
 ]

@@ -20,6 +20,12 @@ from app.core.schedule import PatternSchedule
 from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.scenes import Scene, board_poses, board_scene, sim_board
 from app.devices.sim.world import READOUT_MS, SimulatedWorld
+from app.recon.exposure import (
+    DEFAULT_SATURATION_LIMIT,
+    AutoExposureResult,
+    choose_exposure,
+    set_statistics,
+)
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -71,6 +77,34 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
     # bit_depth: the capture set's own key (DESIGN.md: 12-bit codes in 16-bit PNGs)
     return (CaptureSet(frames=frames, schedule=sched, exposure_ms=exposure_ms, led=led, extra=meta,
                        bit_depth=bit_depth), depth, points)
+
+
+def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str = "default",
+                        saturation_limit: float = DEFAULT_SATURATION_LIMIT, current: float = 0.5,
+                        led: str = "green", t0_s: float = 0.0) -> AutoExposureResult:
+    """The exposure the instrument's own auto-exposure picks for ``scene``.
+
+    The search is :func:`app.recon.exposure.choose_exposure`, the one ``POST /api/exposure/auto``
+    runs on grabbed sets. Each trial here is a capture set rendered at that exposure. The
+    search uses a world of its own, so a later :func:`render_capture_set` with the same seed
+    renders the same noise as without the search.
+
+    Args:
+        scene: a scene name or :class:`~app.devices.sim.scenes.Scene`; ``seed``, ``rig``,
+            ``current``, ``led`` and ``t0_s`` as in :func:`render_capture_set`.
+        saturation_limit: allowed fraction of saturated pixels, [0, 1).
+
+    Returns:
+        The search's :class:`~app.recon.exposure.AutoExposureResult` (``exposure_ms``, trials).
+    """
+    world = SimulatedWorld(scene, seed=seed, rig=rig)
+
+    def measure(exposure_ms: float) -> tuple[float, float]:
+        cs, _, _ = render_capture_set(world.scene, exposure_ms=exposure_ms, seed=seed, t0_s=t0_s, current=current,
+                                      led=led, world=world)
+        return set_statistics(cs.frames, cs.schedule, cs.max_code)
+
+    return choose_exposure(measure, saturation_limit=saturation_limit)
 
 
 def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 8, current: float = 0.5,

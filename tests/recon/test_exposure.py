@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.recon.exposure import bracket_exposures, choose_exposure, set_statistics
 from app.recon.patterns import PatternSchedule, fringe_profile
-from app.service.autoexposure import choose_exposure, set_statistics
 
 
 def synthetic_set(gain: float, schedule: PatternSchedule, shape=(40, 60)) -> np.ndarray:
@@ -60,6 +60,23 @@ def test_invalid_arguments():
 
 def test_ladder_spans_the_exposure_range():
     from app.core.limits import EXPOSURE_RANGE_MS
-    from app.service.autoexposure import LADDER_MS
+    from app.recon.exposure import LADDER_MS
 
     assert (LADDER_MS[0], LADDER_MS[-1]) == EXPOSURE_RANGE_MS
+
+
+def test_bracket_adds_two_stops_capped_at_the_longest_exposure():
+    assert bracket_exposures(20.0) == (20.0, 80.0)
+    assert bracket_exposures(40.0) == (40.0, 100.0)  # capped at EXPOSURE_RANGE_MS[1]
+    assert bracket_exposures(100.0) == (100.0,)  # already at the cap: one set
+    assert bracket_exposures(10.0, stops=1.0) == (10.0, 20.0)
+    assert bracket_exposures(10.0, max_exposure_ms=30.0) == (10.0, 30.0)
+
+
+@pytest.mark.parametrize(("kw", "name"), [
+    ({"base_ms": 0.0}, "base_ms"), ({"base_ms": 150.0}, "base_ms"), ({"base_ms": float("nan")}, "base_ms"),
+    ({"base_ms": 10.0, "stops": 0.0}, "stops"), ({"base_ms": 10.0, "max_exposure_ms": -1.0}, "max_exposure_ms"),
+])
+def test_bracket_rejects_bad_input(kw, name):
+    with pytest.raises(ValueError, match=name):
+        bracket_exposures(**kw)

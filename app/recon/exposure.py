@@ -21,6 +21,8 @@ from app.recon.phase import wrapped_phase
 #: candidate exposures, ms (roughly geometric: each step ≈ 1.25–1.5×), spanning EXPOSURE_RANGE_MS
 LADDER_MS = (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.5, 8.0, 10.0, 12.5, 15.0, 20.0, 25.0, 30.0, 40.0,
              50.0, 65.0, 80.0, 100.0)
+#: Default allowed fraction of saturated pixels (0.5 %).
+DEFAULT_SATURATION_LIMIT = 0.005
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,7 @@ def set_statistics(
 def choose_exposure(
     measure: Callable[[float], tuple[float, float]],
     *,
-    saturation_limit: float = 0.005,
+    saturation_limit: float = DEFAULT_SATURATION_LIMIT,
     min_exposure_ms: float = EXPOSURE_RANGE_MS[0],
     max_exposure_ms: float = EXPOSURE_RANGE_MS[1],
     ladder_ms: tuple[float, ...] = LADDER_MS,
@@ -127,3 +129,28 @@ def choose_exposure(
         modulation=best.modulation, saturation_limit=saturation_limit,
         trials=sorted(trials.values(), key=lambda t: t.exposure_ms), warning=warning,
     )
+
+
+def bracket_exposures(base_ms: float, *, stops: float = 2.0,
+                      max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> tuple[float, ...]:
+    """Exposures of a two-set bracket: ``base_ms`` (the auto-exposure's choice, which keeps the
+    bright parts unsaturated) and ``stops`` stops more (×2^stops, capped at ``max_exposure_ms``)
+    for the dim parts (:mod:`app.recon.fusion`). A base already at the cap gives one exposure.
+
+    Args:
+        base_ms: the base exposure, ms, within (0, max_exposure_ms].
+        stops: how much longer the second exposure is, in stops (factors of 2), > 0.
+        max_exposure_ms: the camera's longest exposure, ms.
+
+    Returns:
+        (base_ms,) or (base_ms, longer_ms).
+    """
+    if not (math.isfinite(max_exposure_ms) and max_exposure_ms > 0):
+        raise ValueError(f"max_exposure_ms: must be finite and > 0, got {max_exposure_ms}")
+    if not (math.isfinite(base_ms) and 0 < base_ms <= max_exposure_ms):
+        raise ValueError(f"base_ms: must be within (0, {max_exposure_ms:g}] ms, got {base_ms}")
+    if not (math.isfinite(stops) and stops > 0):
+        raise ValueError(f"stops: must be finite and > 0, got {stops}")
+    longer = min(base_ms * 2.0**stops, max_exposure_ms)
+    return (float(base_ms),) if longer <= base_ms else (float(base_ms), float(longer))
+
