@@ -73,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
                              f"{captures[0].frames.shape[1:]}")
     from app.recon.noise import estimate_sensor_noise
 
-    noise = None  # σ from the camera noise the sets show (the N-step residual, N > 3): the first that has it
+    # σ from the camera noise the sets show (the N-step residual, N > 3): the first set that has it
+    noise = None
     for c in captures:
         try:
             noise = estimate_sensor_noise(c.frames, c.schedule, max_code=args.max_code or c.max_code)
@@ -82,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
             continue  # N = 3 or too few usable pixels; none: the typical sensor
     rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise,
                         min_modulation=args.min_modulation)
-    members = [rec.run(c.frames, max_code=args.max_code or c.max_code) for c in captures]  # the set's bit_depth unless told
+    # each set at its own bit_depth unless told
+    members = [rec.run(c.frames, max_code=args.max_code or c.max_code) for c in captures]
     if len(members) == 1:
         res, bracket = members[0], ""
     else:
@@ -90,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
 
         fused = fuse_exposures(members, [c.exposure_ms for c in captures])
         res = fused.result
-        bracket = " fused from " + ", ".join(f"{c.exposure_ms:g} ms ({100 * fused.valid_from(i) / res.valid.size:.1f}%)"
-                                            for i, c in enumerate(captures)) + ";"
+        shares = (f"{c.exposure_ms:g} ms ({100 * fused.valid_from(i) / res.valid.size:.1f}%)"
+                  for i, c in enumerate(captures))
+        bracket = " fused from " + ", ".join(shares) + ";"
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "depth.npy", npy_bytes(res.depth))
