@@ -1,20 +1,36 @@
-"""A fake LightCrafter 3000: the DM365 TCP packet protocol, byte for byte, on a real socket.
+"""A fake LightCrafter 3000: the DM365 TCP command interface, built from TI's guide.
 
-Parses packets itself (not with the client's helpers, so a framing bug on one side
-shows), checks checksums, payload sizes and multi-packet flags, answers write/read
-responses, ``busy`` (``busy_next`` times) and error packets with the DLPU007 error
-codes, keeps what was uploaded (decoded BMP patterns, sequence and trigger-out
-settings, LED currents), and can be stopped and restarted on the same port to
-look like an unplugged projector.
+The command table below is transcribed from DLPU007A's field tables (see
+``/work/shared/lightcrafter-protocol.md`` in the project's notes), not from the client:
+this module imports nothing from :mod:`app.devices.lightcrafter`, so a framing or
+field bug on one side shows as a refusal on the other. Each packet is checked as the
+device checks it — checksum, continuation flags, packet type, payload size per command,
+the range of every field — and refused with the guide's error code:
+
+    0x01 unknown · 0x02 invalid command · 0x03 invalid parameter · 0x04 out of memory
+    · 0x05 hardware busy · 0x06 not initialised · 0x07 object not found · 0x08 checksum
+    · 0x09 payload size wrong for the command · 0x0A wrong continuation flag
+
+A pattern (0x0401) is kept as the device shows it: the least significant ``bit depth``
+bits of each pixel (§3.11). With ``strict_levels`` (the default) a pattern holding a
+level the bit depth cannot show is refused with 0x03; the device itself would show the
+wrapped low bits, which is never what a host means, so the emulator makes it loud.
+
+Faults: ``busy_next`` (that many packets answered "busy", checksum unset as the guide
+allows), ``fail_next`` (an error code for the next command), :meth:`stop` /
+:meth:`start` (unplug / replug; a power cycle forgets everything).
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import socket
 import struct
 import threading
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,64 +40,124 @@ import numpy.typing as npt
 log = logging.getLogger("fringescope.devices.lightcrafter_emulator")
 
 WIDTH, HEIGHT = 608, 684
-VERSIONS = {0x00: b"5.0.0 fringescope-emu\0", 0x10: b"2.0.0\0", 0x20: b"1.0.0\0"}
-# command -> (allowed packet type, exact payload size or None for variable)
-COMMANDS: dict[int, tuple[int, int | None]] = {
-    0x0100: (0x04, 1), 0x0101: (0x02, 1), 0x0103: (0x02, 6), 0x0400: (0x02, 17), 0x0401: (0x02, None),
-    0x0402: (0x02, 1), 0x0403: (0x02, 0), 0x0404: (0x02, 10), 0x0405: (0x02, 2),
+BIT_PLANES = 96
+# packet types (guide §2)
+T_BUSY, T_ERROR, T_WRITE, T_WRITE_RESP, T_READ, T_READ_RESP = 0x00, 0x01, 0x02, 0x03, 0x04, 0x05
+# flags
+F_COMPLETE, F_FIRST, F_MIDDLE, F_LAST = 0x00, 0x01, 0x02, 0x03
+# error codes (guide's table)
+E_UNKNOWN, E_INVALID_COMMAND, E_INVALID_PARAMETER, E_OUT_OF_MEMORY = 0x01, 0x02, 0x03, 0x04
+E_BUSY, E_NOT_INITIALISED, E_NOT_FOUND, E_CHECKSUM = 0x05, 0x06, 0x07, 0x08
+E_PAYLOAD_SIZE, E_CONTINUATION = 0x09, 0x0A
+VERSION_SELECT = (0x00, 0x10, 0x20)  # DM365 software, FPGA, MSP430
+DISPLAY_MODES = (0x00, 0x01, 0x02, 0x04)  # static, internal test pattern, HDMI, sequence
+LAST_TEST_PATTERN = 0x0D
+LED_CURRENT_MAX, LED_CURRENT_DEFAULT = 1024, 274
+PACKET_LOG = 4096  # packets kept in ``state.packets`` (each cut to its first 64 bytes)
+
+
+@dataclass(frozen=True)
+class Command:
+    """One row of the guide's command table.
+
+    ``write_size``/``read_size``: the payload the host sends with a write / read (None: the
+    direction does not exist; -1: variable). ``min_firmware``: the DM365 major version
+    from which the command exists.
+    """
+
+    name: str
+    write_size: int | None
+    read_size: int | None
+    min_firmware: int = 0
+
+
+COMMANDS: dict[int, Command] = {
+    0x0100: Command("version string", None, 1),
+    0x0101: Command("display mode", 1, 0),
+    0x0103: Command("internal test pattern", 1, 0),
+    0x0104: Command("LED current", 6, 0),
+    0x0400: Command("pattern sequence setting (legacy)", 17, 0),
+    0x0401: Command("pattern definition", -1, None),
+    0x0402: Command("start / stop sequence", 1, None),
+    0x0403: Command("advance pattern", 0, None),
+    0x0404: Command("trigger output setting", 11, 0),
+    0x0405: Command("display pattern", 2, None, min_firmware=3),
+    0x0480: Command("extended pattern sequence setting", 19, 0, min_firmware=3),
 }
-E_INVALID_COMMAND, E_INVALID_PARAMETER, E_NOT_INITIALISED = 0x02, 0x03, 0x07
-E_OBJECT_NOT_FOUND, E_CHECKSUM, E_PACKET_FORMAT, E_CONTINUATION = 0x08, 0x09, 0x0A, 0x0B
 
 
-class _Refuse(Exception):
+class Refused(Exception):
+    """A command the device answers with an error packet; ``code`` is the error byte."""
+
     def __init__(self, code: int) -> None:
-        super().__init__(code)
+        super().__init__(f"error 0x{code:02X}")
         self.code = code
 
 
+def _check(ok: bool, code: int = E_INVALID_PARAMETER) -> None:
+    if not ok:
+        raise Refused(code)
+
+
 def decode_bmp(data: bytes) -> npt.NDArray[np.uint8]:
-    """(H, W) uint8 grey levels of an uncompressed 1- or 8-bit palette BMP (raises _Refuse)."""
-    if len(data) < 54 or data[:2] != b"BM":
-        raise _Refuse(E_INVALID_PARAMETER)
+    """(H, W) uint8 pixel values of an uncompressed 1-, 2-, 4- or 8-bit BMP.
+
+    The values are the pixel data (palette indices), which is what the DMD shows; the
+    palette is not applied. Refuses (``Refused``) what the device could not read.
+    """
+    _check(len(data) >= 54 and data[:2] == b"BM")
     offset = struct.unpack_from("<I", data, 10)[0]
-    _, w, h, _, bits, compression = struct.unpack_from("<IiiHHI", data, 14)
-    if bits not in (1, 8) or compression != 0 or w <= 0 or h == 0:
-        raise _Refuse(E_INVALID_PARAMETER)
-    n_colours = struct.unpack_from("<I", data, 46)[0] or (1 << bits)
-    palette = np.frombuffer(data, np.uint8, n_colours * 4, 54).reshape(-1, 4)[:, 0]  # blue channel = grey
+    header_size, w, h, planes, bits, compression = struct.unpack_from("<IiiHHI", data, 14)
+    _check(header_size >= 40 and planes == 1 and bits in (1, 2, 4, 8) and compression == 0)
+    _check(w > 0 and h != 0)
     stride = ((w * bits + 7) // 8 + 3) // 4 * 4
-    if len(data) < offset + stride * abs(h):
-        raise _Refuse(E_PACKET_FORMAT)
+    _check(offset >= 54 and len(data) >= offset + stride * abs(h), E_PAYLOAD_SIZE)
     rows = np.frombuffer(data, np.uint8, stride * abs(h), offset).reshape(abs(h), stride)
-    idx = rows[:, :w] if bits == 8 else np.unpackbits(rows, axis=1)[:, :w]
-    img = palette[idx]
+    if bits == 8:
+        img = rows[:, :w].copy()
+    else:
+        per_byte = 8 // bits
+        shifts = np.arange(8 - bits, -1, -bits, dtype=np.uint8)  # leftmost pixel in the MSBs
+        vals = (rows[:, :, None] >> shifts) & np.uint8((1 << bits) - 1)
+        img = vals.reshape(abs(h), stride * per_byte)[:, :w].astype(np.uint8)
     return img[::-1] if h > 0 else img
 
 
 @dataclass
 class LightCrafterState:
+    """What the projector holds; ``patterns`` are the levels it shows (0 … 2**bits − 1)."""
+
     display_mode: int = 0x00
-    led_current: tuple[int, int, int] = (274, 274, 274)
+    test_pattern: int = 0x00
+    led_current: tuple[int, int, int] = (LED_CURRENT_DEFAULT,) * 3
     sequence: dict[str, int] = field(default_factory=dict)
+    sequence_command: int = 0
     trigger_out: dict[str, int] = field(default_factory=dict)
     patterns: dict[int, npt.NDArray[np.uint8]] = field(default_factory=dict)
     running: bool = False
     shown: int = 0
     advances: int = 0
-    commands: list[int] = field(default_factory=list)
-    bytes_received: int = 0  # every packet byte the projector read (uploads are ~420 kB a pattern)
+    commands: list[int] = field(default_factory=list)  # every command that was carried out
+    refusals: list[tuple[int, int]] = field(default_factory=list)  # (command, error code)
+    packets: deque[bytes] = field(default_factory=lambda: deque(maxlen=PACKET_LOG))
+    bytes_received: int = 0  # every packet byte read (uploads are ~420 kB a pattern)
 
 
 class LightCrafterEmulator:
     """Serve the protocol on ``host:port`` (port 0: pick a free one; see ``.port``).
 
-    Faults: ``busy_next`` (answer that many packets with busy), ``fail_next`` (an error
-    code for the next command), :meth:`stop` / :meth:`start` (unplug / replug).
+    Args:
+        firmware: the DM365 software version string (0x0100, 0x00); its major number
+            decides whether 0x0480 and 0x0405 exist (≥ 3).
+        strict_levels: refuse (0x03) a pattern with levels above its bit depth.
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, *, firmware: str = "5.0.0",
+                 strict_levels: bool = True) -> None:
         self.host, self.port = host, port
+        self.firmware, self.strict_levels = firmware, strict_levels
+        match = re.search(r"(\d+)\.\d+", firmware)
+        self.firmware_major = int(match.group(1)) if match else 0
         self.state = LightCrafterState()
         self.busy_next = 0
         self.fail_next: int | None = None
@@ -89,6 +165,12 @@ class LightCrafterEmulator:
         self._conns: set[socket.socket] = set()
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
+        self._handlers: dict[int, Callable[[bytes], None]] = {
+            0x0101: self._display_mode, 0x0103: self._test_pattern, 0x0104: self._led_current,
+            0x0400: self._sequence_legacy, 0x0480: self._sequence_extended,
+            0x0401: self._pattern, 0x0402: self._start_stop, 0x0403: self._advance,
+            0x0404: self._trigger_out, 0x0405: self._display_pattern,
+        }
 
     # --- lifecycle -------------------------------------------------------------------------
     def start(self) -> LightCrafterEmulator:
@@ -99,7 +181,8 @@ class LightCrafterEmulator:
         self.port = server.getsockname()[1]
         self._server = server
         self.state = LightCrafterState()  # a power cycle forgets everything
-        t = threading.Thread(target=self._accept, args=(server,), name="lightcrafter-emulator", daemon=True)
+        t = threading.Thread(target=self._accept, args=(server,), name="lightcrafter-emulator",
+                             daemon=True)
         t.start()
         self._threads = [t]
         log.info("LightCrafter emulator on %s:%d", self.host, self.port)
@@ -141,33 +224,33 @@ class LightCrafterEmulator:
 
     # --- one connection --------------------------------------------------------------------
     def _serve(self, conn: socket.socket) -> None:
-        pending: tuple[int, bytearray] | None = None  # multi-packet upload in progress
+        pending: tuple[int, int, bytearray] | None = None  # (type, command, payload so far)
         try:
             while True:
                 head = self._read(conn, 6)
                 if head is None:
                     return
-                ptype, cmd = head[0], (head[1] << 8) | head[2]
-                flags, length = head[3], head[4] | (head[5] << 8)
-                rest = self._read(conn, length + 1)
+                ptype, cmd, flags = head[0], (head[1] << 8) | head[2], head[3]
+                rest = self._read(conn, (head[4] | head[5] << 8) + 1)
                 if rest is None:
                     return
                 payload, check = rest[:-1], rest[-1]
                 self.state.bytes_received += len(head) + len(rest)
+                self.state.packets.append((head + rest)[:64])
                 if sum(head + payload) % 256 != check:
-                    self._send(conn, 0x01, cmd, bytes([E_CHECKSUM]))
+                    self._refuse(conn, cmd, E_CHECKSUM)
                     continue
                 if self.busy_next > 0:
                     self.busy_next -= 1
-                    self._send(conn, 0x00, cmd, b"")
+                    conn.sendall(bytes([T_BUSY, head[1], head[2], 0, 0, 0, 0]))  # checksum unset
                     continue
                 try:
                     pending, reply = self._packet(ptype, cmd, flags, payload, pending)
-                except _Refuse as exc:
+                except Refused as exc:
                     pending = None
-                    self._send(conn, 0x01, cmd, bytes([exc.code]))
+                    self._refuse(conn, cmd, exc.code)
                     continue
-                self._send(conn, 0x05 if ptype == 0x04 else 0x03, cmd, reply)
+                self._send(conn, T_READ_RESP if ptype == T_READ else T_WRITE_RESP, cmd, reply)
         except OSError:
             return
         finally:
@@ -187,106 +270,166 @@ class LightCrafterEmulator:
 
     @staticmethod
     def _send(conn: socket.socket, ptype: int, cmd: int, payload: bytes) -> None:
-        packet = bytes([ptype, cmd >> 8, cmd & 0xFF, 0x00, len(payload) & 0xFF, len(payload) >> 8]) + payload
+        n = len(payload)
+        packet = bytes([ptype, cmd >> 8, cmd & 0xFF, F_COMPLETE, n & 0xFF, n >> 8]) + payload
         conn.sendall(packet + bytes([sum(packet) % 256]))
 
+    def _refuse(self, conn: socket.socket, cmd: int, code: int) -> None:
+        self.state.refusals.append((cmd, code))
+        self._send(conn, T_ERROR, cmd, bytes([code]))
+
     def _packet(
-        self, ptype: int, cmd: int, flags: int, payload: bytes, pending: tuple[int, bytearray] | None
-    ) -> tuple[tuple[int, bytearray] | None, bytes]:
-        """Reassemble multi-packet payloads; run the command when complete."""
-        if flags not in (0, 1, 2, 3):
-            raise _Refuse(E_PACKET_FORMAT)
-        if flags in (2, 3) and (pending is None or pending[0] != cmd):
-            raise _Refuse(E_CONTINUATION)
-        if flags in (0, 1) and pending is not None:
-            raise _Refuse(E_CONTINUATION)
-        if flags == 1:
-            return (cmd, bytearray(payload)), b""
-        if flags == 2:
+        self, ptype: int, cmd: int, flags: int, payload: bytes,
+        pending: tuple[int, int, bytearray] | None,
+    ) -> tuple[tuple[int, int, bytearray] | None, bytes]:
+        """Reassemble multi-packet payloads (every part is answered); run the command."""
+        _check(flags in (F_COMPLETE, F_FIRST, F_MIDDLE, F_LAST), E_CONTINUATION)
+        if flags in (F_MIDDLE, F_LAST):
+            _check(pending is not None and pending[:2] == (ptype, cmd), E_CONTINUATION)
+        else:
+            _check(pending is None, E_CONTINUATION)
+        if flags == F_FIRST:
+            return (ptype, cmd, bytearray(payload)), b""
+        if flags == F_MIDDLE:
             assert pending is not None
-            pending[1].extend(payload)
+            pending[2].extend(payload)
             return pending, b""
-        if flags == 3:
+        if flags == F_LAST:
             assert pending is not None
-            payload = bytes(pending[1] + payload)
+            payload = bytes(pending[2] + payload)
         return None, self._execute(ptype, cmd, payload)
 
     def _execute(self, ptype: int, cmd: int, payload: bytes) -> bytes:
-        if cmd not in COMMANDS:
-            raise _Refuse(E_INVALID_COMMAND)
-        want_type, size = COMMANDS[cmd]
-        if ptype != want_type:
-            raise _Refuse(E_INVALID_COMMAND)
-        if size is not None and len(payload) != size:
-            raise _Refuse(E_PACKET_FORMAT)
+        spec = COMMANDS.get(cmd)
+        _check(spec is not None and self.firmware_major >= spec.min_firmware, E_INVALID_COMMAND)
+        assert spec is not None
+        _check(ptype in (T_WRITE, T_READ), E_INVALID_COMMAND)
+        size = spec.write_size if ptype == T_WRITE else spec.read_size
+        _check(size is not None, E_INVALID_COMMAND)
+        _check(size == -1 or len(payload) == size, E_PAYLOAD_SIZE)
         if self.fail_next is not None:
             code, self.fail_next = self.fail_next, None
-            raise _Refuse(code)
-        st = self.state
-        st.commands.append(cmd)
-        if cmd == 0x0100:
-            if payload[0] not in VERSIONS:
-                raise _Refuse(E_INVALID_PARAMETER)
-            return VERSIONS[payload[0]]
-        if cmd == 0x0101:
-            if payload[0] not in (0x00, 0x01, 0x02, 0x04):
-                raise _Refuse(E_INVALID_PARAMETER)
-            st.display_mode = payload[0]
-        elif cmd == 0x0103:
-            cur = struct.unpack("<HHH", payload)
-            if max(cur) > 1024:
-                raise _Refuse(E_INVALID_PARAMETER)
-            st.led_current = cur
-        elif cmd == 0x0400:
-            self._sequence(payload)
-        elif cmd == 0x0401:
-            if len(payload) < 2:
-                raise _Refuse(E_PACKET_FORMAT)
-            index = payload[0]
-            limit = st.sequence.get("count", 96)
-            img = decode_bmp(payload[1:])
-            if index >= limit or img.shape != (HEIGHT, WIDTH):
-                raise _Refuse(E_INVALID_PARAMETER)
-            st.patterns[index] = img
-        elif cmd == 0x0402:
-            if payload[0] not in (0, 1):
-                raise _Refuse(E_INVALID_PARAMETER)
-            if payload[0] == 1 and (st.display_mode != 0x04 or not st.sequence):
-                raise _Refuse(E_NOT_INITIALISED)
-            if payload[0] == 1 and any(i not in st.patterns for i in range(st.sequence["count"])):
-                raise _Refuse(E_OBJECT_NOT_FOUND)
-            st.running = payload[0] == 1
-        elif cmd == 0x0403:
-            if not st.running:
-                raise _Refuse(E_NOT_INITIALISED)
-            st.advances += 1
-            st.shown = (st.shown + 1) % st.sequence["count"]
-        elif cmd == 0x0404:
-            enable, falling, delay_us, width_us = struct.unpack("<BBII", payload)
-            if enable > 1 or falling > 1 or width_us == 0:
-                raise _Refuse(E_INVALID_PARAMETER)
-            st.trigger_out = {"enable": enable, "falling": falling, "delay_us": delay_us, "width_us": width_us}
-        elif cmd == 0x0405:
-            (index,) = struct.unpack("<H", payload)
-            if index not in st.patterns:
-                raise _Refuse(E_OBJECT_NOT_FOUND)
-            st.shown = index
-        return b""
+            raise Refused(code)
+        reply = self._read_value(cmd, payload) if ptype == T_READ else b""
+        if ptype == T_WRITE:
+            self._handlers[cmd](payload)
+        self.state.commands.append(cmd)
+        return reply
 
-    def _sequence(self, payload: bytes) -> None:
-        bits, count, inverted, trigger, delay_us, period_us, exposure_us, led = struct.unpack("<BBBBIIIB", payload)
-        ok = (1 <= bits <= 8 and 1 <= count <= 96 // bits and inverted <= 1 and trigger <= 0x03
-              and led <= 2 and exposure_us > 0 and (trigger != 0x01 or period_us >= exposure_us))
-        if not ok:
-            raise _Refuse(E_INVALID_PARAMETER)
-        if self.state.running:
-            raise _Refuse(E_NOT_INITIALISED)  # stop the sequence before changing it
-        old = self.state.sequence
+    # --- reads -----------------------------------------------------------------------------
+    def _read_value(self, cmd: int, payload: bytes) -> bytes:
+        st = self.state
+        if cmd == 0x0100:
+            _check(payload[0] in VERSION_SELECT)
+            text = {0x00: self.firmware, 0x10: "2.0.0", 0x20: "1.0.0"}[payload[0]]
+            return text.encode("ascii") + b"\0"
+        if cmd == 0x0101:
+            return bytes([st.display_mode])
+        if cmd == 0x0103:
+            return bytes([st.test_pattern])
+        if cmd == 0x0104:
+            return struct.pack("<HHH", *st.led_current)
+        if cmd == 0x0404:
+            _check(bool(st.trigger_out), E_NOT_INITIALISED)
+            t = st.trigger_out
+            return struct.pack("<BBBII", t["enable"], t["source"], t["polarity"], t["delay_us"],
+                               t["width_us"])
+        _check(bool(st.sequence) and st.sequence_command == cmd, E_NOT_INITIALISED)
+        s = st.sequence
+        fields = (s["bit_depth"], s["count"], s["inverted"], s["trigger"], s["delay_us"],
+                  s["period_us"], s["exposure_us"], s["led"])
+        if cmd == 0x0400:
+            return struct.pack("<BBBBIIIB", *fields)
+        return struct.pack("<BHBBIIIBB", *fields, s["play_mode"])
+
+    # --- writes, one per row of the command table ------------------------------------------
+    def _display_mode(self, payload: bytes) -> None:
+        _check(payload[0] in DISPLAY_MODES)
+        self.state.display_mode = payload[0]
+        if payload[0] != 0x04:
+            self.state.running = False
+
+    def _test_pattern(self, payload: bytes) -> None:
+        _check(payload[0] <= LAST_TEST_PATTERN)
+        self.state.test_pattern = payload[0]
+
+    def _led_current(self, payload: bytes) -> None:
+        red, green, blue = struct.unpack("<HHH", payload)
+        _check(max(red, green, blue) <= LED_CURRENT_MAX)
+        self.state.led_current = (red, green, blue)
+
+    def _sequence_legacy(self, payload: bytes) -> None:
+        bits, count, inverted, trigger, delay_us, period_us, exposure_us, led = struct.unpack(
+            "<BBBBIIIB", payload)
+        _check(1 <= count <= 96)
+        self._set_sequence(0x0400, bits, count, inverted, trigger, delay_us, period_us,
+                           exposure_us, led, None)
+
+    def _sequence_extended(self, payload: bytes) -> None:
+        fields = struct.unpack("<BHBBIIIBB", payload)
+        bits, count, inverted, trigger, delay_us, period_us, exposure_us, led, play = fields
+        _check(1 <= count <= 1000 and play <= 1)
+        self._set_sequence(0x0480, bits, count, inverted, trigger, delay_us, period_us,
+                           exposure_us, led, play)
+
+    def _set_sequence(self, cmd: int, bits: int, count: int, inverted: int, trigger: int,
+                      delay_us: int, period_us: int, exposure_us: int, led: int,
+                      play_mode: int | None) -> None:
+        _check(1 <= bits <= 8 and inverted <= 1 and (not inverted or bits == 1))
+        _check(trigger <= 0x06 and led <= 2 and exposure_us > 0)
+        _check(trigger != 0x01 or period_us >= exposure_us)  # auto: the period holds the exposure
+        st = self.state
+        _check(not st.running, E_BUSY)  # stop the sequence before changing it
+        old = st.sequence
         if (old.get("bit_depth"), old.get("count")) != (bits, count):
-            self.state.patterns = {}  # new frame-memory layout: uploaded patterns are void
-        self.state.sequence = {"bit_depth": bits, "count": count, "inverted": inverted, "trigger": trigger,
-                               "delay_us": delay_us, "period_us": period_us, "exposure_us": exposure_us, "led": led}
+            st.patterns = {}  # new frame-memory layout: uploaded patterns are void
+        st.sequence = {"bit_depth": bits, "count": count, "inverted": inverted,
+                       "trigger": trigger, "delay_us": delay_us, "period_us": period_us,
+                       "exposure_us": exposure_us, "led": led}
+        if play_mode is not None:
+            st.sequence["play_mode"] = play_mode
+        st.sequence_command = cmd
+
+    def _pattern(self, payload: bytes) -> None:
+        st = self.state
+        _check(len(payload) >= 2, E_PAYLOAD_SIZE)
+        _check(bool(st.sequence), E_NOT_INITIALISED)
+        bits, index = st.sequence["bit_depth"], payload[0]
+        _check(index < min(st.sequence["count"], BIT_PLANES // bits))
+        img = decode_bmp(payload[1:])
+        _check(img.shape == (HEIGHT, WIDTH))
+        low = np.uint8((1 << bits) - 1)
+        if self.strict_levels:
+            _check(int(img.max()) <= int(low))
+        st.patterns[index] = img & low  # the DMD shows the least significant bits
+
+    def _start_stop(self, payload: bytes) -> None:
+        st = self.state
+        _check(payload[0] in (0, 1))
+        if payload[0] == 1:
+            _check(st.display_mode == 0x04 and bool(st.sequence), E_NOT_INITIALISED)
+            _check(all(i in st.patterns for i in range(st.sequence["count"])), E_NOT_FOUND)
+            st.shown = 0
+        st.running = payload[0] == 1
+
+    def _advance(self, payload: bytes) -> None:
+        st = self.state
+        _check(st.running and st.sequence.get("trigger") == 0x00, E_NOT_INITIALISED)
+        st.advances += 1
+        st.shown = (st.shown + 1) % st.sequence["count"]
+
+    def _trigger_out(self, payload: bytes) -> None:
+        enable, source, polarity, delay_us, width_us = struct.unpack("<BBBII", payload)
+        _check(enable <= 1 and polarity <= 1 and width_us > 0)
+        self.state.trigger_out = {"enable": enable, "source": source, "polarity": polarity,
+                                  "delay_us": delay_us, "width_us": width_us}
+
+    def _display_pattern(self, payload: bytes) -> None:
+        (index,) = struct.unpack("<H", payload)
+        _check(index in self.state.patterns, E_NOT_FOUND)
+        self.state.shown = index
 
     def describe(self) -> dict[str, Any]:
         st = self.state
-        return {"port": self.port, "mode": st.display_mode, "running": st.running, "patterns": sorted(st.patterns)}
+        return {"port": self.port, "firmware": self.firmware, "mode": st.display_mode,
+                "running": st.running, "patterns": sorted(st.patterns)}

@@ -57,8 +57,8 @@ class TestLightCrafterContract(ProjectorContract):
         st = self.emu.state
         bits = sequence_bit_depth(schedule.n_frames)
         assert st.sequence["count"] == schedule.n_frames and st.sequence["bit_depth"] == bits
-        keep = np.uint8((0xFF << (8 - bits)) & 0xFF)
-        expected = generate_patterns(schedule) & keep
+        # the device shows the least significant bits: levels 0 … 2**bits − 1 (DLPU007A §3.11)
+        expected = np.round(generate_patterns(schedule) * ((2**bits - 1) / 255))
         assert all(np.array_equal(st.patterns[i], expected[i]) for i in range(schedule.n_frames))
 
     def disconnect(self, device):

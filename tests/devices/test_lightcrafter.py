@@ -1,9 +1,14 @@
-"""LightCrafter 3000 client against the fake TCP server on 127.0.0.1: framing, uploads, faults."""
+"""LightCrafter 3000 client against the emulator on 127.0.0.1: framing, uploads, faults.
+
+The byte vectors from TI's guide are in test_lightcrafter_vectors.py.
+"""
 
 from __future__ import annotations
 
+import io
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -12,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from app.devices import (
     DeviceDisconnected,
@@ -22,7 +28,7 @@ from app.devices import (
 )
 from app.devices.lightcrafter import (
     CMD_PATTERN_DEF,
-    CMD_SEQ_SETTING,
+    CMD_SEQ_SETTING_EXT,
     CMD_SEQ_START,
     CMD_VERSION,
     FIRST,
@@ -36,6 +42,7 @@ from app.devices.lightcrafter import (
     checksum,
     encode_bmp,
     encode_packet,
+    quantise_levels,
     sequence_bit_depth,
     split_packets,
 )
@@ -77,13 +84,47 @@ def test_large_payload_is_split_with_continuation_flags():
 
 
 @pytest.mark.parametrize("bits", [1, 8])
-def test_bmp_encoding_is_read_back_by_opencv_and_the_fake_server(bits):
+def test_bmp_encoding_is_read_back_by_opencv_and_the_emulator(bits):
     rng = np.random.default_rng(3)
     img = rng.integers(0, 256, (684, 608), dtype=np.uint8)
     expected = img if bits == 8 else np.where(img >= 128, 255, 0).astype(np.uint8)
     bmp = encode_bmp(img, bits)
     assert np.array_equal(cv2.imdecode(np.frombuffer(bmp, np.uint8), cv2.IMREAD_GRAYSCALE), expected)
-    assert np.array_equal(decode_bmp(bmp), expected)
+    # the emulator reads pixel values (what the DMD shows), not palette colours
+    assert np.array_equal(decode_bmp(bmp), img if bits == 8 else (img >= 128).astype(np.uint8))
+
+
+@pytest.mark.parametrize("bpp", [2, 4])
+def test_bmp_of_2_and_4_bits_is_read_by_the_emulator_as_pillow_reads_it(bpp):
+    """The guide allows 1-, 2-, 4- and 8-bit BMPs: one written here by hand (4-bit: as Pillow)."""
+    rng = np.random.default_rng(bpp)
+    h, w = 5, 13
+    levels = rng.integers(0, 2**bpp, (h, w), dtype=np.uint8)
+    per_byte = 8 // bpp
+    stride = ((w * bpp + 7) // 8 + 3) // 4 * 4
+    rows = bytearray()
+    for row in levels[::-1]:  # bottom-up
+        packed = bytearray(stride)
+        for x, v in enumerate(row):
+            packed[x // per_byte] |= int(v) << (8 - bpp * (x % per_byte + 1))
+        rows += packed
+    palette = b"".join(bytes([g, g, g, 0]) for g in range(0, 256, 256 // 2**bpp))
+    offset = 14 + 40 + len(palette)
+    bmp = (struct.pack("<2sIHHI", b"BM", offset + len(rows), 0, 0, offset)
+           + struct.pack("<IiiHHIIiiII", 40, w, h, 1, bpp, 0, len(rows), 0, 0, 2**bpp, 0)
+           + palette + bytes(rows))
+    if bpp == 4:  # Pillow reads 1-, 4- and 8-bit palette BMPs, not 2-bit ones
+        assert np.array_equal(np.asarray(Image.open(io.BytesIO(bmp))), levels)
+    assert np.array_equal(decode_bmp(bmp), levels)
+
+
+def test_levels_are_quantised_into_the_least_significant_bits():
+    img = np.array([[0, 1, 2, 127, 128, 252, 253, 255]], np.uint8)
+    assert quantise_levels(img, 6).tolist() == [[0, 0, 0, 31, 32, 62, 63, 63]]
+    assert quantise_levels(img, 8).tolist() == img.tolist()
+    assert quantise_levels(img, 1).tolist() == [[0, 0, 0, 0, 1, 1, 1, 1]]
+    with pytest.raises(ValueError, match="bits"):
+        quantise_levels(img, 9)
 
 
 def test_bit_depth_fits_the_96_bit_planes():
@@ -95,9 +136,9 @@ def test_bit_depth_fits_the_96_bit_planes():
 def test_server_answers_bad_checksum_and_continuation_errors_byte_exactly(emu):
     good = encode_packet(READ, CMD_VERSION, b"\x00")
     bad = good[:-1] + bytes([(good[-1] + 1) % 256])
-    assert _raw(emu, bad) == bytes([0x01, 0x01, 0x00, 0x00, 0x01, 0x00, 0x09, 0x0C])
+    assert _raw(emu, bad) == bytes([0x01, 0x01, 0x00, 0x00, 0x01, 0x00, 0x08, 0x0B])
     middle = encode_packet(WRITE, CMD_PATTERN_DEF, b"\x00" * 8, MIDDLE)
-    assert _raw(emu, middle)[6] == 0x0B
+    assert _raw(emu, middle)[6] == 0x0A
     reply = _raw(emu, good)
     assert reply[0] == 0x05 and reply[-1] == sum(reply[:-1]) % 256 and reply[6:-1].startswith(b"5.0.0")
 
@@ -110,13 +151,15 @@ def test_projector_uploads_the_fringe_sequence(emu):
     proj.load_schedule(schedule, exposure_ms=25.0)
     seq = emu.state.sequence
     assert seq == {"bit_depth": 6, "count": 16, "inverted": 0, "trigger": 0x01, "delay_us": 0,
-                   "period_us": 27000, "exposure_us": 25000, "led": 1}
-    expected = generate_patterns(schedule) & np.uint8(0xFC)
+                   "period_us": 27000, "exposure_us": 25000, "led": 1, "play_mode": 1}
+    assert emu.state.sequence_command == 0x0480
+    expected = np.round(generate_patterns(schedule) * (63 / 255))  # 6 LSBs, levels 0-63
     assert sorted(emu.state.patterns) == list(range(16))
     assert all(np.array_equal(emu.state.patterns[i], expected[i]) for i in range(16))
-    assert emu.state.trigger_out == {"enable": 1, "falling": 0, "delay_us": 0, "width_us": 100}
+    assert emu.state.trigger_out == {"enable": 1, "source": 0, "polarity": 0, "delay_us": 0,
+                                     "width_us": 100}
     proj.set_led("blue", current=0.5)
-    assert emu.state.led_current == (0, 0, 512) and emu.state.sequence["led"] == 2
+    assert emu.state.led_current == (0, 0, 137) and emu.state.sequence["led"] == 2
     proj.set_trigger_mode("external")
     assert emu.state.sequence["trigger"] == 0x02
     proj.start()
@@ -129,6 +172,10 @@ def test_projector_uploads_the_fringe_sequence(emu):
 
 
 def test_busy_replies_are_retried_then_time_out(emu):
+    """Busy packets whose checksum is unset (the guide: bytes after the first are ignored)."""
+    emu.busy_next = 1
+    busy = _raw(emu, encode_packet(READ, CMD_VERSION, b"\x00"))
+    assert busy[0] == 0x00 and busy[-1] != sum(busy[:-1]) % 256
     client = LightCrafterClient(emu.host, emu.port, busy_retries=5, busy_wait_s=0.001)
     client.connect()
     emu.busy_next = 3
@@ -142,10 +189,10 @@ def test_busy_replies_are_retried_then_time_out(emu):
 def test_error_packets_become_protocol_errors(emu):
     proj = LightCrafterProjector(emu.host, emu.port)
     proj.open()
-    emu.fail_next = 0x05
-    with pytest.raises(LightCrafterError, match="hardware device failure") as info:
+    emu.fail_next = 0x04
+    with pytest.raises(LightCrafterError, match="hardware failure") as info:
         proj.set_led("green", current=0.2)
-    assert info.value.code == 0x05 and isinstance(info.value, ProtocolError)
+    assert info.value.code == 0x04 and isinstance(info.value, ProtocolError)
     assert proj.state is DeviceState.OPEN
     proj.close()
 
@@ -188,7 +235,7 @@ def test_cli_emulate_lightcrafter():
 
 
 def test_exposure_change_is_a_timing_call_without_pattern_upload(emu):
-    """A new exposure sends only the sequence setting (stop, 0x0400, start): no pattern re-upload."""
+    """A new exposure sends only the sequence setting (stop, 0x0480, start): no re-upload."""
     schedule = PatternSchedule()
     proj = LightCrafterProjector(emu.host, emu.port)
     proj.open()
@@ -203,7 +250,7 @@ def test_exposure_change_is_a_timing_call_without_pattern_upload(emu):
     proj.set_exposure(40.0)
 
     sent = emu.state.commands[n_cmds:]
-    assert sent == [CMD_SEQ_START, CMD_SEQ_SETTING, CMD_SEQ_START], [hex(c) for c in sent]
+    assert sent == [CMD_SEQ_START, CMD_SEQ_SETTING_EXT, CMD_SEQ_START], [hex(c) for c in sent]
     assert emu.state.bytes_received - n_bytes < 64  # three small packets, not ~6.7 MB
     assert emu.state.sequence["exposure_us"] == 40000 and emu.state.sequence["period_us"] == 42000
     assert emu.state.running and proj.exposure_ms == 40.0
