@@ -25,6 +25,10 @@ def register(subparsers: Any) -> None:
     lcr = sub.add_parser("lightcrafter", help="fake LightCrafter 3000 TCP server")
     lcr.add_argument("--host", default="127.0.0.1")
     lcr.add_argument("--port", type=int, default=21845)
+    lcr.add_argument("--firmware", default="5.0.0",
+                     help="DM365 version string; below 3.0 only the legacy 0x0400 sequence")
+    lcr.add_argument("--lenient-levels", action="store_true",
+                     help="take pattern levels above the bit depth (shown wrapped, as the device)")
     lcr.set_defaults(func=run_lightcrafter)
 
 
@@ -63,7 +67,8 @@ def run_controller(args: argparse.Namespace) -> int:
 def run_lightcrafter(args: argparse.Namespace) -> int:
     from app.devices.lightcrafter_emulator import LightCrafterEmulator
 
-    emu = LightCrafterEmulator(args.host, args.port).start()
+    emu = LightCrafterEmulator(args.host, args.port, firmware=args.firmware,
+                               strict_levels=not args.lenient_levels).start()
     try:
         print(f"{emu.host}:{emu.port}", flush=True)
         threading.Event().wait()

@@ -357,6 +357,15 @@ class LightCrafterClient:
                      pack_trigger_out(enable=enable, source=source, falling=falling,
                                       delay_us=delay_us, width_us=width_us))
 
+    def trigger_out(self) -> dict[str, int]:
+        """0x0404 read: the trigger-output setting (enable, source, polarity, delay, width)."""
+        reply = self.request(READ, CMD_TRIGGER_OUT)
+        if len(reply) != 11:
+            raise ProtocolError(f"LightCrafter trigger output reply of {len(reply)} bytes, not 11")
+        enable, source, polarity, delay_us, width_us = struct.unpack(TRIGGER_OUT_FORMAT, reply)
+        return {"enable": enable, "source": source, "polarity": polarity, "delay_us": delay_us,
+                "width_us": width_us}
+
     def display_pattern(self, index: int) -> None:
         """0x0405 (firmware ≥ 3.0): uint16 pattern number."""
         self.request(WRITE, CMD_DISPLAY_PATTERN, struct.pack("<H", index))
