@@ -105,8 +105,8 @@ def run_lightcrafter(args: argparse.Namespace, stdout: TextIO | None = None) -> 
     return 1 if failed else 0
 
 
-def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current: int, show_s: float,
-                       flash_s: float) -> None:
+def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current: int,
+                       show_s: float, flash_s: float) -> None:
     """The bring-up steps on a connected :class:`LightCrafterClient`."""
     from app.core.schedule import PatternSchedule
     from app.devices.lightcrafter import (
@@ -119,10 +119,11 @@ def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current
         VERSION_MSP430,
         encode_bmp,
         firmware_major,
+        quantise_levels,
     )
     from app.recon.patterns import generate_patterns
 
-    exposure_us, period_us = 20000, 22000
+    exposure_us, period_us, bits = 20000, 22000, 6  # 6 bits: the 16-pattern schedule's depth
     trigger = {"enable": 1, "source": 0, "polarity": 0, "delay_us": 0, "width_us": 100}
     extended = [True]
 
@@ -144,21 +145,22 @@ def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current
         client.start_sequence(False)
         client.set_display_mode(MODE_PATTERN_SEQUENCE)
         client.set_led_current(0, led_current, 0)
-        client.set_sequence(bit_depth=8, count=1, trigger=TRIG_AUTO, exposure_us=exposure_us,
+        client.set_sequence(bit_depth=bits, count=1, trigger=TRIG_AUTO, exposure_us=exposure_us,
                             period_us=period_us, led=LED_SELECT["green"], extended=extended[0])
-        client.define_pattern(0, encode_bmp(image, 8))
+        client.define_pattern(0, encode_bmp(quantise_levels(image, bits), 8))
         client.set_trigger_out(enable=True, source=trigger["source"], delay_us=0,
                                width_us=trigger["width_us"])
         client.start_sequence(True)
         time.sleep(show_s)
         return (f"look: {schedule.frequencies[1]} vertical fringes, green, for {show_s:g} s "
-                f"(8-bit, {exposure_us} µs exposure, {period_us} µs period)")
+                f"(levels 0-{2**bits - 1} at {bits} bits; dim fringes: the device reads the "
+                f"upper bits; {exposure_us} µs exposure, {period_us} µs period)")
 
     def leds() -> str:
         seen = []
         for name, index in LED_SELECT.items():
             client.start_sequence(False)
-            client.set_sequence(bit_depth=8, count=1, trigger=TRIG_AUTO,
+            client.set_sequence(bit_depth=bits, count=1, trigger=TRIG_AUTO,
                                 exposure_us=exposure_us, period_us=period_us, led=index,
                                 extended=extended[0])
             currents = [0, 0, 0]

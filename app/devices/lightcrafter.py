@@ -218,7 +218,7 @@ def firmware_major(version: str) -> int | None:
 
 
 class LightCrafterClient:
-    """The packet protocol on one TCP connection; thread-safe, errors mapped to the device family."""
+    """The packet protocol on one TCP connection; thread-safe, errors in the device family."""
 
     def __init__(self, host: str, port: int = DEFAULT_PORT, *, timeout_s: float = 2.0,
                  busy_retries: int = 20, busy_wait_s: float = 0.05) -> None:

@@ -89,7 +89,8 @@ def test_bmp_encoding_is_read_back_by_opencv_and_the_emulator(bits):
     img = rng.integers(0, 256, (684, 608), dtype=np.uint8)
     expected = img if bits == 8 else np.where(img >= 128, 255, 0).astype(np.uint8)
     bmp = encode_bmp(img, bits)
-    assert np.array_equal(cv2.imdecode(np.frombuffer(bmp, np.uint8), cv2.IMREAD_GRAYSCALE), expected)
+    decoded = cv2.imdecode(np.frombuffer(bmp, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert np.array_equal(decoded, expected)
     # the emulator reads pixel values (what the DMD shows), not palette colours
     assert np.array_equal(decode_bmp(bmp), img if bits == 8 else (img >= 128).astype(np.uint8))
 
@@ -140,7 +141,8 @@ def test_server_answers_bad_checksum_and_continuation_errors_byte_exactly(emu):
     middle = encode_packet(WRITE, CMD_PATTERN_DEF, b"\x00" * 8, MIDDLE)
     assert _raw(emu, middle)[6] == 0x0A
     reply = _raw(emu, good)
-    assert reply[0] == 0x05 and reply[-1] == sum(reply[:-1]) % 256 and reply[6:-1].startswith(b"5.0.0")
+    assert reply[0] == 0x05 and reply[-1] == sum(reply[:-1]) % 256
+    assert reply[6:-1].startswith(b"5.0.0")
 
 
 def test_projector_uploads_the_fringe_sequence(emu):

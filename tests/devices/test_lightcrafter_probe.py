@@ -36,8 +36,8 @@ def test_probe_passes_every_step_and_leaves_the_lights_off():
         st = emu.state
         schedule = PatternSchedule()
         four_fringes = generate_patterns(schedule)[schedule.frame_index(1, 0)]
-        assert np.array_equal(st.patterns[0], four_fringes)
-        assert st.sequence["count"] == 1 and st.sequence["bit_depth"] == 8
+        assert np.array_equal(st.patterns[0], np.round(four_fringes * (63 / 255)))  # 6 LSBs
+        assert st.sequence["count"] == 1 and st.sequence["bit_depth"] == 6
         assert st.sequence["led"] == 2  # the last LED flashed: blue
         assert st.led_current == (0, 0, 0) and not st.running  # lights off at the end
         assert st.trigger_out["enable"] == 1 and st.trigger_out["width_us"] == 100
