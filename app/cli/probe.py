@@ -2,8 +2,8 @@
 
 One line a step, ``ok`` or ``FAIL`` with the device's answer, so that a first session
 with a real DLP3000 finds a protocol mismatch in minutes (README, "LightCrafter
-bring-up"). Steps: version strings (0x0100) and the sequence command they call for;
-status read-back (display mode 0x0101, LED current 0x0104); one fringe pattern shown
+bring-up"). Steps: the DM365 version (0x0100) and the sequence command it calls for; the
+FPGA and MSP430 versions; status read-back (display mode 0x0101, LED current 0x0104); one fringe pattern shown
 (0x0480 or 0x0400, 0x0401, 0x0404, 0x0402); each LED flashed in turn and its current read
 back; the trigger-output setting read back (the pulse itself is measured with the camera,
 see the README). Exit 0 when every step passed, 1 when one failed, 2 for bad input or no
@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from app.devices.errors import DeviceError
+from app.devices.errors import DeviceError, ProtocolError
 
 if TYPE_CHECKING:
     from app.devices.lightcrafter import LightCrafterClient
@@ -48,18 +48,17 @@ class StepResult:
     detail: str
 
 
-class _Steps:
-    """Run named steps, print one line each; a device refusal fails the step, not the probe."""
+class ProbeSteps:
+    """Run named steps, print one line each; a protocol error fails the step, not the probe."""
 
     def __init__(self, out: Callable[[str], None]) -> None:
         self.out, self.results = out, list[StepResult]()
 
     def run(self, name: str, step: Callable[[], str]) -> bool:
-        from app.devices.lightcrafter import LightCrafterError
 
         try:
             detail, ok = step(), True
-        except (LightCrafterError, _Mismatch) as exc:
+        except (ProtocolError, _Mismatch) as exc:
             detail, ok = str(exc), False
         self.results.append(StepResult(name, ok, detail))
         self.out(f"{'ok  ' if ok else 'FAIL'} {name}: {detail}")
@@ -88,7 +87,7 @@ def run_lightcrafter(args: argparse.Namespace, stdout: TextIO | None = None) -> 
     stream = stdout or sys.stdout
     client = LightCrafterClient(args.host, args.port, timeout_s=args.timeout_s)
     client.connect()  # DeviceNotFound / DeviceTimeout: one line, exit 2
-    steps = _Steps(lambda line: print(line, file=stream, flush=True))
+    steps = ProbeSteps(lambda line: print(line, file=stream, flush=True))
     try:
         probe_lightcrafter(client, steps, led_current=args.led_current, show_s=args.show_s,
                            flash_s=args.flash_s)
@@ -105,7 +104,7 @@ def run_lightcrafter(args: argparse.Namespace, stdout: TextIO | None = None) -> 
     return 1 if failed else 0
 
 
-def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current: int,
+def probe_lightcrafter(client: LightCrafterClient, steps: ProbeSteps, *, led_current: int,
                        show_s: float, flash_s: float) -> None:
     """The bring-up steps on a connected :class:`LightCrafterClient`."""
     from app.core.schedule import PatternSchedule
@@ -127,13 +126,16 @@ def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current
     trigger = {"enable": 1, "source": 0, "polarity": 0, "delay_us": 0, "width_us": 100}
     extended = [True]
 
-    def versions() -> str:
+    def version() -> str:
         dm365 = client.version(VERSION_DM365)
-        fpga, msp430 = client.version(VERSION_FPGA), client.version(VERSION_MSP430)
         major = firmware_major(dm365)
         extended[0] = major is None or major >= EXTENDED_SEQUENCE_FIRMWARE
         command = "0x0480" if extended[0] else "0x0400 (legacy)"
-        return f"DM365 {dm365!r}, FPGA {fpga!r}, MSP430 {msp430!r}; sequence command {command}"
+        return f"DM365 {dm365!r}; sequence command {command}"
+
+    def other_versions() -> str:
+        fpga, msp430 = client.version(VERSION_FPGA), client.version(VERSION_MSP430)
+        return f"FPGA {fpga!r}, MSP430 {msp430!r}"
 
     def status() -> str:
         mode, currents = client.display_mode(), client.led_current()
@@ -182,8 +184,9 @@ def probe_lightcrafter(client: LightCrafterClient, steps: _Steps, *, led_current
         return (f"enabled, positive, {trigger['width_us']} µs pulse every {period_us} µs: "
                 "measure it with the camera (README)")
 
-    if not steps.run("version", versions):
+    if not steps.run("version", version):
         return
+    steps.run("FPGA and MSP430 versions", other_versions)
     steps.run("status", status)
     if steps.run("pattern", pattern):
         steps.run("trigger output", trigger_out)

@@ -17,7 +17,8 @@ level the bit depth cannot show is refused with 0x03; the device itself would sh
 wrapped low bits, which is never what a host means, so the emulator makes it loud.
 
 Faults: ``busy_next`` (that many packets answered "busy", checksum unset as the guide
-allows), ``fail_next`` (an error code for the next command), :meth:`stop` /
+allows), ``fail_next`` (an error code for the next command), ``refuse`` (an error code
+for every (packet type, command), e.g. a read this firmware lacks), :meth:`stop` /
 :meth:`start` (unplug / replug; a power cycle forgets everything).
 """
 
@@ -161,6 +162,7 @@ class LightCrafterEmulator:
         self.state = LightCrafterState()
         self.busy_next = 0
         self.fail_next: int | None = None
+        self.refuse: dict[tuple[int, int], int] = {}
         self._server: socket.socket | None = None
         self._conns: set[socket.socket] = set()
         self._threads: list[threading.Thread] = []
@@ -310,6 +312,7 @@ class LightCrafterEmulator:
         if self.fail_next is not None:
             code, self.fail_next = self.fail_next, None
             raise Refused(code)
+        _check((ptype, cmd) not in self.refuse, self.refuse.get((ptype, cmd), E_UNKNOWN))
         reply = self._read_value(cmd, payload) if ptype == T_READ else b""
         if ptype == T_WRITE:
             self._handlers[cmd](payload)

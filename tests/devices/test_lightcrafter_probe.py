@@ -29,10 +29,11 @@ def test_probe_passes_every_step_and_leaves_the_lights_off():
         assert proc.returncode == 0, proc.stdout + proc.stderr
         lines = proc.stdout.splitlines()
         assert [line.split(":")[0] for line in lines[:-1]] == [
-            "ok   version", "ok   status", "ok   pattern", "ok   trigger output", "ok   LEDs"]
-        assert "'5.0.0'" in lines[0] and "0x0480" in lines[0]
-        assert "display mode 0, LED current R/G/B (274, 274, 274)" in lines[1]
-        assert lines[-1] == "5/5 steps ok"
+            "ok   version", "ok   FPGA and MSP430 versions", "ok   status", "ok   pattern",
+            "ok   trigger output", "ok   LEDs"]
+        assert lines[0] == "ok   version: DM365 '5.0.0'; sequence command 0x0480"
+        assert lines[2] == "ok   status: display mode 0, LED current R/G/B (274, 274, 274)"
+        assert lines[-1] == "6/6 steps ok"
         st = emu.state
         schedule = PatternSchedule()
         four_fringes = generate_patterns(schedule)[schedule.frame_index(1, 0)]
@@ -54,6 +55,20 @@ def test_probe_reports_a_refusal_and_still_turns_the_lights_off():
             "out of memory or hardware failure (0x04)")
         assert proc.stdout.splitlines()[-1] == "0/1 steps ok; failed: version"
         assert emu.state.commands[-2:] == [0x0402, 0x0104] and emu.state.led_current == (0, 0, 0)
+
+
+def test_probe_goes_on_after_a_refused_read():
+    """A firmware that refuses to read the display mode fails that step only."""
+    with LightCrafterEmulator() as emu:
+        emu.refuse[(0x04, 0x0101)] = 0x02
+        proc = _probe(emu.port)
+        assert proc.returncode == 1
+        lines = proc.stdout.splitlines()
+        assert lines[2] == ("FAIL status: LightCrafter refused command 0x0101: "
+                            "invalid command (0x02)")
+        assert [line[:4] for line in lines[3:-1]] == ["ok  "] * 3
+        assert lines[-1] == "5/6 steps ok; failed: status"
+        assert emu.state.refusals == [(0x0101, 0x02)] and emu.state.led_current == (0, 0, 0)
 
 
 def test_probe_bad_input_and_no_projector_exit_2_with_one_line():
