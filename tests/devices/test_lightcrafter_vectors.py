@@ -1,11 +1,11 @@
 """Byte vectors from TI's DLPU007A field tables, checked against the client AND the emulator.
 
-Every packet below is written out by hand from the guide's tables (packet layout §2,
-the command tables, the error-code table); nothing here is computed with the client's
-helpers. The client's packets are read back from the emulator's packet log (what really
-crossed the TCP socket); the emulator gets the same bytes raw and must answer as the
-guide says. The last tests send the three old defects' packets and expect the device's
-error codes.
+Every expected packet below is written out by hand from the guide's tables (packet
+layout §2, the command tables, the error-code table); no expected byte is computed with
+the client's helpers. The client's packets are read back from the emulator's packet log
+(what really crossed the TCP socket); the emulator gets the same bytes raw and must
+answer as the guide says. The last tests send the three old defects' packets (raw, or a
+pattern upload carried by the client's framing) and expect the device's error codes.
 """
 
 from __future__ import annotations
