@@ -25,12 +25,12 @@ from app.calib.refine import RefinedPoses, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
 from app.core.depth_model import (
-    MODEL_NAMES,
     BoardSamples,
     DepthModel,
     ReferencePlane,
     region_from_samples,
 )
+from app.core.depth_model_registry import MODEL_NAMES
 from app.core.eq5 import Eq5Model
 from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
 from app.core.schedule import PatternSchedule

@@ -20,7 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from app import __version__
-from app.core.depth_model import DepthModel, ReferencePlane, SupportedRegion, depth_model_from_dict
+from app.core.depth_model import DepthModel, ReferencePlane, SupportedRegion
+from app.core.depth_model_registry import depth_model_from_dict
 from app.core.eq5 import N_DENOMINATOR, N_NUMERATOR, Eq5Model
 from app.core.schedule import PatternSchedule
 

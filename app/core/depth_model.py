@@ -32,9 +32,6 @@ import numpy.typing as npt
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
-MODEL_NAMES = ("eq5", "geometric")
-
-
 @dataclass(frozen=True)
 class ReferencePlane:
     """``normal · X + offset_mm = height`` in the camera frame; normal toward the scope."""
@@ -310,21 +307,6 @@ class DepthModel(ABC):
         return {"name": self.name, **self.params(), "supported_region": self.region.to_dict()}
 
 
-def depth_model_from_dict(data: Any) -> DepthModel:
-    """Parse a ``model`` object of a version-2 calibration file."""
-    from app.core.eq5 import Eq5Model
-    from app.core.geometric import GeometricModel
-
-    if not isinstance(data, dict):
-        raise ValueError("model: expected an object")
-    kinds: dict[str, type[DepthModel]] = {"eq5": Eq5Model, "geometric": GeometricModel}
-    name = data.get("name")
-    if name not in kinds:
-        raise ValueError(f"model: unknown name {name!r} (expected one of {list(kinds)})")
-    region = SupportedRegion.from_dict(data.get("supported_region"))
-    return kinds[name].from_params(data, region)
-
-
 def row_tables_zero(image_size: tuple[int, int]) -> tuple[F64, F64]:
     """(u_norm zeros (W,), row_coefs zeros (H, 12)) for a model without row terms."""
     w, h = (int(x) for x in image_size)
@@ -334,13 +316,11 @@ def row_tables_zero(image_size: tuple[int, int]) -> tuple[F64, F64]:
 
 
 __all__ = [
-    "MODEL_NAMES",
     "BoardSamples",
     "DepthModel",
     "HeightTables",
     "ReferencePlane",
     "SupportedRegion",
-    "depth_model_from_dict",
     "missing_cells",
     "region_from_samples",
 ]

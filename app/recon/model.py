@@ -186,13 +186,6 @@ def row_coefficients(
                            phi0=t.phi0, inv_sphi=t.inv_sphi)
 
 
-def calibration_row_coefficients(calibration: Calibration) -> RowCoefficients:
-    """:func:`row_coefficients` of an Eq. (5) calibration."""
-    return row_coefficients(
-        calibration.numerator, calibration.denominator, calibration.normalization, calibration.image_size,
-    )
-
-
 def evaluate_height(
     tables: ModelTables, phase: npt.ArrayLike
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_]]:

@@ -16,8 +16,8 @@ from app.core.depth_model import (
     BoardSamples,
     ReferencePlane,
     SupportedRegion,
-    depth_model_from_dict,
 )
+from app.core.depth_model_registry import depth_model_from_dict
 from app.core.eq5 import Eq5Model
 from app.core.geometric import GeometricModel
 from app.core.reasons import Reason

@@ -101,3 +101,40 @@ def test_checker_sees_relative_and_nested_imports(tmp_path):
     found = {t for t, _ in _imports(APP / "recon" / "probe.py", src)}
     assert found == {"app.recon", "app.calib", "app.service.instrument"}
     assert _part("app.calib") == "calib" and LAYERS[_part("app.service.instrument")] > LAYERS["calib"]
+
+
+def _module_edges() -> dict[str, set[str]]:
+    """Module → the ``app`` modules it imports, file by file.
+
+    ``from app.pkg import name`` counts as an import of ``app.pkg.name`` when that is a module
+    (a submodule named in the import), else of ``app.pkg`` (a name its ``__init__`` holds).
+    """
+    modules = {_module_name(p) for p in APP.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for path in sorted(APP.rglob("*.py")):
+        module = _module_name(path)
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base_name = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    base_name = node.module or ""
+                targets = [f"{base_name}.{a.name}" if f"{base_name}.{a.name}" in modules else base_name
+                           for a in node.names]
+            for target in targets:
+                if target in modules and target != module:
+                    graph.setdefault(module, set()).add(target)
+    return graph
+
+
+def test_no_cycle_between_modules():
+    """No two files import each other, directly or round a longer loop (a package's own too)."""
+    try:
+        tuple(graphlib.TopologicalSorter(_module_edges()).static_order())
+    except graphlib.CycleError as exc:
+        pytest.fail(f"import cycle between modules: {' → '.join(exc.args[1])}")

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from app.devices.sim import SimulatedWorld, render_capture_set
+from app.devices.sim.ideal import ideal_calibration
 from app.devices.sim.offline import auto_exposure_ms
 from app.recon import Reconstructor
 
 
 def test_clipped_shift_in_a_quarter_of_the_target_keeps_99_percent_valid_without_bias():
     world = SimulatedWorld("dof_target", seed=2)
-    rec = Reconstructor(world.rig.ideal_calibration(world.schedule))
+    rec = Reconstructor(ideal_calibration(world.rig, world.schedule))
     exposure_ms = auto_exposure_ms(world, target=0.7)  # brightest lit pixels at 70 % of full scale
     plain, truth, _ = render_capture_set(world.scene, exposure_ms=exposure_ms, world=world, seed=2)
     bright, _, _ = render_capture_set(world.scene, exposure_ms=1.35 * exposure_ms, world=world, seed=2)

@@ -7,6 +7,7 @@ import pytest
 
 from app.core.errors import InvalidRequest
 from app.devices.sim import default_rig, render_capture_set
+from app.devices.sim.ideal import ideal_calibration
 from app.devices.sim.scenes.base import frame_from_normal
 from app.devices.sim.world import READOUT_MS
 from app.recon import Reconstructor
@@ -20,7 +21,7 @@ SUTURE_MM = 0.72  # the anastomosis scene's thread height
 def suture() -> tuple[LiveResult, tuple[int, int, int, int], np.ndarray]:
     """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as published."""
     rig = default_rig(distortion=False)
-    cal = rig.ideal_calibration()
+    cal = ideal_calibration(rig)
     # centred on a breathing extremum so that the tissue is nearly still during the set
     t0 = 1.0 - 7.5 * max(30.0, READOUT_MS) / 1000.0 - 0.015
     cs, _, points = render_capture_set("anastomosis", exposure_ms=30.0, current=1.0, seed=7, t0_s=t0,

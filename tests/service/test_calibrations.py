@@ -10,13 +10,14 @@ from app.config import Settings
 from app.core.errors import Conflict
 from app.core.schedule import PatternSchedule
 from app.devices.sim import default_rig
+from app.devices.sim.ideal import ideal_calibration
 from app.service.calibrations import CalibrationManager
 from app.service.pipeline import LivePipeline, PipelineConfig
 
 
 @pytest.fixture(scope="module")
 def calibration():
-    return default_rig(distortion=False).ideal_calibration()
+    return ideal_calibration(default_rig(distortion=False))
 
 
 def _manager(tmp_path) -> CalibrationManager:

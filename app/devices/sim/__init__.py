@@ -3,7 +3,7 @@
 Public API (other modules code against these names)::
 
     list_scenes() -> list[str]
-    SimRig, default_rig(distortion=True); rig.ideal_calibration(schedule) (test oracle)
+    SimRig, default_rig(distortion=True); ideal_calibration(rig, schedule) (test oracle, ideal.py)
     RIG_NAMES, rig_by_name(name, distortion=True), endoscope_rig(distortion=True)  (rig presets)
     SimulatedCamera, SimulatedProjector, SimulatedController, SimulatedWorld
     create_sim_devices(*, scene, seed, bit_depth, drop_rate, timeout_rate, disconnect_every_s,

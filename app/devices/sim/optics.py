@@ -17,16 +17,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 import numpy.typing as npt
-
-if TYPE_CHECKING:  # types only: ideal.py imports this module
-    from app.calib.calibration import Calibration
-    from app.core.schedule import PatternSchedule
 
 F64 = npt.NDArray[np.float64]
 
@@ -218,16 +213,6 @@ class SimRig:
     @property
     def image_size(self) -> tuple[int, int]:
         return self.camera.image_size
-
-    def without_distortion(self) -> SimRig:
-        cam = CameraModel(self.camera.K, np.zeros(5), self.camera.image_size)
-        return replace(self, camera=cam)
-
-    def ideal_calibration(self, schedule: PatternSchedule | None = None) -> Calibration:
-        """The exact Eq. (5) calibration of this pinhole geometry (oracle for tests; see ideal.py)."""
-        from app.devices.sim.ideal import ideal_calibration
-
-        return ideal_calibration(self, schedule)
 
 
 def default_rig(*, distortion: bool = True) -> SimRig:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from app.devices.sim import default_rig
-from app.devices.sim.ideal import eq5_height
+from app.devices.sim.ideal import eq5_height, ideal_calibration
 
 
 def _sample_pixels(h: int, w: int, n: int = 2000) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +70,7 @@ def test_reference_plane_matches_design():
 
 def test_ideal_calibration_reproduces_truth_from_true_phase(dof_world):
     r = dof_world.renderer
-    cal = dof_world.rig.ideal_calibration(r.schedule)
+    cal = ideal_calibration(dof_world.rig, r.schedule)
     depth, points = r.truth()
     h, w = r.shape
     v, u = np.mgrid[0:h, 0:w]

@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from app.devices.sim import SimulatedWorld, render_capture_set
+from app.devices.sim.ideal import ideal_calibration
 from app.recon import PatternSchedule, compute_phase
 
 
@@ -29,5 +30,5 @@ def test_horizontal_fringes_encode_the_projector_row():
     assert np.median(np.abs(err)) < 0.1
     assert np.median(np.abs(res.phase[ok] - expected_col[ok])) > 10  # not the column
     # and the ideal calibration of that geometry reads the phase along the same axis
-    cal = world.rig.ideal_calibration(sched)
+    cal = ideal_calibration(world.rig, sched)
     assert cal.pattern.orientation == "horizontal"

@@ -1,0 +1,30 @@
+"""The depth models a calibration file may name, by name.
+
+The factory sits above the contract (:mod:`app.core.depth_model`) and its
+implementations so that the contract never imports its own subclasses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from app.core.depth_model import DepthModel, SupportedRegion
+from app.core.eq5 import Eq5Model
+from app.core.geometric import GeometricModel
+
+#: every depth model by the ``name`` it carries in a calibration file
+DEPTH_MODELS: dict[str, type[DepthModel]] = {
+    Eq5Model.name: Eq5Model, GeometricModel.name: GeometricModel,
+}
+MODEL_NAMES = tuple(DEPTH_MODELS)
+
+
+def depth_model_from_dict(data: Any) -> DepthModel:
+    """Parse a ``model`` object of a version-2 calibration file."""
+    if not isinstance(data, dict):
+        raise ValueError("model: expected an object")
+    name = data.get("name")
+    if name not in DEPTH_MODELS:
+        raise ValueError(f"model: unknown name {name!r} (expected one of {list(DEPTH_MODELS)})")
+    region = SupportedRegion.from_dict(data.get("supported_region"))
+    return DEPTH_MODELS[name].from_params(data, region)
