@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.main import create_app
-from app.service.igtl import (
+from app.outputs.igtl import (
     CLOUD_DEVICE,
     DEPTH_DEVICE,
     STATUS_DEVICE,

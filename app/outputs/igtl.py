@@ -54,7 +54,7 @@ import pyigtl
 from app.config import is_loopback
 from app.service.store import LatestSlot, NewestQueue
 
-log = logging.getLogger("fringescope.service.igtl")
+log = logging.getLogger("fringescope.outputs.igtl")
 
 DEPTH_DEVICE = "FringescopeDepth"
 TEXTURE_DEVICE = "FringescopeTexture"
