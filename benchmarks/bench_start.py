@@ -39,6 +39,12 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds the process (its threads) has used so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def one_start(data_dir: Path, calibration: Path | None, env: dict[str, str],
               timeout_s: float) -> tuple[float, str]:
     """(seconds from spawning the server to its first published depth map, its phases).
@@ -72,6 +78,8 @@ def one_start(data_dir: Path, calibration: Path | None, env: dict[str, str],
                 state = str(st.get("state"))
                 phases.append(f"{state} {now:.1f} s")
             if int(st.get("results_published") or 0) >= 1:
+                cpu = cpu_seconds(proc.pid)
+                phases.append(f"server CPU {cpu:.1f} s = {cpu / now:.2f} of one core")
                 return now, ", ".join(phases)
             time.sleep(0.1)
         raise SystemExit(f"no depth after {timeout_s:.0f} s (state {state}); see {log.name}")
