@@ -29,7 +29,7 @@ function onSigmaToggle() {
   showRangeInputs();
   paintBar();
   ui.pendingBlob = null; // an image of the other kind waiting to be drawn
-  pollDepth();
+  pollDepth(true);
 }
 
 /** The default colour range from /api/limits, unless the user changed it already. */
@@ -143,11 +143,12 @@ export function connectStream() {
   };
 }
 
-// Fallback while the stream is down: poll the latest colormap.
-async function pollDepth() {
+// Fallback while the stream is down: poll the latest colormap (and once on a mode change,
+// so the image matches the bar even when no new map arrives).
+async function pollDepth(force = false) {
   const st = ui.status;
   const sigma = $("show-sigma").checked; // the σ map is polled, the stream carries depth
-  if (!sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
+  if (!force && !sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
   if (!st || !st.results_published) return; // nothing to fetch yet
   try {
     const query = sigma ? `field=sigma&${rangeQuery(ui.sigmaRange)}` : rangeQuery();
@@ -171,6 +172,6 @@ export function setupDepth() {
   for (const id of ["range-min", "range-max"]) $(id).addEventListener("change", onRangeChange);
   $("show-sigma").addEventListener("change", onSigmaToggle);
   onStatus(showWaiting);
-  setInterval(pollDepth, 700);
+  setInterval(() => pollDepth(), 700);
   connectStream();
 }

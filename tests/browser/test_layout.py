@@ -165,7 +165,11 @@ def test_sigma_mode_shows_a_sigma_colour_bar_in_mm(browser: Any, server: str) ->
             pg.dispatch_event("#range-max", "change")
         assert tick_values(pg)[-1] == pytest.approx(0.05)
         assert pg.evaluate("window.fringescope.range") == [lo, hi]  # the height range is kept
-        pg.uncheck("#show-sigma")
+        # back to height: the image is fetched at once in the height range, whatever the stream does
+        with pg.expect_response(lambda r: "format=color" in r.url and "field=sigma" not in r.url,
+                                timeout=30_000) as back:
+            pg.uncheck("#show-sigma")
+        assert f"max_mm={hi:g}" in back.value.url, back.value.url
         assert pg.text_content("#bar-title") == "height, mm"
         assert tick_values(pg) == height_ticks
         assert [float(pg.input_value("#range-min")), float(pg.input_value("#range-max"))] == [lo, hi]
