@@ -13,15 +13,18 @@ $(BIN)/python:
 	$(BIN)/pip install -q --upgrade pip
 
 $(VENV)/.installed-run: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e .
+	@echo "[start] installing Fringescope and its dependencies into $(VENV) (first time only, about 1 min)"
+	$(BIN)/pip install --progress-bar on -e .
 	touch $@
 
 $(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $@
 
+# The progress lines ([start] …) come from scripts/start_progress.py beside the server: the
+# expected time to the first depth, then each start-up phase. Kernels are cached in NUMBA_CACHE_DIR.
 run: $(VENV)/.installed-run
-	$(BIN)/fringescope serve
+	@$(BIN)/python scripts/start_progress.py & exec $(BIN)/fringescope serve
 
 # Debian packages the test suite drives for real: Chromium (browser tests) and podman (image build).
 system-deps:

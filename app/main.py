@@ -36,8 +36,8 @@ def _make_viewer(settings: Settings, instrument: Instrument) -> tuple[Any, Any]:
     if not settings.viewer:
         return None, None
     try:
-        from app.viewer.relay import viewer_router
-        from app.viewer.viewer import Viewer
+        from app.outputs.relay import viewer_router
+        from app.outputs.viewer import Viewer
     except ImportError as exc:
         log.warning("3-D viewer unavailable: %s", exc)
         return None, None
@@ -49,7 +49,7 @@ def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
     """The OpenIGTLink server (issue 16), or None when ``igtl_port`` is unset."""
     if settings.igtl_port is None:
         return None
-    from app.service.igtl import IgtlServer, check_igtl_settings, image_placement
+    from app.outputs.igtl import IgtlServer, check_igtl_settings, image_placement
 
     check_igtl_settings(settings.igtl_host, settings.igtl_port, settings.igtl_allow_remote)
 

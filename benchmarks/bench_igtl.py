@@ -32,7 +32,7 @@ import httpx  # noqa: E402
 import pyigtl  # noqa: E402
 
 from app.config import Settings  # noqa: E402
-from app.service.igtl import CLOUD_DEVICE, DEPTH_DEVICE, STATUS_DEVICE, register_codecs  # noqa: E402
+from app.outputs.igtl import CLOUD_DEVICE, DEPTH_DEVICE, STATUS_DEVICE, register_codecs  # noqa: E402
 from benchmarks.bench_live import free_port, start_server, wait_running  # noqa: E402
 
 

@@ -11,7 +11,7 @@ from app.api.deps import get_instrument
 from app.api.errors import COMMON
 from app.api.schemas import LimitsOut
 from app.core.limits import EXPOSURE_RANGE_MS, LEDS, LIVE_BIT_DEPTHS
-from app.service.encoding import DEFAULT_RANGE_MM
+from app.outputs.encoding import DEFAULT_RANGE_MM
 from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api", tags=["control"])

@@ -13,7 +13,7 @@ from app.api.deps import binary, get_instrument, result_headers
 from app.api.errors import COMMON, R400, R409, R413, R415, R422
 from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
-from app.service import encoding
+from app.outputs import encoding
 from app.service.instrument import Instrument
 from app.service.phase import decode_capture
 

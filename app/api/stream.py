@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from app.api.deps import get_instrument
 from app.api.errors import COMMON, R422
 from app.core.errors import InvalidRequest
-from app.service import encoding
+from app.outputs import encoding
 from app.service.instrument import Instrument
 from app.service.reconstruction import LiveResult
 

@@ -6,8 +6,30 @@ import { drawRoi } from "./analysis.js";
 import { ui } from "./state.js";
 import { onStatus } from "./status.js";
 
+const sigmaMode = () => $("show-sigma").checked;
+
+/** The colour range of what the image shows: the height, or its 1-σ noise (mm). */
+const shownRange = () => (sigmaMode() ? ui.sigmaRange : ui.range);
+
 function paintBar() {
-  if (ui.range) drawColorbar($("colorbar"), $("bar-ticks"), ui.range);
+  const range = shownRange();
+  $("bar-title").textContent = sigmaMode() ? "σ, mm" : "height, mm";
+  if (range) drawColorbar($("colorbar"), $("bar-ticks"), range);
+}
+
+function showRangeInputs() {
+  const range = shownRange();
+  $("range-min").value = range ? String(range[0]) : "";
+  $("range-max").value = range ? String(range[1]) : "";
+  for (const id of ["range-min", "range-max"]) $(id).classList.remove("invalid");
+}
+
+// σ mode: the bar, its range inputs and the image switch to the σ map at once
+function onSigmaToggle() {
+  showRangeInputs();
+  paintBar();
+  ui.pendingBlob = null; // an image of the other kind waiting to be drawn
+  pollDepth(true);
 }
 
 /** The default colour range from /api/limits, unless the user changed it already. */
@@ -15,8 +37,7 @@ export function applyLimits(limits) {
   if (ui.range) return; // the user chose one meanwhile
   const [lo, hi] = limits.depth_range_mm;
   ui.range = [lo, hi];
-  $("range-min").value = String(lo);
-  $("range-max").value = String(hi);
+  showRangeInputs();
   paintBar();
   connectStream();
 }
@@ -29,15 +50,21 @@ function onRangeChange() {
   $("range-min").classList.toggle("invalid", !ok);
   $("range-max").classList.toggle("invalid", !ok);
   if (!ok) return;
+  if (sigmaMode()) {
+    ui.sigmaRange = [lo, hi];
+    paintBar();
+    pollDepth();
+    return;
+  }
   ui.range = [lo, hi];
   paintBar();
   clearTimeout(rangeTimer);
   rangeTimer = setTimeout(() => connectStream(), 300); // the server colours: ask anew
 }
 
-function rangeQuery() {
-  if (!ui.range) return ""; // the server's default range
-  return `min_mm=${encodeURIComponent(ui.range[0])}&max_mm=${encodeURIComponent(ui.range[1])}`;
+function rangeQuery(range = ui.range) {
+  if (!range) return ""; // the server's default range
+  return `min_mm=${encodeURIComponent(range[0])}&max_mm=${encodeURIComponent(range[1])}`;
 }
 
 async function fetchSensorShape() {
@@ -116,14 +143,15 @@ export function connectStream() {
   };
 }
 
-// Fallback while the stream is down: poll the latest colormap.
-async function pollDepth() {
+// Fallback while the stream is down: poll the latest colormap (and once on a mode change,
+// so the image matches the bar even when no new map arrives).
+async function pollDepth(force = false) {
   const st = ui.status;
   const sigma = $("show-sigma").checked; // the σ map is polled, the stream carries depth
-  if (!sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
+  if (!force && !sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
   if (!st || !st.results_published) return; // nothing to fetch yet
   try {
-    const query = sigma ? "field=sigma" : rangeQuery();
+    const query = sigma ? `field=sigma&${rangeQuery(ui.sigmaRange)}` : rangeQuery();
     const blob = await api(`/api/depth/latest?format=color&${query}`, { blob: true });
     await showDepthBlob(blob, "poll");
   } catch (_) { /* shown by the status bar */ }
@@ -142,7 +170,8 @@ function showWaiting(st) {
 export function setupDepth() {
   paintBar();
   for (const id of ["range-min", "range-max"]) $(id).addEventListener("change", onRangeChange);
+  $("show-sigma").addEventListener("change", onSigmaToggle);
   onStatus(showWaiting);
-  setInterval(pollDepth, 700);
+  setInterval(() => pollDepth(), 700);
   connectStream();
 }

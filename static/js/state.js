@@ -5,6 +5,7 @@ export const ui = {
   limits: null, // GET /api/limits: LEDs, exposure range, bit depths, default depth range
   sensor: null, // [W, H] of the depth maps, sensor pixels
   range: null, // [min, max] mm of the colour map: the default from /api/limits, then the user's
+  sigmaRange: [0, 0.1], // [min, max] mm of the σ colour map (the server's default for field=sigma)
   framesShown: 0,
   lastFrameAt: 0,
   streamKind: "none", // "stream" | "poll" | "none"

@@ -65,7 +65,7 @@ def _port_free(port: int) -> bool:
 @pytest.mark.parametrize("viewer", [False, True])
 def test_shutdown_joins_every_thread(tmp_path: Path, sim_calibration_file: Path, viewer: bool) -> None:
     if viewer:
-        pytest.importorskip("app.viewer.viewer")
+        pytest.importorskip("app.outputs.viewer")
     before = {t.ident for t in threading.enumerate()}
     settings = live_settings(tmp_path, sim_calibration_file, viewer=viewer)
     app = create_app(settings)

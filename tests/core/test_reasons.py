@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 
 from app.core.reasons import PRECEDENCE, Reason, assign_reasons
+from app.outputs.encoding import reason_colors, reason_legend
 from app.recon.colormap import REASON_COLORS, reason_png
-from app.service.encoding import reason_colors, reason_legend
 
 
 def test_motion_is_a_reason_after_saturation_and_before_every_phase_cause():

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.outputs.encoding import DEFAULT_RANGE_MM
+from app.outputs.encoding import texture_u8 as _texture_u8
 from app.recon.colormap import depth_colormap
-from app.service.encoding import DEFAULT_RANGE_MM
-from app.service.encoding import texture_u8 as _texture_u8
 from app.service.reconstruction import LiveResult
 
 COLOR_MODES = ("height", "texture", "sigma")

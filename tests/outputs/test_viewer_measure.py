@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from app.analysis.measure import measure
+from app.outputs.viewer import Viewer
 from app.service.measure import measurement_segments
-from app.viewer.viewer import Viewer
-from tests.viewer.helpers import SurfaceSource, surface_result, wait_for
+from tests.outputs.helpers import SurfaceSource, surface_result, wait_for
 
 SPECS = [
     {"kind": "length", "points": [[20, 30], [140, 90]]},

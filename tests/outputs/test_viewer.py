@@ -9,9 +9,9 @@ import threading
 import numpy as np
 import pytest
 
+from app.outputs.viewer import Viewer, cloud_arrays, decimation_step
 from app.recon.colormap import depth_colormap
-from app.viewer.viewer import Viewer, cloud_arrays, decimation_step
-from tests.viewer.helpers import SurfaceSource, port_is_free, surface_result, wait_for
+from tests.outputs.helpers import SurfaceSource, port_is_free, surface_result, wait_for
 
 
 @pytest.mark.parametrize(("h", "w", "max_points"), [(1032, 1384, 300_000), (684, 608, 1000),
@@ -155,7 +155,7 @@ def test_viewer_rejects_bad_arguments(source: SurfaceSource) -> None:
 
 
 def test_initial_view_tilts_up_about_the_cloud_centre() -> None:
-    from app.viewer.viewer import initial_view
+    from app.outputs.viewer import initial_view
 
     rng = np.random.default_rng(0)
     xyz = np.column_stack([rng.uniform(-10, 10, 5000), rng.uniform(-10, 10, 5000),

@@ -14,9 +14,9 @@ import websockets
 from fastapi import FastAPI
 from viser import _messages
 
-from app.viewer.relay import viewer_router
-from app.viewer.viewer import Viewer, cloud_arrays
-from tests.viewer.helpers import SurfaceSource, port_is_free, serve, surface_result, wait_for
+from app.outputs.relay import viewer_router
+from app.outputs.viewer import Viewer, cloud_arrays
+from tests.outputs.helpers import SurfaceSource, port_is_free, serve, surface_result, wait_for
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 

@@ -1,6 +1,6 @@
 """The live 3-D view: a viser server on loopback fed from the Instrument's latest result.
 
-viser runs its own thread and port; :mod:`app.viewer.relay` relays it under ``/viser/``
+viser runs its own thread and port; :mod:`app.outputs.relay` relays it under ``/viser/``
 so the browser needs one port. One update thread waits for new results and pushes the
 decimated point cloud (float32, coloured by height with the dashboard's TURBO table or
 by texture), the depth colormap and the texture, each update grouped in
@@ -23,12 +23,7 @@ import numpy.typing as npt
 import viser
 
 from app.core.limits import EXPOSURE_RANGE_MS, LEDS
-from app.recon.colormap import depth_colormap
-from app.service.encoding import DEFAULT_RANGE_MM
-from app.service.encoding import texture_u8 as _texture_u8
-from app.service.reconstruction import LiveResult
-from app.service.store import LatestSlot
-from app.viewer.cloud import (
+from app.outputs.cloud import (
     COLOR_MODES,
     PANEL_WIDTH_PX,
     cloud_arrays,
@@ -37,6 +32,11 @@ from app.viewer.cloud import (
     point_size_mm,
     preview,
 )
+from app.outputs.encoding import DEFAULT_RANGE_MM
+from app.outputs.encoding import texture_u8 as _texture_u8
+from app.recon.colormap import depth_colormap
+from app.service.reconstruction import LiveResult
+from app.service.store import LatestSlot
 
 log = logging.getLogger(__name__)
 

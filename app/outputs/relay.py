@@ -24,7 +24,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from websockets.typing import Subprotocol
 
 if TYPE_CHECKING:
-    from app.viewer.viewer import Viewer
+    from app.outputs.viewer import Viewer
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ def _upstream_port(viewer: Viewer) -> int | None:
 
 
 def viewer_router(viewer: Viewer, prefix: str = "/viser") -> APIRouter:
-    """Routes relaying ``viewer`` (an :class:`app.viewer.viewer.Viewer`) under ``prefix``.
+    """Routes relaying ``viewer`` (an :class:`app.outputs.viewer.Viewer`) under ``prefix``.
 
     The port is read per request, so the viewer may be started after the app is built.
     """

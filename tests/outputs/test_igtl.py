@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import io
 import json
 import socket
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,13 +21,14 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 from app.main import create_app
-from app.service.igtl import (
+from app.outputs.igtl import (
     CLOUD_DEVICE,
     DEPTH_DEVICE,
     STATUS_DEVICE,
     TEXTURE_DEVICE,
     CloudMessage,
     IgtlServer,
+    PolyAttribute,
     check_igtl_settings,
     decimate_points,
     image_placement,
@@ -90,6 +94,46 @@ def test_cloud_message_is_big_endian_per_spec_and_round_trips() -> None:
     back.unpack(header, body)
     np.testing.assert_array_equal(back.points, pts)
     assert back.vertices.tolist() == [3, 0, 1, 2] and back.device_name == CLOUD_DEVICE
+
+
+def reference_polydata() -> tuple[bytes, np.ndarray]:
+    """Content laid out by hand as ``igtl_polydata_pack`` (OpenIGTLink's C library) writes it.
+
+    Two points, one vertex cell, one line cell, a 1-component scalar ``sigma`` and a normal
+    ``Normal`` per point: names 6 + 7 bytes, so one byte of padding before the data.
+    """
+    pts = np.array([[1.0, 2.0, 3.0], [-4.5, 0.25, 90.0]], np.float32)
+    out = struct.pack(">10I", 2, 1, 12, 1, 12, 0, 0, 0, 0, 2)
+    out += b"".join(struct.pack(">f", v) for v in pts.ravel())
+    out += struct.pack(">3I", 2, 0, 1) + struct.pack(">3I", 2, 1, 0)
+    out += struct.pack(">BBI", 0, 1, 2) + struct.pack(">BBI", 2, 3, 2)
+    out += b"sigma\0" + b"Normal\0" + b"\0"
+    out += struct.pack(">2f", 0.5, 0.75) + struct.pack(">6f", 0, 0, 1, 0, 1, 0)
+    return out, pts
+
+
+def test_cloud_message_decodes_the_reference_layout_with_attributes() -> None:
+    content, pts = reference_polydata()
+    msg = CloudMessage()
+    msg._unpack_content(content)
+    np.testing.assert_array_equal(msg.points, pts)
+    assert msg.vertices.tolist() == [2, 0, 1] and msg.lines.tolist() == [2, 1, 0]
+    assert msg.polygons is None and msg.triangle_strips is None
+    sigma, normal = msg.attributes
+    assert (sigma.name, sigma.kind, sigma.data.tolist()) == ("sigma", 0, [[0.5], [0.75]])
+    assert (normal.name, normal.kind) == ("Normal", 2)
+    assert normal.data.tolist() == [[0, 0, 1], [0, 1, 0]]
+    assert msg._pack_content() == content  # and packs back byte for byte
+    attr = PolyAttribute("sigma", 0, np.array([[0.5], [0.75]], np.float32))
+    again = CloudMessage(points=pts, vertices=[2, 0, 1], lines=[2, 1, 0], attributes=[attr, normal])
+    assert again._pack_content() == content
+
+
+@pytest.mark.parametrize("cut", [0, 39, 40 + 23, 40 + 24 + 12 + 5, -1])
+def test_cloud_message_refuses_truncated_content(cut: int) -> None:
+    content, _ = reference_polydata()
+    with pytest.raises(ValueError, match="content: POLYDATA"):
+        CloudMessage()._unpack_content(content[:cut])
 
 
 def test_remote_host_needs_explicit_consent() -> None:
@@ -173,6 +217,52 @@ def test_slot_messages_decode_two_clients_and_reconnect(slot_server: Any) -> Non
     finally:
         a.stop()
         b.stop()
+
+
+#: a stock pyigtl client in a fresh interpreter (nothing of this process's pyigtl patched):
+#: argv host, port, "stock" or "helper", output .npy; prints the depth shape and whether a
+#: cloud arrived. With "helper" it first calls the public helper, as the README says.
+STOCK_CLIENT = """
+import json, sys, numpy as np, pyigtl
+host, port, mode, out = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
+if mode == "helper":
+    from app.outputs.igtl import register_codecs
+    register_codecs()
+client = pyigtl.OpenIGTLinkClient(host=host, port=port)
+depth = client.wait_for_message("FringescopeDepth", timeout=20)
+cloud = client.wait_for_message("FringescopeCloud", timeout=3 if mode == "stock" else 20)
+if cloud is not None:
+    np.save(out, np.asarray(cloud.points, np.float32))
+print(json.dumps({"depth": None if depth is None else list(depth.image.shape),
+                  "cloud": cloud is not None,
+                  "vertices": None if cloud is None else int(cloud.vertices[0])}))
+client.stop()
+"""
+
+
+def run_stock_client(server: IgtlServer, mode: str, out: Path) -> dict[str, Any]:
+    proc = subprocess.run([sys.executable, "-c", STOCK_CLIENT, "127.0.0.1", str(server.port), mode,
+                           str(out)], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert proc.returncode == 0, proc.stderr
+    result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def test_stock_pyigtl_client_gets_the_cloud_with_the_public_helper(slot_server: Any,
+                                                                    tmp_path: Path) -> None:
+    slot, server = slot_server
+    res = make_result(seed=4)
+    res.seq = slot.publish(res)
+    wait_until(lambda: server.pushed_seq == res.seq)
+    want = decimate_points(res.points, res.valid, 5000)
+    got = run_stock_client(server, "helper", tmp_path / "cloud.npy")
+    assert got == {"depth": [1, 120, 160], "cloud": True, "vertices": len(want)}
+    np.testing.assert_array_equal(np.load(tmp_path / "cloud.npy"), want)
+    # why the helper exists: stock 0.3.4 (its __version__ says 0.3.2) drops the cloud silently
+    if importlib.metadata.version("pyigtl") == "0.3.4":
+        stock = run_stock_client(server, "stock", tmp_path / "none.npy")
+        assert stock == {"depth": [1, 120, 160], "cloud": False, "vertices": None}
 
 
 def test_transform_received_is_kept_for_the_recorder(slot_server: Any) -> None:

@@ -54,7 +54,7 @@ import pyigtl
 from app.config import is_loopback
 from app.service.store import LatestSlot, NewestQueue
 
-log = logging.getLogger("fringescope.service.igtl")
+log = logging.getLogger("fringescope.outputs.igtl")
 
 DEPTH_DEVICE = "FringescopeDepth"
 TEXTURE_DEVICE = "FringescopeTexture"
@@ -128,12 +128,34 @@ def decimate_points(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_
     return np.ascontiguousarray(pts[idx], dtype=np.float32)
 
 
-class CloudMessage(pyigtl.PolyDataMessage):  # type: ignore[misc]
-    """POLYDATA with the content codec per the OpenIGTLink spec (all big-endian).
+#: POLYDATA attribute types (OpenIGTLink ``IGTL_POLY_ATTR_TYPE_*``) and their components:
+#: scalar (1-255 components, given), vector (3), normal (3), tensor (9); the upper nibble
+#: of the type byte flags point (0) or cell (1) data.
+_ATTR_COMPONENTS = {0: None, 1: 3, 2: 3, 3: 9}
 
-    pyigtl 0.3.4 packs vertex/cell arrays little-endian and its unpack raises (it indexes
-    a ``struct.Struct``); header, CRC and framing stay pyigtl's. Cells are VTK-style
-    ``[n, i0, …, in-1]`` arrays.
+
+@dataclass(frozen=True)
+class PolyAttribute:
+    """One POLYDATA attribute: ``data`` (n, components) float32; ``kind`` its type byte."""
+
+    name: str
+    kind: int
+    data: npt.NDArray[np.float32]
+
+
+class CloudMessage(pyigtl.PolyDataMessage):  # type: ignore[misc]
+    """POLYDATA with the content codec of the OpenIGTLink specification (all big-endian).
+
+    pyigtl 0.3.4 packs the vertex array in the machine's byte order (little-endian on
+    x86/ARM) and its unpack raises ``TypeError`` (it indexes a ``struct.Struct``), which its
+    client thread swallows: a stock client receives no cloud and reports nothing. This codec
+    follows the reference library (``igtl_polydata.c``, the one 3D Slicer links): a header
+    of ten uint32 (points, then count and byte size of vertices, lines, polygons, triangle
+    strips, then the number of attributes), the points as float32 x, y, z, each cell array
+    VTK-style ``[n, i0, …, in-1]`` as uint32, then the attributes (headers of type uint8,
+    components uint8, count uint32; NUL-terminated names padded to an even length; float32
+    data). Header, CRC and framing stay pyigtl's. ``attributes`` is a list of
+    :class:`PolyAttribute` (or None).
     """
 
     _ARRAYS = ("vertices", "lines", "polygons", "triangle_strips")
@@ -151,36 +173,78 @@ class CloudMessage(pyigtl.PolyDataMessage):  # type: ignore[misc]
 
     def _pack_content(self) -> bytes:
         pts = np.zeros((0, 3)) if self.points is None else np.asarray(self.points).reshape(-1, 3)
+        attrs: list[PolyAttribute] = list(self.attributes or [])
         head = [len(pts)]
         for name in self._ARRAYS:
             arr = getattr(self, name)
             head += [self._cells(arr), 0 if arr is None else 4 * int(np.asarray(arr).size)]
-        head.append(0)  # attributes: none
+        head.append(len(attrs))
         out = struct.pack(">10I", *head) + np.ascontiguousarray(pts, dtype=">f4").tobytes()
         for name in self._ARRAYS:
             arr = getattr(self, name)
             if arr is not None:
                 out += np.ascontiguousarray(np.asarray(arr).ravel(), dtype=">u4").tobytes()
+        names = b""
+        for a in attrs:
+            data = np.asarray(a.data, np.float32)
+            rows = data.reshape(len(data), -1)
+            out += struct.pack(">BBI", a.kind, rows.shape[1], rows.shape[0])
+            names += a.name.encode("ascii") + b"\0"
+        out += names + (b"\0" if len(names) % 2 else b"")
+        for a in attrs:
+            out += np.ascontiguousarray(a.data, dtype=">f4").tobytes()
         return out
 
     def _unpack_content(self, content: bytes) -> None:
-        head = struct.unpack_from(">10I", content, 0)
-        pos = 40
-        n_bytes = head[0] * 12
-        self.points = np.frombuffer(content, ">f4", head[0] * 3, pos).reshape(-1, 3).astype(np.float32)
-        pos += n_bytes
+        """Decode ``content`` per the specification; ``ValueError`` if its sizes disagree."""
+        view, pos = memoryview(content), 0
+
+        def take(n_bytes: int, what: str) -> memoryview:
+            nonlocal pos
+            if n_bytes < 0 or pos + n_bytes > len(view):
+                raise ValueError(f"content: POLYDATA {what} needs {n_bytes} bytes at {pos}, "
+                                 f"the message has {len(view)}")
+            pos += n_bytes
+            return view[pos - n_bytes:pos]
+
+        head = struct.unpack(">10I", take(40, "header"))
+        n_points = head[0]
+        self.points = np.frombuffer(take(12 * n_points, "points"), ">f4").reshape(-1, 3)
+        self.points = self.points.astype(np.float32)
         for i, name in enumerate(self._ARRAYS):
             size = head[2 + 2 * i]
-            setattr(self, name, np.frombuffer(content, ">u4", size // 4, pos).astype(np.uint32))
-            pos += size
-        self.attributes = None
+            if size % 4:
+                raise ValueError(f"content: POLYDATA {name} size {size} is not a multiple of 4")
+            cells = np.frombuffer(take(size, name), ">u4").astype(np.uint32)
+            setattr(self, name, cells if head[1 + 2 * i] else None)
+        kinds = [struct.unpack(">BBI", take(6, "attribute header")) for _ in range(head[9])]
+        names = []
+        for _ in kinds:
+            end = bytes(view[pos:pos + 256]).find(b"\0")
+            if end < 0:
+                raise ValueError("content: POLYDATA attribute name has no terminating NUL")
+            names.append(bytes(take(end + 1, "attribute name"))[:-1].decode("ascii", "replace"))
+        if sum(len(n) + 1 for n in names) % 2:
+            take(1, "attribute name padding")
+        attrs = []
+        for (kind, n_comp, count), name in zip(kinds, names, strict=True):
+            comps = _ATTR_COMPONENTS.get(kind & 0x0F) or n_comp
+            data = np.frombuffer(take(4 * comps * count, f"attribute {name!r}"), ">f4")
+            attrs.append(PolyAttribute(name, kind, data.reshape(count, comps).astype(np.float32)))
+        self.attributes = attrs or None
 
 
-def register_codecs() -> None:
-    """Let pyigtl's clients (tests, scripts) decode POLYDATA with :class:`CloudMessage`."""
+def register_codecs() -> type[CloudMessage]:
+    """Make pyigtl decode (and build) POLYDATA per the specification; returns the class used.
+
+    Call once in a pyigtl client before it receives, e.g. ``pyigtl.OpenIGTLinkClient``: its
+    ``FringescopeCloud`` messages then carry ``points`` ((n, 3) float32, mm) and ``vertices``.
+    Idempotent; affects only the POLYDATA type of this process's pyigtl.
+    """
     from pyigtl import messages
 
     messages.message_type_to_class_constructor["POLYDATA"] = CloudMessage
+    return CloudMessage
 
 
 @dataclass(frozen=True)
