@@ -33,6 +33,8 @@ class Settings(BaseSettings):
     # IP addresses of reverse proxies whose X-Forwarded-Proto / X-Forwarded-For are believed
     # (TLS ends there: the session cookie is then Secure)
     trusted_proxies: list[str] = Field(default_factory=list)
+    # live streams (MJPEG, WebSocket) one client address may hold at once; more get 429
+    max_streams_per_client: int = Field(8, ge=1, le=1000)
 
     # storage
     data_dir: Path = Path("data")

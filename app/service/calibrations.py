@@ -110,13 +110,13 @@ class CalibrationManager:
             ValueError: naming the field or the dry run's figures; nothing has changed.
         """
         with self._activate_lock:
-            check_physical(cal, self.schedule)
             size = self.pipeline.image_size()
             if size is not None and tuple(cal.image_size) != size:
                 raise ValueError(
                     f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
                     f"the camera's {size[0]}x{size[1]}"
                 )
+            check_physical(cal, self.schedule)
             engine = self._engine(cal, self.schedule)
             if not force:
                 self._dry_run(engine)
