@@ -33,10 +33,10 @@ def test_status_and_depth_rate_unchanged_by_50_streams(sim_calibration_file: Pat
     assert base["failures"] == 0 and load["failures"] == 0
     assert load["n"] >= 20 * 8 * 2  # the pollers kept polling (4/s each)
     # every stream delivered images at the depth rate (1 s of slack for the ramp)
-    expected = base["depth_fps"] * (fig["load_s"] - 1.0)
+    expected = base["results_per_s"] * (fig["load_s"] - 1.0)
     assert fig["mjpeg_images_min"] >= 0.8 * expected, fig
     assert fig["ws_images_min"] >= 0.8 * expected, fig
     # the live depth rate is unchanged, status as quick as without the streams
-    assert load["depth_fps"] >= 0.9 * base["depth_fps"], fig
+    assert load["results_per_s"] >= 0.85 * base["results_per_s"], fig
     assert load["p50_ms"] <= 2.0 * base["p50_ms"] + 20.0, fig
     assert load["p99_ms"] <= max(50.0, 1.5 * base["p99_ms"]), fig
