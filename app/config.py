@@ -28,6 +28,13 @@ class Settings(BaseSettings):
     insecure: bool = False
     cors_origins: list[str] = Field(default_factory=list)
     max_upload_mb: float = Field(200.0, gt=0)
+    # a browser session (the cookie POST /api/login sets) ends after this long, s
+    session_ttl_s: float = Field(12 * 3600.0, gt=0, le=30 * 86400)
+    # IP addresses of reverse proxies whose X-Forwarded-Proto / X-Forwarded-For are believed
+    # (TLS ends there: the session cookie is then Secure)
+    trusted_proxies: list[str] = Field(default_factory=list)
+    # live streams (MJPEG, WebSocket) one client address may hold at once; more get 429
+    max_streams_per_client: int = Field(8, ge=1, le=1000)
 
     # storage
     data_dir: Path = Path("data")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import Response
 
 from app.api.deps import binary, get_instrument
@@ -26,6 +26,11 @@ from app.core.errors import InvalidRequest, NotFound
 from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
+
+#: skip the dry run on the newest frames (never the physical checks)
+Force = Annotated[bool, Query(description="activate even if the dry run on the newest frames "
+                                          "leaves far fewer valid pixels than the active calibration")]
+JSON_TYPES = ("application/json",)
 
 # OpenAPI links (followed by clients and by the stateful schemathesis run)
 _INDEX_LINK = {"parameters": {"index": "$response.body#/index"}}
@@ -117,9 +122,11 @@ def solve(
 def activate(
     body: ActivateIn = Body(default_factory=ActivateIn),
     inst: Instrument = Depends(get_instrument),
+    force: Force = False,
 ) -> Any:
-    """Make the solved calibration active (and saved in the data folder)."""
-    return inst.activate_session(body.name)
+    """Check the solved calibration (physical checks, then a dry run on the newest frames unless
+    ``force``; 422 naming the reason), then make it active and save it in the data folder."""
+    return inst.activate_session(body.name, force=force)
 
 
 @router.get("/file", responses={200: {"content": {"application/json": {}}}, **R404, **COMMON})
@@ -139,10 +146,18 @@ def download(inst: Instrument = Depends(get_instrument)) -> Response:
     responses={**R413, **R422, **COMMON},
     openapi_extra={"requestBody": {"content": {"application/json": {"schema": {"type": "object"}}}}},
 )
-async def upload(request: Request, inst: Instrument = Depends(get_instrument)) -> Any:
-    """Upload a calibration file (JSON body); validated, then active. 422 with the reason if invalid."""
+async def upload(request: Request, inst: Instrument = Depends(get_instrument),
+                 force: Force = False) -> Any:
+    """Upload a calibration file (JSON body, ``Content-Type: application/json``).
+
+    It goes live only after the physical checks and a dry run on the newest frames (skipped
+    with ``force``) pass; otherwise 422 naming the reason, and nothing changes.
+    """
     from starlette.concurrency import run_in_threadpool
 
+    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media not in JSON_TYPES and not media.endswith("+json"):
+        raise InvalidRequest(f"calibration: Content-Type must be application/json, got {media or 'none'!r}")
     body = await read_body(request, int(inst.settings.max_upload_mb * 1024 * 1024))
     try:
         data = json.loads(body)
@@ -152,7 +167,7 @@ async def upload(request: Request, inst: Instrument = Depends(get_instrument)) -
         raise InvalidRequest("calibration: expected a JSON object")
     try:  # the file is the user's input: whatever does not fit it is their error
         cal = Calibration.from_dict(data)
-        await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True)
+        await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True, force=force)
     except (ValueError, KeyError, TypeError) as exc:
         raise InvalidRequest(f"calibration: {exc}") from None
     return inst.calibration_summary()

@@ -15,11 +15,20 @@ Rules (issue 7):
   description (``/docs``, ``/redoc``, ``/openapi.json``).
 - How to pass the token: ``Authorization: Bearer <token>`` always. Browsers cannot set
   headers on ``<img>``, a WebSocket or an iframe, so reads (GET/HEAD) and WebSockets also
-  accept the cookie ``fringescope_token`` — ``HttpOnly; SameSite=Strict``, set by
-  ``POST /api/login`` (bearer header) — and the viewer relay and WebSockets the query
-  ``?token=<token>`` (after a valid query token the response sets that cookie). Cookies and
-  queries are never accepted for state-changing requests (no cross-site request forgery);
-  a query token may end up in proxy logs, prefer the cookie.
+  accept the session cookie ``fringescope_token`` — ``HttpOnly; SameSite=Strict``, plus
+  ``Secure`` when the request came over HTTPS (directly, or by ``X-Forwarded-Proto`` from a
+  proxy listed in ``trusted_proxies``), set by ``POST /api/login`` (bearer header) — and the
+  viewer relay and WebSockets the query ``?token=<token>`` (after a valid query token the
+  response sets that cookie). The cookie is a random session id, never the token
+  (:mod:`app.api.sessions`): it expires after ``session_ttl_s``, dies at logout and when the
+  token changes. Cookies and queries are never accepted for state-changing requests (no
+  cross-site request forgery); a query token may end up in proxy logs, prefer the cookie.
+- The token has at least :data:`MIN_TOKEN_CHARS` characters (refused at start-up). After
+  a few wrong tokens a client is held off (429 with ``Retry-After``, doubling up to a minute)
+  before its next attempt is even compared.
+- Every answer carries ``X-Content-Type-Options: nosniff``, ``X-Frame-Options: SAMEORIGIN``
+  (the dashboard frames the viewer) and ``Referrer-Policy: no-referrer``; the dashboard's
+  files also a ``Content-Security-Policy`` allowing only this origin.
 - CORS is closed unless ``cors_origins`` lists origins. A WebSocket whose ``Origin``
   is neither the server's own host nor a listed origin is refused (HTTP 403).
 - Request bodies above ``max_upload_mb`` get 413 with a reason, whether announced by
@@ -29,17 +38,20 @@ Rules (issue 7):
 from __future__ import annotations
 
 import hmac
+import ipaddress
 import json
+import math
 import re
 from collections.abc import Awaitable, Callable, MutableMapping
 from http.cookies import SimpleCookie
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import parse_qs, urlsplit
 
 from fastapi import FastAPI, HTTPException
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 
+from app.api.sessions import FailureThrottle, SessionStore
 from app.capture.recording import validate_name
 from app.config import Settings, is_loopback
 
@@ -51,6 +63,18 @@ VIEWER_PREFIXES = ("/viser",)  # also accepts ?token= (an iframe cannot send a h
 OPEN_PATHS = frozenset({"/healthz", "/api/auth", "/api/logout"})  # no data in them
 SAFE_METHODS = frozenset({"GET", "HEAD"})
 _TOKEN_PATTERN = re.compile(r'[!#-+\--:<-\[\]-~]{1,512}')  # cookie-safe: no space " , ; \\
+#: shortest token accepted at start-up (a guessable token protects nothing)
+MIN_TOKEN_CHARS = 12
+#: on every answer; the dashboard frames the viewer relay, so frames from this origin only
+COMMON_HEADERS = ((b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"SAMEORIGIN"),
+                  (b"referrer-policy", b"no-referrer"))
+#: the dashboard's pages: scripts, styles, images, streams and frames from this origin only
+#: (``blob:`` / ``data:`` images: the page shows fetched PNGs as object URLs)
+DASHBOARD_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; "
+                 "img-src 'self' blob: data:; connect-src 'self'; frame-src 'self'; "
+                 "frame-ancestors 'self'; object-src 'none'; base-uri 'self'; form-action 'self'")
+#: paths that are not the dashboard (the API documentation loads its own scripts)
+NOT_DASHBOARD = ("/api", "/viser", "/docs", "/redoc", "/openapi.json", "/healthz")
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -60,18 +84,35 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 
 def check_startup_security(settings: Settings) -> None:
-    """Raise ``ValueError`` if ``settings`` would expose the service without a token."""
+    """Raise ``ValueError`` (one line) if ``settings`` would expose the service without a
+    token, or with a token too short or not cookie-safe."""
     token = settings.api_token
     if token is not None and not _TOKEN_PATTERN.fullmatch(token):
         raise ValueError(
             "api_token: FRINGESCOPE_API_TOKEN must be 1-512 printable ASCII characters "
             "without spaces, quotes, commas, semicolons or backslashes"
         )
+    if token is not None and len(token) < MIN_TOKEN_CHARS:
+        raise ValueError(
+            f"api_token: FRINGESCOPE_API_TOKEN must have at least {MIN_TOKEN_CHARS} characters, "
+            f"got {len(token)}"
+        )
+    for proxy in settings.trusted_proxies:
+        if not _is_ip(proxy):
+            raise ValueError(f"trusted_proxies: {proxy!r} is not an IP address")
     if not is_loopback(settings.host) and not settings.api_token and not settings.insecure:
         raise ValueError(
             f"refusing to listen on {settings.host} without FRINGESCOPE_API_TOKEN "
             "(use --insecure to override)"
         )
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def checked_name(name: str, what: str = "name") -> str:
@@ -86,30 +127,27 @@ def _headers(scope: Scope) -> dict[str, str]:
     return {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
 
 
-def supplied_tokens(scope: Scope, *, allow_cookie: bool, allow_query: bool | None = None) -> list[str]:
-    """Tokens a request carries: the bearer header, plus cookie and query if allowed.
-
-    ``allow_query`` defaults to ``allow_cookie``.
-    """
-    if allow_query is None:
-        allow_query = allow_cookie
+def supplied_tokens(scope: Scope, *, allow_query: bool) -> list[str]:
+    """Tokens a request carries: the bearer header, plus the ``?token=`` query if allowed."""
     headers = _headers(scope)
     found: list[str] = []
     scheme, _, value = headers.get("authorization", "").partition(" ")
     if scheme.lower() == "bearer" and value.strip():
         found.append(value.strip())
-    if allow_cookie:
-        cookie = SimpleCookie()
-        try:
-            cookie.load(headers.get("cookie", ""))
-        except Exception:  # a malformed cookie header is just no token
-            cookie = SimpleCookie()
-        if TOKEN_COOKIE in cookie:
-            found.append(cookie[TOKEN_COOKIE].value)
     if allow_query:
         query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
         found.extend(query.get(TOKEN_QUERY, [])[:1])
     return found
+
+
+def session_id(scope: Scope) -> str | None:
+    """The session cookie's value, if the request carries one."""
+    cookie: SimpleCookie = SimpleCookie()
+    try:
+        cookie.load(_headers(scope).get("cookie", ""))
+    except Exception:  # a malformed cookie header is just no session
+        return None
+    return cookie[TOKEN_COOKIE].value if TOKEN_COOKIE in cookie else None
 
 
 def _under(path: str, prefixes: tuple[str, ...]) -> bool:
@@ -130,13 +168,6 @@ def token_rule(scope: Scope) -> tuple[bool, bool, bool]:
     needs = _under(path, PROTECTED_PREFIXES)
     safe = method in SAFE_METHODS
     return needs, needs and safe, needs and safe and viewer
-
-
-def request_authenticated(scope: Scope, token: str | None) -> bool:
-    """True if no token is configured or the request carries it (header or cookie)."""
-    if not token:
-        return True
-    return token_matches(token, supplied_tokens(scope, allow_cookie=True, allow_query=False))
 
 
 def token_matches(expected: str, supplied: list[str]) -> bool:
@@ -164,9 +195,96 @@ def origin_allowed(scope: Scope, allowed_origins: list[str]) -> bool:
     return bool(host) and netloc.lower() == host.lower()
 
 
-def token_cookie(token: str, *, secure: bool) -> str:
-    """``Set-Cookie`` value carrying the token for this browser session (no expiry)."""
-    return f"{TOKEN_COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if secure else "")
+def session_cookie(session: str, *, secure: bool) -> str:
+    """``Set-Cookie`` value carrying a session id (a browser-session cookie: no expiry date;
+    the server forgets the session after ``session_ttl_s``)."""
+    return (f"{TOKEN_COOKIE}={session}; Path=/; HttpOnly; SameSite=Strict"
+            + ("; Secure" if secure else ""))
+
+
+class Verdict(NamedTuple):
+    """The token check of one request: passed, or refused (and for how long held off)."""
+
+    ok: bool
+    retry_after_s: float = 0.0
+
+
+class Guard:
+    """The token rules of one app: the configured token, its sessions, the failure throttle.
+
+    The token is read from ``settings`` at every request: replacing it closes every session.
+    """
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.sessions = SessionStore(settings.session_ttl_s)
+        self.throttle = FailureThrottle()
+        self._trusted = frozenset(ipaddress.ip_address(p) for p in settings.trusted_proxies)
+
+    @property
+    def token(self) -> str | None:
+        return self.settings.api_token or None
+
+    def _from_trusted_proxy(self, scope: Scope) -> bool:
+        peer = (scope.get("client") or ("", 0))[0]
+        try:
+            return ipaddress.ip_address(peer) in self._trusted
+        except ValueError:
+            return False
+
+    def client_address(self, scope: Scope) -> str:
+        """The client's address: the peer's, or the one a trusted proxy forwarded."""
+        peer = str((scope.get("client") or ("unknown", 0))[0])
+        if self._from_trusted_proxy(scope):
+            forwarded = _headers(scope).get("x-forwarded-for", "")
+            hops = [h.strip() for h in forwarded.split(",") if h.strip()]
+            if hops:
+                return hops[-1]  # the address the proxy itself saw
+        return peer
+
+    def over_https(self, scope: Scope) -> bool:
+        """True if the request reached us over TLS, or a trusted proxy says it reached it so."""
+        if scope.get("scheme") in ("https", "wss"):
+            return True
+        if not self._from_trusted_proxy(scope):
+            return False
+        proto = _headers(scope).get("x-forwarded-proto", "").split(",")[0].strip().lower()
+        return proto in ("https", "wss")
+
+    def check(self, scope: Scope, *, allow_cookie: bool, allow_query: bool) -> Verdict:
+        """Whether the request carries the token (or a live session when cookies count).
+
+        A token that is sent is an attempt: a held-off client's is not compared at all, a
+        wrong one counts against the client, a right one clears its count.
+        """
+        token = self.token
+        if token is None:
+            return Verdict(True)
+        tokens = supplied_tokens(scope, allow_query=allow_query)
+        if tokens:
+            client = self.client_address(scope)
+            wait_s = self.throttle.held_off_s(client)
+            if wait_s > 0:
+                return Verdict(False, wait_s)
+            if token_matches(token, tokens):
+                self.throttle.succeeded(client)
+                return Verdict(True)
+            self.throttle.failed(client)
+            return Verdict(False)
+        sid = session_id(scope) if allow_cookie else None
+        return Verdict(sid is not None and self.sessions.valid(sid, token))
+
+    def authenticated(self, scope: Scope) -> bool:
+        """True if no token is configured or the request carries it (header or session)."""
+        return self.check(scope, allow_cookie=True, allow_query=False).ok
+
+
+def guard_of(app: Any) -> Guard:
+    """The :class:`Guard` :func:`install_security` put on ``app.state``."""
+    guard = getattr(app.state, "guard", None)
+    if not isinstance(guard, Guard):
+        raise RuntimeError("install_security was not called on this app")
+    return guard
 
 
 class UploadTooLarge(HTTPException):
@@ -178,12 +296,16 @@ class UploadTooLarge(HTTPException):
         )
 
 
-class SecurityMiddleware:
-    """Pure ASGI middleware enforcing the token, WebSocket Origin and upload-size rules."""
+HELD_OFF = "too many wrong tokens from this client: retry in {:.0f} s"
 
-    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+
+class SecurityMiddleware:
+    """Pure ASGI middleware enforcing the token, WebSocket Origin and upload-size rules, and
+    adding the security headers."""
+
+    def __init__(self, app: ASGIApp, settings: Settings, guard: Guard) -> None:
         self.app = app
-        self.token = settings.api_token or None
+        self.guard = guard
         self.allowed_origins = list(settings.cors_origins)
         self.max_body = int(settings.max_upload_mb * 1_000_000)
 
@@ -201,22 +323,31 @@ class SecurityMiddleware:
             await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})
             return
         needs, cookie, query = token_rule(scope)
-        if needs and self.token and not token_matches(
-                self.token, supplied_tokens(scope, allow_cookie=cookie, allow_query=query)):
-            await send({"type": "websocket.close", "code": 1008, "reason": "missing or invalid token"})
-            return
+        if needs:
+            verdict = self.guard.check(scope, allow_cookie=cookie, allow_query=query)
+            if not verdict.ok:
+                reason = (HELD_OFF.format(math.ceil(verdict.retry_after_s)) if verdict.retry_after_s
+                          else "missing or invalid token")
+                await send({"type": "websocket.close", "code": 1008, "reason": reason})
+                return
         await self.app(scope, receive, send)
 
     async def _http(self, scope: Scope, receive: Receive, send: Send) -> None:
         needs, cookie, query = token_rule(scope)
         set_cookie = False
-        if needs and self.token:
-            if not token_matches(self.token, supplied_tokens(scope, allow_cookie=cookie, allow_query=query)):
+        guard = self.guard
+        if needs and guard.token:
+            verdict = guard.check(scope, allow_cookie=cookie, allow_query=query)
+            if verdict.retry_after_s > 0:
+                wait = math.ceil(verdict.retry_after_s)
+                await _json(send, 429, HELD_OFF.format(wait), {"retry-after": str(wait)})
+                return
+            if not verdict.ok:
                 await _json(send, 401, "missing or invalid token: send 'Authorization: Bearer "
                             "<FRINGESCOPE_API_TOKEN>'", {"www-authenticate": "Bearer"})
                 return
-            params = parse_qs(scope.get("query_string", b"").decode("latin-1"))
-            set_cookie = query and bool(params.get(TOKEN_QUERY))
+            set_cookie = bool(query and supplied_tokens(scope, allow_query=True)
+                              != supplied_tokens(scope, allow_query=False))
         length = _headers(scope).get("content-length")
         if length is not None:
             try:
@@ -229,6 +360,7 @@ class SecurityMiddleware:
                 return
         received = 0
         started = False
+        dashboard = not _under(scope.get("path", ""), NOT_DASHBOARD)
 
         async def counting_receive() -> Message:
             nonlocal received
@@ -243,10 +375,14 @@ class SecurityMiddleware:
             nonlocal started
             if message["type"] == "http.response.start":
                 started = True
-                if set_cookie and self.token:
-                    value = token_cookie(self.token, secure=scope.get("scheme") == "https")
-                    message = {**message, "headers": [*message.get("headers", []),
-                                                      (b"set-cookie", value.encode("latin-1"))]}
+                headers = [*message.get("headers", []), *COMMON_HEADERS]
+                if dashboard:
+                    headers.append((b"content-security-policy", DASHBOARD_CSP.encode()))
+                token = guard.token
+                if set_cookie and token:
+                    value = session_cookie(guard.sessions.open(token), secure=guard.over_https(scope))
+                    headers.append((b"set-cookie", value.encode("latin-1")))
+                message = {**message, "headers": headers}
             await send(message)
 
         try:
@@ -261,6 +397,7 @@ async def _json(send: Send, status: int, detail: str, extra: dict[str, str] | No
     body = json.dumps({"detail": detail}).encode("utf-8")
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     headers += [(k.encode("latin-1"), v.encode("latin-1")) for k, v in (extra or {}).items()]
+    headers += COMMON_HEADERS
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
@@ -268,11 +405,14 @@ async def _json(send: Send, status: int, detail: str, extra: dict[str, str] | No
 def install_security(app: FastAPI, settings: Settings) -> None:
     """Check the startup rule and add the security (and, if configured, CORS) middleware.
 
-    Call once in ``create_app`` before the app serves. Also documents the bearer
-    scheme in the OpenAPI spec so ``/docs`` offers an *Authorize* button.
+    Call once in ``create_app`` before the app serves. The :class:`Guard` (token, sessions,
+    throttle) is ``app.state.guard``. Also documents the bearer scheme in the OpenAPI spec so
+    ``/docs`` offers an *Authorize* button.
     """
     check_startup_security(settings)
-    app.add_middleware(SecurityMiddleware, settings=settings)
+    guard = Guard(settings)
+    app.state.guard = guard
+    app.add_middleware(SecurityMiddleware, settings=settings, guard=guard)
     if settings.cors_origins:  # added last = outermost, so 401/413 answers carry CORS headers
         app.add_middleware(
             CORSMiddleware,
@@ -300,8 +440,10 @@ def _document_bearer(app: FastAPI) -> None:
                     scope = {"type": "http", "path": path, "method": method.upper()}
                     if isinstance(op, dict) and token_rule(scope)[0]:
                         op.setdefault("security", [{"bearer": []}])
-                        op.setdefault("responses", {}).setdefault(
-                            "401", {"description": "missing or invalid token"})
+                        responses = op.setdefault("responses", {})
+                        responses.setdefault("401", {"description": "missing or invalid token"})
+                        responses.setdefault("429", {"description": "too many wrong tokens from "
+                                                                    "this client: retry later"})
             app.openapi_schema = schema
         return app.openapi_schema
 

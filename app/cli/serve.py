@@ -30,8 +30,17 @@ def run(args: argparse.Namespace) -> int:
     check_port_free("HTTP", settings.host, settings.port)
     if settings.igtl_port is not None:
         check_port_free("OpenIGTLink", settings.igtl_host, settings.igtl_port)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info",
+                **proxy_options(settings.trusted_proxies))
     return 0
+
+
+def proxy_options(trusted_proxies: list[str]) -> dict[str, Any]:
+    """uvicorn's forwarded-header options: believed from the configured proxies only (uvicorn
+    alone would believe any peer on 127.0.0.1)."""
+    if not trusted_proxies:
+        return {"proxy_headers": False}
+    return {"proxy_headers": True, "forwarded_allow_ips": list(trusted_proxies)}
 
 
 def check_port_free(what: str, host: str, port: int) -> None:

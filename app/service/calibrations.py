@@ -21,6 +21,7 @@ from app.core.schedule import PatternSchedule, calibration_mismatch
 from app.recon import ReconResult, Reconstructor
 from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 from app.service import calibration_store
+from app.service.calibration_checks import ValidFractionWatch, check_physical, dry_run_problem
 from app.service.calibration_session import CalibrationSession
 from app.service.pipeline import LivePipeline
 from app.service.schedules import calibration_for_schedule
@@ -43,6 +44,8 @@ class CalibrationManager:
         self._upload_engine_cal: Calibration | None = None
         self._upload_lock = threading.Lock()
         self._lock = threading.Lock()
+        self._activate_lock = threading.Lock()  # one activation at a time: its dry run compares
+        self.watch = ValidFractionWatch()
         self._creating: threading.Thread | None = None
 
     @property
@@ -96,25 +99,68 @@ class CalibrationManager:
             self._creating.join(max(timeout_s, 120.0))  # a fit cannot be interrupted
 
     # -- activation --------------------------------------------------------------------------
-    def activate(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
-        """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
-        reason = calibration_mismatch(cal.pattern, self.schedule)
+    def activate(self, cal: Calibration, *, name: str, persist: bool = True, force: bool = False) -> None:
+        """Check ``cal``, then make it active for live and uploaded sets.
+
+        The physical checks (:func:`check_physical`) always apply; then, unless ``force``, a
+        dry run on the newest frames must leave at least half the active calibration's valid
+        fraction. Only then is it saved as the active one (if ``persist``) and installed.
+
+        Raises:
+            ValueError: naming the field or the dry run's figures; nothing has changed.
+        """
+        with self._activate_lock:
+            size = self.pipeline.image_size()
+            if size is not None and tuple(cal.image_size) != size:
+                raise ValueError(
+                    f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
+                    f"the camera's {size[0]}x{size[1]}"
+                )
+            check_physical(cal, self.schedule)
+            engine = self._engine(cal, self.schedule)
+            if not force:
+                self._dry_run(engine)
+            if persist:
+                calibration_store.save_active(self.settings, cal, name)
+            self.observe_live()
+            with self._lock:
+                self.calibration, self.name = cal, name
+                self._upload_engine = None
+                self.warnings = [w for w in self.warnings if not w.startswith("no calibration")]
+                self.watch.changed(f"activating calibration {name!r}")
+            self.pipeline.use_engine(engine)
+
+    def _dry_run(self, candidate: Reconstructor) -> None:
+        """``ValueError`` if ``candidate`` leaves far fewer valid pixels of the newest whole set
+        than the active calibration; nothing to compare (no active one, no set yet) passes."""
+        active, acq = self.calibration, self.pipeline.acquisition
+        if active is None or acq is None:
+            return
+        _, fs = acq.sets.latest()
+        if fs is None or len(fs.frame_indices) != self.schedule.n_frames:
+            return
+        frames = fs.stack()
+        noise = self.pipeline.reconstruction.noise.current
+        fractions = []
+        for engine in (candidate, self._engine(active, self.schedule)):
+            if noise is not None:
+                engine.noise = noise  # as the live reconstruction runs it
+            fractions.append(float(engine.run(frames).valid.mean()))
+        reason = dry_run_problem(fractions[0], fractions[1], self.name)
         if reason is not None:
-            raise ValueError(f"projector: {reason}")
-        size = self.pipeline.image_size()
-        if size is not None and tuple(cal.image_size) != size:
-            raise ValueError(
-                f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
-                f"the camera's {size[0]}x{size[1]}"
-            )
-        engine = self._engine(cal, self.schedule)
-        if persist:
-            calibration_store.save_active(self.settings, cal, name)
-        with self._lock:
-            self.calibration, self.name = cal, name
-            self._upload_engine = None
-            self.warnings = [w for w in self.warnings if not w.startswith("no calibration")]
-        self.pipeline.use_engine(engine)
+            log.warning("calibration refused: %s", reason)
+            raise ValueError(f"calibration: {reason}")
+
+    def observe_live(self) -> None:
+        """Feed the newest live result's valid fraction to :attr:`watch`."""
+        seq, res = self.pipeline.results.latest()
+        if res is not None:
+            self.watch.observe(seq, float(res.valid.mean()) if res.valid.size else 0.0)
+
+    def collapse_warning(self) -> str | None:
+        """The status warning while the live valid fraction has collapsed after a change."""
+        self.observe_live()
+        return self.watch.warning()
 
     def _engine(self, cal: Calibration, schedule: PatternSchedule) -> Reconstructor:
         bits = self.settings.bit_depth
@@ -193,11 +239,14 @@ class CalibrationManager:
         except ValueError as exc:
             raise Conflict(f"calibration solve: {exc}") from None
 
-    def activate_session(self, name: str) -> CalibrationSummary:
+    def activate_session(self, name: str, *, force: bool = False) -> CalibrationSummary:
         session = self.require_session()
         if session.report is None:
             raise Conflict("calibration session not solved: POST /api/calibration/session/solve first")
-        self.activate(session.report.calibration, name=name, persist=True)
+        try:
+            self.activate(session.report.calibration, name=name, persist=True, force=force)
+        except ValueError as exc:
+            raise InvalidRequest(str(exc)) from None
         summary = self.summary()
         assert summary is not None
         return summary

@@ -141,9 +141,11 @@ class Instrument:
         return out
 
     # -- calibration -----------------------------------------------------------------------
-    def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True) -> None:
-        """Make ``cal`` active for live and uploaded sets (saved as the active one if ``persist``)."""
-        self.calibrations.activate(cal, name=name, persist=persist)
+    def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True,
+                        force: bool = False) -> None:
+        """Check ``cal``, then make it active for live and uploaded sets (saved as the active one
+        if ``persist``); ``force`` skips the dry run, never the physical checks."""
+        self.calibrations.activate(cal, name=name, persist=persist, force=force)
 
     def calibration_summary(self) -> dict[str, Any] | None:
         summary = self.calibrations.summary()
@@ -166,18 +168,26 @@ class Instrument:
     def solve_session(self, *, robust: bool = False) -> CalibrationReport:
         return self.calibrations.solve_session(robust=robust)
 
-    def activate_session(self, name: str) -> dict[str, Any]:
-        return self.calibrations.activate_session(name).to_dict()
+    def activate_session(self, name: str, *, force: bool = False) -> dict[str, Any]:
+        return self.calibrations.activate_session(name, force=force).to_dict()
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
+        self._changing(f"the exposure change to {exposure_ms:g} ms")
         return self.pipeline.set_exposure(exposure_ms)
 
     def set_led(self, led: str) -> str:
+        self._changing(f"the LED change to {led}")
         return self.pipeline.set_led(led)
 
     def set_rolling(self, rolling: bool) -> None:
+        self._changing("the mode change")
         self.pipeline.set_rolling(rolling)
+
+    def _changing(self, what: str) -> None:
+        """Mark a change for the valid-fraction watch (a collapse after it is a status warning)."""
+        self.calibrations.observe_live()
+        self.calibrations.watch.changed(what)
 
     def set_acquiring(self, on: bool) -> None:
         self.pipeline.set_acquiring(on)
@@ -208,6 +218,7 @@ class Instrument:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
             if self.calibrating or self.session is not None:
                 raise Conflict("schedule: a calibration is being made with the current schedule; finish it first")
+            self._changing(f"the schedule change to {name}")
             self.pipeline.set_schedule(schedule, self.calibrations.engine_for)
         return name
 
@@ -283,6 +294,8 @@ class Instrument:
                 "or out of order, or the exposure/LED changing)")
         if self.pipeline.engine_note:
             warnings.append(self.pipeline.engine_note)
+        if (collapse := self.calibrations.collapse_warning()) is not None:
+            warnings.append(collapse)
         last_error = self.calibrations.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:

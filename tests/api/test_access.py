@@ -53,6 +53,14 @@ def concrete(path: str) -> str:
     return re.sub(r"\{[^}]+\}", "sample", path)
 
 
+def session_cookie(client: TestClient) -> str:
+    """``name=value`` of a fresh session cookie from ``POST /api/login`` (by another client:
+    ``client`` keeps no cookie)."""
+    r = TestClient(client.app).post("/api/login", headers=AUTH)
+    assert r.status_code == 200, r.text
+    return r.headers["set-cookie"].split(";")[0]
+
+
 def openapi_operations(app: FastAPI) -> list[tuple[str, str]]:
     ops = []
     for path, item in app.openapi()["paths"].items():
@@ -113,7 +121,7 @@ def test_routes_outside_openapi_websockets_viewer_static(app: FastAPI, client: T
             assert err.value.code == 1008, path
             # with the token (header or session cookie) the handshake passes the middleware;
             # the route itself may then close (instrument not started, viewer not running)
-            for kwargs in ({"headers": AUTH}, {"headers": {"cookie": f"{TOKEN_COOKIE}={TOKEN}"}}):
+            for kwargs in ({"headers": AUTH}, {"headers": {"cookie": session_cookie(client)}}):
                 try:
                     with client.websocket_connect(url, **kwargs):
                         pass
@@ -135,8 +143,11 @@ def test_routes_outside_openapi_websockets_viewer_static(app: FastAPI, client: T
             url = concrete(path)
             assert client.get(url, follow_redirects=False).status_code == 401, path
             assert client.get(url, headers=AUTH, follow_redirects=False).status_code not in (401, 403), path
-            cookie = {"cookie": f"{TOKEN_COOKIE}={TOKEN}"}
+            cookie = {"cookie": session_cookie(client)}
             assert client.get(url, headers=cookie, follow_redirects=False).status_code not in (401, 403), path
+            # the token itself as the cookie opens nothing: the cookie is a session id
+            as_cookie = {"cookie": f"{TOKEN_COOKIE}={TOKEN}"}
+            assert client.get(url, headers=as_cookie, follow_redirects=False).status_code == 401, path
             checked += 1
     assert checked == len(others)
     assert any(p.startswith("/viser") for p, _ in others)
@@ -149,7 +160,8 @@ def test_login_cookie_opens_reads_and_streams_not_writes(client: TestClient) -> 
     r = client.post("/api/login", headers=AUTH)
     assert r.status_code == 200 and r.json()["authenticated"] is True
     cookie = r.headers["set-cookie"]
-    assert f"{TOKEN_COOKIE}={TOKEN}" in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    assert cookie.startswith(f"{TOKEN_COOKIE}=") and TOKEN not in cookie
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Secure" not in cookie  # plain HTTP
     assert "expires" not in cookie.lower() and "max-age" not in cookie.lower()  # a browser-session cookie
     assert client.get("/api/auth").json() == {"token_required": True, "authenticated": True}
     assert client.get("/api/status").status_code not in (401, 403)

@@ -11,6 +11,7 @@ from pydantic import BaseModel
 from starlette.websockets import WebSocketDisconnect
 
 from app.api.security import (
+    MIN_TOKEN_CHARS,
     TOKEN_COOKIE,
     check_startup_security,
     checked_name,
@@ -88,6 +89,14 @@ def test_startup_refuses_exposed_without_token() -> None:
     for bad in ("", "has space", "semi;colon", 'quo"te'):
         with pytest.raises(ValueError, match="api_token"):
             check_startup_security(Settings(api_token=bad))
+    for short in ("x", "a" * (MIN_TOKEN_CHARS - 1)):
+        with pytest.raises(ValueError) as err:
+            check_startup_security(Settings(api_token=short))
+        assert str(err.value) == (f"api_token: FRINGESCOPE_API_TOKEN must have at least "
+                                  f"{MIN_TOKEN_CHARS} characters, got {len(short)}")
+    check_startup_security(Settings(api_token="a" * MIN_TOKEN_CHARS))
+    with pytest.raises(ValueError, match="trusted_proxies: 'proxy.example' is not an IP"):
+        check_startup_security(Settings(trusted_proxies=["proxy.example"]))
 
 
 def test_no_token_on_loopback_leaves_routes_open() -> None:
@@ -125,10 +134,12 @@ def test_viewer_relay_needs_token_by_header_cookie_or_query() -> None:
     assert err.value.code == 1008
     with client.websocket_connect(f"/viser/ws?token={TOKEN}") as ws:
         assert ws.receive_text() == "hello"
-    # a valid query token sets the cookie the page's assets and WebSocket then use
+    # a valid query token sets the cookie the page's assets and WebSocket then use: a session
+    # id, never the token
     r = client.get(f"/viser/?token={TOKEN}")
     assert r.status_code == 200
-    assert f"{TOKEN_COOKIE}={TOKEN}" in r.headers["set-cookie"]
+    assert r.headers["set-cookie"].startswith(f"{TOKEN_COOKIE}=")
+    assert TOKEN not in r.headers["set-cookie"] and len(client.cookies[TOKEN_COOKIE]) >= 40
     assert "HttpOnly" in r.headers["set-cookie"] and "SameSite=Strict" in r.headers["set-cookie"]
     assert client.get("/viser/").status_code == 200  # the cookie now travels
     with client.websocket_connect("/viser/ws") as ws:

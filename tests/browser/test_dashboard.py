@@ -60,7 +60,10 @@ def page(server: str) -> Iterator[tuple[Any, list[str]]]:
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         try:
-            pg = browser.new_page(viewport={"width": 1600, "height": 1000})
+            # Playwright's wait_for_function evaluates its string with eval, which the dashboard's
+            # CSP forbids; tests/browser/test_csp.py checks the page under the CSP
+            pg = browser.new_page(viewport={"width": 1600, "height": 1000},
+                                  bypass_csp=True)
 
             def on_console(msg: Any) -> None:
                 if msg.type == "error" and not any(s in msg.text for s in IGNORED_CONSOLE):
