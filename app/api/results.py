@@ -123,7 +123,9 @@ async def reconstruct(
 ) -> Any:
     """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip)."""
     limit = int(inst.settings.max_upload_mb * 1024 * 1024)
-    capture = await capture_from_request(request, limit)
+    cal = inst.calibration  # frames of another size are refused before they are decoded
+    size = None if cal is None else cal.image_size
+    capture = await capture_from_request(request, limit, frame_size=size)
     res = await run_in_threadpool(inst.reconstruct_capture, capture)
     if format == "npy":
         return binary(encoding.npy_bytes(res.depth), "application/octet-stream", None, "depth.npy")
