@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import binary, get_instrument, result_headers
 from app.api.errors import COMMON, R400, R409, R413, R415, R422
-from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
+from app.api.schemas import CAPTURE_UPLOAD, PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.service import encoding
 from app.service.instrument import Instrument
@@ -19,13 +19,6 @@ from app.service.phase import decode_capture
 
 router = APIRouter(prefix="/api", tags=["results"])
 
-
-#: the request body of a capture-set upload: its files as multipart, or one .zip
-CAPTURE_UPLOAD: dict[str, Any] = {"requestBody": {"content": {
-    "multipart/form-data": {"schema": {"type": "object", "properties": {
-        "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
-    "application/zip": {"schema": {"type": "string", "format": "binary"}},
-}}}
 
 @router.get("/result/latest", response_model=ResultMeta, responses={**R409, **COMMON})
 def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
