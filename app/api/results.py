@@ -33,8 +33,9 @@ def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
 )
 def depth_latest(
     format: Literal["npy", "png", "color", "tiff"] = "npy",
-    min_mm: float | None = Query(None, allow_inf_nan=False),
-    max_mm: float | None = Query(None, allow_inf_nan=False),
+    min_mm: float | None = Query(None, allow_inf_nan=False, description="colour range start, mm. "
+                                 "Rule (422 otherwise): min_mm < max_mm"),
+    max_mm: float | None = Query(None, allow_inf_nan=False, description="colour range end, mm"),
     field: Literal["depth", "sigma"] = Query("depth", description="depth, or sigma: its 1-σ noise, mm"),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:

@@ -408,7 +408,9 @@ CALIBRATION_FILE_SCHEMA: dict[str, Any] = {
         "pattern": {"type": "object", "required": ["frequencies", "steps", "width"]},
     },
 }
-CALIBRATION_UPLOAD: dict[str, Any] = {"requestBody": {"required": True, "content": {
+CALIBRATION_UPLOAD: dict[str, Any] = {"requestBody": {"required": True, "description": (
+    "Rule (422 otherwise): a whole calibration file whose values make physical sense and fit "
+    "this camera and pattern schedule"), "content": {
     "application/json": {"schema": CALIBRATION_FILE_SCHEMA}}}}
 
 #: ``POST /api/reconstruct`` and ``/api/phase``: a capture set as its files, or one .zip
