@@ -191,3 +191,49 @@ def test_every_route_documents_what_it_can_answer(tmp_path: Path) -> None:
             if op.get("parameters") or op.get("requestBody"):
                 assert "422" in codes, (method, path, codes)
                 assert "detail" in op["responses"]["422"]["content"]["application/json"]["schema"]["properties"]
+
+
+# -- hostile names, nesting and numbers in uploads (issue 25) ----------------------------------------
+def test_a_zip_member_name_of_300_characters_is_422(client: TestClient) -> None:
+    code, detail = _post_zip(client, _zip({"set/capture.json": CAPTURE, "set/" + "f" * 300 + ".png": b"x"}))
+    assert code == 422 and "304 characters long" in detail and "\n" not in detail, detail
+
+
+def test_a_multipart_file_name_of_300_characters_is_422(client: TestClient) -> None:
+    files = [("files", ("capture.json", CAPTURE, "application/json")),
+             ("files", ("g" * 300 + ".png", b"x", "image/png"))]
+    r = client.post("/api/phase", files=files)
+    assert r.status_code == 422 and "304 characters long" in r.json()["detail"], r.text
+
+
+def test_a_capture_json_nested_100000_deep_is_422(client: TestClient) -> None:
+    deep = b'{"format": "fringescope.capture/1", "x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    for body in (deep, b"[" * 100_000):
+        code, detail = _post_zip(client, _zip({"capture.json": body}, zipfile.ZIP_STORED))
+        assert code == 422 and detail.startswith("capture.json: JSON nested 100"), detail
+
+
+def test_non_finite_numbers_in_capture_json_are_422_naming_the_key(client: TestClient) -> None:
+    meta = CAPTURE.replace(b'"exposure_ms": 20.0', b'"exposure_ms": NaN')
+    code, detail = _post_zip(client, _zip({"capture.json": meta}))
+    assert code == 422 and detail.startswith("capture.json.exposure_ms: NaN is not a finite"), detail
+
+
+def test_a_frame_that_is_not_png_or_tiff_is_refused_before_decoding(client: TestClient) -> None:
+    import cv2
+    import numpy as np
+
+    from tests.api.hostile import capture_json
+
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
+    members = {"capture.json": capture_json(), **{f"frame_{i:02d}.png": jpeg.tobytes() for i in range(16)}}
+    code, detail = _post_zip(client, _zip(members))
+    assert code == 422 and detail == "frame_00.png: not a PNG or TIFF image", detail
+
+
+def test_a_calibration_file_nested_100000_deep_is_422_and_unchanged(client: TestClient) -> None:
+    deep = b'{"format": "fringescope.calibration/2", "model": ' + b'{"a": ' * 100_000 + b"1" + b"}" * 100_001
+    r = client.put("/api/calibration/file", content=deep, headers={"content-type": "application/json"})
+    assert r.status_code == 422 and r.json()["detail"].startswith("body: JSON nested 100001 levels"), r.text
+    r = client.put("/api/calibration/file", content=b'{"format": NaN}', headers={"content-type": "text/plain"})
+    assert r.status_code == 422 and r.json()["detail"].startswith("body.format: NaN"), r.text
