@@ -12,12 +12,14 @@ uploads keep the upload limit (``max_upload_mb``) and their own checks (:mod:`ap
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from fastapi import FastAPI
 from starlette.middleware import Middleware
 
+from app.api.errors import R413, R422
 from app.core.jsonlimits import MAX_JSON_DEPTH, loads_finite
 
 Scope = MutableMapping[str, Any]
@@ -37,34 +39,59 @@ JSON_LIMITS_BYTES: dict[tuple[str, str], int] = {
 }
 #: capture-set uploads: bounded by ``max_upload_mb`` and checked by app.api.upload
 UPLOAD_ROUTES = frozenset({("POST", "/api/reconstruct"), ("POST", "/api/phase")})
-PREFIX = "/api/"
 
 
-def json_limit_bytes(method: str, path: str) -> int | None:
-    """The body limit of a route, bytes; None for an upload route or a path outside ``/api``."""
-    if not path.startswith(PREFIX) or (method, path) in UPLOAD_ROUTES:
-        return None
+def json_limit_bytes(method: str, path: str) -> int:
+    """The body limit of JSON route ``method path`` (its path template), bytes."""
     return JSON_LIMITS_BYTES.get((method, path), DEFAULT_JSON_LIMIT_BYTES)
 
 
-class BodyLimitMiddleware:
-    """Pure ASGI middleware: per-route body size, JSON depth and finite numbers (see module)."""
+def json_routes(schema: dict[str, Any]) -> list[tuple[str, re.Pattern[str], int]]:
+    """(method, path pattern, body limit) of every operation of an OpenAPI document that
+    takes a JSON body (the document is the one list of routes every FastAPI version gives)."""
+    out = []
+    for path, item in schema.get("paths", {}).items():
+        pattern = re.compile("^" + re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(path)) + "$")
+        for method, op in item.items():
+            content = op.get("requestBody", {}).get("content", {}) if isinstance(op, dict) else {}
+            if "application/json" in content and (method.upper(), path) not in UPLOAD_ROUTES:
+                out.append((method.upper(), pattern, json_limit_bytes(method.upper(), path)))
+    return out
 
-    def __init__(self, app: ASGIApp) -> None:
+
+class BodyLimitMiddleware:
+    """Pure ASGI middleware: per-route body size, JSON depth and finite numbers (see module).
+
+    Only requests to a route that takes a JSON body are checked; any other request (an
+    upload, a wrong method, an unknown path) passes untouched to the app, which answers it
+    without reading a JSON body.
+    """
+
+    def __init__(self, app: ASGIApp, routes_of: FastAPI) -> None:
         self.app = app
+        self.routes_of = routes_of
+        self._routes: list[tuple[str, re.Pattern[str], int]] | None = None
+
+    def limit(self, method: str, path: str) -> tuple[int, str] | None:
+        """(body limit in bytes, route) for a request, or None when it is not a JSON route."""
+        if self._routes is None:  # the routes are all included by the first request
+            self._routes = json_routes(self.routes_of.openapi())
+        for route_method, pattern, limit in self._routes:
+            if route_method == method and pattern.match(path):
+                return limit, f"{method} {path}"
+        return None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        method, path = scope.get("method", "GET"), scope.get("path", "")
-        limit = json_limit_bytes(method, path)
+        found = self.limit(scope.get("method", "GET"), scope.get("path", ""))
         headers = {k.decode("latin-1").lower(): v for k, v in scope.get("headers", [])}
-        if limit is None or ("content-length" not in headers
+        if found is None or ("content-length" not in headers
                              and "transfer-encoding" not in headers):
             await self.app(scope, receive, send)
             return
-        where = f"{method} {path}"
+        limit, where = found
         declared = headers.get("content-length", b"").strip()
         if declared:
             if not declared.isdigit():
@@ -104,7 +131,7 @@ def _json_fault(body: bytes) -> str | None:
     """
     try:
         loads_finite(body, "body", MAX_JSON_DEPTH)
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, UnicodeDecodeError):
         return None
     except (ValueError, RecursionError) as exc:
         return str(exc)
@@ -142,7 +169,7 @@ def install_body_limits(app: FastAPI) -> None:
     """
     if app.middleware_stack is not None:
         raise RuntimeError("install_body_limits: the app has already started")
-    app.user_middleware.append(Middleware(BodyLimitMiddleware))  # last = innermost
+    app.user_middleware.append(Middleware(BodyLimitMiddleware, routes_of=app))  # last = innermost
     previous = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -157,8 +184,6 @@ def install_body_limits(app: FastAPI) -> None:
 
 def document_body_limits(schema: dict[str, Any]) -> None:
     """Add each JSON route's body limit and its 413/422 answers to an OpenAPI document."""
-    from app.api.errors import R413, R422
-
     for path, item in schema.get("paths", {}).items():
         for method, op in item.items():
             if not isinstance(op, dict):
@@ -168,11 +193,11 @@ def document_body_limits(schema: dict[str, Any]) -> None:
                 answers["422"] = R422[422]  # FastAPI's default: a list; ours is one line
             if "requestBody" not in op:
                 continue
-            limit = json_limit_bytes(method.upper(), path)
             responses = op.setdefault("responses", {})
             responses.setdefault("413", R413[413])
             responses["422"] = R422[422]
-            if limit is not None:
+            if "application/json" in op["requestBody"].get("content", {}):
+                limit = json_limit_bytes(method.upper(), path)
                 op["description"] = (op.get("description", "") + f"\n\nBody: JSON, at most {limit} "
                                      f"bytes, nested at most {MAX_JSON_DEPTH} levels, numbers finite.")
     for name in ("HTTPValidationError", "ValidationError"):
