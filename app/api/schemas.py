@@ -6,6 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, model_validator
 
+from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
 from app.core.calibration import FORMAT as CALIBRATION_FORMAT
 from app.core.calibration import FORMAT_V1 as CALIBRATION_FORMAT_V1
@@ -334,6 +335,18 @@ class MeasureSpec(Strict):
                                                                           "reference plane (default: the chord)")
     snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
                                                              "within this radius, px")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _too_few_points(cls, data: Any) -> Any:
+        """Fewer points than any kind takes (the schema's minItems): the reason names the kind's count."""
+        points = data.get("points") if isinstance(data, dict) else None
+        kind = data.get("kind") if isinstance(data, dict) else None
+        if isinstance(points, list) and len(points) < 2 and isinstance(kind, str) and kind in MIN_POINTS:
+            exact = EXACT_POINTS.get(kind)
+            need = f"exactly {exact}" if exact is not None else f"at least {MIN_POINTS[kind]}"
+            raise ValueError(f"{kind}: needs {need} points, got {len(points)}")
+        return data
 
 
 class MeasureIn(MeasureSpec):
