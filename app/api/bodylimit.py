@@ -87,8 +87,9 @@ class BodyLimitMiddleware:
             return
         found = self.limit(scope.get("method", "GET"), scope.get("path", ""))
         headers = {k.decode("latin-1").lower(): v for k, v in scope.get("headers", [])}
-        if found is None or ("content-length" not in headers
-                             and "transfer-encoding" not in headers):
+        if found is None or (
+            "content-length" not in headers and "transfer-encoding" not in headers
+        ):
             await self.app(scope, receive, send)
             return
         limit, where = found
@@ -98,8 +99,11 @@ class BodyLimitMiddleware:
                 await _answer(send, 400, "body: invalid Content-Length header")
                 return
             if int(declared) > limit:
-                await _answer(send, 413, f"body: {int(declared)} bytes exceed the {limit}-byte limit "
-                                         f"of {where}")
+                await _answer(
+                    send,
+                    413,
+                    f"body: {int(declared)} bytes exceed the {limit}-byte limit of {where}",
+                )
                 return
         chunks: list[bytes] = []
         size = 0
@@ -154,9 +158,17 @@ def _replay(body: bytes, receive: Receive) -> Receive:
 
 async def _answer(send: Send, status: int, detail: str) -> None:
     data = json.dumps({"detail": detail}).encode("utf-8")
-    await send({"type": "http.response.start", "status": status, "headers": [
-        (b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()),
-        (b"connection", b"close")]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(data)).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": data})
 
 
@@ -198,8 +210,10 @@ def document_body_limits(schema: dict[str, Any]) -> None:
             responses["422"] = R422[422]
             if "application/json" in op["requestBody"].get("content", {}):
                 limit = json_limit_bytes(method.upper(), path)
-                op["description"] = (op.get("description", "") + f"\n\nBody: JSON, at most {limit} "
-                                     f"bytes, nested at most {MAX_JSON_DEPTH} levels, numbers finite.")
+                op["description"] = (
+                    op.get("description", "") + f"\n\nBody: JSON, at most {limit} "
+                    f"bytes, nested at most {MAX_JSON_DEPTH} levels, numbers finite."
+                )
     for name in ("HTTPValidationError", "ValidationError"):
         if name not in json.dumps(schema.get("paths", {})):
             schema.get("components", {}).get("schemas", {}).pop(name, None)

@@ -75,7 +75,8 @@ def validation_detail(errors: Sequence[Any]) -> tuple[str, list[dict[str, Any]]]
     """(one line naming each refused field, pydantic's errors made serialisable)."""
     items = []
     for err in errors:
-        items.append({"loc": [p if isinstance(p, int) else _echo(str(p)) for p in err.get("loc", ())],
+        loc = [p if isinstance(p, int) else _echo(str(p)) for p in err.get("loc", ())]
+        items.append({"loc": loc,
                       "msg": str(err.get("msg", "")), "type": str(err.get("type", "")),
                       **({"input": _echo(err["input"])} if "input" in err else {})})
     lines = [f"{field_path(err.get('loc', ()))}: {err.get('msg', 'invalid')}" for err in errors]
@@ -152,15 +153,16 @@ Responses = dict[int | str, dict[str, Any]]
 
 
 def _err(description: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    schema = {"type": "object", "required": ["detail"], "properties": {"detail": _DETAIL, **(extra or {})}}
+    properties = {"detail": _DETAIL, **(extra or {})}
+    schema = {"type": "object", "required": ["detail"], "properties": properties}
     return {"description": description, "content": {"application/json": {"schema": schema}}}
 
 
 R400: Responses = {400: _err("malformed request body (e.g. a broken multipart form)")}
 R404: Responses = {404: _err("no such thing (reason in detail)")}
 R409: Responses = {409: _err("not possible in the current state (reason in detail)")}
-R413: Responses = {413: _err("request body larger than the route's limit (upload limit, or kilobytes "
-                              "for a JSON body)")}
+R413: Responses = {413: _err("request body larger than the route's limit (upload limit, "
+                              "or kilobytes for a JSON body)")}
 R415: Responses = {415: _err("unsupported upload content type")}
 #: request validation or a domain InvalidRequest: one line naming the field(s) and why; for
 #: request validation also pydantic's errors (loc, msg, type, the input cut short)

@@ -236,8 +236,8 @@ class ActivateIn(Strict):
 
 class RoiIn(Strict):
     roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]], Field(min_length=4, max_length=4)] = Field(
-        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): x0 < x1 and "
-                         "y0 < y1, and the box inside the depth map")
+        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
+                         "x0 < x1 and y0 < y1, and the box inside the depth map")
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiIn:
@@ -328,9 +328,9 @@ class MeasureSpec(Strict):
         "the plane (signed, + toward the scope); profile: a polyline of ≥ 2 points (heights against its chord, "
         "or against `reference`); area: a polygon of ≥ 3 points, on the surface (mm²)"))
     points: list[Pixel] = Field(..., min_length=2, max_length=256, description=(
-        "[[u, v], …] image pixels (column, row). Rule (422 otherwise): as many as `kind` needs — "
-        "length 2, point_to_line 3, depth 4, profile ≥ 2, area ≥ 3 — not collinear or coincident "
-        "where a line or plane is spanned"))
+        "[[u, v], …] image pixels (column, row). Rule (422 otherwise): as many as `kind` "
+        "needs — length 2, point_to_line 3, depth 4, profile ≥ 2, area ≥ 3 — not collinear "
+        "or coincident where a line or plane is spanned"))
     reference: list[Pixel] | None = Field(None, max_length=3, description="profile only: 3 pixels of a "
                                                                           "reference plane (default: the chord)")
     snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
@@ -339,10 +339,11 @@ class MeasureSpec(Strict):
     @model_validator(mode="before")
     @classmethod
     def _too_few_points(cls, data: Any) -> Any:
-        """Fewer points than any kind takes (the schema's minItems): the reason names the kind's count."""
+        """Fewer points than any kind takes (the schema's minItems): the reason names its count."""
         points = data.get("points") if isinstance(data, dict) else None
         kind = data.get("kind") if isinstance(data, dict) else None
-        if isinstance(points, list) and len(points) < 2 and isinstance(kind, str) and kind in MIN_POINTS:
+        if isinstance(points, list) and len(points) < 2 and isinstance(kind, str) \
+                and kind in MIN_POINTS:
             exact = EXACT_POINTS.get(kind)
             need = f"exactly {exact}" if exact is not None else f"at least {MIN_POINTS[kind]}"
             raise ValueError(f"{kind}: needs {need} points, got {len(points)}")
@@ -399,7 +400,7 @@ class MeasureToolOut(BaseModel):
     measurements: list[MeasureSpec]
 
 
-# -- request bodies FastAPI does not build from a model ---------------------------------------------
+# -- request bodies FastAPI does not build from a model -----------------------------------------
 _NUMBERS = {"type": "array", "items": {"type": "number"}}
 #: ``PUT /api/calibration/file``: the keys and shapes every calibration file has; the values
 #: themselves are checked by the server (physical sense, fit to this camera and pattern)

@@ -153,7 +153,9 @@ def write_capture_set(
     return Path(path)
 
 
-def read_capture_set(path: str | os.PathLike[str], *, limits: FrameLimits | None = None) -> CaptureSet:
+def read_capture_set(
+    path: str | os.PathLike[str], *, limits: FrameLimits | None = None
+) -> CaptureSet:
     """Read a capture-set folder; ``ValueError`` naming the offending file on any problem.
 
     ``capture.json`` is refused when larger than :data:`MAX_META_BYTES` or nested deeper

@@ -91,8 +91,10 @@ def _png_header(head: bytes, name: str) -> ImageHeader:
         raise ValueError(f"{name}: truncated PNG header")
     width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
     if colour not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16) or not (width and height):
-        raise ValueError(f"{name}: invalid PNG header ({width}x{height}, colour type {colour}, "
-                         f"bit depth {depth})")
+        raise ValueError(
+            f"{name}: invalid PNG header ({width}x{height}, colour type {colour}, "
+            f"bit depth {depth})"
+        )
     return ImageHeader(width, height, _PNG_CHANNELS[colour], 2 if depth == 16 else 1, "png")
 
 
@@ -128,16 +130,24 @@ def check_frame_headers(headers: list[ImageHeader], names: list[str], limits: Fr
         size = (head.width, head.height)
         if limits.frame_size is not None and size != tuple(limits.frame_size):
             w, h = limits.frame_size
-            raise ValueError(f"{name}: image size {head.width}x{head.height} does not match the "
-                             f"calibration's {w}x{h}")
+            raise ValueError(
+                f"{name}: image size {head.width}x{head.height} does not match the "
+                f"calibration's {w}x{h}"
+            )
         if head.pixels > limits.max_frame_pixels:
-            raise ValueError(f"{name}: {head.width}x{head.height} is {head.pixels} pixels, more than "
-                             f"the {limits.max_frame_pixels} a frame may have")
+            raise ValueError(
+                f"{name}: {head.width}x{head.height} is {head.pixels} pixels, more than "
+                f"the {limits.max_frame_pixels} a frame may have"
+            )
         first = headers[0]
         if size != (first.width, first.height):
-            raise ValueError(f"{name}: image size {head.width}x{head.height} differs from the first "
-                             f"frame's {first.width}x{first.height}")
+            raise ValueError(
+                f"{name}: image size {head.width}x{head.height} differs from the first "
+                f"frame's {first.width}x{first.height}"
+            )
         total += head.decoded_bytes
         if total > limits.max_set_bytes:
-            raise ValueError(f"{name}: the frames up to here decode to {total} bytes, more than the "
-                             f"{limits.max_set_bytes}-byte budget of a set")
+            raise ValueError(
+                f"{name}: the frames up to here decode to {total} bytes, more than the "
+                f"{limits.max_set_bytes}-byte budget of a set"
+            )

@@ -37,8 +37,9 @@ def json_depth(data: bytes) -> int:
     if opens == 0:
         return 0
     codes = np.frombuffer(bare, np.uint8)
-    step = (np.isin(codes, (0x5B, 0x7B)).astype(np.int32)
-            - np.isin(codes, (0x5D, 0x7D)).astype(np.int32))
+    step = np.isin(codes, (0x5B, 0x7B)).astype(np.int32) - np.isin(codes, (0x5D, 0x7D)).astype(
+        np.int32
+    )
     return int(np.cumsum(step).max(initial=0))
 
 

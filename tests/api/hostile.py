@@ -21,15 +21,23 @@ def zero_png(width: int, height: int) -> bytes:
     row = b"\0" * (width + 1)  # filter byte + pixels
     idat = b"".join(comp.compress(row) for _ in range(height)) + comp.flush()
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    )
 
 
 def capture_json(n_frames: int = 16) -> bytes:
     schedule = PatternSchedule()
     assert schedule.n_frames == n_frames
-    return json.dumps({"format": "fringescope.capture/1", "pattern": schedule.to_dict(),
-                       "exposure_ms": 20.0, "led": "green",
-                       "frames": [f"frame_{i:02d}.png" for i in range(n_frames)]}).encode()
+    return json.dumps(
+        {
+            "format": "fringescope.capture/1",
+            "pattern": schedule.to_dict(),
+            "exposure_ms": 20.0,
+            "led": "green",
+            "frames": [f"frame_{i:02d}.png" for i in range(n_frames)],
+        }
+    ).encode()
 
 
 def png_bomb_zip(width: int = 8000, height: int = 8000, n_frames: int = 16) -> bytes:

@@ -49,7 +49,9 @@ def json_operations(spec: dict[str, Any]) -> list[tuple[str, str, list[str]]]:
         for method, op in item.items():
             content = op.get("requestBody", {}).get("content", {})
             if "application/json" in content:
-                out.append((method.upper(), path, _properties(spec, content["application/json"]["schema"])))
+                out.append(
+                    (method.upper(), path, _properties(spec, content["application/json"]["schema"]))
+                )
     return out
 
 
@@ -66,14 +68,18 @@ def parameter_cases(spec: dict[str, Any]) -> list[tuple[str, str, str, str]]:
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:
+def client(
+    tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path
+) -> Iterator[TestClient]:
     """The app on the simulator, its instrument started (no need to wait for a first result)."""
     settings = live_settings(tmp_path_factory.mktemp("hostile"), sim_calibration_file)
     with TestClient(create_app(settings)) as client:
         yield client
         inst = client.app.state.instrument  # type: ignore[attr-defined]
         assert inst.acquisition is not None and inst.acquisition.alive, "the instrument stopped"
-        assert inst.calibration_summary()["name"] == "sim", "the hostile input changed the calibration"
+        assert inst.calibration_summary()["name"] == "sim", (
+            "the hostile input changed the calibration"
+        )
 
 
 @pytest.fixture(scope="module")
@@ -97,22 +103,36 @@ def _one_line_4xx(r: Any, what: str) -> str:
 def test_the_document_has_json_operations(spec: dict[str, Any]) -> None:
     ops = {(m, p) for m, p, _ in json_operations(spec)}
     # the probe's list of routes that answered 500 to NaN: all must be covered here
-    for op in [("PUT", "/api/exposure"), ("PUT", "/api/led"), ("PUT", "/api/mode"), ("POST", "/api/measure"),
-               ("POST", "/api/analysis/plane"), ("POST", "/api/analysis/feature"),
-               ("PUT", "/api/measure/tool"), ("POST", "/api/exposure/auto"),
-               ("POST", "/api/calibration/session"), ("POST", "/api/calibration/session/solve"),
-               ("PUT", "/api/schedule"), ("POST", "/api/recording/start"), ("PUT", "/api/calibration/file")]:
+    for op in [
+        ("PUT", "/api/exposure"),
+        ("PUT", "/api/led"),
+        ("PUT", "/api/mode"),
+        ("POST", "/api/measure"),
+        ("POST", "/api/analysis/plane"),
+        ("POST", "/api/analysis/feature"),
+        ("PUT", "/api/measure/tool"),
+        ("POST", "/api/exposure/auto"),
+        ("POST", "/api/calibration/session"),
+        ("POST", "/api/calibration/session/solve"),
+        ("PUT", "/api/schedule"),
+        ("POST", "/api/recording/start"),
+        ("PUT", "/api/calibration/file"),
+    ]:
         assert op in ops, op
     assert all(props for m, p, props in json_operations(spec)), "an operation without properties"
 
 
-def test_non_finite_numbers_are_422_naming_the_field(client: TestClient, spec: dict[str, Any]) -> None:
+def test_non_finite_numbers_are_422_naming_the_field(
+    client: TestClient, spec: dict[str, Any]
+) -> None:
     seen = 0
     for method, path, props in json_operations(spec):
         for prop in props:
             for lit in NON_FINITE:
-                for body, where in ((f'{{"{prop}": {lit}}}', f"body.{prop}"),
-                                    (f'{{"{prop}": [1, [2, {lit}]]}}', f"body.{prop}[1][1]")):
+                for body, where in (
+                    (f'{{"{prop}": {lit}}}', f"body.{prop}"),
+                    (f'{{"{prop}": [1, [2, {lit}]]}}', f"body.{prop}[1][1]"),
+                ):
                     r = _send(client, method, path, body)
                     what = f"{method} {path} {body}"
                     assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
@@ -122,8 +142,9 @@ def test_non_finite_numbers_are_422_naming_the_field(client: TestClient, spec: d
     assert seen > 200
 
 
-def test_non_finite_query_and_path_parameters_are_4xx_naming_them(client: TestClient,
-                                                                  spec: dict[str, Any]) -> None:
+def test_non_finite_query_and_path_parameters_are_4xx_naming_them(
+    client: TestClient, spec: dict[str, Any]
+) -> None:
     cases = parameter_cases(spec)
     assert any(name == "min_mm" for *_, name in cases)
     for method, path, where, name in cases:
@@ -131,7 +152,11 @@ def test_non_finite_query_and_path_parameters_are_4xx_naming_them(client: TestCl
             if where == "query":
                 url = path.replace("{index}", "0").replace("{name}", "op") + f"?{name}={lit}"
             else:
-                url = path.replace("{" + name + "}", lit).replace("{index}", "0").replace("{name}", "op")
+                url = (
+                    path.replace("{" + name + "}", lit)
+                    .replace("{index}", "0")
+                    .replace("{name}", "op")
+                )
             r = client.request(method, url)
             what = f"{method} {url}"
             detail = _one_line_4xx(r, what)
@@ -142,9 +167,11 @@ def test_non_finite_query_and_path_parameters_are_4xx_naming_them(client: TestCl
 def test_deep_nesting_is_refused_before_parsing(client: TestClient, spec: dict[str, Any]) -> None:
     deep = 100_000
     for method, path, props in json_operations(spec):
-        for body in ("[" * deep + "]" * deep,
-                     f'{{"{props[0]}": ' + "[" * deep + "]" * deep + "}",
-                     '{"a": ' + "{\"a\": " * MAX_JSON_DEPTH + "1" + "}" * (MAX_JSON_DEPTH + 1)):
+        for body in (
+            "[" * deep + "]" * deep,
+            f'{{"{props[0]}": ' + "[" * deep + "]" * deep + "}",
+            '{"a": ' + '{"a": ' * MAX_JSON_DEPTH + "1" + "}" * (MAX_JSON_DEPTH + 1),
+        ):
             r = _send(client, method, path, body)
             detail = _one_line_4xx(r, f"{method} {path} nested")
             assert r.status_code in (413, 422), (method, path, detail)
@@ -177,6 +204,9 @@ def test_the_error_body_is_serialisable_whatever_the_input(client: TestClient) -
     assert body["detail"].startswith("body.exposure_ms: ")
     item = body["errors"][0]
     assert item["loc"] == ["body", "exposure_ms"] and len(item["input"]) < 100
-    r = client.put("/api/exposure", content=b'{"exposure_ms": "\xff\xfe"}',
-                   headers={"content-type": "application/json"})
+    r = client.put(
+        "/api/exposure",
+        content=b'{"exposure_ms": "\xff\xfe"}',
+        headers={"content-type": "application/json"},
+    )
     _one_line_4xx(r, "invalid UTF-8")

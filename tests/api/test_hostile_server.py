@@ -52,18 +52,37 @@ def _reset_peak(pid: int) -> None:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[tuple[str, int]]:
+def server(
+    tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path
+) -> Iterator[tuple[str, int]]:
     """(base URL, pid) of a served app with the simulator's calibration, acquisition stopped."""
     tmp = tmp_path_factory.mktemp("hostile-server")
     port = _free_port()
     config = tmp / "fringescope.toml"
     config.write_text("[fringescope]\nautostart = false\nviewer = false\n", encoding="utf-8")
-    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file),
-               NUMBA_THREADING_LAYER="workqueue")
+    env = dict(
+        os.environ,
+        FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file),
+        NUMBA_THREADING_LAYER="workqueue",
+    )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app", "serve", "--port", str(port), "--config", str(config),
-         "--data-dir", str(tmp / "data")],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "app",
+            "serve",
+            "--port",
+            str(port),
+            "--config",
+            str(config),
+            "--data-dir",
+            str(tmp / "data"),
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 120
@@ -93,11 +112,16 @@ def test_png_bomb_is_refused_from_its_headers(server: tuple[str, int], route: st
     before = _memory_kb(pid)["VmRSS"]
     _reset_peak(pid)
     t0 = time.perf_counter()
-    r = httpx.post(base + route, content=bomb, headers={"content-type": "application/zip"}, timeout=60)
+    r = httpx.post(
+        base + route, content=bomb, headers={"content-type": "application/zip"}, timeout=60
+    )
     elapsed_s = time.perf_counter() - t0
     growth_mb = (_memory_kb(pid)["VmHWM"] - before) / 1024
-    print(f"\n{route}: PNG bomb ({len(bomb) / MB:.2f} MB zip) -> {r.status_code} in {elapsed_s * 1000:.0f} ms, "
-          f"server peak RSS growth {growth_mb:.1f} MB: {r.json()['detail']}")
+    print(
+        f"\n{route}: PNG bomb ({len(bomb) / MB:.2f} MB zip) -> {r.status_code} "
+        f"in {elapsed_s * 1000:.0f} ms, "
+        f"server peak RSS growth {growth_mb:.1f} MB: {r.json()['detail']}"
+    )
     assert r.status_code == 422, r.text
     detail = r.json()["detail"]
     assert detail.startswith("frame_00.png: ") and "8000x8000" in detail, detail
@@ -107,10 +131,16 @@ def test_png_bomb_is_refused_from_its_headers(server: tuple[str, int], route: st
     assert growth_mb <= 100
 
 
-def test_ten_megabyte_json_is_refused_at_once_and_others_are_served(server: tuple[str, int]) -> None:
+def test_ten_megabyte_json_is_refused_at_once_and_others_are_served(
+    server: tuple[str, int],
+) -> None:
     base, _ = server
     item = b'{"kind": "length", "points": [[1.5, 2.5], [3.5, 4.5]]}, '
-    body = b'{"measurements": [' + item * (10 * MB // len(item)) + b'{"kind": "length", "points": []}]}'
+    body = (
+        b'{"measurements": ['
+        + item * (10 * MB // len(item))
+        + b'{"kind": "length", "points": []}]}'
+    )
     assert len(body) >= 10 * MB
     status_ms: list[float] = []
     stop = threading.Event()
@@ -128,14 +158,19 @@ def test_ten_megabyte_json_is_refused_at_once_and_others_are_served(server: tupl
         time.sleep(0.3)
         with httpx.Client(base_url=base, timeout=30) as c:
             t0 = time.perf_counter()
-            r = c.put("/api/measure/tool", content=body, headers={"content-type": "application/json"})
+            r = c.put(
+                "/api/measure/tool", content=body, headers={"content-type": "application/json"}
+            )
             elapsed_ms = (time.perf_counter() - t0) * 1000
         time.sleep(0.3)
     finally:
         stop.set()
         poller.join()
-    print(f"\n10 MB JSON to PUT /api/measure/tool -> {r.status_code} in {elapsed_ms:.0f} ms; concurrent "
-          f"/api/status: {len(status_ms)} answers, max {max(status_ms):.0f} ms")
+    print(
+        f"\n10 MB JSON to PUT /api/measure/tool -> {r.status_code} in {elapsed_ms:.0f} ms; "
+        "concurrent "
+        f"/api/status: {len(status_ms)} answers, max {max(status_ms):.0f} ms"
+    )
     assert r.status_code == 413 and "1048576-byte limit" in r.json()["detail"], r.text
     assert elapsed_ms <= 100
     assert len(status_ms) >= 3 and max(status_ms) < 1000
@@ -155,13 +190,20 @@ def test_a_streamed_body_is_refused_once_past_the_limit(server: tuple[str, int])
 
     t0 = time.perf_counter()
     try:
-        r = httpx.put(base + "/api/exposure", content=chunks(), timeout=30,
-                      headers={"content-type": "application/json"})
+        r = httpx.put(
+            base + "/api/exposure",
+            content=chunks(),
+            timeout=30,
+            headers={"content-type": "application/json"},
+        )
         code, detail = r.status_code, r.json()["detail"]
     except httpx.HTTPError as exc:  # the server may close the connection while we still send
         code, detail = 413, str(exc)
     elapsed_ms = (time.perf_counter() - t0) * 1000
-    print(f"\nchunked 10 MB to PUT /api/exposure -> {code} after {sent} bytes sent, {elapsed_ms:.0f} ms")
+    print(
+        f"\nchunked 10 MB to PUT /api/exposure -> {code} after {sent} bytes sent, "
+        f"{elapsed_ms:.0f} ms"
+    )
     assert code == 413, detail
     assert sent < 10 * MB  # refused before the whole body was sent
     assert httpx.get(base + "/api/status", timeout=10).json()["exposure_ms"] != 1
@@ -171,10 +213,15 @@ def test_multipart_file_names_of_300_characters_are_4xx(server: tuple[str, int])
     base, _ = server
     long = "f" * 300 + ".png"
     files = [("files", ("capture.json", capture_json(), "application/json"))]
-    files += [("files", (long if i == 3 else f"frame_{i:02d}.png", zero_png(8, 8), "image/png"))
-              for i in range(16)]
+    files += [
+        ("files", (long if i == 3 else f"frame_{i:02d}.png", zero_png(8, 8), "image/png"))
+        for i in range(16)
+    ]
     r = httpx.post(base + "/api/phase", files=files, timeout=30)
     assert r.status_code == 422 and "304 characters long" in r.json()["detail"], r.text
-    r = httpx.post(base + "/api/phase", files=[("files", ("x" * 300 + ".zip", b"PK", "application/zip"))],
-                   timeout=30)
+    r = httpx.post(
+        base + "/api/phase",
+        files=[("files", ("x" * 300 + ".zip", b"PK", "application/zip"))],
+        timeout=30,
+    )
     assert 400 <= r.status_code < 500 and "\n" not in r.json()["detail"], r.text

@@ -36,7 +36,9 @@ def planted(tmp_path: Path) -> Iterator[tuple[TestClient, Path, Path]]:
     rec = Recording(recordings_root(data), "op")
     for _ in range(2):
         frames = rng.integers(0, 255, size=(16, 12, 16), dtype=np.uint8)
-        rec.add_set(CaptureSet(frames=frames), depth_mm=rng.uniform(0, 30, (12, 16)).astype(np.float32))
+        rec.add_set(
+            CaptureSet(frames=frames), depth_mm=rng.uniform(0, 30, (12, 16)).astype(np.float32)
+        )
     rec.close()
     client = TestClient(create_app(Settings(data_dir=data, viewer=False, autostart=False)))
     yield client, recordings_root(data) / "op", outside
@@ -60,7 +62,8 @@ def test_a_link_to_a_file_in_a_set_is_not_zipped(planted: tuple[TestClient, Path
 
 
 def test_a_set_folder_that_is_a_link_is_not_listed_zipped_or_read(
-        planted: tuple[TestClient, Path, Path]) -> None:
+    planted: tuple[TestClient, Path, Path],
+) -> None:
     client, rec, outside = planted
     shutil.rmtree(rec / "set_0001")
     (outside / "depth.npy").write_bytes(SECRET)
@@ -93,13 +96,16 @@ def test_a_linked_depth_map_or_frame_is_not_read(planted: tuple[TestClient, Path
     assert client.get("/api/recordings/op/sets/1/depth").status_code == 200  # the untouched set
     (rec / "set_0001" / "frame_03.png").unlink()
     (rec / "set_0001" / "frame_03.png").symlink_to(outside / "passwd")
-    r = client.post("/api/measure", json={"kind": "length", "points": [[1, 1], [5, 5]],
-                                          "recording": "op", "index": 1})
+    r = client.post(
+        "/api/measure",
+        json={"kind": "length", "points": [[1, 1], [5, 5]], "recording": "op", "index": 1},
+    )
     assert r.status_code == 404 and "symbolic link" in r.json()["detail"], r.text
 
 
 def test_a_recording_that_is_a_link_is_not_listed_nor_served(
-        planted: tuple[TestClient, Path, Path]) -> None:
+    planted: tuple[TestClient, Path, Path],
+) -> None:
     client, rec, outside = planted
     (rec.parent / "alias").symlink_to(rec)  # another name for "op"
     (rec.parent / "escape").symlink_to(outside)

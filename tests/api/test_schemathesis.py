@@ -112,7 +112,8 @@ def test_every_semantic_rule_is_documented() -> None:
     for label in SEMANTIC_422:
         method, path = label.split(" ", 1)
         text, seen = json.dumps(SPEC["paths"][path][method.lower()]), set()
-        while refs := set(re.findall(r"#/components/schemas/(\w+)", text)) - seen:  # what it refers to
+        # with the component schemas it refers to
+        while refs := set(re.findall(r"#/components/schemas/(\w+)", text)) - seen:
             seen |= refs
             text += "".join(json.dumps(SPEC["components"]["schemas"][name]) for name in refs)
         assert "Rule (422 otherwise)" in text, label
@@ -122,7 +123,8 @@ def test_uploads_are_required_and_not_empty() -> None:
     for path in ("/api/reconstruct", "/api/phase", "/api/calibration/file"):
         op = SPEC["paths"][path]["post" if path != "/api/calibration/file" else "put"]
         assert op["requestBody"]["required"] is True, path
-    multipart = SPEC["paths"]["/api/reconstruct"]["post"]["requestBody"]["content"]["multipart/form-data"]
+    body = SPEC["paths"]["/api/reconstruct"]["post"]["requestBody"]
+    multipart = body["content"]["multipart/form-data"]
     assert multipart["schema"]["required"] == ["files"]
     assert multipart["schema"]["properties"]["files"]["minItems"] == 1
 
