@@ -20,6 +20,7 @@ import app as app_package
 from app import __version__
 from app.api import api_router
 from app.api.auth import router as auth_router  # issue 16
+from app.api.bodylimit import install_body_limits
 from app.api.errors import install_api_fallback, install_error_handlers
 from app.api.security import install_security  # issue 7
 from app.config import Settings
@@ -113,6 +114,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.igtl = igtl
     install_error_handlers(app)
     install_security(app, settings)  # issue 7: token, CORS, WebSocket Origin, upload limit
+    install_body_limits(app)  # per-route body size, JSON depth, finite numbers (innermost)
     app.state.recorder = recorder  # issue 7
 
     # (2) REST and streams

@@ -12,6 +12,7 @@ from fastapi.responses import Response
 from app.api.deps import binary, get_instrument
 from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
 from app.api.schemas import (
+    CALIBRATION_UPLOAD,
     ActivateIn,
     BoardIn,
     CalibrationSummary,
@@ -144,7 +145,7 @@ def download(inst: Instrument = Depends(get_instrument)) -> Response:
     "/file",
     response_model=CalibrationSummary,
     responses={**R413, **R422, **COMMON},
-    openapi_extra={"requestBody": {"content": {"application/json": {"schema": {"type": "object"}}}}},
+    openapi_extra=CALIBRATION_UPLOAD,
 )
 async def upload(request: Request, inst: Instrument = Depends(get_instrument),
                  force: Force = False) -> Any:

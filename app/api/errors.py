@@ -10,9 +10,12 @@ reason, its traceback logged.
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.routing import Match, Mount
 
@@ -36,12 +39,62 @@ def status_of(exc: DomainError) -> int:
     return 500
 
 
+MAX_ECHO_CHARS = 80  # an input echoed back in an error is cut to this (it may be huge)
+
+
+def _echo(value: Any, depth: int = 0) -> Any:
+    """``value`` as plain JSON: non-finite floats and bytes as text, long strings cut."""
+    if isinstance(value, bool) or value is None or isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, str):
+        return value if len(value) <= MAX_ECHO_CHARS else value[:MAX_ECHO_CHARS] + "…"
+    if isinstance(value, dict) and depth < 4:
+        return {_echo(str(k)): _echo(v, depth + 1) for k, v in list(value.items())[:16]}
+    if isinstance(value, list | tuple) and depth < 4:
+        return [_echo(v, depth + 1) for v in list(value)[:16]]
+    return _echo(repr(value)) if not isinstance(value, dict | list | tuple) else "…"
+
+
+def field_path(loc: Sequence[Any]) -> str:
+    """A pydantic ``loc`` as one name: ``("body", "points", 0, 1)`` → ``body.points[0][1]``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            text = str(part)
+            if len(text) > 40 or not text.isprintable():
+                text = repr(text[:40]) + f"…({len(text)} chars)" if len(text) > 40 else repr(text)
+            out += ("." if out else "") + text
+    return out or "request"
+
+
+def validation_detail(errors: Sequence[Any]) -> tuple[str, list[dict[str, Any]]]:
+    """(one line naming each refused field, pydantic's errors made serialisable)."""
+    items = []
+    for err in errors:
+        loc = [p if isinstance(p, int) else _echo(str(p)) for p in err.get("loc", ())]
+        items.append({"loc": loc,
+                      "msg": str(err.get("msg", "")), "type": str(err.get("type", "")),
+                      **({"input": _echo(err["input"])} if "input" in err else {})})
+    lines = [f"{field_path(err.get('loc', ()))}: {err.get('msg', 'invalid')}" for err in errors]
+    line = "; ".join(lines[:5]) + (f"; and {len(lines) - 5} more" if len(lines) > 5 else "")
+    return " ".join(line.split()) or "invalid request", items
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the one mapping of exceptions to HTTP answers on ``app``."""
 
     async def domain(_: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, DomainError)
         return JSONResponse({"detail": exc.detail}, status_code=status_of(exc))
+
+    async def invalid(_: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, RequestValidationError)
+        detail, items = validation_detail(exc.errors())
+        return JSONResponse({"detail": detail, "errors": items}, status_code=422)
 
     async def device(_: Request, exc: Exception) -> JSONResponse:
         return JSONResponse({"detail": str(exc) or type(exc).__name__}, status_code=503)
@@ -54,6 +107,7 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); see the server log"},
                             status_code=500)
 
+    app.add_exception_handler(RequestValidationError, invalid)
     app.add_exception_handler(DomainError, domain)
     app.add_exception_handler(DeviceError, device)
     app.add_exception_handler(InsufficientDisk, disk)
@@ -98,19 +152,22 @@ _VALIDATION_ITEM: dict[str, Any] = {"type": "object", "required": ["loc", "msg",
 Responses = dict[int | str, dict[str, Any]]
 
 
-def _err(description: str, detail: dict[str, Any] | None = None) -> dict[str, Any]:
-    schema = {"type": "object", "required": ["detail"], "properties": {"detail": detail or _DETAIL}}
+def _err(description: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    properties = {"detail": _DETAIL, **(extra or {})}
+    schema = {"type": "object", "required": ["detail"], "properties": properties}
     return {"description": description, "content": {"application/json": {"schema": schema}}}
 
 
 R400: Responses = {400: _err("malformed request body (e.g. a broken multipart form)")}
 R404: Responses = {404: _err("no such thing (reason in detail)")}
 R409: Responses = {409: _err("not possible in the current state (reason in detail)")}
-R413: Responses = {413: _err("upload larger than the configured limit")}
+R413: Responses = {413: _err("request body larger than the route's limit (upload limit, "
+                              "or kilobytes for a JSON body)")}
 R415: Responses = {415: _err("unsupported upload content type")}
-#: request validation (a list of pydantic errors) or a domain InvalidRequest (one line)
-R422: Responses = {422: _err("invalid request: parameters that fail validation (list) or a reason (string)",
-                  {"anyOf": [_DETAIL, {"type": "array", "items": _VALIDATION_ITEM}]})}
+#: request validation or a domain InvalidRequest: one line naming the field(s) and why; for
+#: request validation also pydantic's errors (loc, msg, type, the input cut short)
+R422: Responses = {422: _err("invalid request: one line naming each refused field and why",
+                             {"errors": {"type": "array", "items": _VALIDATION_ITEM}})}
 R503: Responses = {503: _err("device or live pipeline unavailable now (reason in detail)")}
 R507: Responses = {507: _err("not enough free disk space")}
 

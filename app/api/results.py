@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import binary, get_instrument, result_headers
 from app.api.errors import COMMON, R400, R409, R413, R415, R422
-from app.api.schemas import PhaseSummary, ReconstructSummary, ResultMeta
+from app.api.schemas import CAPTURE_UPLOAD, PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.outputs import encoding
 from app.service.instrument import Instrument
@@ -19,13 +19,6 @@ from app.service.phase import decode_capture
 
 router = APIRouter(prefix="/api", tags=["results"])
 
-
-#: the request body of a capture-set upload: its files as multipart, or one .zip
-CAPTURE_UPLOAD: dict[str, Any] = {"requestBody": {"content": {
-    "multipart/form-data": {"schema": {"type": "object", "properties": {
-        "files": {"type": "array", "items": {"type": "string", "format": "binary"}}}}},
-    "application/zip": {"schema": {"type": "string", "format": "binary"}},
-}}}
 
 @router.get("/result/latest", response_model=ResultMeta, responses={**R409, **COMMON})
 def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
@@ -40,8 +33,9 @@ def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
 )
 def depth_latest(
     format: Literal["npy", "png", "color", "tiff"] = "npy",
-    min_mm: float | None = Query(None, allow_inf_nan=False),
-    max_mm: float | None = Query(None, allow_inf_nan=False),
+    min_mm: float | None = Query(None, allow_inf_nan=False, description="colour range start, mm. "
+                                 "Rule (422 otherwise): min_mm < max_mm"),
+    max_mm: float | None = Query(None, allow_inf_nan=False, description="colour range end, mm"),
     field: Literal["depth", "sigma"] = Query("depth", description="depth, or sigma: its 1-σ noise, mm"),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:
@@ -123,7 +117,9 @@ async def reconstruct(
 ) -> Any:
     """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip)."""
     limit = int(inst.settings.max_upload_mb * 1024 * 1024)
-    capture = await capture_from_request(request, limit)
+    cal = inst.calibration  # frames of another size are refused before they are decoded
+    size = None if cal is None else cal.image_size
+    capture = await capture_from_request(request, limit, frame_size=size)
     res = await run_in_threadpool(inst.reconstruct_capture, capture)
     if format == "npy":
         return binary(encoding.npy_bytes(res.depth), "application/octet-stream", None, "depth.npy")

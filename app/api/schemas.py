@@ -6,7 +6,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, model_validator
 
+from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
+from app.core.calibration import FORMAT as CALIBRATION_FORMAT
+from app.core.calibration import FORMAT_V1 as CALIBRATION_FORMAT_V1
 from app.core.limits import EXPOSURE_RANGE_MS, Led
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT
 
@@ -233,7 +236,8 @@ class ActivateIn(Strict):
 
 class RoiIn(Strict):
     roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]], Field(min_length=4, max_length=4)] = Field(
-        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive; x0 < x1, y0 < y1, inside the image")
+        ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
+                         "x0 < x1 and y0 < y1, and the box inside the depth map")
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiIn:
@@ -323,11 +327,27 @@ class MeasureSpec(Strict):
         "length: 2 points; point_to_line: the point, then 2 on the line; depth: the point, then 3 spanning "
         "the plane (signed, + toward the scope); profile: a polyline of ≥ 2 points (heights against its chord, "
         "or against `reference`); area: a polygon of ≥ 3 points, on the surface (mm²)"))
-    points: list[Pixel] = Field(..., max_length=256, description="[[u, v], …] image pixels (column, row)")
+    points: list[Pixel] = Field(..., min_length=2, max_length=256, description=(
+        "[[u, v], …] image pixels (column, row). Rule (422 otherwise): as many as `kind` "
+        "needs — length 2, point_to_line 3, depth 4, profile ≥ 2, area ≥ 3 — not collinear "
+        "or coincident where a line or plane is spanned"))
     reference: list[Pixel] | None = Field(None, max_length=3, description="profile only: 3 pixels of a "
                                                                           "reference plane (default: the chord)")
     snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
                                                              "within this radius, px")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _too_few_points(cls, data: Any) -> Any:
+        """Fewer points than any kind takes (the schema's minItems): the reason names its count."""
+        points = data.get("points") if isinstance(data, dict) else None
+        kind = data.get("kind") if isinstance(data, dict) else None
+        if isinstance(points, list) and len(points) < 2 and isinstance(kind, str) \
+                and kind in MIN_POINTS:
+            exact = EXACT_POINTS.get(kind)
+            need = f"exactly {exact}" if exact is not None else f"at least {MIN_POINTS[kind]}"
+            raise ValueError(f"{kind}: needs {need} points, got {len(points)}")
+        return data
 
 
 class MeasureIn(MeasureSpec):
@@ -378,3 +398,42 @@ class MeasureToolIn(Strict):
 
 class MeasureToolOut(BaseModel):
     measurements: list[MeasureSpec]
+
+
+# -- request bodies FastAPI does not build from a model -----------------------------------------
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
+#: ``PUT /api/calibration/file``: the keys and shapes every calibration file has; the values
+#: themselves are checked by the server (physical sense, fit to this camera and pattern)
+CALIBRATION_FILE_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "description": "a calibration file as GET /api/calibration/file gives it",
+    "required": ["format", "image_size", "camera_matrix", "dist_coeffs", "reference_plane", "model",
+                 "pattern"],
+    "properties": {
+        "format": {"type": "string", "enum": [CALIBRATION_FORMAT, CALIBRATION_FORMAT_V1]},
+        "image_size": {"type": "array", "items": {"type": "integer", "minimum": 1},
+                       "minItems": 2, "maxItems": 2, "description": "[width, height], px"},
+        "camera_matrix": {"type": "array", "items": {**_NUMBERS, "minItems": 3, "maxItems": 3},
+                          "minItems": 3, "maxItems": 3},
+        "dist_coeffs": {**_NUMBERS, "minItems": 1, "maxItems": 14},
+        "reference_plane": {"type": "object", "required": ["normal", "offset_mm"], "properties": {
+            "normal": {**_NUMBERS, "minItems": 3, "maxItems": 3}, "offset_mm": {"type": "number"}}},
+        "model": {"type": "object"},
+        "pattern": {"type": "object", "required": ["frequencies", "steps", "width"]},
+    },
+}
+CALIBRATION_UPLOAD: dict[str, Any] = {"requestBody": {"required": True, "description": (
+    "Rule (422 otherwise): a whole calibration file whose values make physical sense and fit "
+    "this camera and pattern schedule"), "content": {
+    "application/json": {"schema": CALIBRATION_FILE_SCHEMA}}}}
+
+#: ``POST /api/reconstruct`` and ``/api/phase``: a capture set as its files, or one .zip
+CAPTURE_UPLOAD: dict[str, Any] = {"requestBody": {"required": True, "description": (
+    "Rule (422 otherwise): a whole capture set — capture.json and every frame it lists (PNG or "
+    "TIFF, the calibration's size; without one at most 4096 × 4096 pixels a frame and 256 MiB "
+    "decoded a set) — as multipart files or one .zip"), "content": {
+    "multipart/form-data": {"schema": {"type": "object", "required": ["files"], "properties": {
+        "files": {"type": "array", "minItems": 1, "maxItems": 200,
+                  "items": {"type": "string", "format": "binary"}}}}},
+    "application/zip": {"schema": {"type": "string", "format": "binary"}},
+}}}

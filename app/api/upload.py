@@ -1,8 +1,15 @@
-"""Uploaded capture sets: multipart (capture.json + frame PNGs) or one .zip, size-limited."""
+"""Uploaded capture sets: multipart (capture.json + frame PNGs) or one .zip, size-limited.
+
+Bounded before anything is decoded: the body by the upload limit, zip members by their
+declared sizes and ratio, file names by length, ``capture.json`` by size, depth and finite
+numbers, and the frames by their PNG/TIFF headers (size against the calibration's, pixels
+and decoded bytes against :class:`~app.capture.imageheader.FrameLimits`).
+"""
 
 from __future__ import annotations
 
 import io
+import json
 import struct
 import tempfile
 import zipfile
@@ -10,15 +17,19 @@ import zlib
 from pathlib import Path, PurePosixPath
 
 from fastapi import HTTPException, Request
+from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
-from app.capture.captureset import CaptureSet, read_capture_set
+from app.capture.captureset import MAX_META_BYTES, CaptureSet, read_capture_set
+from app.capture.imageheader import FrameLimits
 from app.core.errors import InvalidRequest
+from app.core.jsonlimits import loads_finite
 
 MAX_FILES = 200
 SUPPORTED_COMPRESSION = frozenset({zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED})
 MAX_RATIO = 100  # a larger expansion of a member is refused as a zip bomb ...
 RATIO_FLOOR_BYTES = 1 << 16  # ... once it unpacks to more than this (PNG frames barely compress)
+MAX_NAME_CHARS = 128  # a file name longer than this is refused (the disk allows 255 bytes)
 
 
 async def read_body(request: Request, limit_bytes: int) -> bytes:
@@ -39,8 +50,11 @@ async def read_body(request: Request, limit_bytes: int) -> bytes:
 
 def _safe_name(name: str) -> str:
     base = PurePosixPath(name.replace("\\", "/")).name
-    if not base or base in (".", ".."):
-        raise InvalidRequest(f"upload: invalid file name {name!r}")
+    if len(base) > MAX_NAME_CHARS or len(base.encode("utf-8", "surrogatepass")) > 255:
+        raise InvalidRequest(f"upload: file name {base[:40]!r}… is {len(base)} characters long, "
+                             f"at most {MAX_NAME_CHARS} allowed")
+    if not base or base in (".", "..") or "\0" in base:
+        raise InvalidRequest(f"upload: invalid file name {name[:40]!r}")
     return base
 
 
@@ -106,8 +120,32 @@ def _extract_zip(data: bytes, dest: Path, limit_bytes: int) -> Path:
     return dest
 
 
-async def capture_from_request(request: Request, limit_bytes: int) -> CaptureSet:
-    """Parse the upload into a :class:`CaptureSet`; ``InvalidRequest`` (422) names what is wrong."""
+def _read_set(dest: Path, limits: FrameLimits) -> CaptureSet:
+    """The unpacked set, ``capture.json`` checked for non-finite numbers, frames bounded."""
+    meta = dest / "capture.json"
+    if not meta.is_file():
+        raise InvalidRequest("upload: capture.json is missing")
+    try:
+        with open(meta, "rb") as fh:
+            loads_finite(fh.read(MAX_META_BYTES + 1)[:MAX_META_BYTES], "capture.json")
+    except ValueError as exc:
+        if not isinstance(exc, json.JSONDecodeError):  # not JSON: read_capture_set says so
+            raise InvalidRequest(str(exc)) from None
+    try:
+        return read_capture_set(dest, limits=limits)
+    except (ValueError, KeyError, TypeError) as exc:  # the uploaded files are the user's input
+        # Messages name the temporary folder; keep only the file name for the user.
+        raise InvalidRequest(str(exc).replace(str(dest) + "/", "")) from None
+
+
+async def capture_from_request(request: Request, limit_bytes: int, *,
+                               frame_size: tuple[int, int] | None = None) -> CaptureSet:
+    """Parse the upload into a :class:`CaptureSet`; ``InvalidRequest`` (422) names what is wrong.
+
+    ``frame_size`` (width, height): the size every frame must have (the calibration's),
+    checked on the image headers before any frame is decoded.
+    """
+    limits = FrameLimits(frame_size=frame_size)
     body = await read_body(request, limit_bytes)
     ctype = request.headers.get("content-type", "")
     with tempfile.TemporaryDirectory(prefix="fringescope-upload-") as tmp:
@@ -118,18 +156,12 @@ async def capture_from_request(request: Request, limit_bytes: int) -> CaptureSet
             if not files:
                 raise InvalidRequest("upload: no files in the form (send capture.json + frames, or a .zip)")
             if len(files) == 1 and (files[0].filename or "").lower().endswith(".zip"):
-                _extract_zip(await files[0].read(), dest, limit_bytes)
+                await run_in_threadpool(_extract_zip, await files[0].read(), dest, limit_bytes)
             else:
                 for f in files:
                     (dest / _safe_name(f.filename or "")).write_bytes(await f.read())
         elif ctype.startswith(("application/zip", "application/x-zip-compressed", "application/octet-stream")):
-            _extract_zip(body, dest, limit_bytes)
+            await run_in_threadpool(_extract_zip, body, dest, limit_bytes)
         else:
             raise HTTPException(415, "upload: send multipart/form-data or application/zip")
-        if not (dest / "capture.json").is_file():
-            raise InvalidRequest("upload: capture.json is missing")
-        try:
-            return read_capture_set(dest)
-        except (ValueError, KeyError, TypeError) as exc:  # the uploaded files are the user's input
-            # Messages name the temporary folder; keep only the file name for the user.
-            raise InvalidRequest(str(exc).replace(str(dest) + "/", "")) from None
+        return await run_in_threadpool(_read_set, dest, limits)

@@ -13,12 +13,16 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from app.atomic import atomic_directory, read_json
+from app.atomic import atomic_directory
+from app.capture.imageheader import FrameLimits, check_frame_headers, read_image_header
 from app.core.encoding import png_bytes
+from app.core.jsonlimits import check_json_depth
 from app.core.limits import CAPTURE_BIT_DEPTHS, CHANNELS, check_led
 from app.core.schedule import PatternSchedule
 
 FORMAT = "fringescope.capture/1"
+#: the largest capture.json read, bytes (a real one is well under 10 kB)
+MAX_META_BYTES = 1024 * 1024
 _BGR_INDEX = {"blue": 0, "green": 1, "red": 2}
 
 
@@ -100,6 +104,24 @@ def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
         raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
 
 
+def _read_meta(meta_path: Path) -> Any:
+    """``capture.json`` parsed, its size and depth checked first; ``ValueError`` names it."""
+    try:
+        with open(meta_path, "rb") as fh:
+            raw = fh.read(MAX_META_BYTES + 1)
+    except FileNotFoundError:
+        raise ValueError(f"{meta_path}: capture-set metadata not found") from None
+    except OSError as exc:
+        raise ValueError(f"{meta_path}: unreadable capture-set metadata ({exc})") from None
+    if len(raw) > MAX_META_BYTES:
+        raise ValueError(f"{meta_path}: larger than {MAX_META_BYTES} bytes")
+    check_json_depth(raw, str(meta_path))
+    try:
+        return json.loads(raw)
+    except ValueError as exc:  # not JSON, not UTF-8, an integer of more than 4300 digits
+        raise ValueError(f"{meta_path}: unreadable capture-set metadata ({exc})") from None
+
+
 def frame_names(n: int) -> list[str]:
     return [f"frame_{i:02d}.png" for i in range(n)]
 
@@ -131,13 +153,20 @@ def write_capture_set(
     return Path(path)
 
 
-def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
-    """Read a capture-set folder; ``ValueError`` naming the offending file on any problem."""
+def read_capture_set(
+    path: str | os.PathLike[str], *, limits: FrameLimits | None = None
+) -> CaptureSet:
+    """Read a capture-set folder; ``ValueError`` naming the offending file on any problem.
+
+    ``capture.json`` is refused when larger than :data:`MAX_META_BYTES` or nested deeper
+    than a capture set needs (checked before parsing). With ``limits`` (uploads) the frames must be
+    PNG or TIFF and their headers are checked against ``limits`` before any is decoded.
+    """
     folder = Path(path)
     meta_path = folder / "capture.json"
     if not folder.is_dir():
         raise ValueError(f"{folder}: not a capture-set folder")
-    meta = read_json(meta_path, "capture-set metadata")
+    meta = _read_meta(meta_path)
     if not isinstance(meta, dict):
         raise ValueError(f"{meta_path}: expected a JSON object")
     if meta.get("format") != FORMAT:
@@ -161,11 +190,18 @@ def read_capture_set(path: str | os.PathLike[str]) -> CaptureSet:
         raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
     if len(names) != schedule.n_frames:
         raise ValueError(f"{meta_path}: schedule needs {schedule.n_frames} frames, lists {len(names)}")
+    for name in names:
+        if Path(name).name != name or len(name) > 255:
+            raise ValueError(f"{meta_path}: frame name {name[:40]!r} must be a plain file name "
+                             "(at most 255 characters)")
+    if limits is not None:
+        try:
+            check_frame_headers([read_image_header(folder / n) for n in names], names, limits)
+        except ValueError as exc:
+            raise ValueError(f"{folder}/{exc}") from None
     frames: list[npt.NDArray[Any]] = []
     for name in names:
         fpath = folder / name
-        if Path(name).name != name:
-            raise ValueError(f"{meta_path}: frame name {name!r} must be a plain file name")
         img = cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ValueError(f"{fpath}: missing or not a readable image")

@@ -13,16 +13,19 @@ listed in ``session.json``, which is itself replaced atomically. A crash mid-wri
 leaves the earlier sets and the previous ``session.json`` intact; the half-written
 set stays a hidden ``.set_XXXX.*.partial`` folder that no reader lists (and that
 :func:`remove_stale_partials` deletes). Names are validated so nothing escapes the
-data folder.
+data folder, and reads never follow a symbolic link: a link planted in a recording (to
+``/etc/passwd``, to ``/etc``, to another recording) is neither listed, nor zipped, nor read.
 """
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
 import re
 import shutil
+import stat
 import threading
 import time
 import zipfile
@@ -43,6 +46,7 @@ SESSION_FILE = "session.json"
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 _SET_PATTERN = re.compile(r"^set_\d{4,}$")
 _FILE_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+MAX_SESSION_BYTES = 64 * 1024 * 1024  # session.json grows by ~1 kB a set
 
 
 def validate_name(name: Any, what: str = "name") -> str:
@@ -61,12 +65,68 @@ def validate_name(name: Any, what: str = "name") -> str:
 
 
 def safe_child(root: str | os.PathLike[str], name: str, what: str = "name") -> Path:
-    """``root / name`` after :func:`validate_name`, checked to resolve inside ``root``."""
+    """``root / name`` after :func:`validate_name`, never a symbolic link, inside ``root``."""
     base = Path(root).resolve()
-    path = (base / validate_name(name, what)).resolve()
-    if path.parent != base:  # a symlink planted in the data folder must not lead out
+    path = base / validate_name(name, what)
+    if path.is_symlink():  # planted in the data folder: it must not lead out, nor elsewhere in
+        raise ValueError(f"{what}: {name!r} is a symbolic link (it may lead outside {base})")
+    if path.resolve().parent != base:
         raise ValueError(f"{what}: {name!r} resolves outside {base}")
     return path
+
+
+def _real_dir(path: Path) -> bool:
+    """A folder itself, not a symbolic link to one."""
+    return path.is_dir() and not path.is_symlink()
+
+
+def _real_file(path: Path) -> bool:
+    """A regular file itself, not a symbolic link to one."""
+    return path.is_file() and not path.is_symlink()
+
+
+def open_regular(path: str | os.PathLike[str]) -> io.BufferedReader:
+    """Open a regular file for reading without following a symbolic link.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is a symbolic link or not a regular file.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ValueError(f"{Path(path).name}: a symbolic link, not read") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO or device would block or never end
+        os.close(fd)
+        raise ValueError(f"{Path(path).name}: not a regular file")
+    return os.fdopen(fd, "rb")
+
+
+def check_no_links(folder: Path) -> None:
+    """``ValueError`` if ``folder`` is, or directly holds, a symbolic link."""
+    if folder.is_symlink():
+        raise ValueError(f"{folder.name}: a symbolic link, not read")
+    for entry in os.scandir(folder):
+        if entry.is_symlink():
+            raise ValueError(f"{folder.name}/{entry.name}: a symbolic link, not read")
+
+
+def read_set_file(root: str | os.PathLike[str], name: str, folder: str, file: str) -> bytes:
+    """The bytes of ``file`` in set ``folder`` of recording ``name``, no link followed.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a bad name, or a symbolic link on the way.
+    """
+    if not _SET_PATTERN.fullmatch(folder) or not _FILE_PATTERN.fullmatch(file):
+        raise ValueError(f"set file: {folder!r}/{file!r} is not allowed")
+    set_dir = safe_child(root, name, "recording name") / folder
+    if set_dir.is_symlink():
+        raise ValueError(f"{folder}: a symbolic link, not read")
+    with open_regular(set_dir / file) as fh:
+        return fh.read()
 
 
 def recordings_root(data_dir: str | os.PathLike[str]) -> Path:
@@ -217,17 +277,18 @@ def read_session(root: str | os.PathLike[str], name: str) -> dict[str, Any]:
     """
     path = safe_child(root, name, "recording name")
     try:
-        session = json.loads((path / SESSION_FILE).read_text(encoding="utf-8"))
+        with open_regular(path / SESSION_FILE) as fh:
+            session = json.loads(fh.read(MAX_SESSION_BYTES).decode("utf-8"))
     except FileNotFoundError:
         raise FileNotFoundError(f"recording {name!r} not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # incl. a link, bad UTF-8, not JSON
         raise ValueError(f"recording {name!r}: unreadable {SESSION_FILE} ({exc})") from None
     if not isinstance(session, dict) or session.get("format") != FORMAT:
         raise ValueError(f"recording {name!r}: {SESSION_FILE} is not {FORMAT}")
     sets = [
         s for s in session.get("sets", [])
         if isinstance(s, dict) and _SET_PATTERN.fullmatch(str(s.get("folder", "")))
-        and (path / s["folder"]).is_dir()
+        and _real_dir(path / s["folder"])
     ]
     session["sets"] = sets
     session["n_sets"] = len(sets)
@@ -242,7 +303,7 @@ def list_recordings(root: str | os.PathLike[str]) -> list[dict[str, Any]]:
         return []
     out = []
     for child in sorted(base.iterdir()):
-        if not (child.is_dir() and NAME_PATTERN.fullmatch(child.name)):
+        if not (_real_dir(child) and NAME_PATTERN.fullmatch(child.name)):
             continue
         try:
             s = read_session(base, child.name)
@@ -255,7 +316,7 @@ def list_recordings(root: str | os.PathLike[str]) -> list[dict[str, Any]]:
 def delete_recording(root: str | os.PathLike[str], name: str) -> None:
     """Remove recording ``name``; ``FileNotFoundError`` if it does not exist."""
     path = safe_child(root, name, "recording name")
-    if not (path / SESSION_FILE).is_file():
+    if not _real_file(path / SESSION_FILE):
         raise FileNotFoundError(f"recording {name!r} not found")
     # rename first so a crash mid-delete never leaves a half recording that still lists
     trash = path.with_name(f".{path.name}.deleted")
@@ -286,8 +347,10 @@ def _session_files(path: Path, sets: list[dict[str, Any]]) -> Iterator[Path]:
     yield path / SESSION_FILE
     for s in sets:
         folder = path / s["folder"]
+        if not _real_dir(folder):
+            continue
         for f in sorted(folder.iterdir()):
-            if f.is_file() and _FILE_PATTERN.fullmatch(f.name):
+            if _real_file(f) and _FILE_PATTERN.fullmatch(f.name):
                 yield f
 
 
@@ -334,10 +397,10 @@ def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20
         sink = _Sink()
         with zipfile.ZipFile(sink, "w", allowZip64=True) as zf:  # type: ignore[arg-type]
             for f in files:
-                try:
-                    fh = open(f, "rb")  # noqa: SIM115 - closed below, interleaved with yields
-                except FileNotFoundError:
-                    continue  # deleted while streaming: skip rather than break the archive
+                try:  # closed below, interleaved with yields; a link swapped in is not followed
+                    fh = open_regular(f)
+                except (FileNotFoundError, ValueError):
+                    continue  # deleted (or replaced by a link) while streaming: skip it
                 with fh:
                     st = os.fstat(fh.fileno())
                     info = zipfile.ZipInfo(f"{name}/{f.relative_to(path).as_posix()}",

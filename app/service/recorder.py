@@ -13,6 +13,7 @@ and is reported (``last_error``); sets the writer could not keep up with are cou
 
 from __future__ import annotations
 
+import io
 import logging
 import shutil
 import threading
@@ -204,10 +205,13 @@ class Recorder:
         folder = f"set_{index:04d}"
         if not any(s["folder"] == folder for s in session["sets"]):
             raise NotFound(f"recording {name!r} has no set {index}")
-        path = rec_io.safe_child(self.root, name) / folder / "depth.npy"
-        if not path.is_file():
-            raise NotFound(f"set {index} of {name!r} was recorded without a depth map")
-        return np.asarray(np.load(path, allow_pickle=False))
+        try:  # never through a symbolic link planted in the recording
+            data = rec_io.read_set_file(self.root, name, folder, "depth.npy")
+        except FileNotFoundError:
+            raise NotFound(f"set {index} of {name!r} was recorded without a depth map") from None
+        except ValueError as exc:
+            raise NotFound(f"set {index} of {name!r} cannot be read: {exc}") from None
+        return np.asarray(np.load(io.BytesIO(data), allow_pickle=False))
 
     def set_capture(self, name: str, index: int) -> CaptureSet:
         """The raw capture set (frames + metadata) of set ``index`` of recording ``name``."""
@@ -218,7 +222,9 @@ class Recorder:
         if not any(s["folder"] == folder for s in session["sets"]):
             raise NotFound(f"recording {name!r} has no set {index}")
         try:
-            return read_capture_set(rec_io.safe_child(self.root, name) / folder)
+            set_dir = rec_io.safe_child(self.root, name) / folder
+            rec_io.check_no_links(set_dir)  # never read through a symbolic link
+            return read_capture_set(set_dir)
         except ValueError as exc:
             raise NotFound(f"set {index} of {name!r} cannot be read: {exc}") from None
 

@@ -191,3 +191,56 @@ def test_every_route_documents_what_it_can_answer(tmp_path: Path) -> None:
             if op.get("parameters") or op.get("requestBody"):
                 assert "422" in codes, (method, path, codes)
                 assert "detail" in op["responses"]["422"]["content"]["application/json"]["schema"]["properties"]
+
+
+# -- hostile names, nesting and numbers in uploads ---------------------------------------------
+def test_a_zip_member_name_of_300_characters_is_422(client: TestClient) -> None:
+    members = {"set/capture.json": CAPTURE, "set/" + "f" * 300 + ".png": b"x"}
+    code, detail = _post_zip(client, _zip(members))
+    assert code == 422 and "304 characters long" in detail and "\n" not in detail, detail
+
+
+def test_a_multipart_file_name_of_300_characters_is_422(client: TestClient) -> None:
+    files = [("files", ("capture.json", CAPTURE, "application/json")),
+             ("files", ("g" * 300 + ".png", b"x", "image/png"))]
+    r = client.post("/api/phase", files=files)
+    assert r.status_code == 422 and "304 characters long" in r.json()["detail"], r.text
+
+
+def test_a_capture_json_nested_100000_deep_is_422(client: TestClient) -> None:
+    deep = b'{"format": "fringescope.capture/1", "x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    for body in (deep, b"[" * 100_000):
+        code, detail = _post_zip(client, _zip({"capture.json": body}, zipfile.ZIP_STORED))
+        assert code == 422 and detail.startswith("capture.json: JSON nested 100"), detail
+
+
+def test_non_finite_numbers_in_capture_json_are_422_naming_the_key(client: TestClient) -> None:
+    meta = CAPTURE.replace(b'"exposure_ms": 20.0', b'"exposure_ms": NaN')
+    code, detail = _post_zip(client, _zip({"capture.json": meta}))
+    assert code == 422, detail
+    assert detail.startswith("capture.json.exposure_ms: NaN is not a finite"), detail
+
+
+def test_a_frame_that_is_not_png_or_tiff_is_refused_before_decoding(client: TestClient) -> None:
+    import cv2
+    import numpy as np
+
+    from tests.api.hostile import capture_json
+
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
+    frames = {f"frame_{i:02d}.png": jpeg.tobytes() for i in range(16)}
+    members = {"capture.json": capture_json(), **frames}
+    code, detail = _post_zip(client, _zip(members))
+    assert code == 422 and detail == "frame_00.png: not a PNG or TIFF image", detail
+
+
+def test_a_calibration_file_nested_100000_deep_is_422_and_unchanged(client: TestClient) -> None:
+    deep = (b'{"format": "fringescope.calibration/2", "model": ' + b'{"a": ' * 100_000 + b"1"
+            + b"}" * 100_001)
+    as_json = {"content-type": "application/json"}
+    r = client.put("/api/calibration/file", content=deep, headers=as_json)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith("body: JSON nested 100001 levels"), r.text
+    as_text = {"content-type": "text/plain"}
+    r = client.put("/api/calibration/file", content=b'{"format": NaN}', headers=as_text)
+    assert r.status_code == 422 and r.json()["detail"].startswith("body.format: NaN"), r.text

@@ -15,6 +15,8 @@ Auto-exposure and pose capture grab real fringe sets, so they get fewer examples
 
 from __future__ import annotations
 
+import json
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -40,8 +42,9 @@ SLOW = r"^/api/(exposure/auto|calibration/session/poses)$"
 HYPOTHESIS = {"deadline": None, "derandomize": True, "suppress_health_check": list(HealthCheck),
               "database": None}
 
-#: operations whose inputs have constraints OpenAPI cannot state (between fields, or against the
-#: live image / an uploaded file's content): a schema-valid request may still be refused, with a
+#: operations whose inputs have constraints JSON Schema cannot state (between fields, or against
+#: the live image / an uploaded file's content): each is a documented rule in the OpenAPI document
+#: ("Rule (422 otherwise): …", checked below), a schema-valid request may still be refused with a
 #: 422 naming the reason, so schemathesis' "valid data accepted" check is not run on them alone.
 SEMANTIC_422 = {
     "POST /api/measure": "clicks on valid pixels of the live image, enough of them, not degenerate",
@@ -102,6 +105,28 @@ def live_app(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Pat
         PROXY.app = None
     inst = app.state.instrument
     assert not any(t.is_alive() for t in inst.threads()), "instrument threads still running"
+
+
+def test_every_semantic_rule_is_documented() -> None:
+    """The operations exempt from "valid data accepted" state their rule in the document."""
+    for label in SEMANTIC_422:
+        method, path = label.split(" ", 1)
+        text, seen = json.dumps(SPEC["paths"][path][method.lower()]), set()
+        # with the component schemas it refers to
+        while refs := set(re.findall(r"#/components/schemas/(\w+)", text)) - seen:
+            seen |= refs
+            text += "".join(json.dumps(SPEC["components"]["schemas"][name]) for name in refs)
+        assert "Rule (422 otherwise)" in text, label
+
+
+def test_uploads_are_required_and_not_empty() -> None:
+    for path in ("/api/reconstruct", "/api/phase", "/api/calibration/file"):
+        op = SPEC["paths"][path]["post" if path != "/api/calibration/file" else "put"]
+        assert op["requestBody"]["required"] is True, path
+    body = SPEC["paths"]["/api/reconstruct"]["post"]["requestBody"]
+    multipart = body["content"]["multipart/form-data"]
+    assert multipart["schema"]["required"] == ["files"]
+    assert multipart["schema"]["properties"]["files"]["minItems"] == 1
 
 
 @schema.exclude(path_regex=SLOW).parametrize()
