@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 import uuid
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
@@ -142,6 +143,19 @@ def write_bytes(url: str, data: bytes) -> None:
         atomic_write_bytes(path, data)
     else:
         fs.pipe_file(path, data)
+
+
+def remove_stale_temporaries(url: str) -> int:
+    """Delete the hidden temporaries (``.NAME.*.tmp``) a killed writer left in a local output
+    folder; return how many. A remote folder has none (each object is put whole)."""
+    fs, path = _fs(url)
+    if not _is_local(fs) or not os.path.isdir(path):
+        return 0
+    stale = [e for e in os.scandir(path) if e.name.startswith(".") and e.name.endswith(".tmp")]
+    for e in stale:
+        with contextlib.suppress(OSError):
+            os.unlink(e.path)
+    return len(stale)
 
 
 def read_text(url: str) -> str | None:
@@ -297,6 +311,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
         )
+        remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         for name, data in output_files(recon, options, task.files).items():
             write_bytes(_join(task.out_url, name), data)
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3)
@@ -437,8 +452,11 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
 
 def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     """Write ``rows`` (sorted by index) as ``OUT/<recording>/sets.parquet``, whole; return its URL."""
-    import fastparquet
     import pandas as pd
+
+    with warnings.catch_warnings():  # fastparquet probes a pandas option deprecated in pandas 3
+        warnings.simplefilter("ignore")
+        import fastparquet
 
     ordered = sorted(rows, key=lambda r: int(r["index"]))
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
@@ -446,7 +464,8 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms", "decode_ms",
               "task_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
-    frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce")
+    # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
+    frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce").dt.tz_convert(None)
     for c in ("folder", "status", "error"):
         frame[c] = frame[c].fillna("").astype(str)
     url = _join(out_url, TABLE_FILE)
