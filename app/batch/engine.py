@@ -31,7 +31,7 @@ import tempfile
 import time
 import uuid
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -57,7 +57,7 @@ CAPTURE_FILE = "capture.json"
 DEFAULT_FILES = ("depth.npy", "sigma.npy", "reason.png")
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
-           "motion_share", "recon_ms", "decode_ms", "task_ms", "status", "error")
+           "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "status", "error")
 MOTION_CODE = 8  # app.core.reasons.Reason.MOTION
 
 
@@ -274,7 +274,7 @@ def _empty_row(task: SetTask) -> dict[str, Any]:
     nan = math.nan
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
-            "decode_ms": nan, "task_ms": nan, "status": "failed", "error": ""}
+            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -287,7 +287,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
     from app.batch.setjob import output_files, reconstruct_captures
     from app.service.schedules import calibration_for_schedule
 
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     row = _empty_row(task)
     try:
         captures = [read_set(u) for u in task.urls]
@@ -314,7 +314,8 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         for name, data in output_files(recon, options, task.files).items():
             write_bytes(_join(task.out_url, name), data)
-        row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3)
+        row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
+                   cpu_ms=(time.process_time() - cpu0) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
                 "files": list(task.files), "options": options.to_dict(), "row": row}
         write_bytes(_join(task.out_url, META_FILE), (json.dumps(meta, indent=2) + "\n").encode())
@@ -462,7 +463,7 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms", "decode_ms",
-              "task_ms"):
+              "task_ms", "cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
     frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce").dt.tz_convert(None)
@@ -475,6 +476,45 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
         with open(local, "rb") as fh:
             write_bytes(url, fh.read())
     return url
+
+
+def run_tasks(
+    client: Client, tasks: Sequence[SetTask], calibration: Calibration, options: ReconOptions, *,
+    on_submitted: Callable[[Client], None] | None = None,
+) -> Generator[tuple[SetTask, dict[str, Any]], None, None]:
+    """Run ``tasks`` on the cluster; yield (task, row) as each finishes.
+
+    The calibration goes to every worker once; each task reads its own frames. A task
+    whose every attempt died with its worker is a failed row. Leaving the loop early
+    (Ctrl-C) cancels the tasks not yet finished.
+    """
+    from distributed import as_completed
+
+    cal_future = client.scatter(calibration, broadcast=True, hash=False)
+    run_id = uuid.uuid4().hex[:8]
+    futures = {
+        client.submit(run_set, t, cal_future, options, pure=False,
+                      key=f"reprocess-{run_id}-{t.recording}-{t.folders[0]}"): t
+        for t in tasks
+    }
+    if on_submitted is not None:
+        on_submitted(client)
+    finished = False
+    try:
+        for fut in as_completed(futures, loop=client.loop):
+            task = futures[fut]
+            try:
+                row = fut.result()
+            except Exception as exc:  # noqa: BLE001 - e.g. the task killed every worker it ran on
+                row = _empty_row(task)
+                row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+            fut.release()
+            yield task, row
+        finished = True
+    finally:
+        if not finished:
+            client.cancel(list(futures))
+        cal_future.release()
 
 
 def reprocess(
@@ -503,8 +543,6 @@ def reprocess(
         Ctrl-C the pending tasks are cancelled and the tables of the sets finished so far
         are written before ``KeyboardInterrupt`` propagates.
     """
-    from distributed import as_completed
-
     t0 = time.perf_counter()
     plans = plan(recordings, calibration, out_url, options, files=files, bracket=bracket)
     rows: dict[str, list[dict[str, Any]]] = {p.name: list(p.reused) for p in plans}
@@ -512,31 +550,16 @@ def reprocess(
     done = failed = 0
     if todo:
         with connect(scheduler, workers, timeout_s=timeout_s) as client:
-            cal_future = client.scatter(calibration, broadcast=True, hash=False)
-            run_id = uuid.uuid4().hex[:8]
-            futures = {
-                client.submit(run_set, t, cal_future, options, pure=False,
-                              key=f"reprocess-{run_id}-{t.recording}-{t.folders[0]}"): t
-                for t in todo
-            }
-            if on_submitted is not None:
-                on_submitted(client)
-            bar = Progress(len(futures), progress)
+            bar = Progress(len(todo), progress)
             try:
-                for fut in as_completed(futures, loop=client.loop):
-                    task = futures[fut]
-                    try:
-                        row = fut.result()
-                    except Exception as exc:  # noqa: BLE001 - e.g. the task killed every worker it ran on
-                        row = _empty_row(task)
-                        row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
-                    rows[task.recording].append(row)
-                    done += row["status"] == "done"
-                    failed += row["status"] == "failed"
-                    bar.step(row["status"] == "failed")
-                    fut.release()
+                with contextlib.closing(run_tasks(client, todo, calibration, options,
+                                                  on_submitted=on_submitted)) as results:
+                    for task, row in results:
+                        rows[task.recording].append(row)
+                        done += row["status"] == "done"
+                        failed += row["status"] == "failed"
+                        bar.step(row["status"] == "failed")
             except KeyboardInterrupt:
-                client.cancel(list(futures))
                 _write_tables(plans, rows)
                 raise
     _write_tables(plans, rows)
