@@ -288,3 +288,47 @@ def test_remote_storage_through_fsspec(small, tmp_path):
     assert json.loads(fs.cat_file("/out/rec/set_0002/reprocess.json"))["digest"] == task.digest
     fs.rm("/rec", recursive=True)
     fs.rm("/out", recursive=True)
+
+
+@pytest.mark.slow
+def test_ctrl_c_leaves_whole_files_and_the_next_run_finishes(tmp_path):
+    """SIGINT to the command's process group (a terminal's Ctrl-C) mid-run: exit 130, the table
+    of the sets finished so far, no visible file half written; the next run reuses those sets
+    and does the rest, every set equal to ``reconstruct``'s."""
+    rig = Rig(width=640, height=480, focal_px=800.0)
+    rec = _record(tmp_path / "recordings", "rec_int", rig, 24)
+    cal = tmp_path / "calibration.json"
+    save_calibration(rig.calibration(), cal)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "app", "reprocess", str(rec), "-c", str(cal), "-o", str(out), "--workers", "2",
+           "--quiet"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(), start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while not list(out.glob(f"{rec.name}/set_*/reprocess.json")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err.decode()[-2000:]
+    table = _table(out, rec.name)
+    assert len(table) < 24 and set(table["status"]) <= {"done"}  # the results the client had received
+    # a worker finishes the set in its hands; such a set is whole, just not in the table
+    finished = {p.parent.name for p in out.glob(f"{rec.name}/set_*/reprocess.json")}
+    assert set(table["folder"]) <= finished and len(finished) < 24
+    for p in out.rglob("*"):  # whatever is visible is whole: the bytes reconstruct writes
+        if p.is_file() and not p.name.startswith(".") and p.suffix in (".npy", ".png"):
+            ref = tmp_path / "ref" / p.parent.name
+            if not ref.exists():
+                _reconstruct([rec / p.parent.name], cal, ref)
+            assert p.read_bytes() == (ref / p.name).read_bytes(), p
+    rc = main(["reprocess", str(rec), "-c", str(cal), "-o", str(out), "--workers", "2", "--quiet"])
+    assert rc == 0
+    table2 = _table(out, rec.name)
+    assert len(table2) == 24 and set(table2[table2["status"] == "reused"]["folder"]) == finished
+    for s in sorted(p.name for p in rec.glob("set_*")):
+        ref = tmp_path / "ref" / s
+        if not ref.exists():
+            _reconstruct([rec / s], cal, ref)
+        _same_files(out / rec.name / s, ref)
+    assert not [p for p in out.rglob(".*") if p.is_file()], "a temporary was left behind"
