@@ -158,6 +158,13 @@ def remove_stale_temporaries(url: str) -> int:
     return len(stale)
 
 
+def remove_file(url: str) -> None:
+    """Delete the file at ``url`` if there is one."""
+    fs, path = _fs(url)
+    with contextlib.suppress(FileNotFoundError):
+        fs.rm_file(path)
+
+
 def read_text(url: str) -> str | None:
     """The UTF-8 text at ``url``; None if there is no such file."""
     fs, path = _fs(url)
@@ -312,6 +319,8 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
             decode_ms=(t_read - t0) * 1e3,
         )
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
+        # the old digest goes first: a run stopped among the writes must not look finished
+        remove_file(_join(task.out_url, META_FILE))
         for name, data in output_files(recon, options, task.files).items():
             write_bytes(_join(task.out_url, name), data)
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
@@ -387,7 +396,7 @@ class Progress:
         self._last_draw = 0.0
         self._last_decile = -1
 
-    def step(self, failed: bool = False) -> None:
+    def step(self) -> None:
         self.done += 1
         if self.stream is None:
             return
@@ -558,7 +567,7 @@ def reprocess(
                         rows[task.recording].append(row)
                         done += row["status"] == "done"
                         failed += row["status"] == "failed"
-                        bar.step(row["status"] == "failed")
+                        bar.step()
             except KeyboardInterrupt:
                 _write_tables(plans, rows)
                 raise

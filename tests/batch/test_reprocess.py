@@ -332,3 +332,29 @@ def test_ctrl_c_leaves_whole_files_and_the_next_run_finishes(tmp_path):
             _reconstruct([rec / s], cal, ref)
         _same_files(out / rec.name / s, ref)
     assert not [p for p in out.rglob(".*") if p.is_file()], "a temporary was left behind"
+
+
+def test_a_rerun_stopped_among_the_writes_is_not_taken_as_finished(small, tmp_path):
+    """Redoing a set with other options drops its digest before the first write: a run that
+    stops among the writes (here a folder stands where sigma.npy goes) leaves a set that the
+    next run does again, for either options, never one with mixed files marked done."""
+    from app.batch.engine import plan, run_set
+    from app.batch.setjob import ReconOptions
+
+    rec, cal_path = small
+    calibration = load_calibration(cal_path)
+    out = tmp_path / "out"
+    first, other = ReconOptions(), ReconOptions(min_modulation=200.0)
+    task = plan([str(rec)], calibration, str(out), first)[0].todo[0]
+    assert run_set(task, calibration, first)["status"] == "done"
+    again = plan([str(rec)], calibration, str(out), first)[0]
+    assert [r["folder"] for r in again.reused] == [task.folders[0]]
+    folder = out / rec.name / task.folders[0]
+    (folder / "sigma.npy").unlink()
+    (folder / "sigma.npy").mkdir()
+    row = run_set(plan([str(rec)], calibration, str(out), other)[0].todo[0], calibration, other)
+    assert row["status"] == "failed" and "sigma.npy" in row["error"]
+    assert np.isnan(np.load(folder / "depth.npy")).all()  # the other options' depth is written
+    for options in (first, other):
+        redo = plan([str(rec)], calibration, str(out), options)[0]
+        assert task.folders[0] in [t.folders[0] for t in redo.todo] and not redo.reused
