@@ -9,6 +9,13 @@
 # networks only). Every setting of app/config.py is an environment variable
 # FRINGESCOPE_<NAME>, e.g. FRINGESCOPE_CAMERA=opencv FRINGESCOPE_CAMERA_SOURCE=0.
 # Calibrations and recordings live in the volume /data.
+#
+# The same image is a Dask worker for `fringescope reprocess --scheduler tcp://HOST:8786`
+# (README "Reprocessing recordings on a cluster"); recordings and outputs on shared storage
+# mounted at the same path on every machine:
+#   docker run --network host -v /shared:/shared -e NUMBA_NUM_THREADS=1 fringescope
+#       dask worker tcp://HOST:8786 --nworkers auto --nthreads 1
+# and `dask scheduler --port 8786 --no-dashboard` for the scheduler.
 FROM python:3.11-slim
 
 # PATH spelled out: the official image sets the same, an imported stand-in sets none.

@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 
 def _range(text: str) -> tuple[float, float]:
     try:
@@ -47,11 +45,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run(args: argparse.Namespace) -> int:
     from app.atomic import atomic_write_bytes
+    from app.batch.setjob import (
+        ReconOptions,
+        check_bracket,
+        output_files,
+        reconstruct_captures,
+        summary_line,
+    )
     from app.calib import load_calibration
     from app.capture import read_capture_set
-    from app.capture.ply import write_ply
-    from app.core.encoding import npy_bytes
-    from app.recon import Reconstructor, reason_png, render_depth_png
 
     dirs = [Path(d) for d in args.set_dirs]
     for d in dirs:
@@ -65,50 +67,13 @@ def run(args: argparse.Namespace) -> int:
         calibration = calibration_for_schedule(calibration, captures[0].schedule)
     except ValueError as exc:
         raise ValueError(f"{dirs[0]}: {exc}") from None
-    for d, c in zip(dirs[1:], captures[1:], strict=True):
-        if c.schedule != captures[0].schedule:
-            raise ValueError(f"{d}: a bracket's sets need one schedule; {dirs[0].name} has another")
-        if c.frames.shape != captures[0].frames.shape:
-            raise ValueError(f"{d}: frames {c.frames.shape[1:]} differ from {dirs[0].name}'s "
-                             f"{captures[0].frames.shape[1:]}")
-    from app.recon.noise import estimate_sensor_noise
-
-    # σ from the camera noise the sets show (the N-step residual, N > 3): the first set that has it
-    noise = None
-    for c in captures:
-        try:
-            noise = estimate_sensor_noise(c.frames, c.schedule, max_code=args.max_code or c.max_code)
-            break
-        except ValueError:
-            continue  # N = 3 or too few usable pixels; none: the typical sensor
-    rec = Reconstructor(calibration, max_code=args.max_code, fast=not args.numpy, noise=noise,
-                        min_modulation=args.min_modulation)
-    # each set at its own bit_depth unless told
-    members = [rec.run(c.frames, max_code=args.max_code or c.max_code) for c in captures]
-    if len(members) == 1:
-        res, bracket = members[0], ""
-    else:
-        from app.recon.fusion import fuse_exposures
-
-        fused = fuse_exposures(members, [c.exposure_ms for c in captures])
-        res = fused.result
-        shares = (f"{c.exposure_ms:g} ms ({100 * fused.valid_from(i) / res.valid.size:.1f}%)"
-                  for i, c in enumerate(captures))
-        bracket = " fused from " + ", ".join(shares) + ";"
+    check_bracket(captures, [str(d) for d in dirs])
+    options = ReconOptions(max_code=args.max_code, numpy=args.numpy, min_modulation=args.min_modulation,
+                           range_mm=args.range)
+    recon = reconstruct_captures(captures, calibration, options)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out / "depth.npy", npy_bytes(res.depth))
-    atomic_write_bytes(out / "sigma.npy", npy_bytes(res.sigma))
-    write_ply(out / "points.ply", res.points, res.valid, res.texture, res.sigma)
-    atomic_write_bytes(out / "depth.png", render_depth_png(res.depth, args.range))
-    atomic_write_bytes(out / "reason.png", reason_png(res.reason))
-    h, w = res.depth.shape
-    frac = float(res.valid.mean())
-    if frac > 0:
-        span = f"height {np.nanmin(res.depth):.3f}..{np.nanmax(res.depth):.3f} mm"
-    else:
-        span = "height n/a"
-    path = "numpy" if args.numpy or not rec.fast else "fast"
-    print(f"{dirs[0].name}: valid {100 * frac:.1f}% of {w}x{h} px,{bracket} {span}, {res.elapsed_ms:.1f} ms ({path}) "
-          f"-> {out}")
+    for name, data in output_files(recon, options).items():
+        atomic_write_bytes(out / name, data)
+    print(f"{dirs[0].name}: {summary_line(recon)} -> {out}")
     return 0

@@ -18,7 +18,8 @@ APP = Path(__file__).resolve().parents[2] / "app"
 #: layer of each top-level part of ``app``, bottom first; a module may import its own
 #: package and any lower layer (and the parts in ``ACROSS``). ``capture`` (capture-set I/O) sits under ``calib``:
 #: the calibration fit reads capture sets. ``app/__init__.py`` holds only the version and
-#: imports nothing, so every layer may read it.
+#: imports nothing, so every layer may read it. ``batch`` (reprocessing on Dask) sits beside
+#: ``api``: it reuses the service's calibration carry-over rule.
 LAYERS: dict[str, int] = {
     "__init__": -1,
     "core": 0, "atomic": 0,
@@ -27,7 +28,7 @@ LAYERS: dict[str, int] = {
     "analysis": 3, "devices": 3,
     "config": 4,
     "service": 5,
-    "api": 6, "outputs": 6,
+    "api": 6, "outputs": 6, "batch": 6,
     "main": 7,
     "cli": 8,
     "__main__": 9,
