@@ -284,6 +284,7 @@ class RecorderStatus(BaseModel):
     skipped_sets: int
     errors: int
     last_error: str | None
+    queue_peak: int = Field(0, description="most sets waiting for the writer at once")
 
 
 class RecordingSummary(BaseModel):
@@ -292,6 +293,8 @@ class RecordingSummary(BaseModel):
     stopped: str | None
     n_sets: int
     bytes: int
+    interrupted: bool = Field(False, description="the service stopped without closing it; "
+                              "stopped is then its last whole set's time")
 
 
 class RecordingStopOut(BaseModel):

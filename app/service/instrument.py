@@ -39,10 +39,13 @@ __all__ = ["Instrument", "RecordingState"]
 
 
 class RecordingState(Protocol):
-    """What the status needs of the recorder: the running recording's name, if any."""
+    """What the status needs of the recorder: the running recording's name, if any, and why
+    the last recording stopped on its own (a write error, a full disk), if it did."""
 
     @property
     def active_name(self) -> str | None: ...
+    @property
+    def warning(self) -> str | None: ...
 
 
 class Instrument:
@@ -283,6 +286,8 @@ class Instrument:
                 "or out of order, or the exposure/LED changing)")
         if self.pipeline.engine_note:
             warnings.append(self.pipeline.engine_note)
+        if self.recorder is not None and self.recorder.warning:
+            warnings.append(self.recorder.warning)
         last_error = self.calibrations.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:

@@ -1,19 +1,27 @@
 """Recording the live instrument: every whole fringe set to disk, with its depth map.
 
-A recorder thread follows two public slots of the Instrument: ``acquisition.sets``
+A collector thread follows two public slots of the Instrument: ``acquisition.sets``
 (each whole raw set, as grabbed) and ``results`` (each published depth map). A raw set
-is written with the depth map reconstructed from it (matched by the frames' timestamps);
-a set the reconstruction skipped (newest-wins queue, no calibration, rolling mode) is
-written raw after ``depth_wait_s``. Writes are atomic (:mod:`app.capture.recording`).
+is paired with the depth map reconstructed from it (matched by the frames' timestamps);
+a set the reconstruction skipped (newest-wins queue, no calibration, rolling mode) goes
+raw after ``depth_wait_s``. Pairs go through a bounded queue to a writer thread, so
+encoding and disk never hold up the collector (nor acquisition): when the queue is full
+the set is counted in ``skipped_sets``. Frames are stored as zstd row differences by
+default (:mod:`app.capture.captureset`; ``codec="png"`` for PNG). Writes are atomic
+(:mod:`app.capture.recording`).
 
-Faults never kill the service: a write error or a nearly full disk stops the recording
-and is reported (``last_error``); sets the writer could not keep up with are counted
-(``skipped_sets``).
+Faults never kill the service: a write error, a full disk (``ENOSPC``) or a nearly full
+one stops the recording, and the reason is kept in ``last_error`` and in ``warning``,
+which ``GET /api/status`` carries in its ``warnings`` until the next recording starts.
+At construction, recordings a previous run left open are marked ``interrupted`` and
+half-written set folders are removed.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import queue
 import shutil
 import threading
 import time
@@ -24,11 +32,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from app.capture import recording as rec_io
-from app.capture.captureset import CaptureSet
+from app.capture.captureset import FRAME_CODECS, CaptureSet
 from app.capture.recording import (
     Recording,
     default_name,
     recordings_root,
+    recover_interrupted,
     remove_stale_partials,
     validate_name,
 )
@@ -69,22 +78,37 @@ class Recorder:
         instrument: the live instrument (its ``acquisition`` exists after ``start()``).
         min_free_mb: stop recording when the data folder's disk has less free space, MB.
         depth_wait_s: how long a raw set waits for its depth map before it is written raw, s.
+        codec: how frames are stored, ``zstd`` (default) or ``png``.
+        queue_sets: sets waiting for the writer at most; one more is counted as skipped.
     """
 
-    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0) -> None:
+    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0,
+                 codec: str = "zstd", queue_sets: int = 16) -> None:
+        if codec not in FRAME_CODECS:
+            raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
+        if queue_sets < 1:
+            raise ValueError(f"queue_sets: must be at least 1, got {queue_sets}")
         self.instrument = instrument
         self.root = recordings_root(instrument.settings.data_dir)
         self.min_free_mb = float(min_free_mb)
         self.depth_wait_s = float(depth_wait_s)
+        self.codec = codec
+        self.queue_sets = int(queue_sets)
         self._lock = threading.Lock()
         self._recording: Recording | None = None
         self._thread: threading.Thread | None = None
+        self._writer: threading.Thread | None = None
         self._stop = threading.Event()
+        self._write_failed = threading.Event()
         self.sets_with_depth = 0
         self.skipped_sets = 0
         self.errors = 0
+        self.queue_peak = 0
         self.last_error: str | None = None
-        self._cleaned = False
+        self.warning: str | None = None  # why the last recording stopped on its own; shown in status
+        # leftovers of a run that ended without closing its recording (kill -9, power cut)
+        self.recovered = recover_interrupted(self.root)
+        remove_stale_partials(self.root)
         # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source: Callable[[], dict[str, Any]] | None = None
         # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
@@ -110,9 +134,6 @@ class Recorder:
         with self._lock:
             if self._recording is not None:
                 raise Conflict(f"already recording {self._recording.name!r}: stop it first")
-            if not self._cleaned:
-                remove_stale_partials(self.root)  # leftovers of a crash before this start
-                self._cleaned = True
             self._check_disk()
             settings = self.instrument.settings.model_dump(mode="json", exclude=set(SECRET_SETTINGS))
             try:
@@ -121,25 +142,32 @@ class Recorder:
                 raise Conflict(str(exc)) from None
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
-            self.sets_with_depth = self.skipped_sets = self.errors = 0
-            self.last_error = None
+            self.sets_with_depth = self.skipped_sets = self.errors = self.queue_peak = 0
+            self.last_error = self.warning = None
             self._stop.clear()
-            self._thread = threading.Thread(target=self._run, args=(self._recording,),
+            self._write_failed.clear()
+            jobs: queue.Queue[_Job | None] = queue.Queue(maxsize=self.queue_sets)
+            self._thread = threading.Thread(target=self._run, args=(self._recording, jobs),
                                             name="fringescope-recorder", daemon=True)
+            self._writer = threading.Thread(target=self._write_loop, args=(self._recording, jobs),
+                                            name="fringescope-recorder-writer", daemon=True)
+            self._writer.start()
             self._thread.start()
             return self.status()
 
     def stop(self, timeout_s: float = 30.0) -> dict[str, Any] | None:
         """Finish the running recording (pending sets are written) and return its session."""
         with self._lock:
-            rec, thread = self._recording, self._thread
+            rec, threads = self._recording, (self._thread, self._writer)
             if rec is None:
                 return None
             self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        for thread in threads:  # the collector hands its last sets over, then the writer drains
+            if thread is not None and thread is not threading.current_thread():
+                thread.join(max(0.0, deadline - time.monotonic()))
         with self._lock:
-            self._recording, self._thread = None, None
+            self._recording, self._thread, self._writer = None, None, None
         return rec.close()
 
     close = stop
@@ -153,6 +181,7 @@ class Recorder:
             "skipped_sets": self.skipped_sets,
             "errors": self.errors,
             "last_error": self.last_error,
+            "queue_peak": self.queue_peak,
         }
 
     def _fresh_name(self) -> str:
@@ -222,16 +251,25 @@ class Recorder:
         except ValueError as exc:
             raise NotFound(f"set {index} of {name!r} cannot be read: {exc}") from None
 
-    # -- the thread ------------------------------------------------------------------------------
-    def _run(self, rec: Recording) -> None:
+    # -- the threads ------------------------------------------------------------------------------
+    def _run(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
+        """Collector: pair each raw set with its depth map and hand it to the writer, never waiting."""
         inst = self.instrument
         pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]] = OrderedDict()
         set_seq = result_seq = -1
+
+        def hand_over(fs: FrameSet, res: LiveResult | None) -> None:
+            try:
+                jobs.put_nowait((fs, res))
+            except queue.Full:  # the writer is behind: this set is lost, and counted
+                self.skipped_sets += 1
+            self.queue_peak = max(self.queue_peak, jobs.qsize())
+
         try:
             while True:
                 acq = inst.acquisition
                 shut_down = inst.results.closed or (acq is not None and not acq.alive)
-                stopping = self._stop.is_set() or shut_down
+                stopping = self._stop.is_set() or shut_down or self._write_failed.is_set()
                 if acq is not None and not stopping:
                     if set_seq < 0:
                         set_seq = acq.sets.seq  # record from now on, not the set before start
@@ -245,37 +283,50 @@ class Recorder:
                 seq, res = inst.results.latest()
                 if res is not None and seq != result_seq:
                     result_seq = seq
-                    self._match(rec, pending, res)
+                    self._match(pending, res, hand_over)
                 now = time.monotonic()
                 while pending and (stopping or now - next(iter(pending.values()))[1] > self.depth_wait_s):
                     _, (fs, _) = pending.popitem(last=False)
-                    self._write(rec, fs, None)
-                if len(pending) > 8:  # the writer cannot keep up: drop the oldest, counted
-                    pending.popitem(last=False)
-                    self.skipped_sets += 1
+                    hand_over(fs, None)
+                if len(pending) > _MAX_PENDING:  # depth maps stopped coming: the oldest goes raw
+                    _, (fs, _) = pending.popitem(last=False)
+                    hand_over(fs, None)
                 if stopping:
                     break
-        except _StopRecording:
-            pass
         except Exception as exc:  # never let a recorder fault escape into the service
             log.exception("recorder failed")
-            self._fail(f"recording stopped: {exc}")
+            self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+            self._write_failed.set()
+        finally:
+            jobs.put(None)  # the writer drains what is queued, then ends
+
+    def _write_loop(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
+        """Writer: encode and store each queued set in turn; a failure stops the recording."""
+        try:
+            while (job := jobs.get()) is not None:
+                if self._write_failed.is_set():
+                    continue  # stopped by a fault: what is still queued is not written
+                try:
+                    self._write(rec, *job)
+                except _StopRecording:
+                    self._write_failed.set()
         finally:
             if self._recording is rec and not self._stop.is_set():
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
                 with self._lock:
-                    self._recording, self._thread = None, None
+                    self._recording, self._thread, self._writer = None, None, None
                 rec.close()
 
-    def _match(self, rec: Recording, pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]],
-               res: LiveResult) -> None:
+    @staticmethod
+    def _match(pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]], res: LiveResult,
+               hand_over: Callable[[FrameSet, LiveResult | None], None]) -> None:
         key = tuple(res.timestamps)
         if key not in pending:
             return
-        # sets older than the reconstructed one were skipped by reconstruction: write raw
+        # sets older than the reconstructed one were skipped by reconstruction: written raw
         while pending:
             k, (fs, _) = pending.popitem(last=False)
-            self._write(rec, fs, res if k == key else None)
+            hand_over(fs, res if k == key else None)
             if k == key:
                 break
 
@@ -302,22 +353,34 @@ class Recorder:
 
                     normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))
                     try:
-                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma, cal_length)
-                    except Exception as exc:  # a measurement fault must not stop the recording
+                        measured = measure_specs(res, specs, normal, cal_sigma, cal_length)
+                    except Exception:  # a measurement fault must not stop the recording
                         log.exception("measurements of a recorded set failed")
-                        info["measurements"] = [{"error": f"measurement failed: {exc}"}]
-                    capture.extra["measurements"] = info["measurements"]
+                        measured = []
+                    # a measurement refused on this map (too few valid pixels) is not a value
+                    measured = [m for m in measured if "error" not in m]
+                    if measured:
+                        info["measurements"] = capture.extra["measurements"] = measured
             rec.add_set(capture, depth_mm=None if res is None else res.depth,
-                        timestamp=now_wall - (now_mono - fs.received_s), info=info)
+                        timestamp=now_wall - (now_mono - fs.received_s), info=info, codec=self.codec)
         except (OSError, ValueError) as exc:
-            self._fail(f"recording stopped: {exc}")
+            full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
+            reason = f"disk full ({exc})" if full else str(exc)
+            self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}", warn=True)
             raise _StopRecording from exc
         self.sets_with_depth += res is not None
 
-    def _fail(self, msg: str) -> None:
+    def _fail(self, msg: str, *, warn: bool = False) -> None:
         log.warning("%s", msg)
         self.errors += 1
         self.last_error = msg
+        if warn:
+            self.warning = msg
+
+
+# raw sets waiting for their depth map; depth_wait_s (3 s) holds about 11 of geometric-9's
+_MAX_PENDING = 16
+_Job = tuple[FrameSet, "LiveResult | None"]
 
 
 class _StopRecording(Exception):
