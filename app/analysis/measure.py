@@ -53,6 +53,8 @@ KINDS = ("length", "point_to_line", "depth", "profile", "area")
 #: how many points each kind needs (profile/area: at least)
 MIN_POINTS = {"length": 2, "point_to_line": 3, "depth": 4, "profile": 2, "area": 3}
 EXACT_POINTS = {"length": 2, "point_to_line": 3, "depth": 4}
+#: an area or profile is refused when less than this fraction of its pixels is valid
+MIN_COVERAGE = 0.5
 
 
 @dataclass(frozen=True)
@@ -275,6 +277,27 @@ def _slope(f: Callable[[F64], float], pts: F64, dirs: F64, i: int) -> float:
 
 def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
     return [pick(surf, float(u), float(v), snap_px, f"point {first + i}") for i, (u, v) in enumerate(pixels)]
+
+
+def _outline(surf: _Surface, pixels: F64, snap_px: float) -> list[PickedPoint]:
+    """Vertices that only place a polygon or polyline in the image: snapped to a valid pixel
+    when one is near, else kept where clicked (point NaN) — a hole under a vertex is no error."""
+    out = []
+    for i, (u, v) in enumerate(pixels):
+        try:
+            out.append(pick(surf, float(u), float(v), snap_px, f"point {i + 1}"))
+        except ValueError as exc:
+            if "outside" in str(exc):
+                raise
+            nan = float("nan")
+            out.append(PickedPoint((float(u), float(v)), (int(round(u)), int(round(v))), (nan, nan, nan),
+                                   nan, False, 0.0))
+    return out
+
+
+def _coverage_error(what: str, covered: float) -> ValueError:
+    return ValueError(f"points: only {100 * covered:.0f} % of the {what}'s pixels are valid; a measurement "
+                      f"needs at least {100 * MIN_COVERAGE:.0f} %")
 
 
 def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
@@ -608,8 +631,16 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     pixel's height noise; the expected area inflation from the smoothed surface's residual
     roughness is subtracted (``extra.roughness_correction_mm2``).
 
+    Holes (invalid pixels) are measured through: a sample with no valid pixel in its box is
+    the value at its pixel of a plane fitted to the valid points around it
+    (:func:`_linear_fill`; ``extra.samples_filled``), whose noise enters σ through the fit's
+    weights; σ does not include the surface's departure from that plane across the hole.
+    ``extra.coverage`` is the valid share of the polygon's pixels; below
+    :data:`MIN_COVERAGE` the area is refused.
+
     Args:
-        pixels: the polygon's vertices, ≥ 3 (u, v), not self-intersecting.
+        pixels: the polygon's vertices, ≥ 3 (u, v), not self-intersecting; they stay where
+            they were clicked (``snap_px`` is not used: a vertex in a hole is filled).
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
@@ -618,9 +649,9 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
         raise ValueError(f"window_px: need an odd integer >= 1, got {window_px!r}")
-    picks = _picks(surf, px, snap_px)
-    # sub-pixel vertices as clicked; a snapped vertex moves to its valid pixel
-    poly = np.array([p.pixel if p.snapped else p.requested for p in picks], np.float64)
+    # the vertices as clicked, sub-pixel, never snapped: the surface under one in a hole is filled
+    picks = _outline(surf, px, 0.0)
+    poly = np.array([p.requested for p in picks], np.float64)
     m = len(poly)
     for i in range(m):
         for j in range(i + 1, m):
@@ -639,6 +670,12 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     bu0, bv0, bu1, bv1 = max(0, u_lo), max(0, v_lo), min(w, u_hi), min(h, v_hi)
     # box means over the bounding box (+ margin): sums via an integral image
     okb = surf.ok(slice(bv0, bv1), slice(bu0, bu1))
+    # coverage: the valid share of the pixels whose centres lie inside the polygon
+    pu_grid, pv_grid = np.meshgrid(np.arange(bu0, bu1, dtype=np.float64), np.arange(bv0, bv1, dtype=np.float64))
+    in_poly = _inside(poly, pu_grid, pv_grid)
+    coverage = float(okb[in_poly].mean()) if in_poly.any() else 0.0
+    if coverage < MIN_COVERAGE:
+        raise _coverage_error("polygon", coverage)
     pb = np.where(okb[..., None], surf.pts(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     cnt = _box_sum(okb.astype(np.float64), half)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -668,16 +705,29 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     iu0 = np.clip(np.floor(lu).astype(int), 0, bu1 - bu0 - 2)
     iv0 = np.clip(np.floor(lv).astype(int), 0, bv1 - bv0 - 2)
     fu, fv = lu - iu0, lv - iv0
+    # a sample in a hole (no valid pixel in a box it needs) is filled by a local linear fit of the
+    # valid points around it (its weights carry their noise into σ)
+    # (a box mean missing some pixels is off its sample's position too: those are filled as well)
+    full = _box_sum(np.ones(okb.shape), half)
+    usable = np.ones(len(su), bool)
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        wgt = (fu if du else 1 - fu) * (fv if dv else 1 - fv)
+        usable &= ~((wgt > 1e-12) & (cnt[iv0 + dv, iu0 + du] < full[iv0 + dv, iu0 + du] - 0.5))
+    fills = {}
+    for i in np.flatnonzero(~usable):
+        try:
+            fills[int(i)] = _linear_fill(okb, su[i] - bu0, sv[i] - bv0, window_px)
+        except ValueError:
+            raise ValueError(f"points: no valid pixels around ({su[i]:.0f}, {sv[i]:.0f}) to fill the "
+                             f"polygon's hole (coverage {100 * coverage:.0f} %)") from None
     corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)]
+    corners = [(du, dv, np.where(usable, wgt, 0.0)) for du, dv, wgt in corners]
     X = np.zeros((len(su), 3))
     for du, dv, wgt in corners:
-        c = cnt[iv0 + dv, iu0 + du]
-        bad = (wgt > 1e-12) & ~(c > 0)
-        if np.any(bad):
-            k = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"points: the polygon covers invalid surface near pixel ({su[k]:.0f}, {sv[k]:.0f}) "
-                             f"(no valid pixel within {half} px)")
         X += wgt[:, None] * np.nan_to_num(smooth[iv0 + dv, iu0 + du])
+    pts_b = surf.pts(slice(bv0, bv1), slice(bu0, bu1))
+    for i, (rows, cols, w_fit) in fills.items():
+        X[i] = w_fit @ pts_b[rows, cols]
     # a regular grid is all cocircular quadruples, slow for Qhull: triangulate the samples nudged by
     # 1e-3 px (a valid triangulation of the exact samples too), sample the surface at the exact ones
     nudge = np.random.default_rng(0).uniform(-1e-3, 1e-3, (len(su), 2))
@@ -712,6 +762,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 y, x = ci + oy, cj + ox
                 inb = (y >= 0) & (y < cnt.shape[0]) & (x >= 0) & (x < cnt.shape[1])
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
+    for i, (rows, cols, w_fit) in fills.items():
+        np.add.at(cimg, (rows, cols), coef[i] * w_fit)
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
     # the calibration term: systematic and smooth, so not reduced by the box means; correlated between
@@ -722,6 +774,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     var_s = np.zeros(len(su))
     for du, dv, wgt in corners:
         var_s += wgt**2 * var_box[iv0 + dv, iu0 + du]
+    for i, (rows, cols, w_fit) in fills.items():
+        var_s[i] = float(np.sum((w_fit * sig_b[rows, cols]) ** 2))
     # roughness inflation: E[ΔA_t] = A_t · E|∇h_n|² / 2, h_n the noise's normal component
     a_vec, b_vec = b_ - a_, c_ - a_
     gmat = np.stack([np.stack([np.einsum("ij,ij->i", a_vec, a_vec), np.einsum("ij,ij->i", a_vec, b_vec)], -1),
@@ -738,9 +792,41 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     extra = {"raw_mm2": raw, "roughness_correction_mm2": corr if known else None,
              "samples": int(len(su)), "triangles": int(len(simp)), "window_px": int(window_px),
              "step_px": round(step, 3),
-             "projected_px2": abs(signed)}
+             "projected_px2": abs(signed), "coverage": round(coverage, 4),
+             "samples_filled": len(fills)}
     extra.update(sigma_noise_mm=sigma_a, sigma_calibration_mm=sigma_cal)
     return Measurement("area", value, math.hypot(sigma_a, sigma_cal), picks, None, extra)
+
+
+def _linear_fill(ok: npt.NDArray[np.bool_], u: float, v: float, window_px: int,
+                 min_pixels: int = 30) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], F64]:
+    """Weights that predict a point at (u, v) (px, in ``ok``'s frame) from the valid pixels around it.
+
+    The smallest square window (half-width 2·window_px, doubling, at most 64 px) whose valid
+    pixels number at least ``min_pixels`` gives a least-squares quadratic surface
+    X = a + b·du + c·dv + d·du² + e·du·dv + f·dv² per coordinate (du = u' − u, dv = v' − v;
+    a plane if the quadratic is ill-conditioned there); the prediction is ``a``, a weighted
+    sum of those pixels' points. Returns (rows, cols, weights (n,) summing to 1).
+    ``ValueError`` if no window will do.
+    """
+    h, w = ok.shape
+    r = 2 * window_px
+    while r <= 64:
+        r0, r1 = max(0, int(v) - r), min(h, int(v) + r + 2)
+        c0, c1 = max(0, int(u) - r), min(w, int(u) + r + 2)
+        rows, cols = np.nonzero(ok[r0:r1, c0:c1])
+        if len(rows) >= min_pixels:
+            rows, cols = rows + r0, cols + c0
+            du, dv = (cols - u) / r, (rows - v) / r  # scaled: a well-conditioned design
+            for a in (np.column_stack([np.ones(len(rows)), du, dv, du * du, du * dv, dv * dv]),
+                      np.column_stack([np.ones(len(rows)), du, dv])):
+                gram = a.T @ a
+                if np.linalg.cond(gram) < 1e6:
+                    weights = np.linalg.solve(gram, a.T)[0]  # first row of (AᵀA)⁻¹Aᵀ: the value at (u, v)
+                    return rows, cols, np.asarray(weights, np.float64)
+        r *= 2
+    raise ValueError(f"(u, v) = ({u:.0f}, {v:.0f}): no window of at most 64 px holds {min_pixels} valid pixels "
+                     "around it")
 
 
 def _box_sum(a: F64, half: int) -> F64:

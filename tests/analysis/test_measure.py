@@ -195,9 +195,10 @@ def test_snapping_and_refusals_name_the_point():
         M.area(p, ok, None, [(10, 10), (20, 20)])
     with pytest.raises(ValueError, match="edges 1-2 and 3-4 cross"):
         M.area(p, ok, None, [(10, 10), (100, 100), (100, 10), (10, 100)])
-    with pytest.raises(ValueError, match="polygon covers invalid surface"):
+    with pytest.raises(ValueError, match=r"only 44 % of the polygon's pixels are valid; a measurement needs at "
+                                         r"least 50 %"):
         big = ok.copy()
-        big[90:110, 90:110] = False
+        big[60:120, 60:120] = False
         M.area(p, big, None, [(60, 60), (140, 60), (140, 140), (60, 140)])
     with pytest.raises(ValueError, match="a profile takes at most 20000 samples"):
         M.profile(p, ok, None, [(10, 10), (190, 150)] * 120)
@@ -249,3 +250,43 @@ def test_calibration_term_correlated_by_distance():
     assert a1 > 2 * a0 > 0
     with pytest.raises(ValueError, match="calibration_length_mm"):
         M.length(p, ok, sig, pix, calibration_sigma_mm=s, calibration_length_mm=-1.0)
+
+
+@pytest.mark.parametrize("surface", ["sphere", "tilted"])
+def test_area_measures_through_holes_within_its_sigma(surface: str):
+    """Live maps have 9 x 9 holes (motion flags grown); an area keeps its value and says its coverage."""
+    p = sphere() if surface == "sphere" else plane((0.4, -0.2, 1.0), 45.0)
+    ok, sig = ones(p), np.full((H, W), 0.02)
+    poly = [(CX - 40, CY - 40), (CX + 40, CY - 40), (CX + 40, CY + 40), (CX - 40, CY + 40)]
+    whole = M.area(p, ok, sig, poly)
+    assert whole.extra["coverage"] == 1.0 and whole.extra["samples_filled"] == 0
+    rng = np.random.default_rng(1)
+    holes = ok.copy()
+    for _ in range(40):  # anywhere: inside, across the edges, on the vertices
+        y, x = rng.integers(0, H - 9), rng.integers(0, W - 9)
+        holes[y:y + 9, x:x + 9] = False
+        one = ok.copy()
+        one[y:y + 9, x:x + 9] = False
+        m = M.area(p, one, sig, poly)
+        assert abs(m.value_mm - whole.value_mm) < 0.5 * m.sigma_mm
+    m = M.area(p, holes, sig, poly)
+    assert 0.8 < m.extra["coverage"] < 0.95 and m.extra["samples_filled"] > 20
+    assert abs(m.value_mm - whole.value_mm) < 0.5 * m.sigma_mm
+    assert 0.9 * whole.sigma_mm < m.sigma_mm < 1.2 * whole.sigma_mm
+    assert all(not q.snapped for q in m.points)  # vertices stay where clicked, in holes too
+
+
+def test_area_sigma_through_holes_matches_monte_carlo():
+    rng = np.random.default_rng(11)
+    base = sphere(60.0, 25.0)
+    ok = ones(base)
+    for y, x in ((45, 55), (70, 90), (100, 125), (52, 136), (95, 66)):  # on vertices, edges, inside
+        ok[y:y + 9, x:x + 9] = False
+    sig = np.where(ok, 0.01 + 0.03 * (UU / W), 0.0)
+    pix = [(60, 50), (140, 55), (130, 110), (70, 105)]
+    m = M.area(base, ok, sig, pix)
+    assert m.extra["samples_filled"] >= 5 and m.extra["coverage"] < 0.97
+    vals = [M.area(noisy(base, sig, rng), ok, sig, pix).value_mm for _ in range(300)]
+    assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
+    whole = M.area(base, ones(base), None, pix)
+    assert abs(np.mean(vals) - whole.value_mm) < 3 * m.sigma_mm / math.sqrt(300) + 1e-3 * m.value_mm

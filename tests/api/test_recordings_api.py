@@ -3,9 +3,19 @@
 from __future__ import annotations
 
 import io
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import httpx
 import numpy as np
 import tifffile
 from fastapi.testclient import TestClient
@@ -16,6 +26,12 @@ from tests.api.conftest import live_settings, wait_for
 
 TOKEN = "rec-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None:
@@ -66,7 +82,7 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
         assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
         zf = zipfile.ZipFile(io.BytesIO(r.content))
         assert zf.testzip() is None
-        assert f"op-1/{sets[0]['folder']}/frame_15.png" in zf.namelist()
+        assert f"op-1/{sets[0]['folder']}/frame_15.npy.zst" in zf.namelist()
 
         index = int(with_depth[0]["folder"][4:])
         r = client.get(f"/api/recordings/op-1/sets/{index}/depth?format=tiff")
@@ -91,3 +107,84 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
         r = client.delete("/api/recordings/op-1", headers=AUTH)
         assert r.status_code == 200 and not root.exists()
         assert client.get("/api/recordings").json() == []
+
+
+def _serve(tmp_path: Path, calibration: Path, port: int, *wrap: str,
+           **env_extra: str) -> subprocess.Popen[str]:
+    """``fringescope serve`` as its own process (optionally under ``wrap``, e.g. unshare)."""
+    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration), FRINGESCOPE_VIEWER="false",
+               FRINGESCOPE_SIM_SCENE="dof_target", FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_EXPOSURE_MS="30",
+               FRINGESCOPE_SCHEDULE="geometric-9", NUMBA_THREADING_LAYER="workqueue", **env_extra)
+    cmd = [sys.executable, "-m", "app", "serve", "--port", str(port), "--data-dir", str(tmp_path / "data")]
+    return subprocess.Popen([*wrap, *cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool], timeout_s: float,
+          what: str) -> Any:
+    deadline, body = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"server exited {proc.returncode} waiting for {what}: {proc.stdout.read()}")  # type: ignore[union-attr]
+        try:
+            body = httpx.get(url, timeout=5).json()
+            if predicate(body):
+                return body
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    raise AssertionError(f"timed out waiting for {what}; last answer: {body}")
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+
+
+def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
+        tmp_path: Path, sim_calibration_file: Path) -> None:
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    proc = _serve(tmp_path, sim_calibration_file, port)
+    try:
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180, "first depth map")
+        r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
+        assert r.status_code == 200, r.text
+        _poll(base + "/api/recording", proc, lambda s: s["sets_with_depth"] >= 4, 120, "four recorded sets")
+        os.kill(proc.pid, signal.SIGKILL)  # mid-recording: the writer is busy with the next set
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    root = tmp_path / "data" / "recordings" / "crashed"
+    before = json.loads((root / "session.json").read_text())
+    assert before["stopped"] is None and "interrupted" not in before  # what the crash left
+
+    proc = _serve(tmp_path, sim_calibration_file, port)
+    try:
+        listed = _poll(base + "/api/recordings", proc, lambda x: isinstance(x, list), 180, "the listing")
+        (summary,) = listed
+        assert summary["name"] == "crashed" and summary["interrupted"] is True
+        meta = httpx.get(base + "/api/recordings/crashed", timeout=10).json()
+        sets = meta["sets"]
+        assert summary["n_sets"] == len(sets) >= 4
+        assert meta["interrupted"] is True and meta["stopped"] == sets[-1]["timestamp"]
+        assert not [p.name for p in root.iterdir() if p.name.startswith(".")]  # partials gone
+        assert sorted(p.name for p in root.iterdir() if p.is_dir()) == [s["folder"] for s in sets]
+        for s in sets:  # every listed set reads back whole
+            cap = read_capture_set(root / s["folder"])
+            idx = cap.extra["frame_indices"]
+            assert cap.frames.shape[0] == 9 and idx == list(range(idx[0], idx[0] + 9))
+            assert all(f.endswith(".npy.zst") for f in s["files"] if f.startswith("frame_"))
+            if s["depth"]:
+                depth = np.load(root / s["folder"] / "depth.npy")
+                assert depth.shape == cap.frames.shape[1:] and np.isfinite(depth).mean() > 0.2
+        r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
+        assert r.status_code == 409  # the interrupted recording is kept under its name
+    finally:
+        _stop(proc)
