@@ -75,7 +75,7 @@ def storage(frames: npt.NDArray[np.uint8], repeats: int = 3) -> list[tuple[str, 
                 back = [read_zstd_frame(p) if kind == "zst" else cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
                         for p in paths]
                 dec_s = min(dec_s, time.process_time() - t)
-            if not all(np.array_equal(a, b) for a, b in zip(back, frames, strict=True)):
+            if not all(a is not None and np.array_equal(a, b) for a, b in zip(back, frames, strict=True)):
                 raise SystemExit(f"{name}: frames did not read back bit-exact")
             out.append((name, sum(map(len, blobs)) / 1e6, 1e3 * enc_s, 1e3 * dec_s))
     return out
@@ -133,19 +133,20 @@ def live(args: argparse.Namespace) -> int:
             busy.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
         time.sleep(3.0)  # let the pipeline settle beside the busy process
 
-        def window(seconds: float) -> tuple[float, float, float]:
-            s0, t0 = http.get("/api/status").json(), time.monotonic()
+        def window(seconds: float) -> tuple[float, float, float, float]:
+            """camera fps, depth /s, the span (s) and this process's CPU use (cores) over it"""
+            s0, t0, c0 = http.get("/api/status").json(), time.monotonic(), time.process_time()
             time.sleep(seconds)
-            s1, t1 = http.get("/api/status").json(), time.monotonic()
+            s1, t1, c1 = http.get("/api/status").json(), time.monotonic(), time.process_time()
             span = t1 - t0
             return ((s1["frames_received"] - s0["frames_received"]) / span,
-                    (s1["results_published"] - s0["results_published"]) / span, span)
+                    (s1["results_published"] - s0["results_published"]) / span, span, (c1 - c0) / span)
 
         per_map = schedule_by_name(args.schedule).n_frames
-        cam0, depth0, _ = window(args.baseline_s)
+        cam0, depth0, _, cpu0 = window(args.baseline_s)
         r = http.post("/api/recording/start", json={"name": name})
         r.raise_for_status()
-        cam1, depth1, span = window(args.seconds)
+        cam1, depth1, span, cpu1 = window(args.seconds)
         rec_status = http.get("/api/recording").json()
         stopped = http.post("/api/recording/stop").json()["stopped"]
         status = http.get("/api/status").json()
@@ -177,10 +178,13 @@ def live(args: argparse.Namespace) -> int:
     print(f"live: schedule {args.schedule} ({per_map} frames/map), scene {args.scene}, {args.exposure_ms:g} ms, "
           f"codec {args.codec}, {args.busy_cores} busy core(s) beside, {span:.1f} s recording")
     print(f"  baseline (not recording) camera {cam0:.2f} fps, depth {depth0:.3f} /s = "
-          f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}")
+          f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}; server process {cpu0:.2f} cores")
     print(f"  recording                camera {cam1:.2f} fps, depth {depth1:.3f} /s = {ratio:.3f} x camera/{per_map} "
           f"(target >= 0.97: {verdict(ratio >= 0.97)}); depth while recording / baseline "
           f"{depth1 / depth0 if depth0 else 0:.3f}")
+    print(f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against the baseline); "
+          f"the writer thread {rec_status['write_cpu_ms_per_set']:.1f} ms per set = "
+          f"{rec_status['write_cpu_ms_per_set'] * len(sets) / span / 1e3:.2f} cores")
     print(f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), with depth "
           f"{rec_status['sets_with_depth']}, skipped_sets {rec_status['skipped_sets']} "
           f"(target 0: {verdict(rec_status['skipped_sets'] == 0)}), writer queue peak {rec_status['queue_peak']}, "

@@ -104,6 +104,8 @@ class Recorder:
         self.skipped_sets = 0
         self.errors = 0
         self.queue_peak = 0
+        self.write_cpu_s = 0.0  # the writer thread's CPU time this recording, s
+        self.sets_written = 0
         self.last_error: str | None = None
         self.warning: str | None = None  # why the last recording stopped on its own; shown in status
         # leftovers of a run that ended without closing its recording (kill -9, power cut)
@@ -143,6 +145,7 @@ class Recorder:
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
             self.sets_with_depth = self.skipped_sets = self.errors = self.queue_peak = 0
+            self.write_cpu_s, self.sets_written = 0.0, 0
             self.last_error = self.warning = None
             self._stop.clear()
             self._write_failed.clear()
@@ -174,14 +177,16 @@ class Recorder:
 
     def status(self) -> dict[str, Any]:
         rec = self._recording
+        n_sets = rec.n_sets if rec is not None else 0
         return {
             "recording": rec.name if rec is not None else None,
-            "sets": rec.n_sets if rec is not None else 0,
+            "sets": n_sets,
             "sets_with_depth": self.sets_with_depth,
             "skipped_sets": self.skipped_sets,
             "errors": self.errors,
             "last_error": self.last_error,
             "queue_peak": self.queue_peak,
+            "write_cpu_ms_per_set": round(1e3 * self.write_cpu_s / max(1, self.sets_written), 3),
         }
 
     def _fresh_name(self) -> str:
@@ -306,10 +311,12 @@ class Recorder:
             while (job := jobs.get()) is not None:
                 if self._write_failed.is_set():
                     continue  # stopped by a fault: what is still queued is not written
+                t0 = time.thread_time()
                 try:
                     self._write(rec, *job)
                 except _StopRecording:
                     self._write_failed.set()
+                self.write_cpu_s += time.thread_time() - t0
         finally:
             if self._recording is rec and not self._stop.is_set():
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
@@ -369,6 +376,7 @@ class Recorder:
             self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}", warn=True)
             raise _StopRecording from exc
         self.sets_with_depth += res is not None
+        self.sets_written += 1
 
     def _fail(self, msg: str, *, warn: bool = False) -> None:
         log.warning("%s", msg)
