@@ -42,7 +42,9 @@ from app.capture.captureset import read_zstd_frame, zstd_frame_bytes
 from app.core.schedule import schedule_by_name
 
 
-def storage(frames: npt.NDArray[np.uint8], repeats: int = 3) -> list[tuple[str, float, float, float]]:
+def storage(
+    frames: npt.NDArray[np.uint8], repeats: int = 3
+) -> list[tuple[str, float, float, float]]:
     """Per codec: (name, MB per set, encode CPU ms per set, decode CPU ms per set), best of ``repeats``."""
     import tempfile
 
@@ -72,10 +74,16 @@ def storage(frames: npt.NDArray[np.uint8], repeats: int = 3) -> list[tuple[str, 
                 paths.append(p)
             for _ in range(repeats):
                 t = time.process_time()
-                back = [read_zstd_frame(p) if kind == "zst" else cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-                        for p in paths]
+                back = [
+                    read_zstd_frame(p)
+                    if kind == "zst"
+                    else cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+                    for p in paths
+                ]
                 dec_s = min(dec_s, time.process_time() - t)
-            if not all(a is not None and np.array_equal(a, b) for a, b in zip(back, frames, strict=True)):
+            if not all(
+                a is not None and np.array_equal(a, b) for a, b in zip(back, frames, strict=True)
+            ):
                 raise SystemExit(f"{name}: frames did not read back bit-exact")
             out.append((name, sum(map(len, blobs)) / 1e6, 1e3 * enc_s, 1e3 * dec_s))
     return out
@@ -85,8 +93,9 @@ def sim_frames(schedule_name: str) -> npt.NDArray[np.uint8]:
     """One simulated set of ``intestine_flap`` with ``schedule_name``'s patterns, (F, H, W) uint8."""
     from app.devices.sim.offline import render_capture_set
 
-    cap, _, _ = render_capture_set("intestine_flap", exposure_ms=30.0, seed=3,
-                                   schedule=schedule_by_name(schedule_name))
+    cap, _, _ = render_capture_set(
+        "intestine_flap", exposure_ms=30.0, seed=3, schedule=schedule_by_name(schedule_name)
+    )
     return np.asarray(cap.frames, np.uint8)
 
 
@@ -104,10 +113,19 @@ def live(args: argparse.Namespace) -> int:
     from app.config import Settings
     from app.main import create_app
 
-    settings = Settings(port=free_port(), data_dir=Path(args.data_dir), exposure_ms=args.exposure_ms,
-                        sim_scene=args.scene, viewer=False, schedule=args.schedule, sim_seed=1)
+    settings = Settings(
+        port=free_port(),
+        data_dir=Path(args.data_dir),
+        exposure_ms=args.exposure_ms,
+        sim_scene=args.scene,
+        viewer=False,
+        schedule=args.schedule,
+        sim_seed=1,
+    )
     app = create_app(settings)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning"))
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning")
+    )
     thread = threading.Thread(target=server.run, name="bench-uvicorn", daemon=True)
     thread.start()
     busy: list[subprocess.Popen[bytes]] = []
@@ -139,8 +157,12 @@ def live(args: argparse.Namespace) -> int:
             time.sleep(seconds)
             s1, t1, c1 = http.get("/api/status").json(), time.monotonic(), time.process_time()
             span = t1 - t0
-            return ((s1["frames_received"] - s0["frames_received"]) / span,
-                    (s1["results_published"] - s0["results_published"]) / span, span, (c1 - c0) / span)
+            return (
+                (s1["frames_received"] - s0["frames_received"]) / span,
+                (s1["results_published"] - s0["results_published"]) / span,
+                span,
+                (c1 - c0) / span,
+            )
 
         per_map = schedule_by_name(args.schedule).n_frames
         cam0, depth0, _, cpu0 = window(args.baseline_s)
@@ -175,35 +197,57 @@ def live(args: argparse.Namespace) -> int:
     ideal0, ideal1 = cam0 / per_map, cam1 / per_map
     ratio = depth1 / ideal1 if ideal1 else 0.0
     expected = span * ideal1
-    print(f"live: schedule {args.schedule} ({per_map} frames/map), scene {args.scene}, {args.exposure_ms:g} ms, "
-          f"codec {args.codec}, {args.busy_cores} busy core(s) beside, {span:.1f} s recording")
-    print(f"  baseline (not recording) camera {cam0:.2f} fps, depth {depth0:.3f} /s = "
-          f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}; server process {cpu0:.2f} cores")
-    print(f"  recording                camera {cam1:.2f} fps, depth {depth1:.3f} /s = {ratio:.3f} x camera/{per_map} "
-          f"(target >= 0.97: {verdict(ratio >= 0.97)}); depth while recording / baseline "
-          f"{depth1 / depth0 if depth0 else 0:.3f}")
-    print(f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against the baseline); "
-          f"the writer thread {rec_status['write_cpu_ms_per_set']:.1f} ms per set = "
-          f"{rec_status['write_cpu_ms_per_set'] * len(sets) / span / 1e3:.2f} cores")
-    print(f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), with depth "
-          f"{rec_status['sets_with_depth']}, skipped_sets {rec_status['skipped_sets']} "
-          f"(target 0: {verdict(rec_status['skipped_sets'] == 0)}), writer queue peak {rec_status['queue_peak']}, "
-          f"errors {rec_status['errors']}")
-    print(f"  on disk: frames {frame_bytes / max(1, len(sets)) / 1e6:.2f} MB/set, all {all_bytes / max(1, len(sets)) / 1e6:.2f} "
-          f"MB/set (with depth.npy), {all_bytes / span / 1e6:.1f} MB/s; read back whole {whole} of {len(sets)}")
-    print(f"  status warnings {status['warnings']}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    print(
+        f"live: schedule {args.schedule} ({per_map} frames/map), scene {args.scene}, {args.exposure_ms:g} ms, "
+        f"codec {args.codec}, {args.busy_cores} busy core(s) beside, {span:.1f} s recording"
+    )
+    print(
+        f"  baseline (not recording) camera {cam0:.2f} fps, depth {depth0:.3f} /s = "
+        f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}; server process {cpu0:.2f} cores"
+    )
+    print(
+        f"  recording                camera {cam1:.2f} fps, depth {depth1:.3f} /s = {ratio:.3f} x camera/{per_map} "
+        f"(target >= 0.97: {verdict(ratio >= 0.97)}); depth while recording / baseline "
+        f"{depth1 / depth0 if depth0 else 0:.3f}"
+    )
+    print(
+        f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against the baseline); "
+        f"the writer thread {rec_status['write_cpu_ms_per_set']:.1f} ms per set = "
+        f"{rec_status['write_cpu_ms_per_set'] * len(sets) / span / 1e3:.2f} cores"
+    )
+    print(
+        f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), with depth "
+        f"{rec_status['sets_with_depth']}, skipped_sets {rec_status['skipped_sets']} "
+        f"(target 0: {verdict(rec_status['skipped_sets'] == 0)}), writer queue peak {rec_status['queue_peak']}, "
+        f"errors {rec_status['errors']}"
+    )
+    print(
+        f"  on disk: frames {frame_bytes / max(1, len(sets)) / 1e6:.2f} MB/set, all {all_bytes / max(1, len(sets)) / 1e6:.2f} "
+        f"MB/set (with depth.npy), {all_bytes / span / 1e6:.1f} MB/s; read back whole {whole} of {len(sets)}"
+    )
+    print(
+        f"  status warnings {status['warnings']}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"
+    )
     return 0 if rec_status["skipped_sets"] == 0 and ratio >= 0.97 and whole == len(sets) else 1
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--schedule", default="geometric-9", help="pattern schedule by name")
     ap.add_argument("--seconds", type=float, default=60.0, help="recording length, s")
-    ap.add_argument("--baseline-s", type=float, default=15.0, help="depth rate without recording first, s")
-    ap.add_argument("--busy-cores", type=int, default=0, help="processes spinning one core each, beside")
+    ap.add_argument(
+        "--baseline-s", type=float, default=15.0, help="depth rate without recording first, s"
+    )
+    ap.add_argument(
+        "--busy-cores", type=int, default=0, help="processes spinning one core each, beside"
+    )
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--scene", default="intestine_flap")
-    ap.add_argument("--codec", choices=("zstd", "png"), default="zstd", help="the recorder's frame storage")
+    ap.add_argument(
+        "--codec", choices=("zstd", "png"), default="zstd", help="the recorder's frame storage"
+    )
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--storage-only", action="store_true", help="only the codec comparison")
     args = ap.parse_args()
@@ -211,16 +255,22 @@ def main() -> int:
     frames = sim_frames(args.schedule)
     rows = storage(frames)
     ref_mb, ref_ms = rows[0][1], rows[0][2]
-    print(f"storage: one {args.schedule} set of intestine_flap, {frames.shape[0]} x {frames.shape[1]} x "
-          f"{frames.shape[2]} {frames.dtype} ({frames.nbytes / 1e6:.1f} MB raw); ratios against png level 1")
+    print(
+        f"storage: one {args.schedule} set of intestine_flap, {frames.shape[0]} x {frames.shape[1]} x "
+        f"{frames.shape[2]} {frames.dtype} ({frames.nbytes / 1e6:.1f} MB raw); ratios against png level 1"
+    )
     for name, mb, enc_ms, dec_ms in rows:
-        print(f"  {name:30s} {mb:6.2f} MB/set ({mb / ref_mb:4.2f})  encode {enc_ms:6.1f} ms CPU/set "
-              f"({enc_ms / ref_ms:4.2f})  read {dec_ms:6.1f} ms CPU/set")
+        print(
+            f"  {name:30s} {mb:6.2f} MB/set ({mb / ref_mb:4.2f})  encode {enc_ms:6.1f} ms CPU/set "
+            f"({enc_ms / ref_ms:4.2f})  read {dec_ms:6.1f} ms CPU/set"
+        )
     sets_per_s = 30.0 / frames.shape[0]  # at 30 frames/s
     chosen = rows[-1]
-    print(f"  at {sets_per_s:.2f} sets/s (30 frames/s) the chosen codec needs {chosen[2] * sets_per_s / 1e3:.2f} "
-          f"of a core and {chosen[1] * sets_per_s:.1f} MB/s of disk for the frames; png level 1 "
-          f"{ref_ms * sets_per_s / 1e3:.2f} of a core")
+    print(
+        f"  at {sets_per_s:.2f} sets/s (30 frames/s) the chosen codec needs {chosen[2] * sets_per_s / 1e3:.2f} "
+        f"of a core and {chosen[1] * sets_per_s:.1f} MB/s of disk for the frames; png level 1 "
+        f"{ref_ms * sets_per_s / 1e3:.2f} of a core"
+    )
     if args.storage_only:
         return 0
     return live(args)

@@ -322,7 +322,10 @@ class Recorder:
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
                 with self._lock:
                     self._recording, self._thread, self._writer = None, None, None
-                rec.close()
+                try:
+                    rec.close()
+                except OSError as exc:  # still no room for session.json: the next start marks it interrupted
+                    log.warning("recording %r could not be closed: %s", rec.name, exc)
 
     @staticmethod
     def _match(pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]], res: LiveResult,

@@ -290,3 +290,46 @@ def test_area_sigma_through_holes_matches_monte_carlo():
     assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
     whole = M.area(base, ones(base), None, pix)
     assert abs(np.mean(vals) - whole.value_mm) < 3 * m.sigma_mm / math.sqrt(300) + 1e-3 * m.value_mm
+
+
+def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
+    rng = np.random.default_rng(5)
+    p = plane((0.3, 0.1, 1.0), 40.0)
+    ok = ones(p)
+    ok[76:85, 146:155] = False  # a 9 x 9 hole around the second click: nothing within 3 px
+    sig = np.where(ok, 0.02, 0.0)
+    pix = [(30, 40), (150, 80)]
+    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel and no valid pixel within 3 px"):
+        M.length(p, ok, sig, pix)
+    m = M.length(p, ok, sig, pix, fill_holes=True)
+    truth = float(np.linalg.norm(p[80, 150] - p[40, 30]))
+    assert m.points[1].filled and not m.points[0].filled and m.points[1].pixel == (150, 80)
+    assert 0.5 < m.points[1].coverage < 1.0 and m.extra["coverage"] == m.points[1].coverage
+    assert m.value_mm == pytest.approx(truth, abs=0.01 * m.sigma_mm)  # a plane: the fit is near exact
+    vals = [M.length(noisy(p, sig, rng), ok, sig, pix, fill_holes=True).value_mm for _ in range(300)]
+    assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
+    # the dispatcher passes it on; a profile's chord end in the hole is filled, its samples there are gaps
+    assert M.measure("length", p, ok, sig, pix, fill_holes=True).value_mm == m.value_mm
+    prof = M.measure("profile", p, ok, sig, [(100, 80), (150, 80)], fill_holes=True)
+    assert prof.points[-1].filled and 0.5 < prof.extra["coverage"] < 1.0
+    assert np.isnan(prof.profile.height_mm[-5:]).all()  # type: ignore[union-attr]
+    # a hole whose surroundings are mostly invalid too is refused, saying so
+    sparse = ok.copy()
+    sparse[40:120, 110:190] &= rng.random((80, 80)) < 0.3
+    sparse[76:85, 146:155] = False
+    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel in a hole whose surroundings are "
+                                         r"\d+ % valid \(a filled point needs 50 %\)"):
+        M.length(p, sparse, sig, pix, fill_holes=True)
+
+
+def test_profile_refused_below_half_coverage_with_the_figure():
+    p = plane()
+    ok = ones(p)
+    ok[80, 60:130] = False  # 70 of the 101 samples
+    with pytest.raises(ValueError, match=r"only 31 % of the profile's pixels are valid; a measurement needs at least "
+                                         r"50 %"):
+        M.profile(p, ok, None, [(50, 80), (150, 80)])
+    ok[80, 60:130] = True
+    ok[80, 60:100] = False
+    m = M.profile(p, ok, None, [(50, 80), (150, 80)])
+    assert m.extra["coverage"] == pytest.approx(61 / 101, abs=1e-4)

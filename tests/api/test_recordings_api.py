@@ -17,6 +17,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 import tifffile
 from fastapi.testclient import TestClient
 
@@ -186,5 +187,50 @@ def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
                 assert depth.shape == cap.frames.shape[1:] and np.isfinite(depth).mean() > 0.2
         r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
         assert r.status_code == 409  # the interrupted recording is kept under its name
+    finally:
+        _stop(proc)
+
+
+def _can_mount_tmpfs(tmp_path: Path) -> bool:
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    r = subprocess.run(["unshare", "-rm", "sh", "-c", f"mount -t tmpfs -o size=1m tmpfs {probe}"],
+                       capture_output=True, timeout=30)
+    return r.returncode == 0
+
+
+def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
+        tmp_path: Path, sim_calibration_file: Path) -> None:
+    """A real ENOSPC: the server runs in its own mount namespace on a 40 MB tmpfs data folder."""
+    if not _can_mount_tmpfs(tmp_path):
+        pytest.skip("no user/mount namespaces here (unshare -rm): cannot give the server a small disk")
+    data = tmp_path / "data"
+    data.mkdir()
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    wrap = ("unshare", "-rm", "sh", "-c", f'mount -t tmpfs -o size=40m tmpfs {data} && exec "$@"', "sh")
+    proc = _serve(tmp_path, sim_calibration_file, port, *wrap, FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
+    try:
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180, "first depth map")
+        r = httpx.post(base + "/api/recording/start", json={"name": "full"}, timeout=10)
+        assert r.status_code == 200, r.text
+        st = _poll(base + "/api/status", proc, lambda s: s["recording"] is None, 120, "the recording to stop")
+        (warning,) = [w for w in st["warnings"] if "recording 'full' stopped" in w]
+        assert "disk full" in warning and "No space left on device" in warning, warning
+        rec = httpx.get(base + "/api/recording", timeout=10).json()
+        assert rec["recording"] is None and rec["last_error"] == warning and rec["errors"] == 1
+        (summary,) = httpx.get(base + "/api/recordings", timeout=10).json()
+        assert summary["name"] == "full" and summary["stopped"] is not None and not summary["interrupted"]
+        meta = httpx.get(base + "/api/recordings/full", timeout=10).json()
+        assert 1 <= summary["n_sets"] == len(meta["sets"]) < 8  # ~11 MB a set on 40 MB
+        # the service goes on: depth keeps coming, and the warning stays until a new recording starts
+        seq = httpx.get(base + "/api/status", timeout=10).json()["results_published"]
+        st = _poll(base + "/api/status", proc, lambda s: s["results_published"] > seq + 2, 60, "more depth")
+        assert warning in st["warnings"] and st["state"] == "running"
+        httpx.delete(base + "/api/recordings/full", timeout=10)
+        r = httpx.post(base + "/api/recording/start", json={"name": "again"}, timeout=10)
+        assert r.status_code == 200, r.text
+        assert warning not in httpx.get(base + "/api/status", timeout=10).json()["warnings"]
+        httpx.post(base + "/api/recording/stop", timeout=30)
     finally:
         _stop(proc)
