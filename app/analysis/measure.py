@@ -228,8 +228,10 @@ def _why(surf: _Surface, u: int, v: int) -> str:
     return "invalid pixel"
 
 
-def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str, fill: bool = False) -> PickedPoint:
-    """The valid pixel for a click at (u, v), snapping within ``snap_px`` (ValueError naming ``label``).
+def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str,
+         fill: bool = False) -> PickedPoint:
+    """The valid pixel for a click at (u, v), snapping within ``snap_px`` (ValueError naming
+    ``label``).
 
     ``fill``: a click in a hole with no valid pixel within ``snap_px`` is filled from the valid
     points around it (:func:`_linear_fill`) when they make at least :data:`MIN_COVERAGE` of
@@ -269,8 +271,9 @@ def _filled_pick(surf: _Surface, u: float, v: float, iu: int, iv: int, label: st
     except ValueError:
         coverage = 0.0
     if coverage < MIN_COVERAGE:
-        raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} in a hole whose surroundings are "
-                         f"{100 * coverage:.0f} % valid (a filled point needs {100 * MIN_COVERAGE:.0f} %)")
+        raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} in a hole whose "
+                         f"surroundings are {100 * coverage:.0f} % valid (a filled point needs "
+                         f"{100 * MIN_COVERAGE:.0f} %)")
     rows, cols = rows + r0, cols + c0
     x = weights @ surf.pts(rows, cols)
     sig = float(np.sqrt(np.sum((weights * surf.sig(rows, cols)) ** 2)))
@@ -307,8 +310,10 @@ def _slope(f: Callable[[F64], float], pts: F64, dirs: F64, i: int) -> float:
     return (f(p1) - f(p2)) / (2 * step)
 
 
-def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1, fill: bool = False) -> list[PickedPoint]:
-    return [pick(surf, float(u), float(v), snap_px, f"point {first + i}", fill) for i, (u, v) in enumerate(pixels)]
+def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1,
+           fill: bool = False) -> list[PickedPoint]:
+    return [pick(surf, float(u), float(v), snap_px, f"point {first + i}", fill)
+            for i, (u, v) in enumerate(pixels)]
 
 
 def _outline(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
@@ -322,14 +327,14 @@ def _outline(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> lis
             if "outside" in str(exc):
                 raise
             nan = float("nan")
-            out.append(PickedPoint((float(u), float(v)), (int(round(u)), int(round(v))), (nan, nan, nan),
-                                   nan, False, 0.0))
+            out.append(PickedPoint((float(u), float(v)), (int(round(u)), int(round(v))),
+                                   (nan, nan, nan), nan, False, 0.0))
     return out
 
 
 def _coverage_error(what: str, covered: float) -> ValueError:
-    return ValueError(f"points: only {100 * covered:.0f} % of the {what}'s pixels are valid; a measurement "
-                      f"needs at least {100 * MIN_COVERAGE:.0f} %")
+    return ValueError(f"points: only {100 * covered:.0f} % of the {what}'s pixels are valid; a "
+                      f"measurement needs at least {100 * MIN_COVERAGE:.0f} %")
 
 
 def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
@@ -546,7 +551,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         ref_picks = _picks(surf, rp, snap_px, first=len(px) + 1, fill=fill_holes)
     else:  # the chord's ends carry the reference; the vertices between only place the line
         first = pick(surf, float(px[0, 0]), float(px[0, 1]), snap_px, "point 1", fill_holes)
-        last = pick(surf, float(px[-1, 0]), float(px[-1, 1]), snap_px, f"point {len(px)}", fill_holes)
+        last = pick(surf, float(px[-1, 0]), float(px[-1, 1]), snap_px, f"point {len(px)}",
+                    fill_holes)
         picks = [first, *_outline(surf, px[1:-1], snap_px, first=2), last]
     verts = np.array([p.pixel for p in picks], np.float64)
     steps = np.abs(np.diff(verts, axis=0)).max(axis=1).sum()
@@ -628,7 +634,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     k = int(np.nanargmax(np.abs(h)))
     samples_out = ProfileSamples(samples, dist, h, s, s_noise)
     extra = {"reference": "chord" if reference is None else "plane", "samples": int(len(samples)),
-             "valid_samples": int(ok.sum()), "coverage": round(float(ok.mean()), 4), "at_pixel": [int(su[k]), int(sv[k])],
+             "valid_samples": int(ok.sum()), "coverage": round(float(ok.mean()), 4),
+             "at_pixel": [int(su[k]), int(sv[k])],
              "sigma_noise_mm": float(s_noise[k]), "sigma_calibration_mm": float(np.sqrt(var_cal[k]))}
     return Measurement("profile", float(h[k]), float(s[k]), picks + ref_picks, samples_out, extra)
 
@@ -718,7 +725,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     # box means over the bounding box (+ margin): sums via an integral image
     okb = surf.ok(slice(bv0, bv1), slice(bu0, bu1))
     # coverage: the valid share of the pixels whose centres lie inside the polygon
-    pu_grid, pv_grid = np.meshgrid(np.arange(bu0, bu1, dtype=np.float64), np.arange(bv0, bv1, dtype=np.float64))
+    pu_grid, pv_grid = np.meshgrid(np.arange(bu0, bu1, dtype=np.float64),
+                                   np.arange(bv0, bv1, dtype=np.float64))
     in_poly = _inside(poly, pu_grid, pv_grid)
     coverage = float(okb[in_poly].mean()) if in_poly.any() else 0.0
     if coverage < MIN_COVERAGE:
@@ -765,8 +773,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         try:
             fills[hole] = _linear_fill(okb, su[hole] - bu0, sv[hole] - bv0, window_px)[:3]
         except ValueError:
-            raise ValueError(f"points: no valid pixels around ({su[hole]:.0f}, {sv[hole]:.0f}) to fill the "
-                             f"polygon's hole (coverage {100 * coverage:.0f} %)") from None
+            raise ValueError(f"points: no valid pixels around ({su[hole]:.0f}, {sv[hole]:.0f}) to "
+                             f"fill the polygon's hole (coverage {100 * coverage:.0f} %)") from None
     corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)]
     corners = [(du, dv, np.where(usable, wgt, 0.0)) for du, dv, wgt in corners]
     X = np.zeros((len(su), 3))
@@ -846,8 +854,9 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
 
 
 def _linear_fill(ok: npt.NDArray[np.bool_], u: float, v: float, window_px: int,
-                 min_pixels: int = 30) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], F64, float]:
-    """Weights that predict a point at (u, v) (px, in ``ok``'s frame) from the valid pixels around it.
+                 min_pixels: int = 30
+                 ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], F64, float]:
+    """Weights predicting a point at (u, v) (px, in ``ok``'s frame) from the valid pixels around it.
 
     The smallest square window (half-width 2·window_px, doubling, at most 64 px) whose valid
     pixels number at least ``min_pixels`` gives a least-squares quadratic surface
@@ -869,12 +878,13 @@ def _linear_fill(ok: npt.NDArray[np.bool_], u: float, v: float, window_px: int,
                       np.column_stack([np.ones(len(rows)), du, dv])):
                 gram = a.T @ a
                 if np.linalg.cond(gram) < 1e6:
-                    weights = np.linalg.solve(gram, a.T)[0]  # first row of (AᵀA)⁻¹Aᵀ: the value at (u, v)
+                    # the first row of (AᵀA)⁻¹Aᵀ: the fitted value at (u, v)
+                    weights = np.linalg.solve(gram, a.T)[0]
                     coverage = len(rows) / float((r1 - r0) * (c1 - c0))
                     return rows, cols, np.asarray(weights, np.float64), coverage
         r *= 2
-    raise ValueError(f"(u, v) = ({u:.0f}, {v:.0f}): no window of at most 64 px holds {min_pixels} valid pixels "
-                     "around it")
+    raise ValueError(f"(u, v) = ({u:.0f}, {v:.0f}): no window of at most 64 px holds "
+                     f"{min_pixels} valid pixels around it")
 
 
 def _box_sum(a: F64, half: int) -> F64:
@@ -908,7 +918,8 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
                           "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm}
     if kind == "profile":
-        return profile(points, valid, sigma, pixels, reference=reference, fill_holes=fill_holes, **kw)
+        return profile(points, valid, sigma, pixels, reference=reference, fill_holes=fill_holes,
+                       **kw)
     if kind == "length":
         return length(points, valid, sigma, pixels, fill_holes=fill_holes, **kw)
     fn = {"point_to_line": point_to_line, "depth": depth, "area": area}[kind]

@@ -285,7 +285,8 @@ class RecorderStatus(BaseModel):
     errors: int
     last_error: str | None
     queue_peak: int = Field(0, description="most sets waiting for the writer at once")
-    write_cpu_ms_per_set: float = Field(0.0, description="the writer thread's CPU time per set written, ms")
+    write_cpu_ms_per_set: float = Field(0.0, description="the writer thread's CPU time per set "
+                                        "written, ms")
 
 
 class RecordingSummary(BaseModel):
@@ -353,8 +354,8 @@ class PickedOut(BaseModel):
     sigma_mm: float | None
     snapped: bool
     snap_px: float
-    filled: bool = Field(False, description="in a hole too wide to snap across: fitted from the valid points "
-                         "around it")
+    filled: bool = Field(False, description="in a hole too wide to snap across: fitted from the "
+                         "valid points around it")
     coverage: float = Field(1.0, description="valid share of the pixels the point rests on")
 
 
@@ -375,9 +376,10 @@ class MeasureOut(BaseModel):
     profile: ProfileOut | None = None
     extra: dict[str, Any] = {}
     source: dict[str, Any] = {}
-    coverage: float = Field(1.0, description="valid share of the pixels measured (area: the polygon's; "
-                            "profile: the samples; length: its least covered point)")
-    min_coverage: float = Field(0.5, description="below this coverage a measurement is refused (422)")
+    coverage: float = Field(1.0, description="valid share of the pixels measured (area: the "
+                            "polygon's; profile: the samples; length: its least covered point)")
+    min_coverage: float = Field(0.5, description="below this coverage a measurement is refused "
+                                "(422)")
     elapsed_ms: float
 
 

@@ -137,7 +137,7 @@ def zstd_frame_bytes(frame: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> b
 
 
 def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
-    """A frame written by :func:`zstd_frame_bytes`; ``ValueError`` naming ``path`` if it is not one."""
+    """A frame written by :func:`zstd_frame_bytes`; ``ValueError`` naming ``path`` if not one."""
     try:
         data = path.read_bytes()
     except OSError:
@@ -154,7 +154,8 @@ def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
     except (zstandard.ZstdError, ValueError, OSError, EOFError) as exc:
         raise ValueError(f"{path}: unreadable frame ({exc})") from None
     if diff.ndim != 2 or diff.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"{path}: expected an (H, W) uint8/uint16 frame, got {diff.shape} {diff.dtype}")
+        raise ValueError(f"{path}: expected an (H, W) uint8/uint16 frame, got {diff.shape} "
+                         f"{diff.dtype}")
     return np.cumsum(diff, axis=1, dtype=diff.dtype)
 
 

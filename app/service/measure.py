@@ -144,6 +144,7 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
         sig = "?" if not np.isfinite(m.sigma_mm) else f"{m.sigma_mm:.3f}"
         drawn = p[np.isfinite(p).all(axis=1)]
         if len(drawn):
-            labels.append((drawn.mean(axis=0).astype(np.float32), f"{m.value_mm:.3f} ± {sig} {unit}"))
+            labels.append((drawn.mean(axis=0).astype(np.float32),
+                           f"{m.value_mm:.3f} ± {sig} {unit}"))
     arr = np.array(segs, np.float32).reshape(-1, 2, 3)
     return arr, labels

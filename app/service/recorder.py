@@ -82,8 +82,8 @@ class Recorder:
         queue_sets: sets waiting for the writer at most; one more is counted as skipped.
     """
 
-    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0,
-                 codec: str = "zstd", queue_sets: int = 16) -> None:
+    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
+                 depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16) -> None:
         if codec not in FRAME_CODECS:
             raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
         if queue_sets < 1:
@@ -107,7 +107,8 @@ class Recorder:
         self.write_cpu_s = 0.0  # the writer thread's CPU time this recording, s
         self.sets_written = 0
         self.last_error: str | None = None
-        self.warning: str | None = None  # why the last recording stopped on its own; shown in status
+        # why the last recording stopped on its own (shown in /api/status warnings)
+        self.warning: str | None = None
         # leftovers of a run that ended without closing its recording (kill -9, power cut)
         self.recovered = recover_interrupted(self.root)
         remove_stale_partials(self.root)
@@ -258,7 +259,7 @@ class Recorder:
 
     # -- the threads ------------------------------------------------------------------------------
     def _run(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
-        """Collector: pair each raw set with its depth map and hand it to the writer, never waiting."""
+        """Collector: pair each raw set with its depth map, hand it to the writer, never wait."""
         inst = self.instrument
         pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]] = OrderedDict()
         set_seq = result_seq = -1
@@ -324,7 +325,7 @@ class Recorder:
                     self._recording, self._thread, self._writer = None, None, None
                 try:
                     rec.close()
-                except OSError as exc:  # still no room for session.json: the next start marks it interrupted
+                except OSError as exc:  # no room for session.json: marked interrupted at next start
                     log.warning("recording %r could not be closed: %s", rec.name, exc)
 
     @staticmethod
@@ -372,11 +373,13 @@ class Recorder:
                     if measured:
                         info["measurements"] = capture.extra["measurements"] = measured
             rec.add_set(capture, depth_mm=None if res is None else res.depth,
-                        timestamp=now_wall - (now_mono - fs.received_s), info=info, codec=self.codec)
+                        timestamp=now_wall - (now_mono - fs.received_s), info=info,
+                        codec=self.codec)
         except (OSError, ValueError) as exc:
             full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
             reason = f"disk full ({exc})" if full else str(exc)
-            self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}", warn=True)
+            self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}",
+                       warn=True)
             raise _StopRecording from exc
         self.sets_with_depth += res is not None
         self.sets_written += 1

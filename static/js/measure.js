@@ -19,8 +19,10 @@ const HINT = {
   area: "click the polygon's corners, then Done",
 };
 
-const m = { kind: "", points: [], result: null, done: false, seq: -1, busy: false, error: "", refused: false,
-  posts: 0 };
+const m = {
+  kind: "", points: [], result: null, done: false, seq: -1, busy: false, error: "",
+  refused: false, posts: 0,
+};
 ui.measure = m; // for tests and the curious
 
 function toSensor(ev) {
@@ -140,7 +142,8 @@ async function remeasure() {
     out.className = "roi-result";
     const snapped = r.points.filter((p) => p.snapped).length;
     const filled = r.points.filter((p) => p.filled).length;
-    const cover = r.coverage !== undefined && r.coverage < 1 ? ` · ${fmt(100 * r.coverage, 0)} % valid` : "";
+    const partial = r.coverage !== undefined && r.coverage < 1;
+    const cover = partial ? ` · ${fmt(100 * r.coverage, 0)} % valid` : "";
     out.innerHTML = `<b>${r.kind.replace(/_/g, " ")}</b> <span id="measure-value">${label(r)}</span> (1σ)` +
       cover +
       (snapped ? ` · ${snapped} point${snapped > 1 ? "s" : ""} snapped to a valid pixel` : "") +

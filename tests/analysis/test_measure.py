@@ -254,7 +254,7 @@ def test_calibration_term_correlated_by_distance():
 
 @pytest.mark.parametrize("surface", ["sphere", "tilted"])
 def test_area_measures_through_holes_within_its_sigma(surface: str):
-    """Live maps have 9 x 9 holes (motion flags grown); an area keeps its value and says its coverage."""
+    """Live maps have 9 x 9 holes (motion flags grown): an area keeps its value, says its coverage."""
     p = sphere() if surface == "sphere" else plane((0.4, -0.2, 1.0), 45.0)
     ok, sig = ones(p), np.full((H, W), 0.02)
     poly = [(CX - 40, CY - 40), (CX + 40, CY - 40), (CX + 40, CY + 40), (CX - 40, CY + 40)]
@@ -305,8 +305,9 @@ def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
     truth = float(np.linalg.norm(p[80, 150] - p[40, 30]))
     assert m.points[1].filled and not m.points[0].filled and m.points[1].pixel == (150, 80)
     assert 0.5 < m.points[1].coverage < 1.0 and m.extra["coverage"] == m.points[1].coverage
-    assert m.value_mm == pytest.approx(truth, abs=0.01 * m.sigma_mm)  # a plane: the fit is near exact
-    vals = [M.length(noisy(p, sig, rng), ok, sig, pix, fill_holes=True).value_mm for _ in range(300)]
+    assert m.value_mm == pytest.approx(truth, abs=0.01 * m.sigma_mm)  # a plane: fitted near exact
+    vals = [M.length(noisy(p, sig, rng), ok, sig, pix, fill_holes=True).value_mm
+            for _ in range(300)]
     assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
     # the dispatcher passes it on; a profile's chord end in the hole is filled, its samples there are gaps
     assert M.measure("length", p, ok, sig, pix, fill_holes=True).value_mm == m.value_mm
