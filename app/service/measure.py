@@ -22,10 +22,14 @@ from app.core.errors import InvalidRequest
 class MeasurableResult(Protocol):
     """What a measurement reads of a result (``LiveResult`` and ``ReconResult`` both have it)."""
 
-    points: npt.NDArray[np.float32]
-    valid: npt.NDArray[np.bool_]
-    reason: npt.NDArray[np.uint8]
-    sigma: npt.NDArray[np.float32] | None
+    @property
+    def points(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def valid(self) -> npt.NDArray[np.bool_]: ...
+    @property
+    def reason(self) -> npt.NDArray[np.uint8]: ...
+    @property
+    def sigma(self) -> npt.NDArray[np.float32] | None: ...
 
 
 def _nonneg(x: Any) -> float | None:
