@@ -45,7 +45,7 @@ from app.core.schedule import schedule_by_name
 def storage(
     frames: npt.NDArray[np.uint8], repeats: int = 3
 ) -> list[tuple[str, float, float, float]]:
-    """Per codec: (name, MB per set, encode CPU ms per set, decode CPU ms per set), best of ``repeats``."""
+    """Per codec: (name, MB/set, encode CPU ms/set, decode CPU ms/set), best of ``repeats``."""
     import tempfile
 
     def png(level: int, strategy: int) -> Any:
@@ -90,7 +90,7 @@ def storage(
 
 
 def sim_frames(schedule_name: str) -> npt.NDArray[np.uint8]:
-    """One simulated set of ``intestine_flap`` with ``schedule_name``'s patterns, (F, H, W) uint8."""
+    """One simulated set of ``intestine_flap`` with ``schedule_name``'s patterns, (F, H, W) u8."""
     from app.devices.sim.offline import render_capture_set
 
     cap, _, _ = render_capture_set(
@@ -197,37 +197,29 @@ def live(args: argparse.Namespace) -> int:
     ideal0, ideal1 = cam0 / per_map, cam1 / per_map
     ratio = depth1 / ideal1 if ideal1 else 0.0
     expected = span * ideal1
-    print(
-        f"live: schedule {args.schedule} ({per_map} frames/map), scene {args.scene}, {args.exposure_ms:g} ms, "
-        f"codec {args.codec}, {args.busy_cores} busy core(s) beside, {span:.1f} s recording"
-    )
-    print(
-        f"  baseline (not recording) camera {cam0:.2f} fps, depth {depth0:.3f} /s = "
-        f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}; server process {cpu0:.2f} cores"
-    )
-    print(
-        f"  recording                camera {cam1:.2f} fps, depth {depth1:.3f} /s = {ratio:.3f} x camera/{per_map} "
-        f"(target >= 0.97: {verdict(ratio >= 0.97)}); depth while recording / baseline "
-        f"{depth1 / depth0 if depth0 else 0:.3f}"
-    )
-    print(
-        f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against the baseline); "
-        f"the writer thread {rec_status['write_cpu_ms_per_set']:.1f} ms per set = "
-        f"{rec_status['write_cpu_ms_per_set'] * len(sets) / span / 1e3:.2f} cores"
-    )
-    print(
-        f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), with depth "
-        f"{rec_status['sets_with_depth']}, skipped_sets {rec_status['skipped_sets']} "
-        f"(target 0: {verdict(rec_status['skipped_sets'] == 0)}), writer queue peak {rec_status['queue_peak']}, "
-        f"errors {rec_status['errors']}"
-    )
-    print(
-        f"  on disk: frames {frame_bytes / max(1, len(sets)) / 1e6:.2f} MB/set, all {all_bytes / max(1, len(sets)) / 1e6:.2f} "
-        f"MB/set (with depth.npy), {all_bytes / span / 1e6:.1f} MB/s; read back whole {whole} of {len(sets)}"
-    )
-    print(
-        f"  status warnings {status['warnings']}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"
-    )
+    n = max(1, len(sets))
+    skipped, wr_ms = rec_status["skipped_sets"], rec_status["write_cpu_ms_per_set"]
+    print(f"live: schedule {args.schedule} ({per_map} frames/map), scene {args.scene}, "
+          f"{args.exposure_ms:g} ms, codec {args.codec}, {args.busy_cores} busy core(s) beside, "
+          f"{span:.1f} s recording")
+    print(f"  baseline (not recording) camera {cam0:.2f} fps, depth {depth0:.3f} /s = "
+          f"{depth0 / ideal0 if ideal0 else 0:.3f} x camera/{per_map}; "
+          f"server process {cpu0:.2f} cores")
+    print(f"  recording                camera {cam1:.2f} fps, depth {depth1:.3f} /s = "
+          f"{ratio:.3f} x camera/{per_map} (target >= 0.97: {verdict(ratio >= 0.97)}); "
+          f"depth while recording / baseline {depth1 / depth0 if depth0 else 0:.3f}")
+    print(f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against "
+          f"the baseline); the writer thread {wr_ms:.1f} ms per set = "
+          f"{wr_ms * len(sets) / span / 1e3:.2f} cores")
+    print(f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), "
+          f"with depth {rec_status['sets_with_depth']}, skipped_sets {skipped} "
+          f"(target 0: {verdict(skipped == 0)}), writer queue peak {rec_status['queue_peak']}, "
+          f"errors {rec_status['errors']}")
+    print(f"  on disk: frames {frame_bytes / n / 1e6:.2f} MB/set, all {all_bytes / n / 1e6:.2f} "
+          f"MB/set (with depth.npy), {all_bytes / span / 1e6:.1f} MB/s; "
+          f"read back whole {whole} of {len(sets)}")
+    print(f"  status warnings {status['warnings']}; "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     return 0 if rec_status["skipped_sets"] == 0 and ratio >= 0.97 and whole == len(sets) else 1
 
 
@@ -255,22 +247,17 @@ def main() -> int:
     frames = sim_frames(args.schedule)
     rows = storage(frames)
     ref_mb, ref_ms = rows[0][1], rows[0][2]
-    print(
-        f"storage: one {args.schedule} set of intestine_flap, {frames.shape[0]} x {frames.shape[1]} x "
-        f"{frames.shape[2]} {frames.dtype} ({frames.nbytes / 1e6:.1f} MB raw); ratios against png level 1"
-    )
+    shape = " x ".join(str(x) for x in frames.shape)
+    print(f"storage: one {args.schedule} set of intestine_flap, {shape} {frames.dtype} "
+          f"({frames.nbytes / 1e6:.1f} MB raw); ratios against png level 1")
     for name, mb, enc_ms, dec_ms in rows:
-        print(
-            f"  {name:30s} {mb:6.2f} MB/set ({mb / ref_mb:4.2f})  encode {enc_ms:6.1f} ms CPU/set "
-            f"({enc_ms / ref_ms:4.2f})  read {dec_ms:6.1f} ms CPU/set"
-        )
+        print(f"  {name:30s} {mb:6.2f} MB/set ({mb / ref_mb:4.2f})  encode {enc_ms:6.1f} ms "
+              f"CPU/set ({enc_ms / ref_ms:4.2f})  read {dec_ms:6.1f} ms CPU/set")
     sets_per_s = 30.0 / frames.shape[0]  # at 30 frames/s
     chosen = rows[-1]
-    print(
-        f"  at {sets_per_s:.2f} sets/s (30 frames/s) the chosen codec needs {chosen[2] * sets_per_s / 1e3:.2f} "
-        f"of a core and {chosen[1] * sets_per_s:.1f} MB/s of disk for the frames; png level 1 "
-        f"{ref_ms * sets_per_s / 1e3:.2f} of a core"
-    )
+    print(f"  at {sets_per_s:.2f} sets/s (30 frames/s) the chosen codec needs "
+          f"{chosen[2] * sets_per_s / 1e3:.2f} of a core and {chosen[1] * sets_per_s:.1f} MB/s "
+          f"of disk for the frames; png level 1 {ref_ms * sets_per_s / 1e3:.2f} of a core")
     if args.storage_only:
         return 0
     return live(args)

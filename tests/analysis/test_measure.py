@@ -195,8 +195,8 @@ def test_snapping_and_refusals_name_the_point():
         M.area(p, ok, None, [(10, 10), (20, 20)])
     with pytest.raises(ValueError, match="edges 1-2 and 3-4 cross"):
         M.area(p, ok, None, [(10, 10), (100, 100), (100, 10), (10, 100)])
-    with pytest.raises(ValueError, match=r"only 44 % of the polygon's pixels are valid; a measurement needs at "
-                                         r"least 50 %"):
+    with pytest.raises(ValueError, match=r"only 44 % of the polygon's pixels are valid; a "
+                                         r"measurement needs at least 50 %"):
         big = ok.copy()
         big[60:120, 60:120] = False
         M.area(p, big, None, [(60, 60), (140, 60), (140, 140), (60, 140)])
@@ -254,7 +254,7 @@ def test_calibration_term_correlated_by_distance():
 
 @pytest.mark.parametrize("surface", ["sphere", "tilted"])
 def test_area_measures_through_holes_within_its_sigma(surface: str):
-    """Live maps have 9 x 9 holes (motion flags grown): an area keeps its value, says its coverage."""
+    """Live maps have 9 x 9 holes (grown motion flags): an area keeps its value, says coverage."""
     p = sphere() if surface == "sphere" else plane((0.4, -0.2, 1.0), 45.0)
     ok, sig = ones(p), np.full((H, W), 0.02)
     poly = [(CX - 40, CY - 40), (CX + 40, CY - 40), (CX + 40, CY + 40), (CX - 40, CY + 40)]
@@ -299,7 +299,8 @@ def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
     ok[76:85, 146:155] = False  # a 9 x 9 hole around the second click: nothing within 3 px
     sig = np.where(ok, 0.02, 0.0)
     pix = [(30, 40), (150, 80)]
-    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel and no valid pixel within 3 px"):
+    with pytest.raises(ValueError,
+                       match=r"point 2 \(150, 80\): invalid pixel and no valid pixel within 3 px"):
         M.length(p, ok, sig, pix)
     m = M.length(p, ok, sig, pix, fill_holes=True)
     truth = float(np.linalg.norm(p[80, 150] - p[40, 30]))
@@ -309,7 +310,7 @@ def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
     vals = [M.length(noisy(p, sig, rng), ok, sig, pix, fill_holes=True).value_mm
             for _ in range(300)]
     assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
-    # the dispatcher passes it on; a profile's chord end in the hole is filled, its samples there are gaps
+    # the dispatcher passes it on; a profile's chord end in the hole is filled, its samples gaps
     assert M.measure("length", p, ok, sig, pix, fill_holes=True).value_mm == m.value_mm
     prof = M.measure("profile", p, ok, sig, [(100, 80), (150, 80)], fill_holes=True)
     assert prof.points[-1].filled and 0.5 < prof.extra["coverage"] < 1.0
@@ -318,8 +319,9 @@ def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
     sparse = ok.copy()
     sparse[40:120, 110:190] &= rng.random((80, 80)) < 0.3
     sparse[76:85, 146:155] = False
-    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel in a hole whose surroundings are "
-                                         r"\d+ % valid \(a filled point needs 50 %\)"):
+    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel in a hole whose "
+                                         r"surroundings are \d+ % valid "
+                                         r"\(a filled point needs 50 %\)"):
         M.length(p, sparse, sig, pix, fill_holes=True)
 
 
@@ -327,8 +329,8 @@ def test_profile_refused_below_half_coverage_with_the_figure():
     p = plane()
     ok = ones(p)
     ok[80, 60:130] = False  # 70 of the 101 samples
-    with pytest.raises(ValueError, match=r"only 31 % of the profile's pixels are valid; a measurement needs at least "
-                                         r"50 %"):
+    with pytest.raises(ValueError, match=r"only 31 % of the profile's pixels are valid; a "
+                                         r"measurement needs at least 50 %"):
         M.profile(p, ok, None, [(50, 80), (150, 80)])
     ok[80, 60:130] = True
     ok[80, 60:100] = False

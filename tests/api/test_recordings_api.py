@@ -113,11 +113,14 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
 def _serve(tmp_path: Path, calibration: Path, port: int, *wrap: str,
            **env_extra: str) -> subprocess.Popen[str]:
     """``fringescope serve`` as its own process (optionally under ``wrap``, e.g. unshare)."""
-    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration), FRINGESCOPE_VIEWER="false",
-               FRINGESCOPE_SIM_SCENE="dof_target", FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_EXPOSURE_MS="30",
+    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration),
+               FRINGESCOPE_VIEWER="false", FRINGESCOPE_SIM_SCENE="dof_target",
+               FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_EXPOSURE_MS="30",
                FRINGESCOPE_SCHEDULE="geometric-9", NUMBA_THREADING_LAYER="workqueue", **env_extra)
-    cmd = [sys.executable, "-m", "app", "serve", "--port", str(port), "--data-dir", str(tmp_path / "data")]
-    return subprocess.Popen([*wrap, *cmd], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    cmd = [sys.executable, "-m", "app", "serve", "--port", str(port),
+           "--data-dir", str(tmp_path / "data")]
+    return subprocess.Popen([*wrap, *cmd], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
 
 
 def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool], timeout_s: float,
@@ -125,7 +128,8 @@ def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool
     deadline, body = time.monotonic() + timeout_s, None
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise AssertionError(f"server exited {proc.returncode} waiting for {what}: {proc.stdout.read()}")  # type: ignore[union-attr]
+            out = proc.stdout.read() if proc.stdout else ""
+            raise AssertionError(f"server exited {proc.returncode} waiting for {what}: {out}")
         try:
             body = httpx.get(url, timeout=5).json()
             if predicate(body):
@@ -152,10 +156,12 @@ def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
     base = f"http://127.0.0.1:{port}"
     proc = _serve(tmp_path, sim_calibration_file, port)
     try:
-        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180, "first depth map")
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+              "first depth map")
         r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
         assert r.status_code == 200, r.text
-        _poll(base + "/api/recording", proc, lambda s: s["sets_with_depth"] >= 4, 120, "four recorded sets")
+        _poll(base + "/api/recording", proc, lambda s: s["sets_with_depth"] >= 4, 120,
+              "four recorded sets")
         os.kill(proc.pid, signal.SIGKILL)  # mid-recording: the writer is busy with the next set
         proc.wait(timeout=30)
     finally:
@@ -168,7 +174,8 @@ def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
 
     proc = _serve(tmp_path, sim_calibration_file, port)
     try:
-        listed = _poll(base + "/api/recordings", proc, lambda x: isinstance(x, list), 180, "the listing")
+        listed = _poll(base + "/api/recordings", proc, lambda x: isinstance(x, list), 180,
+                       "the listing")
         (summary,) = listed
         assert summary["name"] == "crashed" and summary["interrupted"] is True
         meta = httpx.get(base + "/api/recordings/crashed", timeout=10).json()
@@ -203,29 +210,35 @@ def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
         tmp_path: Path, sim_calibration_file: Path) -> None:
     """A real ENOSPC: the server runs in its own mount namespace on a 40 MB tmpfs data folder."""
     if not _can_mount_tmpfs(tmp_path):
-        pytest.skip("no user/mount namespaces here (unshare -rm): cannot give the server a small disk")
+        pytest.skip("no user/mount namespaces here (unshare -rm): no small disk for the server")
     data = tmp_path / "data"
     data.mkdir()
     port = _free_port()
     base = f"http://127.0.0.1:{port}"
-    wrap = ("unshare", "-rm", "sh", "-c", f'mount -t tmpfs -o size=40m tmpfs {data} && exec "$@"', "sh")
-    proc = _serve(tmp_path, sim_calibration_file, port, *wrap, FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
+    mount = f'mount -t tmpfs -o size=40m tmpfs {data} && exec "$@"'
+    wrap = ("unshare", "-rm", "sh", "-c", mount, "sh")
+    proc = _serve(tmp_path, sim_calibration_file, port, *wrap,
+                  FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
     try:
-        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180, "first depth map")
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+              "first depth map")
         r = httpx.post(base + "/api/recording/start", json={"name": "full"}, timeout=10)
         assert r.status_code == 200, r.text
-        st = _poll(base + "/api/status", proc, lambda s: s["recording"] is None, 120, "the recording to stop")
+        st = _poll(base + "/api/status", proc, lambda s: s["recording"] is None, 120,
+                   "the recording to stop")
         (warning,) = [w for w in st["warnings"] if "recording 'full' stopped" in w]
         assert "disk full" in warning and "No space left on device" in warning, warning
         rec = httpx.get(base + "/api/recording", timeout=10).json()
         assert rec["recording"] is None and rec["last_error"] == warning and rec["errors"] == 1
         (summary,) = httpx.get(base + "/api/recordings", timeout=10).json()
-        assert summary["name"] == "full" and summary["stopped"] is not None and not summary["interrupted"]
+        assert summary["name"] == "full" and summary["stopped"] is not None
+        assert not summary["interrupted"]
         meta = httpx.get(base + "/api/recordings/full", timeout=10).json()
         assert 1 <= summary["n_sets"] == len(meta["sets"]) < 8  # ~11 MB a set on 40 MB
-        # the service goes on: depth keeps coming, and the warning stays until a new recording starts
+        # the service goes on: depth keeps coming; the warning stays until a new recording starts
         seq = httpx.get(base + "/api/status", timeout=10).json()["results_published"]
-        st = _poll(base + "/api/status", proc, lambda s: s["results_published"] > seq + 2, 60, "more depth")
+        st = _poll(base + "/api/status", proc, lambda s: s["results_published"] > seq + 2, 60,
+                   "more depth")
         assert warning in st["warnings"] and st["state"] == "running"
         httpx.delete(base + "/api/recordings/full", timeout=10)
         r = httpx.post(base + "/api/recording/start", json={"name": "again"}, timeout=10)

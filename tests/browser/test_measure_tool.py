@@ -55,7 +55,8 @@ def test_click_two_points_reads_the_length(page: tuple[Any, list[str]], server: 
         httpx.post(f"{server}/api/acquisition/start")
 
 
-def test_a_refused_measurement_is_shown_once_not_reposted(page: tuple[Any, list[str]], server: str) -> None:  # noqa: F811
+def test_a_refused_measurement_is_shown_once_not_reposted(
+        page: tuple[Any, list[str]], server: str) -> None:  # noqa: F811
     pg, errors = page
     posts: list[int] = []
     pg.on("response", lambda r: posts.append(r.status)
@@ -67,11 +68,13 @@ def test_a_refused_measurement_is_shown_once_not_reposted(page: tuple[Any, list[
     for fx in (0.3, 0.4, 0.5):  # three points on one line: a polygon that encloses nothing
         pg.mouse.click(box["x"] + fx * box["width"], box["y"] + 0.5 * box["height"])
     pg.click("#measure-done")
-    pg.wait_for_function("document.querySelector('#measure-result').classList.contains('error')", timeout=30_000)
+    pg.wait_for_function("document.querySelector('#measure-result').classList.contains('error')",
+                         timeout=30_000)
     text = pg.text_content("#measure-result") or ""
     assert "encloses less than one pixel" in text and "not measured again" in text, text
     seq = httpx.get(f"{server}/api/status").json()["results_published"]
-    assert wait_for(lambda: httpx.get(f"{server}/api/status").json()["results_published"] >= seq + 4, 60, 0.2)
+    status = f"{server}/api/status"
+    assert wait_for(lambda: httpx.get(status).json()["results_published"] >= seq + 4, 60, 0.2)
     pg.wait_for_timeout(1500)  # the page has seen the new maps (status is polled)
     assert posts == [422], posts  # posted once, not once per new depth map
     assert pg.evaluate("window.fringescope.measure.posts") == 1

@@ -241,7 +241,7 @@ def test_recover_interrupted_keeps_whole_sets(tmp_path: Path) -> None:
     open_rec = Recording(tmp_path, "open")  # left open, as by a killed service
     for i in range(3):
         open_rec.add_set(make_set(i)[0], codec="zstd")
-    empty = Recording(tmp_path, "empty")
+    Recording(tmp_path, "empty")
     running = Recording(tmp_path, "running")
     running.add_set(make_set(5)[0])
     # a set folder removed by hand after the crash is not listed; a half-written one never was
