@@ -317,6 +317,10 @@ class Recorder:
                     self._write(rec, *job)
                 except _StopRecording:
                     self._write_failed.set()
+                except Exception as exc:  # a bug must not leave the collector without a writer
+                    log.exception("recorder writer failed")
+                    self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+                    self._write_failed.set()
                 self.write_cpu_s += time.thread_time() - t0
         finally:
             if self._recording is rec and not self._stop.is_set():
