@@ -209,8 +209,9 @@ def live(args: argparse.Namespace) -> int:
           f"{ratio:.3f} x camera/{per_map} (target >= 0.97: {verdict(ratio >= 0.97)}); "
           f"depth while recording / baseline {depth1 / depth0 if depth0 else 0:.3f}")
     print(f"  CPU: server process {cpu1:.2f} cores while recording ({cpu1 - cpu0:+.2f} against "
-          f"the baseline); the writer thread {wr_ms:.1f} ms per set = "
-          f"{wr_ms * len(sets) / span / 1e3:.2f} cores")
+          f"the baseline); the writer {wr_ms:.1f} ms CPU per set = "
+          f"{wr_ms * len(sets) / span / 1e3:.2f} cores, {rec_status['write_ms_per_set']:.1f} ms "
+          f"elapsed per set (the camera gives one every {1e3 / ideal1 if ideal1 else 0:.0f} ms)")
     print(f"  sets recorded {len(sets)} (camera/{per_map} x {span:.1f} s = {expected:.0f}), "
           f"with depth {rec_status['sets_with_depth']}, skipped_sets {skipped} "
           f"(target 0: {verdict(skipped == 0)}), writer queue peak {rec_status['queue_peak']}, "

@@ -285,8 +285,10 @@ class RecorderStatus(BaseModel):
     errors: int
     last_error: str | None
     queue_peak: int = Field(0, description="most sets waiting for the writer at once")
-    write_cpu_ms_per_set: float = Field(0.0, description="the writer thread's CPU time per set "
-                                        "written, ms")
+    write_cpu_ms_per_set: float = Field(0.0, description="the writer's CPU time per set written "
+                                        "(its encoder threads' included), ms")
+    write_ms_per_set: float = Field(0.0, description="the writer's elapsed time per set written, "
+                                    "ms (far above the CPU time: the machine is short of CPU)")
 
 
 class RecordingSummary(BaseModel):

@@ -14,6 +14,8 @@ import io
 import json
 import math
 import os
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -161,15 +163,25 @@ def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
 
 def write_capture_set(
     path: str | os.PathLike[str], capture: CaptureSet, *, overwrite: bool = False,
-    extra_files: dict[str, bytes] | None = None, codec: str = "png",
+    extra_files: dict[str, bytes] | None = None, codec: str = "png", workers: int = 1,
+    encode_cpu_s: list[float] | None = None,
 ) -> Path:
     """Write ``capture`` as a capture-set folder, atomically (it appears whole or not at all).
 
     ``extra_files`` (name → bytes) are written into the same folder, e.g. depth results.
-    ``codec`` stores the frames as PNG or as ``.npy.zst`` (see the module docstring).
+    ``codec`` stores the frames as PNG or as ``.npy.zst`` (see the module docstring);
+    ``workers`` threads encode them (both encoders release the GIL); each frame's encoding
+    CPU time (s) is appended to ``encode_cpu_s`` when given.
     """
     names = frame_names(capture.frames.shape[0], codec)
-    encode = png_bytes if codec == "png" else zstd_frame_bytes
+    encoder = png_bytes if codec == "png" else zstd_frame_bytes
+
+    def encode(frame: npt.NDArray[Any]) -> bytes:
+        t0 = time.thread_time()
+        data = encoder(frame)
+        if encode_cpu_s is not None:
+            encode_cpu_s.append(time.thread_time() - t0)
+        return data
     meta = {
         **capture.extra,
         "format": FORMAT,
@@ -180,8 +192,13 @@ def write_capture_set(
         **({"bit_depth": capture.bit_depth} if capture.bit_depth is not None else {}),
     }
     with atomic_directory(path, overwrite=overwrite) as tmp:
-        for name, frame in zip(names, capture.frames, strict=True):
-            (tmp / name).write_bytes(encode(frame))
+        if workers > 1:
+            with ThreadPoolExecutor(workers, thread_name_prefix="fringescope-encode") as pool:
+                encoded = list(pool.map(encode, capture.frames))
+        else:
+            encoded = [encode(frame) for frame in capture.frames]
+        for name, data in zip(names, encoded, strict=True):
+            (tmp / name).write_bytes(data)
         for name, data in (extra_files or {}).items():
             (tmp / name).write_bytes(data)
         (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")

@@ -166,6 +166,8 @@ class Recording:
         timestamp: float | None = None,
         info: dict[str, Any] | None = None,
         codec: str = "png",
+        workers: int = 1,
+        encode_cpu_s: list[float] | None = None,
     ) -> str:
         """Append one capture set (and its depth map) and return its folder name.
 
@@ -176,6 +178,8 @@ class Recording:
             info: small JSON-able extras for this set's entry in ``session.json``.
             codec: how the frames are stored, ``png`` or ``zstd`` (see
                 :mod:`app.capture.captureset`).
+            workers: threads encoding the frames; ``encode_cpu_s`` collects their CPU time
+                per frame, s.
         """
         with self._lock:
             if self._closed:
@@ -189,7 +193,8 @@ class Recording:
                 led=capture.led, extra={**capture.extra, "timestamp": _iso(t), "index": index},
                 bit_depth=capture.bit_depth,
             )
-            write_capture_set(self.path / folder, stamped, extra_files=extra, codec=codec)
+            write_capture_set(self.path / folder, stamped, extra_files=extra, codec=codec,
+                              workers=workers, encode_cpu_s=encode_cpu_s)
             entry = {"folder": folder, "timestamp": _iso(t), "files": sorted(
                 ["capture.json", *frame_names(capture.frames.shape[0], codec), *extra]
             ), **(info or {})}

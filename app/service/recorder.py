@@ -80,20 +80,26 @@ class Recorder:
         depth_wait_s: how long a raw set waits for its depth map before it is written raw, s.
         codec: how frames are stored, ``zstd`` (default) or ``png``.
         queue_sets: sets waiting for the writer at most; one more is counted as skipped.
+        encode_workers: threads encoding one set's frames: on a machine shared with other
+            work the writer then gets its share of both cores, not of one.
     """
 
     def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
-                 depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16) -> None:
+                 depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16,
+                 encode_workers: int = 2) -> None:
         if codec not in FRAME_CODECS:
             raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
         if queue_sets < 1:
             raise ValueError(f"queue_sets: must be at least 1, got {queue_sets}")
+        if encode_workers < 1:
+            raise ValueError(f"encode_workers: must be at least 1, got {encode_workers}")
         self.instrument = instrument
         self.root = recordings_root(instrument.settings.data_dir)
         self.min_free_mb = float(min_free_mb)
         self.depth_wait_s = float(depth_wait_s)
         self.codec = codec
         self.queue_sets = int(queue_sets)
+        self.encode_workers = int(encode_workers)
         self._lock = threading.Lock()
         self._recording: Recording | None = None
         self._thread: threading.Thread | None = None
@@ -104,7 +110,8 @@ class Recorder:
         self.skipped_sets = 0
         self.errors = 0
         self.queue_peak = 0
-        self.write_cpu_s = 0.0  # the writer thread's CPU time this recording, s
+        self.write_cpu_s = 0.0  # the writer's (and its encoders') CPU time this recording, s
+        self.write_wall_s = 0.0  # the writer's elapsed time on sets this recording, s
         self.sets_written = 0
         self.last_error: str | None = None
         # why the last recording stopped on its own (shown in /api/status warnings)
@@ -146,7 +153,7 @@ class Recorder:
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
             self.sets_with_depth = self.skipped_sets = self.errors = self.queue_peak = 0
-            self.write_cpu_s, self.sets_written = 0.0, 0
+            self.write_cpu_s, self.write_wall_s, self.sets_written = 0.0, 0.0, 0
             self.last_error = self.warning = None
             self._stop.clear()
             self._write_failed.clear()
@@ -188,6 +195,7 @@ class Recorder:
             "last_error": self.last_error,
             "queue_peak": self.queue_peak,
             "write_cpu_ms_per_set": round(1e3 * self.write_cpu_s / max(1, self.sets_written), 3),
+            "write_ms_per_set": round(1e3 * self.write_wall_s / max(1, self.sets_written), 3),
         }
 
     def _fresh_name(self) -> str:
@@ -259,10 +267,21 @@ class Recorder:
 
     # -- the threads ------------------------------------------------------------------------------
     def _run(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
-        """Collector: pair each raw set with its depth map, hand it to the writer, never wait."""
+        """Collector: pair each raw set with its depth map, hand it to the writer, never wait.
+
+        It subscribes to both slots, so a set or a map is never missed while this thread
+        waits for the CPU: the callbacks (on the acquisition and reconstruction threads)
+        only put into ``inbox``.
+        """
         inst = self.instrument
         pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]] = OrderedDict()
-        set_seq = result_seq = -1
+        inbox: queue.Queue[FrameSet | LiveResult] = queue.Queue(maxsize=_MAX_INBOX)
+
+        def receive(_seq: int, item: FrameSet | LiveResult) -> None:
+            try:
+                inbox.put_nowait(item)
+            except queue.Full:  # this thread has not run for seconds: counted, never waited on
+                self.skipped_sets += isinstance(item, FrameSet)
 
         def hand_over(fs: FrameSet, res: LiveResult | None) -> None:
             try:
@@ -271,25 +290,29 @@ class Recorder:
                 self.skipped_sets += 1
             self.queue_peak = max(self.queue_peak, jobs.qsize())
 
+        unsubscribe = [inst.results.subscribe(receive)]
+        watched: Acquisition | None = None
         try:
             while True:
                 acq = inst.acquisition
+                if acq is not None and acq is not watched:  # started, or restarted
+                    unsubscribe.append(acq.sets.subscribe(receive))
+                    watched = acq
                 shut_down = inst.results.closed or (acq is not None and not acq.alive)
                 stopping = self._stop.is_set() or shut_down or self._write_failed.is_set()
-                if acq is not None and not stopping:
-                    if set_seq < 0:
-                        set_seq = acq.sets.seq  # record from now on, not the set before start
-                    seq, fs = acq.sets.wait_newer(set_seq, 0.1)
-                    if fs is not None:
-                        self.skipped_sets += max(0, seq - set_seq - 1)
-                        set_seq = seq
-                        pending[tuple(fs.timestamps)] = (fs, time.monotonic())
-                elif not stopping:
-                    self._stop.wait(0.1)
-                seq, res = inst.results.latest()
-                if res is not None and seq != result_seq:
-                    result_seq = seq
-                    self._match(pending, res, hand_over)
+                try:
+                    item: FrameSet | LiveResult | None = inbox.get(timeout=0.0 if stopping else 0.1)
+                except queue.Empty:
+                    item = None
+                while item is not None:
+                    if isinstance(item, LiveResult):
+                        self._match(pending, item, hand_over)
+                    else:  # (when stopping too: a set taken before the stop is written)
+                        pending[tuple(item.timestamps)] = (item, time.monotonic())
+                    try:
+                        item = inbox.get_nowait()
+                    except queue.Empty:
+                        item = None
                 now = time.monotonic()
                 while pending and (stopping or now - next(iter(pending.values()))[1] > self.depth_wait_s):
                     _, (fs, _) = pending.popitem(last=False)
@@ -304,6 +327,8 @@ class Recorder:
             self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
             self._write_failed.set()
         finally:
+            for undo in unsubscribe:
+                undo()
             jobs.put(None)  # the writer drains what is queued, then ends
 
     def _write_loop(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
@@ -312,7 +337,7 @@ class Recorder:
             while (job := jobs.get()) is not None:
                 if self._write_failed.is_set():
                     continue  # stopped by a fault: what is still queued is not written
-                t0 = time.thread_time()
+                t0, w0 = time.thread_time(), time.perf_counter()
                 try:
                     self._write(rec, *job)
                 except _StopRecording:
@@ -322,6 +347,7 @@ class Recorder:
                     self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
                     self._write_failed.set()
                 self.write_cpu_s += time.thread_time() - t0
+                self.write_wall_s += time.perf_counter() - w0
         finally:
             if self._recording is rec and not self._stop.is_set():
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
@@ -346,6 +372,7 @@ class Recorder:
                 break
 
     def _write(self, rec: Recording, fs: FrameSet, res: LiveResult | None) -> None:
+        pool_cpu: list[float] = []  # the encoder threads' CPU, counted with the writer's
         try:
             self._check_disk()
             now_wall, now_mono = time.time(), time.monotonic()
@@ -378,7 +405,7 @@ class Recorder:
                         info["measurements"] = capture.extra["measurements"] = measured
             rec.add_set(capture, depth_mm=None if res is None else res.depth,
                         timestamp=now_wall - (now_mono - fs.received_s), info=info,
-                        codec=self.codec)
+                        codec=self.codec, workers=self.encode_workers, encode_cpu_s=pool_cpu)
         except (OSError, ValueError) as exc:
             full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
             reason = f"disk full ({exc})" if full else str(exc)
@@ -387,6 +414,8 @@ class Recorder:
             raise _StopRecording from exc
         self.sets_with_depth += res is not None
         self.sets_written += 1
+        if self.encode_workers > 1:
+            self.write_cpu_s += sum(pool_cpu)
 
     def _fail(self, msg: str, *, warn: bool = False) -> None:
         log.warning("%s", msg)
@@ -398,6 +427,7 @@ class Recorder:
 
 # raw sets waiting for their depth map; depth_wait_s (3 s) holds about 11 of geometric-9's
 _MAX_PENDING = 16
+_MAX_INBOX = 64  # sets and maps the collector has not looked at yet
 _Job = tuple[FrameSet, "LiveResult | None"]
 
 
