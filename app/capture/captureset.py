@@ -34,8 +34,9 @@ FORMAT = "fringescope.capture/1"
 #: how frames are stored: ``png`` (level 1) or ``zstd`` (row differences, zstd level 1)
 FRAME_CODECS: tuple[str, ...] = ("png", "zstd")
 ZSTD_SUFFIX = ".npy.zst"
-#: largest decompressed frame file accepted, bytes (a 16-bit 4096 x 4096 frame is 32 MiB)
-MAX_FRAME_BYTES = 64 * 2**20
+#: largest decompressed frame file accepted, bytes: a 16-bit 4096 x 4096 frame and its
+#: ``.npy`` header (an upload's small file must not decompress to more)
+MAX_FRAME_BYTES = 32 * 2**20 + 4096
 ZSTD_LEVEL = 1  # level 1: the noise in fringe frames makes higher levels cost CPU for ~10 %
 _BGR_INDEX = {"blue": 0, "green": 1, "red": 2}
 
