@@ -162,19 +162,15 @@ def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
     return np.cumsum(diff, axis=1, dtype=diff.dtype)
 
 
-def write_capture_set(
-    path: str | os.PathLike[str], capture: CaptureSet, *, overwrite: bool = False,
-    extra_files: dict[str, bytes] | None = None, codec: str = "png", workers: int = 1,
-    encode_cpu_s: list[float] | None = None,
-) -> Path:
-    """Write ``capture`` as a capture-set folder, atomically (it appears whole or not at all).
+def encode_frames(frames: npt.NDArray[Any], codec: str = "png", workers: int = 1,
+                  encode_cpu_s: list[float] | None = None) -> list[bytes]:
+    """Each (H, W) frame of ``frames`` as file bytes of ``codec`` (see :data:`FRAME_CODECS`).
 
-    ``extra_files`` (name → bytes) are written into the same folder, e.g. depth results.
-    ``codec`` stores the frames as PNG or as ``.npy.zst`` (see the module docstring);
     ``workers`` threads encode them (both encoders release the GIL); each frame's encoding
     CPU time (s) is appended to ``encode_cpu_s`` when given.
     """
-    names = frame_names(capture.frames.shape[0], codec)
+    if codec not in FRAME_CODECS:
+        raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
     encoder = png_bytes if codec == "png" else zstd_frame_bytes
 
     def encode(frame: npt.NDArray[Any]) -> bytes:
@@ -183,6 +179,27 @@ def write_capture_set(
         if encode_cpu_s is not None:
             encode_cpu_s.append(time.thread_time() - t0)
         return data
+
+    if workers > 1:
+        with ThreadPoolExecutor(workers, thread_name_prefix="fringescope-encode") as pool:
+            return list(pool.map(encode, frames))
+    return [encode(frame) for frame in frames]
+
+
+def write_capture_set(
+    path: str | os.PathLike[str], capture: CaptureSet, *, overwrite: bool = False,
+    extra_files: dict[str, bytes] | None = None, codec: str = "png",
+    encoded: list[bytes] | None = None,
+) -> Path:
+    """Write ``capture`` as a capture-set folder, atomically (it appears whole or not at all).
+
+    ``extra_files`` (name → bytes) are written into the same folder, e.g. depth results.
+    ``codec`` stores the frames as PNG or as ``.npy.zst`` (see the module docstring);
+    ``encoded``: the frames already encoded with it (:func:`encode_frames`), in order.
+    """
+    names = frame_names(capture.frames.shape[0], codec)
+    if encoded is not None and len(encoded) != len(names):
+        raise ValueError(f"encoded: {len(encoded)} frames for a set of {len(names)}")
     meta = {
         **capture.extra,
         "format": FORMAT,
@@ -193,11 +210,8 @@ def write_capture_set(
         **({"bit_depth": capture.bit_depth} if capture.bit_depth is not None else {}),
     }
     with atomic_directory(path, overwrite=overwrite) as tmp:
-        if workers > 1:
-            with ThreadPoolExecutor(workers, thread_name_prefix="fringescope-encode") as pool:
-                encoded = list(pool.map(encode, capture.frames))
-        else:
-            encoded = [encode(frame) for frame in capture.frames]
+        if encoded is None:
+            encoded = encode_frames(capture.frames, codec)
         for name, data in zip(names, encoded, strict=True):
             (tmp / name).write_bytes(data)
         for name, data in (extra_files or {}).items():

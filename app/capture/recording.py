@@ -166,8 +166,7 @@ class Recording:
         timestamp: float | None = None,
         info: dict[str, Any] | None = None,
         codec: str = "png",
-        workers: int = 1,
-        encode_cpu_s: list[float] | None = None,
+        encoded: list[bytes] | None = None,
     ) -> str:
         """Append one capture set (and its depth map) and return its folder name.
 
@@ -178,8 +177,9 @@ class Recording:
             info: small JSON-able extras for this set's entry in ``session.json``.
             codec: how the frames are stored, ``png`` or ``zstd`` (see
                 :mod:`app.capture.captureset`).
-            workers: threads encoding the frames; ``encode_cpu_s`` collects their CPU time
-                per frame, s.
+            encoded: the frames already encoded with ``codec``
+                (:func:`app.capture.captureset.encode_frames`), so that encoding can run
+                beside the previous set's writing.
         """
         with self._lock:
             if self._closed:
@@ -194,7 +194,7 @@ class Recording:
                 bit_depth=capture.bit_depth,
             )
             write_capture_set(self.path / folder, stamped, extra_files=extra, codec=codec,
-                              workers=workers, encode_cpu_s=encode_cpu_s)
+                              encoded=encoded)
             entry = {"folder": folder, "timestamp": _iso(t), "files": sorted(
                 ["capture.json", *frame_names(capture.frames.shape[0], codec), *extra]
             ), **(info or {})}

@@ -4,11 +4,12 @@ A collector thread follows two public slots of the Instrument: ``acquisition.set
 (each whole raw set, as grabbed) and ``results`` (each published depth map). A raw set
 is paired with the depth map reconstructed from it (matched by the frames' timestamps);
 a set the reconstruction skipped (newest-wins queue, no calibration, rolling mode) goes
-raw after ``depth_wait_s``. Pairs go through a bounded queue to a writer thread, so
-encoding and disk never hold up the collector (nor acquisition): when the queue is full
-the set is counted in ``skipped_sets``. Frames are stored as zstd row differences by
-default (:mod:`app.capture.captureset`; ``codec="png"`` for PNG). Writes are atomic
-(:mod:`app.capture.recording`).
+raw after ``depth_wait_s``. Pairs go through a bounded queue to the writer, so encoding
+and disk never hold up the collector (nor acquisition): when the queue is full the set
+is counted in ``skipped_sets``. The writer is two threads: an encoder (frames as zstd row
+differences by default, :mod:`app.capture.captureset`, on ``encode_workers`` threads;
+``codec="png"`` for PNG) and a store that writes and fsyncs the previous set meanwhile.
+Writes are atomic (:mod:`app.capture.recording`).
 
 Faults never kill the service: a write error, a full disk (``ENOSPC``) or a nearly full
 one stops the recording, and the reason is kept in ``last_error`` and in ``warning``,
@@ -27,12 +28,13 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from app.capture import recording as rec_io
-from app.capture.captureset import FRAME_CODECS, CaptureSet
+from app.capture.captureset import FRAME_CODECS, CaptureSet, encode_frames
 from app.capture.recording import (
     Recording,
     default_name,
@@ -102,8 +104,7 @@ class Recorder:
         self.encode_workers = int(encode_workers)
         self._lock = threading.Lock()
         self._recording: Recording | None = None
-        self._thread: threading.Thread | None = None
-        self._writer: threading.Thread | None = None
+        self._threads: tuple[threading.Thread, ...] = ()  # collector, encoder, store
         self._stop = threading.Event()
         self._write_failed = threading.Event()
         self.sets_with_depth = 0
@@ -111,7 +112,8 @@ class Recorder:
         self.errors = 0
         self.queue_peak = 0
         self.write_cpu_s = 0.0  # the writer's (and its encoders') CPU time this recording, s
-        self.write_wall_s = 0.0  # the writer's elapsed time on sets this recording, s
+        self.encode_wall_s = 0.0  # elapsed time preparing and encoding sets this recording, s
+        self.store_wall_s = 0.0  # elapsed time writing them to disk (fsync included), s
         self.sets_written = 0
         self.last_error: str | None = None
         # why the last recording stopped on its own (shown in /api/status warnings)
@@ -153,32 +155,39 @@ class Recorder:
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
             self.sets_with_depth = self.skipped_sets = self.errors = self.queue_peak = 0
-            self.write_cpu_s, self.write_wall_s, self.sets_written = 0.0, 0.0, 0
+            self.write_cpu_s, self.sets_written = 0.0, 0
+            self.encode_wall_s = self.store_wall_s = 0.0
             self.last_error = self.warning = None
             self._stop.clear()
             self._write_failed.clear()
             jobs: queue.Queue[_Job | None] = queue.Queue(maxsize=self.queue_sets)
-            self._thread = threading.Thread(target=self._run, args=(self._recording, jobs),
-                                            name="fringescope-recorder", daemon=True)
-            self._writer = threading.Thread(target=self._write_loop, args=(self._recording, jobs),
-                                            name="fringescope-recorder-writer", daemon=True)
-            self._writer.start()
-            self._thread.start()
+            ready: queue.Queue[_Prepared | None] = queue.Queue(maxsize=2)
+            rec = self._recording
+            self._threads = (
+                threading.Thread(target=self._run, args=(rec, jobs), name="fringescope-recorder",
+                                 daemon=True),
+                threading.Thread(target=self._encode_loop, args=(rec, jobs, ready),
+                                 name="fringescope-recorder-encode", daemon=True),
+                threading.Thread(target=self._store_loop, args=(rec, ready),
+                                 name="fringescope-recorder-store", daemon=True),
+            )
+            for thread in reversed(self._threads):
+                thread.start()
             return self.status()
 
     def stop(self, timeout_s: float = 30.0) -> dict[str, Any] | None:
         """Finish the running recording (pending sets are written) and return its session."""
         with self._lock:
-            rec, threads = self._recording, (self._thread, self._writer)
+            rec, threads = self._recording, self._threads
             if rec is None:
                 return None
             self._stop.set()
         deadline = time.monotonic() + timeout_s
         for thread in threads:  # the collector hands its last sets over, then the writer drains
-            if thread is not None and thread is not threading.current_thread():
+            if thread is not threading.current_thread():
                 thread.join(max(0.0, deadline - time.monotonic()))
         with self._lock:
-            self._recording, self._thread, self._writer = None, None, None
+            self._recording, self._threads = None, ()
         return rec.close()
 
     close = stop
@@ -195,7 +204,9 @@ class Recorder:
             "last_error": self.last_error,
             "queue_peak": self.queue_peak,
             "write_cpu_ms_per_set": round(1e3 * self.write_cpu_s / max(1, self.sets_written), 3),
-            "write_ms_per_set": round(1e3 * self.write_wall_s / max(1, self.sets_written), 3),
+            # the encoder and the store overlap: the slower of the two bounds the rate
+            "write_ms_per_set": round(1e3 * max(self.encode_wall_s, self.store_wall_s)
+                                      / max(1, self.sets_written), 3),
         }
 
     def _fresh_name(self) -> str:
@@ -331,28 +342,52 @@ class Recorder:
                 undo()
             jobs.put(None)  # the writer drains what is queued, then ends
 
-    def _write_loop(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
-        """Writer: encode and store each queued set in turn; a failure stops the recording."""
+    def _encode_loop(self, rec: Recording, jobs: queue.Queue[_Job | None],
+                     ready: queue.Queue[_Prepared | None]) -> None:
+        """Encoder: build and encode each queued set while the store writes the previous one."""
         try:
             while (job := jobs.get()) is not None:
                 if self._write_failed.is_set():
                     continue  # stopped by a fault: what is still queued is not written
                 t0, w0 = time.thread_time(), time.perf_counter()
                 try:
-                    self._write(rec, *job)
+                    prepared = self._prepare(rec, *job)
                 except _StopRecording:
                     self._write_failed.set()
+                    continue
                 except Exception as exc:  # a bug must not leave the collector without a writer
-                    log.exception("recorder writer failed")
+                    log.exception("recorder encoder failed")
+                    self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+                    self._write_failed.set()
+                    continue
+                self.write_cpu_s += time.thread_time() - t0
+                self.encode_wall_s += time.perf_counter() - w0
+                ready.put(prepared)  # waits while the disk is behind: ``jobs`` fills meanwhile
+        finally:
+            ready.put(None)
+
+    def _store_loop(self, rec: Recording, ready: queue.Queue[_Prepared | None]) -> None:
+        """Store: write each encoded set to disk in order; it finishes the recording."""
+        try:
+            while (prepared := ready.get()) is not None:
+                if self._write_failed.is_set():
+                    continue
+                t0, w0 = time.thread_time(), time.perf_counter()
+                try:
+                    self._store(rec, prepared)
+                except _StopRecording:
+                    self._write_failed.set()
+                except Exception as exc:
+                    log.exception("recorder store failed")
                     self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
                     self._write_failed.set()
                 self.write_cpu_s += time.thread_time() - t0
-                self.write_wall_s += time.perf_counter() - w0
+                self.store_wall_s += time.perf_counter() - w0
         finally:
             if self._recording is rec and not self._stop.is_set():
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
                 with self._lock:
-                    self._recording, self._thread, self._writer = None, None, None
+                    self._recording, self._threads = None, ()
                 try:
                     rec.close()
                 except OSError as exc:  # no room for session.json: marked interrupted at next start
@@ -371,7 +406,8 @@ class Recorder:
             if k == key:
                 break
 
-    def _write(self, rec: Recording, fs: FrameSet, res: LiveResult | None) -> None:
+    def _prepare(self, rec: Recording, fs: FrameSet, res: LiveResult | None) -> _Prepared:
+        """A set ready for the disk: its capture set with metadata and measurements, encoded."""
         pool_cpu: list[float] = []  # the encoder threads' CPU, counted with the writer's
         try:
             self._check_disk()
@@ -403,19 +439,29 @@ class Recorder:
                     measured = [m for m in measured if "error" not in m]
                     if measured:
                         info["measurements"] = capture.extra["measurements"] = measured
-            rec.add_set(capture, depth_mm=None if res is None else res.depth,
-                        timestamp=now_wall - (now_mono - fs.received_s), info=info,
-                        codec=self.codec, workers=self.encode_workers, encode_cpu_s=pool_cpu)
+            encoded = encode_frames(capture.frames, self.codec, self.encode_workers, pool_cpu)
         except (OSError, ValueError) as exc:
-            full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
-            reason = f"disk full ({exc})" if full else str(exc)
-            self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}",
-                       warn=True)
-            raise _StopRecording from exc
-        self.sets_with_depth += res is not None
-        self.sets_written += 1
+            raise self._stopped(rec, exc) from exc
         if self.encode_workers > 1:
             self.write_cpu_s += sum(pool_cpu)
+        return _Prepared(capture, None if res is None else res.depth,
+                         now_wall - (now_mono - fs.received_s), info, encoded)
+
+    def _store(self, rec: Recording, p: _Prepared) -> None:
+        try:
+            self._check_disk()
+            rec.add_set(p.capture, depth_mm=p.depth_mm, timestamp=p.timestamp, info=p.info,
+                        codec=self.codec, encoded=p.encoded)
+        except (OSError, ValueError) as exc:
+            raise self._stopped(rec, exc) from exc
+        self.sets_with_depth += p.depth_mm is not None
+        self.sets_written += 1
+
+    def _stopped(self, rec: Recording, exc: Exception) -> _StopRecording:
+        full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
+        reason = f"disk full ({exc})" if full else str(exc)
+        self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}", warn=True)
+        return _StopRecording()
 
     def _fail(self, msg: str, *, warn: bool = False) -> None:
         log.warning("%s", msg)
@@ -429,6 +475,17 @@ class Recorder:
 _MAX_PENDING = 16
 _MAX_INBOX = 64  # sets and maps the collector has not looked at yet
 _Job = tuple[FrameSet, "LiveResult | None"]
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """A set between the encoder and the store."""
+
+    capture: CaptureSet
+    depth_mm: np.ndarray | None
+    timestamp: float
+    info: dict[str, Any]
+    encoded: list[bytes]
 
 
 class _StopRecording(Exception):
