@@ -151,12 +151,16 @@ def live(args: argparse.Namespace) -> int:
             busy.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
         time.sleep(3.0)  # let the pipeline settle beside the busy process
 
+        lost: dict[str, int] = {}
+
         def window(seconds: float) -> tuple[float, float, float, float]:
             """camera fps, depth /s, the span (s) and this process's CPU use (cores) over it"""
             s0, t0, c0 = http.get("/api/status").json(), time.monotonic(), time.process_time()
             time.sleep(seconds)
             s1, t1, c1 = http.get("/api/status").json(), time.monotonic(), time.process_time()
             span = t1 - t0
+            for key in ("frames_dropped", "incomplete_sets"):
+                lost[key] = s1[key] - s0[key]
             return (
                 (s1["frames_received"] - s0["frames_received"]) / span,
                 (s1["results_published"] - s0["results_published"]) / span,
@@ -216,6 +220,8 @@ def live(args: argparse.Namespace) -> int:
           f"with depth {rec_status['sets_with_depth']}, skipped_sets {skipped} "
           f"(target 0: {verdict(skipped == 0)}), writer queue peak {rec_status['queue_peak']}, "
           f"errors {rec_status['errors']}")
+    print(f"  while recording the camera dropped {lost['frames_dropped']} frames, "
+          f"{lost['incomplete_sets']} sets incomplete (never whole, so never recorded)")
     print(f"  on disk: frames {frame_bytes / n / 1e6:.2f} MB/set, all {all_bytes / n / 1e6:.2f} "
           f"MB/set (with depth.npy), {all_bytes / span / 1e6:.1f} MB/s; "
           f"read back whole {whole} of {len(sets)}")
