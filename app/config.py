@@ -39,6 +39,8 @@ class Settings(BaseSettings):
     # storage
     data_dir: Path = Path("data")
     calibration_file: Path | None = None
+    # a recording stops (reason in /api/status warnings) when the data disk has less free space, MB
+    recording_min_free_mb: float = Field(200.0, ge=0)
 
     # devices: "sim" is the built-in digital twin
     camera: Literal["sim", "opencv", "genicam", "replay"] = "sim"

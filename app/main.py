@@ -72,7 +72,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     # (1) the Instrument — built now (cheap), started in the lifespan.
     instrument = Instrument(settings)
-    recorder = Recorder(instrument)  # issue 7: recordings of the live sets
+    recorder = Recorder(instrument, min_free_mb=settings.recording_min_free_mb)  # issue 7
     instrument.recorder = recorder  # issue 7: status shows `recording`
     viewer, viewer_routes = _make_viewer(settings, instrument)
     if viewer is not None:  # issue 17: the dashboard's measurements in the 3-D view too

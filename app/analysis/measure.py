@@ -53,6 +53,8 @@ KINDS = ("length", "point_to_line", "depth", "profile", "area")
 #: how many points each kind needs (profile/area: at least)
 MIN_POINTS = {"length": 2, "point_to_line": 3, "depth": 4, "profile": 2, "area": 3}
 EXACT_POINTS = {"length": 2, "point_to_line": 3, "depth": 4}
+#: an area or profile is refused when less than this fraction of its pixels is valid
+MIN_COVERAGE = 0.5
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,9 @@ class PickedPoint:
         sigma_mm: the pixel's 1-σ height noise, mm (NaN if unknown).
         snapped: the requested pixel was invalid (or not a whole pixel away from ``pixel``).
         snap_px: distance from the rounded request to ``pixel``, px.
+        filled: the pixel is in a hole with no valid pixel within the snap radius: its point is
+            a quadratic fit of the valid points around it (``sigma_mm`` that fit's noise).
+        coverage: the valid share of the pixels the point rests on (1 unless ``filled``).
     """
 
     requested: tuple[float, float]
@@ -74,11 +79,14 @@ class PickedPoint:
     sigma_mm: float
     snapped: bool
     snap_px: float
+    filled: bool = False
+    coverage: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"requested": list(self.requested), "pixel": list(self.pixel),
                 "point_mm": [_j(x) for x in self.point_mm], "sigma_mm": _j(self.sigma_mm),
-                "snapped": self.snapped, "snap_px": round(self.snap_px, 3)}
+                "snapped": self.snapped, "snap_px": round(self.snap_px, 3), "filled": self.filled,
+                "coverage": round(self.coverage, 4)}
 
 
 @dataclass(frozen=True)
@@ -220,8 +228,15 @@ def _why(surf: _Surface, u: int, v: int) -> str:
     return "invalid pixel"
 
 
-def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> PickedPoint:
-    """The valid pixel for a click at (u, v), snapping within ``snap_px`` (ValueError naming ``label``)."""
+def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str,
+         fill: bool = False) -> PickedPoint:
+    """The valid pixel for a click at (u, v), snapping within ``snap_px`` (ValueError naming
+    ``label``).
+
+    ``fill``: a click in a hole with no valid pixel within ``snap_px`` is filled from the valid
+    points around it (:func:`_linear_fill`) when they make at least :data:`MIN_COVERAGE` of
+    the fit's window; else it is refused.
+    """
     h, w = surf.shape
     if not (-0.5 <= u < w - 0.5 and -0.5 <= v < h - 0.5):
         raise ValueError(f"{label} ({u:g}, {v:g}): outside the {w}x{h} image")
@@ -234,6 +249,8 @@ def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> Pick
         vv, uu = np.nonzero(surf.ok(slice(v0, v1), slice(u0, u1)))
         d2 = (uu + u0 - iu) ** 2 + (vv + v0 - iv) ** 2
         near = d2 <= snap_px**2
+        if (r < 1 or not np.any(near)) and fill:
+            return _filled_pick(surf, u, v, iu, iv, label)
         if r < 1 or not np.any(near):
             raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} and no valid pixel within "
                              f"{snap_px:g} px")
@@ -242,6 +259,26 @@ def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str) -> Pick
     x = surf.pts(pv, pu)
     return PickedPoint((float(u), float(v)), (pu, pv), (float(x[0]), float(x[1]), float(x[2])),
                        float(surf.sig(pv, pu)), dist > 0, dist)
+
+
+def _filled_pick(surf: _Surface, u: float, v: float, iu: int, iv: int, label: str) -> PickedPoint:
+    h, w = surf.shape
+    r = 68  # the fit's largest window (64 px) and a margin
+    r0, c0 = max(0, iv - r), max(0, iu - r)
+    ok = surf.ok(slice(r0, min(h, iv + r + 1)), slice(c0, min(w, iu + r + 1)))
+    try:
+        rows, cols, weights, coverage = _linear_fill(ok, iu - c0, iv - r0, 2)
+    except ValueError:
+        coverage = 0.0
+    if coverage < MIN_COVERAGE:
+        raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} in a hole whose "
+                         f"surroundings are {100 * coverage:.0f} % valid (a filled point needs "
+                         f"{100 * MIN_COVERAGE:.0f} %)")
+    rows, cols = rows + r0, cols + c0
+    x = weights @ surf.pts(rows, cols)
+    sig = float(np.sqrt(np.sum((weights * surf.sig(rows, cols)) ** 2)))
+    return PickedPoint((float(u), float(v)), (iu, iv), (float(x[0]), float(x[1]), float(x[2])), sig,
+                       False, 0.0, True, coverage)
 
 
 def _direction(surf: _Surface, x: F64) -> F64:
@@ -273,8 +310,31 @@ def _slope(f: Callable[[F64], float], pts: F64, dirs: F64, i: int) -> float:
     return (f(p1) - f(p2)) / (2 * step)
 
 
-def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
-    return [pick(surf, float(u), float(v), snap_px, f"point {first + i}") for i, (u, v) in enumerate(pixels)]
+def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1,
+           fill: bool = False) -> list[PickedPoint]:
+    return [pick(surf, float(u), float(v), snap_px, f"point {first + i}", fill)
+            for i, (u, v) in enumerate(pixels)]
+
+
+def _outline(surf: _Surface, pixels: F64, snap_px: float, first: int = 1) -> list[PickedPoint]:
+    """Vertices that only place a polygon or polyline in the image: snapped to a valid pixel
+    when one is near, else kept where clicked (point NaN) — a hole under a vertex is no error."""
+    out = []
+    for i, (u, v) in enumerate(pixels):
+        try:
+            out.append(pick(surf, float(u), float(v), snap_px, f"point {first + i}"))
+        except ValueError as exc:
+            if "outside" in str(exc):
+                raise
+            nan = float("nan")
+            out.append(PickedPoint((float(u), float(v)), (int(round(u)), int(round(v))),
+                                   (nan, nan, nan), nan, False, 0.0))
+    return out
+
+
+def _coverage_error(what: str, covered: float) -> ValueError:
+    return ValueError(f"points: only {100 * covered:.0f} % of the {what}'s pixels are valid; a "
+                      f"measurement needs at least {100 * MIN_COVERAGE:.0f} %")
 
 
 def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
@@ -309,7 +369,8 @@ def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64
     cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts) \
         if surf.cal_sigma > 0 else 0.0
     return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
-                       extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal})
+                       extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal,
+                              "coverage": min(p.coverage for p in picks)})
 
 
 def _count(kind: str, px: F64) -> None:
@@ -325,7 +386,8 @@ def _count(kind: str, px: F64) -> None:
 def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           fill_holes: bool = False) -> Measurement:
     """3-D distance between two clicked pixels.
 
     Args:
@@ -342,6 +404,9 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
             ``sigma_calibration_mm``.
         calibration_length_mm: its correlation length, mm: points ``d`` mm apart share it
             with correlation ``exp(-d / calibration_length_mm)``; 0: independent between points.
+        fill_holes: a click in a hole too wide to snap across is filled from the valid
+            points around it (:func:`pick`); its noise is taken as independent of the other
+            point's. ``extra.coverage`` is the smaller of the two points' coverage.
 
     Returns:
         :class:`Measurement`, value and σ in mm.
@@ -349,7 +414,7 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("length", px)
-    picks = _picks(surf, px, snap_px)
+    picks = _picks(surf, px, snap_px, fill=fill_holes)
     if picks[0].pixel == picks[1].pixel:
         raise ValueError(f"point 2 {picks[1].pixel}: same pixel as point 1; a length needs two distinct points")
     pts, dirs, sig, ids = _arrays(surf, picks)
@@ -451,7 +516,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+            fill_holes: bool = False) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
     Without ``reference`` the heights are distances from the 3-D chord between the
@@ -460,8 +526,11 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     ``reference`` (three pixels) they are signed distances from that plane (positive toward
     the scope) and ``distance_mm`` is the 3-D path length along the valid samples.
 
-    Invalid pixels along the way are NaN in the samples (a gap), not snapped; the
-    polyline's vertices and the reference points are picked (snapped) like other clicks.
+    Invalid pixels along the way are NaN in the samples (a gap), not snapped; the chord's
+    ends and the reference points are picked (snapped; with ``fill_holes``, filled in a
+    wider hole) like other clicks, the other vertices only place the line (snapped when a
+    valid pixel is near, else kept). ``extra.coverage`` is the valid share of the samples;
+    below :data:`MIN_COVERAGE` the profile is refused.
     ``value_mm`` is the height of the sample farthest from the reference, its ``sigma_mm``
     that sample's σ (the σ of a single height, not of a maximum over noisy samples).
 
@@ -473,13 +542,18 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
     px = _pixels(pixels)
     _count("profile", px)
-    picks = _picks(surf, px, snap_px)
     ref_picks: list[PickedPoint] = []
     if reference is not None:
+        picks = _outline(surf, px, snap_px)
         rp = _pixels(reference, "reference")
         if len(rp) != 3:
             raise ValueError(f"reference: needs exactly 3 points for a plane, got {len(rp)}")
-        ref_picks = _picks(surf, rp, snap_px, first=len(px) + 1)
+        ref_picks = _picks(surf, rp, snap_px, first=len(px) + 1, fill=fill_holes)
+    else:  # the chord's ends carry the reference; the vertices between only place the line
+        first = pick(surf, float(px[0, 0]), float(px[0, 1]), snap_px, "point 1", fill_holes)
+        last = pick(surf, float(px[-1, 0]), float(px[-1, 1]), snap_px, f"point {len(px)}",
+                    fill_holes)
+        picks = [first, *_outline(surf, px[1:-1], snap_px, first=2), last]
     verts = np.array([p.pixel for p in picks], np.float64)
     steps = np.abs(np.diff(verts, axis=0)).max(axis=1).sum()
     if steps > MAX_PROFILE_SAMPLES:
@@ -555,10 +629,13 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     dist = np.where(ok, dist, np.nan)
     if not ok.any():
         raise ValueError("points: no valid pixel along the polyline")
+    if ok.mean() < MIN_COVERAGE:
+        raise _coverage_error("profile", float(ok.mean()))
     k = int(np.nanargmax(np.abs(h)))
     samples_out = ProfileSamples(samples, dist, h, s, s_noise)
     extra = {"reference": "chord" if reference is None else "plane", "samples": int(len(samples)),
-             "valid_samples": int(ok.sum()), "at_pixel": [int(su[k]), int(sv[k])],
+             "valid_samples": int(ok.sum()), "coverage": round(float(ok.mean()), 4),
+             "at_pixel": [int(su[k]), int(sv[k])],
              "sigma_noise_mm": float(s_noise[k]), "sigma_calibration_mm": float(np.sqrt(var_cal[k]))}
     return Measurement("profile", float(h[k]), float(s[k]), picks + ref_picks, samples_out, extra)
 
@@ -608,8 +685,16 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     pixel's height noise; the expected area inflation from the smoothed surface's residual
     roughness is subtracted (``extra.roughness_correction_mm2``).
 
+    Holes (invalid pixels) are measured through: a sample with no valid pixel in its box is
+    the value at its pixel of a plane fitted to the valid points around it
+    (:func:`_linear_fill`; ``extra.samples_filled``), whose noise enters σ through the fit's
+    weights; σ does not include the surface's departure from that plane across the hole.
+    ``extra.coverage`` is the valid share of the polygon's pixels; below
+    :data:`MIN_COVERAGE` the area is refused.
+
     Args:
-        pixels: the polygon's vertices, ≥ 3 (u, v), not self-intersecting.
+        pixels: the polygon's vertices, ≥ 3 (u, v), not self-intersecting; they stay where
+            they were clicked (``snap_px`` is not used: a vertex in a hole is filled).
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
@@ -618,9 +703,9 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
         raise ValueError(f"window_px: need an odd integer >= 1, got {window_px!r}")
-    picks = _picks(surf, px, snap_px)
-    # sub-pixel vertices as clicked; a snapped vertex moves to its valid pixel
-    poly = np.array([p.pixel if p.snapped else p.requested for p in picks], np.float64)
+    # the vertices as clicked, sub-pixel, never snapped: the surface under one in a hole is filled
+    picks = _outline(surf, px, 0.0)
+    poly = np.array([p.requested for p in picks], np.float64)
     m = len(poly)
     for i in range(m):
         for j in range(i + 1, m):
@@ -639,6 +724,13 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     bu0, bv0, bu1, bv1 = max(0, u_lo), max(0, v_lo), min(w, u_hi), min(h, v_hi)
     # box means over the bounding box (+ margin): sums via an integral image
     okb = surf.ok(slice(bv0, bv1), slice(bu0, bu1))
+    # coverage: the valid share of the pixels whose centres lie inside the polygon
+    pu_grid, pv_grid = np.meshgrid(np.arange(bu0, bu1, dtype=np.float64),
+                                   np.arange(bv0, bv1, dtype=np.float64))
+    in_poly = _inside(poly, pu_grid, pv_grid)
+    coverage = float(okb[in_poly].mean()) if in_poly.any() else 0.0
+    if coverage < MIN_COVERAGE:
+        raise _coverage_error("polygon", coverage)
     pb = np.where(okb[..., None], surf.pts(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     cnt = _box_sum(okb.astype(np.float64), half)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -668,16 +760,29 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     iu0 = np.clip(np.floor(lu).astype(int), 0, bu1 - bu0 - 2)
     iv0 = np.clip(np.floor(lv).astype(int), 0, bv1 - bv0 - 2)
     fu, fv = lu - iu0, lv - iv0
+    # a sample in a hole (no valid pixel in a box it needs) is filled by a local linear fit of the
+    # valid points around it (its weights carry their noise into σ)
+    # (a box mean missing some pixels is off its sample's position too: those are filled as well)
+    full = _box_sum(np.ones(okb.shape), half)
+    usable = np.ones(len(su), bool)
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        wgt = (fu if du else 1 - fu) * (fv if dv else 1 - fv)
+        usable &= ~((wgt > 1e-12) & (cnt[iv0 + dv, iu0 + du] < full[iv0 + dv, iu0 + du] - 0.5))
+    fills = {}
+    for hole in np.flatnonzero(~usable).tolist():
+        try:
+            fills[hole] = _linear_fill(okb, su[hole] - bu0, sv[hole] - bv0, window_px)[:3]
+        except ValueError:
+            raise ValueError(f"points: no valid pixels around ({su[hole]:.0f}, {sv[hole]:.0f}) to "
+                             f"fill the polygon's hole (coverage {100 * coverage:.0f} %)") from None
     corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)]
+    corners = [(du, dv, np.where(usable, wgt, 0.0)) for du, dv, wgt in corners]
     X = np.zeros((len(su), 3))
     for du, dv, wgt in corners:
-        c = cnt[iv0 + dv, iu0 + du]
-        bad = (wgt > 1e-12) & ~(c > 0)
-        if np.any(bad):
-            k = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"points: the polygon covers invalid surface near pixel ({su[k]:.0f}, {sv[k]:.0f}) "
-                             f"(no valid pixel within {half} px)")
         X += wgt[:, None] * np.nan_to_num(smooth[iv0 + dv, iu0 + du])
+    pts_b = surf.pts(slice(bv0, bv1), slice(bu0, bu1))
+    for i, (rows, cols, w_fit) in fills.items():
+        X[i] = w_fit @ pts_b[rows, cols]
     # a regular grid is all cocircular quadruples, slow for Qhull: triangulate the samples nudged by
     # 1e-3 px (a valid triangulation of the exact samples too), sample the surface at the exact ones
     nudge = np.random.default_rng(0).uniform(-1e-3, 1e-3, (len(su), 2))
@@ -712,6 +817,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
                 y, x = ci + oy, cj + ox
                 inb = (y >= 0) & (y < cnt.shape[0]) & (x >= 0) & (x < cnt.shape[1])
                 np.add.at(cimg, (y[inb], x[inb]), share[inb])
+    for i, (rows, cols, w_fit) in fills.items():
+        np.add.at(cimg, (rows, cols), coef[i] * w_fit)
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
     # the calibration term: systematic and smooth, so not reduced by the box means; correlated between
@@ -722,6 +829,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     var_s = np.zeros(len(su))
     for du, dv, wgt in corners:
         var_s += wgt**2 * var_box[iv0 + dv, iu0 + du]
+    for i, (rows, cols, w_fit) in fills.items():
+        var_s[i] = float(np.sum((w_fit * sig_b[rows, cols]) ** 2))
     # roughness inflation: E[ΔA_t] = A_t · E|∇h_n|² / 2, h_n the noise's normal component
     a_vec, b_vec = b_ - a_, c_ - a_
     gmat = np.stack([np.stack([np.einsum("ij,ij->i", a_vec, a_vec), np.einsum("ij,ij->i", a_vec, b_vec)], -1),
@@ -738,9 +847,44 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     extra = {"raw_mm2": raw, "roughness_correction_mm2": corr if known else None,
              "samples": int(len(su)), "triangles": int(len(simp)), "window_px": int(window_px),
              "step_px": round(step, 3),
-             "projected_px2": abs(signed)}
+             "projected_px2": abs(signed), "coverage": round(coverage, 4),
+             "samples_filled": len(fills)}
     extra.update(sigma_noise_mm=sigma_a, sigma_calibration_mm=sigma_cal)
     return Measurement("area", value, math.hypot(sigma_a, sigma_cal), picks, None, extra)
+
+
+def _linear_fill(ok: npt.NDArray[np.bool_], u: float, v: float, window_px: int,
+                 min_pixels: int = 30
+                 ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], F64, float]:
+    """Weights predicting a point at (u, v) (px, in ``ok``'s frame) from the valid pixels around it.
+
+    The smallest square window (half-width 2·window_px, doubling, at most 64 px) whose valid
+    pixels number at least ``min_pixels`` gives a least-squares quadratic surface
+    X = a + b·du + c·dv + d·du² + e·du·dv + f·dv² per coordinate (du = u' − u, dv = v' − v;
+    a plane if the quadratic is ill-conditioned there); the prediction is ``a``, a weighted
+    sum of those pixels' points. Returns (rows, cols, weights (n,) summing to 1, the valid
+    share of the window's pixels). ``ValueError`` if no window will do.
+    """
+    h, w = ok.shape
+    r = 2 * window_px
+    while r <= 64:
+        r0, r1 = max(0, int(v) - r), min(h, int(v) + r + 2)
+        c0, c1 = max(0, int(u) - r), min(w, int(u) + r + 2)
+        rows, cols = np.nonzero(ok[r0:r1, c0:c1])
+        if len(rows) >= min_pixels:
+            rows, cols = rows + r0, cols + c0
+            du, dv = (cols - u) / r, (rows - v) / r  # scaled: a well-conditioned design
+            for a in (np.column_stack([np.ones(len(rows)), du, dv, du * du, du * dv, dv * dv]),
+                      np.column_stack([np.ones(len(rows)), du, dv])):
+                gram = a.T @ a
+                if np.linalg.cond(gram) < 1e6:
+                    # the first row of (AᵀA)⁻¹Aᵀ: the fitted value at (u, v)
+                    weights = np.linalg.solve(gram, a.T)[0]
+                    coverage = len(rows) / float((r1 - r0) * (c1 - c0))
+                    return rows, cols, np.asarray(weights, np.float64), coverage
+        r *= 2
+    raise ValueError(f"(u, v) = ({u:.0f}, {v:.0f}): no window of at most 64 px holds "
+                     f"{min_pixels} valid pixels around it")
 
 
 def _box_sum(a: F64, half: int) -> F64:
@@ -758,8 +902,13 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
-    """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``."""
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+            fill_holes: bool = False) -> Measurement:
+    """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``.
+
+    ``fill_holes`` (length, profile): a click in a hole too wide to snap across is filled
+    from the valid points around it (see :func:`pick`); an area always measures through holes.
+    """
     if kind not in KINDS:
         raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
     if not (math.isfinite(snap_px) and snap_px >= 0):
@@ -769,6 +918,9 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
                           "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm}
     if kind == "profile":
-        return profile(points, valid, sigma, pixels, reference=reference, **kw)
-    fn = {"length": length, "point_to_line": point_to_line, "depth": depth, "area": area}[kind]
+        return profile(points, valid, sigma, pixels, reference=reference, fill_holes=fill_holes,
+                       **kw)
+    if kind == "length":
+        return length(points, valid, sigma, pixels, fill_holes=fill_holes, **kw)
+    fn = {"point_to_line": point_to_line, "depth": depth, "area": area}[kind]
     return fn(points, valid, sigma, pixels, **kw)  # type: ignore[operator]

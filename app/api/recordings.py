@@ -56,7 +56,7 @@ def recording_start(
     body: RecordingStartIn = Body(default_factory=RecordingStartIn),
     recorder: Recorder = Depends(get_recorder),
 ) -> dict[str, Any]:
-    """Record every whole fringe set (PNG frames) with its depth map until stopped."""
+    """Record every whole fringe set (zstd frames, see README) with its depth map until stopped."""
     return recorder.start(body.name)
 
 
@@ -68,7 +68,7 @@ def recording_stop(recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]
 
 @router.get("/recordings", response_model=list[RecordingSummary], responses=COMMON)
 def recordings_list(recorder: Recorder = Depends(get_recorder)) -> list[dict[str, Any]]:
-    """Every recording in the data folder, by name."""
+    """Every recording in the data folder, by name (``interrupted``: not closed by the service)."""
     return recorder.recordings()
 
 

@@ -288,6 +288,11 @@ class RecorderStatus(BaseModel):
     skipped_sets: int
     errors: int
     last_error: str | None
+    queue_peak: int = Field(0, description="most sets waiting for the writer at once")
+    write_cpu_ms_per_set: float = Field(0.0, description="the writer's CPU time per set written "
+                                        "(its encoder threads' included), ms")
+    write_ms_per_set: float = Field(0.0, description="the writer's elapsed time per set written, "
+                                    "ms (far above the CPU time: the machine is short of CPU)")
 
 
 class RecordingSummary(BaseModel):
@@ -296,6 +301,8 @@ class RecordingSummary(BaseModel):
     stopped: str | None
     n_sets: int
     bytes: int
+    interrupted: bool = Field(False, description="the service stopped without closing it; "
+                              "stopped is then its last whole set's time")
 
 
 class RecordingStopOut(BaseModel):
@@ -369,6 +376,9 @@ class PickedOut(BaseModel):
     sigma_mm: float | None
     snapped: bool
     snap_px: float
+    filled: bool = Field(False, description="in a hole too wide to snap across: fitted from the "
+                         "valid points around it")
+    coverage: float = Field(1.0, description="valid share of the pixels the point rests on")
 
 
 class ProfileOut(BaseModel):
@@ -388,6 +398,10 @@ class MeasureOut(BaseModel):
     profile: ProfileOut | None = None
     extra: dict[str, Any] = {}
     source: dict[str, Any] = {}
+    coverage: float = Field(1.0, description="valid share of the pixels measured (area: the "
+                            "polygon's; profile: the samples; length: its least covered point)")
+    min_coverage: float = Field(0.5, description="below this coverage a measurement is refused "
+                                "(422)")
     elapsed_ms: float
 
 

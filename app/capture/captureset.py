@@ -1,10 +1,21 @@
-"""Capture sets on disk: ``capture.json`` plus one PNG per fringe frame (DESIGN.md)."""
+"""Capture sets on disk: ``capture.json`` plus one file per fringe frame (DESIGN.md).
+
+A frame file is a PNG (8/16-bit grey or colour), or, for recordings written at the
+camera's rate, ``frame_XX.npy.zst``: a zstd-compressed ``.npy`` of the frame's
+horizontal differences (``d[:, 0] = f[:, 0]``, ``d[:, 1:] = f[:, 1:] - f[:, :-1]``, unsigned
+wraparound), so ``f = cumsum(d, axis=1)`` in the frame's dtype. On a 1384 × 1032 8-bit
+tissue frame it is as small as PNG at level 1 for about a fifth of the CPU
+(``benchmarks/bench_recording.py``). The reader takes either, listed in ``"frames"``.
+"""
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -12,6 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+import zstandard
 
 from app.atomic import atomic_directory
 from app.capture.imageheader import FrameLimits, check_frame_headers, read_image_header
@@ -23,6 +35,13 @@ from app.core.schedule import PatternSchedule
 FORMAT = "fringescope.capture/1"
 #: the largest capture.json read, bytes (a real one is well under 10 kB)
 MAX_META_BYTES = 1024 * 1024
+#: how frames are stored: ``png`` (level 1) or ``zstd`` (row differences, zstd level 1)
+FRAME_CODECS: tuple[str, ...] = ("png", "zstd")
+ZSTD_SUFFIX = ".npy.zst"
+#: largest decompressed frame file accepted, bytes: a 16-bit 4096 x 4096 frame and its
+#: ``.npy`` header (an upload's small file must not decompress to more)
+MAX_FRAME_BYTES = 32 * 2**20 + 4096
+ZSTD_LEVEL = 1  # level 1: the noise in fringe frames makes higher levels cost CPU for ~10 %
 _BGR_INDEX = {"blue": 0, "green": 1, "red": 2}
 
 
@@ -122,19 +141,87 @@ def _read_meta(meta_path: Path) -> Any:
         raise ValueError(f"{meta_path}: unreadable capture-set metadata ({exc})") from None
 
 
-def frame_names(n: int) -> list[str]:
-    return [f"frame_{i:02d}.png" for i in range(n)]
+def frame_names(n: int, codec: str = "png") -> list[str]:
+    """The file names of ``n`` frames stored with ``codec`` (see :data:`FRAME_CODECS`)."""
+    if codec not in FRAME_CODECS:
+        raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
+    suffix = ".png" if codec == "png" else ZSTD_SUFFIX
+    return [f"frame_{i:02d}{suffix}" for i in range(n)]
+
+
+def zstd_frame_bytes(frame: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> bytes:
+    """One (H, W) uint8/uint16 frame as ``.npy.zst`` bytes (row differences, zstd level 1)."""
+    if frame.ndim != 2 or frame.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"frame: expected (H, W) uint8/uint16, got {frame.shape} {frame.dtype}")
+    diff = np.empty_like(frame)
+    diff[:, 0] = frame[:, 0]
+    np.subtract(frame[:, 1:], frame[:, :-1], out=diff[:, 1:])  # unsigned: wraps, undone by cumsum
+    buf = io.BytesIO()
+    np.save(buf, diff, allow_pickle=False)
+    return bytes(zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(buf.getvalue()))
+
+
+def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
+    """A frame written by :func:`zstd_frame_bytes`; ``ValueError`` naming ``path`` if not one."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        raise ValueError(f"{path}: missing or not a readable frame") from None
+    try:
+        size = zstandard.frame_content_size(data)
+    except zstandard.ZstdError:
+        raise ValueError(f"{path}: not a zstd frame") from None
+    if size < 0 or size > MAX_FRAME_BYTES:  # a declared size bounds memory before decompressing
+        raise ValueError(f"{path}: decompressed size {size} outside 0..{MAX_FRAME_BYTES} bytes")
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=MAX_FRAME_BYTES)
+        diff = np.load(io.BytesIO(raw), allow_pickle=False)
+    except (zstandard.ZstdError, ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{path}: unreadable frame ({exc})") from None
+    if diff.ndim != 2 or diff.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{path}: expected an (H, W) uint8/uint16 frame, got {diff.shape} "
+                         f"{diff.dtype}")
+    return np.cumsum(diff, axis=1, dtype=diff.dtype)
+
+
+def encode_frames(frames: npt.NDArray[Any], codec: str = "png", workers: int = 1,
+                  encode_cpu_s: list[float] | None = None) -> list[bytes]:
+    """Each (H, W) frame of ``frames`` as file bytes of ``codec`` (see :data:`FRAME_CODECS`).
+
+    ``workers`` threads encode them (both encoders release the GIL); each frame's encoding
+    CPU time (s) is appended to ``encode_cpu_s`` when given.
+    """
+    if codec not in FRAME_CODECS:
+        raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
+    encoder = png_bytes if codec == "png" else zstd_frame_bytes
+
+    def encode(frame: npt.NDArray[Any]) -> bytes:
+        t0 = time.thread_time()
+        data = encoder(frame)
+        if encode_cpu_s is not None:
+            encode_cpu_s.append(time.thread_time() - t0)
+        return data
+
+    if workers > 1:
+        with ThreadPoolExecutor(workers, thread_name_prefix="fringescope-encode") as pool:
+            return list(pool.map(encode, frames))
+    return [encode(frame) for frame in frames]
 
 
 def write_capture_set(
     path: str | os.PathLike[str], capture: CaptureSet, *, overwrite: bool = False,
-    extra_files: dict[str, bytes] | None = None,
+    extra_files: dict[str, bytes] | None = None, codec: str = "png",
+    encoded: list[bytes] | None = None,
 ) -> Path:
     """Write ``capture`` as a capture-set folder, atomically (it appears whole or not at all).
 
     ``extra_files`` (name → bytes) are written into the same folder, e.g. depth results.
+    ``codec`` stores the frames as PNG or as ``.npy.zst`` (see the module docstring);
+    ``encoded``: the frames already encoded with it (:func:`encode_frames`), in order.
     """
-    names = frame_names(capture.frames.shape[0])
+    names = frame_names(capture.frames.shape[0], codec)
+    if encoded is not None and len(encoded) != len(names):
+        raise ValueError(f"encoded: {len(encoded)} frames for a set of {len(names)}")
     meta = {
         **capture.extra,
         "format": FORMAT,
@@ -145,8 +232,10 @@ def write_capture_set(
         **({"bit_depth": capture.bit_depth} if capture.bit_depth is not None else {}),
     }
     with atomic_directory(path, overwrite=overwrite) as tmp:
-        for name, frame in zip(names, capture.frames, strict=True):
-            (tmp / name).write_bytes(png_bytes(frame))
+        if encoded is None:
+            encoded = encode_frames(capture.frames, codec)
+        for name, data in zip(names, encoded, strict=True):
+            (tmp / name).write_bytes(data)
         for name, data in (extra_files or {}).items():
             (tmp / name).write_bytes(data)
         (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
@@ -202,7 +291,8 @@ def read_capture_set(
     frames: list[npt.NDArray[Any]] = []
     for name in names:
         fpath = folder / name
-        img = cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED)
+        img = (read_zstd_frame(fpath) if name.endswith(ZSTD_SUFFIX)
+               else cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED))
         if img is None:
             raise ValueError(f"{fpath}: missing or not a readable image")
         if img.ndim == 3 and img.shape[2] in (3, 4):

@@ -1,4 +1,4 @@
-"""Frame sizes read from PNG and TIFF headers, so an upload is bounded before any pixel is decoded.
+"""Frame sizes read from PNG, TIFF and ``.npy.zst`` headers, so an upload is bounded before any pixel is decoded.
 
 A PNG of 8000 × 8000 zeros is ~60 kB on the wire and 64 MB once decoded: a set of such
 frames (a decompression bomb) is refused from its headers — size against the calibration's,
@@ -7,13 +7,18 @@ pixels and decoded bytes against a stated budget — before OpenCV decodes anyth
 
 from __future__ import annotations
 
+import ast
 import io
 import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+import zstandard
+
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+ZSTD_SIGNATURE = b"\x28\xb5\x2f\xfd"
+NPY_SIGNATURE = b"\x93NUMPY"
 #: channels OpenCV decodes per PNG colour type (a palette becomes BGR)
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
 
@@ -67,10 +72,10 @@ class FrameLimits:
 
 
 def read_image_header(path: str | Path) -> ImageHeader:
-    """The header of a PNG or TIFF file; ``ValueError`` naming the file otherwise.
+    """The header of a PNG, TIFF or ``.npy.zst`` frame; ``ValueError`` naming the file otherwise.
 
-    Reads the PNG IHDR chunk (first 33 bytes) or the TIFF's first page directory; never
-    decodes pixel data.
+    Reads the PNG IHDR chunk (first 33 bytes), the TIFF's first page directory or the first
+    bytes a zstd frame decompresses to (the ``.npy`` header); never decodes pixel data.
     """
     p = Path(path)
     try:
@@ -81,9 +86,12 @@ def read_image_header(path: str | Path) -> ImageHeader:
             if head[:4] in TIFF_SIGNATURES:
                 fh.seek(0)
                 return _tiff_header(fh, p.name)
+            if head.startswith(ZSTD_SIGNATURE):
+                fh.seek(0)
+                return _npy_zst_header(fh, p.name)
     except OSError as exc:
         raise ValueError(f"{p.name}: missing or unreadable ({exc.strerror or exc})") from None
-    raise ValueError(f"{p.name}: not a PNG or TIFF image")
+    raise ValueError(f"{p.name}: not a PNG, TIFF or .npy.zst frame")
 
 
 def _png_header(head: bytes, name: str) -> ImageHeader:
@@ -151,3 +159,26 @@ def check_frame_headers(headers: list[ImageHeader], names: list[str], limits: Fr
                 f"{name}: the frames up to here decode to {total} bytes, more than the "
                 f"{limits.max_set_bytes}-byte budget of a set"
             )
+
+
+def _npy_zst_header(fh: io.BufferedReader, name: str) -> ImageHeader:
+    """The ``.npy`` header at the start of a zstd-compressed frame (its first 256 bytes only)."""
+    try:
+        with zstandard.ZstdDecompressor().stream_reader(fh) as reader:
+            head = reader.read(256)
+    except zstandard.ZstdError:
+        raise ValueError(f"{name}: not a zstd frame") from None
+    if not head.startswith(NPY_SIGNATURE) or len(head) < 10:
+        raise ValueError(f"{name}: not an .npy.zst frame")
+    major = head[6]
+    n_len, start = (struct.unpack("<H", head[8:10])[0], 10) if major == 1 else (
+        struct.unpack("<I", head[8:12])[0], 12)
+    try:
+        meta = ast.literal_eval(head[start:start + n_len].decode("latin1"))
+        shape, descr = tuple(meta["shape"]), str(meta["descr"])
+    except (ValueError, SyntaxError, KeyError, TypeError, UnicodeDecodeError):
+        raise ValueError(f"{name}: unreadable .npy header") from None
+    if len(shape) != 2 or descr not in ("|u1", "<u2") or not all(
+            isinstance(d, int) and d > 0 for d in shape):
+        raise ValueError(f"{name}: expected an (H, W) uint8/uint16 frame, got {shape} {descr}")
+    return ImageHeader(shape[1], shape[0], 1, 1 if descr == "|u1" else 2, "npy.zst")

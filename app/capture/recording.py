@@ -4,8 +4,12 @@ Layout under ``<data_dir>/recordings/<name>/``::
 
     session.json          {"format": "fringescope.recording/1", "name", "started",
                            "stopped", "settings", "sets": [{"folder", "timestamp", ...}]}
-    set_0000/             a capture set (capture.json + frame_XX.png) + depth.npy
-    set_0001/ …
+    set_0000/             a capture set (capture.json + frame_XX.png or frame_XX.npy.zst)
+    set_0001/ …           + depth.npy
+
+A recording the service did not close (it was killed, or the power went) keeps
+``"stopped": null``; :func:`recover_interrupted`, run when the service starts, marks it
+``"interrupted": true`` with ``stopped`` at its last whole set.
 
 Data that is never lost: every set folder is built under a hidden temporary name
 and renamed into place whole (:func:`app.atomic.atomic_directory`), and only then
@@ -38,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.atomic import atomic_write_text
-from app.capture.captureset import CaptureSet, frame_names, write_capture_set
+from app.capture.captureset import ZSTD_SUFFIX, CaptureSet, frame_names, write_capture_set
 from app.core.encoding import npy_bytes
 
 FORMAT = "fringescope.recording/1"
@@ -221,6 +225,8 @@ class Recording:
         depth_mm: npt.ArrayLike | None = None,
         timestamp: float | None = None,
         info: dict[str, Any] | None = None,
+        codec: str = "png",
+        encoded: list[bytes] | None = None,
     ) -> str:
         """Append one capture set (and its depth map) and return its folder name.
 
@@ -229,6 +235,11 @@ class Recording:
             depth_mm: (H, W) float depth map in mm (NaN invalid), saved as ``depth.npy``.
             timestamp: acquisition time, seconds since the epoch (default: now).
             info: small JSON-able extras for this set's entry in ``session.json``.
+            codec: how the frames are stored, ``png`` or ``zstd`` (see
+                :mod:`app.capture.captureset`).
+            encoded: the frames already encoded with ``codec``
+                (:func:`app.capture.captureset.encode_frames`), so that encoding can run
+                beside the previous set's writing.
         """
         with self._lock:
             if self._closed:
@@ -242,9 +253,10 @@ class Recording:
                 led=capture.led, extra={**capture.extra, "timestamp": _iso(t), "index": index},
                 bit_depth=capture.bit_depth,
             )
-            write_capture_set(self.path / folder, stamped, extra_files=extra)
+            write_capture_set(self.path / folder, stamped, extra_files=extra, codec=codec,
+                              encoded=encoded)
             entry = {"folder": folder, "timestamp": _iso(t), "files": sorted(
-                ["capture.json", *frame_names(capture.frames.shape[0]), *extra]
+                ["capture.json", *frame_names(capture.frames.shape[0], codec), *extra]
             ), **(info or {})}
             self._session["sets"].append(entry)
             try:
@@ -309,8 +321,40 @@ def list_recordings(root: str | os.PathLike[str]) -> list[dict[str, Any]]:
             s = read_session(base, child.name)
         except (FileNotFoundError, ValueError):
             continue  # a folder without a whole session.json is not a recording
-        out.append({k: s.get(k) for k in ("name", "started", "stopped", "n_sets", "bytes")})
+        summary = {k: s.get(k) for k in ("name", "started", "stopped", "n_sets", "bytes")}
+        out.append({**summary, "interrupted": bool(s.get("interrupted", False))})
     return out
+
+
+def recover_interrupted(root: str | os.PathLike[str], *, active: str | None = None) -> list[str]:
+    """Close every recording left open by a service that stopped without closing it.
+
+    Each one keeps its whole sets (those listed in ``session.json`` whose folder exists)
+    and is marked ``"interrupted": true`` with ``stopped`` set to its last set's time stamp
+    (its start when it has none). ``active`` names a recording being written now, left
+    alone. Returns the names marked, by name.
+    """
+    base = Path(root)
+    if not base.is_dir():
+        return []
+    marked = []
+    for child in sorted(base.iterdir()):
+        if not (child.is_dir() and NAME_PATTERN.fullmatch(child.name)) or child.name == active:
+            continue
+        try:
+            session = read_session(base, child.name)
+        except (FileNotFoundError, ValueError):
+            continue
+        if session.get("stopped") is not None:
+            continue
+        sets = session["sets"]
+        session["stopped"] = sets[-1]["timestamp"] if sets else session.get("started")
+        session["interrupted"] = True
+        for derived in ("n_sets", "bytes"):  # computed by read_session, not stored
+            session.pop(derived, None)
+        atomic_write_text(child / SESSION_FILE, json.dumps(session, indent=2) + "\n")
+        marked.append(child.name)
+    return marked
 
 
 def delete_recording(root: str | os.PathLike[str], name: str) -> None:
@@ -386,7 +430,7 @@ def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20
     """Stream recording ``name`` as a zip archive, a chunk at a time (constant memory).
 
     The archive holds ``<name>/session.json`` and the listed set folders. PNG frames
-    are stored (already compressed), everything else deflated.
+    and zstd frames are stored (already compressed), everything else deflated.
     ``FileNotFoundError`` (raised before the first chunk) if the recording does not exist.
     """
     session = read_session(root, name)  # raises before streaming starts
@@ -406,8 +450,8 @@ def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20
                     info = zipfile.ZipInfo(f"{name}/{f.relative_to(path).as_posix()}",
                                            time.gmtime(max(st.st_mtime, 315532800))[:6])
                     info.file_size = size = st.st_size
-                    info.compress_type = (zipfile.ZIP_STORED if f.suffix == ".png"
-                                          else zipfile.ZIP_DEFLATED)
+                    stored = f.suffix == ".png" or f.name.endswith(ZSTD_SUFFIX)
+                    info.compress_type = zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED
                     with zf.open(info, "w", force_zip64=size > 0x7FFF0000) as out:
                         while block := fh.read(chunk_bytes):
                             out.write(block)

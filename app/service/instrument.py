@@ -39,10 +39,13 @@ __all__ = ["Instrument", "RecordingState"]
 
 
 class RecordingState(Protocol):
-    """What the status needs of the recorder: the running recording's name, if any."""
+    """What the status needs of the recorder: the running recording's name, if any, and why
+    the last recording stopped on its own (a write error, a full disk), if it did."""
 
     @property
     def active_name(self) -> str | None: ...
+    @property
+    def warning(self) -> str | None: ...
 
 
 class Instrument:
@@ -296,6 +299,8 @@ class Instrument:
             warnings.append(self.pipeline.engine_note)
         if (collapse := self.calibrations.collapse_warning()) is not None:
             warnings.append(collapse)
+        if self.recorder is not None and self.recorder.warning:
+            warnings.append(self.recorder.warning)
         last_error = self.calibrations.last_error
         for err in (acq.last_error if acq else None, rec.last_error):
             if err:

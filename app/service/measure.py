@@ -1,5 +1,10 @@
 """3-D measurements (issue 17) on the latest result or on a recorded set, delegating to
-:mod:`app.analysis.measure`; bad clicks become ``InvalidRequest`` (HTTP 422) with one line."""
+:mod:`app.analysis.measure`; bad clicks become ``InvalidRequest`` (HTTP 422) with one line.
+
+Live maps have holes (pixels the motion test or the validity rule took out), so the service
+measures through them: an area fills them, a length's or profile's click in a hole too wide
+to snap across is filled from the valid points around it (``fill_holes``); each answer
+carries its ``coverage``, and only one below ``MIN_COVERAGE`` (50 %) is refused."""
 
 from __future__ import annotations
 
@@ -10,17 +15,21 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from app.analysis.measure import measure
+from app.analysis.measure import MIN_COVERAGE, measure
 from app.core.errors import InvalidRequest
 
 
 class MeasurableResult(Protocol):
     """What a measurement reads of a result (``LiveResult`` and ``ReconResult`` both have it)."""
 
-    points: npt.NDArray[np.float32]
-    valid: npt.NDArray[np.bool_]
-    reason: npt.NDArray[np.uint8]
-    sigma: npt.NDArray[np.float32] | None
+    @property
+    def points(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def valid(self) -> npt.NDArray[np.bool_]: ...
+    @property
+    def reason(self) -> npt.NDArray[np.uint8]: ...
+    @property
+    def sigma(self) -> npt.NDArray[np.float32] | None: ...
 
 
 def _nonneg(x: Any) -> float | None:
@@ -61,17 +70,19 @@ def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
                     plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm,
-                    calibration_length_mm=calibration_length_mm)
+                    calibration_length_mm=calibration_length_mm, fill_holes=True)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
         raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()
+    out["coverage"] = m.extra.get("coverage", 1.0)
+    out["min_coverage"] = MIN_COVERAGE
     out["elapsed_ms"] = round(1e3 * (time.perf_counter() - t0), 3)
     return out
 
 
 def summary(measured: dict[str, Any]) -> dict[str, Any]:
     """The compact form kept in a recording's metadata (no profile samples)."""
-    keep = ("kind", "value_mm", "sigma_mm", "unit", "snapped")
+    keep = ("kind", "value_mm", "sigma_mm", "unit", "snapped", "coverage")
     out = {k: measured[k] for k in keep}
     out["sigma_noise_mm"] = measured["extra"].get("sigma_noise_mm")
     out["pixels"] = [p["pixel"] for p in measured["points"]]
@@ -110,7 +121,7 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
             m = measure_fn(spec["kind"], result.points, result.valid, sigma, spec["points"],
                            reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
                            plane_normal=plane_normal, calibration_sigma_mm=calibration_sigma_mm,
-                           calibration_length_mm=calibration_length_mm)
+                           calibration_length_mm=calibration_length_mm, fill_holes=True)
         except (ValueError, KeyError):
             continue
         p = np.array([q.point_mm for q in m.points], np.float64)
@@ -125,8 +136,9 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
             n = np.cross(p[2] - p[1], p[3] - p[1])
             n /= np.linalg.norm(n)
             segs += [(p[1], p[2]), (p[2], p[3]), (p[3], p[1]), (p[0], p[0] - ((p[0] - p[1]) @ n) * n)]
-        elif kind == "area":
-            segs += [(p[i], p[(i + 1) % len(p)]) for i in range(len(p))]
+        elif kind == "area":  # a vertex in a hole has no point: its two edges are not drawn
+            segs += [(p[i], p[(i + 1) % len(p)]) for i in range(len(p))
+                     if np.isfinite(p[i]).all() and np.isfinite(p[(i + 1) % len(p)]).all()]
         elif kind == "profile" and m.profile is not None:
             uv = m.profile.pixels
             ok = np.isfinite(m.profile.height_mm)
@@ -134,6 +146,9 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
             segs += [(pts[i], pts[i + 1]) for i in range(len(pts) - 1) if ok[i] and ok[i + 1]]
         unit = "mm²" if kind == "area" else "mm"
         sig = "?" if not np.isfinite(m.sigma_mm) else f"{m.sigma_mm:.3f}"
-        labels.append((p.mean(axis=0).astype(np.float32), f"{m.value_mm:.3f} ± {sig} {unit}"))
+        drawn = p[np.isfinite(p).all(axis=1)]
+        if len(drawn):
+            labels.append((drawn.mean(axis=0).astype(np.float32),
+                           f"{m.value_mm:.3f} ± {sig} {unit}"))
     arr = np.array(segs, np.float32).reshape(-1, 2, 3)
     return arr, labels

@@ -1,35 +1,46 @@
 """Recording the live instrument: every whole fringe set to disk, with its depth map.
 
-A recorder thread follows two public slots of the Instrument: ``acquisition.sets``
+A collector thread follows two public slots of the Instrument: ``acquisition.sets``
 (each whole raw set, as grabbed) and ``results`` (each published depth map). A raw set
-is written with the depth map reconstructed from it (matched by the frames' timestamps);
-a set the reconstruction skipped (newest-wins queue, no calibration, rolling mode) is
-written raw after ``depth_wait_s``. Writes are atomic (:mod:`app.capture.recording`).
+is paired with the depth map reconstructed from it (matched by the frames' timestamps);
+a set the reconstruction skipped (newest-wins queue, no calibration, rolling mode) goes
+raw after ``depth_wait_s``. Pairs go through a bounded queue to the writer, so encoding
+and disk never hold up the collector (nor acquisition): when the queue is full the set
+is counted in ``skipped_sets``. The writer is two threads: an encoder (frames as zstd row
+differences by default, :mod:`app.capture.captureset`, on ``encode_workers`` threads;
+``codec="png"`` for PNG) and a store that writes and fsyncs the previous set meanwhile.
+Writes are atomic (:mod:`app.capture.recording`).
 
-Faults never kill the service: a write error or a nearly full disk stops the recording
-and is reported (``last_error``); sets the writer could not keep up with are counted
-(``skipped_sets``).
+Faults never kill the service: a write error, a full disk (``ENOSPC``) or a nearly full
+one stops the recording, and the reason is kept in ``last_error`` and in ``warning``,
+which ``GET /api/status`` carries in its ``warnings`` until the next recording starts.
+At construction, recordings a previous run left open are marked ``interrupted`` and
+half-written set folders are removed.
 """
 
 from __future__ import annotations
 
+import errno
 import io
 import logging
+import queue
 import shutil
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from app.capture import recording as rec_io
-from app.capture.captureset import CaptureSet
+from app.capture.captureset import FRAME_CODECS, CaptureSet, encode_frames
 from app.capture.recording import (
     Recording,
     default_name,
     recordings_root,
+    recover_interrupted,
     remove_stale_partials,
     validate_name,
 )
@@ -70,22 +81,47 @@ class Recorder:
         instrument: the live instrument (its ``acquisition`` exists after ``start()``).
         min_free_mb: stop recording when the data folder's disk has less free space, MB.
         depth_wait_s: how long a raw set waits for its depth map before it is written raw, s.
+        codec: how frames are stored, ``zstd`` (default) or ``png``.
+        queue_sets: sets waiting for the writer at most; one more is counted as skipped.
+        encode_workers: threads encoding one set's frames: on a machine shared with other
+            work the writer then gets its share of both cores, not of one.
     """
 
-    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0, depth_wait_s: float = 3.0) -> None:
+    def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
+                 depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16,
+                 encode_workers: int = 2) -> None:
+        if codec not in FRAME_CODECS:
+            raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
+        if queue_sets < 1:
+            raise ValueError(f"queue_sets: must be at least 1, got {queue_sets}")
+        if encode_workers < 1:
+            raise ValueError(f"encode_workers: must be at least 1, got {encode_workers}")
         self.instrument = instrument
         self.root = recordings_root(instrument.settings.data_dir)
         self.min_free_mb = float(min_free_mb)
         self.depth_wait_s = float(depth_wait_s)
+        self.codec = codec
+        self.queue_sets = int(queue_sets)
+        self.encode_workers = int(encode_workers)
         self._lock = threading.Lock()
         self._recording: Recording | None = None
-        self._thread: threading.Thread | None = None
+        self._threads: tuple[threading.Thread, ...] = ()  # collector, encoder, store
         self._stop = threading.Event()
+        self._write_failed = threading.Event()
         self.sets_with_depth = 0
         self.skipped_sets = 0
         self.errors = 0
+        self.queue_peak = 0
+        self.write_cpu_s = 0.0  # the writer's (and its encoders') CPU time this recording, s
+        self.encode_wall_s = 0.0  # elapsed time preparing and encoding sets this recording, s
+        self.store_wall_s = 0.0  # elapsed time writing them to disk (fsync included), s
+        self.sets_written = 0
         self.last_error: str | None = None
-        self._cleaned = False
+        # why the last recording stopped on its own (shown in /api/status warnings)
+        self.warning: str | None = None
+        # leftovers of a run that ended without closing its recording (kill -9, power cut)
+        self.recovered = recover_interrupted(self.root)
+        remove_stale_partials(self.root)
         # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source: Callable[[], dict[str, Any]] | None = None
         # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
@@ -111,9 +147,6 @@ class Recorder:
         with self._lock:
             if self._recording is not None:
                 raise Conflict(f"already recording {self._recording.name!r}: stop it first")
-            if not self._cleaned:
-                remove_stale_partials(self.root)  # leftovers of a crash before this start
-                self._cleaned = True
             self._check_disk()
             settings = self.instrument.settings.model_dump(mode="json", exclude=set(SECRET_SETTINGS))
             try:
@@ -122,38 +155,59 @@ class Recorder:
                 raise Conflict(str(exc)) from None
             except ValueError as exc:
                 raise InvalidRequest(str(exc)) from None
-            self.sets_with_depth = self.skipped_sets = self.errors = 0
-            self.last_error = None
+            self.sets_with_depth = self.skipped_sets = self.errors = self.queue_peak = 0
+            self.write_cpu_s, self.sets_written = 0.0, 0
+            self.encode_wall_s = self.store_wall_s = 0.0
+            self.last_error = self.warning = None
             self._stop.clear()
-            self._thread = threading.Thread(target=self._run, args=(self._recording,),
-                                            name="fringescope-recorder", daemon=True)
-            self._thread.start()
+            self._write_failed.clear()
+            jobs: queue.Queue[_Job | None] = queue.Queue(maxsize=self.queue_sets)
+            ready: queue.Queue[_Prepared | None] = queue.Queue(maxsize=2)
+            rec = self._recording
+            self._threads = (
+                threading.Thread(target=self._run, args=(rec, jobs), name="fringescope-recorder",
+                                 daemon=True),
+                threading.Thread(target=self._encode_loop, args=(rec, jobs, ready),
+                                 name="fringescope-recorder-encode", daemon=True),
+                threading.Thread(target=self._store_loop, args=(rec, ready),
+                                 name="fringescope-recorder-store", daemon=True),
+            )
+            for thread in reversed(self._threads):
+                thread.start()
             return self.status()
 
     def stop(self, timeout_s: float = 30.0) -> dict[str, Any] | None:
         """Finish the running recording (pending sets are written) and return its session."""
         with self._lock:
-            rec, thread = self._recording, self._thread
+            rec, threads = self._recording, self._threads
             if rec is None:
                 return None
             self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        for thread in threads:  # the collector hands its last sets over, then the writer drains
+            if thread is not threading.current_thread():
+                thread.join(max(0.0, deadline - time.monotonic()))
         with self._lock:
-            self._recording, self._thread = None, None
+            self._recording, self._threads = None, ()
         return rec.close()
 
     close = stop
 
     def status(self) -> dict[str, Any]:
         rec = self._recording
+        n_sets = rec.n_sets if rec is not None else 0
         return {
             "recording": rec.name if rec is not None else None,
-            "sets": rec.n_sets if rec is not None else 0,
+            "sets": n_sets,
             "sets_with_depth": self.sets_with_depth,
             "skipped_sets": self.skipped_sets,
             "errors": self.errors,
             "last_error": self.last_error,
+            "queue_peak": self.queue_peak,
+            "write_cpu_ms_per_set": round(1e3 * self.write_cpu_s / max(1, self.sets_written), 3),
+            # the encoder and the store overlap: the slower of the two bounds the rate
+            "write_ms_per_set": round(1e3 * max(self.encode_wall_s, self.store_wall_s)
+                                      / max(1, self.sets_written), 3),
         }
 
     def _fresh_name(self) -> str:
@@ -228,64 +282,139 @@ class Recorder:
         except ValueError as exc:
             raise NotFound(f"set {index} of {name!r} cannot be read: {exc}") from None
 
-    # -- the thread ------------------------------------------------------------------------------
-    def _run(self, rec: Recording) -> None:
+    # -- the threads ------------------------------------------------------------------------------
+    def _run(self, rec: Recording, jobs: queue.Queue[_Job | None]) -> None:
+        """Collector: pair each raw set with its depth map, hand it to the writer, never wait.
+
+        It subscribes to both slots, so a set or a map is never missed while this thread
+        waits for the CPU: the callbacks (on the acquisition and reconstruction threads)
+        only put into ``inbox``.
+        """
         inst = self.instrument
         pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]] = OrderedDict()
-        set_seq = result_seq = -1
+        inbox: queue.Queue[FrameSet | LiveResult] = queue.Queue(maxsize=_MAX_INBOX)
+
+        def receive(_seq: int, item: FrameSet | LiveResult) -> None:
+            try:
+                inbox.put_nowait(item)
+            except queue.Full:  # this thread has not run for seconds: counted, never waited on
+                self.skipped_sets += isinstance(item, FrameSet)
+
+        def hand_over(fs: FrameSet, res: LiveResult | None) -> None:
+            try:
+                jobs.put_nowait((fs, res))
+            except queue.Full:  # the writer is behind: this set is lost, and counted
+                self.skipped_sets += 1
+            self.queue_peak = max(self.queue_peak, jobs.qsize())
+
+        unsubscribe = [inst.results.subscribe(receive)]
+        watched: Acquisition | None = None
         try:
             while True:
                 acq = inst.acquisition
+                if acq is not None and acq is not watched:  # started, or restarted
+                    unsubscribe.append(acq.sets.subscribe(receive))
+                    watched = acq
                 shut_down = inst.results.closed or (acq is not None and not acq.alive)
-                stopping = self._stop.is_set() or shut_down
-                if acq is not None and not stopping:
-                    if set_seq < 0:
-                        set_seq = acq.sets.seq  # record from now on, not the set before start
-                    seq, fs = acq.sets.wait_newer(set_seq, 0.1)
-                    if fs is not None:
-                        self.skipped_sets += max(0, seq - set_seq - 1)
-                        set_seq = seq
-                        pending[tuple(fs.timestamps)] = (fs, time.monotonic())
-                elif not stopping:
-                    self._stop.wait(0.1)
-                seq, res = inst.results.latest()
-                if res is not None and seq != result_seq:
-                    result_seq = seq
-                    self._match(rec, pending, res)
+                stopping = self._stop.is_set() or shut_down or self._write_failed.is_set()
+                try:
+                    item: FrameSet | LiveResult | None = inbox.get(timeout=0.0 if stopping else 0.1)
+                except queue.Empty:
+                    item = None
+                while item is not None:
+                    if isinstance(item, LiveResult):
+                        self._match(pending, item, hand_over)
+                    else:  # (when stopping too: a set taken before the stop is written)
+                        pending[tuple(item.timestamps)] = (item, time.monotonic())
+                    try:
+                        item = inbox.get_nowait()
+                    except queue.Empty:
+                        item = None
                 now = time.monotonic()
                 while pending and (stopping or now - next(iter(pending.values()))[1] > self.depth_wait_s):
                     _, (fs, _) = pending.popitem(last=False)
-                    self._write(rec, fs, None)
-                if len(pending) > 8:  # the writer cannot keep up: drop the oldest, counted
-                    pending.popitem(last=False)
-                    self.skipped_sets += 1
+                    hand_over(fs, None)
+                if len(pending) > _MAX_PENDING:  # depth maps stopped coming: the oldest goes raw
+                    _, (fs, _) = pending.popitem(last=False)
+                    hand_over(fs, None)
                 if stopping:
                     break
-        except _StopRecording:
-            pass
         except Exception as exc:  # never let a recorder fault escape into the service
             log.exception("recorder failed")
-            self._fail(f"recording stopped: {exc}")
+            self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+            self._write_failed.set()
+        finally:
+            for undo in unsubscribe:
+                undo()
+            jobs.put(None)  # the writer drains what is queued, then ends
+
+    def _encode_loop(self, rec: Recording, jobs: queue.Queue[_Job | None],
+                     ready: queue.Queue[_Prepared | None]) -> None:
+        """Encoder: build and encode each queued set while the store writes the previous one."""
+        try:
+            while (job := jobs.get()) is not None:
+                if self._write_failed.is_set():
+                    continue  # stopped by a fault: what is still queued is not written
+                t0, w0 = time.thread_time(), time.perf_counter()
+                try:
+                    prepared = self._prepare(rec, *job)
+                except _StopRecording:
+                    self._write_failed.set()
+                    continue
+                except Exception as exc:  # a bug must not leave the collector without a writer
+                    log.exception("recorder encoder failed")
+                    self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+                    self._write_failed.set()
+                    continue
+                self.write_cpu_s += time.thread_time() - t0
+                self.encode_wall_s += time.perf_counter() - w0
+                ready.put(prepared)  # waits while the disk is behind: ``jobs`` fills meanwhile
+        finally:
+            ready.put(None)
+
+    def _store_loop(self, rec: Recording, ready: queue.Queue[_Prepared | None]) -> None:
+        """Store: write each encoded set to disk in order; it finishes the recording."""
+        try:
+            while (prepared := ready.get()) is not None:
+                if self._write_failed.is_set():
+                    continue
+                t0, w0 = time.thread_time(), time.perf_counter()
+                try:
+                    self._store(rec, prepared)
+                except _StopRecording:
+                    self._write_failed.set()
+                except Exception as exc:
+                    log.exception("recorder store failed")
+                    self._fail(f"recording {rec.name!r} stopped: {exc}", warn=True)
+                    self._write_failed.set()
+                self.write_cpu_s += time.thread_time() - t0
+                self.store_wall_s += time.perf_counter() - w0
         finally:
             if self._recording is rec and not self._stop.is_set():
                 # stopped on its own (fault, disk full, instrument shut down): finish the session
                 with self._lock:
-                    self._recording, self._thread = None, None
-                rec.close()
+                    self._recording, self._threads = None, ()
+                try:
+                    rec.close()
+                except OSError as exc:  # no room for session.json: marked interrupted at next start
+                    log.warning("recording %r could not be closed: %s", rec.name, exc)
 
-    def _match(self, rec: Recording, pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]],
-               res: LiveResult) -> None:
+    @staticmethod
+    def _match(pending: OrderedDict[tuple[float, ...], tuple[FrameSet, float]], res: LiveResult,
+               hand_over: Callable[[FrameSet, LiveResult | None], None]) -> None:
         key = tuple(res.timestamps)
         if key not in pending:
             return
-        # sets older than the reconstructed one were skipped by reconstruction: write raw
+        # sets older than the reconstructed one were skipped by reconstruction: written raw
         while pending:
             k, (fs, _) = pending.popitem(last=False)
-            self._write(rec, fs, res if k == key else None)
+            hand_over(fs, res if k == key else None)
             if k == key:
                 break
 
-    def _write(self, rec: Recording, fs: FrameSet, res: LiveResult | None) -> None:
+    def _prepare(self, rec: Recording, fs: FrameSet, res: LiveResult | None) -> _Prepared:
+        """A set ready for the disk: its capture set with metadata and measurements, encoded."""
+        pool_cpu: list[float] = []  # the encoder threads' CPU, counted with the writer's
         try:
             self._check_disk()
             now_wall, now_mono = time.time(), time.monotonic()
@@ -308,22 +437,61 @@ class Recorder:
 
                     normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))
                     try:
-                        info["measurements"] = measure_specs(res, specs, normal, cal_sigma, cal_length)
-                    except Exception as exc:  # a measurement fault must not stop the recording
+                        measured = measure_specs(res, specs, normal, cal_sigma, cal_length)
+                    except Exception:  # a measurement fault must not stop the recording
                         log.exception("measurements of a recorded set failed")
-                        info["measurements"] = [{"error": f"measurement failed: {exc}"}]
-                    capture.extra["measurements"] = info["measurements"]
-            rec.add_set(capture, depth_mm=None if res is None else res.depth,
-                        timestamp=now_wall - (now_mono - fs.received_s), info=info)
+                        measured = []
+                    # a measurement refused on this map (too few valid pixels) is not a value
+                    measured = [m for m in measured if "error" not in m]
+                    if measured:
+                        info["measurements"] = capture.extra["measurements"] = measured
+            encoded = encode_frames(capture.frames, self.codec, self.encode_workers, pool_cpu)
         except (OSError, ValueError) as exc:
-            self._fail(f"recording stopped: {exc}")
-            raise _StopRecording from exc
-        self.sets_with_depth += res is not None
+            raise self._stopped(rec, exc) from exc
+        if self.encode_workers > 1:
+            self.write_cpu_s += sum(pool_cpu)
+        return _Prepared(capture, None if res is None else res.depth,
+                         now_wall - (now_mono - fs.received_s), info, encoded)
 
-    def _fail(self, msg: str) -> None:
+    def _store(self, rec: Recording, p: _Prepared) -> None:
+        try:
+            self._check_disk()
+            rec.add_set(p.capture, depth_mm=p.depth_mm, timestamp=p.timestamp, info=p.info,
+                        codec=self.codec, encoded=p.encoded)
+        except (OSError, ValueError) as exc:
+            raise self._stopped(rec, exc) from exc
+        self.sets_with_depth += p.depth_mm is not None
+        self.sets_written += 1
+
+    def _stopped(self, rec: Recording, exc: Exception) -> _StopRecording:
+        full = isinstance(exc, InsufficientDisk) or getattr(exc, "errno", None) == errno.ENOSPC
+        reason = f"disk full ({exc})" if full else str(exc)
+        self._fail(f"recording {rec.name!r} stopped after {rec.n_sets} sets: {reason}", warn=True)
+        return _StopRecording()
+
+    def _fail(self, msg: str, *, warn: bool = False) -> None:
         log.warning("%s", msg)
         self.errors += 1
         self.last_error = msg
+        if warn:
+            self.warning = msg
+
+
+# raw sets waiting for their depth map; depth_wait_s (3 s) holds about 11 of geometric-9's
+_MAX_PENDING = 16
+_MAX_INBOX = 64  # sets and maps the collector has not looked at yet
+_Job = tuple[FrameSet, "LiveResult | None"]
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """A set between the encoder and the store."""
+
+    capture: CaptureSet
+    depth_mm: np.ndarray | None
+    timestamp: float
+    info: dict[str, Any]
+    encoded: list[bytes]
 
 
 class _StopRecording(Exception):

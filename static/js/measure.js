@@ -1,6 +1,8 @@
 // Measure in 3-D on the depth image (POST /api/measure): click points, read value ± 1σ.
 // The points stay fixed in sensor pixels and are re-measured on every new depth map; the
 // finished measurement is kept by the server (PUT /api/measure/tool) so recordings carry it.
+// A measurement the server refuses (4xx: e.g. too little of it valid) is shown once and not
+// posted again on every new map; a new click, Clear or another kind starts afresh.
 
 import { $, api, fmt } from "./api.js";
 import { ui } from "./state.js";
@@ -17,7 +19,10 @@ const HINT = {
   area: "click the polygon's corners, then Done",
 };
 
-const m = { kind: "", points: [], result: null, done: false, seq: -1, busy: false, error: "" };
+const m = {
+  kind: "", points: [], result: null, done: false, seq: -1, busy: false, error: "",
+  refused: false, posts: 0,
+};
 ui.measure = m; // for tests and the curious
 
 function toSensor(ev) {
@@ -126,8 +131,9 @@ function spec() {
 }
 
 async function remeasure() {
-  if (!m.done || m.busy) return;
+  if (!m.done || m.busy || m.refused) return;
   m.busy = true;
+  m.posts += 1;
   const out = $("measure-result");
   try {
     const r = await api("/api/measure", { method: "POST", json: spec() });
@@ -135,16 +141,26 @@ async function remeasure() {
     m.error = "";
     out.className = "roi-result";
     const snapped = r.points.filter((p) => p.snapped).length;
+    const filled = r.points.filter((p) => p.filled).length;
+    const partial = r.coverage !== undefined && r.coverage < 1;
+    const cover = partial ? ` · ${fmt(100 * r.coverage, 0)} % valid` : "";
     out.innerHTML = `<b>${r.kind.replace(/_/g, " ")}</b> <span id="measure-value">${label(r)}</span> (1σ)` +
+      cover +
       (snapped ? ` · ${snapped} point${snapped > 1 ? "s" : ""} snapped to a valid pixel` : "") +
+      (filled ? ` · ${filled} point${filled > 1 ? "s" : ""} filled across a hole` : "") +
       ` · depth map #${r.source.seq}`;
     out.dataset.value = String(r.value_mm);
     out.dataset.sigma = String(r.sigma_mm);
+    out.dataset.coverage = String(r.coverage);
   } catch (err) {
     m.result = null;
     m.error = err.message;
+    // refused for what was clicked (4xx but 409, which is "no depth map yet"): said once, not
+    // re-posted on every map; a network fault or a busy server is tried again on the next map
+    m.refused = err.status >= 400 && err.status < 500 && err.status !== 409;
     out.className = "roi-result error";
-    out.textContent = `measurement failed: ${err.message}`;
+    out.textContent = `measurement failed: ${err.message}` +
+      (m.refused ? " (not measured again: click new points, or Clear)" : "");
   } finally {
     m.busy = false;
     drawMeasure();
@@ -169,7 +185,7 @@ function finish() {
 
 function reset(kind) {
   const had = m.done;
-  Object.assign(m, { kind, points: [], result: null, done: false, error: "" });
+  Object.assign(m, { kind, points: [], result: null, done: false, error: "", refused: false });
   $("measure-done").disabled = true;
   $("measure-done").hidden = !OPEN_ENDED.has(kind);
   $("measure-result").className = "roi-result muted";

@@ -195,9 +195,10 @@ def test_snapping_and_refusals_name_the_point():
         M.area(p, ok, None, [(10, 10), (20, 20)])
     with pytest.raises(ValueError, match="edges 1-2 and 3-4 cross"):
         M.area(p, ok, None, [(10, 10), (100, 100), (100, 10), (10, 100)])
-    with pytest.raises(ValueError, match="polygon covers invalid surface"):
+    with pytest.raises(ValueError, match=r"only 44 % of the polygon's pixels are valid; a "
+                                         r"measurement needs at least 50 %"):
         big = ok.copy()
-        big[90:110, 90:110] = False
+        big[60:120, 60:120] = False
         M.area(p, big, None, [(60, 60), (140, 60), (140, 140), (60, 140)])
     with pytest.raises(ValueError, match="a profile takes at most 20000 samples"):
         M.profile(p, ok, None, [(10, 10), (190, 150)] * 120)
@@ -249,3 +250,89 @@ def test_calibration_term_correlated_by_distance():
     assert a1 > 2 * a0 > 0
     with pytest.raises(ValueError, match="calibration_length_mm"):
         M.length(p, ok, sig, pix, calibration_sigma_mm=s, calibration_length_mm=-1.0)
+
+
+@pytest.mark.parametrize("surface", ["sphere", "tilted"])
+def test_area_measures_through_holes_within_its_sigma(surface: str):
+    """Live maps have 9 x 9 holes (grown motion flags): an area keeps its value, says coverage."""
+    p = sphere() if surface == "sphere" else plane((0.4, -0.2, 1.0), 45.0)
+    ok, sig = ones(p), np.full((H, W), 0.02)
+    poly = [(CX - 40, CY - 40), (CX + 40, CY - 40), (CX + 40, CY + 40), (CX - 40, CY + 40)]
+    whole = M.area(p, ok, sig, poly)
+    assert whole.extra["coverage"] == 1.0 and whole.extra["samples_filled"] == 0
+    rng = np.random.default_rng(1)
+    holes = ok.copy()
+    for _ in range(40):  # anywhere: inside, across the edges, on the vertices
+        y, x = rng.integers(0, H - 9), rng.integers(0, W - 9)
+        holes[y:y + 9, x:x + 9] = False
+        one = ok.copy()
+        one[y:y + 9, x:x + 9] = False
+        m = M.area(p, one, sig, poly)
+        assert abs(m.value_mm - whole.value_mm) < 0.5 * m.sigma_mm
+    m = M.area(p, holes, sig, poly)
+    assert 0.8 < m.extra["coverage"] < 0.95 and m.extra["samples_filled"] > 20
+    assert abs(m.value_mm - whole.value_mm) < 0.5 * m.sigma_mm
+    assert 0.9 * whole.sigma_mm < m.sigma_mm < 1.2 * whole.sigma_mm
+    assert all(not q.snapped for q in m.points)  # vertices stay where clicked, in holes too
+
+
+def test_area_sigma_through_holes_matches_monte_carlo():
+    rng = np.random.default_rng(11)
+    base = sphere(60.0, 25.0)
+    ok = ones(base)
+    for y, x in ((45, 55), (70, 90), (100, 125), (52, 136), (95, 66)):  # on vertices, edges, inside
+        ok[y:y + 9, x:x + 9] = False
+    sig = np.where(ok, 0.01 + 0.03 * (UU / W), 0.0)
+    pix = [(60, 50), (140, 55), (130, 110), (70, 105)]
+    m = M.area(base, ok, sig, pix)
+    assert m.extra["samples_filled"] >= 5 and m.extra["coverage"] < 0.97
+    vals = [M.area(noisy(base, sig, rng), ok, sig, pix).value_mm for _ in range(300)]
+    assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
+    whole = M.area(base, ones(base), None, pix)
+    assert abs(np.mean(vals) - whole.value_mm) < 3 * m.sigma_mm / math.sqrt(300) + 1e-3 * m.value_mm
+
+
+def test_length_and_profile_ends_in_a_hole_are_filled_with_their_noise():
+    rng = np.random.default_rng(5)
+    p = plane((0.3, 0.1, 1.0), 40.0)
+    ok = ones(p)
+    ok[76:85, 146:155] = False  # a 9 x 9 hole around the second click: nothing within 3 px
+    sig = np.where(ok, 0.02, 0.0)
+    pix = [(30, 40), (150, 80)]
+    with pytest.raises(ValueError,
+                       match=r"point 2 \(150, 80\): invalid pixel and no valid pixel within 3 px"):
+        M.length(p, ok, sig, pix)
+    m = M.length(p, ok, sig, pix, fill_holes=True)
+    truth = float(np.linalg.norm(p[80, 150] - p[40, 30]))
+    assert m.points[1].filled and not m.points[0].filled and m.points[1].pixel == (150, 80)
+    assert 0.5 < m.points[1].coverage < 1.0 and m.extra["coverage"] == m.points[1].coverage
+    assert m.value_mm == pytest.approx(truth, abs=0.01 * m.sigma_mm)  # a plane: fitted near exact
+    vals = [M.length(noisy(p, sig, rng), ok, sig, pix, fill_holes=True).value_mm
+            for _ in range(300)]
+    assert float(np.std(vals)) / m.sigma_mm == pytest.approx(1.0, abs=0.15)
+    # the dispatcher passes it on; a profile's chord end in the hole is filled, its samples gaps
+    assert M.measure("length", p, ok, sig, pix, fill_holes=True).value_mm == m.value_mm
+    prof = M.measure("profile", p, ok, sig, [(100, 80), (150, 80)], fill_holes=True)
+    assert prof.points[-1].filled and 0.5 < prof.extra["coverage"] < 1.0
+    assert np.isnan(prof.profile.height_mm[-5:]).all()  # type: ignore[union-attr]
+    # a hole whose surroundings are mostly invalid too is refused, saying so
+    sparse = ok.copy()
+    sparse[40:120, 110:190] &= rng.random((80, 80)) < 0.3
+    sparse[76:85, 146:155] = False
+    with pytest.raises(ValueError, match=r"point 2 \(150, 80\): invalid pixel in a hole whose "
+                                         r"surroundings are \d+ % valid "
+                                         r"\(a filled point needs 50 %\)"):
+        M.length(p, sparse, sig, pix, fill_holes=True)
+
+
+def test_profile_refused_below_half_coverage_with_the_figure():
+    p = plane()
+    ok = ones(p)
+    ok[80, 60:130] = False  # 70 of the 101 samples
+    with pytest.raises(ValueError, match=r"only 31 % of the profile's pixels are valid; a "
+                                         r"measurement needs at least 50 %"):
+        M.profile(p, ok, None, [(50, 80), (150, 80)])
+    ok[80, 60:130] = True
+    ok[80, 60:100] = False
+    m = M.profile(p, ok, None, [(50, 80), (150, 80)])
+    assert m.extra["coverage"] == pytest.approx(61 / 101, abs=1e-4)

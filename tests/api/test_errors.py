@@ -231,7 +231,7 @@ def test_a_frame_that_is_not_png_or_tiff_is_refused_before_decoding(client: Test
     frames = {f"frame_{i:02d}.png": jpeg.tobytes() for i in range(16)}
     members = {"capture.json": capture_json(), **frames}
     code, detail = _post_zip(client, _zip(members))
-    assert code == 422 and detail == "frame_00.png: not a PNG or TIFF image", detail
+    assert code == 422 and detail == "frame_00.png: not a PNG, TIFF or .npy.zst frame", detail
 
 
 def test_a_calibration_file_nested_100000_deep_is_422_and_unchanged(client: TestClient) -> None:

@@ -3,10 +3,21 @@
 from __future__ import annotations
 
 import io
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import httpx
 import numpy as np
+import pytest
 import tifffile
 from fastapi.testclient import TestClient
 
@@ -16,6 +27,12 @@ from tests.api.conftest import live_settings, wait_for
 
 TOKEN = "rec-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None:
@@ -66,7 +83,7 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
         assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
         zf = zipfile.ZipFile(io.BytesIO(r.content))
         assert zf.testzip() is None
-        assert f"op-1/{sets[0]['folder']}/frame_15.png" in zf.namelist()
+        assert f"op-1/{sets[0]['folder']}/frame_15.npy.zst" in zf.namelist()
 
         index = int(with_depth[0]["folder"][4:])
         r = client.get(f"/api/recordings/op-1/sets/{index}/depth?format=tiff")
@@ -91,3 +108,142 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
         r = client.delete("/api/recordings/op-1", headers=AUTH)
         assert r.status_code == 200 and not root.exists()
         assert client.get("/api/recordings").json() == []
+
+
+def _serve(tmp_path: Path, calibration: Path, port: int, *wrap: str,
+           **env_extra: str) -> subprocess.Popen[str]:
+    """``fringescope serve`` as its own process (optionally under ``wrap``, e.g. unshare)."""
+    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration),
+               FRINGESCOPE_VIEWER="false", FRINGESCOPE_SIM_SCENE="dof_target",
+               FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_EXPOSURE_MS="30",
+               FRINGESCOPE_SCHEDULE="geometric-9", NUMBA_THREADING_LAYER="workqueue", **env_extra)
+    cmd = [sys.executable, "-m", "app", "serve", "--port", str(port),
+           "--data-dir", str(tmp_path / "data")]
+    return subprocess.Popen([*wrap, *cmd], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool], timeout_s: float,
+          what: str) -> Any:
+    deadline, body = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            out = proc.stdout.read() if proc.stdout else ""
+            raise AssertionError(f"server exited {proc.returncode} waiting for {what}: {out}")
+        try:
+            body = httpx.get(url, timeout=5).json()
+            if predicate(body):
+                return body
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    raise AssertionError(f"timed out waiting for {what}; last answer: {body}")
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+
+
+def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
+        tmp_path: Path, sim_calibration_file: Path) -> None:
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    proc = _serve(tmp_path, sim_calibration_file, port)
+    try:
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+              "first depth map")
+        r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
+        assert r.status_code == 200, r.text
+        _poll(base + "/api/recording", proc, lambda s: s["sets_with_depth"] >= 4, 120,
+              "four recorded sets")
+        os.kill(proc.pid, signal.SIGKILL)  # mid-recording: the writer is busy with the next set
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    root = tmp_path / "data" / "recordings" / "crashed"
+    before = json.loads((root / "session.json").read_text())
+    assert before["stopped"] is None and "interrupted" not in before  # what the crash left
+
+    proc = _serve(tmp_path, sim_calibration_file, port)
+    try:
+        listed = _poll(base + "/api/recordings", proc, lambda x: isinstance(x, list), 180,
+                       "the listing")
+        (summary,) = listed
+        assert summary["name"] == "crashed" and summary["interrupted"] is True
+        meta = httpx.get(base + "/api/recordings/crashed", timeout=10).json()
+        sets = meta["sets"]
+        assert summary["n_sets"] == len(sets) >= 4
+        assert meta["interrupted"] is True and meta["stopped"] == sets[-1]["timestamp"]
+        assert not [p.name for p in root.iterdir() if p.name.startswith(".")]  # partials gone
+        assert sorted(p.name for p in root.iterdir() if p.is_dir()) == [s["folder"] for s in sets]
+        for s in sets:  # every listed set reads back whole
+            cap = read_capture_set(root / s["folder"])
+            idx = cap.extra["frame_indices"]
+            assert cap.frames.shape[0] == 9 and idx == list(range(idx[0], idx[0] + 9))
+            assert all(f.endswith(".npy.zst") for f in s["files"] if f.startswith("frame_"))
+            if s["depth"]:
+                depth = np.load(root / s["folder"] / "depth.npy")
+                assert depth.shape == cap.frames.shape[1:] and np.isfinite(depth).mean() > 0.2
+        r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
+        assert r.status_code == 409  # the interrupted recording is kept under its name
+    finally:
+        _stop(proc)
+
+
+def _can_mount_tmpfs(tmp_path: Path) -> bool:
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    r = subprocess.run(["unshare", "-rm", "sh", "-c", f"mount -t tmpfs -o size=1m tmpfs {probe}"],
+                       capture_output=True, timeout=30)
+    return r.returncode == 0
+
+
+def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
+        tmp_path: Path, sim_calibration_file: Path) -> None:
+    """A real ENOSPC: the server runs in its own mount namespace on a 40 MB tmpfs data folder."""
+    if not _can_mount_tmpfs(tmp_path):
+        pytest.skip("no user/mount namespaces here (unshare -rm): no small disk for the server")
+    data = tmp_path / "data"
+    data.mkdir()
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    mount = f'mount -t tmpfs -o size=40m tmpfs {data} && exec "$@"'
+    wrap = ("unshare", "-rm", "sh", "-c", mount, "sh")
+    proc = _serve(tmp_path, sim_calibration_file, port, *wrap,
+                  FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
+    try:
+        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+              "first depth map")
+        r = httpx.post(base + "/api/recording/start", json={"name": "full"}, timeout=10)
+        assert r.status_code == 200, r.text
+        st = _poll(base + "/api/status", proc, lambda s: s["recording"] is None, 120,
+                   "the recording to stop")
+        (warning,) = [w for w in st["warnings"] if "recording 'full' stopped" in w]
+        assert "disk full" in warning and "No space left on device" in warning, warning
+        rec = httpx.get(base + "/api/recording", timeout=10).json()
+        assert rec["recording"] is None and rec["last_error"] == warning and rec["errors"] == 1
+        (summary,) = httpx.get(base + "/api/recordings", timeout=10).json()
+        assert summary["name"] == "full" and summary["stopped"] is not None
+        assert not summary["interrupted"]
+        meta = httpx.get(base + "/api/recordings/full", timeout=10).json()
+        assert 1 <= summary["n_sets"] == len(meta["sets"]) < 8  # ~11 MB a set on 40 MB
+        # the service goes on: depth keeps coming; the warning stays until a new recording starts
+        seq = httpx.get(base + "/api/status", timeout=10).json()["results_published"]
+        st = _poll(base + "/api/status", proc, lambda s: s["results_published"] > seq + 2, 60,
+                   "more depth")
+        assert warning in st["warnings"] and st["state"] == "running"
+        httpx.delete(base + "/api/recordings/full", timeout=10)
+        r = httpx.post(base + "/api/recording/start", json={"name": "again"}, timeout=10)
+        assert r.status_code == 200, r.text
+        assert warning not in httpx.get(base + "/api/status", timeout=10).json()["warnings"]
+        httpx.post(base + "/api/recording/stop", timeout=30)
+    finally:
+        _stop(proc)

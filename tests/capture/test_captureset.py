@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -139,3 +140,42 @@ def test_heterodyne_and_horizontal_pattern_keys(tmp_path):
     (tmp_path / "s" / "capture.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="frequencies: heterodyne unwrapping needs at least 3"):
         read_capture_set(tmp_path / "s")
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_zstd_frames_round_trip_bit_exact(tmp_path: Path, dtype: type) -> None:
+    rng = np.random.default_rng(3)
+    top = np.iinfo(dtype).max
+    frames = rng.integers(0, top, size=(16, 40, 56), dtype=dtype, endpoint=True)
+    frames[:, :, 0], frames[:, :, -1] = top, 0  # the differences wrap both ways
+    cap = CaptureSet(frames=frames, exposure_ms=12.5, led="blue", extra={"note": "kept"})
+    write_capture_set(tmp_path / "s", cap, codec="zstd")
+    names = sorted(p.name for p in (tmp_path / "s").iterdir())
+    assert names == ["capture.json", *[f"frame_{i:02d}.npy.zst" for i in range(16)]]
+    back = read_capture_set(tmp_path / "s")
+    assert back.frames.dtype == frames.dtype
+    np.testing.assert_array_equal(back.frames, frames)
+    assert (back.exposure_ms, back.led, back.extra["note"]) == (12.5, "blue", "kept")
+
+
+def test_zstd_frame_refused_with_its_name(tmp_path: Path) -> None:
+    import zstandard
+
+    from app.capture.captureset import MAX_FRAME_BYTES
+
+    cap = CaptureSet(frames=np.zeros((16, 8, 8), np.uint8))
+    write_capture_set(tmp_path / "s", cap, codec="zstd")
+    bad = tmp_path / "s" / "frame_03.npy.zst"
+    bad.write_bytes(b"not zstd at all")
+    with pytest.raises(ValueError, match="frame_03.npy.zst: not a zstd frame"):
+        read_capture_set(tmp_path / "s")
+    # a bomb: a small file that would decompress beyond the bound is refused before decompressing
+    bad.write_bytes(zstandard.ZstdCompressor(level=19).compress(bytes(MAX_FRAME_BYTES + 1)))
+    assert bad.stat().st_size < 1 << 20
+    with pytest.raises(ValueError, match="frame_03.npy.zst: decompressed size"):
+        read_capture_set(tmp_path / "s")
+    bad.write_bytes(zstandard.ZstdCompressor().compress(b"\x93NUMPY garbage"))
+    with pytest.raises(ValueError, match="frame_03.npy.zst: unreadable frame"):
+        read_capture_set(tmp_path / "s")
+    with pytest.raises(ValueError, match="codec"):
+        write_capture_set(tmp_path / "t", cap, codec="jpeg")

@@ -1,14 +1,17 @@
-"""Frame sizes from PNG and TIFF headers, checked against limits before anything is decoded."""
+"""Frame sizes from PNG, TIFF and .npy.zst headers, checked against limits before anything is decoded."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import tifffile
+import zstandard
 
+from app.capture.captureset import zstd_frame_bytes
 from app.capture.imageheader import FrameLimits, ImageHeader, check_frame_headers, read_image_header
 from tests.api.hostile import zero_png
 
@@ -48,7 +51,7 @@ def test_a_bomb_header_is_read_without_decoding(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "content, message",
     [
-        (b"", "not a PNG or TIFF"),
+        (b"", "not a PNG, TIFF or .npy.zst frame"),
         (b"GIF89a" + bytes(40), "not a PNG"),
         (b"\x89PNG\r\n\x1a\n" + bytes(8), "truncated PNG"),
         (b"II*\x00" + bytes(4), "invalid TIFF"),
@@ -79,3 +82,21 @@ def test_limits_name_the_first_frame_that_breaks_them() -> None:
         check_frame_headers([small] * 3, names, FrameLimits(max_frame_pixels=1000))
     with pytest.raises(ValueError, match=r"^c.png: the frames up to here decode to 921600 bytes"):
         check_frame_headers([small] * 3, names, FrameLimits(max_set_bytes=700_000))
+
+
+@pytest.mark.parametrize(("dtype", "shape"), [(np.uint8, (24, 32)), (np.uint16, (1032, 1384))])
+def test_npy_zst_frame_header_is_read_without_decompressing_the_pixels(tmp_path, dtype, shape):
+    path = tmp_path / "frame_00.npy.zst"
+    path.write_bytes(zstd_frame_bytes(np.arange(np.prod(shape)).reshape(shape).astype(dtype)))
+    header = read_image_header(path)
+    assert (header.width, header.height, header.channels) == (shape[1], shape[0], 1)
+    assert header.bytes_per_sample == np.dtype(dtype).itemsize and header.format == "npy.zst"
+
+
+def test_npy_zst_frame_of_floats_is_refused_from_its_header(tmp_path):
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((8, 8), np.float32))
+    path = tmp_path / "frame_00.npy.zst"
+    path.write_bytes(zstandard.ZstdCompressor().compress(buf.getvalue()))
+    with pytest.raises(ValueError, match="frame_00.npy.zst: expected an \\(H, W\\) uint8/uint16"):
+        read_image_header(path)

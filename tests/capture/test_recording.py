@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -229,3 +230,46 @@ def test_delete(tmp_path: Path) -> None:
         delete_recording(tmp_path, "gone")
     with pytest.raises(ValueError):
         delete_recording(tmp_path, "..")
+
+
+def test_recover_interrupted_keeps_whole_sets(tmp_path: Path) -> None:
+    from app.capture.recording import recover_interrupted
+
+    done = Recording(tmp_path, "done")
+    done.add_set(make_set(0)[0])
+    done.close()
+    open_rec = Recording(tmp_path, "open")  # left open, as by a killed service
+    for i in range(3):
+        open_rec.add_set(make_set(i)[0], codec="zstd")
+    Recording(tmp_path, "empty")
+    running = Recording(tmp_path, "running")
+    running.add_set(make_set(5)[0])
+    # a set folder removed by hand after the crash is not listed; a half-written one never was
+    shutil.rmtree(tmp_path / "open" / "set_0002")
+    (tmp_path / "open" / ".set_0003.x.partial").mkdir()
+
+    assert recover_interrupted(tmp_path, active="running") == ["empty", "open"]
+    listed = {s["name"]: s for s in list_recordings(tmp_path)}
+    assert {n: s["interrupted"] for n, s in listed.items()} == {
+        "done": False, "empty": True, "open": True, "running": False}
+    assert listed["running"]["stopped"] is None
+    session = read_session(tmp_path, "open")
+    assert session["interrupted"] is True and session["n_sets"] == 2
+    assert session["stopped"] == session["sets"][-1]["timestamp"]
+    assert read_session(tmp_path, "empty")["stopped"] == read_session(tmp_path, "empty")["started"]
+    for s in session["sets"]:
+        back = read_capture_set(tmp_path / "open" / s["folder"])
+        np.testing.assert_array_equal(back.frames, make_set(int(s["folder"][4:]))[0].frames)
+    assert recover_interrupted(tmp_path) == ["running"]  # idempotent for the ones already marked
+    assert remove_stale_partials(tmp_path) == 1
+
+
+def test_zip_stores_zstd_frames_as_they_are(tmp_path: Path) -> None:
+    rec = Recording(tmp_path, "z")
+    cap, depth = make_set(1)
+    rec.add_set(cap, depth_mm=depth, codec="zstd")
+    zf = zipfile.ZipFile(io.BytesIO(b"".join(iter_zip(tmp_path, "z"))))
+    info = zf.getinfo("z/set_0000/frame_00.npy.zst")
+    assert info.compress_type == zipfile.ZIP_STORED
+    assert zf.getinfo("z/set_0000/depth.npy").compress_type == zipfile.ZIP_DEFLATED
+    assert zf.read(info) == (tmp_path / "z" / "set_0000" / "frame_00.npy.zst").read_bytes()
