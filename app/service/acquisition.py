@@ -59,7 +59,7 @@ class Acquisition:
         self.led = led
         self.rolling = rolling
         self.on_frame = on_frame
-        self.assembler = SetAssembler(schedule.n_frames)
+        self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
         self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
         self.camera_rate = RateMeter()
         self.frames_received = 0
@@ -145,7 +145,7 @@ class Acquisition:
                 stop_devices(self.devices)
                 self._started = False  # the loop starts them again with the new patterns
             self.schedule = schedule
-            self.assembler = SetAssembler(schedule.n_frames)
+            self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
             self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
             self.queue.clear()
             on_swap(schedule)
