@@ -8,6 +8,7 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import Response
+from pydantic import BaseModel, Field
 
 from app.api.deps import binary, get_instrument
 from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
@@ -60,7 +61,20 @@ def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> A
 
 @router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
 def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
+    """The open session: its board, poses and whether it is solved (409 if none is open)."""
     return inst.require_session().describe()
+
+
+class SessionCancelOut(BaseModel):
+    cancelled: bool = Field(description="a session was open and is now closed")
+    poses: int = Field(description="poses the cancelled session held (0 if none was open)")
+
+
+@router.delete("/session", response_model=SessionCancelOut, operation_id="cancel_session", responses=COMMON)
+def cancel_session(inst: Instrument = Depends(get_instrument)) -> SessionCancelOut:
+    """Close the session without a calibration (its poses are dropped); no session: nothing to do."""
+    session = inst.cancel_session()
+    return SessionCancelOut(cancelled=session is not None, poses=0 if session is None else len(session.poses))
 
 
 @router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})

@@ -12,6 +12,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from datetime import UTC, datetime
 
 from app.core.schedule import PatternSchedule
 from app.devices.base import Frame
@@ -24,7 +25,7 @@ from app.service.devices import (
     stop_devices,
 )
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
-from app.service.store import LatestSlot, NewestQueue, RateMeter
+from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.acquisition")
 
@@ -71,6 +72,11 @@ class Acquisition:
         self.faults = 0
         self.fault: str | None = None
         self.last_error: str | None = None
+        self.last_error_s: float | None = None  # time.monotonic() of last_error
+        self.last_error_at: str | None = None  # the same instant, ISO 8601 UTC
+        self.last_frame_s: float | None = None  # time.monotonic() of the newest frame
+        # arrival intervals of consecutive frames, s: the camera's frame period as it runs
+        self._intervals = RecentValues(64)
         self._last_index: int | None = None
         self._pending: dict[str, object] = {}
         self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None], threading.Event] | None = None
@@ -246,7 +252,17 @@ class Acquisition:
             log.warning("device fault: %s", msg)
         self.fault = msg
         self.last_error = msg
+        self.last_error_s = time.monotonic()
+        self.last_error_at = datetime.now(UTC).isoformat(timespec="milliseconds")
         self.faults += 1
+
+    @property
+    def frame_period_s(self) -> float:
+        """The camera's frame period, s: the median arrival interval of consecutive frames
+        (before any, the exposure). Intervals across a gap are not counted, so a stall does
+        not stretch it."""
+        median = self._intervals.median()
+        return median if median is not None else max(self.exposure_ms, 1.0) / 1000.0
 
     def _on_frame(self, frame: Frame, received_s: float) -> None:
         self.frames_received += 1
@@ -254,7 +270,11 @@ class Acquisition:
         if self._last_index is not None and frame.index > self._last_index + 1:
             self.frames_dropped += frame.index - self._last_index - 1
             self.dropped_since_set += frame.index - self._last_index - 1
+        elif self._last_index is not None and frame.index == self._last_index + 1 \
+                and self.last_frame_s is not None:
+            self._intervals.add(received_s - self.last_frame_s)
         self._last_index = frame.index
+        self.last_frame_s = received_s
         self.camera_rate.tick(received_s)
         if self.on_frame is not None:
             self.on_frame(frame)

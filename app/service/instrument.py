@@ -9,7 +9,11 @@ in :meth:`Instrument.close`.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import threading
+import time
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, Protocol
 
 from app.calib.calibration import Calibration
@@ -23,6 +27,7 @@ from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_o
 from app.recon import ReconResult
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT, AutoExposureResult
 from app.recon.reconstructor import SensorNoise
+from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
@@ -36,6 +41,15 @@ if TYPE_CHECKING:
     from app.service.store import LatestSlot
 
 __all__ = ["Instrument", "RecordingState"]
+
+
+@functools.cache
+def sim_calibration_poses() -> int:
+    """Board poses the simulator's first-start calibration simulates (its folder writer's default)."""
+    from app.devices.sim.offline import simulate_calibration_folder
+
+    default = inspect.signature(simulate_calibration_folder).parameters["poses"].default
+    return int(default) if isinstance(default, int) else 8
 
 
 class RecordingState(Protocol):
@@ -63,6 +77,11 @@ class Instrument:
         self._started = False
         self._schedule_lock = threading.Lock()
         self._noise: tuple[int, SensorNoise | None] = (-1, None)  # (raw set seq, its fitted noise)
+        self._started_s = time.monotonic()
+        self._last_map_s: float | None = None  # time.monotonic() of the newest depth map
+        self._warmup: dict[str, int] | None = None  # the counters at the first depth map
+        self._seen_errors: dict[str, tuple[str, float, str | None]] = {}  # errors kept without a time
+        self.results.subscribe(self._on_map)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -159,6 +178,10 @@ class Instrument:
     def require_session(self) -> CalibrationSession:
         return self.calibrations.require_session()
 
+    def cancel_session(self) -> CalibrationSession | None:
+        """End the calibration session without a calibration (the one ended, or None)."""
+        return self.calibrations.cancel_session()
+
     def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
         """Grab the next whole set of the current view and add it to the session."""
         return self.calibrations.capture_pose(timeout_s)
@@ -206,8 +229,13 @@ class Instrument:
         with self._schedule_lock:
             if self.recorder is not None and self.recorder.active_name is not None:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
-            if self.calibrating or self.session is not None:
-                raise Conflict("schedule: a calibration is being made with the current schedule; finish it first")
+            if self.calibrating:
+                raise Conflict("schedule: the simulator's calibration is being made with the current "
+                               "schedule; wait until it is active")
+            if (session := self.session) is not None:
+                raise Conflict(f"schedule: a calibration session ({len(session.poses)} poses) uses the current "
+                               "schedule; cancel it (DELETE /api/calibration/session, the wizard's Cancel) "
+                               "or activate its calibration first")
             self.pipeline.set_schedule(schedule, self.calibrations.engine_for)
         return name
 
@@ -251,44 +279,150 @@ class Instrument:
         return self.pipeline.next_capture(timeout_s, exposure_ms=exposure_ms)
 
     # -- status ----------------------------------------------------------------------------------
+    def _on_map(self, _seq: int, result: LiveResult) -> None:
+        """Each published depth map (reconstruction thread): its time; the first ends warm-up."""
+        self._last_map_s = result.published_s
+        if self._warmup is None:
+            self._warmup = self._counters()
+
+    def _counters(self) -> dict[str, int]:
+        acq = self.acquisition
+        asm = acq.assembler if acq is not None else None
+        return {
+            "sets_completed": asm.completed if asm else 0,
+            "dropped_sets": self.pipeline.queue.dropped,
+            "incomplete_sets": asm.incomplete if asm else 0,
+            "mixed_sets": asm.mixed if asm else 0,
+            "groups_lost": asm.groups_lost if asm else 0,
+            "patched_sets": asm.patched if asm else 0,
+            "frames_received": acq.frames_received if acq else 0,
+            "frames_dropped": acq.frames_dropped if acq else 0,
+            "faults": acq.faults if acq else 0,
+        }
+
+    def set_period_s(self) -> float:
+        """One whole fringe set at the camera's frame period (measured while it runs), s."""
+        acq = self.acquisition
+        frame_s = acq.frame_period_s if acq is not None else max(self.settings.exposure_ms, 1.0) / 1000.0
+        return self.schedule.n_frames * frame_s
+
+    def _depth_age_s(self, now: float) -> float | None:
+        return None if self._last_map_s is None else max(0.0, now - self._last_map_s)
+
     def state(self) -> State:
-        """starting | calibrating | running | stopped | fault (a fault outranks the rest)."""
+        """starting | calibrating | running | stalled | stopped | fault (a fault outranks the rest)."""
+        return self._state_reason(time.monotonic())[0]
+
+    def _state_reason(self, now: float) -> tuple[State, str | None]:
+        """The state and, unless running, why: running only while depth maps arrive."""
         acq = self.acquisition
         if self._closed:
-            return "stopped"
+            return "stopped", "the instrument is shut down"
         if acq is None:
-            return "starting"
+            return "starting", "opening the devices"
         if acq.acquiring and (acq.fault or (self.devices is not None and self.devices.faulted())):
-            return "fault"
+            bad = [f"{d.name}: {d.error}" for d in (self.devices.describe() if self.devices else ())
+                   if d.state == "fault"]
+            return "fault", acq.fault or "; ".join(bad) or "device fault"
         if self.calibrating:
-            return "calibrating"
+            return "calibrating", self._calibration_phase()[0]
         if not acq.acquiring:
-            return "stopped"
-        if acq.frames_received == 0 or (self.calibration is not None and self.results.seq == 0):
-            return "starting"
-        return "running"
+            return "stopped", "acquisition stopped (POST /api/acquisition/start)"
+        period = self.set_period_s()
+        age = self._depth_age_s(now)
+        if age is not None and age <= 2 * period:
+            return "running", None
+        if self.calibration is None:
+            return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
+        if self.pipeline.engine_note:
+            return "stalled", self.pipeline.engine_note
+        if self._warmup is None and (phase := self._startup_phase(now)) is not None:
+            return "starting", phase
+        if acq.last_error_s is not None and now - acq.last_error_s <= 2 * period + 1.0:
+            return "stalled", f"recovering from: {acq.last_error}"
+        if acq.last_frame_s is None or now - acq.last_frame_s > 2 * period:
+            return "stalled", "no frames from the camera"
+        if acq.frames_since_set > acq.schedule.n_frames:
+            return "stalled", (f"no complete fringe set: the camera dropped {acq.dropped_since_set} of the last "
+                               f"{acq.frames_since_set} frames")
+        rec = self.reconstruction
+        if rec.last_error:
+            return "stalled", rec.last_error
+        recon = rec.recon_times.median()
+        return "stalled", ("depth maps are late: reconstruction takes "
+                           f"{'?' if recon is None else round(recon)} ms a set on this machine")
+
+    def _startup_phase(self, now: float) -> str | None:
+        """Before the first depth map: what the instrument is waiting for."""
+        acq = self.acquisition
+        if acq is None:
+            return "opening the devices"
+        if acq.frames_received == 0:
+            return "waiting for the camera's first frame"
+        if self.reconstruction.completed == 0 and acq.assembler.completed > 0:
+            # the first set is in the engine: numba compiles (or loads cached) kernels first
+            return f"compiling kernels ({now - self._started_s:.0f} s since start-up)"
+        return "waiting for the first complete fringe set"
+
+    def _calibration_phase(self) -> tuple[str, float | None]:
+        """The simulator's calibration: poses simulated so far (files in its work folder), then the fit."""
+        try:
+            poses = sum(1 for _ in calibration_store.folder(self.settings).glob(".sim-calib-*/poses/pose_*"))
+        except OSError:
+            poses = 0
+        n = sim_calibration_poses()
+        if poses == 0:
+            return "calibrating: simulating board poses", 0.0
+        if poses < n:  # the newest folder is the one being written; the fit takes about a fifth
+            return f"calibrating pose {poses} of {n}", round(0.8 * (poses - 1) / n, 3)
+        return f"calibrating: fitting the depth model to {n} poses", 0.8
+
+    def _last_error(self) -> tuple[str | None, float | None, str | None]:
+        """The newest error of any part: (message, time.monotonic(), ISO time)."""
+        acq, rec = self.acquisition, self.reconstruction
+        now, at = time.monotonic(), datetime.now(UTC).isoformat(timespec="milliseconds")
+        for source, msg in (("calibrations", self.calibrations.last_error), ("reconstruction", rec.last_error)):
+            if msg and self._seen_errors.get(source, (None,))[0] != msg:
+                self._seen_errors[source] = (msg, now, at)  # first seen now (these keep no time)
+        errors = list(self._seen_errors.values())
+        if acq is not None and acq.last_error and acq.last_error_s is not None:
+            errors.append((acq.last_error, acq.last_error_s, acq.last_error_at))
+        if not errors:
+            return None, None, None
+        return max(errors, key=lambda e: e[1] or 0.0)
 
     def status_record(self) -> Status:
         acq, rec, s = self.acquisition, self.reconstruction, self.settings
+        now = time.monotonic()
         latency, recon = rec.latencies.median(), rec.recon_times.median()
+        state, reason = self._state_reason(now)
         warnings = list(self.warnings)
         n_frames = self.schedule.n_frames
         if acq is not None and acq.acquiring and acq.frames_since_set > 3 * n_frames:
-            # no depth rather than depth from frames that are not one gap-free sequence: say why
+            # no depth rather than depth from frames that are not gap-free groups: say why
+            g = len(self.schedule.frequencies)
             warnings.append(
                 f"no complete fringe set in the last {acq.frames_since_set} frames: the camera dropped "
-                f"{acq.dropped_since_set} of them and a set needs {n_frames} consecutive frames"
+                f"{acq.dropped_since_set} of them and each of the {g} frequency groups needs "
+                f"{self.schedule.steps} consecutive frames (within 3 projector cycles)"
                 if acq.dropped_since_set else
                 f"no complete fringe set in the last {acq.frames_since_set} frames (pattern indices missing "
                 "or out of order, or the exposure/LED changing)")
         if self.pipeline.engine_note:
             warnings.append(self.pipeline.engine_note)
-        last_error = self.calibrations.last_error
-        for err in (acq.last_error if acq else None, rec.last_error):
-            if err:
-                last_error = err
+        last_error, error_s, error_at = self._last_error()
+        phase, progress = None, None
+        if state == "calibrating":
+            phase, progress = self._calibration_phase()
+        elif state == "starting":
+            phase = reason
+        counters = self._counters()
+        warmup = self._warmup or {}
+        since = {k: v - warmup[k] for k, v in counters.items()} if warmup else {}
+        session = self.session
+        age = self._depth_age_s(now)
         return Status(
-            state=self.state(),
+            state=state,
             camera_fps=round(acq.camera_rate.rate(), 3) if acq else 0.0,
             depth_fps=round(rec.depth_rate.rate(), 3),
             latency_ms=None if latency is None else round(latency, 3),
@@ -300,14 +434,14 @@ class Instrument:
             calibration=self.calibrations.summary(),
             devices=self.devices.describe() if self.devices is not None else (),
             last_error=last_error,
-            sets_completed=acq.assembler.completed if acq else 0,
+            sets_completed=counters["sets_completed"],
             results_published=rec.completed,
-            dropped_sets=self.pipeline.queue.dropped,
-            incomplete_sets=acq.assembler.incomplete if acq else 0,
-            mixed_sets=acq.assembler.mixed if acq else 0,
-            frames_received=acq.frames_received if acq else 0,
-            frames_dropped=acq.frames_dropped if acq else 0,
-            faults=acq.faults if acq else 0,
+            dropped_sets=counters["dropped_sets"],
+            incomplete_sets=counters["incomplete_sets"],
+            mixed_sets=counters["mixed_sets"],
+            frames_received=counters["frames_received"],
+            frames_dropped=counters["frames_dropped"],
+            faults=counters["faults"],
             recording=None if self.recorder is None else self.recorder.active_name,
             bit_depth=s.bit_depth,
             schedule={"name": self.schedule_name, **self.schedule.to_dict(),
@@ -315,6 +449,21 @@ class Instrument:
                       "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
             warnings=tuple(warnings),
             sensor_noise=rec.noise.describe(),
+            state_reason=reason,
+            phase=phase,
+            progress=progress,
+            set_period_s=round(self.set_period_s(), 4),
+            last_depth_age_s=None if age is None else round(age, 3),
+            last_error_at=error_at,
+            last_error_resolved=None if error_s is None else bool(
+                self._last_map_s is not None and self._last_map_s > error_s),
+            groups_lost=counters["groups_lost"],
+            patched_sets=counters["patched_sets"],
+            warmup=dict(warmup),
+            since_warmup=since,
+            calibration_session=None if session is None else {
+                "board": session.board.to_dict(), "created": session.created, "poses": len(session.poses),
+                "solved": session.report is not None},
         )
 
     def status(self) -> dict[str, Any]:
