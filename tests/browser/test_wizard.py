@@ -46,7 +46,8 @@ def page(server: str) -> Iterator[tuple[Any, list[str]]]:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         try:
             pg = browser.new_page(viewport={"width": 1600, "height": 1000})
-            pg.on("console", lambda msg: errors.append(f"console: {msg.text}") if msg.type == "error" else None)
+            pg.on("console", lambda msg: errors.append(f"console: {msg.text} @ {msg.location}")
+              if msg.type == "error" else None)
             pg.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
             pg.goto(server + "/", wait_until="load")
             yield pg, errors
@@ -80,7 +81,7 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     pg.wait_for_function("document.querySelector('#pose-line').className === 'bad'", timeout=30_000)
     print(f"\nno-board pose answered on the page after {time.monotonic() - t0:.2f} s")
     assert "no board found" in (pg.text_content("#pose-line") or "")
-    assert pg.locator("#pose-table tbody tr").count() == 1
+    pg.wait_for_function("document.querySelectorAll('#pose-table tbody tr').length === 1")
 
     # a reload forgets nothing: the wizard asks the server
     pg.reload(wait_until="load")
@@ -107,5 +108,6 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     assert r.status_code == 200, r.text
     r = httpx.put(f"{server}/api/schedule", json={"name": "paper-16"}, timeout=30)
     assert r.status_code == 200, r.text
-    ignored = ("409",)  # the refused schedule change above is logged by the browser as a failed fetch
-    assert [e for e in errors if not any(s in e for s in ignored)] == []
+    # the refused schedule change above is logged by the browser as a failed fetch; no 3-D viewer here
+    ignored = ("status of 409", "/viser/")
+    assert [e for e in errors if not any(s in e for s in ignored)] == [], "\n".join(errors)
