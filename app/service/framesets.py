@@ -141,6 +141,7 @@ class SetAssembler:
         self._fresh = False
         self._synced = False
         self._last = None
+        self._emitted_newest = -1  # a restarted camera may count from 0 again
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
         """Add one frame; returns a set when ``frame`` ends a projector cycle that yields one."""

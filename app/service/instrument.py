@@ -362,6 +362,8 @@ class Instrument:
         if self.reconstruction.completed == 0 and acq.assembler.completed > 0:
             # the first set is in the engine: numba compiles (or loads cached) kernels first
             return f"compiling kernels ({now - self._started_s:.0f} s since start-up)"
+        if acq.frames_since_set > 3 * acq.schedule.n_frames:
+            return None  # frames come but no set does: not start-up any more, a stall
         return "waiting for the first complete fringe set"
 
     def _calibration_phase(self) -> tuple[str, float | None]:

@@ -120,6 +120,14 @@ def test_settings_change_inside_a_set_discards_it():
     assert len(out) == 1 and out[0].exposure_ms == 30.0
 
 
+def test_after_an_abort_a_camera_counting_from_zero_again_gives_sets():
+    asm = SetAssembler(N, 4)
+    assert len(feed_all(asm, frames(range(96, 128), [i % N for i in range(96, 128)]))) == 2
+    asm.abort()  # the devices were re-opened: the frame counter restarts
+    out = feed_all(asm, frames(range(32), [i % N for i in range(32)]))
+    assert [s.frame_indices for s in out] == [list(range(16)), list(range(16, 32))]
+
+
 def test_abort_counts_only_a_started_set():
     asm = SetAssembler(N)
     asm.abort()
