@@ -70,11 +70,13 @@ class SessionCancelOut(BaseModel):
     poses: int = Field(description="poses the cancelled session held (0 if none was open)")
 
 
-@router.delete("/session", response_model=SessionCancelOut, operation_id="cancel_session", responses=COMMON)
+@router.delete("/session", response_model=SessionCancelOut, operation_id="cancel_session",
+               responses=COMMON)
 def cancel_session(inst: Instrument = Depends(get_instrument)) -> SessionCancelOut:
-    """Close the session without a calibration (its poses are dropped); no session: nothing to do."""
+    """Close the session without a calibration (its poses are dropped); none open: nothing to do."""
     session = inst.cancel_session()
-    return SessionCancelOut(cancelled=session is not None, poses=0 if session is None else len(session.poses))
+    poses = 0 if session is None else len(session.poses)
+    return SessionCancelOut(cancelled=session is not None, poses=poses)
 
 
 @router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})

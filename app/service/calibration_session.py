@@ -101,7 +101,8 @@ def board_in_view(texture_u8: np.ndarray, board: BoardSpec) -> bool:
     if found:
         return True
     half = cv2.resize(texture_u8, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    found, _ = cv2.findChessboardCornersSB(half, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+    found, _ = cv2.findChessboardCornersSB(half, board.pattern_size,
+                                           flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
     return bool(found)
 
 

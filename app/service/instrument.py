@@ -45,7 +45,7 @@ __all__ = ["Instrument", "RecordingState"]
 
 @functools.cache
 def sim_calibration_poses() -> int:
-    """Board poses the simulator's first-start calibration simulates (its folder writer's default)."""
+    """Board poses the simulator's first-start calibration simulates (its writer's default)."""
     from app.devices.sim.offline import simulate_calibration_folder
 
     default = inspect.signature(simulate_calibration_folder).parameters["poses"].default
@@ -80,7 +80,8 @@ class Instrument:
         self._started_s = time.monotonic()
         self._last_map_s: float | None = None  # time.monotonic() of the newest depth map
         self._warmup: dict[str, int] | None = None  # the counters at the first depth map
-        self._seen_errors: dict[str, tuple[str, float, str | None]] = {}  # errors kept without a time
+        # errors their part keeps without a time: (message, first seen monotonic, ISO time)
+        self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
         self.results.subscribe(self._on_map)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
@@ -230,12 +231,12 @@ class Instrument:
             if self.recorder is not None and self.recorder.active_name is not None:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
             if self.calibrating:
-                raise Conflict("schedule: the simulator's calibration is being made with the current "
-                               "schedule; wait until it is active")
+                raise Conflict("schedule: the simulator's calibration is being made with the "
+                               "current schedule; wait until it is active")
             if (session := self.session) is not None:
-                raise Conflict(f"schedule: a calibration session ({len(session.poses)} poses) uses the current "
-                               "schedule; cancel it (DELETE /api/calibration/session, the wizard's Cancel) "
-                               "or activate its calibration first")
+                raise Conflict(f"schedule: a calibration session ({len(session.poses)} poses) uses "
+                               "the current schedule; cancel it (DELETE /api/calibration/session, "
+                               "the wizard's Cancel) or activate its calibration first")
             self.pipeline.set_schedule(schedule, self.calibrations.engine_for)
         return name
 
@@ -303,14 +304,17 @@ class Instrument:
     def set_period_s(self) -> float:
         """One whole fringe set at the camera's frame period (measured while it runs), s."""
         acq = self.acquisition
-        frame_s = acq.frame_period_s if acq is not None else max(self.settings.exposure_ms, 1.0) / 1000.0
+        if acq is not None:
+            frame_s = acq.frame_period_s
+        else:
+            frame_s = max(self.settings.exposure_ms, 1.0) / 1000.0
         return self.schedule.n_frames * frame_s
 
     def _depth_age_s(self, now: float) -> float | None:
         return None if self._last_map_s is None else max(0.0, now - self._last_map_s)
 
     def state(self) -> State:
-        """starting | calibrating | running | stalled | stopped | fault (a fault outranks the rest)."""
+        """starting | calibrating | running | stalled | stopped | fault (fault outranks all)."""
         return self._state_reason(time.monotonic())[0]
 
     def _state_reason(self, now: float) -> tuple[State, str | None]:
@@ -343,8 +347,9 @@ class Instrument:
         if acq.last_frame_s is None or now - acq.last_frame_s > 2 * period:
             return "stalled", "no frames from the camera"
         if acq.frames_since_set > acq.schedule.n_frames:
-            return "stalled", (f"no complete fringe set: the camera dropped {acq.dropped_since_set} of the last "
-                               f"{acq.frames_since_set} frames")
+            dropped, frames = acq.dropped_since_set, acq.frames_since_set
+            return "stalled", (f"no complete fringe set: the camera dropped {dropped} of the last "
+                               f"{frames} frames")
         rec = self.reconstruction
         if rec.last_error:
             return "stalled", rec.last_error
@@ -367,9 +372,10 @@ class Instrument:
         return "waiting for the first complete fringe set"
 
     def _calibration_phase(self) -> tuple[str, float | None]:
-        """The simulator's calibration: poses simulated so far (files in its work folder), then the fit."""
+        """The simulator's calibration: poses simulated so far (its work folder's), then the fit."""
+        work = calibration_store.folder(self.settings)
         try:
-            poses = sum(1 for _ in calibration_store.folder(self.settings).glob(".sim-calib-*/poses/pose_*"))
+            poses = sum(1 for _ in work.glob(".sim-calib-*/poses/pose_*"))
         except OSError:
             poses = 0
         n = sim_calibration_poses()
@@ -383,7 +389,8 @@ class Instrument:
         """The newest error of any part: (message, time.monotonic(), ISO time)."""
         acq, rec = self.acquisition, self.reconstruction
         now, at = time.monotonic(), datetime.now(UTC).isoformat(timespec="milliseconds")
-        for source, msg in (("calibrations", self.calibrations.last_error), ("reconstruction", rec.last_error)):
+        for source, msg in (("calibrations", self.calibrations.last_error),
+                            ("reconstruction", rec.last_error)):
             if msg and self._seen_errors.get(source, (None,))[0] != msg:
                 self._seen_errors[source] = (msg, now, at)  # first seen now (these keep no time)
         errors = list(self._seen_errors.values())
@@ -464,8 +471,8 @@ class Instrument:
             warmup=dict(warmup),
             since_warmup=since,
             calibration_session=None if session is None else {
-                "board": session.board.to_dict(), "created": session.created, "poses": len(session.poses),
-                "solved": session.report is not None},
+                "board": session.board.to_dict(), "created": session.created,
+                "poses": len(session.poses), "solved": session.report is not None},
         )
 
     def status(self) -> dict[str, Any]:

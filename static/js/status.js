@@ -27,7 +27,8 @@ function showStatus(st) {
   $("m-incomplete").textContent = String(live.incomplete_sets ?? "–");
   for (const [id, key] of [["m-dropped", "dropped_sets"], ["m-incomplete", "incomplete_sets"]]) {
     $(id).parentElement.title = key in warm
-      ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all` : "since start-up";
+      ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all`
+      : "since start-up";
   }
   $("m-mode").textContent = st.mode;
   const sch = st.schedule;

@@ -76,7 +76,8 @@ function showSession(session) {
   $("btn-cancel-session").disabled = !open;
   $("btn-activate").disabled = !(open && session.solved);
   $("session-line").textContent = open
-    ? `session open since ${session.created}: ${boardLine(session.board)}, ${session.poses.length} poses` +
+    ? `session open since ${session.created}: ${boardLine(session.board)}, ` +
+      `${session.poses.length} poses` +
       (session.solved ? " · solved" : "")
     : "no session open";
   renderPoses(open ? session.poses : []);
@@ -136,10 +137,12 @@ export function setupWizard() {
     showSession(await api("/api/calibration/session", { method: "POST", json: board }));
     say("calibration session started: capture pose 0 (the reference plane) first");
   }));
-  $("btn-cancel-session").addEventListener("click", (ev) => act(ev.target, "cancel session", async () => {
+  const cancel = $("btn-cancel-session");
+  cancel.addEventListener("click", (ev) => act(ev.target, "cancel session", async () => {
     const r = await api("/api/calibration/session", { method: "DELETE" });
     showSession(null);
-    say(r.cancelled ? `calibration session cancelled (${r.poses} poses dropped)` : "no session was open");
+    say(r.cancelled ? `calibration session cancelled (${r.poses} poses dropped)`
+      : "no session was open");
     pollStatus();
   }));
   $("btn-capture").addEventListener("click", (ev) => act(ev.target, "capture pose", async () => {
@@ -147,9 +150,11 @@ export function setupWizard() {
     line.textContent = "capturing a fringe set and searching for the board…";
     line.className = "muted";
     try {
-      const pose = await api("/api/calibration/session/poses", { method: "POST", timeoutMs: 60000 });
+      const pose = await api("/api/calibration/session/poses",
+        { method: "POST", timeoutMs: 60000 });
       line.textContent = pose.found ? `pose ${pose.index}: board found (${pose.corners} points)`
-        : `pose ${pose.index}: no board found — bring the whole board into view, or change the exposure`;
+        : `pose ${pose.index}: no board found — bring the whole board into view, ` +
+          "or change the exposure";
       line.className = pose.found ? "ok" : "bad";
       await showPosePreview(pose.preview_url);
     } catch (err) {

@@ -87,7 +87,8 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
 
         r = client.post("/api/calibration/session/activate", json={"name": "wizard"})
         assert r.status_code == 200 and r.json()["name"] == "wizard"
-        assert client.get("/api/calibration/session").status_code == 409  # activation ends the session
+        # activation ends the session
+        assert client.get("/api/calibration/session").status_code == 409
         assert client.get("/api/status").json()["calibration_session"] is None
         assert client.get("/api/status").json()["calibration"]["name"] == "wizard"
         assert (tmp_path / "data" / "calibrations" / "wizard.json").is_file()
@@ -127,7 +128,8 @@ def _assert_accurate(depth: np.ndarray, truth: np.ndarray) -> None:
     assert float(np.mean(np.abs(err))) < 0.1, f"mean |error| {np.mean(np.abs(err)):.4f} mm"
 
 
-def test_session_lifecycle_cancel_and_the_schedule(tmp_path: Path, sim_calibration_file: Path) -> None:
+def test_session_lifecycle_cancel_and_the_schedule(tmp_path: Path,
+                                                    sim_calibration_file: Path) -> None:
     settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=12)
     with TestClient(create_app(settings)) as client:
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
@@ -138,18 +140,21 @@ def test_session_lifecycle_cancel_and_the_schedule(tmp_path: Path, sim_calibrati
         board = {"type": "checkerboard", "inner_corners": [9, 6], "square_mm": 2.0}
         assert client.post("/api/calibration/session", json=board).status_code == 200
         st = client.get("/api/status").json()
-        assert st["calibration_session"]["poses"] == 0 and st["calibration_session"]["board"] == board
+        assert st["calibration_session"]["poses"] == 0
+        assert st["calibration_session"]["board"] == board
 
         # a view without a board: answered, not found (the quick gate, not the exhaustive search)
         r = client.post("/api/calibration/session/poses")
         assert r.status_code == 200 and r.json()["found"] is False and r.json()["corners"] == 0
         session = client.get("/api/calibration/session").json()
-        assert session["board"] == board and len(session["poses"]) == 1 and session["solved"] is False
+        assert session["board"] == board and len(session["poses"]) == 1
+        assert session["solved"] is False
 
         # the session holds the schedule; the refusal names the way out, its subject once
         r = client.put("/api/schedule", json={"name": "geometric-12"})
         detail = r.json()["detail"]
-        assert r.status_code == 409 and "DELETE /api/calibration/session" in detail and "activate" in detail
+        assert r.status_code == 409 and "DELETE /api/calibration/session" in detail
+        assert "activate" in detail
         assert detail.count("schedule:") == 1
 
         r = client.delete("/api/calibration/session")

@@ -45,7 +45,8 @@ def test_a_camera_dropping_most_frames_gives_no_depth_and_says_why(tmp_path: Pat
         assert "4 consecutive frames" in warning and st["frames_dropped"] > 0
         assert st["state"] != "running" and st["depth_fps"] == 0
         st = wait_for(client, lambda s: s["state"] == "stalled", 30, "the stalled state")
-        assert "dropped" in st["state_reason"] or "recovering" in st["state_reason"], st["state_reason"]
+        reason = st["state_reason"]
+        assert "dropped" in reason or "recovering" in reason, reason
         if st["results_published"]:  # a rare set: built of gap-free groups all the same
             assert _groups_gap_free(client.get("/api/result/latest").json()["frame_indices"])
 
@@ -67,13 +68,14 @@ def test_disconnect_shows_a_fault_and_recovers(tmp_path: Path, sim_calibration_f
         assert inst.acquisition.alive and inst.reconstruction.alive
 
 
-def test_status_never_says_running_without_a_recent_map(tmp_path: Path, sim_calibration_file: Path) -> None:
+def test_status_never_says_running_without_a_recent_map(tmp_path: Path,
+                                                        sim_calibration_file: Path) -> None:
     """Injected faults (unplugs, drops, timeouts): every status sample that says running has a
     depth map within 2 set periods before it, by the maps' own creation times."""
     from app.devices.sim.world import READOUT_MS
 
-    settings = live_settings(tmp_path, sim_calibration_file, sim_disconnect_every_s=3.0, sim_drop_rate=0.05,
-                             sim_timeout_rate=0.02)
+    settings = live_settings(tmp_path, sim_calibration_file, sim_disconnect_every_s=3.0,
+                             sim_drop_rate=0.05, sim_timeout_rate=0.02)
     nominal_s = 16 * max(settings.exposure_ms, READOUT_MS) / 1000.0
     with TestClient(create_app(settings)) as client:
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
@@ -104,7 +106,8 @@ def test_status_never_says_running_without_a_recent_map(tmp_path: Path, sim_cali
                 assert 0.8 * nominal_s <= period <= 1.5 * nominal_s, (period, nominal_s)
                 known = [m[1] for m in (before, after) if m is not None and m[1] <= t_b]
                 if not known or t_a - max(known) > 2 * period + 0.05:
-                    bad.append(f"running at {t_a:.3f} with the newest map at {max(known, default=0):.3f}")
+                    newest = max(known, default=0.0)
+                    bad.append(f"running at {t_a:.3f} with the newest map at {newest:.3f}")
             time.sleep(0.2)
         print(f"\nstatus samples under faults: {states}; reasons seen: {sorted(reasons)[:6]}")
         assert not bad, bad

@@ -20,19 +20,25 @@ from tests.viewer.helpers import serve, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
+NO_SESSION = "document.querySelector('#session-line').textContent === 'no session open'"
+SESSION_OPEN = "document.querySelector('#session-line').textContent.startsWith('session open')"
+
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+def server(tmp_path_factory: pytest.TempPathFactory,
+           request: pytest.FixtureRequest) -> Iterator[str]:
     if not CHROMIUM.exists():
         pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
     from app.main import create_app
 
     calibration = request.getfixturevalue("browser_calibration_file")
-    settings = Settings(data_dir=tmp_path_factory.mktemp("wizard-data"), calibration_file=calibration,
-                        sim_seed=3, exposure_ms=30.0, sim_scene="dof_target", viewer=False)
+    settings = Settings(data_dir=tmp_path_factory.mktemp("wizard-data"),
+                        calibration_file=calibration, sim_seed=3, exposure_ms=30.0,
+                        sim_scene="dof_target", viewer=False)
     with serve(create_app(settings)) as host:
         base = f"http://{host}"
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 1, 600, 0.5)
+        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 1,
+                      600, 0.5)
         assert ok, httpx.get(f"{base}/api/status").json()
         yield base
 
@@ -60,19 +66,20 @@ def _open_wizard(pg: Any) -> None:
         pg.click("#wizard > summary")
 
 
-def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any, list[str]], server: str) -> None:
+def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any, list[str]],
+                                                                  server: str) -> None:
     pg, errors = page
     httpx.delete(f"{server}/api/calibration/session")  # start from no session
     pg.reload(wait_until="load")
     _open_wizard(pg)
-    pg.wait_for_function("document.querySelector('#session-line').textContent === 'no session open'")
+    pg.wait_for_function(NO_SESSION)
     assert pg.is_disabled("#btn-cancel-session") and pg.is_disabled("#btn-capture")
 
     pg.fill("#board-cols", "7")
     pg.fill("#board-rows", "5")
     pg.fill("#board-pitch", "1.5")
     pg.click("#btn-session")
-    pg.wait_for_function("document.querySelector('#session-line').textContent.startsWith('session open')")
+    pg.wait_for_function(SESSION_OPEN)
     assert httpx.get(f"{server}/api/calibration/session").json()["board"]["inner_corners"] == [7, 5]
 
     # a pose with no board in view (the depth-of-field target): the page says so
@@ -85,7 +92,7 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
 
     # a reload forgets nothing: the wizard asks the server
     pg.reload(wait_until="load")
-    pg.wait_for_function("document.querySelector('#session-line').textContent.startsWith('session open')")
+    pg.wait_for_function(SESSION_OPEN)
     assert pg.evaluate("document.querySelector('#wizard').open")
     assert "checkerboard 7 × 5, 1.50 mm, 1 poses" in (pg.text_content("#session-line") or "")
     assert pg.input_value("#board-cols") == "7" and pg.input_value("#board-pitch") == "1.5"
@@ -100,7 +107,7 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     assert "schedule: schedule:" not in (pg.text_content("#message") or "")
 
     pg.click("#btn-cancel-session")
-    pg.wait_for_function("document.querySelector('#session-line').textContent === 'no session open'")
+    pg.wait_for_function(NO_SESSION)
     assert httpx.get(f"{server}/api/calibration/session").status_code == 409
     assert pg.locator("#pose-table tbody tr").count() == 0
 
@@ -108,6 +115,6 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     assert r.status_code == 200, r.text
     r = httpx.put(f"{server}/api/schedule", json={"name": "paper-16"}, timeout=30)
     assert r.status_code == 200, r.text
-    # the refused schedule change above is logged by the browser as a failed fetch; no 3-D viewer here
+    # the refused schedule change is logged by the browser as a failed fetch; no 3-D viewer here
     ignored = ("status of 409", "/viser/")
     assert [e for e in errors if not any(s in e for s in ignored)] == [], "\n".join(errors)

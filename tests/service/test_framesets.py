@@ -84,7 +84,8 @@ def test_a_lost_last_group_is_noticed_at_the_next_cycle():
 
 def test_stand_in_groups_are_at_most_three_cycles_old():
     asm = SetAssembler(N, 4)
-    # group 1 (patterns 4..7) lost in cycles 1..3: cycles 1 and 2 borrow it from cycle 0, cycle 3 cannot
+    # group 1 (patterns 4..7) lost in cycles 1..3: cycles 1 and 2 borrow it from cycle 0,
+    # cycle 3 cannot (cycle 0 is more than 3 cycles of frames back)
     idx = [i for i in range(80) if not (i % N == 5 and 1 <= i // N <= 3)]
     out = feed_all(asm, frames(idx, [i % N for i in idx]))
     assert [max(s.frame_indices) for s in out] == [15, 31, 47, 79]
@@ -152,12 +153,12 @@ def test_rolling_set_after_every_completed_group_from_the_newest_groups():
 def test_rolling_sets_carry_on_past_a_drop():
     win = GroupWindow(4, 4)
     idx = [i for i in range(48) if i != 21]  # frame 21 (group 1, step 1) lost
-    got = [(f.index, s) for f in frames(idx, [i % N for i in idx]) if (s := win.feed(f, 0.0)) is not None]
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
     # group 1 of frames 20..23 never completes: only the set it would have completed (23) is
     # lost; the next ones keep group 1 of frames 4..7 until group 1 of frames 36..39 replaces it
     assert [i for i, _ in got] == [15, 19, 27, 31, 35, 39, 43, 47]
-    assert got[2][1].frame_indices == list(range(16, 20)) + list(range(4, 8)) + list(range(24, 28)) + \
-        list(range(12, 16))
+    assert got[2][1].frame_indices == [*range(16, 20), *range(4, 8), *range(24, 28), *range(12, 16)]
 
 
 def test_rolling_sets_span_at_most_max_span_cycles():
