@@ -65,6 +65,23 @@ def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
     return inst.require_session().describe()
 
 
+class PoseSuggestionOut(BaseModel):
+    index: int = Field(description="the pose to capture next (0: the reference plane)")
+    of: int = Field(description="poses in the suggested series")
+    height_mm: float = Field(description="the board centre's height above the reference plane")
+    tilt_deg: float = Field(description="the board's tilt from the reference plane")
+    moved: bool = Field(description="the simulator moved its board there (false on hardware)")
+    exposure_ms: float | None = Field(description="the exposure set for the twin's board (or null)")
+    hint: str = Field(description="where to hold the board, one line")
+
+
+@router.post("/session/suggested-pose", response_model=PoseSuggestionOut,
+             operation_id="suggest_pose", responses={**R409, **COMMON})
+def suggest_pose(inst: Instrument = Depends(get_instrument)) -> Any:
+    """Where to hold the board next; on the simulator its board is moved there (a few seconds)."""
+    return inst.suggest_pose()
+
+
 class SessionCancelOut(BaseModel):
     cancelled: bool = Field(description="a session was open and is now closed")
     poses: int = Field(description="poses the cancelled session held (0 if none was open)")

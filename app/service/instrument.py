@@ -16,6 +16,8 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
@@ -24,6 +26,9 @@ from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
+from app.devices.sim.offline import auto_exposure_ms, simulate_calibration_folder
+from app.devices.sim.optics import rig_by_name
+from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT, AutoExposureResult
 from app.recon.reconstructor import SensorNoise
@@ -46,8 +51,6 @@ __all__ = ["Instrument", "RecordingState"]
 @functools.cache
 def sim_calibration_poses() -> int:
     """Board poses the simulator's first-start calibration simulates (its writer's default)."""
-    from app.devices.sim.offline import simulate_calibration_folder
-
     default = inspect.signature(simulate_calibration_folder).parameters["poses"].default
     return int(default) if isinstance(default, int) else 8
 
@@ -83,6 +86,7 @@ class Instrument:
         # errors their part keeps without a time: (message, first seen monotonic, ISO time)
         self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
         self.results.subscribe(self._on_map)
+        self._twin_scene_moved = False  # the wizard put the twin's board in view
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -181,7 +185,48 @@ class Instrument:
 
     def cancel_session(self) -> CalibrationSession | None:
         """End the calibration session without a calibration (the one ended, or None)."""
-        return self.calibrations.cancel_session()
+        session = self.calibrations.cancel_session()
+        self._restore_twin_scene()
+        return session
+
+    def suggest_pose(self) -> dict[str, Any]:
+        """Where to hold the board for the session's next pose; the twin puts its board there.
+
+        The poses are the simulator's calibration poses (pose 0 the reference plane, then up
+        to 18 mm higher, tilted by about 30°); the next one is the count of poses with the
+        board found. On the twin the board (the session's spec) moves there and the exposure
+        is set for it; on hardware the answer is the hint alone.
+        """
+        session = self.require_session()
+        world = self.devices.world if self.devices is not None else None
+        rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
+        poses = board_poses(rig, sim_calibration_poses(), seed=0)
+        k = min(sum(1 for p in session.poses if p.found), len(poses) - 1)
+        origin, axes = poses[k]
+        ref = rig.reference
+        height_mm = float(ref.normal @ origin + ref.offset_mm)
+        cos_tilt = abs(float(axes[:, 2] @ ref.normal))  # axes: columns e_s, e_t, normal
+        tilt_deg = float(np.degrees(np.arccos(min(cos_tilt, 1.0))))
+        exposure_ms = None
+        if world is not None:
+            world.set_scene(board_scene(rig, session.board, poses[k]))
+            self._twin_scene_moved = True
+            exposure_ms = round(auto_exposure_ms(world, led=world.led, current=world.current,
+                                                 bits=self.settings.bit_depth), 2)
+            self.set_exposure(exposure_ms)
+        where = "flat on the reference plane (the farthest)" if k == 0 else \
+            f"{height_mm:.0f} mm above the reference plane, tilted {tilt_deg:.0f}°"
+        return {"index": k, "of": len(poses), "height_mm": round(height_mm, 2),
+                "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
+                "exposure_ms": exposure_ms,
+                "hint": f"pose {k} of {len(poses)}: the whole board in view, {where}"}
+
+    def _restore_twin_scene(self) -> None:
+        """After the session: the twin shows its configured scene again."""
+        world = self.devices.world if self.devices is not None else None
+        if world is not None and self._twin_scene_moved:
+            self._twin_scene_moved = False
+            world.set_scene(self.settings.sim_scene)
 
     def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
         """Grab the next whole set of the current view and add it to the session."""
@@ -191,7 +236,9 @@ class Instrument:
         return self.calibrations.solve_session(robust=robust)
 
     def activate_session(self, name: str) -> dict[str, Any]:
-        return self.calibrations.activate_session(name).to_dict()
+        summary = self.calibrations.activate_session(name).to_dict()
+        self._restore_twin_scene()
+        return summary
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:

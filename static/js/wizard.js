@@ -73,6 +73,7 @@ function boardLine(b) {
 function showSession(session) {
   const open = session !== null;
   $("btn-capture").disabled = !open;
+  $("btn-suggest").disabled = !open;
   $("btn-cancel-session").disabled = !open;
   $("btn-activate").disabled = !(open && session.solved);
   $("session-line").textContent = open
@@ -143,6 +144,18 @@ export function setupWizard() {
     showSession(null);
     say(r.cancelled ? `calibration session cancelled (${r.poses} poses dropped)`
       : "no session was open");
+    pollStatus();
+  }));
+  $("btn-suggest").addEventListener("click", (ev) => act(ev.target, "next pose", async () => {
+    const line = $("pose-line");
+    line.textContent = "finding the next pose…";
+    line.className = "muted";
+    const s = await api("/api/calibration/session/suggested-pose",
+      { method: "POST", timeoutMs: 60000 });
+    line.textContent = s.moved
+      ? `${s.hint} — the simulator's board is there (exposure ${fmt(s.exposure_ms, 1)} ms): ` +
+        "Capture pose"
+      : `${s.hint}, then Capture pose`;
     pollStatus();
   }));
   $("btn-capture").addEventListener("click", (ev) => act(ev.target, "capture pose", async () => {

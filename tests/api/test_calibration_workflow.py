@@ -164,3 +164,29 @@ def test_session_lifecycle_cancel_and_the_schedule(tmp_path: Path,
         assert client.get("/api/status").json()["calibration_session"] is None
         r = client.put("/api/schedule", json={"name": "geometric-12"})
         assert r.status_code == 200, r.text
+
+
+def test_the_twin_walks_the_wizard_through_its_board_poses(tmp_path: Path,
+                                                          sim_calibration_file: Path) -> None:
+    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=13)
+    app = create_app(settings)
+    with TestClient(app) as client:
+        world = app.state.instrument.devices.world
+        wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
+        # no session: nothing to suggest for
+        assert client.post("/api/calibration/session/suggested-pose").status_code == 409
+        board = {"type": "checkerboard", "inner_corners": [9, 6], "square_mm": 2.0}  # the wizard's
+        assert client.post("/api/calibration/session", json=board).status_code == 200
+        for k in range(3):
+            r = client.post("/api/calibration/session/suggested-pose")
+            assert r.status_code == 200, r.text
+            s = r.json()
+            assert s["index"] == k and s["moved"] is True and s["of"] == 8
+            assert f"pose {k} of 8" in s["hint"]
+            assert (s["height_mm"] < 0.5) == (k == 0) and (s["tilt_deg"] > 10) == (k > 0)
+            assert world.scene.name == "board_checkerboard"
+            assert client.get("/api/status").json()["exposure_ms"] == s["exposure_ms"]
+            pose = capture_after_change(client)
+            assert pose["index"] == k and pose["found"] is True and pose["corners"] == 54, pose
+        assert client.delete("/api/calibration/session").json() == {"cancelled": True, "poses": 3}
+        assert world.scene.name != "board_checkerboard"  # the twin shows its own scene again
