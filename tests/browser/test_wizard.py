@@ -1,8 +1,9 @@
 """The calibration wizard's session in headless Chromium: it survives a reload and can be left.
 
-Start a session in the wizard → reload the page → the wizard shows the session (board,
-poses) → a schedule change is refused with the way out → Cancel → ``PUT /api/schedule``
-succeeds. A pose captured with no board in view says so on the page.
+Start a session in the wizard → a pose with no board in view says so → Next pose (the twin
+moves its board there) → a pose with the board found → reload the page → the wizard shows
+the session (board, poses) → a schedule change is refused with the way out → Cancel →
+``PUT /api/schedule`` succeeds.
 """
 
 from __future__ import annotations
@@ -90,13 +91,24 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     assert "no board found" in (pg.text_content("#pose-line") or "")
     pg.wait_for_function("document.querySelectorAll('#pose-table tbody tr').length === 1")
 
+    # the twin puts its board (the session's spec) where the wizard suggests: found
+    pg.click("#btn-suggest")
+    pg.wait_for_function("document.querySelector('#pose-line').textContent.includes('Capture pose')",
+                         timeout=60_000)
+    assert "pose 0 of 8" in (pg.text_content("#pose-line") or "")
+    pg.wait_for_timeout(2000)  # frames in flight may predate the move
+    pg.click("#btn-capture")
+    pg.wait_for_function("document.querySelector('#pose-line').className === 'ok'", timeout=60_000)
+    assert "board found (35 points)" in (pg.text_content("#pose-line") or "")
+    pg.wait_for_function("document.querySelectorAll('#pose-table tbody tr').length === 2")
+
     # a reload forgets nothing: the wizard asks the server
     pg.reload(wait_until="load")
     pg.wait_for_function(SESSION_OPEN)
     assert pg.evaluate("document.querySelector('#wizard').open")
-    assert "checkerboard 7 × 5, 1.50 mm, 1 poses" in (pg.text_content("#session-line") or "")
+    assert "checkerboard 7 × 5, 1.50 mm, 2 poses" in (pg.text_content("#session-line") or "")
     assert pg.input_value("#board-cols") == "7" and pg.input_value("#board-pitch") == "1.5"
-    assert pg.locator("#pose-table tbody tr").count() == 1
+    assert pg.locator("#pose-table tbody tr").count() == 2
     assert pg.is_enabled("#btn-cancel-session") and pg.is_enabled("#btn-capture")
 
     # the schedule is held by the session: 409, naming the way out, the subject said once
