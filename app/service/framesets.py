@@ -130,7 +130,7 @@ class SetAssembler:
 
     def abort(self) -> None:
         """Forget everything held (after a timeout, fault or restart), counting a started cycle."""
-        if self._cycle_frames:
+        if self._cycle_frames and self._counted:
             self.incomplete += 1
         if self._pending:
             self.groups_lost += 1

@@ -129,6 +129,13 @@ def test_after_an_abort_a_camera_counting_from_zero_again_gives_sets():
     assert [s.frame_indices for s in out] == [list(range(16)), list(range(16, 32))]
 
 
+def test_abort_in_a_cycle_joined_mid_sequence_is_no_loss():
+    asm = SetAssembler(N, 4)
+    feed_all(asm, frames(range(5, 9), range(5, 9)))  # started mid-cycle: not a cycle of ours
+    asm.abort()
+    assert asm.incomplete == 0
+
+
 def test_abort_counts_only_a_started_set():
     asm = SetAssembler(N)
     asm.abort()
