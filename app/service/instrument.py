@@ -80,7 +80,6 @@ class Instrument:
         self._started = False
         self._schedule_lock = threading.Lock()
         self._noise: tuple[int, SensorNoise | None] = (-1, None)  # (raw set seq, its fitted noise)
-        self._started_s = time.monotonic()
         self._last_map_s: float | None = None  # time.monotonic() of the newest depth map
         self._warmup: dict[str, int] | None = None  # the counters at the first depth map
         # errors their part keeps without a time: (message, first seen monotonic, ISO time)
@@ -387,7 +386,7 @@ class Instrument:
             return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
         if self.pipeline.engine_note:
             return "stalled", self.pipeline.engine_note
-        if self._warmup is None and (phase := self._startup_phase(now)) is not None:
+        if self._warmup is None and (phase := self._startup_phase()) is not None:
             return "starting", phase
         if acq.last_error_s is not None and now - acq.last_error_s <= 2 * period + 1.0:
             return "stalled", f"recovering from: {acq.last_error}"
@@ -404,7 +403,7 @@ class Instrument:
         return "stalled", ("depth maps are late: reconstruction takes "
                            f"{'?' if recon is None else round(recon)} ms a set on this machine")
 
-    def _startup_phase(self, now: float) -> str | None:
+    def _startup_phase(self) -> str | None:
         """Before the first depth map: what the instrument is waiting for."""
         acq = self.acquisition
         if acq is None:
@@ -413,7 +412,7 @@ class Instrument:
             return "waiting for the camera's first frame"
         if self.reconstruction.completed == 0 and acq.assembler.completed > 0:
             # the first set is in the engine: numba compiles (or loads cached) kernels first
-            return f"compiling kernels ({now - self._started_s:.0f} s since start-up)"
+            return "compiling kernels for the first depth map (cached for the next start)"
         if acq.frames_since_set > 3 * acq.schedule.n_frames:
             return None  # frames come but no set does: not start-up any more, a stall
         return "waiting for the first complete fringe set"
@@ -426,6 +425,8 @@ class Instrument:
         except OSError:
             poses = 0
         n = sim_calibration_poses()
+        if poses == 0 and (work / calibration_store.sim_file_name(self.settings)).is_file():
+            return "calibrating: activating the new calibration", 0.95  # fitted, work folder gone
         if poses == 0:
             return "calibrating: simulating board poses", 0.0
         if poses < n:  # the newest folder is the one being written; the fit takes about a fifth
