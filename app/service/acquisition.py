@@ -75,8 +75,9 @@ class Acquisition:
         self.last_error_s: float | None = None  # time.monotonic() of last_error
         self.last_error_at: str | None = None  # the same instant, ISO 8601 UTC
         self.last_frame_s: float | None = None  # time.monotonic() of the newest frame
-        # arrival intervals of consecutive frames, s: the camera's frame period as it runs
+        # timestamp intervals of consecutive frames, s: the camera's frame period as it runs
         self._intervals = RecentValues(64)
+        self._last_timestamp = 0.0
         self._last_index: int | None = None
         self._pending: dict[str, object] = {}
         self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None], threading.Event] | None = None
@@ -258,7 +259,7 @@ class Acquisition:
 
     @property
     def frame_period_s(self) -> float:
-        """The camera's frame period, s: the median arrival interval of consecutive frames
+        """The camera's frame period, s: the median timestamp interval of consecutive frames
         (before any, the exposure). Intervals across a gap are not counted, so a stall does
         not stretch it."""
         median = self._intervals.median()
@@ -271,9 +272,11 @@ class Acquisition:
             self.frames_dropped += frame.index - self._last_index - 1
             self.dropped_since_set += frame.index - self._last_index - 1
         elif self._last_index is not None and frame.index == self._last_index + 1 \
-                and self.last_frame_s is not None:
-            self._intervals.add(received_s - self.last_frame_s)
+                and 0.0 < frame.timestamp - self._last_timestamp < 10.0:
+            # the camera's own clock: arrivals bunch when this thread is starved of CPU
+            self._intervals.add(frame.timestamp - self._last_timestamp)
         self._last_index = frame.index
+        self._last_timestamp = frame.timestamp
         self.last_frame_s = received_s
         self.camera_rate.tick(received_s)
         if self.on_frame is not None:
