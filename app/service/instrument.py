@@ -399,9 +399,12 @@ class Instrument:
         rec = self.reconstruction
         if rec.last_error:
             return "stalled", rec.last_error
-        recon = rec.recon_times.median()
-        return "stalled", ("depth maps are late: reconstruction takes "
-                           f"{'?' if recon is None else round(recon)} ms a set on this machine")
+        recon_ms = rec.recon_times.median()
+        if recon_ms is not None and recon_ms / 1000.0 > period:
+            return "stalled", (f"depth maps are late: reconstruction takes {recon_ms:.0f} ms a set, "
+                               "longer than the camera takes for one")
+        return "stalled", (f"waiting for a complete fringe set: {acq.frames_since_set} frames since "
+                           f"the last, {acq.dropped_since_set} of them dropped")
 
     def _startup_phase(self) -> str | None:
         """Before the first depth map: what the instrument is waiting for."""
