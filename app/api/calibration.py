@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import Response
+from pydantic import BaseModel, Field
 
 from app.api.deps import binary, get_instrument
 from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
@@ -66,7 +67,39 @@ def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> A
 
 @router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
 def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
+    """The open session: its board, poses and whether it is solved (409 if none is open)."""
     return inst.require_session().describe()
+
+
+class PoseSuggestionOut(BaseModel):
+    index: int = Field(description="the pose to capture next (0: the reference plane)")
+    of: int = Field(description="poses in the suggested series")
+    height_mm: float = Field(description="the board centre's height above the reference plane")
+    tilt_deg: float = Field(description="the board's tilt from the reference plane")
+    moved: bool = Field(description="the simulator moved its board there (false on hardware)")
+    exposure_ms: float | None = Field(description="the exposure set for the twin's board (or null)")
+    hint: str = Field(description="where to hold the board, one line")
+
+
+@router.post("/session/suggested-pose", response_model=PoseSuggestionOut,
+             operation_id="suggest_pose", responses={**R409, **COMMON})
+def suggest_pose(inst: Instrument = Depends(get_instrument)) -> Any:
+    """Where to hold the board next; on the simulator its board is moved there (a few seconds)."""
+    return inst.suggest_pose()
+
+
+class SessionCancelOut(BaseModel):
+    cancelled: bool = Field(description="a session was open and is now closed")
+    poses: int = Field(description="poses the cancelled session held (0 if none was open)")
+
+
+@router.delete("/session", response_model=SessionCancelOut, operation_id="cancel_session",
+               responses=COMMON)
+def cancel_session(inst: Instrument = Depends(get_instrument)) -> SessionCancelOut:
+    """Close the session without a calibration (its poses are dropped); none open: nothing to do."""
+    session = inst.cancel_session()
+    poses = 0 if session is None else len(session.poses)
+    return SessionCancelOut(cancelled=session is not None, poses=poses)
 
 
 @router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})

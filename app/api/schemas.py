@@ -92,7 +92,9 @@ class CalibrationSummary(BaseModel):
 
 
 class StatusOut(BaseModel):
-    state: Literal["starting", "calibrating", "running", "stopped", "fault"]
+    state: Literal["starting", "calibrating", "running", "stalled", "stopped", "fault"] = Field(
+        description="running only while depth maps arrive (one in the last 2 set periods); "
+                    "else why in state_reason")
     camera_fps: float
     depth_fps: float
     latency_ms: float | None = Field(None, description="median, newest frame arrival → result published")
@@ -119,6 +121,30 @@ class StatusOut(BaseModel):
     sensor_noise: dict[str, Any] | None = Field(
         None, description="the camera noise model σ and the validity rule use: source (measured | nominal), "
                           "read_noise_dn, gain_dn_per_e, estimates")
+    state_reason: str | None = Field(
+        None, description="why the state is not running, or the start-up phase")
+    phase: str | None = Field(
+        None, description="start-up phase: 'calibrating pose k of n', 'compiling kernels', …; "
+                          "null once depth maps come")
+    progress: float | None = Field(None, description="progress of the phase, 0..1 (null: unknown)")
+    set_period_s: float | None = Field(
+        None, description="one whole fringe set at the camera's frame period, s")
+    last_depth_age_s: float | None = Field(
+        None, description="seconds since the newest depth map (null: none)")
+    last_error_at: str | None = Field(None, description="when last_error happened, ISO 8601 UTC")
+    last_error_resolved: bool | None = Field(
+        None, description="depth maps came after last_error (null: no error)")
+    groups_lost: int = Field(
+        0, description="frequency groups discarded for a missing or out-of-order frame")
+    patched_sets: int = Field(
+        0, description="sets completed with a group from an earlier projector cycle")
+    warmup: dict[str, int] = Field(
+        default_factory=dict, description="the counters when the first depth map came "
+                                          "(start-up losses)")
+    since_warmup: dict[str, int] = Field(
+        default_factory=dict, description="the counters since the first depth map")
+    calibration_session: dict[str, Any] | None = Field(
+        None, description="the open calibration session (board, created, poses, solved) or null")
 
 
 class ResultMeta(BaseModel):

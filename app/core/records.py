@@ -9,7 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
-State = Literal["starting", "calibrating", "running", "stopped", "fault"]
+#: running: depth maps arrive (one in the last 2 set periods); stalled: acquiring, but none do
+State = Literal["starting", "calibrating", "running", "stalled", "stopped", "fault"]
 Mode = Literal["set", "rolling"]
 
 
@@ -45,7 +46,12 @@ class DeviceStatus:
 
 @dataclass(frozen=True)
 class Status:
-    """The instrument's status (``GET /api/status``): state, rates, settings, counters."""
+    """The instrument's status (``GET /api/status``): state, rates, settings, counters.
+
+    The counters (``sets_completed`` … ``faults``) count since start-up; ``warmup`` holds
+    their values when the first depth map came (start-up losses: the camera running before
+    the engine), ``since_warmup`` the difference (what the live session lost).
+    """
 
     state: State
     camera_fps: float
@@ -72,6 +78,18 @@ class Status:
     schedule: dict[str, Any] = field(default_factory=dict)  # the fringe pattern schedule in use
     warnings: tuple[str, ...] = field(default=())
     sensor_noise: dict[str, Any] = field(default_factory=dict)  # the camera noise model in use
+    state_reason: str | None = None  # why the state is not running (or the start-up phase)
+    phase: str | None = None  # start-up: "calibrating: board pose k of n", "compiling kernels", …
+    progress: float | None = None  # of the phase, 0..1 (None: unknown)
+    set_period_s: float | None = None  # one whole fringe set at the camera's frame period, s
+    last_depth_age_s: float | None = None  # since the newest depth map, s (None: none yet)
+    last_error_at: str | None = None  # when last_error happened, ISO 8601 UTC
+    last_error_resolved: bool | None = None  # depth maps came after it (None: no error)
+    groups_lost: int = 0  # frequency groups discarded for a missing or out-of-order frame
+    patched_sets: int = 0  # sets completed with a group from an earlier projector cycle
+    warmup: dict[str, int] = field(default_factory=dict)
+    since_warmup: dict[str, int] = field(default_factory=dict)
+    calibration_session: dict[str, Any] | None = None  # the wizard's open session: board, poses
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)

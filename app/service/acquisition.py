@@ -12,6 +12,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from datetime import UTC, datetime
 
 from app.core.schedule import PatternSchedule
 from app.devices.base import Frame
@@ -24,7 +25,7 @@ from app.service.devices import (
     stop_devices,
 )
 from app.service.framesets import FrameSet, GroupWindow, SetAssembler
-from app.service.store import LatestSlot, NewestQueue, RateMeter
+from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.acquisition")
 
@@ -59,7 +60,7 @@ class Acquisition:
         self.led = led
         self.rolling = rolling
         self.on_frame = on_frame
-        self.assembler = SetAssembler(schedule.n_frames)
+        self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
         self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
         self.camera_rate = RateMeter()
         self.frames_received = 0
@@ -71,6 +72,12 @@ class Acquisition:
         self.faults = 0
         self.fault: str | None = None
         self.last_error: str | None = None
+        self.last_error_s: float | None = None  # time.monotonic() of last_error
+        self.last_error_at: str | None = None  # the same instant, ISO 8601 UTC
+        self.last_frame_s: float | None = None  # time.monotonic() of the newest frame
+        # timestamp intervals of consecutive frames, s: the camera's frame period as it runs
+        self._intervals = RecentValues(64)
+        self._last_timestamp = 0.0
         self._last_index: int | None = None
         self._pending: dict[str, object] = {}
         self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None], threading.Event] | None = None
@@ -145,7 +152,7 @@ class Acquisition:
                 stop_devices(self.devices)
                 self._started = False  # the loop starts them again with the new patterns
             self.schedule = schedule
-            self.assembler = SetAssembler(schedule.n_frames)
+            self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
             self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
             self.queue.clear()
             on_swap(schedule)
@@ -246,7 +253,17 @@ class Acquisition:
             log.warning("device fault: %s", msg)
         self.fault = msg
         self.last_error = msg
+        self.last_error_s = time.monotonic()
+        self.last_error_at = datetime.now(UTC).isoformat(timespec="milliseconds")
         self.faults += 1
+
+    @property
+    def frame_period_s(self) -> float:
+        """The camera's frame period, s: the median timestamp interval of consecutive frames
+        (before any, the exposure). Intervals across a gap are not counted, so a stall does
+        not stretch it."""
+        median = self._intervals.median()
+        return median if median is not None else max(self.exposure_ms, 1.0) / 1000.0
 
     def _on_frame(self, frame: Frame, received_s: float) -> None:
         self.frames_received += 1
@@ -254,7 +271,13 @@ class Acquisition:
         if self._last_index is not None and frame.index > self._last_index + 1:
             self.frames_dropped += frame.index - self._last_index - 1
             self.dropped_since_set += frame.index - self._last_index - 1
+        elif self._last_index is not None and frame.index == self._last_index + 1 \
+                and 0.0 < frame.timestamp - self._last_timestamp < 10.0:
+            # the camera's own clock: arrivals bunch when this thread is starved of CPU
+            self._intervals.add(frame.timestamp - self._last_timestamp)
         self._last_index = frame.index
+        self._last_timestamp = frame.timestamp
+        self.last_frame_s = received_s
         self.camera_rate.tick(received_s)
         if self.on_frame is not None:
             self.on_frame(frame)

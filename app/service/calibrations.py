@@ -220,6 +220,12 @@ class CalibrationManager:
         self.session = CalibrationSession(spec)
         return self.session
 
+    def cancel_session(self) -> CalibrationSession | None:
+        """End the session without a calibration; the one it ended (None if there was none)."""
+        with self._lock:
+            session, self.session = self.session, None
+        return session
+
     def require_session(self) -> CalibrationSession:
         if self.session is None:
             raise Conflict("no calibration session: POST /api/calibration/session first")
@@ -247,6 +253,9 @@ class CalibrationManager:
             self.activate(session.report.calibration, name=name, persist=True, force=force)
         except ValueError as exc:
             raise InvalidRequest(str(exc)) from None
+        with self._lock:  # done: the session ends (unless a new one replaced it meanwhile)
+            if self.session is session:
+                self.session = None
         summary = self.summary()
         assert summary is not None
         return summary

@@ -1,8 +1,11 @@
-"""Grouping camera frames into fringe sets (whole sets, or rolling sets per frequency group).
+"""Grouping camera frames into fringe sets (one per projector cycle, or rolling per group).
 
-A set is reconstructed only if its frames carry pattern indices 0..F-1 in order, with
-consecutive frame counters (a gap is a dropped frame) and one exposure/LED setting;
-anything else is discarded and counted, never reconstructed.
+A set is built of frequency groups: the N phase-shifted frames of one frequency, carrying
+pattern indices g·N … g·N + N − 1 in order with consecutive frame counters (a gap is a
+dropped frame). A group with a missing, duplicated or out-of-order frame is discarded and
+counted, never reconstructed; a set's groups share one exposure/LED setting and come from
+at most ``MAX_SPAN_CYCLES`` projector cycles, so a dropped frame costs its group, not the
+stream (an earlier copy of that group stands in; the motion test checks the groups).
 """
 
 from __future__ import annotations
@@ -15,6 +18,10 @@ import numpy as np
 import numpy.typing as npt
 
 from app.devices.base import Frame
+
+#: a set's groups lie within this many projector cycles of frames: with 10 % of frames dropped at
+#: random a group of 4 survives a cycle with p = 0.66, 1 - (1 - p)^3 = 0.96 of them in 3 cycles
+MAX_SPAN_CYCLES = 3
 
 
 @dataclass(frozen=True)
@@ -64,58 +71,158 @@ def _same_settings(frames: list[Frame] | tuple[Frame, ...]) -> bool:
     return True
 
 
-class SetAssembler:
-    """Collects consecutive frames with pattern indices 0..F-1 into :class:`FrameSet` objects.
+def _follows(prev: Frame, frame: Frame) -> bool:
+    """``frame`` is the next pattern and the next frame counter after ``prev``."""
+    return frame.pattern_index == prev.pattern_index + 1 and frame.index == prev.index + 1
 
-    Counters: ``completed`` sets emitted, ``incomplete`` sets discarded for a missing,
-    duplicated or out-of-order frame, ``mixed`` sets discarded because a setting changed
-    inside them, ``skipped_frames`` frames seen while waiting for the start of a set.
+
+class SetAssembler:
+    """Collects frames into :class:`FrameSet` objects, one per projector cycle, group by group.
+
+    A group is the ``steps`` frames of one frequency (pattern indices g·N … g·N + N − 1) with
+    consecutive frame counters. The newest complete group of every frequency is kept; at the
+    end of each projector cycle (its last group completes, or a frame of the next cycle
+    arrives) those groups form a set if they span at most ``max_span_cycles`` cycles of
+    frames and share one exposure/LED setting. Without drops that is the cycle just seen; a
+    dropped frame costs only its group, which an earlier cycle's copy stands in for (the
+    motion test then checks the groups against each other, as in rolling mode). With
+    ``steps`` None the whole cycle is one group: a dropped frame costs the whole set.
+
+    Counters: ``completed`` sets emitted, ``patched`` of them with a group from an earlier
+    cycle, ``incomplete`` cycles that ended without a set, ``groups_lost`` groups discarded
+    for a missing, duplicated or out-of-order frame, ``mixed`` groups discarded because the
+    setting changed after them, ``skipped_frames`` frames in no complete group.
     """
 
-    def __init__(self, n_frames: int) -> None:
+    def __init__(self, n_frames: int, steps: int | None = None, *,
+                 max_span_cycles: int = MAX_SPAN_CYCLES) -> None:
         if n_frames < 1:
             raise ValueError(f"n_frames: must be >= 1, got {n_frames}")
+        steps = n_frames if steps is None else steps
+        if steps < 1 or n_frames % steps:
+            raise ValueError(f"steps: must divide n_frames = {n_frames}, got {steps}")
+        if max_span_cycles < 1:
+            raise ValueError(f"max_span_cycles: must be >= 1, got {max_span_cycles}")
         self.n_frames = n_frames
-        self._pending: list[Frame] = []
+        self.steps = steps
+        self.n_groups = n_frames // steps
+        self.max_span_frames = max_span_cycles * n_frames
+        self._groups: list[tuple[Frame, ...] | None] = [None] * self.n_groups
+        self._pending: list[Frame] = []  # the group in progress
+        self._cycle_frames = 0  # frames seen in the current cycle
+        self._fresh = False  # a group completed in the current cycle
+        self._counted = False  # the current cycle counts as incomplete if it ends without a set
+        self._synced = False  # a cycle boundary was seen since the start (or the last abort)
+        self._mixed_in_cycle = False  # groups were discarded for a setting change in this cycle
+        self._last: Frame | None = None
+        self._emitted_newest = -1  # newest frame counter of the last set emitted
         self.completed = 0
+        self.patched = 0
         self.incomplete = 0
+        self.groups_lost = 0
         self.mixed = 0
         self.skipped_frames = 0
 
     @property
     def in_progress(self) -> int:
-        """Frames collected toward the current set (0 at a set boundary)."""
-        return len(self._pending)
+        """Frames seen in the current projector cycle (0 at a cycle boundary)."""
+        return self._cycle_frames
 
     def abort(self) -> None:
-        """Discard the set in progress (after a timeout or a fault), counting it."""
-        if self._pending:
+        """Forget everything held (after a timeout, fault or restart), counting a started cycle."""
+        if self._cycle_frames and self._counted:
             self.incomplete += 1
-            self._pending = []
+        if self._pending:
+            self.groups_lost += 1
+            self.skipped_frames += len(self._pending)
+        self._groups = [None] * self.n_groups
+        self._pending = []
+        self._cycle_frames = 0
+        self._fresh = False
+        self._synced = False
+        self._last = None
+        self._emitted_newest = -1  # a restarted camera may count from 0 again
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
-        """Add one frame; returns a complete set when ``frame`` finishes one."""
+        """Add one frame; returns a set when ``frame`` ends a projector cycle that yields one."""
         p = frame.pattern_index
-        if p == 0:
-            self.abort()  # a new sequence starts: whatever was pending is short
+        if not 0 <= p < self.n_frames:
+            self._lose_pending()
+            self.skipped_frames += 1
+            return None
+        out = None
+        last = self._last
+        if last is not None and (p <= last.pattern_index
+                                 or frame.index - last.index > p - last.pattern_index):
+            out = self._end_cycle(received_s)  # a new cycle began without the old one's last group
+        self._last = frame
+        if self._cycle_frames == 0:  # a partial first cycle (started mid-sequence) is no loss
+            self._counted = self._synced or p == 0
+        self._cycle_frames += 1
+        g, n = divmod(p, self.steps)
+        if n == 0:
+            self._lose_pending()
             self._pending = [frame]
-        elif not self._pending:
-            self.skipped_frames += 1  # mid-sequence: wait for pattern 0
-            return None
-        else:
-            prev = self._pending[-1]
-            if p != prev.pattern_index + 1 or frame.index != prev.index + 1:
-                self.abort()
-                self.skipped_frames += 1
-                return None
+        elif self._pending and _follows(self._pending[-1], frame):
             self._pending.append(frame)
-        if len(self._pending) < self.n_frames:
-            return None
-        frames, self._pending = tuple(self._pending), []
-        if not _same_settings(frames):
+        else:
+            self._lose_pending()
+            self.skipped_frames += 1
+            return out
+        if len(self._pending) < self.steps:
+            return out
+        group, self._pending = tuple(self._pending), []
+        if not _same_settings(group):  # the setting changed inside the group
             self.mixed += 1
+            self._mixed_in_cycle = True
+            self.skipped_frames += len(group)
+            return out
+        self._store(g, group)
+        if g == self.n_groups - 1:
+            done = self._end_cycle(received_s)
+            out = done if done is not None else out
+        return out
+
+    def _lose_pending(self) -> None:
+        if self._pending:
+            self.groups_lost += 1
+            self.skipped_frames += len(self._pending)
+            self._pending = []
+
+    def _store(self, g: int, group: tuple[Frame, ...]) -> None:
+        for i, old in enumerate(self._groups):  # older groups of another setting can never join it
+            if old is not None and i != g and not _same_settings((group[0], old[0])):
+                self._groups[i] = None
+                if not self._mixed_in_cycle:
+                    self.mixed += 1
+                self._mixed_in_cycle = True
+        self._groups[g] = group
+        self._fresh = True
+
+    def _end_cycle(self, received_s: float) -> FrameSet | None:
+        fresh, self._fresh = self._fresh, False
+        started, self._cycle_frames = self._cycle_frames, 0
+        counted = self._counted and not self._mixed_in_cycle  # a setting change is counted as mixed
+        self._mixed_in_cycle = False
+        self._synced = True
+        self._last = None
+        self._lose_pending()
+        if not started:
             return None
+        groups = self._groups
+        if not fresh or any(grp is None for grp in groups):
+            self.incomplete += int(counted)
+            return None
+        frames = tuple(f for grp in groups if grp is not None for f in grp)
+        idx = [f.index for f in frames]
+        newest = max(idx)
+        if newest - min(idx) + 1 > self.max_span_frames or newest <= self._emitted_newest:
+            self.incomplete += int(counted)  # a stand-in too old: the scene may have moved far
+            return None
+        self._emitted_newest = newest
         self.completed += 1
+        if idx != list(range(idx[0], idx[0] + self.n_frames)):  # not one gap-free cycle
+            self.patched += 1
         return FrameSet(frames, received_s, "set")
 
 
@@ -124,19 +231,24 @@ class GroupWindow:
 
     A group is the ``steps`` frames of one frequency (pattern indices g·N … g·N + N − 1)
     with consecutive frame counters. When a group completes, the newest complete group of
-    every frequency forms a set if together they are F frames with consecutive counters
-    (no frame dropped in between, so no group is stale) and one exposure/LED setting. With
-    the projector cycling through the schedule that is one new set per group: G times the
-    whole-set rate, each set sharing G − 1 groups with the one before.
+    every frequency forms a set if together they span at most ``max_span_cycles`` projector
+    cycles of frames and share one exposure/LED setting. With the projector cycling through
+    the schedule that is one new set per group: G times the whole-set rate, each set sharing
+    G − 1 groups with the one before; a dropped frame costs only the set its group would
+    have completed (the group's previous copy stays until the next one completes).
     """
 
-    def __init__(self, n_groups: int, steps: int) -> None:
+    def __init__(self, n_groups: int, steps: int, *,
+                 max_span_cycles: int = MAX_SPAN_CYCLES) -> None:
         if n_groups < 1:
             raise ValueError(f"n_groups: must be >= 1, got {n_groups}")
         if steps < 1:
             raise ValueError(f"steps: must be >= 1, got {steps}")
+        if max_span_cycles < 1:
+            raise ValueError(f"max_span_cycles: must be >= 1, got {max_span_cycles}")
         self.n_groups = n_groups
         self.steps = steps
+        self.max_span_frames = max_span_cycles * n_groups * steps
         self._groups: list[tuple[Frame, ...] | None] = [None] * n_groups
         self._pending: list[Frame] = []
 
@@ -145,7 +257,7 @@ class GroupWindow:
         self._pending = []
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
-        """Add one frame; returns a set when ``frame`` completes a group and the newest groups form one."""
+        """Add one frame; a set when ``frame`` completes a group and the newest groups form one."""
         p = frame.pattern_index
         if p < 0 or p >= self.n_groups * self.steps:
             self._pending = []
@@ -153,7 +265,7 @@ class GroupWindow:
         g, n = divmod(p, self.steps)
         if n == 0:
             self._pending = [frame]
-        elif self._pending and p == self._pending[-1].pattern_index + 1 and frame.index == self._pending[-1].index + 1:
+        elif self._pending and _follows(self._pending[-1], frame):
             self._pending.append(frame)
         else:
             self._pending = []
@@ -165,7 +277,7 @@ class GroupWindow:
             return None
         frames = tuple(f for grp in self._groups if grp is not None for f in grp)
         idx = [f.index for f in frames]
-        if max(idx) - min(idx) + 1 != len(frames) or len(set(idx)) != len(frames):
+        if max(idx) - min(idx) + 1 > self.max_span_frames or len(set(idx)) != len(frames):
             return None
         if not _same_settings(frames):
             return None

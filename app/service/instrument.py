@@ -9,8 +9,14 @@ in :meth:`Instrument.close`.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import threading
+import time
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
 
 from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
@@ -20,9 +26,13 @@ from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
+from app.devices.sim.offline import auto_exposure_ms, simulate_calibration_folder
+from app.devices.sim.optics import rig_by_name
+from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT, AutoExposureResult
 from app.recon.reconstructor import SensorNoise
+from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
@@ -36,6 +46,13 @@ if TYPE_CHECKING:
     from app.service.store import LatestSlot
 
 __all__ = ["Instrument", "RecordingState"]
+
+
+@functools.cache
+def sim_calibration_poses() -> int:
+    """Board poses the simulator's first-start calibration simulates (its writer's default)."""
+    default = inspect.signature(simulate_calibration_folder).parameters["poses"].default
+    return int(default) if isinstance(default, int) else 8
 
 
 class RecordingState(Protocol):
@@ -66,6 +83,12 @@ class Instrument:
         self._started = False
         self._schedule_lock = threading.Lock()
         self._noise: tuple[int, SensorNoise | None] = (-1, None)  # (raw set seq, its fitted noise)
+        self._last_map_s: float | None = None  # time.monotonic() of the newest depth map
+        self._warmup: dict[str, int] | None = None  # the counters at the first depth map
+        # errors their part keeps without a time: (message, first seen monotonic, ISO time)
+        self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
+        self.results.subscribe(self._on_map)
+        self._twin_scene_moved = False  # the wizard put the twin's board in view
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -164,6 +187,51 @@ class Instrument:
     def require_session(self) -> CalibrationSession:
         return self.calibrations.require_session()
 
+    def cancel_session(self) -> CalibrationSession | None:
+        """End the calibration session without a calibration (the one ended, or None)."""
+        session = self.calibrations.cancel_session()
+        self._restore_twin_scene()
+        return session
+
+    def suggest_pose(self) -> dict[str, Any]:
+        """Where to hold the board for the session's next pose; the twin puts its board there.
+
+        The poses are the simulator's calibration poses (pose 0 the reference plane, then up
+        to 18 mm higher, tilted by about 30°); the next one is the count of poses with the
+        board found. On the twin the board (the session's spec) moves there and the exposure
+        is set for it; on hardware the answer is the hint alone.
+        """
+        session = self.require_session()
+        world = self.devices.world if self.devices is not None else None
+        rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
+        poses = board_poses(rig, sim_calibration_poses(), seed=0)
+        k = min(sum(1 for p in session.poses if p.found), len(poses) - 1)
+        origin, axes = poses[k]
+        ref = rig.reference
+        height_mm = float(ref.normal @ origin + ref.offset_mm)
+        cos_tilt = abs(float(axes[:, 2] @ ref.normal))  # axes: columns e_s, e_t, normal
+        tilt_deg = float(np.degrees(np.arccos(min(cos_tilt, 1.0))))
+        exposure_ms = None
+        if world is not None:
+            world.set_scene(board_scene(rig, session.board, poses[k]))
+            self._twin_scene_moved = True
+            exposure_ms = round(auto_exposure_ms(world, led=world.led, current=world.current,
+                                                 bits=self.settings.bit_depth), 2)
+            self.set_exposure(exposure_ms)
+        where = "flat on the reference plane (the farthest)" if k == 0 else \
+            f"{height_mm:.0f} mm above the reference plane, tilted {tilt_deg:.0f}°"
+        return {"index": k, "of": len(poses), "height_mm": round(height_mm, 2),
+                "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
+                "exposure_ms": exposure_ms,
+                "hint": f"pose {k} of {len(poses)}: the whole board in view, {where}"}
+
+    def _restore_twin_scene(self) -> None:
+        """After the session: the twin shows its configured scene again."""
+        world = self.devices.world if self.devices is not None else None
+        if world is not None and self._twin_scene_moved:
+            self._twin_scene_moved = False
+            world.set_scene(self.settings.sim_scene)
+
     def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
         """Grab the next whole set of the current view and add it to the session."""
         return self.calibrations.capture_pose(timeout_s)
@@ -172,7 +240,9 @@ class Instrument:
         return self.calibrations.solve_session(robust=robust)
 
     def activate_session(self, name: str, *, force: bool = False) -> dict[str, Any]:
-        return self.calibrations.activate_session(name, force=force).to_dict()
+        summary = self.calibrations.activate_session(name, force=force).to_dict()
+        self._restore_twin_scene()
+        return summary
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
@@ -219,8 +289,13 @@ class Instrument:
         with self._schedule_lock:
             if self.recorder is not None and self.recorder.active_name is not None:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
-            if self.calibrating or self.session is not None:
-                raise Conflict("schedule: a calibration is being made with the current schedule; finish it first")
+            if self.calibrating:
+                raise Conflict("schedule: the simulator's calibration is being made with the "
+                               "current schedule; wait until it is active")
+            if (session := self.session) is not None:
+                raise Conflict(f"schedule: a calibration session ({len(session.poses)} poses) uses "
+                               "the current schedule; cancel it (DELETE /api/calibration/session, "
+                               "the wizard's Cancel) or activate its calibration first")
             self._changing(f"the schedule change to {name}")
             self.pipeline.set_schedule(schedule, self.calibrations.engine_for)
         return name
@@ -265,33 +340,145 @@ class Instrument:
         return self.pipeline.next_capture(timeout_s, exposure_ms=exposure_ms)
 
     # -- status ----------------------------------------------------------------------------------
+    def _on_map(self, _seq: int, result: LiveResult) -> None:
+        """Each published depth map (reconstruction thread): its time; the first ends warm-up."""
+        self._last_map_s = result.published_s
+        if self._warmup is None:
+            self._warmup = self._counters()
+
+    def _counters(self) -> dict[str, int]:
+        acq = self.acquisition
+        asm = acq.assembler if acq is not None else None
+        return {
+            "sets_completed": asm.completed if asm else 0,
+            "dropped_sets": self.pipeline.queue.dropped,
+            "incomplete_sets": asm.incomplete if asm else 0,
+            "mixed_sets": asm.mixed if asm else 0,
+            "groups_lost": asm.groups_lost if asm else 0,
+            "patched_sets": asm.patched if asm else 0,
+            "frames_received": acq.frames_received if acq else 0,
+            "frames_dropped": acq.frames_dropped if acq else 0,
+            "faults": acq.faults if acq else 0,
+        }
+
+    def set_period_s(self) -> float:
+        """One whole fringe set at the camera's frame period (measured while it runs), s."""
+        acq = self.acquisition
+        if acq is not None:
+            frame_s = acq.frame_period_s
+        else:
+            frame_s = max(self.settings.exposure_ms, 1.0) / 1000.0
+        return self.schedule.n_frames * frame_s
+
+    def _depth_age_s(self, now: float) -> float | None:
+        return None if self._last_map_s is None else max(0.0, now - self._last_map_s)
+
     def state(self) -> State:
-        """starting | calibrating | running | stopped | fault (a fault outranks the rest)."""
+        """starting | calibrating | running | stalled | stopped | fault (fault outranks all)."""
+        return self._state_reason(time.monotonic())[0]
+
+    def _state_reason(self, now: float) -> tuple[State, str | None]:
+        """The state and, unless running, why: running only while depth maps arrive."""
         acq = self.acquisition
         if self._closed:
-            return "stopped"
+            return "stopped", "the instrument is shut down"
         if acq is None:
-            return "starting"
+            return "starting", "opening the devices"
         if acq.acquiring and (acq.fault or (self.devices is not None and self.devices.faulted())):
-            return "fault"
+            bad = [f"{d.name}: {d.error}" for d in (self.devices.describe() if self.devices else ())
+                   if d.state == "fault"]
+            return "fault", acq.fault or "; ".join(bad) or "device fault"
         if self.calibrating:
-            return "calibrating"
+            return "calibrating", self._calibration_phase()[0]
         if not acq.acquiring:
-            return "stopped"
-        if acq.frames_received == 0 or (self.calibration is not None and self.results.seq == 0):
-            return "starting"
-        return "running"
+            return "stopped", "acquisition stopped (POST /api/acquisition/start)"
+        period = self.set_period_s()
+        age = self._depth_age_s(now)
+        if age is not None and age <= 2 * period:
+            return "running", None
+        if self.calibration is None:
+            return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
+        if self.pipeline.engine_note:
+            return "stalled", self.pipeline.engine_note
+        if self._warmup is None and (phase := self._startup_phase()) is not None:
+            return "starting", phase
+        if acq.last_error_s is not None and now - acq.last_error_s <= 2 * period + 1.0:
+            return "stalled", f"recovering from: {acq.last_error}"
+        if acq.last_frame_s is None or now - acq.last_frame_s > 2 * period:
+            return "stalled", "no frames from the camera"
+        if acq.frames_since_set > acq.schedule.n_frames:
+            dropped, frames = acq.dropped_since_set, acq.frames_since_set
+            return "stalled", (f"no complete fringe set: the camera dropped {dropped} of the last "
+                               f"{frames} frames")
+        rec = self.reconstruction
+        if rec.last_error:
+            return "stalled", rec.last_error
+        recon_ms = rec.recon_times.median()
+        if recon_ms is not None and recon_ms / 1000.0 > period:
+            return "stalled", (f"depth maps are late: reconstruction takes {recon_ms:.0f} ms a set, "
+                               "longer than the camera takes for one")
+        return "stalled", (f"waiting for a complete fringe set: {acq.frames_since_set} frames since "
+                           f"the last, {acq.dropped_since_set} of them dropped")
+
+    def _startup_phase(self) -> str | None:
+        """Before the first depth map: what the instrument is waiting for."""
+        acq = self.acquisition
+        if acq is None:
+            return "opening the devices"
+        if acq.frames_received == 0:
+            return "waiting for the camera's first frame"
+        if self.reconstruction.completed == 0 and acq.assembler.completed > 0:
+            # the first set is in the engine: numba compiles (or loads cached) kernels first
+            return "compiling kernels for the first depth map (cached for the next start)"
+        if acq.frames_since_set > 3 * acq.schedule.n_frames:
+            return None  # frames come but no set does: not start-up any more, a stall
+        return "waiting for the first complete fringe set"
+
+    def _calibration_phase(self) -> tuple[str, float | None]:
+        """The simulator's calibration: poses simulated so far (its work folder's), then the fit."""
+        work = calibration_store.folder(self.settings)
+        try:
+            poses = sum(1 for _ in work.glob(".sim-calib-*/poses/pose_*"))
+        except OSError:
+            poses = 0
+        n = sim_calibration_poses()
+        if poses == 0 and (work / calibration_store.sim_file_name(self.settings)).is_file():
+            return "calibrating: activating the new calibration", 0.95  # fitted, work folder gone
+        if poses == 0:
+            return "calibrating: simulating board poses", 0.0
+        if poses < n:  # the newest folder is the one being written; the fit takes about a fifth
+            return f"calibrating pose {poses} of {n}", round(0.8 * (poses - 1) / n, 3)
+        return f"calibrating: fitting the depth model to {n} poses", 0.8
+
+    def _last_error(self) -> tuple[str | None, float | None, str | None]:
+        """The newest error of any part: (message, time.monotonic(), ISO time)."""
+        acq, rec = self.acquisition, self.reconstruction
+        now, at = time.monotonic(), datetime.now(UTC).isoformat(timespec="milliseconds")
+        for source, msg in (("calibrations", self.calibrations.last_error),
+                            ("reconstruction", rec.last_error)):
+            if msg and self._seen_errors.get(source, (None,))[0] != msg:
+                self._seen_errors[source] = (msg, now, at)  # first seen now (these keep no time)
+        errors = list(self._seen_errors.values())
+        if acq is not None and acq.last_error and acq.last_error_s is not None:
+            errors.append((acq.last_error, acq.last_error_s, acq.last_error_at))
+        if not errors:
+            return None, None, None
+        return max(errors, key=lambda e: e[1] or 0.0)
 
     def status_record(self) -> Status:
         acq, rec, s = self.acquisition, self.reconstruction, self.settings
+        now = time.monotonic()
         latency, recon = rec.latencies.median(), rec.recon_times.median()
+        state, reason = self._state_reason(now)
         warnings = list(self.warnings)
         n_frames = self.schedule.n_frames
         if acq is not None and acq.acquiring and acq.frames_since_set > 3 * n_frames:
-            # no depth rather than depth from frames that are not one gap-free sequence: say why
+            # no depth rather than depth from frames that are not gap-free groups: say why
+            g = len(self.schedule.frequencies)
             warnings.append(
                 f"no complete fringe set in the last {acq.frames_since_set} frames: the camera dropped "
-                f"{acq.dropped_since_set} of them and a set needs {n_frames} consecutive frames"
+                f"{acq.dropped_since_set} of them and each of the {g} frequency groups needs "
+                f"{self.schedule.steps} consecutive frames (within 3 projector cycles)"
                 if acq.dropped_since_set else
                 f"no complete fringe set in the last {acq.frames_since_set} frames (pattern indices missing "
                 "or out of order, or the exposure/LED changing)")
@@ -301,12 +488,19 @@ class Instrument:
             warnings.append(collapse)
         if self.recorder is not None and self.recorder.warning:
             warnings.append(self.recorder.warning)
-        last_error = self.calibrations.last_error
-        for err in (acq.last_error if acq else None, rec.last_error):
-            if err:
-                last_error = err
+        last_error, error_s, error_at = self._last_error()
+        phase, progress = None, None
+        if state == "calibrating":
+            phase, progress = self._calibration_phase()
+        elif state == "starting":
+            phase = reason
+        counters = self._counters()
+        warmup = self._warmup or {}
+        since = {k: v - warmup[k] for k, v in counters.items()} if warmup else {}
+        session = self.session
+        age = self._depth_age_s(now)
         return Status(
-            state=self.state(),
+            state=state,
             camera_fps=round(acq.camera_rate.rate(), 3) if acq else 0.0,
             depth_fps=round(rec.depth_rate.rate(), 3),
             latency_ms=None if latency is None else round(latency, 3),
@@ -318,14 +512,14 @@ class Instrument:
             calibration=self.calibrations.summary(),
             devices=self.devices.describe() if self.devices is not None else (),
             last_error=last_error,
-            sets_completed=acq.assembler.completed if acq else 0,
+            sets_completed=counters["sets_completed"],
             results_published=rec.completed,
-            dropped_sets=self.pipeline.queue.dropped,
-            incomplete_sets=acq.assembler.incomplete if acq else 0,
-            mixed_sets=acq.assembler.mixed if acq else 0,
-            frames_received=acq.frames_received if acq else 0,
-            frames_dropped=acq.frames_dropped if acq else 0,
-            faults=acq.faults if acq else 0,
+            dropped_sets=counters["dropped_sets"],
+            incomplete_sets=counters["incomplete_sets"],
+            mixed_sets=counters["mixed_sets"],
+            frames_received=counters["frames_received"],
+            frames_dropped=counters["frames_dropped"],
+            faults=counters["faults"],
             recording=None if self.recorder is None else self.recorder.active_name,
             bit_depth=s.bit_depth,
             schedule={"name": self.schedule_name, **self.schedule.to_dict(),
@@ -333,6 +527,21 @@ class Instrument:
                       "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
             warnings=tuple(warnings),
             sensor_noise=rec.noise.describe(),
+            state_reason=reason,
+            phase=phase,
+            progress=progress,
+            set_period_s=round(self.set_period_s(), 4),
+            last_depth_age_s=None if age is None else round(age, 3),
+            last_error_at=error_at,
+            last_error_resolved=None if error_s is None else bool(
+                self._last_map_s is not None and self._last_map_s > error_s),
+            groups_lost=counters["groups_lost"],
+            patched_sets=counters["patched_sets"],
+            warmup=dict(warmup),
+            since_warmup=since,
+            calibration_session=None if session is None else {
+                "board": session.board.to_dict(), "created": session.created,
+                "poses": len(session.poses), "solved": session.report is not None},
         )
 
     def status(self) -> dict[str, Any]:

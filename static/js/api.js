@@ -88,7 +88,9 @@ export async function act(button, label, fn) {
   try {
     return await fn();
   } catch (err) {
-    say(`${label}: ${err.message}`, "error");
+    // the server's reason often names the same subject already ("schedule: …"): say it once
+    const text = err.message.startsWith(`${label}:`) ? err.message : `${label}: ${err.message}`;
+    say(text, "error");
     return undefined;
   } finally {
     if (button) button.disabled = false;

@@ -16,11 +16,20 @@ function showStatus(st) {
   const state = $("state");
   state.textContent = st.state;
   state.className = `pill state-${st.state}`;
+  state.title = st.state_reason ? `${st.state}: ${st.state_reason}` : "instrument state";
   $("m-camera").textContent = fmt(st.camera_fps, 1);
   $("m-depth").textContent = fmt(st.depth_fps, 2);
   $("m-latency").textContent = fmt(st.latency_ms, 0);
-  $("m-dropped").textContent = String(st.dropped_sets ?? "–");
-  $("m-incomplete").textContent = String(st.incomplete_sets ?? "–");
+  // losses since the first depth map; the start-up's own (camera before engine) in the tooltip
+  const live = st.since_warmup && Object.keys(st.since_warmup).length ? st.since_warmup : st;
+  const warm = st.warmup || {};
+  $("m-dropped").textContent = String(live.dropped_sets ?? "–");
+  $("m-incomplete").textContent = String(live.incomplete_sets ?? "–");
+  for (const [id, key] of [["m-dropped", "dropped_sets"], ["m-incomplete", "incomplete_sets"]]) {
+    $(id).parentElement.title = key in warm
+      ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all`
+      : "since start-up";
+  }
   $("m-mode").textContent = st.mode;
   const sch = st.schedule;
   $("m-sensor").textContent = (st.bit_depth ? `${st.bit_depth}-bit` : "–") + (sch
@@ -46,9 +55,19 @@ function showStatus(st) {
       (st.last_error || "device fault") + (bad.length ? ` (${bad.map((d) => d.name).join(", ")})` : "");
   }
   const warnings = $("warnings");
-  const list = st.warnings || [];
+  const list = (st.warnings || []).map((w) => "⚠ " + w);
+  if (st.phase) {
+    const pct = typeof st.progress === "number" ? ` (${Math.round(100 * st.progress)} %)` : "";
+    list.unshift(`⏳ ${st.state}: ${st.phase}${pct}`);
+  } else if (st.state_reason && st.state !== "fault") {
+    list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
+  }
+  if (st.last_error && st.last_error_resolved === false && st.state !== "fault") {
+    const at = st.last_error_at ? new Date(st.last_error_at).toLocaleTimeString() : "";
+    list.push(`⚠ last error ${at}: ${st.last_error}`);
+  }
   warnings.hidden = list.length === 0;
-  warnings.textContent = list.map((w) => "⚠ " + w).join("   ");
+  warnings.textContent = list.join("   ");
   for (const fn of listeners) fn(st);
 }
 

@@ -1,7 +1,7 @@
 // The calibration wizard: a board, poses (pose 0 = reference plane), solve, activate.
 
-import { $, act, api, el, fmt, say } from "./api.js";
-import { pollStatus } from "./status.js";
+import { $, act, api, ApiError, el, fmt, say } from "./api.js";
+import { onStatus, pollStatus } from "./status.js";
 
 async function showPosePreview(url) {
   try {
@@ -63,7 +63,71 @@ function renderReport(r) {
   box.appendChild(table);
 }
 
+function boardLine(b) {
+  const size = b.inner_corners ?? b.grid ?? [];
+  const pitch = b.square_mm ?? b.spacing_mm;
+  return `${b.type} ${size.join(" × ")}, ${fmt(pitch, 2)} mm`;
+}
+
+/** Show the server's session (or none): the wizard's state lives on the server, not in the page. */
+function showSession(session) {
+  const open = session !== null;
+  $("btn-capture").disabled = !open;
+  $("btn-suggest").disabled = !open;
+  $("btn-cancel-session").disabled = !open;
+  $("btn-activate").disabled = !(open && session.solved);
+  $("session-line").textContent = open
+    ? `session open since ${session.created}: ${boardLine(session.board)}, ` +
+      `${session.poses.length} poses` +
+      (session.solved ? " · solved" : "")
+    : "no session open";
+  renderPoses(open ? session.poses : []);
+  if (!open) {
+    $("solve-report").textContent = "";
+    $("pose-preview").hidden = true;
+  }
+}
+
+async function currentSession() {
+  try {
+    return await api("/api/calibration/session");
+  } catch (err) {
+    if (err instanceof ApiError && err.status === 409) return null; // none open
+    throw err;
+  }
+}
+
+let shownKey; // the session last shown, as the status describes it
+
+/** Follow the server's session (GET /api/status names it): after a page load, pick up a session
+ * opened before (this page or another); when another client closes it, show that. */
+async function followSession(st) {
+  const s = st.calibration_session;
+  const key = s ? `${s.created}|${s.poses}|${s.solved}` : "none";
+  if (key === shownKey) return;
+  const first = shownKey === undefined;
+  shownKey = key;
+  if (s === null || s === undefined) {
+    showSession(null);
+    return;
+  }
+  const session = await currentSession();
+  showSession(session);
+  if (first && session !== null) restoreForm(session);
+}
+
+function restoreForm(session) {
+  const b = session.board;
+  $("board-type").value = b.type;
+  const size = b.inner_corners ?? b.grid;
+  if (size) [$("board-cols").value, $("board-rows").value] = size.map(String);
+  $("board-pitch").value = String(b.square_mm ?? b.spacing_mm ?? $("board-pitch").value);
+  $("wizard").open = true;
+  say(`calibration session restored: ${session.poses.length} poses (Cancel closes it)`);
+}
+
 export function setupWizard() {
+  onStatus((st) => act(null, "calibration session", () => followSession(st)));
   $("btn-session").addEventListener("click", (ev) => act(ev.target, "new session", async () => {
     const type = $("board-type").value;
     const size = [Number($("board-cols").value), Number($("board-rows").value)];
@@ -71,21 +135,46 @@ export function setupWizard() {
     const board = type === "checkerboard"
       ? { type, inner_corners: size, square_mm: pitch }
       : { type, grid: size, spacing_mm: pitch };
-    await api("/api/calibration/session", { method: "POST", json: board });
-    renderPoses([]);
-    $("solve-report").textContent = "";
-    $("pose-preview").hidden = true;
-    $("btn-capture").disabled = false;
-    $("btn-activate").disabled = true;
+    showSession(await api("/api/calibration/session", { method: "POST", json: board }));
     say("calibration session started: capture pose 0 (the reference plane) first");
   }));
+  const cancel = $("btn-cancel-session");
+  cancel.addEventListener("click", (ev) => act(ev.target, "cancel session", async () => {
+    const r = await api("/api/calibration/session", { method: "DELETE" });
+    showSession(null);
+    say(r.cancelled ? `calibration session cancelled (${r.poses} poses dropped)`
+      : "no session was open");
+    pollStatus();
+  }));
+  $("btn-suggest").addEventListener("click", (ev) => act(ev.target, "next pose", async () => {
+    const line = $("pose-line");
+    line.textContent = "finding the next pose…";
+    line.className = "muted";
+    const s = await api("/api/calibration/session/suggested-pose",
+      { method: "POST", timeoutMs: 60000 });
+    line.textContent = s.moved
+      ? `${s.hint} — the simulator's board is there (exposure ${fmt(s.exposure_ms, 1)} ms): ` +
+        "Capture pose"
+      : `${s.hint}, then Capture pose`;
+    pollStatus();
+  }));
   $("btn-capture").addEventListener("click", (ev) => act(ev.target, "capture pose", async () => {
-    say("capturing a fringe set…");
-    const pose = await api("/api/calibration/session/poses", { method: "POST", timeoutMs: 60000 });
-    say(pose.found ? `pose ${pose.index}: board found (${pose.corners} points)`
-      : `pose ${pose.index}: board NOT found — move it or change exposure`, pose.found ? "info" : "error");
-    await showPosePreview(pose.preview_url);
-    renderPoses(await api("/api/calibration/session/poses"));
+    const line = $("pose-line");
+    line.textContent = "capturing a fringe set and searching for the board…";
+    line.className = "muted";
+    try {
+      const pose = await api("/api/calibration/session/poses",
+        { method: "POST", timeoutMs: 60000 });
+      line.textContent = pose.found ? `pose ${pose.index}: board found (${pose.corners} points)`
+        : `pose ${pose.index}: no board found — bring the whole board into view, ` +
+          "or change the exposure";
+      line.className = pose.found ? "ok" : "bad";
+      await showPosePreview(pose.preview_url);
+    } catch (err) {
+      line.textContent = "";
+      throw err;
+    }
+    showSession(await currentSession());
   }));
   $("btn-solve").addEventListener("click", (ev) => act(ev.target, "solve", async () => {
     say("solving…");
@@ -96,7 +185,8 @@ export function setupWizard() {
   }));
   $("btn-activate").addEventListener("click", (ev) => act(ev.target, "activate", async () => {
     const r = await api("/api/calibration/session/activate", { method: "POST", json: { name: $("calib-name").value } });
-    say(`calibration "${r.name}" is active`);
+    showSession(null); // activation ends the session
+    say(`calibration "${r.name}" is active; the session is closed`);
     pollStatus();
   }));
 }

@@ -87,6 +87,9 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
 
         r = client.post("/api/calibration/session/activate", json={"name": "wizard"})
         assert r.status_code == 200 and r.json()["name"] == "wizard"
+        # activation ends the session
+        assert client.get("/api/calibration/session").status_code == 409
+        assert client.get("/api/status").json()["calibration_session"] is None
         assert client.get("/api/status").json()["calibration"]["name"] == "wizard"
         assert (tmp_path / "data" / "calibrations" / "wizard.json").is_file()
         assert (tmp_path / "data" / "calibrations" / "active.json").is_file()
@@ -123,3 +126,67 @@ def _assert_accurate(depth: np.ndarray, truth: np.ndarray) -> None:
     err = depth[both] - truth[both]
     assert abs(float(np.mean(err))) < 0.05, f"bias {np.mean(err):.4f} mm"
     assert float(np.mean(np.abs(err))) < 0.1, f"mean |error| {np.mean(np.abs(err)):.4f} mm"
+
+
+def test_session_lifecycle_cancel_and_the_schedule(tmp_path: Path,
+                                                    sim_calibration_file: Path) -> None:
+    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=12)
+    with TestClient(create_app(settings)) as client:
+        wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
+        assert client.get("/api/calibration/session").status_code == 409
+        r = client.delete("/api/calibration/session")  # nothing open: nothing to do
+        assert r.status_code == 200 and r.json() == {"cancelled": False, "poses": 0}
+
+        board = {"type": "checkerboard", "inner_corners": [9, 6], "square_mm": 2.0}
+        assert client.post("/api/calibration/session", json=board).status_code == 200
+        st = client.get("/api/status").json()
+        assert st["calibration_session"]["poses"] == 0
+        assert st["calibration_session"]["board"] == board
+
+        # a view without a board: answered, not found (the quick gate, not the exhaustive search)
+        r = client.post("/api/calibration/session/poses")
+        assert r.status_code == 200 and r.json()["found"] is False and r.json()["corners"] == 0
+        session = client.get("/api/calibration/session").json()
+        assert session["board"] == board and len(session["poses"]) == 1
+        assert session["solved"] is False
+
+        # the session holds the schedule; the refusal names the way out, its subject once
+        r = client.put("/api/schedule", json={"name": "geometric-12"})
+        detail = r.json()["detail"]
+        assert r.status_code == 409 and "DELETE /api/calibration/session" in detail
+        assert "activate" in detail
+        assert detail.count("schedule:") == 1
+
+        r = client.delete("/api/calibration/session")
+        assert r.status_code == 200 and r.json() == {"cancelled": True, "poses": 1}
+        assert client.get("/api/calibration/session").status_code == 409
+        assert client.post("/api/calibration/session/poses").status_code == 409
+        assert client.get("/api/status").json()["calibration_session"] is None
+        r = client.put("/api/schedule", json={"name": "geometric-12"})
+        assert r.status_code == 200, r.text
+
+
+def test_the_twin_walks_the_wizard_through_its_board_poses(tmp_path: Path,
+                                                          sim_calibration_file: Path) -> None:
+    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=13)
+    app = create_app(settings)
+    with TestClient(app) as client:
+        world = app.state.instrument.devices.world
+        wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
+        # no session: nothing to suggest for
+        assert client.post("/api/calibration/session/suggested-pose").status_code == 409
+        board = {"type": "checkerboard", "inner_corners": [9, 6], "square_mm": 2.0}  # the wizard's
+        assert client.post("/api/calibration/session", json=board).status_code == 200
+        for k in range(3):
+            r = client.post("/api/calibration/session/suggested-pose")
+            assert r.status_code == 200, r.text
+            s = r.json()
+            assert s["index"] == k and s["moved"] is True and s["of"] == 8
+            assert f"pose {k} of 8" in s["hint"]
+            assert (s["height_mm"] < 0.5) == (k == 0) and (s["tilt_deg"] > 10) == (k > 0)
+            assert world.scene.name == "board_checkerboard"
+            assert client.get("/api/status").json()["exposure_ms"] == s["exposure_ms"]
+            pose = capture_after_change(client)
+            assert pose["index"] == k and pose["found"] is True and pose["corners"] == 54, pose
+        assert client.delete("/api/calibration/session").json() == {"cancelled": True, "poses": 3}
+        assert world.scene.name != "board_checkerboard"  # the twin shows its own scene again

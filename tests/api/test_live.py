@@ -15,7 +15,9 @@ from tests.api.conftest import LIVE_EXPOSURE_MS, wait_for, wait_result
 STATUS_KEYS = {
     "state", "camera_fps", "depth_fps", "latency_ms", "exposure_ms", "led", "mode", "calibration",
     "devices", "last_error", "sets_completed", "dropped_sets", "incomplete_sets", "frames_dropped",
-    "faults", "warnings",
+    "faults", "warnings", "state_reason", "phase", "progress", "set_period_s", "last_depth_age_s",
+    "last_error_at", "last_error_resolved", "groups_lost", "patched_sets", "warmup", "since_warmup",
+    "calibration_session",
 }
 
 
@@ -27,6 +29,12 @@ def test_status_reports_a_running_instrument(live: TestClient) -> None:
     assert st["calibration"]["name"] == "sim" and st["calibration"]["height_range_mm"][1] > 10
     assert {d["kind"] for d in st["devices"]} >= {"camera", "projector"}
     assert all(d["state"] in ("open", "running") for d in st["devices"])
+    # running: a map within 2 set periods (16 frames at the 30 ms exposure), nothing to explain
+    assert st["state_reason"] is None and st["phase"] is None and st["progress"] is None
+    assert st["set_period_s"] == pytest.approx(16 * LIVE_EXPOSURE_MS / 1000, rel=0.3)
+    assert 0 <= st["last_depth_age_s"] <= 2 * st["set_period_s"]
+    assert st["warmup"]["frames_received"] >= 16
+    assert st["since_warmup"].keys() == st["warmup"].keys()
     # over a few seconds: one depth map per whole set at most (bounded by the camera)
     time.sleep(3.0)
     s1 = live.get("/api/status").json()
@@ -205,7 +213,8 @@ def test_rolling_mode_labels_results(live: TestClient) -> None:
 
 def test_acquisition_stop_and_start(live: TestClient) -> None:
     assert live.post("/api/acquisition/stop").json()["acquiring"] is False
-    wait_for(live, lambda s: s["state"] == "stopped", 10, "stopped")
+    st = wait_for(live, lambda s: s["state"] == "stopped", 10, "stopped")
+    assert "acquisition stopped" in st["state_reason"]
     time.sleep(0.5)
     frames = live.get("/api/status").json()["frames_received"]
     time.sleep(0.5)

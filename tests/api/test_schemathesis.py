@@ -38,7 +38,7 @@ pytestmark = pytest.mark.slow
 TOKEN = "schemathesis-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 ENDLESS = r"^/api/stream/depth\.mjpeg$"
-SLOW = r"^/api/(exposure/auto|calibration/session/poses)$"
+SLOW = r"^/api/(exposure/auto|calibration/session/poses|calibration/session/suggested-pose)$"
 HYPOTHESIS = {"deadline": None, "derandomize": True, "suppress_health_check": list(HealthCheck),
               "database": None}
 

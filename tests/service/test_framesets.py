@@ -46,15 +46,70 @@ def test_starting_mid_sequence_waits_for_pattern_zero():
         (list(range(N)), list(range(8)) + [9] + list(range(10, N + 2))[: N - 9]),  # counter gap only
     ],
 )
-def test_broken_sets_are_discarded_and_counted(patterns, indices):
+def test_a_broken_sequence_is_never_reconstructed_and_is_counted(patterns, indices):
+    # one group of 16: a broken frame costs the whole set (the old whole-set rule)
     asm = SetAssembler(N)
     fs = frames(indices[: len(patterns)], patterns[: len(indices)])
     # Follow with one clean set: it must still be found.
     start = fs[-1].index + 1
     fs += frames(range(start, start + N), range(N))
     out = feed_all(asm, fs)
-    assert asm.incomplete == 1
+    assert asm.incomplete >= 1 and asm.completed == 1
     assert len(out) == 1 and out[0].frame_indices == list(range(start, start + N))
+
+
+def test_a_dropped_frame_costs_only_its_group():
+    asm = SetAssembler(N, 4)
+    idx = [i for i in range(48) if i != 21]  # frame 21 (cycle 1, group 1) lost
+    out = feed_all(asm, frames(idx, [i % N for i in idx]))
+    # cycle 1 takes group 1 from cycle 0 (frames 4..7) and keeps the rest of its own
+    assert [s.frame_indices for s in out] == [
+        list(range(16)),
+        list(range(16, 20)) + list(range(4, 8)) + list(range(24, 32)),
+        list(range(32, 48)),
+    ]
+    assert [f.pattern_index for f in out[1].frames] == list(range(N))
+    assert asm.completed == 3 and asm.patched == 1 and asm.groups_lost == 1 and asm.incomplete == 0
+
+
+def test_a_lost_last_group_is_noticed_at_the_next_cycle():
+    asm = SetAssembler(N, 4)
+    idx = [i for i in range(48) if i != 30]  # frame 30 (cycle 1, group 3) lost
+    got = [(f.index, s.frame_indices) for f in frames(idx, [i % N for i in idx])
+           if (s := asm.feed(f, 0.0)) is not None]
+    # the set of cycle 1 (its group 3 from cycle 0) is emitted when frame 32 shows a new cycle
+    assert got[1] == (32, list(range(16, 28)) + list(range(12, 16)))
+    assert len(got) == 3 and asm.patched == 1
+
+
+def test_stand_in_groups_are_at_most_three_cycles_old():
+    asm = SetAssembler(N, 4)
+    # group 1 (patterns 4..7) lost in cycles 1..3: cycles 1 and 2 borrow it from cycle 0,
+    # cycle 3 cannot (cycle 0 is more than 3 cycles of frames back)
+    idx = [i for i in range(80) if not (i % N == 5 and 1 <= i // N <= 3)]
+    out = feed_all(asm, frames(idx, [i % N for i in idx]))
+    assert [max(s.frame_indices) for s in out] == [15, 31, 47, 79]
+    assert asm.incomplete == 1 and asm.patched == 2
+
+
+def test_ten_percent_random_drops_keep_most_of_the_depth_rate():
+    # the target on the grouping alone: >= 0.7 x the drop-free set rate
+    rng = np.random.default_rng(5)
+    n = 16 * 2000
+    idx = [i for i in range(n) if rng.random() >= 0.10]
+    for steps, floor in ((4, 0.7), (N, 0.0)):
+        asm = SetAssembler(N, steps)
+        out = feed_all(asm, frames(idx, [i % N for i in idx]))
+        ratio = len(out) / (n // N)
+        for s in out:  # every group gap-free and in pattern order
+            assert [f.pattern_index for f in s.frames] == list(range(N))
+            for g in range(0, N, 4):
+                grp = s.frame_indices[g: g + 4]
+                assert grp == list(range(grp[0], grp[0] + 4))
+            assert max(s.frame_indices) - min(s.frame_indices) < 3 * N
+        assert ratio >= floor, (steps, ratio)
+        if steps == N:
+            assert ratio < 0.25  # the whole-set rule: 0.9^16 = 0.19
 
 
 def test_settings_change_inside_a_set_discards_it():
@@ -64,6 +119,21 @@ def test_settings_change_inside_a_set_discards_it():
     out = feed_all(asm, fs)
     assert asm.mixed == 1 and asm.incomplete == 0
     assert len(out) == 1 and out[0].exposure_ms == 30.0
+
+
+def test_after_an_abort_a_camera_counting_from_zero_again_gives_sets():
+    asm = SetAssembler(N, 4)
+    assert len(feed_all(asm, frames(range(96, 128), [i % N for i in range(96, 128)]))) == 2
+    asm.abort()  # the devices were re-opened: the frame counter restarts
+    out = feed_all(asm, frames(range(32), [i % N for i in range(32)]))
+    assert [s.frame_indices for s in out] == [list(range(16)), list(range(16, 32))]
+
+
+def test_abort_in_a_cycle_joined_mid_sequence_is_no_loss():
+    asm = SetAssembler(N, 4)
+    feed_all(asm, frames(range(5, 9), range(5, 9)))  # started mid-cycle: not a cycle of ours
+    asm.abort()
+    assert asm.incomplete == 0
 
 
 def test_abort_counts_only_a_started_set():
@@ -87,13 +157,22 @@ def test_rolling_set_after_every_completed_group_from_the_newest_groups():
     assert s.frame_indices == list(range(16, 20)) + list(range(4, 16))
 
 
-def test_rolling_sets_skip_a_drop_until_every_group_is_newer_than_it():
+def test_rolling_sets_carry_on_past_a_drop():
     win = GroupWindow(4, 4)
     idx = [i for i in range(48) if i != 21]  # frame 21 (group 1, step 1) lost
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    # group 1 of frames 20..23 never completes: only the set it would have completed (23) is
+    # lost; the next ones keep group 1 of frames 4..7 until group 1 of frames 36..39 replaces it
+    assert [i for i, _ in got] == [15, 19, 27, 31, 35, 39, 43, 47]
+    assert got[2][1].frame_indices == [*range(16, 20), *range(4, 8), *range(24, 28), *range(12, 16)]
+
+
+def test_rolling_sets_span_at_most_max_span_cycles():
+    win = GroupWindow(4, 4, max_span_cycles=1)
+    idx = [i for i in range(48) if i != 21]
     out = [f.index for f in frames(idx, [i % N for i in idx]) if win.feed(f, 0.0) is not None]
-    # group 1 of frames 20..23 never completes; the sets 23..35 would mix in the stale group 1
-    # of frames 4..7 (a counter gap), so the next set is after group 1 of frames 36..39
-    assert out == [15, 19, 39, 43, 47]
+    assert out == [15, 19, 39, 43, 47]  # one cycle at most: the stale group waits for a new one
 
 
 def test_rolling_sets_do_not_mix_settings():
@@ -108,6 +187,10 @@ def test_rolling_sets_do_not_mix_settings():
 def test_invalid_sizes():
     with pytest.raises(ValueError, match="n_frames"):
         SetAssembler(0)
+    with pytest.raises(ValueError, match="steps"):
+        SetAssembler(16, 5)
+    with pytest.raises(ValueError, match="max_span_cycles"):
+        SetAssembler(16, 4, max_span_cycles=0)
     with pytest.raises(ValueError, match="n_groups"):
         GroupWindow(0, 4)
     with pytest.raises(ValueError, match="steps"):

@@ -48,7 +48,8 @@ class SimulatedWorld:
                  schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
                  seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0) -> None:
         """``rig``: a rig preset's name (see optics.RIG_NAMES; default ``"default"``) or a SimRig."""
-        self._named = scene if isinstance(scene, str) and not isinstance(rig, SimRig) else None
+        self._rig_named = not isinstance(rig, SimRig)  # named scenes may then share renderers
+        self._named = scene if isinstance(scene, str) and self._rig_named else None
         self._distortion = distortion
         self.rig = rig if isinstance(rig, SimRig) else rig_by_name(rig or "default", distortion=distortion)
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
@@ -78,6 +79,20 @@ class SimulatedWorld:
                     self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
                                               projector_gamma=self._projector_gamma)
             return self._renderer
+
+    def set_scene(self, scene: str | Scene) -> None:
+        """Show another scene (a named one or a :class:`Scene`), e.g. a calibration board at a pose.
+
+        Its renderer is built here, before the swap (the geometry precompute takes seconds), so
+        the camera keeps delivering frames of the old scene meanwhile instead of timing out.
+        """
+        built = build_scene(scene, self.rig) if isinstance(scene, str) else scene
+        renderer = Renderer(built, self.rig, schedule=self.schedule, sensor=self.sensor,
+                            projector_gamma=self._projector_gamma)
+        with self._lock:
+            self.scene = built
+            self._named = scene if isinstance(scene, str) and self._rig_named else None
+            self._renderer = renderer
 
     def reseed(self, seed: int | None) -> None:
         """Restart the sensor-noise generator (same seed → same noise)."""
