@@ -17,7 +17,7 @@ from app.analysis.groundtruth import depth_errors, perpendicular_noise_mm
 from app.analysis.noise import height_noise_mm
 from app.analysis.plane import plane_accuracy
 from app.analysis.sphere import sphere_figures
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.core.depth_model import SupportedRegion
 from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule

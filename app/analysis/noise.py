@@ -7,8 +7,8 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from app.calib.calibration import Calibration
 from app.calib.model import height_mm
+from app.core.calibration import Calibration
 
 F64 = npt.NDArray[np.float64]
 

@@ -23,7 +23,7 @@ from app.api.schemas import (
     SolveOut,
 )
 from app.api.upload import read_body
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.core.errors import InvalidRequest, NotFound
 from app.service.instrument import Instrument
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from app.batch.setjob import ALL_FILES, ReconOptions, check_bracket, new_reconstructor
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 
 if TYPE_CHECKING:
     import fsspec

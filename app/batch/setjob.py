@@ -14,8 +14,8 @@ from pathlib import PurePath
 
 import numpy as np
 
-from app.calib.calibration import Calibration
 from app.capture import CaptureSet
+from app.core.calibration import Calibration
 from app.recon import ReconResult, Reconstructor, SensorNoise
 from app.recon.fusion import FusedExposures
 

@@ -1,7 +1,7 @@
 """Calibration: the Eq. (5) coefficients, camera model and reference plane."""
 
 from app.calib.board import BoardSpec, Detection, detect_board, load_board, texture_to_u8
-from app.calib.calibration import Calibration, load_calibration, save_calibration
+from app.calib.calibration import load_calibration, save_calibration
 from app.calib.fitting import (
     CalibrationReport,
     PoseObservation,
@@ -15,7 +15,6 @@ from app.calib.model import height_mm
 
 __all__ = [
     "BoardSpec",
-    "Calibration",
     "CalibrationReport",
     "Detection",
     "PoseObservation",

@@ -10,11 +10,9 @@ import os
 from pathlib import Path
 
 from app.atomic import atomic_write_text
-from app.core.calibration import FORMAT, FORMAT_V1, N_DENOMINATOR, N_NUMERATOR, Calibration
+from app.core.calibration import Calibration
 
-__all__ = [
-    "FORMAT", "FORMAT_V1", "N_DENOMINATOR", "N_NUMERATOR", "Calibration", "load_calibration", "save_calibration",
-]
+__all__ = ["load_calibration", "save_calibration"]
 
 
 def save_calibration(calibration: Calibration, path: str | os.PathLike[str]) -> Path:

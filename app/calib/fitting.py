@@ -18,12 +18,12 @@ import numpy as np
 import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
-from app.calib.calibration import Calibration
 from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
-from app.calib.model import choose_normalization, evaluate, fit_eq5, normalize, undistort_points
+from app.calib.model import undistort_points
 from app.calib.refine import RefinedPoses, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
+from app.core.calibration import Calibration
 from app.core.depth_model import (
     BoardSamples,
     DepthModel,
@@ -31,7 +31,7 @@ from app.core.depth_model import (
     region_from_samples,
 )
 from app.core.depth_model_registry import MODEL_NAMES
-from app.core.eq5 import Eq5Model
+from app.core.eq5 import Eq5Model, choose_normalization, evaluate, fit_eq5, normalize
 from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
 from app.core.schedule import PatternSchedule
 

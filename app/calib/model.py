@@ -8,12 +8,10 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.calibration import Calibration
-from app.core.eq5 import Eq5Fit, basis, choose_normalization, evaluate, fit_eq5, normalize
 
 F64 = npt.NDArray[np.float64]
 
-__all__ = ["Eq5Fit", "basis", "choose_normalization", "evaluate", "fit_eq5", "height_mm", "normalize",
-           "undistort_points", "undistorted_rays"]
+__all__ = ["height_mm", "undistort_points", "undistorted_rays"]
 
 
 def undistort_points(uv: npt.ArrayLike, camera_matrix: npt.ArrayLike, dist_coeffs: npt.ArrayLike) -> F64:

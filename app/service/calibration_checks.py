@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.core.geometric import GeometricModel
 from app.core.schedule import PatternSchedule, calibration_mismatch
 

@@ -11,8 +11,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from app.calib.calibration import Calibration, load_calibration, save_calibration
+from app.calib.calibration import load_calibration, save_calibration
 from app.config import Settings
+from app.core.calibration import Calibration
 
 log = logging.getLogger("fringescope.service.calibration")
 

@@ -10,11 +10,11 @@ import logging
 import threading
 from typing import Any
 
-from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
 from app.core.board import BoardSpec
+from app.core.calibration import Calibration
 from app.core.errors import Conflict, InvalidRequest
 from app.core.records import CalibrationSummary
 from app.core.schedule import PatternSchedule, calibration_mismatch

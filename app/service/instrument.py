@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from app.calib.calibration import Calibration
 from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
+from app.core.calibration import Calibration
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.records import State, Status

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.analysis.schedules import predict_schedule, wrapped_phase_sigma_rad
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.core.schedule import SCHEDULES, PatternSchedule, calibration_mismatch
 from app.recon.noise import estimate_sensor_noise
 from app.recon.reconstructor import SensorNoise

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import app.atomic
-from app.calib import Calibration, load_calibration, save_calibration
+from app.calib import load_calibration, save_calibration
+from app.core.calibration import Calibration
 from tests.recon.analytic_rig import Rig
 
 

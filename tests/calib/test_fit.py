@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from app.calib import BoardSpec, fit_observations, height_mm, sample_phase
-from app.calib.calibration import Calibration
-from app.calib.model import basis, evaluate, fit_eq5
+from app.core.calibration import Calibration
+from app.core.eq5 import basis, evaluate, fit_eq5
 from tests.calib.rig import STANDARD_POSES, Rig, board_pose
 
 BOARD = BoardSpec("checkerboard", 9, 7, 3.0)

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from app.calib.calibration import Calibration, load_calibration, save_calibration
+from app.calib.calibration import load_calibration, save_calibration
 from app.calib.model import undistort_points
+from app.core.calibration import Calibration
 from app.core.depth_model import (
     BoardSamples,
     ReferencePlane,

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.core.geometric import GeometricModel
 from app.core.schedule import PatternSchedule
 

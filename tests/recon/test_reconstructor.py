@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from app.calib.calibration import Calibration
+from app.core.calibration import Calibration
 from app.recon import PatternSchedule, Reason, ReconResult, Reconstructor, compute_phase
 from tests.recon.analytic_rig import Rig, bump_surface
 

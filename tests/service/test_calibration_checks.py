@@ -10,8 +10,9 @@ from typing import Any
 
 import pytest
 
-from app.calib.calibration import Calibration, save_calibration
+from app.calib.calibration import save_calibration
 from app.config import Settings
+from app.core.calibration import Calibration
 from app.core.schedule import PatternSchedule
 from app.devices.sim import default_rig
 from app.service.calibration_checks import (

@@ -23,7 +23,7 @@ import numpy as np
 from app.core.schedule import PatternSchedule
 
 if TYPE_CHECKING:
-    from app.calib.calibration import Calibration
+    from app.core.calibration import Calibration
     from app.devices.sim.optics import SimRig
 
 
@@ -40,7 +40,7 @@ def ideal_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
     ``dist_coeffs`` are the rig's. Normalisation: u' = (u − W/2)/(W/2), v' likewise,
     φ' centred on the phase range of the calibrated heights at the image centre.
     """
-    from app.calib.calibration import Calibration
+    from app.core.calibration import Calibration
 
     schedule = schedule or PatternSchedule()
     cam, proj, plane = rig.camera, rig.projector, rig.reference
