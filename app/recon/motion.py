@@ -266,7 +266,7 @@ _MIN_VAR_DN2 = np.float32(0.25)
 def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh):  # type: ignore[no-untyped-def]  # pragma: no cover
     """qh[v, u] = the sum over u − r … u + r of the per-pixel chi-square Q (float32; 0 for an
     untested pixel: one with a sample at ``top_code`` or above), mh[v, u] = how many of those
-    pixels were tested (uint8)."""
+    pixels were tested (uint8). Row-vector loops (u innermost) so that they vectorise."""
     f, h, w = frames.shape
     inv_n = np.float32(1.0 / steps)
     inv_gn = np.float32(1.0 / (steps * n_groups))
@@ -275,11 +275,13 @@ def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh
     for chunk in prange(n_chunks):
         sums = np.empty((n_groups, w), np.int32)  # integer group sums of one row: exact
         top = np.empty(w, np.int32)
+        total = np.empty(w, np.int32)
+        mean = np.empty(w, np.float32)
         q = np.empty(w, np.float32)
-        t = np.empty(w, np.uint8)
         for v in range(chunk * _ROWS, min((chunk + 1) * _ROWS, h)):
             for u in range(w):
                 top[u] = 0
+                total[u] = 0
             for g in range(n_groups):
                 row = sums[g]
                 src = frames[g * steps, v]
@@ -291,31 +293,45 @@ def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh
                     for u in range(w):
                         row[u] += np.int32(src[u])
                         top[u] = max(top[u], np.int32(src[u]))
+                for u in range(w):
+                    total[u] += row[u]
             for u in range(w):
-                if top[u] >= top_code:
-                    q[u] = np.float32(0.0)
-                    t[u] = 0
-                    continue
-                total = np.int32(0)
-                for g in range(n_groups):
-                    total += sums[g, u]
-                mean = np.float32(total) * inv_g
-                dev2 = np.float32(0.0)
-                for g in range(n_groups):
-                    d = np.float32(sums[g, u]) - mean
-                    dev2 += d * d
+                mean[u] = np.float32(total[u]) * inv_g
+                q[u] = np.float32(0.0)
+            for g in range(n_groups):
+                row = sums[g]
+                for u in range(w):
+                    d = np.float32(row[u]) - mean[u]
+                    q[u] += d * d
+            for u in range(w):
                 # σ_I² at Ā, DN², at least the variance a sub-DN noise can take once rounded
-                var = max(read2 + gain * np.float32(total) * inv_gn, _MIN_VAR_DN2)
-                q[u] = dev2 * inv_n / var
-                t[u] = 1
+                var = max(read2 + gain * np.float32(total[u]) * inv_gn, _MIN_VAR_DN2)
+                tested = top[u] < top_code
+                q[u] = q[u] * inv_n / var if tested else np.float32(0.0)
+                top[u] = 1 if tested else 0
             out_q = qh[v]
             out_m = mh[v]
-            for u in range(w):
-                s = np.float32(0.0)
-                c = 0
-                for x in range(max(u - radius, 0), min(u + radius + 1, w)):
-                    s += q[x]
-                    c += t[x]
+            s = np.float32(0.0)  # running window sums, restarted on every row
+            c = 0
+            for x in range(min(radius, w)):
+                s += q[x]
+                c += top[x]
+            lo = min(radius + 1, w)
+            hi = max(w - radius, lo)
+            for u in range(lo):  # the left edge: nothing leaves the window yet
+                if u + radius < w:
+                    s += q[u + radius]
+                    c += top[u + radius]
+                out_q[u] = s
+                out_m[u] = c
+            for u in range(lo, hi):
+                s += q[u + radius] - q[u - radius - 1]
+                c += top[u + radius] - top[u - radius - 1]
+                out_q[u] = s
+                out_m[u] = c
+            for u in range(hi, w):  # the right edge: nothing enters any more
+                s -= q[u - radius - 1]
+                c -= top[u - radius - 1]
                 out_q[u] = s
                 out_m[u] = c
 
@@ -323,23 +339,44 @@ def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def _window_kernel(qh, mh, radius, thresholds, mask, row_any):  # type: ignore[no-untyped-def]  # pragma: no cover
     """mask[v, u] = the window sum of Q around (v, u) exceeds ``thresholds[m]`` for its m tested
-    pixels; row_any[v] = flagged pixels of row v (int32)."""
+    pixels; row_any[v] = flagged pixels of row v (int32). Running column sums per chunk of rows
+    (restarted per chunk: float32 drift stays far below any threshold)."""
     h, w = qh.shape
-    for v in prange(h):
-        y0 = max(v - radius, 0)
-        y1 = min(v + radius + 1, h)
-        row = mask[v]
-        hits = 0
-        for u in range(w):
-            s = np.float32(0.0)
-            c = 0
-            for y in range(y0, y1):
-                s += qh[y, u]
-                c += mh[y, u]
-            hit = s > thresholds[c]
-            row[u] = hit
-            hits += hit
-        row_any[v] = hits
+    n_chunks = (h + _ROWS - 1) // _ROWS
+    full = thresholds.size - 1
+    full_thr = thresholds[full]
+    for chunk in prange(n_chunks):
+        col = np.zeros(w, np.float32)
+        cnt = np.zeros(w, np.int32)
+        v0 = chunk * _ROWS
+        for y in range(max(v0 - radius, 0), min(v0 + radius + 1, h)):
+            for u in range(w):
+                col[u] += qh[y, u]
+                cnt[u] += mh[y, u]
+        for v in range(v0, min(v0 + _ROWS, h)):
+            row = mask[v]
+            partial = 0  # windows with untested pixels (or cut by the border): their own threshold
+            for u in range(w):
+                row[u] = col[u] > full_thr
+                partial += cnt[u] < full
+            if partial:
+                for u in range(w):
+                    if cnt[u] < full:
+                        row[u] = col[u] > thresholds[cnt[u]]
+            hits = 0
+            for u in range(w):
+                hits += row[u]
+            row_any[v] = hits
+            add = v + radius + 1
+            sub = v - radius
+            if add < h:
+                for u in range(w):
+                    col[u] += qh[add, u]
+                    cnt[u] += mh[add, u]
+            if sub >= 0:
+                for u in range(w):
+                    col[u] -= qh[sub, u]
+                    cnt[u] -= mh[sub, u]
 
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)

@@ -1,4 +1,4 @@
-"""The reconstruction step invalidates moved pixels (reason MOTION) in both modes."""
+"""The reconstruction thread's step: the engine with the measured noise and the motion test."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from app.devices.sim import SimulatedWorld
 from app.devices.sim.ideal import ideal_calibration
 from app.recon import Reconstructor
 from app.service.framesets import FrameSet
-from app.service.motion import sigma_bounds
+from app.recon.motion import MotionTest, sigma_bounds
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
@@ -31,11 +31,12 @@ def frame_set(frames: np.ndarray, indices: list[int], mode: str) -> FrameSet:
 @pytest.mark.parametrize("mode", ["set", "rolling"])
 def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(still_set, mode):
     frames, engine = still_set
-    rec = Reconstruction(NewestQueue(1), lambda: engine, n_frequencies=4, motion_grow_px=2)
+    test = MotionTest(grow_px=2, gross_error_mm=0.5)
+    rec = Reconstruction(NewestQueue(1), lambda: engine, motion=test)
     still = rec.process(engine, frame_set(frames, list(range(16)), "set"))
     assert still.valid.mean() > 0.5
-    # false alarms only: each grows to a 5 × 5 square, so about 25·α of the pixels
-    assert still.moved_pixels < 1.3 * 25 * rec.motion_false_alarm_rate * still.valid.size
+    # a still map has any flagged pixel with probability <= α = 1e-4 (over the image)
+    assert still.moved_pixels == 0 and not still.motion.any()
     assert not still.scene_moved and still.uncertain_moving_pixels == 0  # still: only the engine's σ limit
     moved = frames.copy()
     patch = (slice(400, 460), slice(600, 700))
@@ -48,14 +49,32 @@ def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(s
     assert (res.reason[inner][lit] == Reason.MOTION).all()
     assert not res.valid[400:460, 600:700].any() or not still.valid[400:460, 600:700].all()
     assert np.isnan(res.depth[inner][lit]).all() and np.isnan(res.points[inner][lit]).all()
+    # flagged: the patch, the windows that hold a patch pixel (r = 2) and their growth (2)
+    assert not res.motion[:396].any() and not res.motion[464:].any()
+    assert not res.motion[:, :596].any() and not res.motion[:, 704:].any()
+    assert res.moved_pixels >= 60 * 100 and res.mode == mode
+    # the scene moved: the moving-scene σ bound applied, elsewhere nothing else changed
+    bound = sigma_bounds(0.5, 4)[1]
+    assert res.scene_moved and np.nanmax(res.sigma[res.valid]) <= bound
     elsewhere = np.ones(res.valid.shape, bool)
     elsewhere[395:465, 595:705] = False
-    same = (res.valid == still.valid)[elsewhere].mean()
-    assert same > 1.0 - 2 * 1.3 * 25 * rec.motion_false_alarm_rate  # only the two runs' false alarms differ
-    assert res.moved_pixels >= 60 * 100 and res.mode == mode
-    # 6000 flagged pixels are far beyond a still set's count: the moving-scene σ bound applied
-    bound = sigma_bounds(rec.gross_error_mm, 4, rec.motion_false_alarm_rate)[1]
-    assert res.scene_moved and np.nanmax(res.sigma[res.valid]) <= bound
+    with np.errstate(invalid="ignore"):
+        kept = still.valid & ~(still.sigma > bound)
+    assert np.array_equal(res.valid[elsewhere], kept[elsewhere])
     assert res.uncertain_moving_pixels == (still.valid & (still.sigma > bound) & ~res.motion).sum()
     # the map stands for the finest group's mid time: frames 12..15 in either order
     assert res.map_time_s == pytest.approx(0.03 * 13.5)
+
+
+def test_the_measured_noise_is_passed_to_the_engine_not_installed_in_it(still_set):
+    frames, engine = still_set
+    rec = Reconstruction(NewestQueue(1), lambda: engine, motion=MotionTest())
+    first = rec.process(engine, frame_set(frames, list(range(16)), "set"))
+    assert rec.noise.current is None and first.noise == engine._noise(255)  # nominal until measured
+    measured = rec.noise.update(frames, engine.calibration.pattern, 255, 0.0)
+    assert measured is not None and measured is rec.noise.current
+    res = rec.process(engine, frame_set(frames, list(range(16)), "set"))
+    assert res.noise is measured and engine.noise is None
+    # σ follows the model it was given: σ ∝ √(read² + gain·A)
+    both = res.valid & first.valid
+    assert not np.allclose(res.sigma[both], first.sigma[both])
