@@ -17,8 +17,9 @@ upper ``α / (H·W)`` quantile. With one window per pixel (H·W of them) the uni
 the **false-alarm rate over the image**: a still map has ANY flagged pixel with probability
 ≤ α (``false_alarm_rate``, default 1e-4 per map: one false region in ten thousand maps). A
 coherent motion is seen at a much smaller change per pixel than a single-pixel test at the
-same image rate would need (for 5 × 5 and G = 4 about 1.5 σ of the group difference
-instead of 6 σ), and isolated noise flags no longer exist to be grown into holes.
+same image rate would need (G = 4, 1384 × 1032, α = 1e-4: one group's background shifted by
+2.4 σ of its sum in every pixel of a 5 × 5 window is flagged with probability 1/2, one pixel
+alone would need 8 σ), and isolated noise flags no longer exist to be grown into holes.
 
 Flagged centres are grown by ``grow_px`` (a (2r+1)² square) before they are invalidated: at
 a moved region's rim the background change falls below the threshold while the phase error
@@ -450,7 +451,7 @@ def _check(frames: npt.NDArray[np.generic], n_groups: int) -> int:
             or frames.dtype not in (np.uint8, np.uint16)):
         raise ValueError(f"frames: expected (F, H, W) uint8/uint16, got "
                          f"{getattr(frames, 'dtype', type(frames))} {getattr(frames, 'shape', '')}")
-    f = frames.shape[0]
+    f = int(frames.shape[0])
     if int(n_groups) != n_groups or n_groups < 2 or f % n_groups:
         raise ValueError(f"n_groups: {n_groups} groups do not divide {f} frames (need >= 2)")
     return f // n_groups
@@ -601,7 +602,8 @@ def group_mid_times(timestamps: list[float] | npt.NDArray[np.float64],
     t = np.asarray(timestamps, np.float64)
     if t.ndim != 1 or t.size % n_groups:
         raise ValueError(f"timestamps: {t.size} do not split into {n_groups} groups")
-    return t.reshape(n_groups, -1).mean(axis=1)
+    mids: npt.NDArray[np.float64] = t.reshape(n_groups, -1).mean(axis=1)
+    return mids
 
 
 def map_time(timestamps: list[float] | npt.NDArray[np.float64], frequencies: tuple[float, ...],

@@ -304,7 +304,6 @@ def test_clipped_pixels_are_left_out():
 def test_dark_pixels_rounded_to_a_few_codes_are_no_false_alarms():
     # a black level of 2.5 DN with 0.1 DN of analog noise: the codes flip between 2 and 3, a
     # variance of up to 1/4 DN² where the model says 0.1² + 1/12; the floor keeps this still
-    s = PatternSchedule()
     rng = np.random.default_rng(4)
     frames = np.rint(2.5 + 0.1 * rng.standard_normal((16, 100, 200))).astype(np.uint8)
     dark = SensorNoise(gain_dn_per_e=0.01, read_noise_dn=math.sqrt(0.01 + 1 / 12))

@@ -10,8 +10,8 @@ from app.devices.base import Frame
 from app.devices.sim import SimulatedWorld
 from app.devices.sim.ideal import ideal_calibration
 from app.recon import Reconstructor
-from app.service.framesets import FrameSet
 from app.recon.motion import MotionTest, sigma_bounds
+from app.service.framesets import FrameSet
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
