@@ -462,6 +462,8 @@ class Reconstructor:
                 test=motion, max_code=max_code)
             res.motion, res.moved_pixels, res.scene_moved = mp.mask, mp.moved, mp.scene_moved
             res.uncertain_moving_pixels, res.motion_ms = mp.uncertain, mp.elapsed_ms
+            if res.phase is not None and (mp.moved or mp.uncertain):
+                res.phase[~res.valid] = np.nan  # NaN where invalid, as every other output
         return res
 
     def _run_numpy(self, frames: npt.NDArray[Any], max_code: int, min_mod: float,

@@ -308,3 +308,32 @@ def test_dark_pixels_rounded_to_a_few_codes_are_no_false_alarms():
     frames = np.rint(2.5 + 0.1 * rng.standard_normal((16, 100, 200))).astype(np.uint8)
     dark = SensorNoise(gain_dn_per_e=0.01, read_noise_dn=math.sqrt(0.01 + 1 / 12))
     assert not motion_mask(frames, 4, noise=dark).any()
+
+
+def test_the_engine_runs_the_motion_test_with_the_noise_it_is_given():
+    from app.devices.sim import SimulatedWorld
+    from app.devices.sim.ideal import ideal_calibration
+    from app.recon.reconstructor import Reconstructor
+
+    world = SimulatedWorld("plane", seed=7, distortion=False)
+    frames = np.stack([world.render(i, 0.0, exposure_ms=20.0, gain=1.0, bits=8) for i in range(16)])
+    frames[4:8, 300:360, 500:600] = np.clip(frames[4:8, 300:360, 500:600].astype(int) + 40, 0, 255)
+    engine = Reconstructor(ideal_calibration(world.rig, world.schedule), with_phase=True)
+    plain = engine.run(frames)
+    assert plain.motion is None and plain.moved_pixels == 0 and plain.noise == SensorNoise.typical(255)
+    camera = SensorNoise(gain_dn_per_e=255 / 16000, read_noise_dn=0.4)
+    results = [engine.run(frames, noise=camera, motion=MotionTest(grow_px=1), fast=fast)
+               for fast in (True, False)]
+    assert engine.noise is None  # passed in, never installed
+    for res in results:
+        assert res.noise is camera and res.scene_moved and res.motion is not None
+        assert res.motion[302:358, 502:598].all() and res.moved_pixels == res.motion.sum()
+        assert not res.motion[:290].any() and not res.motion[370:].any()
+        lit = plain.valid[300:360, 500:600]
+        assert (res.reason[300:360, 500:600][lit] == Reason.MOTION).all()
+        assert np.isnan(res.phase[~res.valid]).all() and np.isnan(res.depth[~res.valid]).all()
+    assert np.array_equal(results[0].motion, results[1].motion)
+    with pytest.raises(ValueError, match="motion"):
+        engine.run(frames, motion="yes")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="noise"):
+        engine.run(frames, noise=0.5)  # type: ignore[arg-type]
