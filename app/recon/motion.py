@@ -8,18 +8,22 @@ sum ``S_g`` of N frames has variance ``N·σ_I²``, so per pixel
     ``Q = Σ_g (S_g − S̄)² / (N·σ_I²(Ā))``,  S̄ the mean of the G group sums,
 
 (σ_I² floored at 1/4 DN²: rounding a sub-DN noise to integer codes is not the model's
-independent 1/12 DN²) is chi-square with G − 1 degrees of freedom on a still scene (the homogeneity test of G
-means of known variance). Noise is independent from pixel to pixel; motion is spatially
-coherent. So the test pools the evidence of a k × k window (``window_px``, odd): the sum
-``T`` of Q over the window's m tested pixels is chi-square with m·(G − 1) degrees of freedom
-on a still scene, and the window's centre is flagged when ``T`` exceeds that distribution's
-upper ``α / (H·W)`` quantile. With one window per pixel (H·W of them) the union bound gives
-the **false-alarm rate over the image**: a still map has ANY flagged pixel with probability
-≤ α (``false_alarm_rate``, default 1e-4 per map: one false region in ten thousand maps). A
+independent 1/12 DN²) is chi-square with G − 1 degrees of freedom on a still scene (the
+homogeneity test of G means of known variance). Noise is independent from pixel to pixel;
+motion is spatially coherent. So the test pools the evidence of a k × k window
+(``window_px``, odd): the sum ``T`` of Q over the window's m tested pixels is chi-square with
+m·(G − 1) degrees of freedom on a still scene, and the window's centre is flagged when ``T``
+exceeds that distribution's upper ``α / (2·H·W)`` quantile. A pixel is also flagged on its
+own when its Q exceeds the chi-square(G − 1) upper ``α / (2·H·W)`` quantile: a strong change
+confined to a pixel or a thin line (a moving edge of fine texture) is diluted in a window (on
+the twin's breathing scene such a pixel, Q = 63 in a window sum of 92 against 143, kept a
+0.79 mm error). With these 2·H·W tests per map the union bound gives the **false-alarm rate
+over the image**: a still map has ANY flagged pixel with probability ≤ α
+(``false_alarm_rate``, default 1e-4 per map: one false region in ten thousand maps). A
 coherent motion is seen at a much smaller change per pixel than a single-pixel test at the
-same image rate would need (G = 4, 1384 × 1032, α = 1e-4: one group's background shifted by
-2.4 σ of its sum in every pixel of a 5 × 5 window is flagged with probability 1/2, one pixel
-alone would need 8 σ), and isolated noise flags no longer exist to be grown into holes.
+same image rate needs (G = 4, 1384 × 1032, α = 1e-4: one group's background shifted by 2.4 σ
+of its sum in every pixel of a 5 × 5 window is flagged with probability 1/2, one pixel alone
+would need 8 σ), and isolated noise flags no longer exist to be grown into holes.
 
 Flagged centres are grown by ``grow_px`` (a (2r+1)² square) before they are invalidated: at
 a moved region's rim the background change falls below the threshold while the phase error
@@ -225,8 +229,9 @@ def _thresholds(n_groups: int, window_px: int, false_alarm_rate: float,
     per_window = false_alarm_rate / n_windows
     out = np.full(window_px * window_px + 1, np.inf, np.float32)
     for m in range(1, out.size):
-        # rounded up to float32: the float32 sums compared never pass a threshold below the exact one
-        out[m] = np.nextafter(np.float32(chi2_isf(per_window, m * (n_groups - 1))), np.float32(np.inf))
+        # rounded up to float32: a float32 sum never passes a threshold below the exact one
+        exact = np.float32(chi2_isf(per_window, m * (n_groups - 1)))
+        out[m] = np.nextafter(exact, np.float32(np.inf))
     out.setflags(write=False)
     return out
 
@@ -239,7 +244,7 @@ def window_thresholds(n_groups: int, window_px: int, false_alarm_rate: float,
         n_groups: frequency groups G ≥ 2 (each tested pixel adds G − 1 degrees of freedom).
         window_px: side k of the window (odd).
         false_alarm_rate: α over the image, (0, 0.5).
-        n_windows: windows tested per map (H·W), ≥ 1.
+        n_windows: tests made per map (windows and single pixels: 2·H·W), ≥ 1.
 
     Returns:
         (k² + 1,) float32: entry m is the chi-square(m·(G − 1)) upper ``α / n_windows``
@@ -264,10 +269,12 @@ _MIN_VAR_DN2 = np.float32(0.25)
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _pixel_kernel(frames, n_groups, steps, read2, gain,  # type: ignore[no-untyped-def]
+                  top_code, radius, q_pixel, qh, mh, hot):  # pragma: no cover - compiled
     """qh[v, u] = the sum over u − r … u + r of the per-pixel chi-square Q (float32; 0 for an
     untested pixel: one with a sample at ``top_code`` or above), mh[v, u] = how many of those
-    pixels were tested (uint8). Row-vector loops (u innermost) so that they vectorise."""
+    pixels were tested (uint8), hot[v, u] = Q > ``q_pixel`` (the single-pixel test). Row-vector
+    loops (u innermost) so that they vectorise."""
     f, h, w = frames.shape
     inv_n = np.float32(1.0 / steps)
     inv_gn = np.float32(1.0 / (steps * n_groups))
@@ -310,6 +317,9 @@ def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh
                 tested = top[u] < top_code
                 q[u] = q[u] * inv_n / var if tested else np.float32(0.0)
                 top[u] = 1 if tested else 0
+            hot_row = hot[v]
+            for u in range(w):
+                hot_row[u] = q[u] > q_pixel
             out_q = qh[v]
             out_m = mh[v]
             s = np.float32(0.0)  # running window sums, restarted on every row
@@ -338,10 +348,11 @@ def _pixel_kernel(frames, n_groups, steps, read2, gain, top_code, radius, qh, mh
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _window_kernel(qh, mh, radius, thresholds, mask, row_any):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _window_kernel(qh, mh, hot, radius, thresholds,  # type: ignore[no-untyped-def]
+                   mask, row_any):  # pragma: no cover - compiled
     """mask[v, u] = the window sum of Q around (v, u) exceeds ``thresholds[m]`` for its m tested
-    pixels; row_any[v] = flagged pixels of row v (int32). Running column sums per chunk of rows
-    (restarted per chunk: float32 drift stays far below any threshold)."""
+    pixels, or ``hot[v, u]``; row_any[v] = flagged pixels of row v (int32). Running column sums
+    per chunk of rows (restarted per chunk: float32 drift stays far below any threshold)."""
     h, w = qh.shape
     n_chunks = (h + _ROWS - 1) // _ROWS
     full = thresholds.size - 1
@@ -365,7 +376,9 @@ def _window_kernel(qh, mh, radius, thresholds, mask, row_any):  # type: ignore[n
                     if cnt[u] < full:
                         row[u] = col[u] > thresholds[cnt[u]]
             hits = 0
+            hot_row = hot[v]
             for u in range(w):
+                row[u] |= hot_row[u]
                 hits += row[u]
             row_any[v] = hits
             add = v + radius + 1
@@ -381,7 +394,8 @@ def _window_kernel(qh, mh, radius, thresholds, mask, row_any):  # type: ignore[n
 
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _invalidate(depth, sigma, points, valid, reason, v, u, code):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _invalidate(depth, sigma, points, valid, reason, v, u,  # type: ignore[no-untyped-def]
+                code):  # pragma: no cover - compiled
     """Pixel (v, u) has no depth, for reason ``code``."""
     depth[v, u] = np.nan
     sigma[v, u] = np.nan
@@ -393,8 +407,9 @@ def _invalidate(depth, sigma, points, valid, reason, v, u, code):  # type: ignor
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _grow_kernel(mask, row_any, radius, tmp, out, apply, depth, points, valid, reason,  # type: ignore[no-untyped-def]
-                 sigma, motion_code, saturated_code, strict_sigma, uncertain_code):  # pragma: no cover - compiled
+def _grow_kernel(mask, row_any, radius, tmp, out, apply,  # type: ignore[no-untyped-def]
+                 depth, points, valid, reason, sigma, motion_code, saturated_code, strict_sigma,
+                 uncertain_code):  # pragma: no cover - compiled
     """out = mask dilated by a (2r+1)² square (separable; rows without a flagged pixel,
     ``row_any`` 0, are skipped); with ``apply`` invalidate ``out`` in place (MOTION), then every
     other valid pixel whose σ exceeds ``strict_sigma`` (UNCERTAIN; ∞: none).
@@ -482,17 +497,22 @@ def _raw_mask(frames: npt.NDArray[np.generic], n_groups: int, steps: int, noise:
     if not 1 <= limit <= top:
         raise ValueError(f"max_code: must be in 1..{top} for {frames.dtype} frames, got {max_code}")
     h, w = frames.shape[1:]
-    thr = window_thresholds(n_groups, _check_window(window_px), false_alarm_rate, h * w)
+    # a window and (for windows of more than one pixel) the pixel alone at every pixel
+    n_tests = h * w if window_px == 1 else 2 * h * w
+    thr = window_thresholds(n_groups, _check_window(window_px), false_alarm_rate, n_tests)
+    q_pixel = (np.float32(np.inf) if window_px == 1
+               else window_thresholds(n_groups, 1, false_alarm_rate, n_tests)[1])
     radius = window_px // 2
     qh = np.empty((h, w), np.float32)
     mh = np.empty((h, w), np.uint8)
+    hot = np.empty((h, w), np.bool_)
     mask = np.empty((h, w), np.bool_)
     row_any = np.empty(h, np.int32)
     with KERNEL_LOCK:  # numba's workqueue layer: one parallel launch at a time, process-wide
         _pixel_kernel(np.ascontiguousarray(frames), n_groups, steps,
                       np.float32(noise.read_noise_dn**2), np.float32(noise.gain_dn_per_e),
-                      np.int32(limit), radius, qh, mh)
-        _window_kernel(qh, mh, radius, thr, mask, row_any)
+                      np.int32(limit), radius, q_pixel, qh, mh, hot)
+        _window_kernel(qh, mh, hot, radius, thr, mask, row_any)
     return mask, row_any
 
 

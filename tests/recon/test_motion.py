@@ -41,7 +41,8 @@ def fringe_set(background: np.ndarray, schedule: PatternSchedule, *, modulation:
             img = background[fi] + modulation * (prof - 0.5) * 2.0
             if noise is not None:
                 # σ_I² = read² + gain·I; rounding adds the 1/12 DN² the read term already holds
-                var = np.maximum(noise.read_noise_dn**2 - 1.0 / 12.0 + noise.gain_dn_per_e * img, 0.0)
+                var = np.maximum(noise.read_noise_dn**2 - 1.0 / 12.0 + noise.gain_dn_per_e * img,
+                                 0.0)
                 img = img + rng.standard_normal(img.shape) * np.sqrt(var)
             out.append(img)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
@@ -264,7 +265,8 @@ def test_the_moving_scene_sigma_bound_applies_only_when_the_scene_moved(moving):
     out = empty_outputs(h, w)
     out["sigma"][:] = 0.5 * (still_bound + moving_bound)  # between the two bounds
     out["sigma"][:, w // 2:] = 0.5 * moving_bound  # well inside both
-    mp = invalidate_motion(frames, 4, noise=NOISE, **out, test=MotionTest(grow_px=0, gross_error_mm=0.5))
+    mp = invalidate_motion(frames, 4, noise=NOISE, **out,
+                           test=MotionTest(grow_px=0, gross_error_mm=0.5))
     assert mp.scene_moved == moving
     valid, reason, depth = out["valid"], out["reason"], out["depth"]
     left = np.zeros((h, w), bool)
@@ -320,7 +322,8 @@ def test_the_engine_runs_the_motion_test_with_the_noise_it_is_given():
     frames[4:8, 300:360, 500:600] = np.clip(frames[4:8, 300:360, 500:600].astype(int) + 40, 0, 255)
     engine = Reconstructor(ideal_calibration(world.rig, world.schedule), with_phase=True)
     plain = engine.run(frames)
-    assert plain.motion is None and plain.moved_pixels == 0 and plain.noise == SensorNoise.typical(255)
+    assert plain.motion is None and plain.moved_pixels == 0
+    assert plain.noise == SensorNoise.typical(255)
     camera = SensorNoise(gain_dn_per_e=255 / 16000, read_noise_dn=0.4)
     results = [engine.run(frames, noise=camera, motion=MotionTest(grow_px=1), fast=fast)
                for fast in (True, False)]
