@@ -128,6 +128,16 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
                         window_px=args.window_px)
     print(f"  {name}: still set at t = 0: {int(still.sum())} pixels flagged before growth (stated: a still "
           f"map has any with probability <= {args.false_alarm_rate:g})", flush=True)
+    # the pooled test's cost against the single-pixel test (window 1) on the same set, interleaved
+    cost: dict[int, list[float]] = {args.window_px: [], 1: []}
+    for _ in range(10):
+        for win in cost:
+            t_s = time.perf_counter()
+            motion_mask(warm, g, noise=SensorNoise.typical(255), window_px=win, grow_px=args.grow_px)
+            cost[win].append(1000.0 * (time.perf_counter() - t_s))
+    pooled, single = (min(cost[w]) for w in (args.window_px, 1))
+    print(f"  {name}: motion test (fastest of 10) {args.window_px} x {args.window_px} window {pooled:.2f} ms, "
+          f"single pixel {single:.2f} ms: ratio {pooled / single:.2f}", flush=True)
 
     for i in range(n_frames):
         t = args.t0 + i * period_s + args.exposure_ms / 2000.0  # mid-exposure, scene time
