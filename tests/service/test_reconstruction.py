@@ -78,3 +78,18 @@ def test_the_measured_noise_is_passed_to_the_engine_not_installed_in_it(still_se
     # σ follows the model it was given: σ ∝ √(read² + gain·A)
     both = res.valid & first.valid
     assert not np.allclose(res.sigma[both], first.sigma[both])
+
+
+def test_the_pipeline_hands_its_motion_settings_to_the_thread_as_one_test():
+    from app.core.schedule import SCHEDULES
+    from app.service.pipeline import LivePipeline, PipelineConfig
+
+    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False,
+                            motion_false_alarm_rate=1e-3, motion_grow_px=3, motion_window_px=7,
+                            gross_error_mm=0.4)
+    pipeline = LivePipeline(config, SCHEDULES["paper-16"], None)
+    assert pipeline.reconstruction.motion == MotionTest(false_alarm_rate=1e-3, window_px=7, grow_px=3,
+                                                        gross_error_mm=0.4)
+    with pytest.raises(ValueError, match="window_px"):
+        LivePipeline(PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False,
+                                    autostart=False, motion_window_px=4), SCHEDULES["paper-16"], None)
