@@ -66,14 +66,15 @@ class Settings(BaseSettings):
     led: Led = "green"
     bit_depth: BitDepth = 8
     rolling: bool = False
-    # per-pixel false-alarm rate of the motion test on a still scene (both modes): the
-    # threshold on the frequency groups' background difference is set from it and the noise
+    # false-alarm rate of the motion test over the image (both modes): a map of a still scene
+    # has any flagged pixel with at most this probability (app.recon.motion: the groups'
+    # background spread pooled over 5 x 5 pixels, a chi-square threshold per window)
     motion_false_alarm_rate: float = Field(1e-4, gt=0, lt=0.5)
     # moved regions grow by this many pixels before they are invalidated (their rims)
     motion_grow_px: int = Field(4, ge=0, le=16)
     # gross-error tolerance, mm (0: off): a valid pixel's noise exceeds it only at rate 1e-6, so
     # pixels with σ > E/4.89 are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
-    # (k: the motion test's threshold; app.service.motion.sigma_bounds, README "Rolling mode and motion")
+    # (k: the motion test's single-pixel bound; app.recon.motion.sigma_bounds, README "Rolling mode and motion")
     gross_error_mm: float = Field(0.5, ge=0, le=100)
     # the camera's noise (σ and the validity rule) is measured from a live set this often, s
     # (0: the nominal SensorNoise.typical; app.service.sensor_noise)

@@ -6,7 +6,7 @@ When several apply, the reported code follows the chain of causes, first match w
     > OUTSIDE_FIELD > UNCERTAIN
 
 MOTION (the scene moved while the set was taken: the background of the frequency groups
-disagrees beyond the sensor noise, see :mod:`app.service.motion`) is set by the live
+disagrees beyond the sensor noise, see :mod:`app.recon.motion`) is set by the live
 service after the engine; a pixel that moved has a meaningless phase, so it outranks every
 phase-derived code, but a clipped frame is the earlier cause.
 A clipped pixel has a meaningless phase and so usually also low modulation or a bad

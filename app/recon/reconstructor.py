@@ -10,7 +10,7 @@ import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -30,6 +30,7 @@ from app.recon.model import (
 )
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
+from app.recon.sensor import SensorNoise as SensorNoise  # re-exported: its historical home
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
     DEFAULT_FALSE_ALARM_RATE,
@@ -52,6 +53,9 @@ from app.recon.validity import (
     modulation_threshold,
 )
 
+if TYPE_CHECKING:  # imported at run time by run(): the motion test needs numba
+    from app.recon.motion import MotionTest
+
 log = logging.getLogger(__name__)
 
 F32 = npt.NDArray[np.float32]
@@ -62,33 +66,6 @@ try:
 except ImportError as exc:  # numba missing or broken: the numpy oracle still works
     log.warning("numba fast path unavailable (%s); using the numpy path", exc)
     _fast = None
-
-
-@dataclass(frozen=True)
-class SensorNoise:
-    """Temporal noise of the camera: ``σ_I² = read_noise_dn² + gain_dn_per_e·I`` (DN², I in DN).
-
-    ``read_noise_dn`` includes everything independent of the signal (read noise, dark
-    current, ADC quantisation 1/12 DN²). :meth:`typical` is a generic CMOS/CCD at the
-    ADC's full range: full well 16 000 e⁻, read noise 12 e⁻.
-    """
-
-    gain_dn_per_e: float
-    read_noise_dn: float
-
-    def __post_init__(self) -> None:
-        for name in ("gain_dn_per_e", "read_noise_dn"):
-            val = getattr(self, name)
-            if not (math.isfinite(val) and val >= 0.0):
-                raise ValueError(f"{name}: must be finite and >= 0, got {val}")
-
-    @classmethod
-    def typical(cls, max_code: int, *, full_well_e: float = 16000.0, read_noise_e: float = 12.0) -> SensorNoise:
-        g = max_code / full_well_e
-        return cls(g, math.sqrt((g * read_noise_e) ** 2 + 1.0 / 12.0))
-
-    def variance_dn2(self, mean_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        return self.read_noise_dn**2 + self.gain_dn_per_e * np.maximum(np.asarray(mean_dn, np.float64), 0.0)
 
 
 def phase_variance_factor(modulation_sq: npt.ArrayLike, steps: int) -> npt.NDArray[np.float64]:
@@ -138,6 +115,12 @@ class ReconResult:
             intensities through the modulation to the phase and through the model's ∂z/∂φ.
         recovered: pixels with clipped samples whose phase was fitted from the rest
             (see :mod:`app.recon.phase`).
+        motion: with a motion test (``run(..., motion=...)``), the grown (H, W) bool motion
+            mask (:mod:`app.recon.motion`; those pixels are invalid with reason MOTION unless
+            saturated), else None; ``moved_pixels`` its count, ``scene_moved`` whether any
+            window was flagged, ``uncertain_moving_pixels`` valid pixels made UNCERTAIN by the
+            moving-scene σ bound, ``motion_ms`` the test's wall time, ms.
+        noise: the camera noise model the set was reconstructed with.
     """
 
     depth: F32
@@ -150,6 +133,12 @@ class ReconResult:
     elapsed_ms: float
     sigma: F32 = field(default_factory=lambda: np.empty((0, 0), np.float32))
     recovered: int = 0
+    motion: npt.NDArray[np.bool_] | None = None
+    moved_pixels: int = 0
+    scene_moved: bool = False
+    uncertain_moving_pixels: int = 0
+    motion_ms: float = 0.0
+    noise: SensorNoise | None = None
 
 
 def _phase_numpy(
@@ -428,7 +417,8 @@ class Reconstructor:
     def _noise(self, max_code: int) -> SensorNoise:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
 
-    def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None) -> ReconResult:
+    def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None,
+            noise: SensorNoise | None = None, motion: MotionTest | None = None) -> ReconResult:
         """Reconstruct one fringe set.
 
         Args:
@@ -437,26 +427,53 @@ class Reconstructor:
             fast: override the constructor's choice of path for this call.
             max_code: override the constructor's sensor maximum code for this call
                 (a capture set's ``max_code``, from its ``bit_depth``).
+            noise: the camera's noise model for this set (σ, the validity rule, the order
+                and motion tests); None → the constructor's, else :meth:`SensorNoise.typical`.
+            motion: test the set for motion between its frequency groups
+                (:mod:`app.recon.motion`) and invalidate the moved pixels; None: no test.
 
         Returns:
             :class:`ReconResult`.
         """
+        if noise is not None and not isinstance(noise, SensorNoise):
+            raise ValueError("noise: expected a SensorNoise")
+        if motion is not None:
+            from app.recon import motion as motion_test
+
+            if not isinstance(motion, motion_test.MotionTest):
+                raise ValueError("motion: expected a MotionTest")
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
         max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
                                            self.min_modulation)
+        camera = noise if noise is not None else self._noise(max_code)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
-            return self._run_fast(frames, max_code, min_mod)
-        return self._run_numpy(frames, max_code, min_mod)
+            res = self._run_fast(frames, max_code, min_mod, camera)
+        else:
+            res = self._run_numpy(frames, max_code, min_mod, camera)
+        res.noise = camera
+        res.motion, res.moved_pixels, res.scene_moved = None, 0, False
+        res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
+        if motion is not None:
+            mp = motion_test.invalidate_motion(
+                frames, len(self.calibration.pattern.frequencies), noise=camera, depth=res.depth,
+                points=res.points, valid=res.valid, reason=res.reason, sigma=res.sigma,
+                test=motion, max_code=max_code)
+            res.motion, res.moved_pixels, res.scene_moved = mp.mask, mp.moved, mp.scene_moved
+            res.uncertain_moving_pixels, res.motion_ms = mp.uncertain, mp.elapsed_ms
+            if res.phase is not None and (mp.moved or mp.uncertain):
+                res.phase[~res.valid] = np.nan  # NaN where invalid, as every other output
+        return res
 
-    def _run_numpy(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
+    def _run_numpy(self, frames: npt.NDArray[Any], max_code: int, min_mod: float,
+                   camera: SensorNoise) -> ReconResult:
         t0 = time.perf_counter()
         cal = self.calibration
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
-            noise=self._noise(max_code), snr_min=None if self.min_modulation is not None else self._snr_min,
+            noise=camera, snr_min=None if self.min_modulation is not None else self._snr_min,
             false_alarm_rate=self.order_false_alarm_rate, max_motion_rad=self.order_max_motion_rad,
         )
         height, singular, slope = evaluate_height_slope(model, phi)
@@ -472,7 +489,7 @@ class Reconstructor:
         else:
             vfac = phase_variance_factor(m2[-1], steps)
         with np.errstate(invalid="ignore"):
-            sigma = np.abs(slope) * np.sqrt(self._noise(max_code).variance_dn2(wp.background) * vfac)
+            sigma = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
             uncertain = sigma > self._sigma_limit_mm if self._sigma_limit_mm is not None else None
         reason = assign_reasons(
             phi.shape,
@@ -501,24 +518,25 @@ class Reconstructor:
             recovered=int(np.count_nonzero(wp.recovered)) if wp.recovered is not None else 0,
         )
 
-    def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float) -> ReconResult:
+    def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float,
+                  camera: SensorNoise) -> ReconResult:
         assert _fast is not None
         _fast.warmup(frames.dtype)  # JIT (or cache load) outside the timed region
         t0 = time.perf_counter()
         out = self._outputs.take(frames.shape[1:], self.with_phase)
         with _fast.KERNEL_LOCK:
-            self._launch(frames, max_code, min_mod, out)
+            self._launch(frames, max_code, min_mod, out, camera)
         out.elapsed_ms = (time.perf_counter() - t0) * 1e3
         return out
 
-    def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult) -> None:
+    def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult,
+                noise: SensorNoise) -> None:
         assert _fast is not None
         cal = self.calibration
         tables, ray_q = self._fast_tables
         cos_d, sin_d, freqs, chain_c, chain_f, order_z2, order_front2 = self._fast_schedule
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
-        noise = self._noise(max_code)
         f32 = np.float32
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
                              chain_c, chain_f, cal.pattern.unwrap == "heterodyne",

@@ -18,11 +18,16 @@ from app.core.limits import LEDS
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
 from app.recon.exposure import AutoExposureResult, choose_exposure, set_statistics
+from app.recon.motion import (
+    DEFAULT_FALSE_ALARM_RATE,
+    DEFAULT_GROW_PX,
+    DEFAULT_WINDOW_PX,
+    MotionTest,
+)
 from app.recon.validity import DEFAULT_GROSS_ERROR_MM
 from app.service.acquisition import Acquisition
 from app.service.devices import DeviceBundle
 from app.service.framesets import FrameSet
-from app.service.motion import DEFAULT_FALSE_ALARM_RATE, DEFAULT_GROW_PX
 from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import LatestSlot, NewestQueue
 
@@ -36,8 +41,9 @@ class PipelineConfig:
     bit_depth: int
     rolling: bool
     autostart: bool
-    motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE
+    motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE  # over the image, per map
     motion_grow_px: int = DEFAULT_GROW_PX
+    motion_window_px: int = DEFAULT_WINDOW_PX
     gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM  # None: no σ bound while moving
     noise_estimate_interval_s: float = 30.0  # the camera's noise measured this often (0: nominal)
 
@@ -51,10 +57,12 @@ class LivePipeline:
         self.devices = devices
         self.queue: NewestQueue[FrameSet] = NewestQueue(maxsize=1)
         self.acquisition: Acquisition | None = None
+        motion = MotionTest(false_alarm_rate=config.motion_false_alarm_rate,
+                            window_px=config.motion_window_px, grow_px=config.motion_grow_px,
+                            gross_error_mm=config.gross_error_mm)
         self.reconstruction = Reconstruction(
-            self.queue, self._live_engine, n_frequencies=len(schedule.frequencies), bit_depth=config.bit_depth,
-            motion_false_alarm_rate=config.motion_false_alarm_rate, motion_grow_px=config.motion_grow_px,
-            gross_error_mm=config.gross_error_mm, noise_estimate_interval_s=config.noise_estimate_interval_s,
+            self.queue, self._live_engine, bit_depth=config.bit_depth, motion=motion,
+            noise_estimate_interval_s=config.noise_estimate_interval_s,
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None
@@ -111,7 +119,6 @@ class LivePipeline:
 
         def swap(new: PatternSchedule) -> None:
             self.schedule = new
-            self.reconstruction.n_frequencies = len(new.frequencies)
             # the newest map stays until the first of the new schedule (same calibration, still true
             # depth); none stays when no map can follow (the calibration does not apply)
             self._engine, self.engine_note = engine, (note if engine is None else None)

@@ -19,16 +19,9 @@ import numpy as np
 import numpy.typing as npt
 
 from app.recon import Reconstructor
-from app.recon.reconstructor import SensorNoise
-from app.recon.validity import DEFAULT_GROSS_ERROR_MM
+from app.recon.motion import MotionTest, map_time
+from app.recon.sensor import SensorNoise
 from app.service.framesets import FrameSet
-from app.service.motion import (
-    DEFAULT_FALSE_ALARM_RATE,
-    DEFAULT_GROW_PX,
-    invalidate_motion,
-    map_time,
-    newest_group,
-)
 from app.service.sensor_noise import LiveNoise
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
@@ -42,11 +35,12 @@ class LiveResult:
     valid (H, W) bool, reason (H, W) uint8, texture/modulation (H, W) f32 in sensor units.
     ``sigma`` (H, W) f32 1-σ depth noise, mm, NaN invalid (None when not computed).
     ``motion`` (H, W) bool: pixels whose frequency groups disagree beyond the sensor noise
-    (:mod:`app.service.motion`; invalid with reason MOTION unless saturated), in both modes.
+    (:mod:`app.recon.motion`; invalid with reason MOTION unless saturated), in both modes.
+    ``noise``: the camera noise model the engine used (the measured one once there is one).
     Times: ``received_s`` is when the newest frame arrived, ``published_s`` when the result
     was ready (``time.monotonic``); ``latency_ms`` their difference. ``map_time_s`` is the
     instant the depth stands for, on the frames' timestamp clock: the mid time of the finest
-    frequency's group (see :func:`app.service.motion.map_time`).
+    frequency's group (see :func:`app.recon.motion.map_time`).
     """
 
     depth: npt.NDArray[np.float32]
@@ -73,6 +67,7 @@ class LiveResult:
     motion_ms: float = 0.0
     scene_moved: bool = False
     uncertain_moving_pixels: int = 0
+    noise: SensorNoise | None = None
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -107,28 +102,31 @@ class LiveResult:
 
 
 class Reconstruction:
-    """The reconstruction thread. ``reconstructor()`` returns the engine to use now (or None)."""
+    """The reconstruction thread: takes the newest set from ``queue``, runs the engine that
+    ``reconstructor()`` returns now (None: none; the set is dropped) with the measured camera
+    noise and the motion test, and publishes the result in ``results``.
+
+    Args:
+        motion: the motion test run on every set (None: none).
+        noise_estimate_interval_s: how often the camera's noise is measured from a set
+            (:class:`~app.service.sensor_noise.LiveNoise`; 0: the engine's own model).
+    """
 
     def __init__(
         self,
         queue: NewestQueue[FrameSet],
         reconstructor: Callable[[], Reconstructor | None],
         *,
-        n_frequencies: int,
         bit_depth: int = 8,
-        motion_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
-        motion_grow_px: int = DEFAULT_GROW_PX,
-        gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
+        motion: MotionTest | None = None,
         noise_estimate_interval_s: float = 30.0,
     ) -> None:
+        if motion is not None and not isinstance(motion, MotionTest):
+            raise ValueError("motion: expected a MotionTest")
         self.queue = queue
         self.reconstructor = reconstructor
-        self.n_frequencies = n_frequencies
         self.bit_depth = bit_depth
-        self.motion_false_alarm_rate = float(motion_false_alarm_rate)
-        self.motion_grow_px = int(motion_grow_px)
-        # valid pixels' σ bound while the scene moves (app.service.motion.sigma_bounds); None: off
-        self.gross_error_mm = gross_error_mm
+        self.motion = motion
         self.noise = LiveNoise(noise_estimate_interval_s)  # the camera's, measured from the sets
         self.results: LatestSlot[LiveResult] = LatestSlot()
         self.depth_rate = RateMeter()
@@ -176,33 +174,22 @@ class Reconstruction:
                 self.noise.update(fs.stack(), schedule, int(result.full_scale), time.monotonic())
 
     def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
-        """Reconstruct one set and invalidate the pixels that moved during it (both modes)."""
+        """Reconstruct one set with the motion test (both modes) into a :class:`LiveResult`."""
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
-        measured = self.noise.current
-        if measured is not None and engine.noise is not measured:
-            engine.noise = measured  # read at every run: σ, the validity rule and the motion test use it
-        res = engine.run(frames)  # the engine serialises its parallel kernel itself
-        t1 = time.perf_counter()
-        # The engine's arrays are this result's own: the motion pass edits them in place.
-        noise = engine.noise if engine.noise is not None else SensorNoise.typical(int(full_scale))
-        newest = newest_group(fs.frame_indices, self.n_frequencies)
-        mp = invalidate_motion(
-            frames, self.n_frequencies, noise=noise, newest=newest, false_alarm_rate=self.motion_false_alarm_rate,
-            grow_px=self.motion_grow_px, gross_error_mm=self.gross_error_mm, max_code=int(full_scale),
-            depth=res.depth, points=res.points, valid=res.valid, reason=res.reason, sigma=res.sigma,
-        )
-        t2 = time.perf_counter()
-        recon_ms = 1000.0 * (t2 - t0)
+        res = engine.run(frames, noise=self.noise.current, motion=self.motion)
+        recon_ms = 1000.0 * (time.perf_counter() - t0)
         sched = engine.calibration.pattern
         return LiveResult(
             depth=res.depth, points=res.points, valid=res.valid, reason=res.reason,
-            texture=res.texture, modulation=res.modulation, motion=mp.mask, mode=fs.mode,
+            texture=res.texture, modulation=res.modulation, motion=res.motion, mode=fs.mode,
             frame_indices=fs.frame_indices, timestamps=fs.timestamps,
             exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
-            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms, sigma=res.sigma,
-            map_time_s=map_time(fs.timestamps, tuple(sched.frequencies), combined=engine.combine_frequencies),
-            moved_pixels=mp.moved, motion_ms=1000.0 * (t2 - t1), scene_moved=mp.scene_moved,
-            uncertain_moving_pixels=mp.uncertain,
+            received_s=fs.received_s, published_s=time.monotonic(), recon_ms=recon_ms,
+            sigma=res.sigma,
+            map_time_s=map_time(fs.timestamps, tuple(sched.frequencies),
+                                combined=engine.combine_frequencies),
+            moved_pixels=res.moved_pixels, motion_ms=res.motion_ms, scene_moved=res.scene_moved,
+            uncertain_moving_pixels=res.uncertain_moving_pixels, noise=res.noise,
         )

@@ -5,7 +5,10 @@ noise, σ_I² = read² + gain·I. :meth:`SensorNoise.typical` is a guess (a gene
 ADC's range); on the real CFPE captures it was 1.3–1.7× optimistic, which turns the rule's
 1e-6 order-error bound into ~1e-3. So the live service measures it: every
 ``interval_s`` it fits the N-step residual of the newest set
-(:func:`app.recon.noise.estimate_sensor_noise`, N > 3) and installs the result in the engine.
+(:func:`app.recon.noise.estimate_sensor_noise`, N > 3); the reconstruction thread
+passes the model in use to the engine with every set (``Reconstructor.run(frames,
+noise=...)``: σ, the validity rule, the order and motion tests), the engine itself is
+never changed.
 
 Read noise and gain belong to the sensor, not to the scene. Motion between a group's frames and
 projector harmonics only ADD to the residual, so the quietest estimate seen so far (compared at
@@ -22,7 +25,7 @@ import threading
 
 from app.core.schedule import PatternSchedule
 from app.recon.noise import estimate_sensor_noise
-from app.recon.reconstructor import SensorNoise
+from app.recon.sensor import SensorNoise
 
 log = logging.getLogger(__name__)
 
