@@ -7,7 +7,6 @@ are the same bytes for the same calibration and options.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import PurePath
@@ -120,13 +119,11 @@ def reconstruct_captures(
             break
         except ValueError:
             continue  # N = 3 or too few usable pixels
-    if base is None:
-        rec = new_reconstructor(calibration, options, noise)
-    else:  # the tables are the calibration's alone; the noise is this set's
-        rec = copy.copy(base)
-        rec.noise = noise
+    # the tables are the calibration's alone; the noise is this set's, passed with the call
+    rec = new_reconstructor(calibration, options, noise) if base is None else base
     # each set at its own bit_depth unless told
-    members = [rec.run(c.frames, max_code=options.max_code or c.max_code) for c in captures]
+    members = [rec.run(c.frames, max_code=options.max_code or c.max_code, noise=noise)
+               for c in captures]
     exposures = tuple(c.exposure_ms for c in captures)
     if len(members) == 1:
         return SetReconstruction(members[0], None, exposures, rec.fast)

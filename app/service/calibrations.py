@@ -143,9 +143,8 @@ class CalibrationManager:
         noise = self.pipeline.reconstruction.noise.current
         fractions = []
         for engine in (candidate, self._engine(active, self.schedule)):
-            if noise is not None:
-                engine.noise = noise  # as the live reconstruction runs it
-            fractions.append(float(engine.run(frames).valid.mean()))
+            # the live reconstruction's noise model, passed with the call (the engine is shared)
+            fractions.append(float(engine.run(frames, noise=noise).valid.mean()))
         reason = dry_run_problem(fractions[0], fractions[1], self.name)
         if reason is not None:
             log.warning("calibration refused: %s", reason)
