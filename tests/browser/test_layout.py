@@ -66,7 +66,9 @@ def browser(server: str) -> Iterator[Any]:
 
 
 def open_page(browser: Any, server: str, width: int) -> Any:
-    pg = browser.new_page(viewport={"width": width, "height": 1000})
+    # Playwright polls wait_for_function with eval, which the dashboard's CSP blocks;
+    # tests/browser/test_csp.py keeps the CSP on
+    pg = browser.new_page(viewport={"width": width, "height": 1000}, bypass_csp=True)
     pg.goto(server + "/", wait_until="load")
     # live: a depth image drawn (the canvas takes the sensor's aspect) and the status polled
     pg.wait_for_function("window.fringescope.framesShown >= 1 && window.fringescope.status", timeout=120_000)

@@ -52,7 +52,9 @@ def page(server: str) -> Iterator[tuple[Any, list[str]]]:
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         try:
-            pg = browser.new_page(viewport={"width": 1600, "height": 1000})
+            # Playwright polls wait_for_function with eval, which the dashboard's CSP blocks;
+            # tests/browser/test_csp.py keeps the CSP on
+            pg = browser.new_page(viewport={"width": 1600, "height": 1000}, bypass_csp=True)
             pg.on("console", lambda msg: errors.append(f"console: {msg.text} @ {msg.location}")
               if msg.type == "error" else None)
             pg.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
