@@ -14,7 +14,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from app.core.limits import EXPOSURE_RANGE_MS, BitDepth, Led
+from app.core.limits import DEFAULT_LED, EXPOSURE_RANGE_MS, BitDepth, Led
 from app.core.schedule import DEFAULT_SCHEDULE, schedule_by_name
 
 
@@ -63,7 +63,7 @@ class Settings(BaseSettings):
 
     # acquisition
     exposure_ms: float = Field(30.0, ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1])
-    led: Led = "green"
+    led: Led = DEFAULT_LED
     bit_depth: BitDepth = 8
     rolling: bool = False
     # false-alarm rate of the motion test over the image (both modes): a map of a still scene

@@ -32,7 +32,8 @@ log = logging.getLogger("fringescope.main")
 STATIC_DIR = Path(app_package.__file__).resolve().parent.parent / "static"
 
 
-def _make_viewer(settings: Settings, instrument: Instrument) -> tuple[Any, Any]:
+def _make_viewer(settings: Settings, instrument: Instrument,
+                 recorder: Recorder) -> tuple[Any, Any]:
     """(viewer, router) or (None, None) when disabled or the viewer package is absent."""
     if not settings.viewer:
         return None, None
@@ -42,7 +43,8 @@ def _make_viewer(settings: Settings, instrument: Instrument) -> tuple[Any, Any]:
     except ImportError as exc:
         log.warning("3-D viewer unavailable: %s", exc)
         return None, None
-    viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points)
+    viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points,
+                    measure_source=lambda: recorder.measurements)
     return viewer, viewer_router(viewer)
 
 
@@ -64,7 +66,8 @@ def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
             return None
 
     return IgtlServer(instrument.results, host=settings.igtl_host, port=settings.igtl_port,
-                      max_points=settings.igtl_max_points, status=instrument.status, placement=placement)
+                      max_points=settings.igtl_max_points, status=lambda: instrument.status().to_dict(),
+                      placement=placement)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -72,14 +75,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     # (1) the Instrument — built now (cheap), started in the lifespan.
     instrument = Instrument(settings)
-    recorder = Recorder(instrument, min_free_mb=settings.recording_min_free_mb)  # issue 7
-    instrument.recorder = recorder  # issue 7: status shows `recording`
-    viewer, viewer_routes = _make_viewer(settings, instrument)
-    if viewer is not None:  # issue 17: the dashboard's measurements in the 3-D view too
-        viewer.measure_source = lambda: recorder.measurements
-    igtl = _make_igtl(settings, instrument)  # issue 16
-    if igtl is not None:
-        recorder.pose_source = igtl.latest_transforms
+    igtl = _make_igtl(settings, instrument)
+    recorder = Recorder(instrument, min_free_mb=settings.recording_min_free_mb,
+                        pose_source=None if igtl is None else igtl.latest_transforms)
+    # the one link made after construction: the status shows the recording, the recorder
+    # records the tracker's poses and the tracker sends the status (a circle of three)
+    instrument.recorder = recorder
+    # the dashboard's measurements in the 3-D view too
+    viewer, viewer_routes = _make_viewer(settings, instrument, recorder)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -95,7 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 viewer.start()
             except Exception as exc:  # the 3-D view is optional; the instrument is not
                 log.warning("3-D viewer failed to start: %s", exc)
-                instrument.warnings.append(f"3-D viewer failed to start: {exc}")
+                instrument.calibrations.warnings.append(f"3-D viewer failed to start: {exc}")
         try:
             yield
         finally:

@@ -57,7 +57,7 @@ def main() -> int:
                 break
             time.sleep(0.5)
         else:
-            raise SystemExit(f"no live depth after 900 s: {inst.status()['last_error']}")
+            raise SystemExit(f"no live depth after 900 s: {inst.status().to_dict()['last_error']}")
         acq = inst.acquisition
         assert acq is not None
         _, raw = acq.sets.latest()

@@ -1,4 +1,4 @@
-"""REST and stream routes (thin: every route calls the Instrument)."""
+"""REST and stream routes (thin: every route calls one part of the instrument, see deps)."""
 
 from __future__ import annotations
 

@@ -6,11 +6,11 @@ import json
 import math
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
-from app.api.deps import binary, get_instrument
+from app.api.deps import CalibrationsDep, InstrumentDep, SettingsDep, binary
 from app.api.errors import COMMON, R400, R404, R409, R413, R422, Responses
 from app.api.schemas import (
     CALIBRATION_UPLOAD,
@@ -25,7 +25,6 @@ from app.api.schemas import (
 from app.api.upload import read_body
 from app.core.calibration import Calibration
 from app.core.errors import InvalidRequest, NotFound
-from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
 
@@ -51,24 +50,24 @@ def _num(x: Any) -> float | None:
 
 
 @router.get("", response_model=CalibrationSummary, responses={**R404, **COMMON})
-def active(inst: Instrument = Depends(get_instrument)) -> Any:
+def active(calibrations: CalibrationsDep) -> Any:
     """The active calibration (404 if there is none)."""
-    summary = inst.calibration_summary()
+    summary = calibrations.summary()
     if summary is None:
         raise NotFound("no calibration is active")
-    return summary
+    return summary.to_dict()
 
 
 @router.post("/session", response_model=SessionOut, responses={**SESSION_LINKS, **R400, **R422, **COMMON})
-def new_session(board: BoardIn, inst: Instrument = Depends(get_instrument)) -> Any:
+def new_session(board: BoardIn, calibrations: CalibrationsDep) -> Any:
     """Start a session with a board spec (``board.json`` format); replaces any previous one."""
-    return inst.start_session(board.model_dump()).describe()
+    return calibrations.start_session(board.model_dump()).describe()
 
 
 @router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
-def get_session(inst: Instrument = Depends(get_instrument)) -> Any:
+def get_session(calibrations: CalibrationsDep) -> Any:
     """The open session: its board, poses and whether it is solved (409 if none is open)."""
-    return inst.require_session().describe()
+    return calibrations.require_session().describe()
 
 
 class PoseSuggestionOut(BaseModel):
@@ -83,7 +82,7 @@ class PoseSuggestionOut(BaseModel):
 
 @router.post("/session/suggested-pose", response_model=PoseSuggestionOut,
              operation_id="suggest_pose", responses={**R409, **COMMON})
-def suggest_pose(inst: Instrument = Depends(get_instrument)) -> Any:
+def suggest_pose(inst: InstrumentDep) -> Any:
     """Where to hold the board next; on the simulator its board is moved there (a few seconds)."""
     return inst.suggest_pose()
 
@@ -95,7 +94,7 @@ class SessionCancelOut(BaseModel):
 
 @router.delete("/session", response_model=SessionCancelOut, operation_id="cancel_session",
                responses=COMMON)
-def cancel_session(inst: Instrument = Depends(get_instrument)) -> SessionCancelOut:
+def cancel_session(inst: InstrumentDep) -> SessionCancelOut:
     """Close the session without a calibration (its poses are dropped); none open: nothing to do."""
     session = inst.cancel_session()
     poses = 0 if session is None else len(session.poses)
@@ -103,39 +102,39 @@ def cancel_session(inst: Instrument = Depends(get_instrument)) -> SessionCancelO
 
 
 @router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})
-def capture_pose(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
+def capture_pose(calibrations: CalibrationsDep) -> dict[str, Any]:
     """Capture the current view as a pose: {index, found, corners, preview_url, corner_points}."""
-    return inst.capture_pose()
+    return calibrations.capture_pose(15.0)
 
 
 @router.get("/session/poses", response_model=list[PoseOut], operation_id="list_poses", responses={**R409, **COMMON})
-def list_poses(inst: Instrument = Depends(get_instrument)) -> Any:
-    return inst.require_session().summaries()
+def list_poses(calibrations: CalibrationsDep) -> Any:
+    return calibrations.require_session().summaries()
 
 
 @router.get("/session/poses/{index}/preview.png", operation_id="pose_preview",
             responses={200: {"content": {"image/png": {}}}, **R404, **R409, **R422, **COMMON})
-def pose_preview(index: int, inst: Instrument = Depends(get_instrument)) -> Response:
+def pose_preview(index: int, calibrations: CalibrationsDep) -> Response:
     """The pose's texture with the detected board points drawn."""
-    return binary(inst.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
+    return binary(calibrations.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
 
 
 @router.delete("/session/poses/{index}", response_model=list[PoseOut], operation_id="delete_pose",
                responses={**R404, **R409, **R422, **COMMON})
-def delete_pose(index: int, inst: Instrument = Depends(get_instrument)) -> Any:
+def delete_pose(index: int, calibrations: CalibrationsDep) -> Any:
     """Remove a pose; later poses move down one index."""
-    session = inst.require_session()
+    session = calibrations.require_session()
     session.delete(index)
     return session.summaries()
 
 
 @router.post("/session/solve", response_model=SolveOut, responses={**R409, **R400, **R422, **COMMON})
 def solve(
+    calibrations: CalibrationsDep,
     body: SolveIn = Body(default_factory=SolveIn),
-    inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Fit the calibration from the detected poses: per-pose table and totals."""
-    report = inst.solve_session(robust=body.robust)
+    report = calibrations.solve_session(robust=body.robust)
     return {
         "poses": [
             {"pose": p.pose, "name": p.name, "corners": p.corners, "reprojection_px": _num(p.reprojection_px),
@@ -154,8 +153,8 @@ def solve(
 
 @router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R400, **R422, **COMMON})
 def activate(
+    inst: InstrumentDep,
     body: ActivateIn = Body(default_factory=ActivateIn),
-    inst: Instrument = Depends(get_instrument),
     force: Force = False,
 ) -> Any:
     """Check the solved calibration (physical checks, then a dry run on the newest frames unless
@@ -164,13 +163,13 @@ def activate(
 
 
 @router.get("/file", responses={200: {"content": {"application/json": {}}}, **R404, **COMMON})
-def download(inst: Instrument = Depends(get_instrument)) -> Response:
+def download(calibrations: CalibrationsDep) -> Response:
     """The active calibration file (``fringescope.calibration/1`` JSON)."""
-    cal = inst.calibration
+    cal = calibrations.calibration
     if cal is None:
         raise NotFound("no calibration is active")
     data = (json.dumps(cal.to_dict(), indent=2) + "\n").encode()
-    name = inst.calibration_name or "calibration"
+    name = calibrations.name or "calibration"
     return binary(data, "application/json", None, f"{name}.json")
 
 
@@ -180,7 +179,7 @@ def download(inst: Instrument = Depends(get_instrument)) -> Response:
     responses={**R413, **R422, **COMMON},
     openapi_extra=CALIBRATION_UPLOAD,
 )
-async def upload(request: Request, inst: Instrument = Depends(get_instrument),
+async def upload(request: Request, calibrations: CalibrationsDep, settings: SettingsDep,
                  force: Force = False) -> Any:
     """Upload a calibration file (JSON body, ``Content-Type: application/json``).
 
@@ -192,7 +191,7 @@ async def upload(request: Request, inst: Instrument = Depends(get_instrument),
     media = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media not in JSON_TYPES and not media.endswith("+json"):
         raise InvalidRequest(f"calibration: Content-Type must be application/json, got {media or 'none'!r}")
-    body = await read_body(request, int(inst.settings.max_upload_mb * 1024 * 1024))
+    body = await read_body(request, int(settings.max_upload_mb * 1024 * 1024))
     try:
         data = json.loads(body)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -201,7 +200,8 @@ async def upload(request: Request, inst: Instrument = Depends(get_instrument),
         raise InvalidRequest("calibration: expected a JSON object")
     try:  # the file is the user's input: whatever does not fit it is their error
         cal = Calibration.from_dict(data)
-        await run_in_threadpool(inst.set_calibration, cal, name="uploaded", persist=True, force=force)
+        await run_in_threadpool(calibrations.activate, cal, name="uploaded", persist=True, force=force)
     except (ValueError, KeyError, TypeError) as exc:
         raise InvalidRequest(f"calibration: {exc}") from None
-    return inst.calibration_summary()
+    summary = calibrations.summary()
+    return None if summary is None else summary.to_dict()

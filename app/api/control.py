@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends
+from fastapi import APIRouter, Body
 
-from app.api.deps import get_instrument
+from app.api.deps import InstrumentDep, PipelineDep
 from app.api.errors import COMMON, R400, R409, R422
 from app.api.schemas import (
     AcquisitionOut,
@@ -21,53 +21,52 @@ from app.api.schemas import (
     ModeOut,
     StatusOut,
 )
-from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api", tags=["control"])
 
 
 @router.get("/status", response_model=StatusOut, responses=COMMON)
-def status(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
+def status(inst: InstrumentDep) -> dict[str, Any]:
     """State, rates, latency, settings, calibration, devices and counters."""
-    return inst.status()
+    return inst.status().to_dict()
 
 
 @router.put("/exposure", response_model=ExposureOut, responses={**R400, **R422, **COMMON})
-def put_exposure(body: ExposureIn, inst: Instrument = Depends(get_instrument)) -> ExposureOut:
+def put_exposure(body: ExposureIn, inst: InstrumentDep) -> ExposureOut:
     """Camera exposure (1–100 ms), applied from the next whole fringe set."""
     return ExposureOut(exposure_ms=inst.set_exposure(body.exposure_ms))
 
 
 @router.post("/exposure/auto", response_model=AutoExposureOut, responses={**R409, **R400, **R422, **COMMON})
 def auto_exposure(
+    pipeline: PipelineDep,
     body: AutoExposureIn = Body(default_factory=AutoExposureIn),
-    inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Longest exposure whose sets keep saturation under the limit (grabs a few real sets)."""
-    res = inst.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
+    res = pipeline.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
     return asdict(res)
 
 
 @router.put("/led", response_model=LedOut, responses={**R400, **R422, **COMMON})
-def put_led(body: LedIn, inst: Instrument = Depends(get_instrument)) -> LedOut:
+def put_led(body: LedIn, inst: InstrumentDep) -> LedOut:
     """Projector LED, applied from the next whole fringe set."""
     return LedOut(led=inst.set_led(body.led))
 
 
 @router.put("/mode", response_model=ModeOut, responses={**R400, **R422, **COMMON})
-def put_mode(body: ModeIn, inst: Instrument = Depends(get_instrument)) -> ModeOut:
+def put_mode(body: ModeIn, inst: InstrumentDep) -> ModeOut:
     """Rolling mode: a depth map after every frame from the last 16 (motion-masked)."""
     inst.set_rolling(body.rolling)
     return ModeOut(mode="rolling" if body.rolling else "set")
 
 
 @router.post("/acquisition/start", response_model=AcquisitionOut, responses=COMMON)
-def start(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
-    inst.set_acquiring(True)
+def start(inst: InstrumentDep) -> AcquisitionOut:
+    inst.pipeline.set_acquiring(True)
     return AcquisitionOut(acquiring=True, state=inst.state())
 
 
 @router.post("/acquisition/stop", response_model=AcquisitionOut, responses=COMMON)
-def stop(inst: Instrument = Depends(get_instrument)) -> AcquisitionOut:
-    inst.set_acquiring(False)
+def stop(inst: InstrumentDep) -> AcquisitionOut:
+    inst.pipeline.set_acquiring(False)
     return AcquisitionOut(acquiring=False, state=inst.state())

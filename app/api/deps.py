@@ -1,14 +1,22 @@
-"""Shared route helpers: the Instrument (and Recorder) from the app, binary responses."""
+"""Shared route helpers: the app's parts as ``Annotated`` dependencies, binary responses.
+
+Routers name the part they use (``PipelineDep``, ``CalibrationsDep``, ``RecorderDep``) and
+call it directly; ``InstrumentDep`` is for what cuts across parts (schedule and control
+changes, the status record, the calibration wizard's twin scene).
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import Request
+from fastapi import Depends, Request
 from fastapi.responses import Response
 
+from app.config import Settings
 from app.core.errors import DeviceUnavailable
+from app.service.calibrations import CalibrationManager
 from app.service.instrument import Instrument
+from app.service.pipeline import LivePipeline
 from app.service.recorder import Recorder
 
 
@@ -24,6 +32,28 @@ def get_recorder(request: Request) -> Recorder:
     if rec is None:
         raise DeviceUnavailable("recorder not available")
     return rec  # type: ignore[no-any-return]
+
+
+def get_pipeline(request: Request) -> LivePipeline:
+    """The live pipeline (devices, acquisition, reconstruction, the latest result)."""
+    return get_instrument(request).pipeline
+
+
+def get_calibrations(request: Request) -> CalibrationManager:
+    """The calibration manager (the active calibration, uploads, the wizard's session)."""
+    return get_instrument(request).calibrations
+
+
+def get_settings(request: Request) -> Settings:
+    """The settings the instrument was built from."""
+    return get_instrument(request).settings
+
+
+InstrumentDep = Annotated[Instrument, Depends(get_instrument)]
+PipelineDep = Annotated[LivePipeline, Depends(get_pipeline)]
+CalibrationsDep = Annotated[CalibrationManager, Depends(get_calibrations)]
+RecorderDep = Annotated[Recorder, Depends(get_recorder)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 def binary(data: bytes, media_type: str, headers: dict[str, Any] | None = None,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
-from app.api.deps import get_instrument, get_recorder
+from app.api.deps import InstrumentDep, RecorderDep
 from app.api.errors import COMMON, R400, R404, R409, R422
 from app.api.schemas import MeasureIn, MeasureOut, MeasureToolIn, MeasureToolOut
 from app.service.instrument import Instrument
@@ -19,9 +19,9 @@ router = APIRouter(prefix="/api", tags=["measure"])
 
 def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str, Any]:
     spec = body.model_dump(exclude={"recording", "index"})
-    normal, cal_sigma, cal_length = calibration_terms(inst.calibration)
+    normal, cal_sigma, cal_length = calibration_terms(inst.calibrations.calibration)
     if body.recording is not None and body.index is not None:
-        res: Any = inst.reconstruct_capture(recorder.set_capture(body.recording, body.index))
+        res: Any = inst.calibrations.reconstruct(recorder.set_capture(body.recording, body.index))
         source: dict[str, Any] = {"recording": body.recording, "index": body.index}
     else:
         res = inst.latest_result()
@@ -32,8 +32,7 @@ def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str,
 
 
 @router.post("/measure", response_model=MeasureOut, responses={**R400, **R404, **R409, **R422, **COMMON})
-async def measure(body: MeasureIn, inst: Instrument = Depends(get_instrument),
-                  recorder: Recorder = Depends(get_recorder)) -> Any:
+async def measure(body: MeasureIn, inst: InstrumentDep, recorder: RecorderDep) -> Any:
     """Measure in 3-D between clicked pixels, with the 1-σ uncertainty from the per-pixel σ.
 
     On the latest live result, or on set ``index`` of ``recording`` (reconstructed with the
@@ -43,13 +42,13 @@ async def measure(body: MeasureIn, inst: Instrument = Depends(get_instrument),
 
 
 @router.get("/measure/tool", response_model=MeasureToolOut, responses=COMMON)
-def tool_get(recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]:
+def tool_get(recorder: RecorderDep) -> dict[str, Any]:
     """The measurements kept on screen (copied into every recorded set's metadata)."""
     return {"measurements": recorder.measurements}
 
 
 @router.put("/measure/tool", response_model=MeasureToolOut, responses={**R400, **R422, **COMMON})
-def tool_put(body: MeasureToolIn, recorder: Recorder = Depends(get_recorder)) -> dict[str, Any]:
+def tool_put(body: MeasureToolIn, recorder: RecorderDep) -> dict[str, Any]:
     """Replace the measurements kept on screen; while recording, each recorded set's
     ``session.json`` entry and ``capture.json`` carry them, measured on that set's depth map."""
     recorder.measurements = [m.model_dump() for m in body.measurements]

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from app.api.deps import get_instrument
+from app.api.deps import InstrumentDep
 from app.api.errors import COMMON, R400, R409, R422
 from app.api.schemas import Strict
 from app.core.schedule import SCHEDULES
-from app.service.instrument import Instrument
 
 router = APIRouter(prefix="/api", tags=["control"])
 
@@ -46,13 +45,13 @@ class ScheduleSet(BaseModel):
 
 
 @router.get("/schedules", response_model=list[ScheduleOut], responses=COMMON)
-def get_schedules(inst: Instrument = Depends(get_instrument)) -> list[dict[str, Any]]:
+def get_schedules(inst: InstrumentDep) -> list[dict[str, Any]]:
     """Every registered schedule with its predicted depth σ and order-error rate at the rig's noise."""
     return inst.schedules()
 
 
 @router.put("/schedule", response_model=ScheduleSet, responses={**R400, **R409, **R422, **COMMON})
-def put_schedule(body: ScheduleIn, inst: Instrument = Depends(get_instrument)) -> ScheduleSet:
+def put_schedule(body: ScheduleIn, inst: InstrumentDep) -> ScheduleSet:
     """Run another registered schedule (409 while recording or calibrating); the projector and the
     controller load its patterns between two sets."""
     name = inst.set_schedule(body.name)

@@ -15,6 +15,7 @@ import numpy as np
 
 from app.capture import CaptureSet
 from app.core.calibration import Calibration
+from app.core.limits import DEFAULT_DEPTH_RANGE_MM
 from app.recon import ReconResult, Reconstructor, SensorNoise
 from app.recon.fusion import FusedExposures
 
@@ -36,7 +37,7 @@ class ReconOptions:
     max_code: int | None = None
     numpy: bool = False
     min_modulation: float | None = None
-    range_mm: tuple[float, float] = (0.0, 35.0)
+    range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM
 
     def to_dict(self) -> dict[str, object]:
         """JSON-able form (for the resumption hash and the output metadata)."""

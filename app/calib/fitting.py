@@ -33,6 +33,7 @@ from app.core.depth_model import (
 from app.core.depth_model_registry import MODEL_NAMES
 from app.core.eq5 import Eq5Model, choose_normalization, evaluate, fit_eq5, normalize
 from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
+from app.core.limits import full_scale
 from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
@@ -655,7 +656,7 @@ def capture_max_code(cs: CaptureSet) -> int | None:
         return None
     if isinstance(bits, bool) or not isinstance(bits, int) or not 8 <= bits <= 16:
         raise ValueError(f"bit_depth: must be an integer within 8–16, got {bits!r}")
-    return int(2**bits - 1)
+    return full_scale(bits)
 
 
 def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[np.float32]],

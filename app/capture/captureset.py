@@ -29,7 +29,14 @@ from app.atomic import atomic_directory
 from app.capture.imageheader import FrameLimits, check_frame_headers, read_image_header
 from app.core.encoding import png_bytes
 from app.core.jsonlimits import check_json_depth
-from app.core.limits import CAPTURE_BIT_DEPTHS, CHANNELS, check_led
+from app.core.limits import (
+    CAPTURE_BIT_DEPTHS,
+    CHANNELS,
+    DEFAULT_EXPOSURE_MS,
+    DEFAULT_LED,
+    check_led,
+    full_scale,
+)
 from app.core.schedule import PatternSchedule
 
 FORMAT = "fringescope.capture/1"
@@ -63,8 +70,8 @@ class CaptureSet:
 
     frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
     schedule: PatternSchedule = field(default_factory=PatternSchedule)
-    exposure_ms: float = 20.0
-    led: str = "green"
+    exposure_ms: float = DEFAULT_EXPOSURE_MS
+    led: str = DEFAULT_LED
     extra: dict[str, Any] = field(default_factory=dict)
     bit_depth: int | None = None
     channel: str | None = None
@@ -83,7 +90,7 @@ class CaptureSet:
     def max_code(self) -> int:
         """Saturation code: 2**bit_depth − 1, or the frames' full range (255 / 65535)."""
         if self.bit_depth is not None:
-            return 2**self.bit_depth - 1
+            return full_scale(self.bit_depth)
         return 255 if self.frames.dtype == np.uint8 else 65535
 
 
@@ -94,9 +101,9 @@ def check_bit_depth(frames: npt.NDArray[Any], bit_depth: Any) -> None:
     if bit_depth > 8 and frames.dtype == np.uint8:
         raise ValueError(f"bit_depth: {bit_depth} bits need 16-bit frames, the frames are 8-bit")
     top = int(frames.max())
-    if top > 2**bit_depth - 1:
+    if top > full_scale(bit_depth):
         raise ValueError(f"bit_depth: frames hold values up to {top}, above the {bit_depth}-bit maximum "
-                         f"{2**bit_depth - 1}")
+                         f"{full_scale(bit_depth)}")
 
 
 def to_channel(image: npt.NDArray[Any], channel: str) -> npt.NDArray[Any]:
@@ -273,7 +280,7 @@ def read_capture_set(
     bit_depth = meta.get("bit_depth")
     if bit_depth is not None and (isinstance(bit_depth, bool) or bit_depth not in CAPTURE_BIT_DEPTHS):
         raise ValueError(f"{meta_path}: bit_depth: must be one of {CAPTURE_BIT_DEPTHS}, got {bit_depth!r}")
-    led = meta.get("led", "green")
+    led = meta.get("led", DEFAULT_LED)
     names = meta["frames"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
@@ -314,7 +321,7 @@ def read_capture_set(
         return CaptureSet(
             frames=stack,
             schedule=schedule,
-            exposure_ms=float(meta.get("exposure_ms", 20.0)),
+            exposure_ms=float(meta.get("exposure_ms", DEFAULT_EXPOSURE_MS)),
             led=str(led),
             extra={k: v for k, v in meta.items() if k not in known},
             bit_depth=bit_depth,

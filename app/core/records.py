@@ -74,10 +74,10 @@ class Status:
     frames_dropped: int
     faults: int
     recording: str | None
-    bit_depth: int = 8  # the camera's significant bits
-    schedule: dict[str, Any] = field(default_factory=dict)  # the fringe pattern schedule in use
+    bit_depth: int | None = None  # the camera's significant bits (None: unknown)
+    schedule: dict[str, Any] | None = None  # the fringe pattern schedule in use
     warnings: tuple[str, ...] = field(default=())
-    sensor_noise: dict[str, Any] = field(default_factory=dict)  # the camera noise model in use
+    sensor_noise: dict[str, Any] | None = None  # the camera noise model in use
     state_reason: str | None = None  # why the state is not running (or the start-up phase)
     phase: str | None = None  # start-up: "calibrating: board pose k of n", "compiling kernels", …
     progress: float | None = None  # of the phase, 0..1 (None: unknown)

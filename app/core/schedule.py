@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
 ORIENTATIONS = ("vertical", "horizontal")
-UNWRAP_METHODS = ("hierarchical", "heterodyne")
+UnwrapMethod = Literal["hierarchical", "heterodyne"]
+UNWRAP_METHODS: tuple[UnwrapMethod, ...] = ("hierarchical", "heterodyne")
+#: the paper's temporal unwrapping (the first frequency's phase is absolute)
+DEFAULT_UNWRAP: UnwrapMethod = "hierarchical"
 
 
 @dataclass(frozen=True)
@@ -36,7 +39,7 @@ class PatternSchedule:
     width: int = 608
     height: int = 684
     orientation: str = "vertical"
-    unwrap: str = "hierarchical"
+    unwrap: str = DEFAULT_UNWRAP
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -91,7 +94,7 @@ class PatternSchedule:
             "width": self.width,
             "height": self.height,
             "orientation": self.orientation,
-            **({"unwrap": self.unwrap} if self.unwrap != "hierarchical" else {}),
+            **({"unwrap": self.unwrap} if self.unwrap != DEFAULT_UNWRAP else {}),
         }
 
     @classmethod
@@ -110,7 +113,7 @@ class PatternSchedule:
                 width=int(data.get("width", 608)),
                 height=int(data.get("height", 684)),
                 orientation=str(data.get("orientation", "vertical")),
-                unwrap=str(data.get("unwrap", "hierarchical")),
+                unwrap=str(data.get("unwrap", DEFAULT_UNWRAP)),
                 extra={k: v for k, v in data.items() if k not in known},
             )
         except (TypeError, ValueError) as exc:

@@ -19,7 +19,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app.core.limits import EXPOSURE_RANGE_MS, LEDS, check_exposure_ms, check_led
+from app.core.limits import (
+    DEFAULT_EXPOSURE_MS,
+    DEFAULT_LED,
+    EXPOSURE_RANGE_MS,
+    LEDS,
+    check_exposure_ms,
+    check_led,
+)
 from app.core.schedule import PatternSchedule
 from app.devices.errors import DeviceDisconnected, DeviceError, DeviceStateError
 
@@ -60,7 +67,7 @@ class Frame:
 
 @dataclass(frozen=True)
 class CameraSettings:
-    exposure_ms: float = 20.0
+    exposure_ms: float = DEFAULT_EXPOSURE_MS
     gain: float = 1.0
     bit_depth: int = 8
 
@@ -249,10 +256,10 @@ class Projector(Device):
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
         self.schedule: PatternSchedule | None = None
-        self.led = "green"
+        self.led: str = DEFAULT_LED
         self.led_current = 0.5
         self.trigger_mode = "internal"
-        self.exposure_ms = 20.0
+        self.exposure_ms = DEFAULT_EXPOSURE_MS
 
     def load_schedule(self, schedule: PatternSchedule, *, exposure_ms: float | None = None) -> None:
         """Upload the patterns of ``schedule`` (and the per-pattern exposure, ms)."""
@@ -337,7 +344,7 @@ class Controller(Device):
 
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
-        self.led = "green"
+        self.led: str = DEFAULT_LED
         self.current = 0.5
         self.armed = False
         self.frames_per_set = 16  # camera triggers per armed sequence: the schedule's frames

@@ -15,8 +15,9 @@ import numpy.typing as npt
 from app.core.encoding import npy_bytes as npy_bytes  # re-exported for the result routes
 from app.core.encoding import png_bytes
 from app.core.errors import InvalidRequest
+from app.core.limits import DEFAULT_DEPTH_RANGE_MM
 
-DEFAULT_RANGE_MM = (0.0, 35.0)
+DEFAULT_RANGE_MM = DEFAULT_DEPTH_RANGE_MM  # the outputs' name for it
 
 def reason_colors() -> dict[int, tuple[str, tuple[int, int, int]]]:
     """reason code → (name, RGB), every :class:`~app.core.reasons.Reason` (MOTION included)."""

@@ -15,14 +15,15 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 import viser
 
-from app.core.limits import EXPOSURE_RANGE_MS, LEDS
+from app.core.limits import DEFAULT_LED, EXPOSURE_RANGE_MS, LEDS
+from app.core.records import Status
 from app.outputs.cloud import (
     COLOR_MODES,
     PANEL_WIDTH_PX,
@@ -48,7 +49,7 @@ class ViewedInstrument(Protocol):
 
     @property
     def store(self) -> LatestSlot[LiveResult]: ...
-    def status(self) -> dict[str, Any]: ...
+    def status(self) -> Status | Mapping[str, Any]: ...
     def set_exposure(self, exposure_ms: float) -> float: ...
     def set_led(self, led: str) -> str: ...
 
@@ -59,8 +60,9 @@ class Viewer:
     Parameters
     ----------
     instrument
-        Has ``store`` (an :class:`app.service.store.LatestSlot` of results),
-        ``status() -> dict``, ``set_exposure(exposure_ms)`` and ``set_led(led)``.
+        Has ``store`` (an :class:`app.service.store.LatestSlot` of results), ``status()``
+        (a :class:`~app.core.records.Status` or its dict), ``set_exposure(exposure_ms)``
+        and ``set_led(led)``.
     host : str
         Bind address; loopback by default (the browser reaches it through the relay).
     port : int
@@ -74,6 +76,8 @@ class Viewer:
     only_when_watched : bool
         Skip the encoding work while no browser is connected; the newest result is sent
         as soon as one connects (viser replays the scene to later clients anyway).
+    measure_source : callable, optional
+        Returns the dashboard's measurements (kind + pixels) to draw on the cloud.
     """
 
     def __init__(
@@ -86,6 +90,7 @@ class Viewer:
         max_rate_hz: float = 15.0,
         range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
         only_when_watched: bool = True,
+        measure_source: Callable[[], list[dict[str, Any]]] | None = None,
     ) -> None:
         if max_points < 1:
             raise ValueError(f"max_points: must be >= 1, got {max_points}")
@@ -110,8 +115,8 @@ class Viewer:
         self._texture_image: Any = None
         self._camera_placed = False
         self._gui: dict[str, Any] = {}
-        # issue 17: the dashboard's measurements (kind + pixels) drawn on the cloud; set by the app
-        self.measure_source: Callable[[], list[dict[str, Any]]] | None = None
+        # the dashboard's measurements (kind + pixels) drawn on the cloud
+        self.measure_source = measure_source
         self._measure_nodes: list[Any] = []
         self.updates = 0  # results pushed to viser
         self.last_seq = 0
@@ -187,8 +192,8 @@ class Viewer:
                 "Exposure (ms)", min=EXPOSURE_RANGE_MS[0], max=EXPOSURE_RANGE_MS[1], step=1.0,
                 initial_value=float(np.clip(status.get("exposure_ms", 30.0), *EXPOSURE_RANGE_MS)),
             )
-            led0 = status.get("led", "green")
-            led = gui.add_dropdown("LED", LEDS, initial_value=led0 if led0 in LEDS else "green")
+            led0 = status.get("led", DEFAULT_LED)
+            led = gui.add_dropdown("LED", LEDS, initial_value=led0 if led0 in LEDS else DEFAULT_LED)
             info = gui.add_markdown("waiting for depth…")
         with gui.add_folder("Display"):
             color = gui.add_dropdown("Colour by", COLOR_MODES, initial_value=self._color_mode)
@@ -239,7 +244,8 @@ class Viewer:
 
     def _safe_status(self) -> dict[str, Any]:
         try:
-            return dict(self._instrument.status())
+            status = self._instrument.status()
+            return status.to_dict() if isinstance(status, Status) else dict(status)
         except Exception as exc:
             log.debug("viewer: status() failed: %s", exc)
             return {}

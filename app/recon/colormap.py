@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.encoding import png_bytes
+from app.core.limits import DEFAULT_DEPTH_RANGE_MM
 from app.core.reasons import Reason
 
 U8 = npt.NDArray[np.uint8]
@@ -39,7 +40,7 @@ def _check_range(range_mm: Any) -> tuple[float, float]:
     return lo, hi
 
 
-def depth_colormap(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 35.0)) -> U8:
+def depth_colormap(depth: npt.ArrayLike, range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM) -> U8:
     """Turbo-coloured depth.
 
     Args:
@@ -71,7 +72,7 @@ def _nice_step(span: float, max_ticks: int) -> float:
     return 10.0 * mag
 
 
-def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = (0.0, 35.0), *, unit: str = "mm") -> bytes:
+def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM, *, unit: str = "mm") -> bytes:
     """PNG of :func:`depth_colormap` with a vertical colour bar and tick labels in ``unit`` at the right."""
     img = depth_colormap(depth, range_mm)
     lo, hi = _check_range(range_mm)

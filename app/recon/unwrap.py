@@ -41,6 +41,8 @@ from statistics import NormalDist
 import numpy as np
 import numpy.typing as npt
 
+from app.core.schedule import DEFAULT_UNWRAP
+
 TWO_PI = 2.0 * math.pi
 DEFAULT_CONSISTENCY_RAD = 0.5 * math.pi
 #: per-pixel false-alarm rate of the heterodyne order test on a still scene (the motion test's default)
@@ -82,7 +84,7 @@ def _check_frequencies(frequencies: Sequence[float], n: int, *, first_one: bool 
     return freqs
 
 
-def unwrap_chain(frequencies: Sequence[float], method: str = "hierarchical") -> tuple[F64, F64]:
+def unwrap_chain(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP) -> tuple[F64, F64]:
     """The unwrapping steps of a schedule as combinations of its wrapped phases.
 
     Args:
@@ -123,7 +125,7 @@ def unwrap_chain(frequencies: Sequence[float], method: str = "hierarchical") -> 
 def unwrap_phases(
     wrapped: npt.ArrayLike,
     frequencies: Sequence[float],
-    method: str = "hierarchical",
+    method: str = DEFAULT_UNWRAP,
     *,
     consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
     phase_var: npt.ArrayLike | None = None,

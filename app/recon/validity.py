@@ -68,6 +68,7 @@ from statistics import NormalDist
 import numpy as np
 import numpy.typing as npt
 
+from app.core.schedule import DEFAULT_UNWRAP
 from app.recon.phase import MODULATION_FLOOR_DN
 from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, check_consistency_rad, unwrap_chain
 
@@ -100,7 +101,7 @@ def phasor_phase_density(theta: npt.ArrayLike, snr: float) -> F64:
             + x * np.exp(-0.5 * (snr * np.sin(t)) ** 2) * phi / math.sqrt(_TWO_PI))
 
 
-def step_gains(frequencies: Sequence[float], method: str = "hierarchical") -> F64:
+def step_gains(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP) -> F64:
     """The chain's error gains ``g_s`` (module docstring, step 2): (S − 1, K) float64, one row
     per rounding step (the first, absolute step rounds nothing)."""
     coefs, freqs = unwrap_chain(frequencies, method)
@@ -108,7 +109,7 @@ def step_gains(frequencies: Sequence[float], method: str = "hierarchical") -> F6
                       np.float64).reshape(-1, coefs.shape[1])
 
 
-def undetected_order_error_rate(frequencies: Sequence[float], method: str = "hierarchical", *,
+def undetected_order_error_rate(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP, *,
                                 consistency_rad: float = DEFAULT_CONSISTENCY_RAD, snr: float) -> float:
     """Σ over the unwrapping steps of P(order wrong and the consistency test passed), with every
     wrapped phase at phasor SNR ``snr`` (module docstring, steps 1–3)."""
@@ -149,7 +150,7 @@ def _min_snr(frequencies: tuple[float, ...], method: str, consistency_rad: float
     return hi
 
 
-def min_phasor_snr(frequencies: Sequence[float], method: str = "hierarchical", *,
+def min_phasor_snr(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP, *,
                    consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
                    rate: float = DEFAULT_ORDER_ERROR_RATE) -> float:
     """The least phasor SNR ``a_min`` = B·√(N/2)/σ_I at which the schedule's undetected

@@ -16,6 +16,7 @@ from app.config import Settings
 from app.core.board import BoardSpec
 from app.core.calibration import Calibration
 from app.core.errors import Conflict, InvalidRequest
+from app.core.limits import full_scale
 from app.core.records import CalibrationSummary
 from app.core.schedule import PatternSchedule, calibration_mismatch
 from app.recon import ReconResult, Reconstructor
@@ -165,7 +166,7 @@ class CalibrationManager:
         bits = self.settings.bit_depth
         # live scenes move: heterodyne orders are guarded against motion between the groups
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
-                             max_code=None if bits == 8 else 2**bits - 1, max_sigma_mm=self.settings.max_sigma_mm,
+                             max_code=None if bits == 8 else full_scale(bits), max_sigma_mm=self.settings.max_sigma_mm,
                              min_modulation=self.settings.min_modulation,
                              gross_error_mm=self.settings.gross_error_mm or None,
                              order_max_motion_rad=LIVE_MAX_MOTION_RAD)

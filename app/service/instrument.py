@@ -1,8 +1,10 @@
-"""The Instrument: a thin facade over the live pipeline and the calibration manager.
+"""The Instrument: what cuts across the live pipeline and the calibration manager.
 
-Everything the API does goes through here. The live pipeline (:mod:`app.service.pipeline`)
-owns the devices, the acquisition and reconstruction threads and the latest result; the
-calibration manager (:mod:`app.service.calibrations`) owns the active calibration, its
+The schedule-change rules (no change while recording or calibrating), the changes the
+valid-fraction watch must know of, the state and the status record live here; routers use
+the parts themselves for the rest (``app.api.deps``). The live pipeline
+(:mod:`app.service.pipeline`) owns the devices, the acquisition and reconstruction threads
+and the latest result; the calibration manager (:mod:`app.service.calibrations`) owns the active calibration, its
 store, its creation and the REST wizard's session. Threads stop on events and are joined
 in :meth:`Instrument.close`.
 """
@@ -18,19 +20,17 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from app.calib.fitting import CalibrationReport
 from app.capture.captureset import CaptureSet
 from app.config import Settings
 from app.core.calibration import Calibration
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
-from app.core.limits import EXPOSURE_RANGE_MS
+from app.core.limits import full_scale
 from app.core.records import State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
 from app.devices.sim.offline import auto_exposure_ms, simulate_calibration_folder
 from app.devices.sim.optics import rig_by_name
 from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
-from app.recon.exposure import DEFAULT_SATURATION_LIMIT, AutoExposureResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
@@ -42,7 +42,6 @@ from app.service.schedules import rig_pixels, schedule_table, sensor_noise_of
 
 if TYPE_CHECKING:
     from app.service.acquisition import Acquisition
-    from app.service.reconstruction import Reconstruction
     from app.service.store import LatestSlot
 
 __all__ = ["Instrument", "RecordingState"]
@@ -78,7 +77,8 @@ class Instrument:
                                 noise_estimate_interval_s=settings.noise_estimate_interval_s)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
-        self.recorder: RecordingState | None = None  # attached by create_app
+        # attached by create_app: the recorder needs the OpenIGTLink server, which needs this
+        self.recorder: RecordingState | None = None
         self._closed = False
         self._started = False
         self._schedule_lock = threading.Lock()
@@ -97,20 +97,8 @@ class Instrument:
         return self.pipeline.schedule
 
     @property
-    def schedule_name(self) -> str | None:
-        return schedule_name_of(self.schedule)
-
-    @property
-    def devices(self) -> DeviceBundle | None:
-        return self.pipeline.devices
-
-    @property
     def acquisition(self) -> Acquisition | None:
         return self.pipeline.acquisition
-
-    @property
-    def reconstruction(self) -> Reconstruction:
-        return self.pipeline.reconstruction
 
     @property
     def results(self) -> LatestSlot[LiveResult]:
@@ -122,22 +110,6 @@ class Instrument:
     def calibration(self) -> Calibration | None:
         return self.calibrations.calibration
 
-    @property
-    def calibration_name(self) -> str | None:
-        return self.calibrations.name
-
-    @property
-    def session(self) -> CalibrationSession | None:
-        return self.calibrations.session
-
-    @property
-    def warnings(self) -> list[str]:
-        return self.calibrations.warnings
-
-    @property
-    def calibrating(self) -> bool:
-        return self.calibrations.creating
-
     # -- lifecycle -----------------------------------------------------------------------
     def start(self) -> None:
         """Create the devices, start both threads, and load (or begin creating) a calibration."""
@@ -145,8 +117,8 @@ class Instrument:
             return
         self._started = True
         self.pipeline.start(self.pipeline.devices or create_devices(self.settings))
-        assert self.devices is not None
-        self.calibrations.load_initial(is_sim=self.devices.is_sim)
+        assert self.pipeline.devices is not None
+        self.calibrations.load_initial(is_sim=self.pipeline.devices.is_sim)
         self.pipeline.run()
 
     def close(self, timeout_s: float = 15.0) -> None:
@@ -157,8 +129,6 @@ class Instrument:
         self.pipeline.close(timeout_s)
         self.calibrations.join(timeout_s)
 
-    stop = close
-
     def threads(self) -> list[threading.Thread]:
         """The instrument's own threads (for shutdown checks)."""
         out = self.pipeline.threads()
@@ -167,25 +137,9 @@ class Instrument:
         return out
 
     # -- calibration -----------------------------------------------------------------------
-    def set_calibration(self, cal: Calibration, *, name: str, persist: bool = True,
-                        force: bool = False) -> None:
-        """Check ``cal``, then make it active for live and uploaded sets (saved as the active one
-        if ``persist``); ``force`` skips the dry run, never the physical checks."""
-        self.calibrations.activate(cal, name=name, persist=persist, force=force)
-
-    def calibration_summary(self) -> dict[str, Any] | None:
-        summary = self.calibrations.summary()
-        return None if summary is None else summary.to_dict()
-
     def reconstruct_capture(self, capture: CaptureSet) -> ReconResult:
         """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
         return self.calibrations.reconstruct(capture)
-
-    def start_session(self, board: dict[str, Any]) -> CalibrationSession:
-        return self.calibrations.start_session(board)
-
-    def require_session(self) -> CalibrationSession:
-        return self.calibrations.require_session()
 
     def cancel_session(self) -> CalibrationSession | None:
         """End the calibration session without a calibration (the one ended, or None)."""
@@ -201,8 +155,9 @@ class Instrument:
         board found. On the twin the board (the session's spec) moves there and the exposure
         is set for it; on hardware the answer is the hint alone.
         """
-        session = self.require_session()
-        world = self.devices.world if self.devices is not None else None
+        session = self.calibrations.require_session()
+        devices = self.pipeline.devices
+        world = devices.world if devices is not None else None
         rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
         poses = board_poses(rig, sim_calibration_poses(), seed=0)
         k = min(sum(1 for p in session.poses if p.found), len(poses) - 1)
@@ -227,17 +182,11 @@ class Instrument:
 
     def _restore_twin_scene(self) -> None:
         """After the session: the twin shows its configured scene again."""
-        world = self.devices.world if self.devices is not None else None
+        devices = self.pipeline.devices
+        world = devices.world if devices is not None else None
         if world is not None and self._twin_scene_moved:
             self._twin_scene_moved = False
             world.set_scene(self.settings.sim_scene)
-
-    def capture_pose(self, timeout_s: float = 15.0) -> dict[str, Any]:
-        """Grab the next whole set of the current view and add it to the session."""
-        return self.calibrations.capture_pose(timeout_s)
-
-    def solve_session(self, *, robust: bool = False) -> CalibrationReport:
-        return self.calibrations.solve_session(robust=robust)
 
     def activate_session(self, name: str, *, force: bool = False) -> dict[str, Any]:
         summary = self.calibrations.activate_session(name, force=force).to_dict()
@@ -262,14 +211,6 @@ class Instrument:
         self.calibrations.observe_live()
         self.calibrations.watch.changed(what)
 
-    def set_acquiring(self, on: bool) -> None:
-        self.pipeline.set_acquiring(on)
-
-    def auto_exposure(self, *, saturation_limit: float = DEFAULT_SATURATION_LIMIT,
-                      max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> AutoExposureResult:
-        """Search exposures on real sets, then keep the chosen one."""
-        return self.pipeline.auto_exposure(saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
-
     # -- schedules ---------------------------------------------------------------------------
     def set_schedule(self, name: str) -> str:
         """Run the registered schedule ``name`` from the next set boundary.
@@ -289,10 +230,10 @@ class Instrument:
         with self._schedule_lock:
             if self.recorder is not None and self.recorder.active_name is not None:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
-            if self.calibrating:
+            if self.calibrations.creating:
                 raise Conflict("schedule: the simulator's calibration is being made with the "
                                "current schedule; wait until it is active")
-            if (session := self.session) is not None:
+            if (session := self.calibrations.session) is not None:
                 raise Conflict(f"schedule: a calibration session ({len(session.poses)} poses) uses "
                                "the current schedule; cancel it (DELETE /api/calibration/session, "
                                "the wizard's Cancel) or activate its calibration first")
@@ -303,13 +244,13 @@ class Instrument:
     def schedules(self) -> list[dict[str, Any]]:
         """Every registered schedule with its predicted depth σ and order-error rate at the rig's noise."""
         schedule = self.schedule
-        full_scale = 255 if self.settings.bit_depth == 8 else 2**self.settings.bit_depth - 1
+        top = full_scale(self.settings.bit_depth)
         _, res = self.results.latest()
-        return schedule_table(rig_pixels(res, schedule, full_scale, self._sensor_noise(schedule, full_scale)),
+        return schedule_table(rig_pixels(res, schedule, top, self._sensor_noise(schedule, top)),
                               schedule, self.calibration)
 
-    def _sensor_noise(self, schedule: PatternSchedule, full_scale: int) -> SensorNoise | None:
-        measured = self.reconstruction.noise.current  # what the live engine uses
+    def _sensor_noise(self, schedule: PatternSchedule, top: int) -> SensorNoise | None:
+        measured = self.pipeline.reconstruction.noise.current  # what the live engine uses
         if measured is not None:
             return measured
         acq = self.acquisition
@@ -319,25 +260,17 @@ class Instrument:
         if fs is None or len(fs.frame_indices) != schedule.n_frames:
             return None
         if self._noise[0] != seq:
-            self._noise = (seq, sensor_noise_of(fs.stack(), schedule, full_scale))
+            self._noise = (seq, sensor_noise_of(fs.stack(), schedule, top))
         return self._noise[1]
 
     # -- results -----------------------------------------------------------------------------
     def latest_result(self) -> LiveResult:
         _, res = self.results.latest()
         if res is None:
-            if self.calibrating:
+            if self.calibrations.creating:
                 raise DeviceUnavailable("no depth result yet: the calibration is being created")
             raise self.pipeline.why_no_result() or DeviceUnavailable("no depth result yet")
         return res
-
-    def wait_result(self, after_seq: int, timeout_s: float) -> LiveResult | None:
-        """The first result newer than ``after_seq`` (None on timeout or shutdown)."""
-        return self.results.wait_newer(after_seq, timeout_s)[1]
-
-    def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
-        """The next whole fringe set grabbed after this call (optionally at one exposure)."""
-        return self.pipeline.next_capture(timeout_s, exposure_ms=exposure_ms)
 
     # -- status ----------------------------------------------------------------------------------
     def _on_map(self, _seq: int, result: LiveResult) -> None:
@@ -361,7 +294,7 @@ class Instrument:
             "faults": acq.faults if acq else 0,
         }
 
-    def set_period_s(self) -> float:
+    def _set_period_s(self) -> float:
         """One whole fringe set at the camera's frame period (measured while it runs), s."""
         acq = self.acquisition
         if acq is not None:
@@ -384,15 +317,16 @@ class Instrument:
             return "stopped", "the instrument is shut down"
         if acq is None:
             return "starting", "opening the devices"
-        if acq.acquiring and (acq.fault or (self.devices is not None and self.devices.faulted())):
-            bad = [f"{d.name}: {d.error}" for d in (self.devices.describe() if self.devices else ())
+        devices = self.pipeline.devices
+        if acq.acquiring and (acq.fault or (devices is not None and devices.faulted())):
+            bad = [f"{d.name}: {d.error}" for d in (devices.describe() if devices else ())
                    if d.state == "fault"]
             return "fault", acq.fault or "; ".join(bad) or "device fault"
-        if self.calibrating:
+        if self.calibrations.creating:
             return "calibrating", self._calibration_phase()[0]
         if not acq.acquiring:
             return "stopped", "acquisition stopped (POST /api/acquisition/start)"
-        period = self.set_period_s()
+        period = self._set_period_s()
         age = self._depth_age_s(now)
         if age is not None and age <= 2 * period:
             return "running", None
@@ -410,7 +344,7 @@ class Instrument:
             dropped, frames = acq.dropped_since_set, acq.frames_since_set
             return "stalled", (f"no complete fringe set: the camera dropped {dropped} of the last "
                                f"{frames} frames")
-        rec = self.reconstruction
+        rec = self.pipeline.reconstruction
         if rec.last_error:
             return "stalled", rec.last_error
         recon_ms = rec.recon_times.median()
@@ -427,7 +361,7 @@ class Instrument:
             return "opening the devices"
         if acq.frames_received == 0:
             return "waiting for the camera's first frame"
-        if self.reconstruction.completed == 0 and acq.assembler.completed > 0:
+        if self.pipeline.reconstruction.completed == 0 and acq.assembler.completed > 0:
             # the first set is in the engine: numba compiles (or loads cached) kernels first
             return "compiling kernels for the first depth map (cached for the next start)"
         if acq.frames_since_set > 3 * acq.schedule.n_frames:
@@ -452,7 +386,7 @@ class Instrument:
 
     def _last_error(self) -> tuple[str | None, float | None, str | None]:
         """The newest error of any part: (message, time.monotonic(), ISO time)."""
-        acq, rec = self.acquisition, self.reconstruction
+        acq, rec = self.acquisition, self.pipeline.reconstruction
         now, at = time.monotonic(), datetime.now(UTC).isoformat(timespec="milliseconds")
         for source, msg in (("calibrations", self.calibrations.last_error),
                             ("reconstruction", rec.last_error)):
@@ -465,12 +399,13 @@ class Instrument:
             return None, None, None
         return max(errors, key=lambda e: e[1] or 0.0)
 
-    def status_record(self) -> Status:
-        acq, rec, s = self.acquisition, self.reconstruction, self.settings
+    def status(self) -> Status:
+        """The status record (``GET /api/status`` is its :meth:`~Status.to_dict`)."""
+        acq, rec, s = self.acquisition, self.pipeline.reconstruction, self.settings
         now = time.monotonic()
         latency, recon = rec.latencies.median(), rec.recon_times.median()
         state, reason = self._state_reason(now)
-        warnings = list(self.warnings)
+        warnings = list(self.calibrations.warnings)
         n_frames = self.schedule.n_frames
         if acq is not None and acq.acquiring and acq.frames_since_set > 3 * n_frames:
             # no depth rather than depth from frames that are not gap-free groups: say why
@@ -497,7 +432,7 @@ class Instrument:
         counters = self._counters()
         warmup = self._warmup or {}
         since = {k: v - warmup[k] for k, v in counters.items()} if warmup else {}
-        session = self.session
+        session = self.calibrations.session
         age = self._depth_age_s(now)
         return Status(
             state=state,
@@ -510,7 +445,7 @@ class Instrument:
             mode="rolling" if (acq.rolling if acq else s.rolling) else "set",
             acquiring=bool(acq and acq.acquiring),
             calibration=self.calibrations.summary(),
-            devices=self.devices.describe() if self.devices is not None else (),
+            devices=() if (devs := self.pipeline.devices) is None else devs.describe(),
             last_error=last_error,
             sets_completed=counters["sets_completed"],
             results_published=rec.completed,
@@ -522,7 +457,7 @@ class Instrument:
             faults=counters["faults"],
             recording=None if self.recorder is None else self.recorder.active_name,
             bit_depth=s.bit_depth,
-            schedule={"name": self.schedule_name, **self.schedule.to_dict(),
+            schedule={"name": schedule_name_of(self.schedule), **self.schedule.to_dict(),
                       "frames_per_depth": self.schedule.n_frames,
                       "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
             warnings=tuple(warnings),
@@ -530,7 +465,7 @@ class Instrument:
             state_reason=reason,
             phase=phase,
             progress=progress,
-            set_period_s=round(self.set_period_s(), 4),
+            set_period_s=round(self._set_period_s(), 4),
             last_depth_age_s=None if age is None else round(age, 3),
             last_error_at=error_at,
             last_error_resolved=None if error_s is None else bool(
@@ -543,7 +478,3 @@ class Instrument:
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},
         )
-
-    def status(self) -> dict[str, Any]:
-        """:meth:`status_record` as the JSON object of ``GET /api/status``."""
-        return self.status_record().to_dict()

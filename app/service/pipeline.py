@@ -14,10 +14,15 @@ from dataclasses import dataclass
 
 from app.capture.captureset import CaptureSet
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
-from app.core.limits import LEDS
+from app.core.limits import DEFAULT_LED, EXPOSURE_RANGE_MS, LEDS, full_scale
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
-from app.recon.exposure import AutoExposureResult, choose_exposure, set_statistics
+from app.recon.exposure import (
+    DEFAULT_SATURATION_LIMIT,
+    AutoExposureResult,
+    choose_exposure,
+    set_statistics,
+)
 from app.recon.motion import (
     DEFAULT_FALSE_ALARM_RATE,
     DEFAULT_GROW_PX,
@@ -144,6 +149,12 @@ class LivePipeline:
         caps = self.devices.camera.capabilities
         return (caps.width, caps.height)
 
+    def camera_bit_depths(self) -> tuple[int, ...] | None:
+        """The bit depths the camera can deliver, once devices exist (None before)."""
+        if self.devices is None:
+            return None
+        return tuple(int(b) for b in self.devices.camera.capabilities.bit_depths)
+
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
         """Request ``exposure_ms`` from the next whole set (checked at the API boundary and by the devices)."""
@@ -190,22 +201,23 @@ class LivePipeline:
             if fs is None:
                 break
             if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
-                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or "green",
+                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or DEFAULT_LED,
                                   bit_depth=self.config.bit_depth, extra={"frame_indices": fs.frame_indices})
         raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
 
-    def auto_exposure(self, *, saturation_limit: float, max_exposure_ms: float) -> AutoExposureResult:
+    def auto_exposure(self, *, saturation_limit: float = DEFAULT_SATURATION_LIMIT,
+                      max_exposure_ms: float = EXPOSURE_RANGE_MS[1]) -> AutoExposureResult:
         """Search exposures on real sets, then keep the chosen one."""
         acq = self._acq()
         before = acq.exposure_ms
         bit_depth = self.config.bit_depth
-        full_scale = 255 if bit_depth == 8 else 2**bit_depth - 1
+        top = full_scale(bit_depth)
 
         def measure(exposure_ms: float) -> tuple[float, float]:
             self.set_exposure(exposure_ms)
             timeout = 5.0 + 3 * self.schedule.n_frames * max(exposure_ms, 30.0) / 1000.0
             frames = self.next_capture(timeout, exposure_ms=exposure_ms).frames
-            fs = 255 if frames.dtype.itemsize == 1 else full_scale
+            fs = 255 if frames.dtype.itemsize == 1 else top
             return set_statistics(frames, self.schedule, fs)
 
         try:

@@ -46,6 +46,7 @@ from app.capture.recording import (
 )
 from app.config import Settings
 from app.core.errors import Conflict, InvalidRequest, NotFound
+from app.core.limits import DEFAULT_LED
 from app.core.schedule import PatternSchedule
 from app.service.acquisition import Acquisition
 from app.service.framesets import FrameSet
@@ -85,11 +86,14 @@ class Recorder:
         queue_sets: sets waiting for the writer at most; one more is counted as skipped.
         encode_workers: threads encoding one set's frames: on a machine shared with other
             work the writer then gets its share of both cores, not of one.
+        pose_source: returns the newest received OpenIGTLink TRANSFORMs by device, stored
+            with each recorded set (None: no tracker).
     """
 
     def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
                  depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16,
-                 encode_workers: int = 2) -> None:
+                 encode_workers: int = 2,
+                 pose_source: Callable[[], dict[str, Any]] | None = None) -> None:
         if codec not in FRAME_CODECS:
             raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
         if queue_sets < 1:
@@ -122,8 +126,8 @@ class Recorder:
         # leftovers of a run that ended without closing its recording (kill -9, power cut)
         self.recovered = recover_interrupted(self.root)
         remove_stale_partials(self.root)
-        # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
-        self.pose_source: Callable[[], dict[str, Any]] | None = None
+        # the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
+        self.pose_source = pose_source
         # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
         self.measurements: list[dict[str, Any]] = []
 
@@ -420,7 +424,7 @@ class Recorder:
             now_wall, now_mono = time.time(), time.monotonic()
             capture = CaptureSet(
                 frames=fs.stack(), schedule=self.instrument.schedule, exposure_ms=float(fs.exposure_ms),
-                led=fs.led or "green", extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
+                led=fs.led or DEFAULT_LED, extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
                 bit_depth=self.instrument.settings.bit_depth,
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}

@@ -39,13 +39,13 @@ def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     try:
         inst.start()
         assert inst.state() == "calibrating"
-        assert inst.status()["calibration"] is None
+        assert inst.status().to_dict()["calibration"] is None
         deadline = time.monotonic() + 900
-        while inst.calibrating and time.monotonic() < deadline:
+        while inst.calibrations.creating and time.monotonic() < deadline:
             time.sleep(0.5)
-        assert not inst.calibrating, "simulator calibration took more than 15 minutes"
-        assert inst.calibration is not None, inst.status()["last_error"]
-        assert inst.calibration_summary()["name"] == "sim"  # type: ignore[index]
+        assert not inst.calibrations.creating, "simulator calibration took more than 15 minutes"
+        assert inst.calibration is not None, inst.status().to_dict()["last_error"]
+        assert (summary := inst.calibrations.summary()) is not None and summary.name == "sim"
     finally:
         inst.close()
     path = data / "calibrations" / "sim.json"

@@ -47,7 +47,7 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
     settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=11)
     app = create_app(settings)
     with TestClient(app) as client:
-        world = app.state.instrument.devices.world
+        world = app.state.instrument.pipeline.devices.world
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/calibration/session/poses").status_code == 409  # no session yet
 
@@ -171,7 +171,7 @@ def test_the_twin_walks_the_wizard_through_its_board_poses(tmp_path: Path,
     settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=13)
     app = create_app(settings)
     with TestClient(app) as client:
-        world = app.state.instrument.devices.world
+        world = app.state.instrument.pipeline.devices.world
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         # no session: nothing to suggest for
         assert client.post("/api/calibration/session/suggested-pose").status_code == 409

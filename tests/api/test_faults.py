@@ -65,7 +65,7 @@ def test_disconnect_shows_a_fault_and_recovers(tmp_path: Path, sim_calibration_f
         assert st["last_error_resolved"] is True and st["last_error_at"]
         # both threads survived the faults
         inst = client.app.state.instrument  # type: ignore[attr-defined]
-        assert inst.acquisition.alive and inst.reconstruction.alive
+        assert inst.acquisition.alive and inst.pipeline.reconstruction.alive
 
 
 def test_status_never_says_running_without_a_recent_map(tmp_path: Path,

@@ -77,7 +77,7 @@ def client(
         yield client
         inst = client.app.state.instrument  # type: ignore[attr-defined]
         assert inst.acquisition is not None and inst.acquisition.alive, "the instrument stopped"
-        assert inst.calibration_summary()["name"] == "sim", (
+        assert (summary := inst.calibrations.summary()) is not None and summary.name == "sim", (
             "the hostile input changed the calibration"
         )
 

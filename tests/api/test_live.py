@@ -55,7 +55,7 @@ def test_the_live_engine_uses_the_cameras_measured_noise(live: TestClient) -> No
     seq0 = inst.results.latest()[0]
     seq, res = inst.results.wait_newer(seq0, 10)  # a map made after the estimate
     # passed to the engine with every set (σ, the validity rule, the motion test), not installed in it
-    assert res is not None and res.noise is inst.reconstruction.noise.current
+    assert res is not None and res.noise is inst.pipeline.reconstruction.noise.current
 
 
 def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:

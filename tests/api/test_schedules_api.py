@@ -95,14 +95,14 @@ def test_calibration_that_does_not_apply_is_never_used(tmp_path: Path, sim_calib
     """The carry-over rule in the service: another finest pattern → no engine, and the status says why."""
     inst = Instrument(Settings(data_dir=tmp_path, viewer=False, autostart=False, schedule="geometric-9"))
     try:
-        assert inst.schedule == SCHEDULES["geometric-9"] and inst.status()["schedule"]["name"] == "geometric-9"
+        assert inst.schedule == SCHEDULES["geometric-9"] and inst.status().to_dict()["schedule"]["name"] == "geometric-9"
         cal = load_calibration(sim_calibration_file)  # made with paper-16: carries over
-        inst.set_calibration(cal, name="sim", persist=False)
-        assert inst.pipeline.has_engine and inst.status()["schedule"]["calibration_applies"] is True
+        inst.calibrations.activate(cal, name="sim", persist=False)
+        assert inst.pipeline.has_engine and inst.status().to_dict()["schedule"]["calibration_applies"] is True
         assert inst.pipeline._live_engine().calibration.pattern == SCHEDULES["geometric-9"]  # type: ignore[union-attr]
         other = PatternSchedule((1, 4, 12), 4)  # finest 12: its phase is another projector coordinate
         inst.pipeline.set_schedule(other, inst.calibrations.engine_for)
-        st = inst.status()
+        st = inst.status().to_dict()
         assert not inst.pipeline.has_engine and st["schedule"]["calibration_applies"] is False
         assert st["schedule"]["name"] is None
         assert any("does not apply" in w and "finest" in w for w in st["warnings"])
@@ -112,10 +112,10 @@ def test_calibration_that_does_not_apply_is_never_used(tmp_path: Path, sim_calib
         assert all(r["calibration_applies"] for r in rows.values()) and not any(r["active"] for r in rows.values())
         assert rows["paper-16"]["prediction_source"] == "nominal" and rows["paper-16"]["predicted_sigma_mm"] is None
         inst.pipeline.set_schedule(SCHEDULES["paper-16"], inst.calibrations.engine_for)
-        assert inst.pipeline.has_engine and not inst.status()["warnings"]
+        assert inst.pipeline.has_engine and not inst.status().to_dict()["warnings"]
         with pytest.raises(ValueError, match="orientation"):  # activation checks the same rule
             horizontal = load_calibration(sim_calibration_file)
             horizontal.pattern = PatternSchedule(orientation="horizontal")
-            inst.set_calibration(horizontal, name="h", persist=False)
+            inst.calibrations.activate(horizontal, name="h", persist=False)
     finally:
         inst.close()

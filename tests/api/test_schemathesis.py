@@ -162,7 +162,7 @@ def test_stateful_links(live_app: Any) -> None:
 def test_instrument_survived(live_app: Any) -> None:
     """After the fuzzing the app still answers and its threads still run (runs last here)."""
     inst = live_app.state.instrument
-    assert inst.acquisition is not None and inst.acquisition.alive and inst.reconstruction.alive
+    assert inst.acquisition is not None and inst.acquisition.alive and inst.pipeline.reconstruction.alive
     client = TestClient(live_app, headers=AUTH)  # no `with`: the module's lifespan is already running
     client.put("/api/mode", json={"rolling": False}, headers=AUTH)
     client.post("/api/acquisition/start", headers=AUTH)

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from app.core.limits import EXPOSURE_RANGE_MS, LEDS, check_exposure_ms, check_led
+from app.core.limits import EXPOSURE_RANGE_MS, LEDS, check_exposure_ms, check_led, full_scale
 
 
 def test_exposure_range_inclusive():
@@ -26,3 +26,10 @@ def test_led():
     with pytest.raises(ValueError, match="led"):
         check_led("white")
 
+
+
+def test_full_scale_is_the_largest_code_of_the_bit_depth() -> None:
+    assert [full_scale(b) for b in (1, 8, 10, 12, 16)] == [1, 255, 1023, 4095, 65535]
+    for bad in (0, 17, True, 8.0, "8"):
+        with pytest.raises(ValueError, match="bit_depth"):
+            full_scale(bad)  # type: ignore[arg-type]

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from typing import Any
+
+from pydantic import BaseModel
 
 from app.api.schemas import CalibrationSummary as CalibrationSummaryOut
-from app.api.schemas import StatusOut
+from app.api.schemas import DeviceOut, StatusOut
 from app.core.records import CalibrationSummary, DeviceStatus, Status
 
 
@@ -33,3 +37,29 @@ def test_calibration_summary_lists():
     d = CalibrationSummary("x", "t", (1.0, 2.0), (640, 480), "v", 3).to_dict()
     assert d["height_range_mm"] == [1.0, 2.0] and d["image_size"] == [640, 480]
     assert CalibrationSummaryOut.model_validate(d).model_dump() == d
+
+
+
+def _defaults(model: type[Any]) -> dict[str, object]:
+    """Field name → default (absent: required) of a dataclass or a pydantic model."""
+    if issubclass(model, BaseModel):
+        return {name: f.get_default(call_default_factory=True)
+                for name, f in model.model_fields.items() if not f.is_required()}
+    out: dict[str, object] = {}
+    for f in dataclasses.fields(model):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            out[f.name] = f.default_factory()
+    return out
+
+
+def test_api_models_have_the_records_fields_and_agreeing_defaults() -> None:
+    pairs: tuple[tuple[type[Any], type[BaseModel]], ...] = (
+        (Status, StatusOut), (CalibrationSummary, CalibrationSummaryOut), (DeviceStatus, DeviceOut))
+    for record, model in pairs:
+        assert [f.name for f in dataclasses.fields(record)] == list(model.model_fields), record
+        ours, theirs = _defaults(record), _defaults(model)
+        disagree = {k: (ours[k], theirs[k]) for k in ours.keys() & theirs.keys()
+                    if json.dumps(ours[k]) != json.dumps(theirs[k])}
+        assert not disagree, f"{record.__name__}: defaults differ {disagree}"

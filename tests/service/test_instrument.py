@@ -39,8 +39,8 @@ def wait_until(cond, timeout_s: float, what: str) -> None:
 
 
 def test_stored_sim_calibration_is_reused(instrument: Instrument) -> None:
-    assert not instrument.calibrating
-    assert instrument.calibration_summary()["name"] == "sim"  # type: ignore[index]
+    assert not instrument.calibrations.creating
+    assert (summary := instrument.calibrations.summary()) is not None and summary.name == "sim"
     wait_until(lambda: instrument.results.seq >= 1, 120, "a first result")
     res = instrument.latest_result()
     assert res.mode == "set" and res.depth.shape == res.texture.shape
@@ -51,7 +51,7 @@ def test_auto_exposure_measures_real_sets(instrument: Instrument) -> None:
     from app.devices.sim.offline import auto_exposure_ms
 
     wait_until(lambda: instrument.results.seq >= 1, 120, "a first result")
-    res = instrument.auto_exposure(saturation_limit=0.005)
+    res = instrument.pipeline.auto_exposure(saturation_limit=0.005)
     assert len(res.trials) >= 3 and res.warning is None  # a search, not a guess
     assert res.saturated_fraction <= 0.005
     longer = [t for t in res.trials if t.exposure_ms > res.exposure_ms]
@@ -60,23 +60,23 @@ def test_auto_exposure_measures_real_sets(instrument: Instrument) -> None:
     assert all(t.modulation < res.modulation for t in shorter)  # more light, more modulation
     # the simulator's oracle: the exposure putting the 99.9th percentile at 80 % of full
     # scale is unsaturated, so the chosen one cannot be much shorter (ladder steps ≤ 1.33×)
-    oracle_ms = auto_exposure_ms(instrument.devices.world)  # type: ignore[union-attr]
+    oracle_ms = auto_exposure_ms(instrument.pipeline.devices.world)  # type: ignore[union-attr]
     assert res.exposure_ms >= 0.9 * oracle_ms
-    assert instrument.status()["exposure_ms"] == res.exposure_ms
-    cap = instrument.next_capture(20.0, exposure_ms=res.exposure_ms)
+    assert instrument.status().to_dict()["exposure_ms"] == res.exposure_ms
+    cap = instrument.pipeline.next_capture(20.0, exposure_ms=res.exposure_ms)
     assert cap.exposure_ms == pytest.approx(res.exposure_ms)
 
 
 def test_controls_validate_and_status_explains(instrument: Instrument) -> None:
     # the exposure is checked at the API boundary (ExposureIn) and by the device, not again here
     with pytest.raises(ValueError, match="exposure_ms"):
-        instrument.devices.camera.configure(exposure_ms=0.5)
+        instrument.pipeline.devices.camera.configure(exposure_ms=0.5)
     with pytest.raises(InvalidRequest, match="led"):
         instrument.set_led("white")
-    instrument.set_acquiring(False)
+    instrument.pipeline.set_acquiring(False)
     wait_until(lambda: instrument.state() == "stopped", 10, "stopped")
     with pytest.raises(Conflict, match="stopped"):
-        instrument.next_capture(1.0)
+        instrument.pipeline.next_capture(1.0)
 
 
 def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_file: Path) -> None:  # noqa: F811

@@ -15,7 +15,14 @@ from app.atomic import atomic_write_text
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.core.board import BoardSpec
 from app.core.encoding import npy_bytes
-from app.core.limits import EXPOSURE_RANGE_MS, LIVE_BIT_DEPTHS, check_exposure_ms
+from app.core.limits import (
+    DEFAULT_EXPOSURE_MS,
+    DEFAULT_LED,
+    EXPOSURE_RANGE_MS,
+    LIVE_BIT_DEPTHS,
+    check_exposure_ms,
+    full_scale,
+)
 from app.core.schedule import PatternSchedule
 from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.scenes import Scene, board_poses, board_scene, sim_board
@@ -38,7 +45,7 @@ def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0,
     return t0_s + period * np.arange(n_frames, dtype=np.float64) + exposure_ms / 2000.0
 
 
-def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: str = "green",
+def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOSURE_MS, led: str = DEFAULT_LED,
                        bit_depth: int | None = None, seed: int | None = None, t0_s: float = 0.0,
                        distortion: bool = True, schedule: PatternSchedule | None = None, current: float = 0.5,
                        world: SimulatedWorld | None = None, frame_period_ms: float | None = None,
@@ -81,7 +88,7 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = 20.0, led: st
 
 def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str = "default",
                         saturation_limit: float = DEFAULT_SATURATION_LIMIT, current: float = 0.5,
-                        led: str = "green", t0_s: float = 0.0) -> AutoExposureResult:
+                        led: str = DEFAULT_LED, t0_s: float = 0.0) -> AutoExposureResult:
     """The exposure the instrument's own auto-exposure picks for ``scene``.
 
     The search is :func:`app.recon.exposure.choose_exposure`, the one ``POST /api/exposure/auto``
@@ -108,13 +115,13 @@ def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str
 
 
 def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 8, current: float = 0.5,
-                     led: str = "green") -> float:
+                     led: str = DEFAULT_LED) -> float:
     """Exposure (ms, 1–100) putting the brightest lit pixels near ``target`` of full scale."""
     r = world.renderer
     world.led, world.current = led, current
     peak = max(float(np.nanpercentile(r.mean_frame(i, 0.0, exposure_ms=10.0, led=led, current=current, bits=bits),
                                       99.9)) for i in (0, world.schedule.steps // 2))
-    return float(np.clip(10.0 * target * (2**bits - 1) / max(peak, 1e-6), *EXPOSURE_RANGE_MS))
+    return float(np.clip(10.0 * target * full_scale(bits) / max(peak, 1e-6), *EXPOSURE_RANGE_MS))
 
 
 def central_fraction(rig: SimRig, pitch_mm: float, spec: BoardSpec, poses: list[tuple[F64, F64]]) -> float:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from app.core.limits import check_led
+from app.core.limits import check_led, full_scale
 
 # Relative LED radiant flux at full current (LightCrafter LEDs) and the mono sensor's
 # quantum efficiency at each LED's wavelength (Sony ICX825-like: peaks in the green).
@@ -72,7 +72,7 @@ class SensorModel:
     photons_scale: float = 3.7e7
 
     def dn_per_electron(self, bits: int, gain: float) -> float:
-        return gain * (2**bits - 1) / self.full_well_e
+        return gain * full_scale(bits) / self.full_well_e
 
     def light_scale(self, *, exposure_ms: float, current: float, led: str) -> float:
         """Electrons per (reflectance · pattern / d_p²[mm²]) for these settings."""

@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter
 
+from app.core.limits import DEFAULT_LED, full_scale
 from app.core.schedule import PatternSchedule
 from app.devices.sim import kernels, tool_kernels
 from app.devices.sim.optics import SimRig, mat3
@@ -170,10 +171,10 @@ class Renderer:
         s = self.sensor
         g = s.dn_per_electron(bits, gain)
         return (g * s.light_scale(exposure_ms=exposure_ms, current=current, led=led),
-                g * s.ambient_e_per_ms * exposure_ms, g, (g * s.read_noise_e) ** 2, 2**bits - 1)
+                g * s.ambient_e_per_ms * exposure_ms, g, (g * s.read_noise_e) ** 2, full_scale(bits))
 
     def mean_frame(self, pattern_index: int, t_s: float, *, exposure_ms: float, gain: float = 1.0,
-                   led: str = "green", current: float = 0.5, bits: int = 8) -> F32:
+                   led: str = DEFAULT_LED, current: float = 0.5, bits: int = 8) -> F32:
         """Noise-free expected frame (H, W) float32 DN, before clipping (projector dark if index < 0)."""
         scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led, current=current, bits=bits)
         mean = np.empty(self.shape, np.float32)
@@ -332,7 +333,7 @@ class Renderer:
             return self._means
 
     def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *, exposure_ms: float,
-               gain: float = 1.0, led: str = "green", current: float = 0.5, bits: int = 8
+               gain: float = 1.0, led: str = DEFAULT_LED, current: float = 0.5, bits: int = 8
                ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
         """One noisy frame (H, W), uint8 for 8 bits or uint16 0..4095 for 12 bits.
 

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import numpy.typing as npt
 
+from app.core.limits import DEFAULT_LED
 from app.core.schedule import PatternSchedule
 from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.radiometry import SensorModel
@@ -63,7 +64,7 @@ class SimulatedWorld:
         self.reseed(seed)
         self.epoch = time.monotonic()
         self.projector_on = False
-        self.led = "green"
+        self.led: str = DEFAULT_LED
         self.current = 0.5
         self._position = 0
 
