@@ -15,6 +15,7 @@ from app.config import Settings
 from app.core.calibration import Calibration
 from app.core.schedule import PatternSchedule
 from app.devices.sim import default_rig
+from app.devices.sim.ideal import ideal_calibration
 from app.service.calibration_checks import (
     MIN_REFERENCE_FRACTION,
     ValidFractionWatch,
@@ -28,7 +29,7 @@ from app.service.pipeline import LivePipeline, PipelineConfig
 @pytest.fixture(scope="module")
 def good() -> dict[str, Any]:
     """A geometric-model calibration file of the simulated rig, with held-out figures."""
-    cal = default_rig(distortion=False).ideal_calibration()
+    cal = ideal_calibration(default_rig(distortion=False))
     data = cal.to_dict()
     data["held_out"] = {data["model"]["name"]: {"rms_mm": 0.04, "max_mm": 0.3, "noise_mm": 0.04,
                                                 "systematic_mm": 0.01, "correlation_mm": 0.5}}
