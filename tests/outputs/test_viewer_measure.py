@@ -16,7 +16,9 @@ SPECS = [
     {"kind": "depth", "points": [[80, 60], [20, 20], [140, 20], [80, 110]]},
     {"kind": "profile", "points": [[10, 60], [150, 60]]},
     {"kind": "area", "points": [[40, 30], [120, 30], [120, 90], [40, 90]]},
-    {"kind": "length", "points": [[0, 0], [10, 10]]},  # an invalid corner: drawn nothing
+    # refused (an end outside the image): drawn nothing. A click in the 5-px invalid border
+    # is no longer refused: live measurements fill small holes from the valid points around
+    {"kind": "length", "points": [[0, 0], [170, 10]]},
 ]
 
 
@@ -27,7 +29,7 @@ def test_segments_and_labels_per_kind() -> None:
     # 1 + 2 + 4 + (profile: every neighbouring pair of its 141 samples) + 4
     assert segs.shape == (1 + 2 + 4 + 140 + 4, 2, 3) and segs.dtype == np.float32
     np.testing.assert_allclose(segs[0], res.points[[30, 90], [20, 140]], rtol=1e-6)
-    assert len(labels) == 5  # the invalid corner is left out
+    assert len(labels) == 5  # the refused length is left out
     m = measure("length", res.points, res.valid, res.sigma, SPECS[0]["points"])
     assert labels[0][1] == f"{m.value_mm:.3f} ± {m.sigma_mm:.3f} mm"
     assert labels[4][1].endswith("mm²")
