@@ -251,7 +251,6 @@ class Projector(Device):
         self.schedule: PatternSchedule | None = None
         self.led = "green"
         self.led_current = 0.5
-        self.trigger_mode = "internal"
         self.exposure_ms = 20.0
 
     def load_schedule(self, schedule: PatternSchedule, *, exposure_ms: float | None = None) -> None:
@@ -287,14 +286,6 @@ class Projector(Device):
                 self._call("set_led", self._do_set_led, led, cur)
             self.led, self.led_current = led, cur
 
-    def set_trigger_mode(self, mode: str) -> None:
-        if mode not in ("internal", "external"):
-            raise ValueError(f"mode: must be 'internal' or 'external', got {mode!r}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("trigger", self._do_set_trigger_mode, mode)
-            self.trigger_mode = mode
-
     def start(self) -> None:
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="start")
@@ -322,9 +313,6 @@ class Projector(Device):
 
     @abstractmethod
     def _do_set_led(self, led: str, current: float) -> None: ...
-
-    def _do_set_trigger_mode(self, mode: str) -> None:  # optional hook
-        pass
 
     @abstractmethod
     def _do_start(self) -> None: ...
