@@ -209,19 +209,6 @@ class GenICamCamera(Camera):
                      exposure_ms=s.exposure_ms, gain=s.gain, meta={"model": self.model},
                      bit_depth=s.bit_depth if data.dtype == np.uint16 else 8)
 
-    def set_node(self, name: str, value: Any) -> None:
-        """Set a GenICam feature by name (rig-specific settings, e.g. ``AcquisitionFrameRate``)."""
-        with self._lock:
-            if self._ia is None:
-                raise DeviceError(f"{self.name}: open the camera before setting {name}")
-            nm = self._ia.remote_device.node_map
-            if _node(nm, name) is None:
-                raise ValueError(f"name: the camera has no feature {name!r}")
-            try:
-                nm.get_node(name).value = value
-            except Exception as exc:
-                raise ValueError(f"value: {name} = {value!r} refused ({exc})") from None
-
     def sync(self) -> None:
         """Declare that the next frame shows pattern 0."""
         self._sync_at = self._count
