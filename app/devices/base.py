@@ -241,7 +241,33 @@ class Camera(Device):
     def _do_grab(self, timeout_s: float) -> Frame: ...
 
 
-class Projector(Device):
+class LedMixin(Device):
+    """The LED a device lights and its current: the projector's and the LED/trigger box's.
+
+    A closed device only remembers the choice and applies it when opened.
+    """
+
+    def __init__(self, *, name: str | None = None) -> None:
+        super().__init__(name=name)
+        self.led = "green"
+        self.led_current = 0.5  # fraction 0–1 of the backend's maximum current
+
+    def set_led(self, led: str, *, current: float | None = None) -> None:
+        """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
+        check_led(led)
+        cur = self.led_current if current is None else float(current)
+        if not (0.0 <= cur <= 1.0):
+            raise ValueError(f"current: must be within 0–1, got {current}")
+        with self._lock:
+            if self._state is not DeviceState.CLOSED:
+                self._call("set_led", self._do_set_led, led, cur)
+            self.led, self.led_current = led, cur
+
+    @abstractmethod
+    def _do_set_led(self, led: str, current: float) -> None: ...
+
+
+class Projector(LedMixin):
     """A pattern projector: a fringe schedule shown in sequence under one LED."""
 
     kind = "projector"
@@ -249,8 +275,6 @@ class Projector(Device):
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
         self.schedule: PatternSchedule | None = None
-        self.led = "green"
-        self.led_current = 0.5
         self.exposure_ms = 20.0
 
     def load_schedule(self, schedule: PatternSchedule, *, exposure_ms: float | None = None) -> None:
@@ -274,17 +298,6 @@ class Projector(Device):
             if self._state is not DeviceState.CLOSED and self.schedule is not None:
                 self._call("timing", self._do_set_exposure, exp)
             self.exposure_ms = exp
-
-    def set_led(self, led: str, *, current: float | None = None) -> None:
-        """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
-        check_led(led)
-        cur = self.led_current if current is None else float(current)
-        if not (0.0 <= cur <= 1.0):
-            raise ValueError(f"current: must be within 0–1, got {current}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("set_led", self._do_set_led, led, cur)
-            self.led, self.led_current = led, cur
 
     def start(self) -> None:
         with self._lock:
@@ -312,21 +325,16 @@ class Projector(Device):
         """Set the pattern timing for ``exposure_ms`` without uploading patterns again."""
 
     @abstractmethod
-    def _do_set_led(self, led: str, current: float) -> None: ...
-
-    @abstractmethod
     def _do_start(self) -> None: ...
 
 
-class Controller(Device):
+class Controller(LedMixin):
     """The LED/trigger box: LED channel and current, trigger arming, watchdog heartbeat."""
 
     kind = "controller"
 
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
-        self.led = "green"
-        self.current = 0.5
         self.armed = False
         self.frames_per_set = 16  # camera triggers per armed sequence: the schedule's frames
 
@@ -350,16 +358,6 @@ class Controller(Device):
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="identify")
             return str(self._call("identify", self._do_identify))
-
-    def set_led(self, led: str, *, current: float | None = None) -> None:
-        check_led(led)
-        cur = self.current if current is None else float(current)
-        if not (0.0 <= cur <= 1.0):
-            raise ValueError(f"current: must be within 0–1, got {current}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("set_led", self._do_set_led, led, cur)
-            self.led, self.current = led, cur
 
     def arm(self) -> None:
         with self._lock:
@@ -389,9 +387,6 @@ class Controller(Device):
 
     @abstractmethod
     def _do_identify(self) -> str: ...
-
-    @abstractmethod
-    def _do_set_led(self, led: str, current: float) -> None: ...
 
     @abstractmethod
     def _do_arm(self, armed: bool) -> None: ...
