@@ -241,6 +241,54 @@ class Camera(Device):
     def _do_grab(self, timeout_s: float) -> Frame: ...
 
 
+def significant_bits(data: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], source_bits: int) -> int:
+    """The full-scale rule of a camera frame: the bits its codes may fill.
+
+    Args:
+        data: the (H, W) mono frame, uint8 or uint16.
+        source_bits: the bits the source fills in a 16-bit sample (12 for Mono12, 16 for
+            Mono16 or a 16-bit OpenCV source, whose packing is unknown: full scale).
+
+    Returns:
+        8 for uint8 data, else ``source_bits``; the saturation code is ``2**bits − 1``.
+    """
+    if data.dtype == np.uint8:
+        return 8
+    if not 8 < source_bits <= 16:
+        raise ValueError(f"source_bits: must be within 9–16 for uint16 data, got {source_bits}")
+    return int(source_bits)
+
+
+class CountingCamera(Camera):
+    """A camera that learns the pattern index by trigger counting.
+
+    After ``start()`` (or :meth:`sync`) frame ``k`` shows pattern ``k mod schedule_length``.
+    """
+
+    def __init__(self, *, schedule_length: int, name: str | None = None) -> None:
+        super().__init__(name=name)
+        if schedule_length < 1:
+            raise ValueError(f"schedule_length: must be >= 1, got {schedule_length}")
+        self.schedule_length = schedule_length
+        self._count = 0
+        self._sync_at = 0
+
+    def sync(self) -> None:
+        """Declare that the next frame shows pattern 0 (e.g. after the projector restarted)."""
+        self._sync_at = self._count
+
+    def _frame(self, data: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], stamp: float, *,
+               source_bits: int, meta: dict[str, Any] | None = None) -> Frame:
+        """The grab tail: count the frame and stamp it with the settings in force."""
+        index = self._count
+        self._count += 1
+        s = self._settings
+        return Frame(data=data, index=index, timestamp=stamp,
+                     pattern_index=(index - self._sync_at) % self.schedule_length,
+                     exposure_ms=s.exposure_ms, gain=s.gain, meta=dict(meta or {}),
+                     bit_depth=significant_bits(data, source_bits))
+
+
 class LedMixin(Device):
     """The LED a device lights and its current: the projector's and the LED/trigger box's.
 
