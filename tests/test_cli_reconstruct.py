@@ -10,7 +10,7 @@ from app.capture import CaptureSet, write_capture_set
 from app.capture.ply import read_ply
 from app.cli import main
 from app.core.schedule import SCHEDULES, PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
+from app.devices.sim.analytic_rig import Rig, bump_surface
 
 
 def _setup(tmp_path):

@@ -20,7 +20,7 @@ import pytest
 
 from app.config import Settings
 from app.recon.colormap import depth_colormap
-from tests.outputs.helpers import serve, wait_for
+from tests.helpers.outputs import serve, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

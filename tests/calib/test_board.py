@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.calib import BoardSpec, detect_board, load_board, texture_to_u8
-from tests.calib.rig import Rig, board_pose
+from tests.helpers.calib_rig import Rig, board_pose
 
 SCALE = 40.0  # raster px per mm for rendering
 

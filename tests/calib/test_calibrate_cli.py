@@ -11,7 +11,8 @@ import pytest
 from app.calib import BoardSpec, calibrate_sets, height_mm, load_calibration
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
-from tests.calib.rig import (
+from tests.calib.test_board import _render
+from tests.helpers.calib_rig import (
     STANDARD_POSES,
     Rig,
     board_pose,
@@ -19,7 +20,6 @@ from tests.calib.rig import (
     fringe_stack,
     raycast_scene,
 )
-from tests.calib.test_board import _render
 
 BOARD = BoardSpec("checkerboard", 9, 6, 3.0)
 

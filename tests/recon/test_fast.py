@@ -9,8 +9,8 @@ import numpy.typing as npt
 import pytest
 from numba import njit
 
+from app.devices.sim.analytic_rig import Rig, bump_surface, reason_scene
 from app.recon import Reconstructor, fast
-from tests.recon.analytic_rig import Rig, bump_surface, reason_scene
 
 
 @njit(cache=False)

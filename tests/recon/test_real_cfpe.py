@@ -182,8 +182,8 @@ def test_real_shadows_and_highlights_are_invalid_not_wrong():
 def test_fused_kernel_agrees_with_numpy_on_real_frames(scene):
     """The fast path's heterodyne and clipped-sample refit on real frames: the phase stage equals
     the oracle's (the Eq. (5) model is a placeholder of an analytic rig of the same size)."""
+    from app.devices.sim.analytic_rig import Rig
     from app.recon import Reconstructor
-    from tests.recon.analytic_rig import Rig
 
     rig = Rig(width=640, height=480, focal_px=800.0, schedule=schedule(4))
     # the placeholder model's depth σ means nothing: no depth-σ part of the validity rule

@@ -9,8 +9,8 @@ import pytest
 
 from app.core.eq5 import Eq5Model
 from app.core.reasons import assign_reasons
+from app.devices.sim.analytic_rig import Rig, reason_scene
 from app.recon import PRECEDENCE, Reason, Reconstructor
-from tests.recon.analytic_rig import Rig, reason_scene
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import compute_phase
 from app.recon.unwrap import combine_frequencies, unwrap_chain, unwrap_hierarchical, unwrap_phases
-from tests.recon.analytic_rig import Rig, bump_surface
 
 FREQS = (1, 4, 12, 36)
 TWO_PI = 2 * math.pi
