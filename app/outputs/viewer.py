@@ -110,7 +110,7 @@ class Viewer:
         self._texture_image: Any = None
         self._camera_placed = False
         self._gui: dict[str, Any] = {}
-        # issue 17: the dashboard's measurements (kind + pixels) drawn on the cloud; set by the app
+        # the dashboard's measurements (kind + pixels) drawn on the cloud; set by the app
         self.measure_source: Callable[[], list[dict[str, Any]]] | None = None
         self._measure_nodes: list[Any] = []
         self.updates = 0  # results pushed to viser

@@ -122,9 +122,9 @@ class Recorder:
         # leftovers of a run that ended without closing its recording (kill -9, power cut)
         self.recovered = recover_interrupted(self.root)
         remove_stale_partials(self.root)
-        # issue 16: the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
+        # the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source: Callable[[], dict[str, Any]] | None = None
-        # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
+        # the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
         self.measurements: list[dict[str, Any]] = []
 
     # -- control (any thread) --------------------------------------------------------------
@@ -425,14 +425,14 @@ class Recorder:
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}
             poses = self.pose_source() if self.pose_source is not None else None
-            if poses:  # issue 16: stored in capture.json and session.json
+            if poses:  # stored in capture.json and session.json
                 capture.extra["igtl_transforms"] = poses
                 info["igtl_transforms"] = poses
             if res is not None:
                 info.update(result_seq=res.seq, latency_ms=round(res.latency_ms, 3),
                             valid_fraction=round(float(res.valid.mean()), 6))
                 specs = list(self.measurements)
-                if specs:  # issue 17: the dashboard's measurements on this set's depth map
+                if specs:  # the dashboard's measurements on this set's depth map
                     from app.service.measure import calibration_terms, measure_specs
 
                     normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))

@@ -1,4 +1,4 @@
-"""Camera backends report the bit depth of their frames (issue 14)."""
+"""Camera backends report the bit depth of their frames."""
 
 from __future__ import annotations
 

@@ -132,7 +132,7 @@ def test_heterodyne_bad_schedules(freqs, message):
         unwrap_chain(freqs, "heterodyne")
 
 
-# -- the heterodyne order test (issue 15: a wrong order under motion must not pass) -------------
+# -- the heterodyne order test (a wrong order under motion must not pass) -------------
 HET9 = (30, 35, 36)  # the registered heterodyne-9 schedule's fringe counts
 
 
