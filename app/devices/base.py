@@ -138,6 +138,13 @@ class Device(ABC):
                 self._state = DeviceState.CLOSED
                 self.log.info("closed")
 
+    def stop(self) -> None:
+        """Leave RUNNING (a no-op in any other state); the device stays open."""
+        with self._lock:
+            if self._state is DeviceState.RUNNING:
+                self._call("stop", self._do_stop)
+                self._state = DeviceState.OPEN
+
     def __enter__(self) -> Device:
         self.open()
         return self
@@ -210,12 +217,6 @@ class Camera(Device):
             self._call("configure", self._do_configure, self._settings)
             self._call("start", self._do_start)
             self._state = DeviceState.RUNNING
-
-    def stop(self) -> None:
-        with self._lock:
-            if self._state is DeviceState.RUNNING:
-                self._call("stop", self._do_stop)
-                self._state = DeviceState.OPEN
 
     def grab(self, timeout_s: float = 1.0) -> Frame:
         """Next frame; raises DeviceTimeout, DeviceDisconnected or DeviceStateError.
@@ -356,12 +357,6 @@ class Projector(LedMixin):
                 self._call("start", self._do_start)
                 self._state = DeviceState.RUNNING
 
-    def stop(self) -> None:
-        with self._lock:
-            if self._state is DeviceState.RUNNING:
-                self._call("stop", self._do_stop)
-                self._state = DeviceState.OPEN
-
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "led": self.led, "led_current": self.led_current}
 
@@ -426,6 +421,10 @@ class Controller(LedMixin):
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="send a heartbeat")
             self._call("heartbeat", self._do_heartbeat)
+
+    def stop(self) -> None:
+        """Leave RUNNING: for the LED/trigger box, disarm."""
+        self.disarm()
 
     def _do_stop(self) -> None:
         self._do_arm(False)

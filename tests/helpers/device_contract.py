@@ -238,6 +238,16 @@ class ControllerContract(_Common):
         assert not device.armed and device.state is DeviceState.OPEN
         device.close()
 
+    def test_stop_disarms(self, device: Controller):
+        """``stop`` leaves RUNNING as for every device: for the box that is a disarm."""
+        device.open()
+        device.arm()
+        device.stop()
+        assert not device.armed and device.state is DeviceState.OPEN
+        device.stop()  # not running: nothing to do
+        assert device.state is DeviceState.OPEN
+        device.close()
+
     def test_sequence_length(self, device: Controller):
         """Triggers per armed sequence follow the schedule's frame count; not while armed."""
         device.set_sequence_length(12)  # closed: remembered, sent on open
