@@ -16,9 +16,9 @@ from app.devices.opencv_camera import OpenCVCamera
 from app.devices.replay import ReplayCamera
 from app.devices.serial_controller import SerialController
 from app.recon.patterns import generate_patterns
-from tests.devices.test_opencv_camera import write_video
-from tests.devices.test_replay import make_recording
 from tests.helpers.device_contract import CameraContract, ControllerContract, ProjectorContract
+from tests.helpers.recordings import make_recording
+from tests.helpers.videos import write_video
 
 
 class TestSerialControllerContract(ControllerContract):
