@@ -16,7 +16,7 @@ import pytest
 
 from app.api.security import DASHBOARD_CSP
 from app.config import Settings
-from tests.browser.test_dashboard import CHROMIUM, CHROMIUM_ARGS, EXPOSURE_MS
+from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, EXPOSURE_MS
 from tests.helpers.outputs import serve, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
