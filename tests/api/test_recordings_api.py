@@ -23,7 +23,7 @@ from fastapi.testclient import TestClient
 
 from app.capture.captureset import read_capture_set
 from app.main import create_app
-from tests.api.conftest import live_settings, wait_for
+from tests.helpers.live_app import live_settings, wait_for
 
 TOKEN = "rec-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
