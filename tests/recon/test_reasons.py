@@ -42,7 +42,8 @@ def test_model_singular_column(rig, fast):
     cal.normalization["u"] = (float(u0), cal.normalization["u"][1])
     denominator = np.zeros(12)
     denominator[2] = 1.0  # denominator u': height = su / (u - u0), singular at u0
-    cal.model = Eq5Model(np.zeros(11), denominator, cal.normalization, cal.model.region)  # numerator 1
+    # numerator 1
+    cal.model = Eq5Model(np.zeros(11), denominator, cal.normalization, cal.model.region)
     frames = rig.render(np.full((rig.height, rig.width), 10.0))
     res = Reconstructor(cal, height_margin_mm=0.0, fast=fast).run(frames)
     assert (res.reason[:, u0] == Reason.MODEL_SINGULAR).all()
