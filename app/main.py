@@ -19,13 +19,13 @@ from fastapi.staticfiles import StaticFiles
 import app as app_package
 from app import __version__
 from app.api import api_router
-from app.api.auth import router as auth_router  # issue 16
+from app.api.auth import router as auth_router
 from app.api.bodylimit import install_body_limits
 from app.api.errors import install_api_fallback, install_error_handlers
-from app.api.security import install_security  # issue 7
+from app.api.security import install_security
 from app.config import Settings
 from app.service.instrument import Instrument
-from app.service.recorder import Recorder  # issue 7
+from app.service.recorder import Recorder
 
 log = logging.getLogger("fringescope.main")
 
@@ -89,7 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         instrument.start()
         if igtl is not None:
             try:
-                igtl.start()  # issue 16: a taken port fails the startup, like the HTTP port
+                igtl.start()  # a taken port fails the startup, like the HTTP port
             except OSError:
                 instrument.close()
                 raise
@@ -102,7 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
-            recorder.close()  # issue 7: finish a running recording before the devices stop
+            recorder.close()  # finish a running recording before the devices stop
             if viewer is not None:
                 viewer.stop()
             if igtl is not None:
@@ -116,13 +116,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.viewer = viewer
     app.state.igtl = igtl
     install_error_handlers(app)
-    install_security(app, settings)  # issue 7: token, CORS, WebSocket Origin, upload limit
+    install_security(app, settings)  # token, CORS, WebSocket Origin, upload limit
     install_body_limits(app)  # per-route body size, JSON depth, finite numbers (innermost)
-    app.state.recorder = recorder  # issue 7
+    app.state.recorder = recorder
 
     # (2) REST and streams
     app.include_router(api_router())
-    app.include_router(auth_router)  # issue 16: /healthz, /api/auth, /api/login, /api/logout
+    app.include_router(auth_router)  # /healthz, /api/auth, /api/login, /api/logout
 
     # (3) the 3-D viewer relay
     if viewer_routes is not None:

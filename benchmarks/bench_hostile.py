@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from app.config import Settings
     from app.main import create_app
-    from tests.api.hostile import capture_json, png_bomb_zip, zero_png
+    from tests.helpers.hostile import capture_json, png_bomb_zip, zero_png
 
     app = create_app(Settings(data_dir=Path(tempfile.mkdtemp()), viewer=False, autostart=False))
     with socket.socket() as s:

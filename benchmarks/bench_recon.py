@@ -24,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
-from tests.recon.analytic_rig import Rig, bump_surface
 
 WIDTH, HEIGHT = 1384, 1032
 

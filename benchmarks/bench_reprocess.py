@@ -42,8 +42,8 @@ from app.batch.engine import connect, plan, run_tasks  # noqa: E402
 from app.batch.setjob import ReconOptions, new_reconstructor, output_files, reconstruct_captures  # noqa: E402
 from app.calib import load_calibration, save_calibration  # noqa: E402
 from app.capture import CaptureSet, read_capture_set, write_capture_set  # noqa: E402
+from app.devices.sim.analytic_rig import Rig, bump_surface  # noqa: E402
 from app.recon.noise import estimate_sensor_noise  # noqa: E402
-from tests.recon.analytic_rig import Rig, bump_surface  # noqa: E402
 
 WIDTH, HEIGHT = 1384, 1032
 SETS_PER_HOUR = 7000  # the figure: ~2 sets/s at the paper's schedule

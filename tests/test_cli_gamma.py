@@ -14,7 +14,7 @@ import pytest
 
 from app.capture import CaptureSet, write_capture_set
 from app.cli import main
-from tests.recon.test_real_cfpe import BUST, CFPE, PLATE, frames, schedule, usable
+from tests.helpers.cfpe import BUST, CFPE, PLATE, frames, schedule, usable
 
 pytestmark = pytest.mark.skipif(not (CFPE / "recordings").is_dir(), reason=f"CFPE real captures not found at {CFPE}")
 

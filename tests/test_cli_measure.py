@@ -15,7 +15,7 @@ from app.cli import main
 from app.recon import Reconstructor
 from app.recon.noise import estimate_sensor_noise
 from app.service.measure import calibration_terms
-from tests.test_cli_reconstruct import _setup
+from tests.helpers.cli_sets import write_bump_set
 
 
 def _run(tmp_path, capsys, *args):
@@ -25,7 +25,7 @@ def _run(tmp_path, capsys, *args):
 
 
 def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     cal = load_calibration(tmp_path / "calibration.json")
     cap = read_capture_set(tmp_path / "set")
     res = Reconstructor(cal, noise=estimate_sensor_noise(cap.frames, cap.schedule, max_code=cap.max_code)).run(
@@ -53,7 +53,7 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
 
 
 def test_noise_only_leaves_out_the_calibration_term(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     cal = load_calibration(tmp_path / "calibration.json")
     with_cal = json.loads(_run(tmp_path, capsys, "--length", "20,20,100,90")[1])
     noise = json.loads(_run(tmp_path, capsys, "--length", "20,20,100,90", "--noise-only")[1])
@@ -64,7 +64,7 @@ def test_noise_only_leaves_out_the_calibration_term(tmp_path, capsys):
 
 
 def test_invalid_click_snaps(tmp_path, capsys):
-    _setup(tmp_path)  # the 8x8 corner patch has no fringes
+    write_bump_set(tmp_path)  # the 8x8 corner patch has no fringes
     rc, out, _ = _run(tmp_path, capsys, "--length", "7,7,60,60")
     got = json.loads(out)
     assert rc == 0 and got["snapped"] and got["points"][0]["pixel"] != [7, 7]
@@ -81,7 +81,7 @@ def test_invalid_click_snaps(tmp_path, capsys):
     (["--length", "20,20,40,40", "--reference", "1,1,2,2,3,1"], "--reference: only with --profile"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, needle):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     with pytest.raises(SystemExit) if needle == "expected pairs u,v" else _nothing():
         rc, out, err = _run(tmp_path, capsys, *args)
         assert rc == 2 and out == ""

@@ -12,8 +12,8 @@ import pytest
 from app.calib import save_calibration
 from app.capture import CaptureSet, write_capture_set
 from app.cli import main
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
 
 HET = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwrap="heterodyne")
 

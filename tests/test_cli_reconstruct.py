@@ -10,21 +10,12 @@ from app.capture import CaptureSet, write_capture_set
 from app.capture.ply import read_ply
 from app.cli import main
 from app.core.schedule import SCHEDULES, PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
-
-
-def _setup(tmp_path):
-    rig = Rig()
-    h = bump_surface(rig)
-    frames = rig.render(h, noise=0.5, rng=np.random.default_rng(4))
-    frames[:, :8, :8] = 90  # a patch without fringes → invalid
-    write_capture_set(tmp_path / "set", CaptureSet(frames, rig.schedule))
-    save_calibration(rig.calibration(), tmp_path / "calibration.json")
-    return h
+from app.devices.sim.analytic_rig import Rig, bump_surface
+from tests.helpers.cli_sets import write_bump_set
 
 
 def test_reconstruct_writes_outputs(tmp_path, capsys):
-    h = _setup(tmp_path)
+    h = write_bump_set(tmp_path)
     out = tmp_path / "out"
     rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
                "-o", str(out), "--range", "0,30"])
@@ -49,7 +40,7 @@ def test_reconstruct_writes_outputs(tmp_path, capsys):
 
 
 def test_reconstruct_numpy_path_matches(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     for flag, sub in (([], "a"), (["--numpy"], "b")):
         assert main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
                      "-o", str(tmp_path / sub), *flag]) == 0
@@ -60,7 +51,7 @@ def test_reconstruct_numpy_path_matches(tmp_path, capsys):
 
 
 def test_missing_folder_is_one_line_error(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     rc = main(["reconstruct", str(tmp_path / "nope"), "-c", str(tmp_path / "calibration.json"),
                "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
@@ -69,7 +60,7 @@ def test_missing_folder_is_one_line_error(tmp_path, capsys):
 
 
 def test_bad_calibration_is_one_line_error(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     (tmp_path / "calibration.json").write_text("{}")
     rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
                "-o", str(tmp_path / "out")])
@@ -80,7 +71,7 @@ def test_bad_calibration_is_one_line_error(tmp_path, capsys):
 def test_corrupted_geometric_calibration_is_one_line_error(tmp_path, capsys):
     import json
 
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     data = json.loads((tmp_path / "calibration.json").read_text())
     data["model"] = {"name": "geometric", "rvec": [0.0, "x", 0.0]}
     (tmp_path / "calibration.json").write_text(json.dumps(data))
@@ -94,7 +85,7 @@ def test_corrupted_geometric_calibration_is_one_line_error(tmp_path, capsys):
 def test_reconstruct_applies_the_calibration_carry_over_rule(tmp_path, capsys):
     """A 9-frame set reconstructs with a calibration made with the paper's 16 frames (same finest
     pattern, same depth); a set whose finest pattern differs is refused with one line, exit 2."""
-    h = _setup(tmp_path)
+    h = write_bump_set(tmp_path)
     cal = str(tmp_path / "calibration.json")
     for name, schedule in (("nine", SCHEDULES["geometric-9"]), ("finest12", PatternSchedule((1, 4, 12), 4))):
         rig = Rig(schedule=schedule)
@@ -112,7 +103,7 @@ def test_reconstruct_applies_the_calibration_carry_over_rule(tmp_path, capsys):
 
 
 def test_explicit_min_modulation_replaces_the_validity_rule(tmp_path, capsys):
-    _setup(tmp_path)
+    write_bump_set(tmp_path)
     args = ["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json")]
     assert main([*args, "-o", str(tmp_path / "rule")]) == 0
     assert main([*args, "-o", str(tmp_path / "high"), "--min-modulation", "200"]) == 0  # B = 90: none pass

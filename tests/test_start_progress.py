@@ -13,7 +13,7 @@ import pytest
 
 from app.config import Settings
 from tests.api.conftest import sim_calibration_file  # noqa: F401
-from tests.outputs.helpers import serve, wait_for
+from tests.helpers.outputs import serve, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "start_progress.py"

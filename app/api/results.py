@@ -66,7 +66,7 @@ def depth_latest(
     if format == "png":
         data = res.cached("png", lambda: encoding.depth_png_um(res.depth))
         return binary(data, "image/png", headers, "depth_um.png")
-    if format == "tiff":  # issue 7: 32-bit float TIFF, mm, NaN invalid
+    if format == "tiff":  # 32-bit float TIFF, mm, NaN invalid
         from app.capture.recording import depth_tiff_bytes
 
         data = res.cached("tiff", lambda: depth_tiff_bytes(res.depth))

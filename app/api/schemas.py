@@ -114,9 +114,9 @@ class StatusOut(BaseModel):
     frames_received: int
     frames_dropped: int
     faults: int
-    recording: str | None = None  # issue 7: name of the running recording
-    bit_depth: int | None = None  # issue 14: the camera's significant bits
-    schedule: dict[str, Any] | None = None  # issue 14: the fringe pattern schedule in use
+    recording: str | None = None  # name of the running recording
+    bit_depth: int | None = None  # the camera's significant bits
+    schedule: dict[str, Any] | None = None  # the fringe pattern schedule in use
     warnings: list[str]
     sensor_noise: dict[str, Any] | None = Field(
         None, description="the camera noise model σ and the validity rule use: source (measured | nominal), "
@@ -350,7 +350,7 @@ class LimitsOut(BaseModel):
     depth_range_mm: list[float] = Field(..., min_length=2, max_length=2, description="default colormap [min, max], mm")
 
 
-# -- measure (issue 17) ----------------------------------------------------------------------------
+# -- measure --------------------------------------------------------------------------------------
 Pixel = Annotated[list[Annotated[float, Field(strict=True, ge=-1e6, le=1e6)]], Field(min_length=2, max_length=2)]
 MEASURE_KINDS = Literal["length", "point_to_line", "depth", "profile", "area"]
 

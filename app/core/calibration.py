@@ -135,20 +135,10 @@ class Calibration:
         """c1..c11 of the Eq. (5) model (``ValueError`` for another model)."""
         return self._eq5().numerator
 
-    @numerator.setter
-    def numerator(self, value: npt.ArrayLike) -> None:
-        m = self._eq5()
-        self.model = Eq5Model(np.asarray(value), m.denominator, m.normalization, m.region)
-
     @property
     def denominator(self) -> npt.NDArray[np.float64]:
         """d0..d11 of the Eq. (5) model."""
         return self._eq5().denominator
-
-    @denominator.setter
-    def denominator(self, value: npt.ArrayLike) -> None:
-        m = self._eq5()
-        self.model = Eq5Model(m.numerator, np.asarray(value), m.normalization, m.region)
 
     @property
     def normalization(self) -> dict[str, tuple[float, float]]:

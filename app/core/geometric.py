@@ -51,7 +51,8 @@ PHASE_FLOOR_PX = 0.01  # projector px: held-out errors below this count as exact
 #: independent; the poses are)
 K1_CONFIDENCE = 0.95
 #: the depth model's own uncertainty (1 σ, jackknife over poses) allowed at a supported (pixel,
-#: height): half of issue 13's |mean error| <= 0.005 mm, so that a 2 σ calibration error still meets it
+#: height): half of the accuracy target |mean error| <= 0.005 mm, so that a 2 σ calibration
+#: error still meets it
 MODEL_SIGMA_TOLERANCE_MM = 0.0025
 CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
 

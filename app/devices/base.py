@@ -145,6 +145,13 @@ class Device(ABC):
                 self._state = DeviceState.CLOSED
                 self.log.info("closed")
 
+    def stop(self) -> None:
+        """Leave RUNNING (a no-op in any other state); the device stays open."""
+        with self._lock:
+            if self._state is DeviceState.RUNNING:
+                self._call("stop", self._do_stop)
+                self._state = DeviceState.OPEN
+
     def __enter__(self) -> Device:
         self.open()
         return self
@@ -218,12 +225,6 @@ class Camera(Device):
             self._call("start", self._do_start)
             self._state = DeviceState.RUNNING
 
-    def stop(self) -> None:
-        with self._lock:
-            if self._state is DeviceState.RUNNING:
-                self._call("stop", self._do_stop)
-                self._state = DeviceState.OPEN
-
     def grab(self, timeout_s: float = 1.0) -> Frame:
         """Next frame; raises DeviceTimeout, DeviceDisconnected or DeviceStateError.
 
@@ -248,7 +249,81 @@ class Camera(Device):
     def _do_grab(self, timeout_s: float) -> Frame: ...
 
 
-class Projector(Device):
+def significant_bits(data: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], source_bits: int) -> int:
+    """The full-scale rule of a camera frame: the bits its codes may fill.
+
+    Args:
+        data: the (H, W) mono frame, uint8 or uint16.
+        source_bits: the bits the source fills in a 16-bit sample (12 for Mono12, 16 for
+            Mono16 or a 16-bit OpenCV source, whose packing is unknown: full scale).
+
+    Returns:
+        8 for uint8 data, else ``source_bits``; the saturation code is ``2**bits − 1``.
+    """
+    if data.dtype == np.uint8:
+        return 8
+    if not 8 < source_bits <= 16:
+        raise ValueError(f"source_bits: must be within 9–16 for uint16 data, got {source_bits}")
+    return int(source_bits)
+
+
+class CountingCamera(Camera):
+    """A camera that learns the pattern index by trigger counting.
+
+    After ``start()`` (or :meth:`sync`) frame ``k`` shows pattern ``k mod schedule_length``.
+    """
+
+    def __init__(self, *, schedule_length: int, name: str | None = None) -> None:
+        super().__init__(name=name)
+        if schedule_length < 1:
+            raise ValueError(f"schedule_length: must be >= 1, got {schedule_length}")
+        self.schedule_length = schedule_length
+        self._count = 0
+        self._sync_at = 0
+
+    def sync(self) -> None:
+        """Declare that the next frame shows pattern 0 (e.g. after the projector restarted)."""
+        self._sync_at = self._count
+
+    def _frame(self, data: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], stamp: float, *,
+               source_bits: int, meta: dict[str, Any] | None = None) -> Frame:
+        """The grab tail: count the frame and stamp it with the settings in force."""
+        index = self._count
+        self._count += 1
+        s = self._settings
+        return Frame(data=data, index=index, timestamp=stamp,
+                     pattern_index=(index - self._sync_at) % self.schedule_length,
+                     exposure_ms=s.exposure_ms, gain=s.gain, meta=dict(meta or {}),
+                     bit_depth=significant_bits(data, source_bits))
+
+
+class LedMixin(Device):
+    """The LED a device lights and its current: the projector's and the LED/trigger box's.
+
+    A closed device only remembers the choice and applies it when opened.
+    """
+
+    def __init__(self, *, name: str | None = None) -> None:
+        super().__init__(name=name)
+        self.led: str = DEFAULT_LED
+        self.led_current = 0.5  # fraction 0–1 of the backend's maximum current
+
+    def set_led(self, led: str, *, current: float | None = None) -> None:
+        """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
+        check_led(led)
+        cur = self.led_current if current is None else float(current)
+        if not (0.0 <= cur <= 1.0):
+            raise ValueError(f"current: must be within 0–1, got {current}")
+        with self._lock:
+            if self._state is not DeviceState.CLOSED:
+                self._call("set_led", self._do_set_led, led, cur)
+            self.led, self.led_current = led, cur
+
+    @abstractmethod
+    def _do_set_led(self, led: str, current: float) -> None: ...
+
+
+class Projector(LedMixin):
     """A pattern projector: a fringe schedule shown in sequence under one LED."""
 
     kind = "projector"
@@ -256,9 +331,6 @@ class Projector(Device):
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
         self.schedule: PatternSchedule | None = None
-        self.led: str = DEFAULT_LED
-        self.led_current = 0.5
-        self.trigger_mode = "internal"
         self.exposure_ms = DEFAULT_EXPOSURE_MS
 
     def load_schedule(self, schedule: PatternSchedule, *, exposure_ms: float | None = None) -> None:
@@ -283,25 +355,6 @@ class Projector(Device):
                 self._call("timing", self._do_set_exposure, exp)
             self.exposure_ms = exp
 
-    def set_led(self, led: str, *, current: float | None = None) -> None:
-        """Select the LED (red/green/blue) and optionally its current (fraction 0–1)."""
-        check_led(led)
-        cur = self.led_current if current is None else float(current)
-        if not (0.0 <= cur <= 1.0):
-            raise ValueError(f"current: must be within 0–1, got {current}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("set_led", self._do_set_led, led, cur)
-            self.led, self.led_current = led, cur
-
-    def set_trigger_mode(self, mode: str) -> None:
-        if mode not in ("internal", "external"):
-            raise ValueError(f"mode: must be 'internal' or 'external', got {mode!r}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("trigger", self._do_set_trigger_mode, mode)
-            self.trigger_mode = mode
-
     def start(self) -> None:
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="start")
@@ -310,12 +363,6 @@ class Projector(Device):
             if self._state is DeviceState.OPEN:
                 self._call("start", self._do_start)
                 self._state = DeviceState.RUNNING
-
-    def stop(self) -> None:
-        with self._lock:
-            if self._state is DeviceState.RUNNING:
-                self._call("stop", self._do_stop)
-                self._state = DeviceState.OPEN
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "led": self.led, "led_current": self.led_current}
@@ -328,24 +375,16 @@ class Projector(Device):
         """Set the pattern timing for ``exposure_ms`` without uploading patterns again."""
 
     @abstractmethod
-    def _do_set_led(self, led: str, current: float) -> None: ...
-
-    def _do_set_trigger_mode(self, mode: str) -> None:  # optional hook
-        pass
-
-    @abstractmethod
     def _do_start(self) -> None: ...
 
 
-class Controller(Device):
+class Controller(LedMixin):
     """The LED/trigger box: LED channel and current, trigger arming, watchdog heartbeat."""
 
     kind = "controller"
 
     def __init__(self, *, name: str | None = None) -> None:
         super().__init__(name=name)
-        self.led: str = DEFAULT_LED
-        self.current = 0.5
         self.armed = False
         self.frames_per_set = 16  # camera triggers per armed sequence: the schedule's frames
 
@@ -370,16 +409,6 @@ class Controller(Device):
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="identify")
             return str(self._call("identify", self._do_identify))
 
-    def set_led(self, led: str, *, current: float | None = None) -> None:
-        check_led(led)
-        cur = self.current if current is None else float(current)
-        if not (0.0 <= cur <= 1.0):
-            raise ValueError(f"current: must be within 0–1, got {current}")
-        with self._lock:
-            if self._state is not DeviceState.CLOSED:
-                self._call("set_led", self._do_set_led, led, cur)
-            self.led, self.current = led, cur
-
     def arm(self) -> None:
         with self._lock:
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="arm")
@@ -400,6 +429,10 @@ class Controller(Device):
             self._require(DeviceState.OPEN, DeviceState.RUNNING, action="send a heartbeat")
             self._call("heartbeat", self._do_heartbeat)
 
+    def stop(self) -> None:
+        """Leave RUNNING: for the LED/trigger box, disarm."""
+        self.disarm()
+
     def _do_stop(self) -> None:
         self._do_arm(False)
 
@@ -408,9 +441,6 @@ class Controller(Device):
 
     @abstractmethod
     def _do_identify(self) -> str: ...
-
-    @abstractmethod
-    def _do_set_led(self, led: str, current: float) -> None: ...
 
     @abstractmethod
     def _do_arm(self, armed: bool) -> None: ...

@@ -4,7 +4,7 @@
 imported only when a camera is opened. Mono8 (or Mono12/Mono16 for ``bit_depth`` 12/16)
 is requested where the camera offers it; ``ExposureTime`` (µs), ``Gain`` and the
 hardware trigger (``TriggerMode=On``, ``TriggerSource=Line0``) are set where the
-node map has them. Pattern index from trigger counting, as in :mod:`opencv_camera`.
+node map has them. Pattern index from trigger counting (:class:`~app.devices.base.CountingCamera`).
 """
 
 from __future__ import annotations
@@ -16,11 +16,12 @@ from typing import Any
 import numpy as np
 
 from app.core.limits import EXPOSURE_RANGE_MS
-from app.devices.base import Camera, CameraCapabilities, CameraSettings, Frame
+from app.devices.base import CameraCapabilities, CameraSettings, CountingCamera, Frame
 from app.devices.errors import DeviceDisconnected, DeviceError, DeviceNotFound, DeviceTimeout
 from app.devices.opencv_camera import to_mono
 
 PIXEL_FORMATS = {8: ("Mono8",), 12: ("Mono12", "Mono16"), 16: ("Mono16",)}
+SOURCE_BITS = {"Mono8": 8, "Mono12": 12, "Mono16": 16}  # the bits each pixel format fills
 
 
 def _info(info: Any, key: str) -> Any:
@@ -35,7 +36,7 @@ def _node(node_map: Any, name: str) -> Any | None:
     return getattr(node_map, name, None) if hasattr(node_map, name) else None
 
 
-class GenICamCamera(Camera):
+class GenICamCamera(CountingCamera):
     """Camera ``device`` (index, serial number or user-defined name) of GenTL producer ``cti``.
 
     Args:
@@ -45,16 +46,13 @@ class GenICamCamera(Camera):
 
     def __init__(self, cti: str | Path, *, device: int | str = 0, hardware_trigger: bool = False,
                  schedule_length: int = 16, name: str | None = None) -> None:
-        super().__init__(name=name or f"GenICamCamera({Path(cti).name}:{device})")
-        if schedule_length < 1:
-            raise ValueError(f"schedule_length: must be >= 1, got {schedule_length}")
+        super().__init__(schedule_length=schedule_length,
+                         name=name or f"GenICamCamera({Path(cti).name}:{device})")
         self.cti, self.device, self.hardware_trigger = Path(cti), device, hardware_trigger
-        self.schedule_length = schedule_length
         self._harvester: Any = None
         self._ia: Any = None
         self._caps: CameraCapabilities | None = None
-        self._count = 0
-        self._sync_at = 0
+        self._source_bits = 16  # a 16-bit sample of unknown format: full scale
         self._timeout_exc: tuple[type[BaseException], ...] = ()
         self.model = ""
 
@@ -135,7 +133,8 @@ class GenICamCamera(Camera):
             if name in pf.symbolics:
                 if pf.value != name:
                     pf.value = name
-                return
+                break
+        self._source_bits = SOURCE_BITS.get(str(pf.value), 16)
 
     def _do_close(self) -> None:
         ia, h = self._ia, self._harvester
@@ -200,28 +199,5 @@ class GenICamCamera(Camera):
         except Exception as exc:
             raise DeviceDisconnected(f"fetch failed ({exc})") from None
         stamp = time.monotonic()
-        index = self._count
-        self._count += 1
-        s = self._settings
-        data = to_mono(image, s.bit_depth)
-        return Frame(data=data, index=index, timestamp=stamp,
-                     pattern_index=(index - self._sync_at) % self.schedule_length,
-                     exposure_ms=s.exposure_ms, gain=s.gain, meta={"model": self.model},
-                     bit_depth=s.bit_depth if data.dtype == np.uint16 else 8)
-
-    def set_node(self, name: str, value: Any) -> None:
-        """Set a GenICam feature by name (rig-specific settings, e.g. ``AcquisitionFrameRate``)."""
-        with self._lock:
-            if self._ia is None:
-                raise DeviceError(f"{self.name}: open the camera before setting {name}")
-            nm = self._ia.remote_device.node_map
-            if _node(nm, name) is None:
-                raise ValueError(f"name: the camera has no feature {name!r}")
-            try:
-                nm.get_node(name).value = value
-            except Exception as exc:
-                raise ValueError(f"value: {name} = {value!r} refused ({exc})") from None
-
-    def sync(self) -> None:
-        """Declare that the next frame shows pattern 0."""
-        self._sync_at = self._count
+        data = to_mono(image, self._settings.bit_depth)
+        return self._frame(data, stamp, source_bits=self._source_bits, meta={"model": self.model})

@@ -440,7 +440,7 @@ class LightCrafterProjector(Projector):
                              f"got {schedule.width}x{schedule.height}")
         client = self._c()
         client.start_sequence(False)
-        self._send_sequence(schedule.n_frames, bits, self.led, self.trigger_mode, exposure_ms)
+        self._send_sequence(schedule.n_frames, bits, self.led, exposure_ms)
         for i, image in enumerate(generate_patterns(schedule)):
             client.define_pattern(i, encode_bmp(quantise_levels(image, bits), 8))
         client.set_trigger_out(enable=True, delay_us=self.trigger_delay_us,
@@ -449,15 +449,14 @@ class LightCrafterProjector(Projector):
         if self.state.value == "running":
             client.start_sequence(True)
 
-    def _send_sequence(self, count: int, bits: int, led: str, mode: str,
-                       exposure_ms: float) -> None:
+    def _send_sequence(self, count: int, bits: int, led: str, exposure_ms: float) -> None:
         exposure_us = round(exposure_ms * 1000)
-        self._c().set_sequence(bit_depth=bits, count=count,
-                               trigger=TRIG_AUTO if mode == "internal" else TRIG_EXT_POS,
+        # the projector's own clock paces the set; the camera follows its trigger out
+        self._c().set_sequence(bit_depth=bits, count=count, trigger=TRIG_AUTO,
                                exposure_us=exposure_us, period_us=exposure_us + self.dark_us,
                                led=LED_SELECT[led], extended=self.extended_sequence)
 
-    def _resend_sequence(self, led: str, mode: str, exposure_ms: float | None = None) -> None:
+    def _resend_sequence(self, led: str, exposure_ms: float | None = None) -> None:
         """The sequence setting alone: same bit depth and count, so the patterns stay."""
         if self.schedule is None:
             return
@@ -465,14 +464,14 @@ class LightCrafterProjector(Projector):
         if running:
             self._c().start_sequence(False)
         exp = self.exposure_ms if exposure_ms is None else exposure_ms
-        self._send_sequence(self.schedule.n_frames, self.bit_depth, led, mode, exp)
+        self._send_sequence(self.schedule.n_frames, self.bit_depth, led, exp)
         if running:
             self._c().start_sequence(True)
 
     def _do_set_exposure(self, exposure_ms: float) -> None:
         """The timing call: exposure and period in the sequence setting, no pattern upload."""
         if round(exposure_ms * 1000) != round(self.exposure_ms * 1000):
-            self._resend_sequence(self.led, self.trigger_mode, exposure_ms)
+            self._resend_sequence(self.led, exposure_ms)
 
     def _currents(self, led: str, current: float) -> tuple[int, int, int]:
         values = [0, 0, 0]
@@ -482,11 +481,7 @@ class LightCrafterProjector(Projector):
     def _do_set_led(self, led: str, current: float) -> None:
         self._c().set_led_current(*self._currents(led, current))
         if led != self.led:
-            self._resend_sequence(led, self.trigger_mode)
-
-    def _do_set_trigger_mode(self, mode: str) -> None:
-        if mode != self.trigger_mode:
-            self._resend_sequence(self.led, mode)
+            self._resend_sequence(led)
 
     def _do_start(self) -> None:
         self._c().start_sequence(True)

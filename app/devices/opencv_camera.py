@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.limits import EXPOSURE_RANGE_MS
-from app.devices.base import Camera, CameraCapabilities, CameraSettings, Frame
+from app.devices.base import CameraCapabilities, CameraSettings, CountingCamera, Frame
 from app.devices.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout
 
 FILE_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -39,7 +39,7 @@ def to_mono(image: npt.NDArray[Any], bit_depth: int = 8) -> npt.NDArray[np.uint8
     return img
 
 
-class OpenCVCamera(Camera):
+class OpenCVCamera(CountingCamera):
     """OpenCV capture of ``source``: an int index, a device path, a URL or a video file.
 
     Args:
@@ -52,22 +52,18 @@ class OpenCVCamera(Camera):
     def __init__(self, source: int | str, *, schedule_length: int = 16, loop: bool = True,
                  fps: float | None = None, disconnect_after: int = 30, queue_size: int = 4,
                  name: str | None = None) -> None:
-        super().__init__(name=name or f"OpenCVCamera({source})")
-        if schedule_length < 1:
-            raise ValueError(f"schedule_length: must be >= 1, got {schedule_length}")
+        super().__init__(schedule_length=schedule_length, name=name or f"OpenCVCamera({source})")
         if isinstance(source, str) and source.strip().isdigit():
             source = int(source)
         self.source = source
         self.is_file = isinstance(source, str) and source.lower().endswith(FILE_SUFFIXES)
-        self.schedule_length, self.loop, self.fps = schedule_length, loop, fps
+        self.loop, self.fps = loop, fps
         self.disconnect_after, self.queue_size = disconnect_after, queue_size
         self._cap: cv2.VideoCapture | None = None
         self._size = (0, 0)
         self._queue: queue.Queue[tuple[npt.NDArray[Any], float] | BaseException] = queue.Queue(queue_size)
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
-        self._count = 0
-        self._sync_at = 0
 
     # --- hooks ---------------------------------------------------------------------------
     def _do_open(self) -> None:
@@ -129,17 +125,8 @@ class OpenCVCamera(Camera):
         if isinstance(item, BaseException):
             raise item
         image, stamp = item
-        index = self._count
-        self._count += 1
-        s = self._settings
-        data = to_mono(image, s.bit_depth)
-        return Frame(data=data, index=index, timestamp=stamp,
-                     pattern_index=(index - self._sync_at) % self.schedule_length,
-                     exposure_ms=s.exposure_ms, gain=s.gain, bit_depth=8 if data.dtype == np.uint8 else 16)
-
-    def sync(self) -> None:
-        """Declare that the next frame shows pattern 0 (e.g. after the projector restarted)."""
-        self._sync_at = self._count
+        # OpenCV does not say how a 16-bit source packs its codes: full scale
+        return self._frame(to_mono(image, self._settings.bit_depth), stamp, source_bits=16)
 
     # --- reader thread -----------------------------------------------------------------------
     def _stop_reader(self) -> None:

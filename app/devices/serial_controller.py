@@ -228,7 +228,7 @@ class SerialController(Controller):
             link.command("DISARM")
             link.command(f"TMODE {self.trigger_mode}")
             link.command(f"TCNT {self.frames_per_set}")
-            self._apply_led(link, self.led, self.current)
+            self._apply_led(link, self.led, self.led_current)
         except BaseException:
             link.close()
             raise

@@ -28,13 +28,13 @@ inside one big parallel body LLVM could not prove the buffers distinct. Semantic
 those of the numpy oracle (``phase``/``unwrap``/``model``/``points``); only the
 arithmetic is float32. ``fastmath`` excludes ``nnan``/``ninf`` because NaN marks
 invalid pixels. The JIT result is cached on disk (``cache=True``).
+
+The threading layer is the entry points' setting, not this module's: the CLI, the Makefile
+and the container set ``NUMBA_THREADING_LAYER=workqueue`` (OpenMP's spinning threads are
+8x slower on 2 cores), and numba reads it when the first parallel kernel is compiled.
 """
 
 from __future__ import annotations
-
-import os
-
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # spinning OpenMP threads: 8× slower on 2 cores
 
 import math
 import threading
@@ -207,17 +207,6 @@ def atan2_coarse(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - co
     a, steep, left, below = _octant(y, x)
     s = a * a
     return _unfold(((((_C4 * s + _C3) * s + _C2) * s + _C1) * s + _C0) * a, steep, left, below)
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_array(y: npt.NDArray[np.float32], x: npt.NDArray[np.float32], coarse: bool = False,
-                ) -> npt.NDArray[np.float32]:  # pragma: no cover
-    """Elementwise :func:`atan2_0_2pi` (or :func:`atan2_coarse`), for tests: 1-D float32 in,
-    float32 in [0, 2π) out."""
-    out = np.empty(y.shape[0], np.float32)
-    for i in range(y.shape[0]):
-        out[i] = atan2_coarse(y[i], x[i]) if coarse else atan2_0_2pi(y[i], x[i])
-    return out
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)

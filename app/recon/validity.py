@@ -74,7 +74,7 @@ from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, check_consistency_rad, unw
 
 #: Default bound on the probability that a pixel's fringe order is wrong and undetected.
 DEFAULT_ORDER_ERROR_RATE = 1e-6
-#: A depth error beyond this is a wrong depth, mm (issue 13: zero valid pixels beyond 0.5 mm).
+#: A depth error beyond this is a wrong depth, mm (acceptance: zero valid pixels beyond 0.5 mm).
 DEFAULT_GROSS_ERROR_MM = 0.5
 
 F64 = npt.NDArray[np.float64]

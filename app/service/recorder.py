@@ -128,7 +128,7 @@ class Recorder:
         remove_stale_partials(self.root)
         # the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source = pose_source
-        # issue 17: the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
+        # the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
         self.measurements: list[dict[str, Any]] = []
 
     # -- control (any thread) --------------------------------------------------------------
@@ -429,14 +429,14 @@ class Recorder:
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}
             poses = self.pose_source() if self.pose_source is not None else None
-            if poses:  # issue 16: stored in capture.json and session.json
+            if poses:  # stored in capture.json and session.json
                 capture.extra["igtl_transforms"] = poses
                 info["igtl_transforms"] = poses
             if res is not None:
                 info.update(result_seq=res.seq, latency_ms=round(res.latency_ms, 3),
                             valid_fraction=round(float(res.valid.mean()), 6))
                 specs = list(self.measurements)
-                if specs:  # issue 17: the dashboard's measurements on this set's depth map
+                if specs:  # the dashboard's measurements on this set's depth map
                     from app.service.measure import calibration_terms, measure_specs
 
                     normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))

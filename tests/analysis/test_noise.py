@@ -9,8 +9,7 @@ import pytest
 
 from app.analysis import dz_dphi, height_noise_mm, phase_noise_rad
 from app.calib import fit_observations
-from tests.calib.rig import STANDARD_POSES, Rig, board_pose
-from tests.calib.test_fit import BOARD
+from tests.helpers.calib_rig import BOARD, STANDARD_POSES, Rig, board_pose
 
 
 def test_phase_noise_matches_monte_carlo():

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
@@ -20,9 +19,7 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
 from app.config import Settings
 from app.main import create_app
-
-LIVE_EXPOSURE_MS = 30.0  # the paper's range; the simulator renders each frame well within the period
-LIVE_SCENE = "dof_target"  # static: cheap to render, and has a known truth
+from tests.helpers.live_app import live_settings, wait_for
 
 
 @pytest.fixture(scope="session")
@@ -53,15 +50,6 @@ def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def live_settings(tmp_path: Path, calibration_file: Path | None, **overrides: Any) -> Settings:
-    values: dict[str, Any] = {
-        "data_dir": tmp_path / "data", "calibration_file": calibration_file, "viewer": False,
-        "sim_seed": 1, "exposure_ms": LIVE_EXPOSURE_MS, "sim_scene": LIVE_SCENE,
-    }
-    values.update(overrides)
-    return Settings(**values)
-
-
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:
     """One running app shared by a module's tests (they restore what they change)."""
@@ -69,31 +57,3 @@ def live(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -
     with TestClient(create_app(settings)) as client:
         wait_for(client, lambda st: st["results_published"] >= 1, 120)
         yield client
-
-
-def wait_for(client: TestClient, predicate: Callable[[dict[str, Any]], bool], timeout_s: float,
-             what: str = "condition") -> dict[str, Any]:
-    """Poll /api/status until ``predicate(status)`` holds; fail with the last status."""
-    deadline = time.monotonic() + timeout_s
-    st: dict[str, Any] = {}
-    while time.monotonic() < deadline:
-        st = client.get("/api/status").json()
-        if predicate(st):
-            return st
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}; last status: {st}")
-
-
-def wait_result(client: TestClient, predicate: Callable[[dict[str, Any]], bool], timeout_s: float,
-                what: str = "result") -> dict[str, Any]:
-    """Poll /api/result/latest until ``predicate(meta)`` holds."""
-    deadline = time.monotonic() + timeout_s
-    meta: dict[str, Any] = {}
-    while time.monotonic() < deadline:
-        r = client.get("/api/result/latest")
-        if r.status_code == 200:
-            meta = r.json()
-            if predicate(meta):
-                return meta
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}; last result: {meta}")

@@ -17,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.api.conftest import live_settings, wait_for
+from tests.helpers.live_app import live_settings, wait_for
 
 
 def show(world: Any, scene: Any) -> None:

@@ -225,7 +225,7 @@ def test_a_frame_that_is_not_png_or_tiff_is_refused_before_decoding(client: Test
     import cv2
     import numpy as np
 
-    from tests.api.hostile import capture_json
+    from tests.helpers.hostile import capture_json
 
     ok, jpeg = cv2.imencode(".jpg", np.zeros((8, 8), np.uint8))
     frames = {f"frame_{i:02d}.png": jpeg.tobytes() for i in range(16)}

@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.api.conftest import live_settings, wait_for, wait_result
+from tests.helpers.live_app import live_settings, wait_for, wait_result
 
 
 def _groups_gap_free(frame_indices: list[int], steps: int = 4) -> bool:

@@ -21,7 +21,7 @@ from fastapi.testclient import TestClient
 
 from app.core.jsonlimits import MAX_JSON_DEPTH
 from app.main import create_app
-from tests.api.conftest import live_settings
+from tests.helpers.live_app import live_settings
 
 NON_FINITE = ("NaN", "Infinity", "-Infinity", "1e400")
 LONG = "n" * 300

@@ -23,7 +23,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.api.hostile import capture_json, png_bomb_zip, zero_png
+from tests.helpers.hostile import capture_json, png_bomb_zip, zero_png
 
 pytestmark = pytest.mark.slow
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.api.conftest import LIVE_EXPOSURE_MS, wait_for, wait_result
+from tests.helpers.live_app import LIVE_EXPOSURE_MS, wait_for, wait_result
 
 STATUS_KEYS = {
     "state", "camera_fps", "depth_fps", "latency_ms", "exposure_ms", "led", "mode", "calibration",

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from app.analysis.measure import measure
 from app.capture.captureset import read_capture_set
 from app.service.measure import calibration_terms
-from tests.api.conftest import wait_for
+from tests.helpers.live_app import wait_for
 
 
 def valid_pixels(valid: np.ndarray, n: int, rng: np.random.Generator, margin: int = 40) -> list[list[int]]:

@@ -12,9 +12,9 @@ from fastapi.testclient import TestClient
 
 from app.capture import CaptureSet, write_capture_set
 from app.config import Settings
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.main import create_app
 from app.recon import PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
 
 HET = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwrap="heterodyne")
 

@@ -23,7 +23,7 @@ from fastapi.testclient import TestClient
 
 from app.capture.captureset import read_capture_set
 from app.main import create_app
-from tests.api.conftest import live_settings, wait_for
+from tests.helpers.live_app import live_settings, wait_for
 
 TOKEN = "rec-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -39,7 +39,7 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
     # 40 ms: sets stay whole on a busy 2-core machine (the camera buffer outlasts a reconstruction)
     settings = live_settings(tmp_path, sim_calibration_file, api_token=TOKEN, exposure_ms=40.0)
     with TestClient(create_app(settings)) as client:
-        assert client.get("/api/status").status_code == 401  # issue 16: reads need the token too
+        assert client.get("/api/status").status_code == 401  # reads need the token too
         assert client.post("/api/login", headers=AUTH).status_code == 200  # session cookie for reads
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/recording/start", json={"name": "op-1"}).status_code == 401

@@ -13,7 +13,7 @@ from app.calib import load_calibration
 from app.config import Settings
 from app.core.schedule import SCHEDULES, PatternSchedule
 from app.service.instrument import Instrument
-from tests.api.conftest import wait_for, wait_result
+from tests.helpers.live_app import wait_for, wait_result
 
 
 def test_schedules_table_predicts_from_the_live_rig(live: TestClient) -> None:

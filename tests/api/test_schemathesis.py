@@ -31,7 +31,7 @@ from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from app.config import Settings
 from app.main import create_app
-from tests.api.conftest import live_settings, wait_for
+from tests.helpers.live_app import live_settings, wait_for
 
 pytestmark = pytest.mark.slow
 

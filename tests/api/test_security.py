@@ -109,7 +109,7 @@ def test_no_token_on_loopback_leaves_routes_open() -> None:
 
 def test_token_guards_state_changing_routes() -> None:
     client = TestClient(make_app(api_token=TOKEN))
-    # issue 16: reads need the token too (the open health check is /healthz, see test_access.py)
+    # reads need the token too (the open health check is /healthz, see test_access.py)
     assert client.get("/api/status").status_code == 401
     assert client.get("/api/status", headers=AUTH).status_code == 200
     for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": f"Basic {TOKEN}"},
@@ -144,7 +144,7 @@ def test_viewer_relay_needs_token_by_header_cookie_or_query() -> None:
     assert client.get("/viser/").status_code == 200  # the cookie now travels
     with client.websocket_connect("/viser/ws") as ws:
         assert ws.receive_text() == "hello"
-    # issue 16: read-only streams need the token as well (header, cookie or query)
+    # read-only streams need the token as well (header, cookie or query)
     fresh = TestClient(make_app(api_token=TOKEN))
     with pytest.raises(WebSocketDisconnect) as err, fresh.websocket_connect("/api/stream"):
         pass
@@ -219,4 +219,4 @@ def test_checked_name_and_openapi() -> None:
     spec = client.get("/openapi.json").json()
     assert spec["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
     assert spec["paths"]["/api/exposure"]["put"]["security"] == [{"bearer": []}]
-    assert spec["paths"]["/api/status"]["get"]["security"] == [{"bearer": []}]  # issue 16
+    assert spec["paths"]["/api/status"]["get"]["security"] == [{"bearer": []}]

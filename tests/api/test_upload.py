@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from app.capture.captureset import write_capture_set
 from app.main import create_app
-from tests.api.conftest import live_settings
+from tests.helpers.live_app import live_settings
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from app.capture import CaptureSet, write_capture_set
 from app.capture.recording import Recording
 from app.cli import main
 from app.core.schedule import PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
+from app.devices.sim.analytic_rig import Rig, bump_surface
 
 ROOT = Path(__file__).resolve().parents[2]
 DASK = Path(sys.executable).parent / "dask"

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from tests.api.conftest import sim_calibration_file as _make_sim_calibration_file
+from tests.helpers.dashboard import page, server  # noqa: F401  (per-module fixtures: the app, one page)
 
 _make = _make_sim_calibration_file.__wrapped__  # type: ignore[attr-defined]
 

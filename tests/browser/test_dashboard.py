@@ -9,7 +9,6 @@ test-artifacts/dashboard.png.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -18,64 +17,12 @@ import httpx
 import numpy as np
 import pytest
 
-from app.config import Settings
 from app.recon.colormap import depth_colormap
-from tests.outputs.helpers import serve, wait_for
+from tests.helpers.outputs import wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
-# Console messages that are not errors of ours: none so far (keep this list short).
-IGNORED_CONSOLE: tuple[str, ...] = ()
-EXPOSURE_MS = 60.0
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
-    if not CHROMIUM.exists():
-        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
-    from app.main import create_app
-
-    calibration = request.getfixturevalue("browser_calibration_file")
-    data_dir = tmp_path_factory.mktemp("fringescope-data")
-    # A long exposure leaves the real-time simulator slack on a busy 2-core machine.
-    settings = Settings(data_dir=data_dir, calibration_file=calibration, sim_seed=7,
-                        exposure_ms=EXPOSURE_MS, viewer_max_points=100_000)
-    with serve(create_app(settings)) as host:
-        base = f"http://{host}"
-        # First start on the simulator creates its calibration: wait for live depth.
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 2, 600, 0.5)
-        assert ok, httpx.get(f"{base}/api/status").json()
-        yield base
-
-
-@pytest.fixture(scope="module")
-def page(server: str) -> Iterator[tuple[Any, list[str]]]:
-    from playwright.sync_api import sync_playwright
-
-    errors: list[str] = []
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            # Playwright's wait_for_function evaluates its string with eval, which the dashboard's
-            # CSP forbids; tests/browser/test_csp.py checks the page under the CSP
-            pg = browser.new_page(viewport={"width": 1600, "height": 1000},
-                                  bypass_csp=True)
-
-            def on_console(msg: Any) -> None:
-                if msg.type == "error" and not any(s in msg.text for s in IGNORED_CONSOLE):
-                    errors.append(f"console: {msg.text} @ {msg.location}")
-
-            pg.on("console", on_console)
-            pg.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
-            pg.goto(server + "/", wait_until="load")
-            pg.wait_for_function("window.fringescope && window.fringescope.framesShown >= 1", timeout=60_000)
-            yield pg, errors
-        finally:
-            browser.close()
 
 
 def _canvas_png(pg: Any, selector: str) -> bytes:

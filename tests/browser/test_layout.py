@@ -18,7 +18,7 @@ import httpx
 import pytest
 
 from app.config import Settings
-from tests.outputs.helpers import serve, wait_for
+from tests.helpers.outputs import serve, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -8,8 +8,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.browser.test_dashboard import page, server  # noqa: F401  (module fixtures: the app and one page)
-from tests.outputs.helpers import wait_for
+from tests.helpers.outputs import wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

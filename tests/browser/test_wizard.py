@@ -16,8 +16,8 @@ import httpx
 import pytest
 
 from app.config import Settings
-from tests.browser.test_dashboard import CHROMIUM, CHROMIUM_ARGS
-from tests.outputs.helpers import serve, wait_for
+from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS
+from tests.helpers.outputs import serve, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -9,38 +9,7 @@ import numpy as np
 import pytest
 
 from app.calib import BoardSpec, detect_board, load_board, texture_to_u8
-from tests.calib.rig import Rig, board_pose
-
-SCALE = 40.0  # raster px per mm for rendering
-
-
-def _render(board: BoardSpec, rmat, tvec, rig: Rig) -> np.ndarray:
-    """Image of the board through the rig's camera (white margin, blurred edges)."""
-    obj = board.object_points()
-    lo = obj[:, :2].min(axis=0) - 2 * board.pitch_mm
-    hi = obj[:, :2].max(axis=0) + 2 * board.pitch_mm
-    w, h = ((hi - lo) * SCALE).astype(int)
-    yy, xx = np.mgrid[0:h, 0:w]
-    x = lo[0] + (xx + 0.5) / SCALE
-    y = lo[1] + (yy + 0.5) / SCALE
-    if board.type == "checkerboard":
-        inside = (x > -board.pitch_mm) & (x < board.cols * board.pitch_mm) & (y > -board.pitch_mm) & (
-            y < board.rows * board.pitch_mm)
-        dark = ((np.floor(x / board.pitch_mm) + np.floor(y / board.pitch_mm)) % 2 == 0) & inside
-    else:
-        dark = np.zeros((h, w), bool)
-        for px, py, _ in obj:
-            dark |= (x - px) ** 2 + (y - py) ** 2 < (0.35 * board.pitch_mm) ** 2
-    raster = np.where(dark, 30, 220).astype(np.uint8)
-    # raster pixel → board mm → image
-    s = np.array([[1 / SCALE, 0, lo[0] + 0.5 / SCALE], [0, 1 / SCALE, lo[1] + 0.5 / SCALE], [0, 0, 1]])
-    # Supersample 4x (pixel centres at (4i + 1.5)) then box-average, so edges are area-weighted.
-    up = np.array([[4.0, 0, 1.5], [0, 4.0, 1.5], [0, 0, 1]])
-    hmat = up @ rig.camera_matrix @ np.column_stack([rmat[:, 0], rmat[:, 1], tvec]) @ s
-    big = cv2.warpPerspective(raster, hmat, (4 * rig.width, 4 * rig.height), flags=cv2.INTER_LINEAR,
-                              borderValue=200)
-    img = cv2.resize(big, (rig.width, rig.height), interpolation=cv2.INTER_AREA)
-    return cv2.GaussianBlur(img, (0, 0), 0.8)
+from tests.helpers.calib_rig import Rig, board_pose, render_board
 
 
 def _truth(board, rmat, tvec, rig):
@@ -57,7 +26,7 @@ def _truth(board, rmat, tvec, rig):
 def test_detect_board_subpixel(board):
     rig = Rig()
     rmat, tvec = board_pose(board, 95.0, 12.0, -8.0, 5.0)
-    img = _render(board, rmat, tvec, rig)
+    img = render_board(board, rmat, tvec, rig)
     det = detect_board(img, board)
     assert det.found
     assert det.image_points.shape == (board.n_points, 2) and det.object_points.shape == (board.n_points, 3)

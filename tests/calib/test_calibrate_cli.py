@@ -11,22 +11,22 @@ import pytest
 from app.calib import BoardSpec, calibrate_sets, height_mm, load_calibration
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
-from tests.calib.rig import (
+from tests.helpers.calib_rig import (
     STANDARD_POSES,
     Rig,
     board_pose,
     fringe_frames,
     fringe_stack,
     raycast_scene,
+    render_board,
 )
-from tests.calib.test_board import _render
 
 BOARD = BoardSpec("checkerboard", 9, 6, 3.0)
 
 
 def _fringe_set(rig: Rig, rmat, tvec, seed: int) -> CaptureSet:
     """16 uint8 frames: board albedo × (110 + 100 cos(k/k_max · φ + δ)) + noise."""
-    albedo = _render(BOARD, rmat, tvec, rig).astype(np.float64) / 240.0
+    albedo = render_board(BOARD, rmat, tvec, rig).astype(np.float64) / 240.0
     phi = rig.plane_phase_map(rmat[:, 2], tvec).astype(np.float64)
     return CaptureSet(fringe_stack(rig, phi, albedo, noise_dn=0.5, seed=seed), rig.schedule)
 

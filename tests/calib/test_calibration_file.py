@@ -10,7 +10,7 @@ import pytest
 import app.atomic
 from app.calib import load_calibration, save_calibration
 from app.core.calibration import Calibration
-from tests.recon.analytic_rig import Rig
+from app.devices.sim.analytic_rig import Rig
 
 
 @pytest.fixture

@@ -8,9 +8,7 @@ import pytest
 from app.calib import BoardSpec, fit_observations, height_mm, sample_phase
 from app.core.calibration import Calibration
 from app.core.eq5 import basis, evaluate, fit_eq5
-from tests.calib.rig import STANDARD_POSES, Rig, board_pose
-
-BOARD = BoardSpec("checkerboard", 9, 7, 3.0)
+from tests.helpers.calib_rig import BOARD, STANDARD_POSES, Rig, board_pose
 
 
 def _observations(rig: Rig, poses=STANDARD_POSES, noise_px: float = 0.0):

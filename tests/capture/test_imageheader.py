@@ -13,7 +13,7 @@ import zstandard
 
 from app.capture.captureset import zstd_frame_bytes
 from app.capture.imageheader import FrameLimits, ImageHeader, check_frame_headers, read_image_header
-from tests.api.hostile import zero_png
+from tests.helpers.hostile import zero_png
 
 
 @pytest.mark.parametrize(

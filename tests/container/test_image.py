@@ -150,7 +150,7 @@ def test_image_serves_dashboard_viewer_and_api(built_image: str, tmp_path: Path)
         assert status["state"] in ("starting", "calibrating", "running", "fault")
         assert any(d["kind"] == "camera" and d["name"].startswith("sim") for d in status["devices"])  # type: ignore[attr-defined]
 
-        # issue 16: off loopback the data routes need the token; /healthz stays open
+        # off loopback the data routes need the token; /healthz stays open
         assert http("GET", f"{base}/api/status")[0] == 401
         assert http("GET", f"{base}/healthz")[0] == 200
         code, headers, body = http("GET", f"{base}/")

@@ -22,9 +22,9 @@ from app.core.depth_model_registry import depth_model_from_dict
 from app.core.eq5 import Eq5Model
 from app.core.geometric import GeometricModel
 from app.core.reasons import Reason
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 from app.recon.model import calibration_model_tables, evaluate_height
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 def _geometric_of(rig: Rig, k1: float = 0.0) -> GeometricModel:

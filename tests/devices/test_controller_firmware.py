@@ -18,7 +18,7 @@ import serial
 from app.devices import DeviceState
 from app.devices.controller_emulator import ControllerProtocol
 from app.devices.serial_controller import ControllerError, SerialController
-from tests.devices.test_serial_controller import _table
+from tests.helpers.protocol_doc import protocol_table
 
 ROOT = Path(__file__).resolve().parents[2]
 FIRMWARE_DIR = ROOT / "hardware" / "firmware"
@@ -84,7 +84,7 @@ SCRIPT = [
 def _boundary_lines() -> list[str]:
     """Each documented numeric range at lo-1, lo, hi, hi+1 (from hardware/PROTOCOL.md)."""
     lines = []
-    for cmd, _args, rng, _example, _reply in _table("Commands"):
+    for cmd, _args, rng, _example, _reply in protocol_table("Commands"):
         m = re.search(r"(\d+)–(\d+)", rng)
         if m:
             prefix = "CUR B " if cmd == "`CUR`" else cmd.strip("`") + " "

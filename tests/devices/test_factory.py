@@ -19,7 +19,7 @@ from app.devices.lightcrafter import LightCrafterProjector
 from app.devices.opencv_camera import OpenCVCamera
 from app.devices.replay import ReplayCamera
 from app.devices.serial_controller import SerialController
-from tests.devices.test_replay import make_recording
+from tests.helpers.recordings import make_recording
 
 
 def test_real_backends_are_built_unopened(tmp_path):

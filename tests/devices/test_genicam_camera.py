@@ -36,7 +36,8 @@ def test_frames_from_the_simulated_producer():
 def test_slow_camera_times_out():
     cam = GenICamCamera(VIKY)
     cam.open()
-    cam.set_node("AcquisitionFrameRate", 1.0)
+    # the simulated producer has no exposure control: its frame rate is what makes it slow
+    cam._ia.remote_device.node_map.AcquisitionFrameRate.value = 1.0
     cam.start()
     cam.grab(timeout_s=3.0)
     with pytest.raises(DeviceTimeout):

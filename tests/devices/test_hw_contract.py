@@ -1,4 +1,4 @@
-"""The device contract (tests/devices/contract.py) run against every real-hardware backend,
+"""The device contract (tests/helpers/device_contract.py) run against every real-hardware backend,
 each over a real transport: pty, TCP socket, video file, capture-set folders, GenTL producer."""
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from app.devices.opencv_camera import OpenCVCamera
 from app.devices.replay import ReplayCamera
 from app.devices.serial_controller import SerialController
 from app.recon.patterns import generate_patterns
-from tests.devices.contract import CameraContract, ControllerContract, ProjectorContract
-from tests.devices.test_opencv_camera import write_video
-from tests.devices.test_replay import make_recording
+from tests.helpers.device_contract import CameraContract, ControllerContract, ProjectorContract
+from tests.helpers.recordings import make_recording
+from tests.helpers.videos import write_video
 
 
 class TestSerialControllerContract(ControllerContract):

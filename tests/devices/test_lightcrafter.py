@@ -162,8 +162,6 @@ def test_projector_uploads_the_fringe_sequence(emu):
                                      "width_us": 100}
     proj.set_led("blue", current=0.5)
     assert emu.state.led_current == (0, 0, 137) and emu.state.sequence["led"] == 2
-    proj.set_trigger_mode("external")
-    assert emu.state.sequence["trigger"] == 0x02
     proj.start()
     assert emu.state.running
     proj.stop()

@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import serial
@@ -17,23 +16,9 @@ from serial.tools.list_ports_common import ListPortInfo
 from app.devices import DeviceError, DeviceNotFound, DeviceState, DeviceTimeout, ProtocolError
 from app.devices.controller_emulator import ControllerProtocol, PtyControllerEmulator
 from app.devices.serial_controller import ControllerError, SerialController, resolve_port
+from tests.helpers.protocol_doc import ROOT, protocol_table
 
-ROOT = Path(__file__).resolve().parents[2]
-PROTOCOL_MD = ROOT / "hardware" / "PROTOCOL.md"
 FIRMWARE = ROOT / "hardware" / "firmware" / "fringescope_controller" / "fringescope_controller.ino"
-
-
-def _table(section: str) -> list[list[str]]:
-    """Rows (cells stripped) of the first markdown table under ``## section``."""
-    text = PROTOCOL_MD.read_text(encoding="utf-8").split(f"## {section}\n", 1)[1]
-    rows = []
-    for line in text.splitlines():
-        if line.startswith("## "):
-            break
-        if line.startswith("|") and not set(line) <= set("|- "):
-            rows.append([c.strip() for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]])
-    return rows[1:]  # drop the header row
-
 
 def _wait_until(pred, timeout_s: float = 2.0) -> float:
     t0 = time.monotonic()
@@ -55,7 +40,7 @@ class Clock:
 # --- the protocol document, the emulator and the firmware agree --------------------------------
 def test_every_documented_command_example_is_accepted_by_the_emulator():
     """The examples, run in table order on one device, give the documented replies."""
-    rows = _table("Commands")
+    rows = protocol_table("Commands")
     assert len(rows) >= 15
     proto = ControllerProtocol()
     for cmd, _args, _range, example, reply in rows:
@@ -72,7 +57,7 @@ def test_every_documented_command_example_is_accepted_by_the_emulator():
 
 def test_documented_numeric_ranges_are_enforced():
     checked = 0
-    for cmd, _args, rng, _example, _reply in _table("Commands"):
+    for cmd, _args, rng, _example, _reply in protocol_table("Commands"):
         m = re.search(r"(\d+)–(\d+)", rng)
         if not m:
             continue
@@ -89,14 +74,14 @@ def test_documented_numeric_ranges_are_enforced():
 
 def test_every_documented_command_is_in_the_firmware():
     source = FIRMWARE.read_text(encoding="utf-8")
-    for row in _table("Commands"):
+    for row in protocol_table("Commands"):
         assert f'"{row[0].strip("`")}"' in source, row[0]
-    for code, name, _ in _table("Error codes"):
+    for code, name, _ in protocol_table("Error codes"):
         assert f"err({code}," in source, name
 
 
 def test_every_documented_error_code_is_produced():
-    codes = {int(row[0]) for row in _table("Error codes")}
+    codes = {int(row[0]) for row in protocol_table("Error codes")}
     clock = Clock()
     p = ControllerProtocol(clock=clock)
     seen = {

@@ -6,7 +6,7 @@ import pytest
 
 from app.devices import DeviceState
 from app.devices.sim import create_sim_devices
-from tests.devices.contract import CameraContract, ControllerContract, ProjectorContract
+from tests.helpers.device_contract import CameraContract, ControllerContract, ProjectorContract
 
 
 class _SimUnplug:

@@ -36,7 +36,8 @@ from app.outputs.igtl import (
 )
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
-from tests.api.conftest import live_settings, sim_calibration_file, wait_for  # noqa: F401
+from tests.api.conftest import sim_calibration_file  # noqa: F401
+from tests.helpers.live_app import live_settings, wait_for
 
 register_codecs()  # pyigtl 0.3.4 cannot unpack POLYDATA itself
 

@@ -16,7 +16,7 @@ from viser import _messages
 
 from app.outputs.relay import viewer_router
 from app.outputs.viewer import Viewer, cloud_arrays
-from tests.outputs.helpers import SurfaceSource, port_is_free, serve, surface_result, wait_for
+from tests.helpers.outputs import SurfaceSource, port_is_free, serve, surface_result, wait_for
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 

@@ -11,7 +11,7 @@ import pytest
 
 from app.outputs.viewer import Viewer, cloud_arrays, decimation_step
 from app.recon.colormap import depth_colormap
-from tests.outputs.helpers import SurfaceSource, port_is_free, surface_result, wait_for
+from tests.helpers.outputs import SurfaceSource, port_is_free, surface_result, wait_for
 
 
 @pytest.mark.parametrize(("h", "w", "max_points"), [(1032, 1384, 300_000), (684, 608, 1000),

@@ -8,7 +8,7 @@ import pytest
 from app.analysis.measure import measure
 from app.outputs.viewer import Viewer
 from app.service.measure import measurement_segments
-from tests.outputs.helpers import SurfaceSource, surface_result, wait_for
+from tests.helpers.outputs import SurfaceSource, surface_result, wait_for
 
 SPECS = [
     {"kind": "length", "points": [[20, 30], [140, 90]]},

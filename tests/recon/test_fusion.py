@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from app.core.reasons import Reason
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 from app.recon.fusion import fuse_exposures
 from app.recon.reconstructor import ReconResult
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 def _result(depth, sigma, reason, modulation, *, phase=True):

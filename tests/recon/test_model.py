@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon.model import (
     SINGULAR_RTOL,
     calibration_model_tables,
@@ -12,7 +13,6 @@ from app.recon.model import (
     outside_volume,
     row_coefficients,
 )
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 def test_closed_form_rig_depth_is_exact():

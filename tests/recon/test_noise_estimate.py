@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon.noise import estimate_sensor_noise
 from app.recon.patterns import PatternSchedule
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 @pytest.mark.parametrize("steps", [4, 6, 12])

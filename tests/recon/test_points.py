@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon.points import points_from_height, ray_tables
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 def test_rays_without_distortion_are_inverse_intrinsics():

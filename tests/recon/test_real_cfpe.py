@@ -11,60 +11,27 @@ rig would capture. The folder is read where it lies (``FRINGESCOPE_CFPE_DIR``, d
 from __future__ import annotations
 
 import math
-import os
 from functools import cache
-from pathlib import Path
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 import pytest
 
 from app.core.reasons import Reason
-from app.recon import PatternSchedule, compute_phase
+from app.recon import compute_phase
 from app.recon.gamma import PhaseErrorLUT
 from app.recon.phase import wrapped_phase
+from tests.helpers.cfpe import BOTTLE, BUST, CFPE, CLOTH, FREQS, PLATE, frames, schedule, usable
 
-CFPE = Path(os.environ.get("FRINGESCOPE_CFPE_DIR",
-                           Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "cfpe"))
 pytestmark = pytest.mark.skipif(not (CFPE / "recordings").is_dir(),
                                 reason=f"CFPE real captures not found at {CFPE} (set FRINGESCOPE_CFPE_DIR)")
 
-PERIODS_PX = (48, 45, 42)  # ascending fringe count; the files' period index is 2, 1, 0
-FREQS = tuple(1920 / p for p in PERIODS_PX)
-PLATE, CLOTH, BUST, BOTTLE = 1, 4, 6, 8
 TWO_PI = 2 * math.pi
-
-
-def schedule(steps: int) -> PatternSchedule:
-    return PatternSchedule(frequencies=FREQS, steps=steps, width=1920, height=1080, unwrap="heterodyne")
-
-
-@cache
-def frames(scene: int, steps: int) -> npt.NDArray[np.uint8]:
-    """(3·steps, 480, 640) uint8 in capture-set order; ``steps`` = 12 or an even subset of it."""
-    picks = range(0, 12, 12 // steps)
-    out = []
-    for period in PERIODS_PX:
-        index = {42: 0, 45: 1, 48: 2}[period]
-        for s in picks:
-            img = cv2.imread(str(CFPE / "recordings" / f"{scene:02d}{12 * index + s:02d}.png"), cv2.IMREAD_UNCHANGED)
-            assert img is not None and img.dtype == np.uint8 and img.ndim == 2
-            out.append(img)
-    return np.stack(out)
 
 
 @cache
 def decoded(scene: int, steps: int):  # type: ignore[no-untyped-def]
     return compute_phase(frames(scene, steps), schedule(steps))
-
-
-@cache
-def usable(scene: int) -> npt.NDArray[np.bool_]:
-    """The issue's denominator: 12-step modulation ≥ 10 codes in every period, no clipped sample."""
-    f = frames(scene, 12)
-    wp = wrapped_phase(f, 12)
-    return (wp.modulation.min(axis=0) >= 10.0) & ~(f >= 255).any(axis=0)
 
 
 def textbook_phase(f: npt.NDArray[np.uint8], steps: int) -> npt.NDArray[np.float64]:
@@ -182,8 +149,8 @@ def test_real_shadows_and_highlights_are_invalid_not_wrong():
 def test_fused_kernel_agrees_with_numpy_on_real_frames(scene):
     """The fast path's heterodyne and clipped-sample refit on real frames: the phase stage equals
     the oracle's (the Eq. (5) model is a placeholder of an analytic rig of the same size)."""
+    from app.devices.sim.analytic_rig import Rig
     from app.recon import Reconstructor
-    from tests.recon.analytic_rig import Rig
 
     rig = Rig(width=640, height=480, focal_px=800.0, schedule=schedule(4))
     # the placeholder model's depth σ means nothing: no depth-σ part of the validity rule

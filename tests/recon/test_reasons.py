@@ -7,9 +7,10 @@ import itertools
 import numpy as np
 import pytest
 
+from app.core.eq5 import Eq5Model
 from app.core.reasons import assign_reasons
+from app.devices.sim.analytic_rig import Rig, reason_scene
 from app.recon import PRECEDENCE, Reason, Reconstructor
-from tests.recon.analytic_rig import Rig, reason_scene
 
 
 @pytest.fixture(scope="module")
@@ -39,9 +40,10 @@ def test_model_singular_column(rig, fast):
     cal = rig.calibration(height_range_mm=(0.0, 100.0))
     u0 = int(cal.normalization["u"][0] + 0.5)
     cal.normalization["u"] = (float(u0), cal.normalization["u"][1])
-    cal.numerator = np.zeros(11)  # numerator 1
-    cal.denominator = np.zeros(12)
-    cal.denominator[2] = 1.0  # denominator u': height = su / (u - u0), singular at u0
+    denominator = np.zeros(12)
+    denominator[2] = 1.0  # denominator u': height = su / (u - u0), singular at u0
+    # numerator 1
+    cal.model = Eq5Model(np.zeros(11), denominator, cal.normalization, cal.model.region)
     frames = rig.render(np.full((rig.height, rig.width), 10.0))
     res = Reconstructor(cal, height_margin_mm=0.0, fast=fast).run(frames)
     assert (res.reason[:, u0] == Reason.MODEL_SINGULAR).all()

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from app.core.calibration import Calibration
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import PatternSchedule, Reason, ReconResult, Reconstructor, compute_phase
-from tests.recon.analytic_rig import Rig, bump_surface
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from app.core.reasons import Reason
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
-from tests.recon.analytic_rig import Rig, bump_surface
 
 GAIN_DN_PER_E = 0.5
 READ_DN = 4.0

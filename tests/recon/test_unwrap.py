@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import compute_phase
 from app.recon.unwrap import combine_frequencies, unwrap_chain, unwrap_hierarchical, unwrap_phases
-from tests.recon.analytic_rig import Rig, bump_surface
 
 FREQS = (1, 4, 12, 36)
 TWO_PI = 2 * math.pi
@@ -132,7 +132,7 @@ def test_heterodyne_bad_schedules(freqs, message):
         unwrap_chain(freqs, "heterodyne")
 
 
-# -- the heterodyne order test (issue 15: a wrong order under motion must not pass) -------------
+# -- the heterodyne order test (a wrong order under motion must not pass) -------------
 HET9 = (30, 35, 36)  # the registered heterodyne-9 schedule's fringe counts
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
+from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor, compute_phase
 from app.recon.phase import MODULATION_FLOOR_DN, wrapped_phase
 from app.recon.reconstructor import SensorNoise
@@ -21,7 +22,6 @@ from app.recon.validity import (
     step_gains,
     undetected_order_error_rate,
 )
-from tests.recon.analytic_rig import Rig, bump_surface
 
 TWO_PI = 2 * math.pi
 

@@ -140,9 +140,6 @@ class SimulatedProjector(Projector):
         self.link.check()
         self.world.led, self.world.current = led, current
 
-    def _do_set_trigger_mode(self, mode: str) -> None:
-        self.link.check()
-
     def _do_start(self) -> None:
         self.link.check()
         self.world.start_sequence()

@@ -232,7 +232,7 @@ def default_rig(*, distortion: bool = True) -> SimRig:
 
 
 def endoscope_rig(*, distortion: bool = True) -> SimRig:
-    """A second rig: conditions the default one lacks (issue 13, part 6).
+    """A second rig: conditions the default one lacks.
 
     1280 × 1024 sensor, f = 1200 px, principal point a little off centre; endoscope-like
     barrel distortion k1 = −0.25 in normalised coordinates (monotonic out to the image

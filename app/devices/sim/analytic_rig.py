@@ -1,5 +1,7 @@
 """A closed-form camera–projector rig whose phase-to-height map is Eq. (5) exactly.
 
+A test and benchmark oracle (like :mod:`app.devices.sim.ideal`); the product never uses it.
+
 Pinhole camera K (no distortion) at the origin looking along +z; pinhole projector with
 3×4 matrix P; reference plane ``n·X + off = h``. For the camera ray ``X = t·r`` the
 projector column is ``x_p = (a t + b)/(c t + d)`` with ``a = P[0,:3]·r``, ``b = P[0,3]``,
@@ -157,7 +159,9 @@ class Rig:
         rvec = Rotation.from_matrix(rt[:, :3]).as_rotvec()
         t = rt[:, 3].copy()
         t[1] = 0.0  # not observable along the fringe lines
-        return GeometricModel(rvec, t, fp, w / 2, k1, w, self.schedule.frequencies[-1])
+        # the finest count as the schedule holds it (a float: heterodyne counts are fractional)
+        return GeometricModel(rvec, t, fp, w / 2, k1, w,
+                              self.schedule.frequencies[-1])  # type: ignore[arg-type]
 
     def geometric_calibration(self, height_range_mm: tuple[float, float] = (0.0, 30.0)) -> Calibration:
         """:meth:`calibration` with the geometric model instead of Eq. (5)."""
@@ -180,7 +184,7 @@ class Rig:
         s = self.schedule
         xp = self.projector_column(height_mm)
         top = max_code if max_code is not None else np.iinfo(dtype).max
-        out = np.empty((s.n_frames, self.height, self.width), dtype)
+        out: npt.NDArray[np.generic] = np.empty((s.n_frames, self.height, self.width), dtype)
         rng = rng or np.random.default_rng(0)
         for fi, k in enumerate(s.frequencies):
             for n in range(s.steps):

@@ -148,3 +148,37 @@ def fringe_stack(rig: Rig, phi: np.ndarray, albedo: np.ndarray, *, noise_dn: flo
             img = albedo * (110.0 + 100.0 * np.cos(phi * k / sched.frequencies[-1] + d))
             frames.append(np.clip(np.rint(img + rng.normal(0, noise_dn, img.shape)), 0, 255).astype(np.uint8))
     return np.stack(frames)
+
+
+BOARD = BoardSpec("checkerboard", 9, 7, 3.0)  # the fit tests' board
+
+SCALE = 40.0  # raster px per mm for rendering
+
+
+def render_board(board: BoardSpec, rmat: np.ndarray, tvec: np.ndarray, rig: Rig) -> np.ndarray:
+    """Image of the board through the rig's camera (white margin, blurred edges)."""
+    obj = board.object_points()
+    lo = obj[:, :2].min(axis=0) - 2 * board.pitch_mm
+    hi = obj[:, :2].max(axis=0) + 2 * board.pitch_mm
+    w, h = ((hi - lo) * SCALE).astype(int)
+    yy, xx = np.mgrid[0:h, 0:w]
+    x = lo[0] + (xx + 0.5) / SCALE
+    y = lo[1] + (yy + 0.5) / SCALE
+    if board.type == "checkerboard":
+        inside = (x > -board.pitch_mm) & (x < board.cols * board.pitch_mm) & (y > -board.pitch_mm) & (
+            y < board.rows * board.pitch_mm)
+        dark = ((np.floor(x / board.pitch_mm) + np.floor(y / board.pitch_mm)) % 2 == 0) & inside
+    else:
+        dark = np.zeros((h, w), bool)
+        for px, py, _ in obj:
+            dark |= (x - px) ** 2 + (y - py) ** 2 < (0.35 * board.pitch_mm) ** 2
+    raster = np.where(dark, 30, 220).astype(np.uint8)
+    # raster pixel → board mm → image
+    s = np.array([[1 / SCALE, 0, lo[0] + 0.5 / SCALE], [0, 1 / SCALE, lo[1] + 0.5 / SCALE], [0, 0, 1]])
+    # Supersample 4x (pixel centres at (4i + 1.5)) then box-average, so edges are area-weighted.
+    up = np.array([[4.0, 0, 1.5], [0, 4.0, 1.5], [0, 0, 1]])
+    hmat = up @ rig.camera_matrix @ np.column_stack([rmat[:, 0], rmat[:, 1], tvec]) @ s
+    big = cv2.warpPerspective(raster, hmat, (4 * rig.width, 4 * rig.height), flags=cv2.INTER_LINEAR,
+                              borderValue=200)
+    img = cv2.resize(big, (rig.width, rig.height), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(img, (0, 0), 0.8)

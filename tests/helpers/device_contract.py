@@ -209,14 +209,6 @@ class ProjectorContract(_Common):
     def check_loaded(self, device: Projector, schedule: PatternSchedule) -> None:
         """Backends that can show what they hold check it here (the emulator's patterns, the twin's)."""
 
-    def test_trigger_mode(self, device: Projector):
-        device.open()
-        device.set_trigger_mode("external")
-        assert device.trigger_mode == "external"
-        with pytest.raises(ValueError, match="mode"):
-            device.set_trigger_mode("sometimes")
-        device.close()
-
 
 class ControllerContract(_Common):
     """Every Controller backend: identify, LED, arm/disarm, heartbeat."""
@@ -244,6 +236,16 @@ class ControllerContract(_Common):
         device.heartbeat()
         device.disarm()
         assert not device.armed and device.state is DeviceState.OPEN
+        device.close()
+
+    def test_stop_disarms(self, device: Controller):
+        """``stop`` leaves RUNNING as for every device: for the box that is a disarm."""
+        device.open()
+        device.arm()
+        device.stop()
+        assert not device.armed and device.state is DeviceState.OPEN
+        device.stop()  # not running: nothing to do
+        assert device.state is DeviceState.OPEN
         device.close()
 
     def test_sequence_length(self, device: Controller):

@@ -1,0 +1,1 @@
+"""Helpers shared by test modules (rigs, payloads, device contracts); no tests here."""
