@@ -23,9 +23,13 @@ import numpy as np
 
 from app.core.schedule import PatternSchedule
 from app.recon.phase import check_stack
-from app.recon.reconstructor import SensorNoise
+from app.recon.sensor import SensorNoise
 
 MAX_PIXELS = 200_000  # a regular subsample is plenty for two parameters
+
+#: where a run's noise model came from: passed by the caller, fitted to the set, or the
+#: nominal sensor (:meth:`SensorNoise.typical`) where the set cannot give it
+NOISE_SOURCES = ("given", "set", "nominal")
 
 
 def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: int | None = None) -> SensorNoise:
@@ -73,3 +77,22 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
     return SensorNoise(gain_dn_per_e=max(float(gain), 0.0), read_noise_dn=math.sqrt(max(float(read_var), 0.0)))
 
 
+
+
+def resolve_sensor_noise(frames: Any, schedule: PatternSchedule, max_code: int) -> tuple[SensorNoise, str, str]:
+    """The noise model a run without a given one uses: the set's own where it has one.
+
+    Args:
+        frames: (F, H, W) uint8/uint16 in capture-set order.
+        schedule: the set's pattern schedule.
+        max_code: sensor maximum code of the set.
+
+    Returns:
+        ``(noise, source, note)``: :func:`estimate_sensor_noise` of the set and ``"set"``
+        where N > 3 and enough pixels are usable, else :meth:`SensorNoise.typical` and
+        ``"nominal"``; ``note`` says why the set could not give it ("" when it did).
+    """
+    try:
+        return estimate_sensor_noise(frames, schedule, max_code=max_code), "set", ""
+    except ValueError as exc:  # N = 3 (no residual) or too few usable pixels
+        return SensorNoise.typical(max_code), "nominal", str(exc)
