@@ -23,13 +23,9 @@ import numpy as np
 
 from app.core.schedule import PatternSchedule
 from app.recon.phase import check_stack
-from app.recon.sensor import SensorNoise
+from app.recon.sensor import NoiseSource, SensorNoise
 
 MAX_PIXELS = 200_000  # a regular subsample is plenty for two parameters
-
-#: where a run's noise model came from: passed by the caller, fitted to the set, or the
-#: nominal sensor (:meth:`SensorNoise.typical`) where the set cannot give it
-NOISE_SOURCES = ("given", "set", "nominal")
 
 
 def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: int | None = None) -> SensorNoise:
@@ -79,7 +75,8 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
 
 
 
-def resolve_sensor_noise(frames: Any, schedule: PatternSchedule, max_code: int) -> tuple[SensorNoise, str, str]:
+def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
+                         max_code: int) -> tuple[SensorNoise, NoiseSource, str]:
     """The noise model a run without a given one uses: the set's own where it has one.
 
     Args:

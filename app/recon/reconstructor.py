@@ -31,6 +31,7 @@ from app.recon.model import (
 from app.recon.noise import resolve_sensor_noise
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
+from app.recon.sensor import NoiseSource
 from app.recon.sensor import SensorNoise as SensorNoise  # re-exported: its historical home
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
@@ -144,7 +145,7 @@ class ReconResult:
     uncertain_moving_pixels: int = 0
     motion_ms: float = 0.0
     noise: SensorNoise | None = None
-    noise_source: str = "given"
+    noise_source: NoiseSource = "given"
     noise_note: str = ""
 
 
@@ -455,7 +456,8 @@ class Reconstructor:
         self.calibration.check_frames(frames.shape)
         max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
                                            self.min_modulation)
-        source, note = "given", ""
+        source: NoiseSource = "given"
+        note = ""
         if noise is not None:
             camera = noise
         elif self.noise is not None:

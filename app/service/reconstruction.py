@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from app.recon import Reconstructor
 from app.recon.motion import MotionTest, map_time
-from app.recon.sensor import SensorNoise
+from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
 from app.service.sensor_noise import LiveNoise
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
@@ -68,7 +68,7 @@ class LiveResult:
     scene_moved: bool = False
     uncertain_moving_pixels: int = 0
     noise: SensorNoise | None = None
-    noise_source: str = "given"  # or "set"/"nominal": the engine's own until measured
+    noise_source: NoiseSource = "given"  # or "set"/"nominal": the engine's own until measured
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
