@@ -46,7 +46,7 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
         got = json.loads(lines[0])
         ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=cal.plane_normal,
                       calibration_sigma_mm=calibration_terms(cal)[1], calibration_length_mm=calibration_terms(cal)[2])
-        assert got["kind"] == kind and got["set"] == "set"
+        assert got["kind"] == kind and got["set"] == "set" and got["noise_source"] == "set"
         assert got["value_mm"] == pytest.approx(ref.value_mm, rel=1e-6)
         assert got["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-6) and got["sigma_mm"] > 0
         assert ("profile" in got) == (kind == "profile")

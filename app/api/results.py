@@ -113,23 +113,34 @@ def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     openapi_extra=CAPTURE_UPLOAD,
 )
 async def reconstruct(
-    request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
+    request: Request, format: Literal["json", "npy"] = "json",
+    field: Literal["depth", "sigma"] = Query("depth", description="format=npy: depth, or sigma (1-σ, mm)"),
+    inst: Instrument = Depends(get_instrument),
 ) -> Any:
-    """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip)."""
+    """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip).
+
+    σ and the validity rule use the camera noise fitted to the set itself (N > 3), the
+    nominal sensor where it cannot give it, as the CLI does (``noise_source`` says which)."""
     limit = int(inst.settings.max_upload_mb * 1024 * 1024)
     cal = inst.calibration  # frames of another size are refused before they are decoded
     size = None if cal is None else cal.image_size
     capture = await capture_from_request(request, limit, frame_size=size)
     res = await run_in_threadpool(inst.reconstruct_capture, capture)
     if format == "npy":
-        return binary(encoding.npy_bytes(res.depth), "application/octet-stream", None, "depth.npy")
+        data = res.sigma if field == "sigma" else res.depth
+        return binary(encoding.npy_bytes(data), "application/octet-stream", None, f"{field}.npy")
     finite = res.depth[np.isfinite(res.depth)]
+    noise = res.noise
     return ReconstructSummary(
         valid_fraction=float(res.valid.mean()),
         height_min_mm=float(finite.min()) if finite.size else None,
         height_max_mm=float(finite.max()) if finite.size else None,
         elapsed_ms=float(res.elapsed_ms),
         shape=list(res.depth.shape),
+        noise_source=res.noise_source,
+        noise_note=res.noise_note,
+        read_noise_dn=noise.read_noise_dn if noise is not None else float("nan"),
+        gain_dn_per_e=noise.gain_dn_per_e if noise is not None else float("nan"),
     )
 
 

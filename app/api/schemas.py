@@ -186,6 +186,12 @@ class ReconstructSummary(BaseModel):
     height_max_mm: float | None
     elapsed_ms: float
     shape: list[int]
+    noise_source: Literal["given", "set", "nominal"] = Field(
+        description="camera noise behind σ and the validity rule: fitted to the set (N > 3) or the "
+                    "nominal sensor where the set cannot give it (noise_note says why)")
+    noise_note: str = ""
+    read_noise_dn: float = Field(description="the noise model's signal-independent σ, DN")
+    gain_dn_per_e: float = Field(description="the noise model's shot-noise gain, DN per electron")
 
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]

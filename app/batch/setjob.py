@@ -18,6 +18,7 @@ from app.core.calibration import Calibration
 from app.core.limits import DEFAULT_DEPTH_RANGE_MM
 from app.recon import ReconResult, Reconstructor, SensorNoise
 from app.recon.fusion import FusedExposures
+from app.recon.sensor import NoiseSource
 
 #: every file a set's reconstruction can write, in writing order
 ALL_FILES = ("depth.npy", "sigma.npy", "points.ply", "depth.png", "reason.png")
@@ -111,26 +112,30 @@ def reconstruct_captures(
         :class:`SetReconstruction`; σ uses the camera noise the sets show (the N-step
         residual, N > 3: the first set that has it; else the typical sensor).
     """
-    from app.recon.noise import estimate_sensor_noise
+    from app.recon.noise import resolve_sensor_noise
 
-    noise = None
-    for c in captures:
-        try:
-            noise = estimate_sensor_noise(c.frames, c.schedule, max_code=options.max_code or c.max_code)
+    noise: SensorNoise | None = None
+    source: NoiseSource = "nominal"
+    note = ""
+    for c in captures:  # the first set that shows its noise gives it to the bracket
+        est, source, note = resolve_sensor_noise(c.frames, c.schedule, options.max_code or c.max_code)
+        if source == "set":
+            noise = est
             break
-        except ValueError:
-            continue  # N = 3 or too few usable pixels
     # the tables are the calibration's alone; the noise is this set's, passed with the call
-    rec = new_reconstructor(calibration, options, noise) if base is None else base
-    # each set at its own bit_depth unless told
+    rec = new_reconstructor(calibration, options, None) if base is None else base
+    # each set at its own bit_depth unless told; without a fitted noise each run's nominal
     members = [rec.run(c.frames, max_code=options.max_code or c.max_code, noise=noise)
                for c in captures]
+    for m in members:
+        m.noise_source, m.noise_note = source, note
     exposures = tuple(c.exposure_ms for c in captures)
     if len(members) == 1:
         return SetReconstruction(members[0], None, exposures, rec.fast)
     from app.recon.fusion import fuse_exposures
 
     fused = fuse_exposures(members, exposures)
+    fused.result.noise_source, fused.result.noise_note = source, note
     return SetReconstruction(fused.result, fused, exposures, rec.fast)
 
 
@@ -171,4 +176,14 @@ def summary_line(recon: SetReconstruction) -> str:
         span = "height n/a"
     path = "fast" if recon.fast else "numpy"
     return (f"valid {100 * frac:.1f}% of {w}x{h} px,{recon.bracket_note()} {span}, "
-            f"{res.elapsed_ms:.1f} ms ({path})")
+            f"{res.elapsed_ms:.1f} ms ({path}), {noise_summary(res)}")
+
+
+def noise_summary(res: ReconResult) -> str:
+    """``noise_source=set (read 1.52 DN, gain 0.0160 DN/e)``; a nominal one says why."""
+    text = f"noise_source={res.noise_source}"
+    if res.noise is not None:
+        text += f" (read {res.noise.read_noise_dn:.2f} DN, gain {res.noise.gain_dn_per_e:.4f} DN/e)"
+    if res.noise_note:
+        text += f": {res.noise_note}"
+    return text

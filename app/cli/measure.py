@@ -54,7 +54,6 @@ def run(args: argparse.Namespace) -> int:
     from app.capture import read_capture_set
     from app.core.schedule import check_pattern
     from app.recon import Reconstructor
-    from app.recon.noise import estimate_sensor_noise
     from app.service.measure import calibration_terms
 
     kind = next(k for k in KINDS if getattr(args, k) is not None)
@@ -67,14 +66,12 @@ def run(args: argparse.Namespace) -> int:
     calibration = load_calibration(args.calibration)
     check_pattern(calibration.pattern, capture.schedule, str(set_dir))
     max_code = args.max_code or capture.max_code
-    try:  # σ from the camera noise this set shows (as `reconstruct`)
-        noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=max_code)
-    except ValueError:
-        noise = None
-    res = Reconstructor(calibration, max_code=args.max_code, noise=noise).run(capture.frames, max_code=max_code)
+    # σ from the camera noise this set shows (N > 3), as `reconstruct` and `validate`
+    res = Reconstructor(calibration, max_code=args.max_code).run(capture.frames, max_code=max_code)
     normal, cal_sigma, cal_length = calibration_terms(calibration)
     m = measure(KINDS[kind], res.points, res.valid, res.sigma, getattr(args, kind), reference=args.reference,
                 snap_px=args.snap_px, plane_normal=normal, reason=res.reason,
                 calibration_sigma_mm=0.0 if args.noise_only else cal_sigma, calibration_length_mm=cal_length)
-    print(json.dumps({"set": set_dir.name, **m.to_dict()}, separators=(",", ":")))
+    out = {"set": set_dir.name, **m.to_dict(), "noise_source": res.noise_source}
+    print(json.dumps(out, separators=(",", ":")))
     return 0

@@ -5,8 +5,14 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from app.core.limits import EXPOSURE_RANGE_MS, LEDS
+
+if TYPE_CHECKING:
+    from app.devices.sim.scenes import Scene
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -50,9 +56,13 @@ def run(args: argparse.Namespace) -> int:
     if args.rig not in RIG_NAMES:
         raise ValueError(f"--rig: unknown {args.rig!r}; choose from {', '.join(RIG_NAMES)}")
     if args.list:
+        from app.devices.sim.optics import rig_by_name
+        from app.devices.sim.scenes import build_scene
+
+        rig = rig_by_name(args.rig)
         for name in list_scenes():
-            print(name)
-        print("calibration")
+            print(f"{name}: {scene_summary(build_scene(name, rig))}")
+        print("calibration: a calibration board in a sequence of poses (see --help)")
         return 0
     if not args.scene:
         raise ValueError("scene: give a scene name (see --list) or 'calibration'")
@@ -110,3 +120,26 @@ def _scene(args: argparse.Namespace) -> int:
                           extra_files={"truth_depth.npy": npy_bytes(depth), "truth_points.npy": npy_bytes(points)})
     print(f"wrote {n_sets} capture set(s) of {args.scene} to {args.output}")
     return 0
+
+
+def scene_summary(scene: Scene) -> str:
+    """``description; surface 80.0 x 60.0 mm, relief 0.00..12.34 mm[, spheres Ø …][, moving][, with a tool]``.
+
+    The true dimensions from the scene's own geometry: the height field's extent (mm along
+    its two axes), its heights above its base plane (mm) and any sphere's diameter (mm).
+    """
+    hf = scene.surface
+    ny, nx = hf.heights.shape
+    parts = [scene.description or scene.name,
+             f"surface {nx * hf.ds:.1f} x {ny * hf.ds:.1f} mm, "
+             f"relief {float(hf.heights.min()):.2f}..{float(hf.heights.max()):.2f} mm"]
+    if scene.spheres:
+        parts.append("spheres Ø " + ", ".join(f"{2 * s.radius_mm:.3f}" for s in scene.spheres) + " mm")
+        if len(scene.spheres) == 2:
+            gap = float(np.linalg.norm(scene.spheres[0].centre - scene.spheres[1].centre))
+            parts.append(f"centre distance {gap:.3f} mm")
+    if scene.motion is not None:
+        parts.append("moving")
+    if scene.tool is not None:
+        parts.append("with a tool")
+    return "; ".join(parts)

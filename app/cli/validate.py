@@ -40,18 +40,28 @@ def run(args: argparse.Namespace) -> int:
     from app.capture.captureset import read_capture_set
     from app.core.schedule import check_pattern
     from app.recon import Reconstructor
+    from app.recon.exposure import low_signal
 
+    if args.feature and not args.roi:
+        raise ValueError("--feature: needs --roi x0,y0,x1,y1 around the feature and its baseline")
     roi = parse_roi(args.roi) if args.roi else None
     capture = read_capture_set(args.set_dir)
     calibration = load_calibration(args.calibration)
     check_pattern(calibration.pattern, capture.schedule, str(args.set_dir))
+    # the set's own noise (N > 3), as reconstruct, measure and the service: one validity rule
     result = Reconstructor(calibration).run(capture.frames, max_code=capture.max_code)
     area = roi_mask(result.valid.shape, roi)
     figures: dict[str, Any] = {
         "set": str(args.set_dir),
         "roi": list(roi) if roi else None,
         "valid_fraction": float(result.valid[area].mean()),
+        "noise_source": result.noise_source,
     }
+    dark = low_signal(result.reason, area, result.texture, result.modulation, capture.exposure_ms,
+                      float(capture.max_code))
+    if dark is not None:
+        figures.update(low_signal_fraction=dark.share, suggested_exposure_ms=dark.suggested_exposure_ms,
+                       warning=dark.message())
     if args.plane:
         pa = plane_accuracy(result.points, result.valid, roi=roi)
         figures.update(

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.limits import EXPOSURE_RANGE_MS
+from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
 from app.recon.phase import wrapped_phase
 
@@ -154,3 +155,82 @@ def bracket_exposures(base_ms: float, *, stops: float = 2.0,
     longer = min(base_ms * 2.0**stops, max_exposure_ms)
     return (float(base_ms),) if longer <= base_ms else (float(base_ms), float(longer))
 
+
+
+#: an ROI is "mostly dark" when more than this share of it is invalid for low signal
+LOW_SIGNAL_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class LowSignal:
+    """Most of an ROI is invalid for low signal, and the exposure the auto-exposure would pick.
+
+    ``share``: fraction of the ROI's pixels LOW_MODULATION or UNCERTAIN; ``exposure_ms`` the
+    set's exposure; ``suggested_exposure_ms`` the search's choice predicted from the set.
+    """
+
+    share: float
+    exposure_ms: float
+    suggested_exposure_ms: float
+
+    def message(self) -> str:
+        return (f"{100 * self.share:.0f}% of the ROI is invalid for low signal at "
+                f"{self.exposure_ms:g} ms: the auto-exposure would choose "
+                f"{self.suggested_exposure_ms:g} ms")
+
+
+def predicted_exposure_ms(peak_dn: npt.NDArray[np.float32], modulation_dn: npt.NDArray[np.float32],
+                          exposure_ms: float, full_scale: float, *,
+                          saturation_limit: float = DEFAULT_SATURATION_LIMIT) -> float:
+    """The exposure :func:`choose_exposure` would pick, predicted from one set's levels.
+
+    Each trial scales the set's per-pixel peak A + B and modulation B (DN) linearly with
+    exposure instead of grabbing a set (pixels clipped in the set stay clipped).
+
+    Args:
+        peak_dn: (H, W) A + B of the set, DN (NaN ignored).
+        modulation_dn: (H, W) finest modulation B, DN (NaN ignored).
+        exposure_ms: the set's exposure, ms, > 0.
+        full_scale: the sensor's saturation code.
+        saturation_limit: as in :func:`choose_exposure`.
+
+    Returns:
+        The chosen exposure, ms.
+    """
+    if not (math.isfinite(exposure_ms) and exposure_ms > 0):
+        raise ValueError(f"exposure_ms: must be finite and > 0, got {exposure_ms}")
+    if not (math.isfinite(full_scale) and full_scale > 0):
+        raise ValueError(f"full_scale: must be finite and > 0, got {full_scale}")
+    peak = np.nan_to_num(np.asarray(peak_dn, np.float64)[::2, ::2], nan=0.0)
+    mod = np.nan_to_num(np.asarray(modulation_dn, np.float64)[::2, ::2], nan=0.0)
+    lit = peak > 0.02 * full_scale
+    clipped = peak >= full_scale
+
+    def measure(e: float) -> tuple[float, float]:
+        k = e / exposure_ms
+        sat = float(((peak * k >= full_scale) | clipped).mean())
+        return sat, float(np.median(mod[lit]) * k) if lit.any() else 0.0
+
+    return choose_exposure(measure, saturation_limit=saturation_limit).exposure_ms
+
+
+def low_signal(reason: npt.NDArray[np.uint8], area: npt.NDArray[np.bool_],
+               peak_dn: npt.NDArray[np.float32], modulation_dn: npt.NDArray[np.float32],
+               exposure_ms: float, full_scale: float) -> LowSignal | None:
+    """:class:`LowSignal` when most of ``area`` is LOW_MODULATION or UNCERTAIN, else None.
+
+    Args:
+        reason: (H, W) reason codes of the result; ``area`` (H, W) bool the ROI.
+        peak_dn, modulation_dn, exposure_ms, full_scale: as in :func:`predicted_exposure_ms`.
+    """
+    if reason.shape != area.shape:
+        raise ValueError(f"area: shape {area.shape} differs from reason {reason.shape}")
+    n = int(area.sum())
+    if n == 0:
+        return None
+    dark = np.isin(reason[area], (int(Reason.LOW_MODULATION), int(Reason.UNCERTAIN)))
+    share = float(dark.mean())
+    if share <= LOW_SIGNAL_SHARE:
+        return None
+    return LowSignal(share, float(exposure_ms),
+                     predicted_exposure_ms(peak_dn, modulation_dn, exposure_ms, full_scale))

@@ -28,8 +28,10 @@ from app.recon.model import (
     outside_volume,
     pixel_tables,
 )
+from app.recon.noise import resolve_sensor_noise
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
+from app.recon.sensor import NoiseSource
 from app.recon.sensor import SensorNoise as SensorNoise  # re-exported: its historical home
 from app.recon.unwrap import (
     DEFAULT_CONSISTENCY_RAD,
@@ -121,6 +123,10 @@ class ReconResult:
             window was flagged, ``uncertain_moving_pixels`` valid pixels made UNCERTAIN by the
             moving-scene σ bound, ``motion_ms`` the test's wall time, ms.
         noise: the camera noise model the set was reconstructed with.
+        noise_source: where ``noise`` came from: ``"given"`` (passed to ``run`` or the
+            constructor), ``"set"`` (fitted to this set's N-step residual, N > 3) or
+            ``"nominal"`` (:meth:`SensorNoise.typical`: the set could not give it).
+        noise_note: why the set could not give its noise ("" otherwise).
     """
 
     depth: F32
@@ -139,6 +145,8 @@ class ReconResult:
     uncertain_moving_pixels: int = 0
     motion_ms: float = 0.0
     noise: SensorNoise | None = None
+    noise_source: NoiseSource = "given"
+    noise_note: str = ""
 
 
 def _phase_numpy(
@@ -275,8 +283,9 @@ class Reconstructor:
         fast: use the fused numba kernel (falls back to numpy if numba is missing).
         with_phase: also return the unwrapped phase (calibration and noise analysis
             need it; live depth does not, and it costs a full-frame write).
-        noise: the camera's :class:`SensorNoise` for ``ReconResult.sigma``; None →
-            :meth:`SensorNoise.typical` for the frames' maximum code.
+        noise: the camera's :class:`SensorNoise` for ``ReconResult.sigma``; None → each
+            run fits it to its set (N > 3), else :meth:`SensorNoise.typical` for the
+            frames' maximum code (``ReconResult.noise_source`` says which).
         max_sigma_mm: pixels whose σ exceeds this are UNCERTAIN (None: the noise-aware
             rule's bound from ``gross_error_mm``, or no such rule with an explicit
             ``min_modulation``).
@@ -428,7 +437,8 @@ class Reconstructor:
             max_code: override the constructor's sensor maximum code for this call
                 (a capture set's ``max_code``, from its ``bit_depth``).
             noise: the camera's noise model for this set (σ, the validity rule, the order
-                and motion tests); None → the constructor's, else :meth:`SensorNoise.typical`.
+                and motion tests); None → the constructor's, else fitted to this set
+                (:func:`app.recon.noise.resolve_sensor_noise`: N > 3, else the nominal).
             motion: test the set for motion between its frequency groups
                 (:mod:`app.recon.motion`) and invalidate the moved pixels; None: no test.
 
@@ -446,13 +456,20 @@ class Reconstructor:
         self.calibration.check_frames(frames.shape)
         max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
                                            self.min_modulation)
-        camera = noise if noise is not None else self._noise(max_code)
+        source: NoiseSource = "given"
+        note = ""
+        if noise is not None:
+            camera = noise
+        elif self.noise is not None:
+            camera = self.noise
+        else:  # the set's own noise, as every path without a measured model
+            camera, source, note = resolve_sensor_noise(frames, self.calibration.pattern, max_code)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
             res = self._run_fast(frames, max_code, min_mod, camera)
         else:
             res = self._run_numpy(frames, max_code, min_mod, camera)
-        res.noise = camera
+        res.noise, res.noise_source, res.noise_note = camera, source, note
         res.motion, res.moved_pixels, res.scene_moved = None, 0, False
         res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
         if motion is not None:

@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
+
+#: where a run's noise model came from: passed by the caller, fitted to the set (N > 3), or
+#: the nominal sensor (:meth:`SensorNoise.typical`) where the set cannot give it
+NoiseSource = Literal["given", "set", "nominal"]
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,20 @@ def _f(x: Any) -> float | None:
     return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
+def low_signal_note(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
+    """When most of ``roi`` is invalid for low signal: that share, and the exposure the
+    auto-exposure would choose (predicted from the map's levels); else nothing."""
+    from app.analysis import roi_mask
+    from app.recon.exposure import low_signal
+
+    dark = low_signal(result.reason, roi_mask(result.reason.shape, roi), result.texture, result.modulation,
+                      result.exposure_ms, result.full_scale)
+    if dark is None:
+        return {}
+    return {"low_signal_fraction": dark.share, "suggested_exposure_ms": dark.suggested_exposure_ms,
+            "warning": dark.message()}
+
+
 def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
     """Plane accuracy/precision/flatness of the points in ``roi`` (paper's DOF-target method)."""
     from app.analysis.plane import plane_accuracy
@@ -29,7 +43,8 @@ def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
         "accuracy_mm": _f(acc.accuracy_mm), "precision_mm": _f(acc.precision_mm),
         "flatness_mm": _f(acc.flatness_mm), "points": int(acc.n_points),
         "extra": {"inlier_fraction": _f(acc.inlier_fraction), "seq": result.seq,
-                  "mean_distance_mm": _f(acc.mean_distance_mm), "bins": len(acc.bins)},
+                  "mean_distance_mm": _f(acc.mean_distance_mm), "bins": len(acc.bins),
+                  **low_signal_note(result, roi)},
     }
 
 
@@ -52,5 +67,5 @@ def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = 
         "count": int(res.count),
         "extra": {"seq": result.seq, "baseline_rms_mm": _f(res.baseline_rms_mm),
                   "height_se_mm": _f(res.height_se_mm), "polarity": res.polarity,
-                  "feature_pixels": int(res.mask.sum())},
+                  "feature_pixels": int(res.mask.sum()), **low_signal_note(result, roi)},
     }

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from app.recon import Reconstructor
 from app.recon.motion import MotionTest, map_time
-from app.recon.sensor import SensorNoise
+from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
 from app.service.sensor_noise import LiveNoise
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
@@ -68,6 +68,7 @@ class LiveResult:
     scene_moved: bool = False
     uncertain_moving_pixels: int = 0
     noise: SensorNoise | None = None
+    noise_source: NoiseSource = "given"  # or "set"/"nominal": the engine's own until measured
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -178,7 +179,10 @@ class Reconstruction:
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
-        res = engine.run(frames, noise=self.noise.current, motion=self.motion)
+        noise = self.noise.current  # None until measured: the engine fits it to this set
+        if noise is None and self.noise.interval_s == 0.0:  # measuring off: the nominal sensor
+            noise = engine.noise or SensorNoise.typical(int(full_scale))
+        res = engine.run(frames, noise=noise, motion=self.motion)
         recon_ms = 1000.0 * (time.perf_counter() - t0)
         sched = engine.calibration.pattern
         return LiveResult(
@@ -192,4 +196,5 @@ class Reconstruction:
                                 combined=engine.combine_frequencies),
             moved_pixels=res.moved_pixels, motion_ms=res.motion_ms, scene_moved=res.scene_moved,
             uncertain_moving_pixels=res.uncertain_moving_pixels, noise=res.noise,
+            noise_source=res.noise_source,
         )

@@ -100,3 +100,59 @@ def test_upload_over_the_limit_is_413(tmp_path: Path, sim_calibration_file: Path
         assert r.status_code == 413 and "limit" in r.json()["detail"]
         r = client.post("/api/reconstruct", content=_zip(folder), headers={"content-type": "application/zip"})
         assert r.status_code == 413
+
+
+def _rms_ratio(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray) -> float:
+    ok = np.isfinite(depth) & np.isfinite(sigma) & np.isfinite(truth)
+    assert ok.mean() > 0.3
+    return float(np.sqrt(np.mean(((depth[ok] - truth[ok]) / sigma[ok]) ** 2)))
+
+
+def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
+        live: TestClient, sim_calibration_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A twin camera 4× noisier than the nominal sensor: every path fits the noise to the set."""
+    from app.calib import load_calibration
+    from app.cli import main
+    from app.devices.sim import SimulatedWorld, render_capture_set
+    from app.devices.sim.radiometry import SensorModel
+    from app.recon import Reconstructor, SensorNoise
+
+    nominal = SensorModel()  # 16× fewer electrons for the same DN: shot and read σ 4× the nominal
+    noisy = SensorModel(full_well_e=nominal.full_well_e / 16, photons_scale=nominal.photons_scale / 16)
+    world = SimulatedWorld("dof_target", seed=7, sensor=noisy)
+    capture, truth, _ = render_capture_set("dof_target", seed=7, world=world)
+    folder = write_capture_set(tmp_path / "set", capture)
+    truth = np.asarray(truth)
+
+    cal = load_calibration(sim_calibration_file)
+    py = Reconstructor(cal).run(capture.frames, max_code=capture.max_code)
+    assert py.noise_source == "set" and py.noise is not None
+    ratio_py = _rms_ratio(py.depth, py.sigma, truth)
+
+    r = live.post("/api/reconstruct", files=_files(folder))
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["noise_source"] == "set"
+    assert body["read_noise_dn"] == pytest.approx(py.noise.read_noise_dn)
+    rest_depth = np.load(io.BytesIO(live.post("/api/reconstruct?format=npy", files=_files(folder)).content))
+    r = live.post("/api/reconstruct?format=npy&field=sigma", files=_files(folder))
+    assert r.status_code == 200 and "sigma.npy" in r.headers["content-disposition"]
+    rest_sigma = np.load(io.BytesIO(r.content))
+    ratio_rest = _rms_ratio(rest_depth, rest_sigma, truth)
+
+    assert main(["reconstruct", str(folder), "-c", str(sim_calibration_file), "-o", str(tmp_path / "out")]) == 0
+    assert "noise_source=set" in capsys.readouterr().out
+    cli_depth, cli_sigma = np.load(tmp_path / "out" / "depth.npy"), np.load(tmp_path / "out" / "sigma.npy")
+    ratio_cli = _rms_ratio(cli_depth, cli_sigma, truth)
+
+    print(f"RMS(error/sigma): python {ratio_py:.3f}, REST {ratio_rest:.3f}, CLI {ratio_cli:.3f}")
+    for ratio in (ratio_py, ratio_rest, ratio_cli):
+        assert 0.8 <= ratio <= 1.25
+    # one noise estimate, one validity rule: the same pixels and the same σ on every path
+    for depth, sigma in ((rest_depth, rest_sigma), (cli_depth, cli_sigma)):
+        assert np.array_equal(np.isfinite(depth), py.valid)
+        np.testing.assert_allclose(sigma[py.valid], py.sigma[py.valid], rtol=1e-5)
+    # the nominal model would make σ about four times too small
+    nom = Reconstructor(cal).run(capture.frames, max_code=capture.max_code,
+                                 noise=SensorNoise.typical(capture.max_code))
+    assert nom.noise_source == "given" and _rms_ratio(nom.depth, nom.sigma, truth) > 2.5

@@ -80,3 +80,43 @@ def test_bracket_adds_two_stops_capped_at_the_longest_exposure():
 def test_bracket_rejects_bad_input(kw, name):
     with pytest.raises(ValueError, match=name):
         bracket_exposures(**kw)
+
+
+def _levels(peak_max: float, size: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """Peaks A + B spread evenly over (0, peak_max] DN, modulation a third of them."""
+    peak = np.linspace(peak_max / size, peak_max, size * size, dtype=np.float32).reshape(size, size)
+    return peak, peak / 3
+
+
+def test_predicted_exposure_scales_the_set_to_the_saturation_limit():
+    from app.recon.exposure import LADDER_MS, predicted_exposure_ms
+
+    # the brightest peak (60.3 DN at 33 ms) reaches full scale (100 DN) at 54.7 ms
+    peak, mod = _levels(60.0 / 0.995)
+    got = predicted_exposure_ms(peak, mod, 33.0, 100.0)
+    # the longest ladder step within 33 ms · 100/60 = 55 ms
+    assert got == max(e for e in LADDER_MS if e <= 55.0) == 50.0
+    # already clipped pixels stay clipped: half the image at full scale → the shortest exposure
+    peak[:100] = 100.0
+    assert predicted_exposure_ms(peak, mod, 33.0, 100.0) == LADDER_MS[0]
+
+
+def test_low_signal_names_the_share_and_the_exposure_only_when_most_of_the_roi_is_dark():
+    from app.core.reasons import Reason
+    from app.recon.exposure import low_signal
+
+    peak, mod = _levels(20.0)
+    reason = np.full(peak.shape, int(Reason.OK), np.uint8)
+    area = np.zeros(peak.shape, bool)
+    area[50:150, 50:150] = True
+    assert low_signal(reason, area, peak, mod, 20.0, 255.0) is None
+    reason[:, :80] = Reason.LOW_MODULATION
+    reason[:, 80:110] = Reason.UNCERTAIN  # 60 of the ROI's 100 columns
+    dark = low_signal(reason, area, peak, mod, 20.0, 255.0)
+    assert dark is not None and dark.share == pytest.approx(0.6)
+    assert dark.suggested_exposure_ms == 100.0  # 20 DN at 20 ms: the longest exposure stays unsaturated
+    assert dark.message() == "60% of the ROI is invalid for low signal at 20 ms: the auto-exposure would choose 100 ms"
+    with pytest.raises(ValueError, match="area"):
+        low_signal(reason, area[:10], peak, mod, 20.0, 255.0)
+    with pytest.raises(ValueError, match="exposure_ms"):
+        low_signal(reason, area, peak, mod, 0.0, 255.0)

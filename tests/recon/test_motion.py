@@ -323,7 +323,9 @@ def test_the_engine_runs_the_motion_test_with_the_noise_it_is_given():
     engine = Reconstructor(ideal_calibration(world.rig, world.schedule), with_phase=True)
     plain = engine.run(frames)
     assert plain.motion is None and plain.moved_pixels == 0
-    assert plain.noise == SensorNoise.typical(255)
+    # no noise given: the set's own (its N-step residual), the moved patch left out of the fit
+    assert plain.noise_source == "set" and plain.noise is not None
+    assert plain.noise.gain_dn_per_e == pytest.approx(255 / 16000, rel=0.3)
     camera = SensorNoise(gain_dn_per_e=255 / 16000, read_noise_dn=0.4)
     results = [engine.run(frames, noise=camera, motion=MotionTest(grow_px=1), fast=fast)
                for fast in (True, False)]

@@ -11,6 +11,8 @@ from app.devices.sim import SimulatedWorld
 from app.devices.sim.ideal import ideal_calibration
 from app.recon import Reconstructor
 from app.recon.motion import MotionTest, sigma_bounds
+from app.recon.noise import estimate_sensor_noise
+from app.recon.sensor import SensorNoise
 from app.service.framesets import FrameSet
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
@@ -70,14 +72,25 @@ def test_the_measured_noise_is_passed_to_the_engine_not_installed_in_it(still_se
     frames, engine = still_set
     rec = Reconstruction(NewestQueue(1), lambda: engine, motion=MotionTest())
     first = rec.process(engine, frame_set(frames, list(range(16)), "set"))
-    assert rec.noise.current is None and first.noise == engine._noise(255)  # nominal until measured
+    # until the thread measures it, the engine fits the noise to each set itself
+    assert rec.noise.current is None and first.noise_source == "set"
+    assert first.noise == estimate_sensor_noise(frames, engine.calibration.pattern, max_code=255)
     measured = rec.noise.update(frames, engine.calibration.pattern, 255, 0.0)
     assert measured is not None and measured is rec.noise.current
     res = rec.process(engine, frame_set(frames, list(range(16)), "set"))
     assert res.noise is measured and engine.noise is None
+    assert res.noise_source == "given"
     # σ follows the model it was given: σ ∝ √(read² + gain·A)
-    both = res.valid & first.valid
-    assert not np.allclose(res.sigma[both], first.sigma[both])
+    nominal = engine.run(frames, noise=SensorNoise.typical(255))
+    both = res.valid & nominal.valid
+    assert not np.allclose(res.sigma[both], nominal.sigma[both])
+
+
+def test_with_measuring_off_the_live_thread_keeps_the_nominal_noise(still_set):
+    frames, engine = still_set
+    rec = Reconstruction(NewestQueue(1), lambda: engine, motion=MotionTest(), noise_estimate_interval_s=0.0)
+    res = rec.process(engine, frame_set(frames, list(range(16)), "set"))
+    assert res.noise == SensorNoise.typical(255)
 
 
 def test_the_pipeline_hands_its_motion_settings_to_the_thread_as_one_test():
