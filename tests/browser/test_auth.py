@@ -14,9 +14,7 @@ from typing import Any
 import httpx
 import pytest
 
-from app.config import Settings
-from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, EXPOSURE_MS
-from tests.helpers.outputs import serve, wait_for
+from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, EXPOSURE_MS, live_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -26,19 +24,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
-    if not CHROMIUM.exists():
-        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
-    from app.main import create_app
-
-    calibration = request.getfixturevalue("browser_calibration_file")
-    settings = Settings(data_dir=tmp_path_factory.mktemp("auth-data"), calibration_file=calibration,
-                        sim_seed=7, exposure_ms=EXPOSURE_MS, viewer_max_points=100_000, api_token=TOKEN)
-    with serve(create_app(settings)) as host:
-        base = f"http://{host}"
+    with live_server(tmp_path_factory, request, "auth-data", token=TOKEN) as base:
         assert httpx.get(f"{base}/api/status").status_code == 401
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status", headers=AUTH).json()["results_published"] >= 2,
-                      600, 0.5)
-        assert ok
         yield base
 
 

@@ -11,13 +11,10 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import httpx
 import pytest
 
 from app.api.security import DASHBOARD_CSP
-from app.config import Settings
-from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, EXPOSURE_MS
-from tests.helpers.outputs import serve, wait_for
+from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, live_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -27,18 +24,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
-    if not CHROMIUM.exists():
-        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
-    from app.main import create_app
-
-    calibration = request.getfixturevalue("browser_calibration_file")
-    settings = Settings(data_dir=tmp_path_factory.mktemp("csp-data"), calibration_file=calibration,
-                        sim_seed=7, exposure_ms=EXPOSURE_MS, viewer_max_points=100_000, api_token=TOKEN)
-    with serve(create_app(settings)) as host:
-        base = f"http://{host}"
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status", headers=AUTH).json()["results_published"] >= 2,
-                      600, 0.5)
-        assert ok
+    with live_server(tmp_path_factory, request, "csp-data", token=TOKEN) as base:
         yield base
 
 

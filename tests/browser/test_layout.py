@@ -11,21 +11,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from app.config import Settings
-from tests.helpers.outputs import serve, wait_for
+from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS, live_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
-EXPOSURE_MS = 60.0  # slack for the real-time simulator on a busy 2-core machine
 WATCH_S = 10.0
 TOLERANCE_PX = 0.5
 
@@ -39,17 +33,7 @@ WATCHED = "#depth, #statusbar, #statusbar > *, #warnings, .depth-panel .panel-he
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
-    if not CHROMIUM.exists():
-        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
-    from app.main import create_app
-
-    calibration = request.getfixturevalue("browser_calibration_file")
-    settings = Settings(data_dir=tmp_path_factory.mktemp("layout-data"), calibration_file=calibration,
-                        sim_seed=7, exposure_ms=EXPOSURE_MS, viewer=False)
-    with serve(create_app(settings)) as host:
-        base = f"http://{host}"
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 2, 600, 0.5)
-        assert ok, httpx.get(f"{base}/api/status").json()
+    with live_server(tmp_path_factory, request, "layout-data", viewer=False) as base:
         yield base
 
 

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -23,22 +24,34 @@ IGNORED_CONSOLE: tuple[str, ...] = ()
 EXPOSURE_MS = 60.0
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+@contextmanager
+def live_server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest, name: str,
+                *, token: str | None = None, **overrides: Any) -> Iterator[str]:
+    """A served app on the simulator once live depth flows (2 results), at its base URL.
+
+    Skips without Chromium. ``overrides`` are Settings fields; a long exposure by default leaves
+    the real-time simulator slack on a busy 2-core machine.
+    """
     if not CHROMIUM.exists():
         pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
     from app.main import create_app
 
     calibration = request.getfixturevalue("browser_calibration_file")
-    data_dir = tmp_path_factory.mktemp("fringescope-data")
-    # A long exposure leaves the real-time simulator slack on a busy 2-core machine.
-    settings = Settings(data_dir=data_dir, calibration_file=calibration, sim_seed=7,
-                        exposure_ms=EXPOSURE_MS, viewer_max_points=100_000)
+    fields: dict[str, Any] = {"sim_seed": 7, "exposure_ms": EXPOSURE_MS, "viewer_max_points": 100_000}
+    settings = Settings(data_dir=tmp_path_factory.mktemp(name), calibration_file=calibration,
+                        api_token=token, **(fields | overrides))
+    auth = {"Authorization": f"Bearer {token}"} if token else {}
     with serve(create_app(settings)) as host:
         base = f"http://{host}"
-        # First start on the simulator creates its calibration: wait for live depth.
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status").json()["results_published"] >= 2, 600, 0.5)
-        assert ok, httpx.get(f"{base}/api/status").json()
+        ok = wait_for(lambda: httpx.get(f"{base}/api/status", headers=auth).json()["results_published"] >= 2,
+                      600, 0.5)
+        assert ok, httpx.get(f"{base}/api/status", headers=auth).json()
+        yield base
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+    with live_server(tmp_path_factory, request, "fringescope-data") as base:
         yield base
 
 

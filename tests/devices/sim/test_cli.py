@@ -12,9 +12,12 @@ from app.cli import main
 
 def test_list(capsys):
     assert main(["simulate", "--list"]) == 0
-    names = capsys.readouterr().out.split()
+    lines = capsys.readouterr().out.splitlines()
+    described = dict(line.split(": ", 1) for line in lines)  # one "name: description" a line
     assert {"plane", "dof_target", "skin_flap", "intestine_flap", "intestine_pile", "anastomosis",
-            "sphere", "calibration"} <= set(names)
+            "sphere", "calibration"} <= set(described)
+    assert all("surface" in text and " mm" in text for name, text in described.items()
+               if name != "calibration")
 
 
 def test_errors_are_one_line_exit_2(tmp_path, capsys):
