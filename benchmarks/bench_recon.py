@@ -15,32 +15,20 @@ import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
-import statistics
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from timing import median_ms
+
 from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 
 WIDTH, HEIGHT = 1384, 1032
 
-
-def median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Median wall ms and median process CPU ms (all threads) of ``fn``."""
-    fn()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        wall.append((time.perf_counter() - t0) * 1e3)
-        cpu.append((time.process_time() - c0) * 1e3)
-    return statistics.median(wall), statistics.median(cpu)
 
 
 def main() -> int:

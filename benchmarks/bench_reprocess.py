@@ -29,7 +29,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from timing import median_ms  # noqa: E402  (benchmarks/ is the script's folder)
 
 from app.batch.engine import connect, plan, run_tasks  # noqa: E402
 from app.batch.setjob import ReconOptions, new_reconstructor, output_files, reconstruct_captures  # noqa: E402
@@ -49,18 +50,6 @@ WIDTH, HEIGHT = 1384, 1032
 SETS_PER_HOUR = 7000  # the issue's figure: ~2 sets/s at the paper's schedule
 RECORDINGS, MACHINES = 50, 20
 
-
-def median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Median wall ms and median process CPU ms (all threads) of ``fn``: on a shared machine
-    the wall time follows the others' load, the CPU time much less."""
-    fn()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        wall.append((time.perf_counter() - t0) * 1e3)
-        cpu.append((time.process_time() - c0) * 1e3)
-    return statistics.median(wall), statistics.median(cpu)
 
 
 def make_sets(folder: Path, n: int) -> tuple[Path, Path]:

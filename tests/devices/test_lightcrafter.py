@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import io
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -48,6 +47,7 @@ from app.devices.lightcrafter import (
 )
 from app.devices.lightcrafter_emulator import LightCrafterEmulator, decode_bmp
 from app.recon.patterns import PatternSchedule, generate_patterns
+from tests.helpers.lightcrafter import raw_exchange
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -58,13 +58,6 @@ def emu():
     yield e
     e.stop()
 
-
-def _raw(emu: LightCrafterEmulator, data: bytes) -> bytes:
-    """Send raw bytes, return the raw reply packet."""
-    with socket.create_connection((emu.host, emu.port), timeout=2) as s:
-        s.sendall(data)
-        head = s.recv(6, socket.MSG_WAITALL)
-        return head + s.recv(head[4] + 256 * head[5] + 1, socket.MSG_WAITALL)
 
 
 def test_packet_bytes_match_known_lightcrafter_commands():
@@ -137,10 +130,10 @@ def test_bit_depth_fits_the_96_bit_planes():
 def test_server_answers_bad_checksum_and_continuation_errors_byte_exactly(emu):
     good = encode_packet(READ, CMD_VERSION, b"\x00")
     bad = good[:-1] + bytes([(good[-1] + 1) % 256])
-    assert _raw(emu, bad) == bytes([0x01, 0x01, 0x00, 0x00, 0x01, 0x00, 0x08, 0x0B])
+    assert raw_exchange(emu, bad) == bytes([0x01, 0x01, 0x00, 0x00, 0x01, 0x00, 0x08, 0x0B])
     middle = encode_packet(WRITE, CMD_PATTERN_DEF, b"\x00" * 8, MIDDLE)
-    assert _raw(emu, middle)[6] == 0x0A
-    reply = _raw(emu, good)
+    assert raw_exchange(emu, middle)[6] == 0x0A
+    reply = raw_exchange(emu, good)
     assert reply[0] == 0x05 and reply[-1] == sum(reply[:-1]) % 256
     assert reply[6:-1].startswith(b"5.0.0")
 
@@ -174,7 +167,7 @@ def test_projector_uploads_the_fringe_sequence(emu):
 def test_busy_replies_are_retried_then_time_out(emu):
     """Busy packets whose checksum is unset (the guide: bytes after the first are ignored)."""
     emu.busy_next = 1
-    busy = _raw(emu, encode_packet(READ, CMD_VERSION, b"\x00"))
+    busy = raw_exchange(emu, encode_packet(READ, CMD_VERSION, b"\x00"))
     assert busy[0] == 0x00 and busy[-1] != sum(busy[:-1]) % 256
     client = LightCrafterClient(emu.host, emu.port, busy_retries=5, busy_wait_s=0.001)
     client.connect()

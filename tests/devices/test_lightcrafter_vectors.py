@@ -10,8 +10,6 @@ pattern upload carried by the client's framing) and expect the device's error co
 
 from __future__ import annotations
 
-import socket
-
 import numpy as np
 import pytest
 
@@ -27,6 +25,7 @@ from app.devices.lightcrafter import (
 )
 from app.devices.lightcrafter_emulator import LightCrafterEmulator
 from app.recon.patterns import PatternSchedule, generate_patterns
+from tests.helpers.lightcrafter import raw_exchange
 
 H = bytes.fromhex
 # type 04 read, cmd 01 00, flags 00, length 0001, payload 00 (DM365 software), checksum 06
@@ -64,13 +63,6 @@ def emu():
     yield e
     e.stop()
 
-
-def _raw(emu: LightCrafterEmulator, data: bytes) -> bytes:
-    """Send raw bytes on a fresh connection, return the raw reply packet."""
-    with socket.create_connection((emu.host, emu.port), timeout=2) as s:
-        s.sendall(data)
-        head = s.recv(6, socket.MSG_WAITALL)
-        return head + s.recv(head[4] + 256 * head[5] + 1, socket.MSG_WAITALL)
 
 
 def _sent(emu: LightCrafterEmulator, since: int) -> list[bytes]:
@@ -157,7 +149,7 @@ def test_exposure_change_sends_stop_sequence_start(emu):
 
 def test_legacy_firmware_gets_the_legacy_sequence_command():
     with LightCrafterEmulator(firmware="2.0.0") as emu:
-        assert _raw(emu, SEQ_EXT_6BIT_25MS) == H("01 0480 00 0100 02 88")  # invalid command
+        assert raw_exchange(emu, SEQ_EXT_6BIT_25MS) == H("01 0480 00 0100 02 88")  # invalid command
         proj = LightCrafterProjector(emu.host, emu.port)
         proj.open()
         assert not proj.extended_sequence
@@ -180,7 +172,7 @@ def test_legacy_firmware_gets_the_legacy_sequence_command():
     (H("02 0103 00 0100 0D 14"), H("03 0103 00 0000 07")),  # last internal test pattern
 ])
 def test_emulator_accepts_the_guide_packets(emu, packet, reply):
-    got = _raw(emu, packet)
+    got = raw_exchange(emu, packet)
     if reply is None:  # the version string: read response, its own checksum
         assert got[:3] == H("05 0100") and got[6:-1] == b"5.0.0\0"
         assert got[-1] == sum(got[:-1]) % 256
@@ -199,20 +191,20 @@ def test_emulator_accepts_the_guide_packets(emu, packet, reply):
     (H("00 0000 00 0000 00"), H("01 0000 00 0100 02 04")),  # busy is a device type; no command
 ])
 def test_emulator_refuses_with_the_guide_error_codes(emu, packet, reply):
-    assert _raw(emu, packet) == reply
+    assert raw_exchange(emu, packet) == reply
 
 
 def test_old_led_current_packet_is_refused():
     """LED current sent as 0x0103 (one-byte test pattern) with 6 bytes: payload size error."""
     with LightCrafterEmulator() as emu:
-        assert _raw(emu, H("02 0103 00 0600 0000 0002 0000 0E")) == H("01 0103 00 0100 09 0F")
+        assert raw_exchange(emu, H("02 0103 00 0600 0000 0002 0000 0E")) == H("01 0103 00 0100 09 0F")
         assert emu.state.led_current == (274, 274, 274)
 
 
 def test_old_trigger_output_packet_is_refused():
     """10-byte 0x0404 (no trigger-source byte): payload size error, nothing set."""
     with LightCrafterEmulator() as emu:
-        assert _raw(emu, H("02 0404 00 0A00 01 00 00000000 64000000 79")) == H(
+        assert raw_exchange(emu, H("02 0404 00 0A00 01 00 00000000 64000000 79")) == H(
             "01 0404 00 0100 09 13")
         assert emu.state.trigger_out == {}
 
