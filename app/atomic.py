@@ -12,6 +12,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
+from app.core.jsonlimits import check_json_depth
+
 T = TypeVar("T")
 
 
@@ -90,7 +92,9 @@ def read_json(path: str | os.PathLike[str], what: str, parse: Callable[[Any], T]
     """
     p = Path(path)
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        raw = p.read_bytes()
+        check_json_depth(raw, str(p))
+        data = json.loads(raw)
     except FileNotFoundError:
         raise ValueError(f"{p}: {what} not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -68,6 +68,15 @@ def test_bad_calibration_is_one_line_error(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "calibration" in err[0]
 
 
+def test_a_calibration_nested_too_deeply_is_one_line_error(tmp_path, capsys):
+    write_bump_set(tmp_path)
+    (tmp_path / "calibration.json").write_text("[" * 100_000 + "]" * 100_000)
+    rc = main(["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json"),
+               "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "nested 100000 levels deep" in err[0], err
+
+
 def test_corrupted_geometric_calibration_is_one_line_error(tmp_path, capsys):
     import json
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from app.atomic import atomic_write_text
 from app.core.calibration import Calibration
+from app.core.jsonlimits import check_json_depth
 
 __all__ = ["load_calibration", "save_calibration"]
 
@@ -30,6 +31,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"{p}: cannot read calibration ({exc})") from None
     try:
+        check_json_depth(text.encode("utf-8"), str(p))
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None

@@ -37,7 +37,8 @@ LAYERS: dict[str, int] = {
 #: imports allowed between two parts of one layer: ``outputs`` (viewer, OpenIGTLink, image
 #: encoders) sits beside ``api`` and reads the result slot; the API serves the encoders' images,
 #: while an output never imports the API (checked below, and a cycle would fail anyway).
-ACROSS: frozenset[tuple[str, str]] = frozenset({("api", "outputs")})
+#: ``atomic`` (file writes and JSON reads) refuses hostile JSON with ``core.jsonlimits``.
+ACROSS: frozenset[tuple[str, str]] = frozenset({("api", "outputs"), ("atomic", "core")})
 
 
 def _module_name(path: Path) -> str:
