@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from app.api.schemas import CalibrationSummary as CalibrationSummaryOut
-from app.api.schemas import DeviceOut, StatusOut
+from app.api.schemas import DeviceOut, StatusOut, model_of
 from app.core.records import CalibrationSummary, DeviceStatus, Status
 
 
@@ -63,3 +63,34 @@ def test_api_models_have_the_records_fields_and_agreeing_defaults() -> None:
         disagree = {k: (ours[k], theirs[k]) for k in ours.keys() & theirs.keys()
                     if json.dumps(ours[k]) != json.dumps(theirs[k])}
         assert not disagree, f"{record.__name__}: defaults differ {disagree}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Inner:
+    size: tuple[int, int]
+
+
+@dataclasses.dataclass(frozen=True)
+class Outer:
+    items: tuple[Inner, ...]
+    best: Inner | None
+    span_mm: float = dataclasses.field(default=1.5, metadata={"description": "how far, mm"})
+    tags: tuple[str, ...] = ()
+
+
+def test_api_models_are_derived_from_the_records() -> None:
+    """A field written in a record is in its API model: type, default, description, order."""
+    inner = model_of(Inner, "InnerOut")
+    outer = model_of(Outer, "OuterOut", {Inner: inner})
+    assert list(outer.model_fields) == ["items", "best", "span_mm", "tags"]
+    schema = outer.model_json_schema()
+    assert schema["required"] == ["items", "best"]
+    assert schema["properties"]["span_mm"]["description"] == "how far, mm"
+    assert schema["properties"]["tags"] == {"default": [], "items": {"type": "string"},
+                                            "title": "Tags", "type": "array"}
+    assert schema["$defs"]["InnerOut"]["properties"]["size"]["type"] == "array"
+    got = outer.model_validate({"items": [{"size": [3, 4]}], "best": None})
+    assert got.model_dump() == {"items": [{"size": [3, 4]}], "best": None, "span_mm": 1.5, "tags": []}
+    assert StatusOut.model_fields["calibration"].annotation == CalibrationSummaryOut | None
+    assert StatusOut.model_fields["state"].description == \
+        dataclasses.fields(Status)[0].metadata["description"]
