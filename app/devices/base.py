@@ -234,7 +234,8 @@ class Camera(Device):
             raise DeviceStateError(f"{self.name}: cannot grab while {self._state.value}")
         if not (timeout_s > 0):
             raise ValueError(f"timeout_s: must be positive, got {timeout_s}")
-        return self._call("grab", self._do_grab, float(timeout_s))
+        frame: Frame = self._call("grab", self._do_grab, float(timeout_s))
+        return frame
 
     @abstractmethod
     def _capabilities(self) -> CameraCapabilities: ...

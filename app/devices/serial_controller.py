@@ -148,7 +148,7 @@ class SerialLink:
                     raw = self._port.readline()
                     if not raw.endswith(b"\n"):
                         raise DeviceTimeout(f"{self.url}: no reply to {line!r} within {self.timeout_s:.2f} s")
-                    reply = raw.decode("ascii", "replace").strip()
+                    reply: str = raw.decode("ascii", "replace").strip()
                     if reply and not reply.startswith("#"):
                         break
                     if time.monotonic() > deadline:
