@@ -145,6 +145,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     else:
         @app.get("/", include_in_schema=False)
         def no_dashboard() -> JSONResponse:
-            return JSONResponse({"detail": "dashboard not installed; the API is at /docs"}, status_code=404)
+            return JSONResponse({"detail": "dashboard not installed; the API is at /docs"},
+                                status_code=404)
 
     return app

@@ -427,7 +427,8 @@ class _Sink(io.RawIOBase):
         return data
 
 
-def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20) -> Iterator[bytes]:
+def iter_zip(root: str | os.PathLike[str], name: str,
+             chunk_bytes: int = 1 << 20) -> Iterator[bytes]:
     """Stream recording ``name`` as a zip archive, a chunk at a time (constant memory).
 
     The archive holds ``<name>/session.json`` and the listed set folders. PNG frames
