@@ -15,22 +15,26 @@ from app.core.records import CalibrationSummary, DeviceStatus, Status
 
 def _status(calibration: CalibrationSummary | None) -> Status:
     return Status(
-        state="running", camera_fps=33.3, depth_fps=2.08, latency_ms=12.5, recon_ms=None, exposure_ms=30.0,
-        led="green", mode="set", acquiring=True, calibration=calibration,
-        devices=(DeviceStatus("sim-camera", "camera", "running"), DeviceStatus("lcr", "projector", "fault", "gone")),
-        last_error="gone", sets_completed=4, results_published=3, dropped_sets=1, incomplete_sets=0, mixed_sets=0,
-        frames_received=70, frames_dropped=2, faults=1, recording=None, warnings=("w1",),
+        state="running", camera_fps=33.3, depth_fps=2.08, latency_ms=12.5, recon_ms=None,
+        exposure_ms=30.0, led="green", mode="set", acquiring=True, calibration=calibration,
+        devices=(DeviceStatus("sim-camera", "camera", "running"),
+                 DeviceStatus("lcr", "projector", "fault", "gone")),
+        last_error="gone", sets_completed=4, results_published=3, dropped_sets=1,
+        incomplete_sets=0, mixed_sets=0, frames_received=70, frames_dropped=2, faults=1,
+        recording=None, warnings=("w1",),
     )
 
 
 def test_status_dict_is_json_and_matches_the_api_schema():
-    cal = CalibrationSummary("sim", "2026-11-24T01:00:00+00:00", (0.0, 22.5), (1384, 1032), "0.1", 8)
+    cal = CalibrationSummary("sim", "2026-11-24T01:00:00+00:00", (0.0, 22.5), (1384, 1032), "0.1",
+                             8)
     for summary in (cal, None):
         d = _status(summary).to_dict()
         assert json.loads(json.dumps(d)) == d
         out = StatusOut.model_validate(d)
         assert out.model_dump(mode="json") == d
-    assert d["devices"][1] == {"name": "lcr", "kind": "projector", "state": "fault", "error": "gone"}
+    assert d["devices"][1] == {"name": "lcr", "kind": "projector", "state": "fault",
+                               "error": "gone"}
 
 
 def test_calibration_summary_lists():
@@ -90,7 +94,8 @@ def test_api_models_are_derived_from_the_records() -> None:
                                             "title": "Tags", "type": "array"}
     assert schema["$defs"]["InnerOut"]["properties"]["size"]["type"] == "array"
     got = outer.model_validate({"items": [{"size": [3, 4]}], "best": None})
-    assert got.model_dump() == {"items": [{"size": [3, 4]}], "best": None, "span_mm": 1.5, "tags": []}
+    assert got.model_dump() == {"items": [{"size": [3, 4]}], "best": None, "span_mm": 1.5,
+                                "tags": []}
     assert StatusOut.model_fields["calibration"].annotation == CalibrationSummaryOut | None
     assert StatusOut.model_fields["state"].description == \
         dataclasses.fields(Status)[0].metadata["description"]
