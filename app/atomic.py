@@ -83,7 +83,8 @@ def atomic_directory(path: str | os.PathLike[str], *, overwrite: bool = False) -
         raise
 
 
-def read_json(path: str | os.PathLike[str], what: str, parse: Callable[[Any], T] | None = None) -> Any:
+def read_json(path: str | os.PathLike[str], what: str,
+              parse: Callable[[Any], T] | None = None) -> Any:
     """The JSON document at ``path`` (passed through ``parse`` when given).
 
     Raises:

@@ -54,7 +54,8 @@ class Settings(BaseSettings):
     # set is complete; "anastomosis" (breathing + moving forceps) renders below 30 frames/s here
     sim_scene: str = "intestine_flap"
     # rig preset of the simulator: "default" (the paper's rig) or "endoscope" (another sensor and
-    # lens, wide triangulation angle, barrel distortion k1 = -0.25, 12-bit sensor: set bit_depth = 12)
+    # lens, wide triangulation angle, barrel distortion k1 = -0.25, 12-bit sensor: set
+    # bit_depth = 12)
     sim_rig: Literal["default", "endoscope"] = "default"
     sim_seed: int | None = None
     sim_drop_rate: float = Field(0.0, ge=0, le=1)
@@ -74,7 +75,8 @@ class Settings(BaseSettings):
     motion_grow_px: int = Field(4, ge=0, le=16)
     # gross-error tolerance, mm (0: off): a valid pixel's noise exceeds it only at rate 1e-6, so
     # pixels with σ > E/4.89 are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
-    # (k: the motion test's single-pixel bound; app.recon.motion.sigma_bounds, README "Rolling mode and motion")
+    # (k: the motion test's single-pixel bound; app.recon.motion.sigma_bounds, README
+    # "Rolling mode and motion")
     gross_error_mm: float = Field(0.5, ge=0, le=100)
     # the camera's noise (σ and the validity rule) is measured from a live set this often, s
     # (0: the nominal SensorNoise.typical; app.service.sensor_noise)

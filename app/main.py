@@ -10,7 +10,7 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 from fastapi.responses import JSONResponse
@@ -25,15 +25,23 @@ from app.api.errors import install_api_fallback, install_error_handlers
 from app.api.security import install_security
 from app.config import Settings
 from app.service.instrument import Instrument
-from app.service.recorder import Recorder
+from app.service.poses import TrackerPoses
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+    from fastapi import APIRouter
+
+    from app.outputs.igtl import IgtlServer
+    from app.outputs.viewer import Viewer
 
 log = logging.getLogger("fringescope.main")
 
 STATIC_DIR = Path(app_package.__file__).resolve().parent.parent / "static"
 
 
-def _make_viewer(settings: Settings, instrument: Instrument,
-                 recorder: Recorder) -> tuple[Any, Any]:
+def _make_viewer(settings: Settings,
+                 instrument: Instrument) -> tuple[Viewer, APIRouter] | tuple[None, None]:
     """(viewer, router) or (None, None) when disabled or the viewer package is absent."""
     if not settings.viewer:
         return None, None
@@ -43,20 +51,22 @@ def _make_viewer(settings: Settings, instrument: Instrument,
     except ImportError as exc:
         log.warning("3-D viewer unavailable: %s", exc)
         return None, None
+    recorder = instrument.recorder
     viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points,
                     measure_source=lambda: recorder.measurements)
     return viewer, viewer_router(viewer)
 
 
-def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
-    """The OpenIGTLink server (issue 16), or None when ``igtl_port`` is unset."""
+def _make_igtl(settings: Settings, instrument: Instrument,
+               poses: TrackerPoses) -> IgtlServer | None:
+    """The OpenIGTLink server, or None when ``igtl_port`` is unset."""
     if settings.igtl_port is None:
         return None
     from app.outputs.igtl import IgtlServer, check_igtl_settings, image_placement
 
     check_igtl_settings(settings.igtl_host, settings.igtl_port, settings.igtl_allow_remote)
 
-    def placement() -> Any:
+    def placement() -> npt.NDArray[np.float64] | None:
         cal = instrument.calibration
         if cal is None:
             return None
@@ -66,23 +76,23 @@ def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
             return None
 
     return IgtlServer(instrument.results, host=settings.igtl_host, port=settings.igtl_port,
-                      max_points=settings.igtl_max_points, status=lambda: instrument.status().to_dict(),
-                      placement=placement)
+                      max_points=settings.igtl_max_points,
+                      status=lambda: instrument.status().to_dict(), placement=placement,
+                      poses=poses)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The Fringescope web application (the Instrument starts and stops with its lifespan)."""
     settings = settings or Settings()
-    # (1) the Instrument — built now (cheap), started in the lifespan.
-    instrument = Instrument(settings)
-    igtl = _make_igtl(settings, instrument)
-    recorder = Recorder(instrument, min_free_mb=settings.recording_min_free_mb,
-                        pose_source=None if igtl is None else igtl.latest_transforms)
-    # the one link made after construction: the status shows the recording, the recorder
-    # records the tracker's poses and the tracker sends the status (a circle of three)
-    instrument.recorder = recorder
+    # (1) the Instrument — built now (cheap), started in the lifespan. Every part gets its
+    # collaborators in its constructor: the OpenIGTLink server writes the tracker's poses,
+    # the Instrument's recorder reads them (and the server sends the Instrument's status).
+    poses = TrackerPoses()
+    instrument = Instrument(settings, poses=None if settings.igtl_port is None else poses)
+    recorder = instrument.recorder
+    igtl = _make_igtl(settings, instrument, poses)
     # the dashboard's measurements in the 3-D view too
-    viewer, viewer_routes = _make_viewer(settings, instrument, recorder)
+    viewer, viewer_routes = _make_viewer(settings, instrument)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -135,6 +145,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     else:
         @app.get("/", include_in_schema=False)
         def no_dashboard() -> JSONResponse:
-            return JSONResponse({"detail": "dashboard not installed; the API is at /docs"}, status_code=404)
+            return JSONResponse({"detail": "dashboard not installed; the API is at /docs"},
+                                status_code=404)
 
     return app

@@ -31,7 +31,7 @@ def parse_roi(text: str) -> tuple[int, int, int, int]:
         raise ValueError(f"roi: expected x0,y0,x1,y1 integers, got {text!r}") from None
     if len(vals) != 4:
         raise ValueError(f"roi: expected x0,y0,x1,y1 integers, got {text!r}")
-    return vals  # type: ignore[return-value]
+    return vals
 
 
 def select_points(points: npt.ArrayLike, valid: npt.ArrayLike | None,

@@ -923,4 +923,4 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     if kind == "length":
         return length(points, valid, sigma, pixels, fill_holes=fill_holes, **kw)
     fn = {"point_to_line": point_to_line, "depth": depth, "area": area}[kind]
-    return fn(points, valid, sigma, pixels, **kw)  # type: ignore[operator]
+    return fn(points, valid, sigma, pixels, **kw)

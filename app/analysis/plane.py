@@ -154,7 +154,8 @@ def _mlesac_cost(e: F64, sigma: float) -> F64:
     for _ in range(3):
         g_in = gamma * p_in
         gamma = np.mean(g_in / (g_in + (1 - gamma) * p_out), axis=0)
-    return -np.sum(np.log(gamma * p_in + (1 - gamma) * p_out), axis=0)
+    cost: F64 = -np.sum(np.log(gamma * p_in + (1 - gamma) * p_out), axis=0)
+    return cost
 
 
 def plane_accuracy(points: npt.ArrayLike, valid: npt.ArrayLike | None = None, *,
@@ -225,4 +226,5 @@ def _incline_direction(pts: F64, normal: F64) -> F64:
     if np.linalg.norm(g) > 0.05:  # more than ~3° of tilt toward the camera
         return g / np.linalg.norm(g)
     _, _, vt = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)
-    return vt[0]
+    first: F64 = vt[0]
+    return first

@@ -62,7 +62,8 @@ def fit_sphere(points: npt.ArrayLike) -> SphereFit:
     mean = pts.mean(axis=0)  # centre the problem for conditioning
 
     def resid(p: F64) -> F64:
-        return np.linalg.norm(pts - mean - p[:3], axis=1) - p[3]
+        r: F64 = np.linalg.norm(pts - mean - p[:3], axis=1) - p[3]
+        return r
 
     def jac(p: F64) -> F64:
         d = pts - mean - p[:3]
@@ -167,7 +168,7 @@ def _ransac_sphere(pts: F64, radius_mm: float, band_mm: float, seed: int,
     if best is None:
         raise ValueError(f"points: no sphere of diameter ≈ {2 * radius_mm:g} mm found")
     c, r = best
-    inl = np.abs(np.linalg.norm(pts - c, axis=1) - r) <= band_mm
+    inl: npt.NDArray[np.bool_] = np.abs(np.linalg.norm(pts - c, axis=1) - r) <= band_mm
     if inl.sum() < 10:
         raise ValueError(f"points: no sphere of diameter ≈ {2 * radius_mm:g} mm found")
     return inl

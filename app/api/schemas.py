@@ -2,16 +2,43 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+import dataclasses
+import functools
+import operator
+from collections.abc import Mapping
+from types import UnionType
+from typing import (
+    TYPE_CHECKING,
+    Annotated,
+    Any,
+    Literal,
+    Union,
+    get_args,
+    get_origin,
+    get_type_hints,
+)
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    create_model,
+    model_validator,
+)
 
 from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
+from app.core import records
 from app.core.calibration import FORMAT as CALIBRATION_FORMAT
 from app.core.calibration import FORMAT_V1 as CALIBRATION_FORMAT_V1
 from app.core.limits import EXPOSURE_RANGE_MS, Led
+from app.core.records import DeviceStatus, Status
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
 
@@ -72,79 +99,49 @@ class AcquisitionOut(BaseModel):
     state: str
 
 
-class DeviceOut(BaseModel):
-    name: str
-    kind: str
-    state: str
-    error: str = ""
+def _api_type(tp: object, models: Mapping[type, type[BaseModel]]) -> object:
+    """A record field's type as the API states it: tuples are JSON arrays, records their models."""
+    if isinstance(tp, type) and tp in models:
+        return models[tp]
+    args = get_args(tp)
+    if get_origin(tp) is tuple:
+        items = {a for a in args if a is not Ellipsis}
+        if len(items) != 1:
+            raise TypeError(f"tp: a record's tuple holds one item type, got {tp!r}")
+        return list[_api_type(items.pop(), models)]  # type: ignore[misc]  # built at run time
+    if get_origin(tp) in (Union, UnionType):
+        return functools.reduce(operator.or_, (_api_type(a, models) for a in args))
+    return tp
 
 
-class CalibrationSummary(BaseModel):
-    name: str | None
-    created: str
-    height_range_mm: list[float]
-    image_size: list[int] = []
-    software_version: str = ""
-    poses: int = 0
-    model: str = Field("eq5", description="active depth model: eq5 | geometric")
-    held_out: dict[str, dict[str, float | int | str | None]] = Field(
-        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
+def _api_default(value: object) -> object:
+    return list(value) if isinstance(value, tuple) else value
 
 
-class StatusOut(BaseModel):
-    state: Literal["starting", "calibrating", "running", "stalled", "stopped", "fault"] = Field(
-        description="running only while depth maps arrive (one in the last 2 set periods); "
-                    "else why in state_reason")
-    camera_fps: float
-    depth_fps: float
-    latency_ms: float | None = Field(None, description="median, newest frame arrival → result published")
-    recon_ms: float | None = Field(None, description="median reconstruction time per set")
-    exposure_ms: float
-    led: str
-    mode: Literal["set", "rolling"]
-    acquiring: bool
-    calibration: CalibrationSummary | None
-    devices: list[DeviceOut]
-    last_error: str | None
-    sets_completed: int
-    results_published: int
-    dropped_sets: int
-    incomplete_sets: int
-    mixed_sets: int
-    frames_received: int
-    frames_dropped: int
-    faults: int
-    recording: str | None = None  # name of the running recording
-    bit_depth: int | None = None  # the camera's significant bits
-    schedule: dict[str, Any] | None = None  # the fringe pattern schedule in use
-    warnings: list[str]
-    sensor_noise: dict[str, Any] | None = Field(
-        None, description="the camera noise model σ and the validity rule use: source (measured | nominal), "
-                          "read_noise_dn, gain_dn_per_e, estimates")
-    state_reason: str | None = Field(
-        None, description="why the state is not running, or the start-up phase")
-    phase: str | None = Field(
-        None, description="start-up phase: 'calibrating pose k of n', 'compiling kernels', …; "
-                          "null once depth maps come")
-    progress: float | None = Field(None, description="progress of the phase, 0..1 (null: unknown)")
-    set_period_s: float | None = Field(
-        None, description="one whole fringe set at the camera's frame period, s")
-    last_depth_age_s: float | None = Field(
-        None, description="seconds since the newest depth map (null: none)")
-    last_error_at: str | None = Field(None, description="when last_error happened, ISO 8601 UTC")
-    last_error_resolved: bool | None = Field(
-        None, description="depth maps came after last_error (null: no error)")
-    groups_lost: int = Field(
-        0, description="frequency groups discarded for a missing or out-of-order frame")
-    patched_sets: int = Field(
-        0, description="sets completed with a group from an earlier projector cycle")
-    warmup: dict[str, int] = Field(
-        default_factory=dict, description="the counters when the first depth map came "
-                                          "(start-up losses)")
-    since_warmup: dict[str, int] = Field(
-        default_factory=dict, description="the counters since the first depth map")
-    calibration_session: dict[str, Any] | None = Field(
-        None, description="the open calibration session (board, created, poses, solved) or null")
+def model_of(record: type[DataclassInstance], name: str,
+             models: Mapping[type, type[BaseModel]] | None = None) -> type[BaseModel]:
+    """The response model ``name`` of a ``core.records`` dataclass: the record's fields, types,
+    defaults and descriptions (``metadata["description"]``), in its order; records nested in
+    it become the models in ``models``."""
+    hints = get_type_hints(record, include_extras=True)
+    nested = models or {}
+    spec: dict[str, Any] = {}
+    for f in dataclasses.fields(record):
+        description = f.metadata.get("description")
+        if f.default is not dataclasses.MISSING:
+            info = Field(_api_default(f.default), description=description)
+        elif f.default_factory is not dataclasses.MISSING:
+            info = Field(default_factory=f.default_factory, description=description)
+        else:
+            info = Field(description=description)
+        spec[f.name] = (_api_type(hints[f.name], nested), info)
+    return create_model(name, __doc__=record.__doc__, **spec)
+
+
+DeviceOut = model_of(DeviceStatus, "DeviceOut")
+CalibrationSummary = model_of(records.CalibrationSummary, "CalibrationSummary")
+StatusOut = model_of(Status, "StatusOut", {records.CalibrationSummary: CalibrationSummary,
+                                           DeviceStatus: DeviceOut})
 
 
 class ResultMeta(BaseModel):

@@ -51,7 +51,7 @@ def texture_to_u8(texture: npt.ArrayLike) -> npt.NDArray[np.uint8]:
     hi = float(np.percentile(finite, 99.5))
     lo = float(min(0.0, finite.min()))
     scale = 255.0 / (hi - lo) if hi > lo else 0.0
-    out = np.nan_to_num((t - lo) * scale, nan=0.0)
+    out: npt.NDArray[np.float32] = np.nan_to_num((t - lo) * scale, nan=0.0)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 

@@ -102,8 +102,8 @@ def check_bit_depth(frames: npt.NDArray[Any], bit_depth: Any) -> None:
         raise ValueError(f"bit_depth: {bit_depth} bits need 16-bit frames, the frames are 8-bit")
     top = int(frames.max())
     if top > full_scale(bit_depth):
-        raise ValueError(f"bit_depth: frames hold values up to {top}, above the {bit_depth}-bit maximum "
-                         f"{full_scale(bit_depth)}")
+        raise ValueError(f"bit_depth: frames hold values up to {top}, above the {bit_depth}-bit "
+                         f"maximum {full_scale(bit_depth)}")
 
 
 def to_channel(image: npt.NDArray[Any], channel: str) -> npt.NDArray[Any]:
@@ -119,7 +119,8 @@ def to_channel(image: npt.NDArray[Any], channel: str) -> npt.NDArray[Any]:
 
 
 def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
-    """Raise ``ValueError`` naming ``frames`` unless it is a (F, H, W) uint8/uint16 stack for ``schedule``."""
+    """Raise ``ValueError`` naming ``frames`` unless it is a (F, H, W) uint8/uint16 stack for
+    ``schedule``."""
     if not isinstance(frames, np.ndarray):
         raise ValueError("frames: expected a numpy array")
     if frames.ndim != 3:
@@ -127,7 +128,8 @@ def validate_frames(frames: Any, schedule: PatternSchedule) -> None:
     if frames.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"frames: dtype must be uint8 or uint16, got {frames.dtype}")
     if frames.shape[0] != schedule.n_frames:
-        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
+        raise ValueError(
+            f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
 
 
 def _read_meta(meta_path: Path) -> Any:
@@ -266,7 +268,8 @@ def read_capture_set(
     if not isinstance(meta, dict):
         raise ValueError(f"{meta_path}: expected a JSON object")
     if meta.get("format") != FORMAT:
-        raise ValueError(f"{meta_path}: unsupported format {meta.get('format')!r} (expected {FORMAT!r})")
+        raise ValueError(f"{meta_path}: unsupported format {meta.get('format')!r} "
+                         f"(expected {FORMAT!r})")
     for key in ("pattern", "frames"):
         if key not in meta:
             raise ValueError(f"{meta_path}: missing key {key!r}")
@@ -278,14 +281,17 @@ def read_capture_set(
     if channel is not None and channel not in CHANNELS:
         raise ValueError(f"{meta_path}: channel: must be one of {CHANNELS}, got {channel!r}")
     bit_depth = meta.get("bit_depth")
-    if bit_depth is not None and (isinstance(bit_depth, bool) or bit_depth not in CAPTURE_BIT_DEPTHS):
-        raise ValueError(f"{meta_path}: bit_depth: must be one of {CAPTURE_BIT_DEPTHS}, got {bit_depth!r}")
+    if bit_depth is not None and (isinstance(bit_depth, bool)
+                                  or bit_depth not in CAPTURE_BIT_DEPTHS):
+        raise ValueError(f"{meta_path}: bit_depth: must be one of {CAPTURE_BIT_DEPTHS}, "
+                         f"got {bit_depth!r}")
     led = meta.get("led", DEFAULT_LED)
     names = meta["frames"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise ValueError(f"{meta_path}: 'frames' must be a list of file names")
     if len(names) != schedule.n_frames:
-        raise ValueError(f"{meta_path}: schedule needs {schedule.n_frames} frames, lists {len(names)}")
+        raise ValueError(
+            f"{meta_path}: schedule needs {schedule.n_frames} frames, lists {len(names)}")
     for name in names:
         if Path(name).name != name or len(name) > 255:
             raise ValueError(f"{meta_path}: frame name {name[:40]!r} must be a plain file name "

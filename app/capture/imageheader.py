@@ -1,4 +1,5 @@
-"""Frame sizes read from PNG, TIFF and ``.npy.zst`` headers, so an upload is bounded before any pixel is decoded.
+"""Frame sizes read from PNG, TIFF and ``.npy.zst`` headers: an upload is bounded before any
+pixel is decoded.
 
 A PNG of 8000 × 8000 zeros is ~60 kB on the wire and 64 MB once decoded: a set of such
 frames (a decompression bomb) is refused from its headers — size against the calibration's,

@@ -12,10 +12,12 @@ import numpy.typing as npt
 from app.atomic import atomic_write_bytes
 
 VERTEX_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")])
-VERTEX_SIGMA_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("sigma_mm", "<f4")])
+VERTEX_SIGMA_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"),
+                               ("sigma_mm", "<f4")])
 
 
-def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
+def _intensity_u8(intensity: npt.NDArray[np.generic],
+                  mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
     """uint8 as is; other types scaled so the largest finite value among ``mask`` maps to 255."""
     if intensity.dtype == np.uint8:
         return np.asarray(intensity[mask], dtype=np.uint8)
@@ -27,7 +29,8 @@ def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_
 
 
 def ply_bytes(
-    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike, sigma: npt.ArrayLike | None = None
+    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike,
+    sigma: npt.ArrayLike | None = None,
 ) -> bytes:
     """Encode the valid points of a depth map as a binary little-endian PLY.
 
@@ -40,7 +43,8 @@ def ply_bytes(
         sigma: optional (H, W) 1-σ depth noise, mm, written as float32 ``sigma_mm``.
 
     Returns:
-        PLY file contents: vertices with float32 ``x y z``, uchar ``intensity`` (and float32 ``sigma_mm``).
+        PLY file contents: vertices with float32 ``x y z``, uchar ``intensity`` (and float32
+        ``sigma_mm``).
     """
     pts = np.asarray(points)
     ok = np.asarray(valid)
@@ -48,12 +52,17 @@ def ply_bytes(
     if pts.ndim != 3 or pts.shape[2] != 3:
         raise ValueError(f"points: expected shape (H, W, 3), got {pts.shape}")
     if ok.shape != pts.shape[:2] or ok.dtype != np.bool_:
-        raise ValueError(f"valid: expected a bool array of shape {pts.shape[:2]}, got {ok.dtype} {ok.shape}")
-    if inten.shape != pts.shape[:2] or not (np.issubdtype(inten.dtype, np.number) or inten.dtype == np.bool_):
-        raise ValueError(f"intensity: expected a numeric array of shape {pts.shape[:2]}, got {inten.dtype} {inten.shape}")
+        raise ValueError(f"valid: expected a bool array of shape {pts.shape[:2]}, "
+                         f"got {ok.dtype} {ok.shape}")
+    numeric = np.issubdtype(inten.dtype, np.number) or inten.dtype == np.bool_
+    if inten.shape != pts.shape[:2] or not numeric:
+        raise ValueError(f"intensity: expected a numeric array of shape {pts.shape[:2]}, "
+                         f"got {inten.dtype} {inten.shape}")
     sig = None if sigma is None else np.asarray(sigma)
-    if sig is not None and (sig.shape != pts.shape[:2] or not np.issubdtype(sig.dtype, np.floating)):
-        raise ValueError(f"sigma: expected a float array of shape {pts.shape[:2]}, got {sig.dtype} {sig.shape}")
+    if sig is not None and (sig.shape != pts.shape[:2]
+                            or not np.issubdtype(sig.dtype, np.floating)):
+        raise ValueError(f"sigma: expected a float array of shape {pts.shape[:2]}, "
+                         f"got {sig.dtype} {sig.shape}")
     mask = ok & np.all(np.isfinite(pts), axis=2)
     verts = np.empty(int(mask.sum()), VERTEX_DTYPE if sig is None else VERTEX_SIGMA_DTYPE)
     sel = pts[mask].astype(np.float32)
@@ -66,21 +75,23 @@ def ply_bytes(
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment fringescope point cloud, camera frame, mm\n"
         f"element vertex {verts.size}\n"
-        f"property float x\nproperty float y\nproperty float z\nproperty uchar intensity\n{extra}end_header\n"
+        "property float x\nproperty float y\nproperty float z\nproperty uchar intensity\n"
+        f"{extra}end_header\n"
     )
     return header.encode("ascii") + verts.tobytes()
 
 
 def write_ply(
-    path: str | os.PathLike[str], points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike,
-    sigma: npt.ArrayLike | None = None,
+    path: str | os.PathLike[str], points: npt.ArrayLike, valid: npt.ArrayLike,
+    intensity: npt.ArrayLike, sigma: npt.ArrayLike | None = None,
 ) -> Path:
     """Write :func:`ply_bytes` to ``path`` atomically."""
     return atomic_write_bytes(path, ply_bytes(points, valid, intensity, sigma))
 
 
 def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:
-    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z, intensity[, sigma_mm])."""
+    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z,
+    intensity[, sigma_mm])."""
     data = Path(path).read_bytes()
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:

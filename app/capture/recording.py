@@ -275,7 +275,8 @@ class Recording:
                 self._closed = True
                 self._session["stopped"] = _iso(time.time())
                 self._write_session()
-            return json.loads(json.dumps(self._session))
+            copy: dict[str, Any] = json.loads(json.dumps(self._session))
+            return copy
 
     def _write_session(self) -> None:
         atomic_write_text(self.path / SESSION_FILE, json.dumps(self._session, indent=2) + "\n")
@@ -426,7 +427,8 @@ class _Sink(io.RawIOBase):
         return data
 
 
-def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20) -> Iterator[bytes]:
+def iter_zip(root: str | os.PathLike[str], name: str,
+             chunk_bytes: int = 1 << 20) -> Iterator[bytes]:
     """Stream recording ``name`` as a zip archive, a chunk at a time (constant memory).
 
     The archive holds ``<name>/session.json`` and the listed set folders. PNG frames
@@ -439,7 +441,7 @@ def iter_zip(root: str | os.PathLike[str], name: str, chunk_bytes: int = 1 << 20
 
     def generate() -> Iterator[bytes]:
         sink = _Sink()
-        with zipfile.ZipFile(sink, "w", allowZip64=True) as zf:  # type: ignore[arg-type]
+        with zipfile.ZipFile(sink, "w", allowZip64=True) as zf:
             for f in files:
                 try:  # closed below, interleaved with yields; a link swapped in is not followed
                     fh = open_regular(f)

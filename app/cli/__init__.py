@@ -21,7 +21,8 @@ from app import __version__
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="fringescope", description="Structured-illumination 3-D laparoscope: fringe images to metric depth."
+        prog="fringescope",
+        description="Structured-illumination 3-D laparoscope: fringe images to metric depth.",
     )
     parser.add_argument("--version", action="version", version=f"fringescope {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")

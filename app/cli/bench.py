@@ -27,7 +27,8 @@ def run(args: argparse.Namespace) -> int:
         if unknown:
             raise ValueError(f"names: no benchmark {sorted(unknown)} in {BENCH_DIR}")
         scripts = [s for s in scripts if s.stem.removeprefix("bench_") in wanted]
-    env = {**os.environ, "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "workqueue")}
+    layer = os.environ.get("NUMBA_THREADING_LAYER", "workqueue")
+    env = {**os.environ, "NUMBA_THREADING_LAYER": layer}
     failed = 0
     for script in scripts:
         print(f"== {script.name}", flush=True)

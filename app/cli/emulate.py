@@ -12,12 +12,15 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
-    parser = subparsers.add_parser("emulate", help="serve a hardware emulator (serial controller, LightCrafter)")
+    parser = subparsers.add_parser(
+        "emulate", help="serve a hardware emulator (serial controller, LightCrafter)")
     sub = parser.add_subparsers(dest="device", metavar="DEVICE", required=True)
     ctl = sub.add_parser("controller", help="LED/trigger controller on a pseudo-terminal")
-    ctl.add_argument("--link", help="also make this symlink to the pty (stable across --vanish-every)")
+    ctl.add_argument("--link",
+                     help="also make this symlink to the pty (stable across --vanish-every)")
     ctl.add_argument("--serial", default="EMU0001", help="serial number reported by *IDN?")
-    ctl.add_argument("--drop-rate", type=float, default=0.0, help="fraction of replies never sent (0-1)")
+    ctl.add_argument("--drop-rate", type=float, default=0.0,
+                     help="fraction of replies never sent (0-1)")
     ctl.add_argument("--delay-ms", type=float, default=0.0, help="answer every command this late")
     ctl.add_argument("--vanish-every", type=float, default=0.0, metavar="S",
                      help="unplug every S seconds and come back 1 s later on a new pty (0: never)")

@@ -26,9 +26,11 @@ def register(subparsers: Any) -> None:
         description="Decode the N-step subset of a many-step capture set and learn its phase error "
                     "against the phase of all steps (a table per frequency, by wrapped phase).",
     )
-    p.add_argument("set_dir", metavar="REF_SET_DIR", help="capture set with more shifts than N (a multiple of N)")
+    p.add_argument("set_dir", metavar="REF_SET_DIR",
+                   help="capture set with more shifts than N (a multiple of N)")
     p.add_argument("-o", "--output", required=True, metavar="FILE", help="table to write (JSON)")
-    p.add_argument("--steps", type=int, required=True, metavar="N", help="shifts of the schedule to correct")
+    p.add_argument("--steps", type=int, required=True, metavar="N",
+                   help="shifts of the schedule to correct")
     p.add_argument("--min-modulation", type=float, default=10.0, metavar="CODES",
                    help="learn only where the reference modulation reaches this (default 10)")
     p.set_defaults(func=run)
@@ -51,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{set_dir}: capture-set folder not found")
     capture = read_capture_set(set_dir)
     s = capture.schedule
-    lut = PhaseErrorLUT.learn(capture.frames, s.steps, args.steps, frequencies=tuple(float(k) for k in s.frequencies),
+    lut = PhaseErrorLUT.learn(capture.frames, s.steps, args.steps,
+                              frequencies=tuple(float(k) for k in s.frequencies),
                               max_code=capture.max_code, min_modulation=args.min_modulation)
     atomic_write_bytes(Path(args.output), (json.dumps(lut.to_dict()) + "\n").encode("utf-8"))
     amp = ", ".join(f"{a:.4f}" for a in lut.amplitude_rad())

@@ -13,16 +13,20 @@ import numpy as np
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "phase",
-        help="decode one capture set without a calibration: phase.npy, modulation.npy, reason.npy, phase.png",
-        description="Unwrapped phase of the finest frequency (rad, NaN invalid), its modulation (codes) "
-                    "and per-pixel reason codes, honouring the set's bit_depth, channel and pattern keys.",
+        help="decode one capture set without a calibration: phase.npy, modulation.npy, "
+             "reason.npy, phase.png",
+        description="Unwrapped phase of the finest frequency (rad, NaN invalid), its modulation "
+                    "(codes) and per-pixel reason codes, honouring the set's bit_depth, channel "
+                    "and pattern keys.",
     )
     p.add_argument("set_dir", metavar="SET_DIR", help="capture-set folder (capture.json + frames)")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
     p.add_argument("--phase-error", metavar="FILE", default=None,
-                   help="projector-gamma table from `fringescope gamma`, subtracted before unwrapping")
+                   help="projector-gamma table from `fringescope gamma`, subtracted before "
+                        "unwrapping")
     p.add_argument("--min-modulation", type=float, default=None, metavar="CODES",
-                   help="explicit modulation threshold B in sensor codes, replacing the default noise-aware rule")
+                   help="explicit modulation threshold B in sensor codes, replacing the default "
+                        "noise-aware rule")
     p.set_defaults(func=run)
 
 
@@ -32,7 +36,8 @@ def phase_files(res: Any) -> dict[str, bytes]:
     from app.recon import render_depth_png
 
     out: dict[str, bytes] = {}
-    for name, arr in (("phase.npy", res.phase.astype(np.float32)), ("modulation.npy", res.modulation),
+    for name, arr in (("phase.npy", res.phase.astype(np.float32)),
+                      ("modulation.npy", res.modulation),
                       ("reason.npy", res.reason.astype(np.uint8))):
         out[name] = npy_bytes(arr)
     out["phase.png"] = render_depth_png(res.phase, phase_range(res.phase), unit="rad")
@@ -40,7 +45,8 @@ def phase_files(res: Any) -> dict[str, bytes]:
 
 
 def phase_range(phase: Any) -> tuple[float, float]:
-    """Colormap range of a phase map: 0.1 to 99.9 percentile of its finite values (0..2π when none)."""
+    """Colormap range of a phase map: 0.1 to 99.9 percentile of its finite values (0..2π when
+    none)."""
     finite = phase[np.isfinite(phase)]
     if finite.size == 0:
         return 0.0, 2 * math.pi
@@ -57,7 +63,8 @@ def summary(name: str, capture: Any, res: Any) -> str:
     freqs = ",".join(f"{k:g}" for k in s.frequencies)
     bits = capture.bit_depth or (8 if capture.frames.dtype == np.uint8 else 16)
     return (f"{name}: {w}x{h} px, {s.unwrap} [{freqs}]x{s.steps} {s.orientation}, {bits}-bit, "
-            f"valid {100 * valid:.1f}%, phase {lo:.2f}..{hi:.2f} rad, {res.recovered} px recovered from clipping")
+            f"valid {100 * valid:.1f}%, phase {lo:.2f}..{hi:.2f} rad, "
+            f"{res.recovered} px recovered from clipping")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,8 +3,9 @@
 One line a step, ``ok`` or ``FAIL`` with the device's answer, so that a first session
 with a real DLP3000 finds a protocol mismatch in minutes (README, "LightCrafter
 bring-up"). Steps: the DM365 version (0x0100) and the sequence command it calls for; the
-FPGA and MSP430 versions; status read-back (display mode 0x0101, LED current 0x0104); one fringe pattern shown
-(0x0480 or 0x0400, 0x0401, 0x0404, 0x0402); each LED flashed in turn and its current read
+FPGA and MSP430 versions; status read-back (display mode 0x0101, LED current 0x0104); one
+fringe pattern shown (0x0480 or 0x0400, 0x0401, 0x0404, 0x0402); each LED flashed in turn
+and its current read
 back; the trigger-output setting read back (the pulse itself is measured with the camera,
 see the README). Exit 0 when every step passed, 1 when one failed, 2 for bad input or no
 connection. The lights are off at the end.

@@ -8,7 +8,8 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
-    p = subparsers.add_parser("serve", help="run the instrument's web service (simulator by default)")
+    p = subparsers.add_parser("serve",
+                              help="run the instrument's web service (simulator by default)")
     p.add_argument("--host", default=None, help="bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="TCP port (default 8000)")
     p.add_argument("--config", default=None, metavar="FILE", help="TOML settings file")

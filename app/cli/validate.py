@@ -23,11 +23,13 @@ def register(subparsers: Any) -> None:
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--plane", action="store_true", help="plane target (e.g. the 45° DOF target)")
     mode.add_argument("--feature", action="store_true", help="raised feature (suture) height")
-    mode.add_argument("--sphere", type=float, metavar="DIAMETER_MM", help="sphere of calibrated diameter")
+    mode.add_argument("--sphere", type=float, metavar="DIAMETER_MM",
+                      help="sphere of calibrated diameter")
     p.add_argument("--roi", metavar="x0,y0,x1,y1", help="pixel box to analyse (x1, y1 exclusive)")
     p.add_argument("--threshold", type=float, help="feature: intensity threshold (default Otsu)")
     p.add_argument("--polarity", choices=("auto", "bright", "dark"), default="auto",
-                   help="feature: brighter or darker than its surroundings (default auto: the side that stands up)")
+                   help="feature: brighter or darker than its surroundings (default auto: the "
+                        "side that stands up)")
     p.add_argument("--json", metavar="OUT", help="write the figures as JSON")
     p.set_defaults(func=run)
 
@@ -60,24 +62,27 @@ def run(args: argparse.Namespace) -> int:
     dark = low_signal(result.reason, area, result.texture, result.modulation, capture.exposure_ms,
                       float(capture.max_code))
     if dark is not None:
-        figures.update(low_signal_fraction=dark.share, suggested_exposure_ms=dark.suggested_exposure_ms,
-                       warning=dark.message())
+        figures.update(low_signal_fraction=dark.share,
+                       suggested_exposure_ms=dark.suggested_exposure_ms, warning=dark.message())
     if args.plane:
         pa = plane_accuracy(result.points, result.valid, roi=roi)
         figures.update(
             mode="plane", accuracy_mm=pa.accuracy_mm, precision_mm=pa.precision_mm,
             flatness_mm=pa.flatness_mm, mean_distance_mm=pa.mean_distance_mm,
-            std_distance_mm=pa.std_distance_mm, n_points=pa.n_points, inlier_fraction=pa.inlier_fraction,
+            std_distance_mm=pa.std_distance_mm, n_points=pa.n_points,
+            inlier_fraction=pa.inlier_fraction,
             bins=[{"center_mm": b.center_mm, "count": b.count, "accuracy_mm": b.accuracy_mm,
                    "precision_mm": b.precision_mm} for b in pa.bins],
         )
     elif args.feature:
-        fh = feature_height(result.depth, result.texture, result.valid, roi=roi, threshold=args.threshold,
+        fh = feature_height(result.depth, result.texture, result.valid, roi=roi,
+                            threshold=args.threshold,
                             polarity=None if args.polarity == "auto" else args.polarity,
                             coords_mm=plane_coordinates(result.points, calibration.plane_normal))
         figures.update(mode="feature", height_mm=fh.height_mm, height_se_mm=fh.height_se_mm,
                        polarity=fh.polarity, height_std_mm=fh.height_std_mm,
-                       count=fh.count, baseline_rms_mm=fh.baseline_rms_mm, feature_pixels=int(fh.mask.sum()))
+                       count=fh.count, baseline_rms_mm=fh.baseline_rms_mm,
+                       feature_pixels=int(fh.mask.sum()))
     else:
         sf = sphere_figures(result.points, args.sphere, result.valid, roi=roi)
         figures.update(mode="sphere", nominal_diameter_mm=args.sphere, diameter_mm=sf.diameter_mm,

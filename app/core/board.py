@@ -33,7 +33,8 @@ class BoardSpec:
     def __post_init__(self) -> None:
         if self.type not in BOARD_TYPES:
             raise ValueError(f"type: must be one of {BOARD_TYPES}, got {self.type!r}")
-        if int(self.cols) != self.cols or int(self.rows) != self.rows or self.cols < 2 or self.rows < 2:
+        integral = int(self.cols) == self.cols and int(self.rows) == self.rows
+        if not integral or self.cols < 2 or self.rows < 2:
             raise ValueError(f"inner_corners: need integers >= 2, got [{self.cols}, {self.rows}]")
         if not (math.isfinite(self.pitch_mm) and self.pitch_mm > 0):
             raise ValueError(f"pitch_mm: must be positive, got {self.pitch_mm}")
@@ -59,7 +60,8 @@ class BoardSpec:
         return pts.astype(np.float32)
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``board.json`` object (DESIGN.md): ``inner_corners`` [cols, rows] and the pitch key of the type."""
+        """The ``board.json`` object (DESIGN.md): ``inner_corners`` [cols, rows] and the pitch key
+        of the type."""
         key = "square_mm" if self.type == "checkerboard" else "spacing_mm"
         return {"type": self.type, "inner_corners": [self.cols, self.rows], key: self.pitch_mm}
 

@@ -91,7 +91,8 @@ class Calibration:
     ) -> None:
         if model is None:
             if numerator is None or denominator is None or normalization is None:
-                raise ValueError("model: give a depth model or Eq. (5)'s numerator, denominator and normalization")
+                raise ValueError("model: give a depth model or Eq. (5)'s numerator, denominator "
+                                 "and normalization")
             model = Eq5Model(np.asarray(numerator), np.asarray(denominator), dict(normalization))
         if not isinstance(model, DepthModel):
             raise ValueError("model: expected a DepthModel")
@@ -99,7 +100,8 @@ class Calibration:
         self.camera_matrix = _array("camera_matrix", camera_matrix, (3, 3))
         self.dist_coeffs = _array("dist_coeffs", dist_coeffs, None).ravel()
         if self.dist_coeffs.size not in (0, 4, 5, 8, 12, 14):
-            raise ValueError(f"dist_coeffs: {self.dist_coeffs.size} coefficients is not an OpenCV model")
+            raise ValueError(
+                f"dist_coeffs: {self.dist_coeffs.size} coefficients is not an OpenCV model")
         self.plane_normal = _array("plane_normal", plane_normal, (3,))
         norm = float(np.linalg.norm(self.plane_normal))
         if not 0.999 < norm < 1.001:
@@ -180,7 +182,8 @@ class Calibration:
             "image_size": list(self.image_size),
             "camera_matrix": self.camera_matrix.tolist(),
             "dist_coeffs": self.dist_coeffs.tolist(),
-            "reference_plane": {"normal": self.plane_normal.tolist(), "offset_mm": self.plane_offset_mm},
+            "reference_plane": {"normal": self.plane_normal.tolist(),
+                                "offset_mm": self.plane_offset_mm},
             "model": self.model.to_dict(),
             "held_out": self.held_out,
             "pattern": self.pattern.to_dict(),
@@ -195,8 +198,10 @@ class Calibration:
             raise ValueError("calibration: expected a JSON object")
         fmt = data.get("format")
         if fmt not in (FORMAT, FORMAT_V1):
-            raise ValueError(f"calibration: unsupported format {fmt!r} (expected {FORMAT!r} or {FORMAT_V1!r})")
-        required = ("image_size", "camera_matrix", "dist_coeffs", "reference_plane", "model", "pattern")
+            raise ValueError(f"calibration: unsupported format {fmt!r} "
+                             f"(expected {FORMAT!r} or {FORMAT_V1!r})")
+        required = ("image_size", "camera_matrix", "dist_coeffs", "reference_plane", "model",
+                    "pattern")
         missing = [k for k in required if k not in data]
         if missing:
             raise ValueError(f"calibration: missing keys {missing}")
@@ -239,7 +244,8 @@ class Calibration:
             raise ValueError(f"calibration: malformed value ({exc})") from None
         except ValueError as exc:
             msg = str(exc)
-            raise ValueError(msg if msg.startswith("calibration:") else f"calibration: {msg}") from None
+            named = msg if msg.startswith("calibration:") else f"calibration: {msg}"
+            raise ValueError(named) from None
 
 
 def _array(name: str, value: Any, shape: tuple[int, ...] | None) -> npt.NDArray[np.float64]:

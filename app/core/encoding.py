@@ -30,7 +30,8 @@ def png_bytes(image: npt.NDArray[Any], *, rgb: bool = False, compression: int = 
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"image: rgb needs an (H, W, 3) array, got shape {img.shape}")
         img = img[..., ::-1]
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img),
+                           [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
     if not ok:
         raise OSError("PNG encoding failed")
     return bytes(buf.tobytes())

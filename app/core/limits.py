@@ -45,7 +45,8 @@ def full_scale(bit_depth: int) -> int:
 
 
 def check_exposure_ms(exposure_ms: float) -> float:
-    """``exposure_ms`` as float; ``ValueError`` naming the argument unless within :data:`EXPOSURE_RANGE_MS`."""
+    """``exposure_ms`` as float; ``ValueError`` naming the argument unless within
+    :data:`EXPOSURE_RANGE_MS`."""
     lo, hi = EXPOSURE_RANGE_MS
     try:
         value = math.nan if isinstance(exposure_ms, str | bytes | bool) else float(exposure_ms)

@@ -14,8 +14,8 @@ unwrap; a pixel without fringe contrast usually also unwraps badly; a singular m
 yields a height far outside the volume; a height outside the calibrated volume is also
 outside the region the calibration's data support (OUTSIDE_FIELD: inside the volume but
 where the boards did not reach, or outside the projector's calibrated field); UNCERTAIN
-(σ above the optional ``max_sigma_mm``) is the last resort. Reporting the earliest cause tells the user
-what to change (exposure, focus/LED power, calibration).
+(σ above the optional ``max_sigma_mm``) is the last resort. Reporting the earliest cause
+tells the user what to change (exposure, focus/LED power, calibration).
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
 """Typed records passed between layers: the instrument status, its devices, a calibration summary.
 
-Plain frozen dataclasses; ``to_dict()`` gives the JSON object the REST API documents
-(``GET /api/status``, ``GET /api/calibration``).
+Plain frozen dataclasses, the one definition of each field: its type, its default and (in
+``metadata["description"]``) what it means. ``to_dict()`` gives the JSON object the REST API
+documents (``GET /api/status``, ``GET /api/calibration``); the API's response models are
+derived from these records (``app/api/schemas.py``), so a field is written once.
 """
 
 from __future__ import annotations
@@ -12,6 +14,13 @@ from typing import Any, Literal
 #: running: depth maps arrive (one in the last 2 set periods); stalled: acquiring, but none do
 State = Literal["starting", "calibrating", "running", "stalled", "stopped", "fault"]
 Mode = Literal["set", "rolling"]
+#: per depth model, its leave-one-pose-out height errors (rms_mm, max_mm, points, …)
+HeldOut = dict[str, dict[str, float | int | str | None]]
+
+
+def doc(text: str) -> dict[str, str]:
+    """A field's ``metadata``: its description (the API's schema shows it)."""
+    return {"description": text}
 
 
 @dataclass(frozen=True)
@@ -24,8 +33,9 @@ class CalibrationSummary:
     image_size: tuple[int, int]
     software_version: str
     poses: int
-    model: str = "eq5"  # the depth model: eq5 | geometric
-    held_out: dict[str, dict[str, Any]] = field(default_factory=dict)  # per model: leave-one-pose-out errors
+    model: str = field(default="eq5", metadata=doc("active depth model: eq5 | geometric"))
+    held_out: HeldOut = field(default_factory=dict, metadata=doc(
+        "per model, leave-one-pose-out height errors (rms_mm, max_mm, points)"))
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
@@ -53,11 +63,14 @@ class Status:
     the engine), ``since_warmup`` the difference (what the live session lost).
     """
 
-    state: State
+    state: State = field(metadata=doc(
+        "running only while depth maps arrive (one in the last 2 set periods); "
+        "else why in state_reason"))
     camera_fps: float
     depth_fps: float
-    latency_ms: float | None
-    recon_ms: float | None
+    latency_ms: float | None = field(metadata=doc(
+        "median, newest frame arrival → result published"))
+    recon_ms: float | None = field(metadata=doc("median reconstruction time per set"))
     exposure_ms: float
     led: str
     mode: Mode
@@ -73,23 +86,40 @@ class Status:
     frames_received: int
     frames_dropped: int
     faults: int
-    recording: str | None
-    bit_depth: int | None = None  # the camera's significant bits (None: unknown)
-    schedule: dict[str, Any] | None = None  # the fringe pattern schedule in use
+    recording: str | None = field(metadata=doc("name of the running recording"))
+    bit_depth: int | None = field(default=None, metadata=doc(
+        "the camera's significant bits (null: unknown)"))
+    schedule: dict[str, Any] | None = field(default=None, metadata=doc(
+        "the fringe pattern schedule in use"))
     warnings: tuple[str, ...] = field(default=())
-    sensor_noise: dict[str, Any] | None = None  # the camera noise model in use
-    state_reason: str | None = None  # why the state is not running (or the start-up phase)
-    phase: str | None = None  # start-up: "calibrating: board pose k of n", "compiling kernels", …
-    progress: float | None = None  # of the phase, 0..1 (None: unknown)
-    set_period_s: float | None = None  # one whole fringe set at the camera's frame period, s
-    last_depth_age_s: float | None = None  # since the newest depth map, s (None: none yet)
-    last_error_at: str | None = None  # when last_error happened, ISO 8601 UTC
-    last_error_resolved: bool | None = None  # depth maps came after it (None: no error)
-    groups_lost: int = 0  # frequency groups discarded for a missing or out-of-order frame
-    patched_sets: int = 0  # sets completed with a group from an earlier projector cycle
-    warmup: dict[str, int] = field(default_factory=dict)
-    since_warmup: dict[str, int] = field(default_factory=dict)
-    calibration_session: dict[str, Any] | None = None  # the wizard's open session: board, poses
+    sensor_noise: dict[str, Any] | None = field(default=None, metadata=doc(
+        "the camera noise model σ and the validity rule use: source (measured | nominal), "
+        "read_noise_dn, gain_dn_per_e, estimates"))
+    state_reason: str | None = field(default=None, metadata=doc(
+        "why the state is not running, or the start-up phase"))
+    phase: str | None = field(default=None, metadata=doc(
+        "start-up phase: 'calibrating pose k of n', 'compiling kernels', …; "
+        "null once depth maps come"))
+    progress: float | None = field(default=None, metadata=doc(
+        "progress of the phase, 0..1 (null: unknown)"))
+    set_period_s: float | None = field(default=None, metadata=doc(
+        "one whole fringe set at the camera's frame period, s"))
+    last_depth_age_s: float | None = field(default=None, metadata=doc(
+        "seconds since the newest depth map (null: none)"))
+    last_error_at: str | None = field(default=None, metadata=doc(
+        "when last_error happened, ISO 8601 UTC"))
+    last_error_resolved: bool | None = field(default=None, metadata=doc(
+        "depth maps came after last_error (null: no error)"))
+    groups_lost: int = field(default=0, metadata=doc(
+        "frequency groups discarded for a missing or out-of-order frame"))
+    patched_sets: int = field(default=0, metadata=doc(
+        "sets completed with a group from an earlier projector cycle"))
+    warmup: dict[str, int] = field(default_factory=dict, metadata=doc(
+        "the counters when the first depth map came (start-up losses)"))
+    since_warmup: dict[str, int] = field(default_factory=dict, metadata=doc(
+        "the counters since the first depth map"))
+    calibration_session: dict[str, Any] | None = field(default=None, metadata=doc(
+        "the open calibration session (board, created, poses, solved) or null"))
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
@@ -100,5 +130,5 @@ class Status:
 
 
 def _shallow(record: Any) -> dict[str, Any]:
-    """Field name → value, one level (``dataclasses.asdict`` deep-copies: ten times slower here)."""
+    """Field name → value, one level (``dataclasses.asdict`` deep-copies: ten times slower)."""
     return {f.name: getattr(record, f.name) for f in fields(record)}

@@ -1,4 +1,5 @@
-"""The fringe pattern schedule: which projector images make one depth map (Le et al. 2018, Sec. 2)."""
+"""The fringe pattern schedule: which projector images make one depth map (Le et al. 2018,
+Sec. 2)."""
 
 from __future__ import annotations
 
@@ -54,15 +55,18 @@ class PatternSchedule:
         if self.unwrap == "hierarchical" and freqs[0] != 1:
             raise ValueError(f"frequencies: the first must be 1 (absolute phase), got {freqs[0]}")
         if self.unwrap == "hierarchical" and not all(isinstance(k, int) for k in freqs):
-            raise ValueError(f"frequencies: hierarchical unwrapping needs integer fringe counts, got {list(freqs)}")
+            raise ValueError("frequencies: hierarchical unwrapping needs integer fringe counts, "
+                             f"got {list(freqs)}")
         if self.unwrap == "heterodyne" and len(freqs) < 3:
-            raise ValueError(f"frequencies: heterodyne unwrapping needs at least 3, got {len(freqs)}")
+            raise ValueError(
+                f"frequencies: heterodyne unwrapping needs at least 3, got {len(freqs)}")
         if int(self.steps) != self.steps or self.steps < 3:
             raise ValueError(f"steps: need an integer N >= 3, got {self.steps}")
         if self.width < 2 or self.height < 1:
             raise ValueError(f"width/height: invalid projector size {self.width}x{self.height}")
         if self.orientation not in ORIENTATIONS:
-            raise ValueError(f"orientation: must be one of {ORIENTATIONS}, got {self.orientation!r}")
+            raise ValueError(
+                f"orientation: must be one of {ORIENTATIONS}, got {self.orientation!r}")
         if freqs[-1] * 2 > self.axis_length:
             raise ValueError(f"frequencies: {freqs[-1]} fringes need at least 2 px per period")
 
@@ -121,15 +125,17 @@ class PatternSchedule:
 
 
 def check_pattern(cal_s: PatternSchedule, cap_s: PatternSchedule, where: str = "capture") -> None:
-    """``ValueError`` naming the ``pattern`` key in which a capture set differs from its calibration."""
+    """``ValueError`` naming the ``pattern`` key in which a capture set differs from its
+    calibration."""
     for key in ("orientation", "unwrap"):
         if getattr(cal_s, key) != getattr(cap_s, key):
-            raise ValueError(f"{where}: pattern.{key} is {getattr(cap_s, key)!r} but the calibration was made "
-                             f"with {getattr(cal_s, key)!r}")
+            raise ValueError(f"{where}: pattern.{key} is {getattr(cap_s, key)!r} but the "
+                             f"calibration was made with {getattr(cal_s, key)!r}")
     if cal_s != cap_s:  # fringe counts, steps or projector size
         raise ValueError(
-            f"{where}: pattern {list(cap_s.frequencies)}x{cap_s.steps} on {cap_s.width}x{cap_s.height} px differs "
-            f"from the calibration's {list(cal_s.frequencies)}x{cal_s.steps} on {cal_s.width}x{cal_s.height} px"
+            f"{where}: pattern {list(cap_s.frequencies)}x{cap_s.steps} on "
+            f"{cap_s.width}x{cap_s.height} px differs from the calibration's "
+            f"{list(cal_s.frequencies)}x{cal_s.steps} on {cal_s.width}x{cal_s.height} px"
         )
 
 
@@ -153,7 +159,8 @@ SCHEDULES: dict[str, PatternSchedule] = {
     "geometric-12": PatternSchedule((1, 6, 36), 4),
     # the same three frequencies with 3 steps: 9 frames a depth map
     "geometric-9": PatternSchedule((1, 6, 36), 3),
-    # heterodyne (multi-wavelength): no single-fringe pattern; 36 − 35 = 1 is absolute, 35 − 30 = 5 beat
+    # heterodyne (multi-wavelength): no single-fringe pattern; 36 − 35 = 1 is absolute,
+    # 35 − 30 = 5 beat
     "heterodyne-9": PatternSchedule((30, 35, 36), 3, unwrap="heterodyne"),
 }
 
@@ -168,7 +175,8 @@ def schedule_by_name(name: str) -> PatternSchedule:
     try:
         return SCHEDULES[name]
     except (KeyError, TypeError):
-        raise ValueError(f"schedule: unknown name {name!r}; known: {', '.join(SCHEDULES)}") from None
+        raise ValueError(
+            f"schedule: unknown name {name!r}; known: {', '.join(SCHEDULES)}") from None
 
 
 def schedule_name_of(schedule: PatternSchedule) -> str | None:

@@ -20,7 +20,8 @@ from app.devices.errors import (
 )
 
 __all__ = [
-    "Camera", "CameraCapabilities", "CameraSettings", "Controller", "DeviceState", "Frame", "Projector",
+    "Camera", "CameraCapabilities", "CameraSettings", "Controller", "DeviceState", "Frame",
+    "Projector",
     "DeviceDisconnected", "DeviceError", "DeviceNotFound", "DeviceStateError", "DeviceTimeout",
     "IncompleteSet", "ProtocolError",
 ]

@@ -160,7 +160,8 @@ class Device(ABC):
         self.close()
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "kind": self.kind, "state": self._state.value, "error": self.last_error}
+        return {"name": self.name, "kind": self.kind, "state": self._state.value,
+                "error": self.last_error}
 
     @abstractmethod
     def _do_open(self) -> None: ...
@@ -190,7 +191,8 @@ class Camera(Device):
         return self._capabilities()
 
     def configure(
-        self, *, exposure_ms: float | None = None, gain: float | None = None, bit_depth: int | None = None
+        self, *, exposure_ms: float | None = None, gain: float | None = None,
+        bit_depth: int | None = None,
     ) -> CameraSettings:
         """Change settings (allowed while running; they apply from the next frame)."""
         caps = self.capabilities
@@ -234,7 +236,8 @@ class Camera(Device):
             raise DeviceStateError(f"{self.name}: cannot grab while {self._state.value}")
         if not (timeout_s > 0):
             raise ValueError(f"timeout_s: must be positive, got {timeout_s}")
-        return self._call("grab", self._do_grab, float(timeout_s))
+        frame: Frame = self._call("grab", self._do_grab, float(timeout_s))
+        return frame
 
     @abstractmethod
     def _capabilities(self) -> CameraCapabilities: ...
@@ -389,17 +392,20 @@ class Controller(LedMixin):
         self.frames_per_set = 16  # camera triggers per armed sequence: the schedule's frames
 
     def set_sequence_length(self, n_frames: int) -> None:
-        """Camera triggers per armed sequence: the frames of one depth map (a schedule's ``n_frames``).
+        """Camera triggers per armed sequence: the frames of one depth map (a schedule's
+        ``n_frames``).
 
         Refused while armed (the firmware changes no timing while armed); a closed device
         only remembers it and sends it when opened.
         """
-        if isinstance(n_frames, bool) or int(n_frames) != n_frames or not 1 <= int(n_frames) <= 65535:
+        if (isinstance(n_frames, bool) or int(n_frames) != n_frames
+                or not 1 <= int(n_frames) <= 65535):
             raise ValueError(f"n_frames: need an integer within 1–65535, got {n_frames!r}")
         n = int(n_frames)
         with self._lock:
             if self.armed:
-                raise DeviceStateError(f"{self.name}: cannot change the sequence length while armed")
+                raise DeviceStateError(
+                    f"{self.name}: cannot change the sequence length while armed")
             if self._state is not DeviceState.CLOSED:
                 self._call("sequence", self._do_set_sequence_length, n)
             self.frames_per_set = n
@@ -436,7 +442,8 @@ class Controller(LedMixin):
     def _do_stop(self) -> None:
         self._do_arm(False)
 
-    def _do_set_sequence_length(self, n_frames: int) -> None:  # optional hook (a box without a counter)
+    # optional hook (a box without a counter)
+    def _do_set_sequence_length(self, n_frames: int) -> None:
         pass
 
     @abstractmethod

@@ -25,10 +25,12 @@ PROTOCOL_VERSION = "1.0"
 FIRMWARE_VERSION = "1.0.0-emu"
 MAX_LINE = 63
 CHANNELS = ("R", "G", "B")
-DEFAULTS: dict[str, int | str] = {"mode": "INT", "period_us": 20000, "delay_us": 0, "width_us": 100, "count": 16, "wdt_ms": 2000}
+DEFAULTS: dict[str, int | str] = {"mode": "INT", "period_us": 20000, "delay_us": 0,
+                                  "width_us": 100, "count": 16, "wdt_ms": 2000}
 # (command, low, high) of the numeric single-argument timing commands
 _NUMERIC = {"TPER": ("period_us", 1000, 1_000_000), "TDLY": ("delay_us", 0, 100_000),
-            "TWID": ("width_us", 10, 100_000), "TCNT": ("count", 0, 65535), "WDT": ("wdt_ms", 100, 60_000)}
+            "TWID": ("width_us", 10, 100_000), "TCNT": ("count", 0, 65535),
+            "WDT": ("wdt_ms", 100, 60_000)}
 
 log = logging.getLogger("fringescope.devices.controller_emulator")
 
@@ -69,7 +71,8 @@ class ControllerProtocol:
         self._last_ok = self._now()
         self._arm_time = 0.0
         self._pass_pulses = 0
-        self._frozen_pulses = 0  # count of the last armed period, kept after DISARM like the firmware
+        # count of the last armed period, kept after DISARM like the firmware
+        self._frozen_pulses = 0
 
     def _now(self) -> float:
         return float(self.clock())  # type: ignore[operator]
@@ -199,7 +202,8 @@ class ControllerProtocol:
                 raise _Err(4, "interlock open")
             if self.tripped:
                 raise _Err(5, "watchdog tripped; send LED to re-enable")
-            self.armed, self._arm_time, self._pass_pulses, self._frozen_pulses = True, self._now(), 0, 0
+            self.armed, self._arm_time = True, self._now()
+            self._pass_pulses, self._frozen_pulses = 0, 0
             return ""
         if cmd == "DISARM":
             nargs(0)
@@ -211,8 +215,9 @@ class ControllerProtocol:
         if cmd == "STAT?":
             nargs(0)
             cur = "/".join(str(self.currents[c]) for c in CHANNELS)
-            return (f"led={self.led} cur={cur} armed={int(self.armed)} mode={self.settings['mode']} "
-                    f"intlk={'open' if self.interlock_open else 'closed'} "
+            intlk = "open" if self.interlock_open else "closed"
+            return (f"led={self.led} cur={cur} armed={int(self.armed)} "
+                    f"mode={self.settings['mode']} intlk={intlk} "
                     f"wdt={'tripped' if self.tripped else 'ok'} pulses={self.pulses()}")
         raise _Err(1, f"unknown command {cmd}")
 
@@ -226,8 +231,9 @@ class PtyControllerEmulator:
     """
 
     def __init__(
-        self, link_path: str | os.PathLike[str] | None = None, *, protocol: ControllerProtocol | None = None,
-        drop_rate: float = 0.0, reply_delay_s: float = 0.0, banner: bool = True, seed: int | None = None,
+        self, link_path: str | os.PathLike[str] | None = None, *,
+        protocol: ControllerProtocol | None = None, drop_rate: float = 0.0,
+        reply_delay_s: float = 0.0, banner: bool = True, seed: int | None = None,
         auto_reset_s: float = 0.0,
     ) -> None:
         self.protocol = protocol or ControllerProtocol()
@@ -278,8 +284,9 @@ class PtyControllerEmulator:
         self.stop()
 
     def vanish(self) -> None:
-        """Unplug: close both pty ends (an open pyserial port now fails with EIO) and remove the link,
-        as udev removes /dev/ttyACM0 — so nobody reopens a recycled /dev/pts number meanwhile."""
+        """Unplug: close both pty ends (an open pyserial port now fails with EIO) and remove the
+        link, as udev removes /dev/ttyACM0 — so nobody reopens a recycled /dev/pts number
+        meanwhile."""
         self._close_pty()
         if self.link_path is not None:
             with contextlib.suppress(FileNotFoundError):

@@ -84,8 +84,8 @@ def _sim_devices(spec: SimSpec) -> Devices:
 
     built = create_sim_devices(
         scene=spec.scene, seed=spec.seed, bit_depth=spec.bit_depth, drop_rate=spec.drop_rate,
-        timeout_rate=spec.timeout_rate, disconnect_every_s=spec.disconnect_every_s, realtime=spec.realtime,
-        rig=spec.rig,
+        timeout_rate=spec.timeout_rate, disconnect_every_s=spec.disconnect_every_s,
+        realtime=spec.realtime, rig=spec.rig,
     )
     return Devices(built.camera, built.projector, built.controller, built.world)
 
@@ -139,8 +139,10 @@ def create_devices(specs: DeviceSpecs) -> Devices:
     if "sim" in (specs.camera.backend, specs.projector.backend, specs.controller.backend):
         sim = _sim_devices(specs.sim)
     n = PatternSchedule().n_frames
-    camera = sim.camera if sim is not None and specs.camera.backend == "sim" else _camera(specs.camera, n)
-    projector = sim.projector if sim is not None and specs.projector.backend == "sim" else _projector(specs.projector)
+    camera = (sim.camera if sim is not None and specs.camera.backend == "sim"
+              else _camera(specs.camera, n))
+    projector = (sim.projector if sim is not None and specs.projector.backend == "sim"
+                 else _projector(specs.projector))
     controller = (sim.controller if sim is not None and specs.controller.backend == "sim"
                   else _controller(specs.controller))
     return Devices(camera, projector, controller, None if sim is None else sim.world)

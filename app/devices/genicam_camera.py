@@ -62,7 +62,8 @@ class GenICamCamera(CountingCamera):
             from genicam.gentl import TimeoutException
             from harvesters.core import Harvester
         except ImportError:
-            raise DeviceNotFound("GenICam support needs the optional packages harvesters and genicam") from None
+            raise DeviceNotFound(
+                "GenICam support needs the optional packages harvesters and genicam") from None
         if not self.cti.is_file():
             raise DeviceNotFound(f"{self.cti}: GenTL producer file not found")
         self._timeout_exc = (TimeoutException,)
@@ -79,7 +80,8 @@ class GenICamCamera(CountingCamera):
             raise
         except Exception as exc:  # harvesters raises plain exceptions for a missing camera
             h.reset()
-            raise DeviceNotFound(f"{self.cti.name}: cannot open camera {self.device!r} ({exc})") from None
+            raise DeviceNotFound(
+                f"{self.cti.name}: cannot open camera {self.device!r} ({exc})") from None
         self._harvester, self._ia = h, ia
         try:
             self._configure_new(ia)
@@ -94,9 +96,11 @@ class GenICamCamera(CountingCamera):
         exp = _node(nm, "ExposureTime")
         gain = _node(nm, "Gain")
         lo, hi = EXPOSURE_RANGE_MS
+        if exp:
+            lo, hi = max(lo, exp.min / 1000), min(hi, exp.max / 1000)
         self._caps = CameraCapabilities(
             width=int(nm.Width.value), height=int(nm.Height.value), bit_depths=depths or (8,),
-            exposure_range_ms=(max(lo, exp.min / 1000), min(hi, exp.max / 1000)) if exp else (lo, hi),
+            exposure_range_ms=(lo, hi),
             gain_range=(float(gain.min), float(gain.max)) if gain else (1.0, 1.0),
             hardware_trigger=_node(nm, "TriggerMode") is not None,
         )
@@ -106,8 +110,10 @@ class GenICamCamera(CountingCamera):
                                 ("TriggerSource", "Line0"), ("TriggerActivation", "RisingEdge")):
                 if _node(nm, node) is None:
                     if node in ("TriggerSelector", "TriggerActivation"):
-                        continue  # optional on some models; FrameStart / rising edge are the defaults
-                    raise DeviceError(f"{self.model or 'camera'} has no {node} node: no hardware trigger")
+                        # optional on some models; FrameStart / rising edge are the defaults
+                        continue
+                    raise DeviceError(
+                        f"{self.model or 'camera'} has no {node} node: no hardware trigger")
                 nm.get_node(node).value = value
 
     def _search_key(self, infos: list[Any]) -> Any:
@@ -192,7 +198,9 @@ class GenICamCamera(CountingCamera):
                 comp = buffer.payload.components[0]
                 data = np.array(comp.data, copy=True)  # the buffer is requeued on exit
                 channels = data.size // (comp.height * comp.width)
-                shape = (comp.height, comp.width) if channels == 1 else (comp.height, comp.width, channels)
+                shape: tuple[int, ...] = (comp.height, comp.width)
+                if channels != 1:
+                    shape = (comp.height, comp.width, channels)
                 image = data.reshape(shape)
         except self._timeout_exc:
             raise DeviceTimeout(f"no frame within {timeout_s:.2f} s") from None

@@ -25,8 +25,10 @@ from app.devices.errors import DeviceDisconnected, DeviceNotFound, DeviceTimeout
 FILE_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg")
 
 
-def to_mono(image: npt.NDArray[Any], bit_depth: int = 8) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
-    """(H, W) mono of a (H, W) / (H, W, 3|4) BGR(A) image; uint8, or uint16 if the source is and ``bit_depth`` > 8."""
+def to_mono(image: npt.NDArray[Any],
+            bit_depth: int = 8) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+    """(H, W) mono of a (H, W) / (H, W, 3|4) BGR(A) image; uint8, or uint16 if the source is
+    and ``bit_depth`` > 8."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
@@ -61,7 +63,8 @@ class OpenCVCamera(CountingCamera):
         self.disconnect_after, self.queue_size = disconnect_after, queue_size
         self._cap: cv2.VideoCapture | None = None
         self._size = (0, 0)
-        self._queue: queue.Queue[tuple[npt.NDArray[Any], float] | BaseException] = queue.Queue(queue_size)
+        self._queue: queue.Queue[tuple[npt.NDArray[Any], float] | BaseException] = queue.Queue(
+            queue_size)
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
 
@@ -97,7 +100,8 @@ class OpenCVCamera(CountingCamera):
         cap = self._cap
         if cap is None or self.is_file or (isinstance(self.source, str) and "://" in self.source):
             return  # files and streams have no exposure control
-        # exposure units are backend specific: V4L2 counts 100 µs, DirectShow/MSMF take log2(seconds)
+        # exposure units are backend specific: V4L2 counts 100 µs, DirectShow/MSMF take
+        # log2(seconds)
         if cap.getBackendName() == "V4L2":
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # 1 = manual in V4L2's menu
             cap.set(cv2.CAP_PROP_EXPOSURE, settings.exposure_ms * 10.0)
@@ -136,19 +140,24 @@ class OpenCVCamera(CountingCamera):
         self._reader = None
 
     def _read_loop(self, cap: cv2.VideoCapture, out: queue.Queue[Any]) -> None:
-        rate = self.fps if self.fps is not None else (cap.get(cv2.CAP_PROP_FPS) if self.is_file else 0.0)
+        if self.fps is not None:
+            rate = self.fps
+        else:
+            rate = cap.get(cv2.CAP_PROP_FPS) if self.is_file else 0.0
         period_s = 1.0 / rate if rate and rate > 0 else 0.0
         due, failures = time.monotonic(), 0
         while not self._stop.is_set():
             ok, image = cap.read()
             if not ok or image is None:
-                if self.is_file and self.loop and cap.set(cv2.CAP_PROP_POS_FRAMES, 0) and failures < 2:
+                rewound = self.is_file and self.loop and cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                if rewound and failures < 2:
                     failures += 1
                     continue
                 failures += 1
                 if self.is_file or failures >= self.disconnect_after:
-                    self._put(out, DeviceDisconnected(f"{self.source}: no more frames")
-                              if not self.is_file else DeviceTimeout(f"{self.source}: end of video"))
+                    end = (DeviceTimeout(f"{self.source}: end of video") if self.is_file
+                           else DeviceDisconnected(f"{self.source}: no more frames"))
+                    self._put(out, end)
                     return
                 time.sleep(0.01)
                 continue

@@ -45,14 +45,15 @@ class ReplayCamera(Camera):
         gap_ms: pause between frames added to ``exposure_ms`` when no timestamps were recorded.
     """
 
-    def __init__(self, folder: str | Path, *, pace: bool = True, loop: bool = True, speed: float = 1.0,
-                 gap_ms: float = 5.0, name: str | None = None) -> None:
+    def __init__(self, folder: str | Path, *, pace: bool = True, loop: bool = True,
+                 speed: float = 1.0, gap_ms: float = 5.0, name: str | None = None) -> None:
         super().__init__(name=name or f"ReplayCamera({Path(folder).name})")
         if not speed > 0:
             raise ValueError(f"speed: must be positive, got {speed}")
         if gap_ms < 0:
             raise ValueError(f"gap_ms: must be >= 0, got {gap_ms}")
-        self.folder, self.pace, self.loop, self.speed, self.gap_ms = Path(folder), pace, loop, speed, gap_ms
+        self.folder, self.pace, self.loop = Path(folder), pace, loop
+        self.speed, self.gap_ms = speed, gap_ms
         self._sets: list[Path] = []
         self._caps: CameraCapabilities | None = None
         self._current: CaptureSet | None = None
@@ -60,7 +61,8 @@ class ReplayCamera(Camera):
         self._set_pos = 0  # index into _sets of the set being played
         self._frame_pos = 0  # next frame within the current set
         self._last_t = 0.0  # recording time of the previous frame (continuous across sets)
-        self._anchor: tuple[float, float] | None = None  # (wall time, recording time) of the first frame
+        # (wall time, recording time) of the first frame
+        self._anchor: tuple[float, float] | None = None
         self._count = 0
 
     # --- hooks --------------------------------------------------------------------------------
@@ -78,7 +80,10 @@ class ReplayCamera(Camera):
 
     def _caps_of(self, cs: CaptureSet) -> CameraCapabilities:
         _, h, w = cs.frames.shape
-        depths = (8,) if cs.frames.dtype == np.uint8 else (cs.bit_depth,) if cs.bit_depth else (12, 16)
+        if cs.frames.dtype == np.uint8:
+            depths: tuple[int, ...] = (8,)
+        else:
+            depths = (cs.bit_depth,) if cs.bit_depth else (12, 16)
         return CameraCapabilities(width=w, height=h, bit_depths=depths)
 
     def _capabilities(self) -> CameraCapabilities:
@@ -108,7 +113,8 @@ class ReplayCamera(Camera):
             wait = due - time.monotonic()
             if wait > timeout_s:
                 time.sleep(timeout_s)
-                raise DeviceTimeout(f"next recorded frame is {wait:.2f} s away (timeout {timeout_s:.2f} s)")
+                raise DeviceTimeout(
+                    f"next recorded frame is {wait:.2f} s away (timeout {timeout_s:.2f} s)")
             if wait > 0:
                 time.sleep(wait)
         i = self._frame_pos
@@ -148,7 +154,8 @@ class ReplayCamera(Camera):
             cs = self._read(self._sets[self._set_pos])
             caps = self._caps
             if caps is not None and cs.frames.shape[1:] != (caps.height, caps.width):
-                raise DeviceDisconnected(f"{self._sets[self._set_pos]}: frame size differs from the first set")
+                raise DeviceDisconnected(
+                    f"{self._sets[self._set_pos]}: frame size differs from the first set")
             self._current, self._times = cs, self._frame_times(cs)
         return self._current
 
@@ -157,11 +164,16 @@ class ReplayCamera(Camera):
         n = cs.frames.shape[0]
         step = (cs.exposure_ms + self.gap_ms) / 1000.0
         stamps: Any = cs.extra.get("timestamps_s")
-        if isinstance(stamps, list) and len(stamps) == n and all(isinstance(t, (int, float)) for t in stamps):
+        numbers = isinstance(stamps, list) and all(isinstance(t, (int, float)) for t in stamps)
+        if numbers and len(stamps) == n:
             t = np.asarray(stamps, np.float64)
             if np.all(np.diff(t) > 0):
-                if self._count and t[0] <= self._last_t:  # relative stamps or a loop: continue the clock
-                    t = t - t[0] + self._last_t + float(np.median(np.diff(t))) if n > 1 else t + self._last_t + step
+                # relative stamps or a loop: continue the clock
+                if self._count and t[0] <= self._last_t:
+                    if n > 1:
+                        t = t - t[0] + self._last_t + float(np.median(np.diff(t)))
+                    else:
+                        t = t + self._last_t + step
                 return t
         start = self._last_t + step if self._count else 0.0
         return start + step * np.arange(n, dtype=np.float64)

@@ -147,8 +147,9 @@ class SerialLink:
                 while True:
                     raw = self._port.readline()
                     if not raw.endswith(b"\n"):
-                        raise DeviceTimeout(f"{self.url}: no reply to {line!r} within {self.timeout_s:.2f} s")
-                    reply = raw.decode("ascii", "replace").strip()
+                        raise DeviceTimeout(f"{self.url}: no reply to {line!r} within "
+                                            f"{self.timeout_s:.2f} s")
+                    reply: str = raw.decode("ascii", "replace").strip()
                     if reply and not reply.startswith("#"):
                         break
                     if time.monotonic() > deadline:
@@ -182,13 +183,15 @@ class SerialController(Controller):
         watchdog_ms: device watchdog; heartbeats go out every ``watchdog_ms / 4``.
         auto_reconnect: reopen by itself after an unplug, retrying with backoff
             from ``backoff_s[0]`` doubling to ``backoff_s[1]``.
-        trigger_mode: ``"INT"`` (controller times triggers) or ``"PASS"`` (projector trigger relayed).
+        trigger_mode: ``"INT"`` (controller times triggers) or ``"PASS"`` (projector trigger
+            relayed).
         list_ports_fn: enumerates ports for ``usb:`` lookup (default ``list_ports.comports``).
     """
 
     def __init__(
-        self, port: str, *, baudrate: int = 115200, reset_wait_s: float = 2.0, timeout_s: float = 0.5,
-        watchdog_ms: int = 2000, auto_reconnect: bool = True, backoff_s: tuple[float, float] = (0.05, 0.5),
+        self, port: str, *, baudrate: int = 115200, reset_wait_s: float = 2.0,
+        timeout_s: float = 0.5, watchdog_ms: int = 2000, auto_reconnect: bool = True,
+        backoff_s: tuple[float, float] = (0.05, 0.5),
         trigger_mode: str = "INT", pulses_per_set: int = 16, name: str | None = None,
         list_ports_fn: Callable[[], Iterable[Any]] | None = None,
     ) -> None:
@@ -200,7 +203,8 @@ class SerialController(Controller):
             raise ValueError(f"trigger_mode: must be 'INT' or 'PASS', got {trigger_mode!r}")
         self.port, self.baudrate = port, baudrate
         self.reset_wait_s, self.timeout_s = reset_wait_s, timeout_s
-        self.watchdog_ms, self.auto_reconnect, self.backoff_s = watchdog_ms, auto_reconnect, backoff_s
+        self.watchdog_ms, self.auto_reconnect = watchdog_ms, auto_reconnect
+        self.backoff_s = backoff_s
         self.trigger_mode, self.frames_per_set = trigger_mode, pulses_per_set
         self.list_ports_fn = list_ports_fn
         self.identity = ""
@@ -213,17 +217,20 @@ class SerialController(Controller):
     # --- hooks ---------------------------------------------------------------------
     def _do_open(self) -> None:
         ports = self.list_ports_fn() if self.list_ports_fn is not None else None
-        link = SerialLink(resolve_port(self.port, ports), baudrate=self.baudrate, timeout_s=self.timeout_s)
+        link = SerialLink(resolve_port(self.port, ports), baudrate=self.baudrate,
+                          timeout_s=self.timeout_s)
         try:
             if self.reset_wait_s > 0:
                 link.wait_for_banner(self.reset_wait_s)
             link.discard_input()
             ident = link.command("*IDN?")
             if not ident.startswith(IDN_PREFIX):
-                raise ProtocolError(f"{link.url}: not a Fringescope controller (*IDN? gave {ident!r})")
+                raise ProtocolError(
+                    f"{link.url}: not a Fringescope controller (*IDN? gave {ident!r})")
             version = link.command("VER?")
             if version.split(".")[0] != str(PROTOCOL_MAJOR):
-                raise ProtocolError(f"{link.url}: protocol {version}, driver speaks {PROTOCOL_MAJOR}.x")
+                raise ProtocolError(
+                    f"{link.url}: protocol {version}, driver speaks {PROTOCOL_MAJOR}.x")
             link.command(f"WDT {self.watchdog_ms}")
             link.command("DISARM")
             link.command(f"TMODE {self.trigger_mode}")
@@ -280,7 +287,8 @@ class SerialController(Controller):
         super().close()
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "port": self.port, "identity": self.identity, "reconnects": self.reconnects}
+        return {**super().describe(), "port": self.port, "identity": self.identity,
+                "reconnects": self.reconnects}
 
     # --- internals -----------------------------------------------------------------
     def _require_link(self) -> SerialLink:
@@ -298,14 +306,16 @@ class SerialController(Controller):
         if self._supervisor is not None and self._supervisor.is_alive():
             return
         self._stop.clear()
-        self._supervisor = threading.Thread(target=self._supervise, name=f"{self.name}-heartbeat", daemon=True)
+        self._supervisor = threading.Thread(target=self._supervise, name=f"{self.name}-heartbeat",
+                                            daemon=True)
         self._supervisor.start()
 
     def _supervise(self) -> None:
         """Heartbeat while healthy; after a fault, reopen with exponential backoff."""
         period_s = self.watchdog_ms / 4000.0
         misses, backoff, next_try = 0, self.backoff_s[0], 0.0
-        while not self._stop.wait(0.02 if self._state is DeviceState.FAULT and self.auto_reconnect else period_s):
+        while not self._stop.wait(
+                0.02 if self._state is DeviceState.FAULT and self.auto_reconnect else period_s):
             if not self._lock.acquire(timeout=period_s):
                 continue  # a long command holds the link; it restarts the watchdog anyway
             try:
@@ -323,7 +333,8 @@ class SerialController(Controller):
                         pass  # _call has moved a disconnect to FAULT
                     except Exception as exc:  # never let the supervisor die silently
                         self._fault(f"heartbeat failed unexpectedly ({exc!r})")
-                elif self._state is DeviceState.FAULT and self.auto_reconnect and time.monotonic() >= next_try:
+                elif (self._state is DeviceState.FAULT and self.auto_reconnect
+                      and time.monotonic() >= next_try):
                     try:
                         self.open()
                         self.reconnects += 1

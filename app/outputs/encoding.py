@@ -84,7 +84,8 @@ def depth_color_jpeg(
 
 def texture_u8(texture: npt.NDArray[np.float32], full_scale: float) -> npt.NDArray[np.uint8]:
     """Texture A + B scaled by the sensor's full scale to uint8 (fixed scale: no flicker)."""
-    t = np.nan_to_num(np.asarray(texture, np.float32), nan=0.0) * (255.0 / float(full_scale))
+    t: npt.NDArray[np.float32] = (np.nan_to_num(np.asarray(texture, np.float32), nan=0.0)
+                                  * (255.0 / float(full_scale)))
     return np.clip(t, 0, 255).astype(np.uint8)
 
 

@@ -29,7 +29,8 @@ Security: OpenIGTLink has no authentication or encryption. The server binds
 ``FRINGESCOPE_IGTL_ALLOW_REMOTE=true`` (see :func:`check_igtl_settings`).
 
 Received TRANSFORM messages (a tracked scope's pose) are kept, the newest per device, in
-:attr:`IgtlServer.transforms`; the recorder stores them with each recorded set.
+:attr:`IgtlServer.poses` (a :class:`~app.service.poses.TrackerPoses` the recorder reads too);
+the recorder stores them with each recorded set.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ import numpy.typing as npt
 import pyigtl
 
 from app.config import is_loopback
+from app.service.poses import ReceivedTransform, TrackerPoses
 from app.service.store import LatestSlot, NewestQueue
 
 log = logging.getLogger("fringescope.outputs.igtl")
@@ -247,20 +249,6 @@ def register_codecs() -> type[CloudMessage]:
     return CloudMessage
 
 
-@dataclass(frozen=True)
-class ReceivedTransform:
-    """A TRANSFORM message received: 4×4 matrix (mm), sender's timestamp (s since 1970)."""
-
-    device_name: str
-    matrix: list[list[float]]
-    timestamp_s: float
-    received_s: float  # time.time() on arrival
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"device_name": self.device_name, "matrix": self.matrix,
-                "timestamp_s": self.timestamp_s, "received_s": self.received_s}
-
-
 class _Client:
     """One connection: a sender thread sending the newest packed message of each device."""
 
@@ -394,11 +382,13 @@ class IgtlServer:
         status: returns the instrument's status dict (sent as JSON).
         placement: returns the (4, 4) image placement (:func:`image_placement`) or ``None``
             (no calibration: identity, 1 mm pixels).
+        poses: where received TRANSFORMs are kept (None: a store of its own).
     """
 
     def __init__(self, results: LatestSlot[Any], *, host: str = "127.0.0.1", port: int = 18944,
                  max_points: int = 100_000, status: Callable[[], dict[str, Any]] | None = None,
-                 placement: Callable[[], npt.NDArray[np.float64] | None] | None = None) -> None:
+                 placement: Callable[[], npt.NDArray[np.float64] | None] | None = None,
+                 poses: TrackerPoses | None = None) -> None:
         if max_points < 1:
             raise ValueError(f"max_points: must be >= 1, got {max_points}")
         self.results = results
@@ -413,7 +403,7 @@ class IgtlServer:
         self._threads: list[threading.Thread] = []
         self._unsubscribe: Callable[[], None] | None = None
         self.stopping = False
-        self.transforms: dict[str, ReceivedTransform] = {}
+        self.poses = poses if poses is not None else TrackerPoses()
         self._last: list[tuple[str, bytes]] | None = None
         self.pushed = 0  # results packed and offered to the clients
         self.pushed_seq = 0  # the result sequence number pushed last
@@ -472,9 +462,8 @@ class IgtlServer:
         with self._lock:
             return sum(c.pending_messages() for c in self._clients)
 
-    def latest_transforms(self) -> dict[str, dict[str, Any]]:
-        with self._lock:
-            return {k: v.as_dict() for k, v in self.transforms.items()}
+    def latest_transforms(self) -> dict[str, dict[str, str | float | list[list[float]]]]:
+        return self.poses.latest()
 
     # -- internals ----------------------------------------------------------------------
     def _on_result(self, seq: int, result: Any) -> None:
@@ -499,8 +488,7 @@ class IgtlServer:
     def _received_transform(self, msg: Any) -> None:
         rec = ReceivedTransform(str(msg.device_name), np.asarray(msg.matrix, float).tolist(),
                                 float(msg.timestamp), time.time())
-        with self._lock:
-            self.transforms[rec.device_name] = rec
+        self.poses.put(rec)
 
     def _push_loop(self) -> None:
         while not self.stopping:

@@ -14,6 +14,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from app.calib.board import Detection, detect_board, texture_to_u8
 from app.calib.fitting import CalibrationReport, calibrate_sets
@@ -79,7 +80,9 @@ def finest_texture(frames: np.ndarray, schedule: PatternSchedule) -> np.ndarray:
     delta = 2.0 * np.pi * np.arange(n) / n
     re = np.tensordot(np.cos(delta).astype(np.float32), group, axes=1)
     im = np.tensordot(np.sin(delta).astype(np.float32), group, axes=1)
-    return (group.mean(axis=0) + (2.0 / n) * np.hypot(re, im)).astype(np.float32)
+    texture: npt.NDArray[np.float32] = (group.mean(axis=0)
+                                        + (2.0 / n) * np.hypot(re, im)).astype(np.float32)
+    return texture
 
 
 def board_in_view(texture_u8: np.ndarray, board: BoardSpec) -> bool:

@@ -16,7 +16,7 @@ import inspect
 import threading
 import time
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,14 +37,16 @@ from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
 from app.service.pipeline import LivePipeline, PipelineConfig
+from app.service.poses import TrackerPoses
 from app.service.reconstruction import LiveResult
+from app.service.recorder import Recorder
 from app.service.schedules import rig_pixels, schedule_table, sensor_noise_of
 
 if TYPE_CHECKING:
     from app.service.acquisition import Acquisition
     from app.service.store import LatestSlot
 
-__all__ = ["Instrument", "RecordingState"]
+__all__ = ["Instrument"]
 
 
 @functools.cache
@@ -54,20 +56,15 @@ def sim_calibration_poses() -> int:
     return int(default) if isinstance(default, int) else 8
 
 
-class RecordingState(Protocol):
-    """What the status needs of the recorder: the running recording's name, if any, and why
-    the last recording stopped on its own (a write error, a full disk), if it did."""
-
-    @property
-    def active_name(self) -> str | None: ...
-    @property
-    def warning(self) -> str | None: ...
-
-
 class Instrument:
-    """The live instrument built from ``settings``; ``start()`` then ``close()``."""
+    """The live instrument built from ``settings``; ``start()`` then ``close()``.
 
-    def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None) -> None:
+    ``poses``: the tracker's poses (written by the OpenIGTLink server), stored with each
+    recorded set; None: no tracker.
+    """
+
+    def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None,
+                 poses: TrackerPoses | None = None) -> None:
         self.settings = settings
         config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
                                 rolling=settings.rolling, autostart=settings.autostart,
@@ -77,8 +74,6 @@ class Instrument:
                                 noise_estimate_interval_s=settings.noise_estimate_interval_s)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
-        # attached by create_app: the recorder needs the OpenIGTLink server, which needs this
-        self.recorder: RecordingState | None = None
         self._closed = False
         self._started = False
         self._schedule_lock = threading.Lock()
@@ -89,6 +84,9 @@ class Instrument:
         self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
         self.results.subscribe(self._on_map)
         self._twin_scene_moved = False  # the wizard put the twin's board in view
+        # the status shows the recording and a schedule change waits for its end
+        self.recorder = Recorder(self, min_free_mb=settings.recording_min_free_mb,
+                                 pose_source=None if poses is None else poses.latest)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -126,6 +124,7 @@ class Instrument:
         if self._closed:
             return
         self._closed = True
+        self.recorder.stop()  # finish a running recording before the devices stop
         self.pipeline.close(timeout_s)
         self.calibrations.join(timeout_s)
 
@@ -228,7 +227,7 @@ class Instrument:
         except ValueError as exc:
             raise InvalidRequest(str(exc)) from None
         with self._schedule_lock:
-            if self.recorder is not None and self.recorder.active_name is not None:
+            if self.recorder.active_name is not None:
                 raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
             if self.calibrations.creating:
                 raise Conflict("schedule: the simulator's calibration is being made with the "
@@ -421,7 +420,7 @@ class Instrument:
             warnings.append(self.pipeline.engine_note)
         if (collapse := self.calibrations.collapse_warning()) is not None:
             warnings.append(collapse)
-        if self.recorder is not None and self.recorder.warning:
+        if self.recorder.warning:
             warnings.append(self.recorder.warning)
         last_error, error_s, error_at = self._last_error()
         phase, progress = None, None
@@ -455,7 +454,7 @@ class Instrument:
             frames_received=counters["frames_received"],
             frames_dropped=counters["frames_dropped"],
             faults=counters["faults"],
-            recording=None if self.recorder is None else self.recorder.active_name,
+            recording=self.recorder.active_name,
             bit_depth=s.bit_depth,
             schedule={"name": schedule_name_of(self.schedule), **self.schedule.to_dict(),
                       "frames_per_depth": self.schedule.n_frames,

@@ -1,4 +1,5 @@
-"""Import directions (DESIGN.md, Architecture): every import points down the layers, none in a circle.
+"""Import directions (DESIGN.md, Architecture): every import points down the layers, none in a
+circle.
 
 Every module under ``app/`` is parsed (``ast``) and each ``import``/``from ... import``
 of ``app.*`` is checked, wherever it stands: at the top, inside a function, or under
@@ -16,10 +17,10 @@ import pytest
 APP = Path(__file__).resolve().parents[2] / "app"
 
 #: layer of each top-level part of ``app``, bottom first; a module may import its own
-#: package and any lower layer (and the parts in ``ACROSS``). ``capture`` (capture-set I/O) sits under ``calib``:
-#: the calibration fit reads capture sets. ``app/__init__.py`` holds only the version and
-#: imports nothing, so every layer may read it. ``batch`` (reprocessing on Dask) sits beside
-#: ``api``: it reuses the service's calibration carry-over rule.
+#: package and any lower layer (and the parts in ``ACROSS``). ``capture`` (capture-set I/O) sits
+#: under ``calib``: the calibration fit reads capture sets. ``app/__init__.py`` holds only the
+#: version and imports nothing, so every layer may read it. ``batch`` (reprocessing on Dask) sits
+#: beside ``api``: it reuses the service's calibration carry-over rule.
 LAYERS: dict[str, int] = {
     "__init__": -1,
     "core": 0, "atomic": 0,
@@ -52,11 +53,13 @@ def _part(module: str) -> str:
 
 
 def _imports(path: Path, source: str | None = None) -> list[tuple[str, int]]:
-    """(imported ``app.*`` module, line) for every import in the file (or in ``source``, as if it were there)."""
+    """(imported ``app.*`` module, line) for every import in the file (or in ``source``, as if it
+    were there)."""
     module = _module_name(path)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     out: list[tuple[str, int]] = []
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8") if source is None else source, str(path))):
+    text = path.read_text(encoding="utf-8") if source is None else source
+    for node in ast.walk(ast.parse(text, str(path))):
         if isinstance(node, ast.Import):
             out += [(a.name, node.lineno) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -70,7 +73,8 @@ def _imports(path: Path, source: str | None = None) -> list[tuple[str, int]]:
 
 
 def _all_imports() -> list[tuple[str, str, int]]:
-    return [(_module_name(p), target, line) for p in sorted(APP.rglob("*.py")) for target, line in _imports(p)]
+    return [(_module_name(p), target, line)
+            for p in sorted(APP.rglob("*.py")) for target, line in _imports(p)]
 
 
 def test_every_part_has_a_layer():
@@ -85,7 +89,8 @@ def test_no_import_runs_up_the_layers():
         if src == dst or (src, dst) in ACROSS:
             continue
         if LAYERS[dst] >= LAYERS[src]:
-            bad.append(f"{module}:{line} imports {target} ({src} layer {LAYERS[src]} → {dst} layer {LAYERS[dst]})")
+            bad.append(f"{module}:{line} imports {target} "
+                       f"({src} layer {LAYERS[src]} → {dst} layer {LAYERS[dst]})")
     assert not bad, "imports up or across the layers:\n" + "\n".join(bad)
 
 
@@ -113,11 +118,12 @@ def test_outputs_sit_beside_the_api_and_never_import_it():
 
 def test_checker_sees_relative_and_nested_imports(tmp_path):
     """The parser resolves relative imports and finds imports inside functions and TYPE_CHECKING."""
-    src = ("from typing import TYPE_CHECKING\nfrom . import fast\nif TYPE_CHECKING:\n    from app.calib import x\n"
-           "def f():\n    import app.service.instrument\n")
+    src = ("from typing import TYPE_CHECKING\nfrom . import fast\nif TYPE_CHECKING:\n"
+           "    from app.calib import x\ndef f():\n    import app.service.instrument\n")
     found = {t for t, _ in _imports(APP / "recon" / "probe.py", src)}
     assert found == {"app.recon", "app.calib", "app.service.instrument"}
-    assert _part("app.calib") == "calib" and LAYERS[_part("app.service.instrument")] > LAYERS["calib"]
+    assert _part("app.calib") == "calib"
+    assert LAYERS[_part("app.service.instrument")] > LAYERS["calib"]
 
 
 def _module_edges() -> dict[str, set[str]]:
@@ -141,8 +147,8 @@ def _module_edges() -> dict[str, set[str]]:
                     base_name = ".".join(base + ([node.module] if node.module else []))
                 else:
                     base_name = node.module or ""
-                targets = [f"{base_name}.{a.name}" if f"{base_name}.{a.name}" in modules else base_name
-                           for a in node.names]
+                targets = [f"{base_name}.{a.name}" if f"{base_name}.{a.name}" in modules
+                           else base_name for a in node.names]
             for target in targets:
                 if target in modules and target != module:
                     graph.setdefault(module, set()).add(target)

@@ -82,7 +82,8 @@ class Rig:
         """(H, W) projector column x_p (px) seen by each pixel on the surface."""
         x = self.points(height_mm)
         xh = x @ self.P[:, :3].T + self.P[:, 3]
-        return xh[..., 0] / xh[..., 2]
+        x_p: F64 = xh[..., 0] / xh[..., 2]
+        return x_p
 
     def finest_phase(self, height_mm: F64) -> F64:
         """(H, W) true unwrapped phase of the finest frequency, radians."""

@@ -98,4 +98,5 @@ def eq5_height(cal: Calibration, phi: np.ndarray, u: np.ndarray, v: np.ndarray) 
     for i, m in enumerate(mon):
         num = num + (c[1 + 2 * i] + c[2 + 2 * i] * pp) * m
         den = den + (d[2 + 2 * i] + d[3 + 2 * i] * pp) * m
-    return num / den
+    z: np.ndarray = num / den
+    return z

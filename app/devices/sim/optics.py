@@ -46,9 +46,12 @@ def mat3(points: F64, M: F64) -> F64:
     """
     p = np.asarray(points, np.float64)
     M = np.asarray(M, np.float64)
+    out: F64
     if M.ndim == 1:
-        return p[..., 0] * M[0] + p[..., 1] * M[1] + p[..., 2] * M[2]
-    return p[..., 0, None] * M[0] + p[..., 1, None] * M[1] + p[..., 2, None] * M[2]
+        out = p[..., 0] * M[0] + p[..., 1] * M[1] + p[..., 2] * M[2]
+    else:
+        out = p[..., 0, None] * M[0] + p[..., 1, None] * M[1] + p[..., 2, None] * M[2]
+    return out
 
 
 _RAY_CACHE: dict[bytes, F64] = {}
@@ -135,11 +138,13 @@ class ProjectorModel:
     def column(self, points: F64) -> F64:
         """Continuous projector column x_p (pixel centres at integers) of points (…, 3)."""
         q = self.to_projector(points)
-        return self.K[0, 0] * q[..., 0] / q[..., 2] + self.K[0, 2]
+        x_p: F64 = self.K[0, 0] * q[..., 0] / q[..., 2] + self.K[0, 2]
+        return x_p
 
     def row(self, points: F64) -> F64:
         q = self.to_projector(points)
-        return self.K[1, 1] * q[..., 1] / q[..., 2] + self.K[1, 2]
+        y_p: F64 = self.K[1, 1] * q[..., 1] / q[..., 2] + self.K[1, 2]
+        return y_p
 
     def column_coefficients(self) -> tuple[F64, float, F64, float]:
         """(α, α·C, γ, γ·C) with x_p = (α·X − α·C) / (γ·X − γ·C) for a camera-frame point X."""

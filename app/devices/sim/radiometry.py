@@ -93,7 +93,7 @@ def gaussian_quantile_table(n: int = 65536) -> npt.NDArray[np.float32]:
     """Φ⁻¹((i + ½)/n), i = 0..n−1, renormalised to unit variance: a 16-bit-index normal table."""
     from scipy.special import ndtri
 
-    q = ndtri((np.arange(n, dtype=np.float64) + 0.5) / n)
+    q: npt.NDArray[np.float64] = ndtri((np.arange(n, dtype=np.float64) + 0.5) / n)
     q /= math.sqrt(np.mean(q * q))
     return q.astype(np.float32)
 

@@ -95,7 +95,7 @@ def raycast_sphere(origin: npt.NDArray[np.float64], dirs: npt.NDArray[np.float64
     c = oc @ oc - radius_mm**2
     disc = b * b - 4 * a * c
     with np.errstate(invalid="ignore"):
-        t = (-b - np.sqrt(disc)) / (2 * a)
+        t: npt.NDArray[np.float64] = (-b - np.sqrt(disc)) / (2 * a)
     t[(disc < 0) | (t <= 0)] = np.nan
     return t
 

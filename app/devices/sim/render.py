@@ -267,7 +267,7 @@ class Renderer:
             z1 = pad[..., 2] + delta[2]
             fu = fx * ((pad[..., 0] + delta[0]) / z1 - x0)
             fv = fy * ((pad[..., 1] + delta[1]) / z1 - y0)
-        flow = np.stack([fu, fv], -1)
+        flow: F64 = np.stack([fu, fv], -1)
         if np.isnan(flow).any():  # tiles with no surface at their centre take the mean flow
             fill = np.nanmean(flow.reshape(-1, 2), axis=0) if np.isfinite(flow).any() else np.zeros(2)
             flow = np.where(np.isnan(flow), fill, flow)

@@ -33,8 +33,9 @@ def _bilinear_np(grid: F64, s0: float, t0: float, ds: float, s: F64, t: F64) -> 
     fy = np.clip((t - t0) / ds, 0, ny - 1 - 1e-9)
     ix, iy = fx.astype(int), fy.astype(int)
     ax, ay = fx - ix, fy - iy
-    return ((1 - ay) * ((1 - ax) * grid[iy, ix] + ax * grid[iy, ix + 1])
-            + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
+    out: F64 = ((1 - ay) * ((1 - ax) * grid[iy, ix] + ax * grid[iy, ix + 1])
+                + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
+    return out
 
 
 def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) -> Hits:

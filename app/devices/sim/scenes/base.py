@@ -124,4 +124,5 @@ def smooth_noise(shape: tuple[int, int], scale_px: float, rng: np.random.Generat
     from scipy.ndimage import gaussian_filter
 
     g = gaussian_filter(rng.standard_normal(shape), scale_px, mode="reflect")
-    return (g - g.mean()) / (g.std() + 1e-12)
+    unit: npt.NDArray[np.float64] = (g - g.mean()) / (g.std() + 1e-12)
+    return unit

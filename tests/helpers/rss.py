@@ -1,0 +1,65 @@
+"""Memory per test: a pytest plugin that logs the process's resident set after each test.
+
+Enabled by ``FRINGESCOPE_TEST_RSS=FILE`` (tests/conftest.py loads it): one tab-separated
+line per test phase end, ``nodeid  rss_mb  peak_mb  children_mb``, where ``rss_mb`` is
+the pytest process now, ``peak_mb`` its high-water mark so far (``VmHWM``) and
+``children_mb`` the summed resident set of its live child processes (servers, browsers,
+builds). The suite's peak is where ``peak_mb`` jumps; a fixture that keeps memory shows as
+``rss_mb`` staying up after its tests.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TextIO
+
+import pytest
+
+ENV = "FRINGESCOPE_TEST_RSS"
+
+
+def _status_mb(key: str) -> float:
+    """A ``VmRSS``/``VmHWM`` line of /proc/self/status, MB (0 where /proc is absent)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+def _children_mb() -> float:
+    try:
+        import psutil
+    except ImportError:
+        return 0.0
+    total = 0
+    for child in psutil.Process().children(recursive=True):
+        try:
+            total += child.memory_info().rss
+        except psutil.Error:
+            continue
+    return total / 1e6
+
+
+class RssLog:
+    """Writes one line per test after its teardown (fixtures released by then)."""
+
+    def __init__(self, out: TextIO) -> None:
+        self.out = out
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_runtest_logfinish(self, nodeid: str) -> None:
+        self.out.write(f"{nodeid}\t{_status_mb('VmRSS'):.0f}\t{_status_mb('VmHWM'):.0f}"
+                       f"\t{_children_mb():.0f}\n")
+        self.out.flush()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    path = os.environ.get(ENV)
+    if path:
+        out = open(path, "a", encoding="utf-8")  # noqa: SIM115  (closed at unconfigure)
+        config.pluginmanager.register(RssLog(out), "fringescope-rss")
+        config.add_cleanup(out.close)
