@@ -42,7 +42,7 @@ F64 = npt.NDArray[np.float64]
 RANDOM_BIT_DEPTHS = (8, 10, 12)
 POSES_RANGE = (6, 16)
 COVERAGE_RANGE = (1.0 / 3.0, 1.0)  # board reach from the image centre (1 = the image edge)
-MIN_SQUARE_PX = 20.0  # board squares smaller than this at the reference plane defeat the detector
+MIN_SQUARE_PX = 30.0  # smaller squares on a board tilted 30° defeated the detector (20 px did)
 DMD_SIZE = (608, 684)  # DLP3000 (width, height)
 # heights above the reference plane the projector must light: the far plane scene's -6 mm
 # to the board poses' +18 mm and the DOF target's +20 mm
@@ -154,7 +154,7 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     invertible to the image corners); bit depth 8, 10 or 12; baseline 4–12 mm and triangulation
     angle at the reference point 7–18° (the working distance, 36–54 mm, follows from them); the
     reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (fewer, down to 5 × 4, while a square would
-    span < 20 px at the reference plane) reaching
+    span < 30 px at the reference plane) reaching
     ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board poses (default drawn
     in 6–16).
 
