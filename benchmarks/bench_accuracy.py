@@ -412,6 +412,25 @@ def ninth_z_figures(res, truth, sigma, mask, sigma_model=None):  # noqa: ANN001,
     return out
 
 
+def calibration_vs_truth(cal, rr: RandomRig) -> str:  # noqa: ANN001
+    """One line: the calibrated camera and reference plane against the twin's: principal point
+    error (px), the plane's tilt error (deg) and its height error at the reference point and over
+    the image corners (mm, the calibrated plane's height of true reference-plane points)."""
+    rig = rr.rig
+    k = np.asarray(cal.camera_matrix, np.float64)
+    dpp = k[:2, 2] - rig.K[:2, 2]
+    n_t, n_c = rig.reference.normal, np.asarray(cal.plane_normal, np.float64)
+    tilt = np.degrees(np.arccos(min(1.0, float(n_t @ n_c))))
+    w, h = rig.image_size
+    u, v = np.array([(w - 1) / 2, 0.0, w - 1.0, 0.0, w - 1.0]), np.array([(h - 1) / 2, 0.0, 0.0, h - 1.0, h - 1.0])
+    rays = rig.camera.rays(u, v)
+    pts = ((0.0 - rig.reference.offset_mm) / (rays @ n_t))[:, None] * rays
+    dh = pts @ n_c + cal.plane_offset_mm
+    return (f"calibration vs truth: principal point {dpp[0]:+.2f}, {dpp[1]:+.2f} px; reference plane tilt "
+            f"{tilt:.3f} deg, height of the true plane at the centre {dh[0]:+.4f} mm, at the image corners "
+            + ", ".join(f"{x:+.4f}" for x in dh[1:]) + " mm")
+
+
 def lens_field_mask(cal):  # noqa: ANN001, ANN201
     """(H, W) True inside the camera lens model's supported field ellipse (the whole image when the
     calibration records none): outside it the calibration refuses depth whatever the depth model."""
@@ -470,6 +489,7 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
           f"held-out RMS {held.get('rms_mm')}, lens {report.camera.model if report.camera else '-'}, "
           f"|f/f_true - 1| {k_err:.1e}, heights {cal.height_range_mm[0]:.2f}..{cal.height_range_mm[1]:.2f} mm",
           flush=True)
+    print(calibration_vs_truth(cal, rr), flush=True)
     rec = Reconstructor(cal, with_phase=True, max_code=2**bits - 1)
     rng = np.random.default_rng(rr.seed)
     out: dict = {"rig": rig.name, "scenes": {}, "gross": 0}
