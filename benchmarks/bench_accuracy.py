@@ -6,6 +6,7 @@ and a bright 0.72 mm suture → reconstruct → validate against the simulator's
     python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8] [--board checkerboard]
                                         [--partial-boards | --full-boards] [--keep DIR] [--strict] [--seed S]
                                         [--exposure auto|MS]
+    python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR] [--strict]
 
 Each target scene (DOF target, planes, spheres) is captured at the exposure the instrument's own
 auto-exposure picks for it (``--exposure auto``, the default: app.recon.exposure.choose_exposure,
@@ -26,6 +27,17 @@ and those in the volume but outside the supported region ("off": valid count, gr
 error — no gross error is allowed anywhere). The predicted floor is ``ReconResult.sigma`` when the reconstruction has it, else the
 noise-floor prediction of app/analysis/noise.py. Exit code 0 (with ``--strict``: 1 if any
 acceptance target is missed).
+
+``--random-rigs N``: N rigs drawn by app/devices/sim/random_rig.py from seeds S … S + N − 1
+(sensor, focal length, principal point, k1/k2, bit depth 8/10/12, triangulation angle and
+baseline, board size and coverage from the central third to the full field, 6–16 poses), each
+calibrated by the calibration path (calibrate_folder) from its rendered board poses; the DOF
+target and tissue (intestine_flap) rendered with it at the instrument's auto-exposure. Per rig
+the issue's targets: valid share of the lit, unsaturated pixels inside the calibrated volume
+(DOF black print excluded; and the share refused only as ``outside the calibrated field``),
+every ninth's RMS(error/σ) in 0.85–1.15 and |mean error| ≤ 0.005 mm (≤ 2 σ_model where the
+result carries a σ_model above 2.5 µm), RMS(error/σ) of random lengths (``--lengths`` per scene)
+in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each.
 """
 
 from __future__ import annotations
@@ -53,6 +65,7 @@ from app.analysis.acceptance import (  # noqa: E402
     true_phase_rad,
 )
 from app.analysis.feature import plane_coordinates  # noqa: E402
+from app.analysis.measure import measure  # noqa: E402
 from app.calib import calibrate_folder  # noqa: E402
 from app.core.reasons import Reason  # noqa: E402
 from app.devices.sim import (  # noqa: E402
@@ -62,6 +75,7 @@ from app.devices.sim import (  # noqa: E402
     rig_by_name,
     simulate_calibration_folder,
 )
+from app.devices.sim.random_rig import RandomRig, random_rig, simulate_random_calibration  # noqa: E402
 from app.devices.sim.scenes import build_scene  # noqa: E402
 from app.devices.sim.scenes.base import frame_from_normal  # noqa: E402
 from app.devices.sim.scenes.targets import dof_target_field, ruler_printer  # noqa: E402
@@ -69,6 +83,7 @@ from app.devices.sim.world import READOUT_MS, SimulatedWorld  # noqa: E402
 from app.recon import Reconstructor  # noqa: E402
 from app.recon.exposure import bracket_exposures  # noqa: E402
 from app.recon.fusion import fuse_exposures  # noqa: E402
+from app.service.measure import calibration_terms  # noqa: E402
 
 SUTURE_TRUTH_MM = 0.72
 GROSS_MM = 0.5
@@ -179,7 +194,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exposure", type=_exposure_arg, default="auto",
                     help="'auto' (the instrument's auto-exposure per target scene, the default) or a fixed "
                          "exposure in ms for the target scenes (20: the twin's default)")
+    ap.add_argument("--random-rigs", type=int, default=0, metavar="N",
+                    help="instead of the presets: N random rigs (app/devices/sim/random_rig.py), rig i "
+                         "drawn from seed S + i; per rig the issue's targets, then the share of rigs "
+                         "meeting each")
+    ap.add_argument("--lengths", type=int, default=40, help="random lengths per scene (--random-rigs)")
     args = ap.parse_args(argv)
+    if args.random_rigs:
+        if args.random_rigs < 0:
+            ap.error(f"--random-rigs: need N >= 1, got {args.random_rigs}")
+        return run_random_rigs(args)
     missed = 0
     for rig_name in args.rig:
         missed += run_rig(rig_name, args)
@@ -354,6 +378,233 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
     print(f"\nacceptance targets missed, rig {rig_name}: {missed}")
     tmp.cleanup()
     return missed
+
+
+NINTH_RMS_Z = (0.85, 1.15)
+LENGTH_RMS_Z = (0.8, 1.25)
+COVERAGE_TARGET = 0.97
+BIAS_MM = 0.005
+MODEL_SIGMA_SMALL_MM = 0.0025
+
+
+def ninth_z_figures(res, truth, sigma, mask, sigma_model=None):  # noqa: ANN001, ANN201
+    """Per ninth (row-major) over ``mask & valid``: (pixels, RMS(error/σ), mean error mm, bias
+    limit mm): the limit is 0.005 mm, or 2·RMS(σ_model) where the result's σ_model exceeds 2.5 µm."""
+    err = np.asarray(res.depth, np.float64) - truth
+    ok = mask & res.valid & np.isfinite(err) & np.isfinite(sigma) & (sigma > 0)
+    h, w = err.shape
+    ys, xs = np.linspace(0, h, 4).round().astype(int), np.linspace(0, w, 4).round().astype(int)
+    out = []
+    for r in range(3):
+        for c in range(3):
+            win = (slice(ys[r], ys[r + 1]), slice(xs[c], xs[c + 1]))
+            sel = ok[win]
+            e, s = err[win][sel], sigma[win][sel]
+            if e.size < 50:
+                out.append((int(e.size), float("nan"), float("nan"), BIAS_MM))
+                continue
+            limit = BIAS_MM
+            if sigma_model is not None:
+                sm = float(np.sqrt(np.mean(np.square(np.asarray(sigma_model, np.float64)[win][sel]))))
+                if sm > MODEL_SIGMA_SMALL_MM:
+                    limit = 2.0 * sm
+            out.append((int(e.size), float(np.sqrt(np.mean((e / s) ** 2))), float(e.mean()), limit))
+    return out
+
+
+def calibration_vs_truth(cal, rr: RandomRig) -> str:  # noqa: ANN001
+    """One line: the calibrated camera and reference plane against the twin's: principal point
+    error (px), the plane's tilt error (deg) and its height error at the reference point and over
+    the image corners (mm, the calibrated plane's height of true reference-plane points)."""
+    rig = rr.rig
+    k = np.asarray(cal.camera_matrix, np.float64)
+    dpp = k[:2, 2] - rig.K[:2, 2]
+    n_t, n_c = rig.reference.normal, np.asarray(cal.plane_normal, np.float64)
+    tilt = np.degrees(np.arccos(min(1.0, float(n_t @ n_c))))
+    w, h = rig.image_size
+    u, v = np.array([(w - 1) / 2, 0.0, w - 1.0, 0.0, w - 1.0]), np.array([(h - 1) / 2, 0.0, 0.0, h - 1.0, h - 1.0])
+    rays = rig.camera.rays(u, v)
+    pts = ((0.0 - rig.reference.offset_mm) / (rays @ n_t))[:, None] * rays
+    dh = pts @ n_c + cal.plane_offset_mm
+    return (f"calibration vs truth: principal point {dpp[0]:+.2f}, {dpp[1]:+.2f} px; reference plane tilt "
+            f"{tilt:.3f} deg, height of the true plane at the centre {dh[0]:+.4f} mm, at the image corners "
+            + ", ".join(f"{x:+.4f}" for x in dh[1:]) + " mm")
+
+
+def lens_field_mask(cal):  # noqa: ANN001, ANN201
+    """(H, W) True inside the camera lens model's supported field ellipse (the whole image when the
+    calibration records none): outside it the calibration refuses depth whatever the depth model."""
+    w, h = cal.image_size
+    radius = (cal.extra.get("camera_model") or {}).get("field_radius")
+    if radius is None:
+        return np.ones((h, w), bool)
+    k = np.asarray(cal.camera_matrix, np.float64)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return ((u - k[0, 2]) / (radius * k[0, 0])) ** 2 + ((v - k[1, 2]) / (radius * k[1, 1])) ** 2 <= 1.0
+
+
+def random_lengths(res, truth_pts, cal, n, rng):  # noqa: ANN001, ANN201
+    """(error mm, σ mm) of ``n`` random lengths between two valid pixels (σ as the API reports it:
+    noise and the calibration term), each against the same length on the true points."""
+    normal, cal_sigma, cal_length = calibration_terms(cal)
+    ok = res.valid & np.all(np.isfinite(truth_pts), -1)
+    vv, uu = np.nonzero(ok)
+    errs, sigmas = [], []
+    for _ in range(20 * n):
+        if len(errs) >= n or len(uu) < 2:
+            break
+        i, j = rng.choice(len(uu), 2, replace=False)
+        pix = [[int(uu[i]), int(vv[i])], [int(uu[j]), int(vv[j])]]
+        try:
+            m = measure("length", res.points, res.valid, res.sigma, pix, snap_px=0.0, plane_normal=normal,
+                        reason=res.reason, calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
+            t = measure("length", truth_pts, ok, None, pix, snap_px=0.0, plane_normal=normal)
+        except ValueError:
+            continue
+        if m.sigma_mm > 0 and np.isfinite(m.sigma_mm):
+            errs.append(m.value_mm - t.value_mm)
+            sigmas.append(m.sigma_mm)
+    return np.asarray(errs), np.asarray(sigmas)
+
+
+def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> dict:
+    """Simulate, calibrate and measure one random rig; the figures of the issue's targets."""
+    rig = rr.rig
+    bits = rig.bit_depth
+    print(f"\n=== {rig.name}: {rr.describe()} ===", flush=True)
+    t0 = time.perf_counter()
+    folder = simulate_random_calibration(base / f"calib_{rig.name}", rr, seed=rr.seed, overwrite=True)
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    try:
+        report = calibrate_folder(folder)
+    except ValueError as exc:
+        print(f"calibration refused: {exc}", flush=True)
+        return {"rig": rig.name, "error": str(exc)}
+    cal = report.calibration
+    k_err = np.abs(cal.camera_matrix[0, 0] / rig.K[0, 0] - 1)
+    held = cal.held_out.get(cal.model.name, {})
+    print(f"simulated {rr.poses} poses in {t_sim:.0f} s, calibrated in {time.perf_counter() - t0:.0f} s: model "
+          f"{cal.model.name}, reprojection {report.reprojection_px:.3f} px, fit RMS {report.rms_mm:.4f} mm, "
+          f"held-out RMS {held.get('rms_mm')}, lens {report.camera.model if report.camera else '-'}, "
+          f"|f/f_true - 1| {k_err:.1e}, heights {cal.height_range_mm[0]:.2f}..{cal.height_range_mm[1]:.2f} mm",
+          flush=True)
+    print(calibration_vs_truth(cal, rr), flush=True)
+    rec = Reconstructor(cal, with_phase=True, max_code=2**bits - 1)
+    rng = np.random.default_rng(rr.seed)
+    out: dict = {"rig": rig.name, "scenes": {}, "gross": 0}
+    errs_all, sig_all = [], []
+    for scene_name, seed in (("dof_target", 3), ("intestine_flap", 4)):
+        ae = instrument_exposure(scene_name, seed=seed, rig=rig)
+        world = SimulatedWorld(scene_name, seed=seed, rig=rig)
+        cs, truth32, points = render_capture_set(world.scene, seed=seed, world=world, exposure_ms=ae.exposure_ms)
+        res = rec.run(cs.frames)
+        truth = truth32.astype(np.float64)
+        lit = lit_mask(world, points)
+        if scene_name == "dof_target":
+            origin, axes = dof_target_field(world.rig)
+            st = (points.astype(np.float64) - origin) @ axes
+            lit &= ~(ruler_printer()(st[..., 0], st[..., 1]) < 0.5)
+        lo, hi = cal.height_range_mm
+        with np.errstate(invalid="ignore"):
+            in_vol = lit & (truth >= lo) & (truth <= hi) & (res.reason != Reason.SATURATED)
+        n_in = int(in_vol.sum())
+        valid = float((in_vol & res.valid).sum() / max(n_in, 1))
+        outside_field = float((in_vol & (res.reason == Reason.OUTSIDE_FIELD)).sum() / max(n_in, 1))
+        outside_lens = float((in_vol & ~lens_field_mask(cal)).sum() / max(n_in, 1))
+        err = np.asarray(res.depth, np.float64) - truth
+        with np.errstate(invalid="ignore"):
+            gross = int((res.valid & (np.abs(np.nan_to_num(err, nan=np.inf)) > GROSS_MM)).sum())
+        sigma = np.asarray(res.sigma, np.float64)
+        cells = ninth_z_figures(res, truth, sigma, in_vol, getattr(res, "sigma_model", None))
+        e_len, s_len = random_lengths(res, points.astype(np.float64), cal, args.lengths, rng)
+        errs_all.append(e_len)
+        sig_all.append(s_len)
+        len_z = float(np.sqrt(np.mean((e_len / s_len) ** 2))) if e_len.size else float("nan")
+        with np.errstate(invalid="ignore"):
+            whole_bias = float(np.nanmean(err[in_vol & res.valid])) if (in_vol & res.valid).any() else float("nan")
+        print(f"{scene_name}: {ae.exposure_ms:.1f} ms, noise {res.noise_source}; lit unsaturated px in volume "
+              f"{n_in}, valid {valid:.4f}, refused as outside the field {outside_field:.4f} (beyond the lens "
+              f"model's field {outside_lens:.4f}); mean error "
+              f"{whole_bias:+.4f} mm; gross {gross}; lengths {e_len.size}: RMS error "
+              f"{float(np.sqrt(np.mean(e_len ** 2))) if e_len.size else float('nan'):.4f} mm, RMS(err/sigma) "
+              f"{len_z:.2f}", flush=True)
+        print("  ninth   px      RMS(e/s)  mean mm   limit")
+        for k, (n_px, z, mean, limit) in enumerate(cells):
+            print(f"  ({k // 3},{k % 3}) {n_px:>8} {z:>9.2f} {mean:>+9.4f} {limit:>7.4f}")
+        out["scenes"][scene_name] = {"valid": valid, "outside_field": outside_field, "outside_lens": outside_lens,
+                                     "cells": cells,
+                                     "gross": gross, "bias_mm": whole_bias}
+        out["gross"] += gross
+    e, s = np.concatenate(errs_all), np.concatenate(sig_all)
+    out["lengths"] = int(e.size)
+    out["length_rms_z"] = float(np.sqrt(np.mean((e / s) ** 2))) if e.size else float("nan")
+    out["length_rms_mm"] = float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+    return out
+
+
+def random_rig_verdicts(r: dict) -> dict[str, bool]:
+    """Which of the issue's targets rig ``r`` meets."""
+    if "error" in r:
+        return {k: False for k in ("coverage", "ninth_rms_z", "ninth_bias", "lengths", "zero_gross")}
+    cells = [c for sc in r["scenes"].values() for c in sc["cells"] if c[0] >= 50]
+    return {
+        "coverage": all(sc["valid"] >= COVERAGE_TARGET for sc in r["scenes"].values()),
+        "ninth_rms_z": all(NINTH_RMS_Z[0] <= c[1] <= NINTH_RMS_Z[1] for c in cells),
+        "ninth_bias": all(abs(c[2]) <= c[3] for c in cells),
+        "lengths": r["lengths"] >= 40 and LENGTH_RMS_Z[0] <= r["length_rms_z"] <= LENGTH_RMS_Z[1],
+        "zero_gross": r["gross"] == 0,
+    }
+
+
+def run_random_rigs(args: argparse.Namespace) -> int:
+    """``--random-rigs N``: per rig the targets, then the share of rigs meeting each."""
+    tmp = tempfile.TemporaryDirectory(prefix="bench_accuracy_rigs_")
+    base = Path(args.keep) if args.keep else Path(tmp.name)
+    rows = []
+    t_all = time.perf_counter()
+    for i in range(args.random_rigs):
+        rr = random_rig(args.seed + i)
+        r = run_one_random_rig(rr, args, base)
+        r["describe"] = rr.describe()
+        r["coverage"] = rr.coverage
+        rows.append(r)
+    print(f"\n=== {len(rows)} random rigs (seeds {args.seed}..{args.seed + len(rows) - 1}), "
+          f"{time.perf_counter() - t_all:.0f} s ===")
+    head = (f"{'rig':<11}{'board':>6}{'bits':>5}{'valid DOF':>10}{'tissue':>8}{'out-field':>10}"
+            f"{'lens':>7}{'ninth z':>14}{'max|mean|':>10}{'len z':>7}{'gross':>6}  missed")
+    print(head)
+    print("-" * len(head))
+    verdicts = []
+    for r in rows:
+        v = random_rig_verdicts(r)
+        verdicts.append(v)
+        if "error" in r:
+            print(f"{r['rig']:<11}  calibration refused: {r['error']}")
+            continue
+        sc = r["scenes"]
+        zs = [c[1] for s in sc.values() for c in s["cells"] if c[0] >= 50]
+        means = [abs(c[2]) for s in sc.values() for c in s["cells"] if c[0] >= 50]
+        bits = r["describe"].split("-bit")[0].rsplit(" ", 1)[-1]
+        print(f"{r['rig']:<11}{r['coverage']:>6.2f}{bits:>5}{sc['dof_target']['valid']:>10.4f}"
+              f"{sc['intestine_flap']['valid']:>8.4f}"
+              f"{max(s['outside_field'] for s in sc.values()):>10.4f}"
+              f"{max(s['outside_lens'] for s in sc.values()):>7.4f}"
+              f"{min(zs):>7.2f}-{max(zs):<6.2f}{max(means):>10.4f}{r['length_rms_z']:>7.2f}{r['gross']:>6}  "
+              + (",".join(k for k, ok in v.items() if not ok) or "-"))
+    print("\nshare of rigs meeting each target (issue 26: >= 90 %; zero gross on every rig):")
+    missed = 0
+    for key, text in (("coverage", f"valid >= {COVERAGE_TARGET:.0%} of lit unsaturated px in the volume"),
+                      ("ninth_rms_z", f"every ninth RMS(error/sigma) in {NINTH_RMS_Z[0]}-{NINTH_RMS_Z[1]}"),
+                      ("ninth_bias", "every ninth |mean error| <= 0.005 mm (2 sigma_model where larger)"),
+                      ("lengths", f">= 40 lengths, RMS(error/sigma) in {LENGTH_RMS_Z[0]}-{LENGTH_RMS_Z[1]}"),
+                      ("zero_gross", "zero gross errors (> 0.5 mm) on valid pixels")):
+        share = float(np.mean([v[key] for v in verdicts]))
+        need = 1.0 if key == "zero_gross" else 0.9
+        missed += share < need
+        print(f"  {text:<66} {share:>6.0%}  {'PASS' if share >= need else 'MISS'}")
+    tmp.cleanup()
+    return 1 if (args.strict and missed) else 0
 
 
 if __name__ == "__main__":

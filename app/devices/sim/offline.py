@@ -49,11 +49,12 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOS
                        bit_depth: int | None = None, seed: int | None = None, t0_s: float = 0.0,
                        distortion: bool = True, schedule: PatternSchedule | None = None, current: float = 0.5,
                        world: SimulatedWorld | None = None, frame_period_ms: float | None = None,
-                       rig: str = "default") -> tuple[CaptureSet, F32, F32]:
+                       rig: str | SimRig = "default") -> tuple[CaptureSet, F32, F32]:
     """One capture set of ``scene``, each frame rendered at its own time, plus ground truth.
 
-    ``rig``: the rig preset (optics.RIG_NAMES) when no ``world`` is given; ``bit_depth`` None:
-    the rig sensor's native depth (8 for ``default``, 12 for ``endoscope``).
+    ``rig``: the rig preset (optics.RIG_NAMES) or a :class:`SimRig` (e.g. a random one) when no
+    ``world`` is given; ``bit_depth`` None: the rig sensor's native depth (8 for ``default``, 12
+    for ``endoscope``).
 
     Returns:
         (capture set, truth depth (H, W) float32 mm above the reference plane, NaN off-object,
@@ -86,7 +87,7 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOS
                        bit_depth=bit_depth), depth, points)
 
 
-def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str = "default",
+def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str | SimRig = "default",
                         saturation_limit: float = DEFAULT_SATURATION_LIMIT, current: float = 0.5,
                         led: str = DEFAULT_LED, t0_s: float = 0.0) -> AutoExposureResult:
     """The exposure the instrument's own auto-exposure picks for ``scene``.
