@@ -344,22 +344,25 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         recon = reconstruct_captures(captures, cal, options,
                                      base=_base_reconstructor(task.cal_key, cal, options))
         res = recon.result
-        finite = res.sigma[res.valid]
         stamp = captures[0].extra.get("timestamp")
+        exposure_ms = float(captures[0].exposure_ms)
+        del captures  # the frames: what follows needs only the result (a worker's peak memory)
+        finite = res.sigma[res.valid]
         row.update(
             timestamp=stamp if isinstance(stamp, str) else None,
-            exposure_ms=float(captures[0].exposure_ms),
+            exposure_ms=exposure_ms,
             valid_fraction=float(res.valid.mean()),
             median_sigma_mm=float(np.median(finite)) if finite.size else math.nan,
             motion_share=float(np.count_nonzero(res.reason == MOTION_CODE) / res.reason.size),
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
         )
+        del finite
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
         remove_file(_join(task.out_url, META_FILE))
-        for name, data in output_files(recon, options, task.files).items():
-            write_bytes(_join(task.out_url, name), data)
+        for name in task.files:  # encoded one at a time: one file's bytes in memory
+            write_bytes(_join(task.out_url, name), output_files(recon, options, (name,))[name])
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
                    cpu_ms=(time.process_time() - cpu0) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
