@@ -106,7 +106,10 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path, n_workers: in
     return {"rate": len(rows) / wall, "wall_s": wall, "peak_growth_mb": max(growth) / 1e6,
             "peak_rss_mb": max(peak.values()) / 1e6,
             "task_ms": statistics.mean(r["task_ms"] for r in rows),
-            "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows)}
+            "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows),
+            "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
+            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
+            "between_ms": wall * 1e3 * n_workers / len(rows) - statistics.mean(r["task_ms"] for r in rows)}
 
 
 def external_cluster(tmp: Path, n_workers: int) -> tuple[str, list[subprocess.Popen[bytes]]]:
@@ -215,14 +218,20 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
           f"target >= 1.7); CPU per set 2 / 1 workers "
           f"{cpu2 / cpu1:.2f} x, so with 2 idle cores {2 * cpu1 / cpu2:.2f} x; external / local 2 "
           f"{ext['rate'] / rate2:.2f} x")
-    # the worker's CPU per set beyond decoding and Reconstructor.run, over Reconstructor.run
-    rest = cpu1 - c_decode - c_run
-    print(f"ratios: CPU per set at 1 worker {cpu1:.0f} ms = decode {c_decode:.0f} + Reconstructor.run "
-          f"{c_run:.0f} + rest {rest:.0f} (encode {c_encode:.0f}, row, writes and Dask "
-          f"{rest - c_encode:.0f}); overhead over Reconstructor.run: decode excluded {100 * rest / c_run:.0f} % "
-          f"(target <= 20 %), decode included {100 * (rest + c_decode) / c_run:.0f} %; in-process job "
+    # on the worker, per set: its process CPU beyond the decoding and the noise fit +
+    # Reconstructor.run of its task thread, over the latter (all from the same tasks)
+    dec1, rec1 = med("decode_cpu_ms", 1), med("recon_cpu_ms", 1)
+    rest = cpu1 - dec1 - rec1
+    dec2, rec2 = med("decode_cpu_ms", 2), med("recon_cpu_ms", 2)
+    rest2 = cpu2 - rec2  # decoding included
+    print(f"ratios: CPU per set at 1 worker {cpu1:.0f} ms = decode {dec1:.0f} + noise fit and "
+          f"Reconstructor.run {rec1:.0f} + rest {rest:.0f} (encoders, statistics, writes, Dask); overhead "
+          f"over Reconstructor.run: decode excluded {100 * rest / rec1:.0f} % (target <= 20 %), decode "
+          f"included {100 * (rest + dec1) / rec1:.0f} %; at 2 workers {100 * (rest2 - dec2) / rec2:.0f} % / "
+          f"{100 * rest2 / rec2:.0f} %; in-process job "
           f"{100 * (c_job - c_decode - c_run) / c_run:.0f} % / {100 * (c_job - c_run) / c_run:.0f} %; "
-          f"decode / run {c_decode / c_run:.2f} x ({codec2} {c_decode2 / c_run:.2f} x)")
+          f"decode / run {dec1 / rec1:.2f} x (in-process {codec} {c_decode / c_run:.2f} x, {codec2} "
+          f"{c_decode2 / c_run:.2f} x); wall between tasks {med('between_ms', 1):.0f} ms per set at 1 worker")
     peak = max(r["peak_growth_mb"] for rs in results.values() for r in rs)
     print(f"ratios: peak RSS growth per worker / one set's frames ({frames_mb:.1f} MB) "
           f"{peak / frames_mb:.1f} x (target <= 4)")

@@ -57,7 +57,8 @@ CAPTURE_FILE = "capture.json"
 DEFAULT_FILES = ("depth.npy", "sigma.npy", "reason.png")
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
-           "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "status", "error")
+           "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
+           "recon_cpu_ms", "status", "error")
 MOTION_CODE = 8  # app.core.reasons.Reason.MOTION
 
 
@@ -317,7 +318,8 @@ def _empty_row(task: SetTask) -> dict[str, Any]:
     nan = math.nan
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
-            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "status": "failed", "error": ""}
+            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan, "recon_cpu_ms": nan,
+            "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -331,11 +333,11 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
     from app.service.schedules import calibration_for_schedule
 
     one_core_per_task()
-    t0, cpu0 = time.perf_counter(), time.process_time()
+    t0, cpu0, thread0 = time.perf_counter(), time.process_time(), time.thread_time()
     row = _empty_row(task)
     try:
         captures = [read_set(u) for u in task.urls]
-        t_read = time.perf_counter()
+        t_read, thread_read = time.perf_counter(), time.thread_time()
         try:
             cal = calibration_for_schedule(calibration, captures[0].schedule)
         except ValueError as exc:
@@ -343,6 +345,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         check_bracket(captures, task.folders)
         recon = reconstruct_captures(captures, cal, options,
                                      base=_base_reconstructor(task.cal_key, cal, options))
+        thread_recon = time.thread_time()
         res = recon.result
         stamp = captures[0].extra.get("timestamp")
         exposure_ms = float(captures[0].exposure_ms)
@@ -356,6 +359,9 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
             motion_share=float(np.count_nonzero(res.reason == MOTION_CODE) / res.reason.size),
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
+            # this thread's CPU: the decoding, and the noise fit + Reconstructor.run
+            decode_cpu_ms=(thread_read - thread0) * 1e3,
+            recon_cpu_ms=(thread_recon - thread_read) * 1e3,
         )
         del finite
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
@@ -486,8 +492,11 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
             raise ValueError(f"--workers: must be >= 1, got {n}")
         # a worker process is one core: its numba kernel runs one thread (Dask's nanny
         # already sets OMP/MKL/OPENBLAS_NUM_THREADS=1), so N workers never oversubscribe
+        # no dashboard; the scheduler's HTTP server (health, metrics) on a free loopback port,
+        # not on 8787, which another cluster on the machine may hold
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.CRITICAL,
+                               scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                                env={"NUMBA_NUM_THREADS": "1",
                                     "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER",
                                                                             "workqueue")})
@@ -512,7 +521,7 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms", "decode_ms",
-              "task_ms", "cpu_ms"):
+              "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
     frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce").dt.tz_convert(None)
