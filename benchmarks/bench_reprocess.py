@@ -109,7 +109,15 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path, n_workers: in
             "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows),
             "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
             "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
-            "between_ms": wall * 1e3 * n_workers / len(rows) - statistics.mean(r["task_ms"] for r in rows)}
+            # a worker's idle time per set: the engine's own cost between tasks
+            "between_ms": wall * 1e3 * n_workers / len(rows)
+            - statistics.mean(r["task_ms"] for r in rows)}
+
+
+def _engine_line(r: dict[str, float]) -> str:
+    return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s), task mean {r['task_ms']:.0f} ms wall / "
+            f"{r['cpu_ms']:.0f} ms CPU, peak RSS growth per worker {r['peak_growth_mb']:.0f} MB "
+            f"(RSS {r['peak_rss_mb']:.0f} MB)")
 
 
 def external_cluster(tmp: Path, n_workers: int) -> tuple[str, list[subprocess.Popen[bytes]]]:
@@ -146,7 +154,8 @@ def main() -> int:
 
 def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
     print(f"bench_reprocess: {n_sets} sets of 16 frames {WIDTH}x{HEIGHT} uint8 ({codec}), "
-          f"{os.cpu_count()} CPUs, NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
+          f"{os.cpu_count()} CPUs, "
+          f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
           f"load average {os.getloadavg()[0]:.1f} at start")
     rec, cal_path = make_sets(tmp, n_sets, codec)
     calibration = load_calibration(cal_path)
@@ -175,11 +184,11 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
                    output_digest(key, options, files, 1), key)
     t_job, c_job = median_ms(lambda: run_set(task, calibration, options), repeats)
     codec2 = "png" if codec == "zstd" else "zstd"
-    print(f"  in-process, one core, median of {repeats}, wall / CPU ms: Reconstructor.run {t_run:.1f} / "
-          f"{c_run:.1f} (of which its noise fit {c_run - c_kernel:.1f}, kernel {c_kernel:.1f}); decode "
-          f"{codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: {t_decode2:.1f} / {c_decode2:.1f}); "
-          f"encode 3 files {t_encode:.1f} / {c_encode:.1f}; whole job (run_set, with atomic writes) "
-          f"{t_job:.1f} / {c_job:.1f}")
+    print(f"  in-process, one core, median of {repeats}, wall / CPU ms: Reconstructor.run "
+          f"{t_run:.1f} / {c_run:.1f} (of which its noise fit {c_run - c_kernel:.1f}, kernel "
+          f"{c_kernel:.1f}); decode {codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: "
+          f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f}; "
+          f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}")
 
     results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
     t0 = time.perf_counter()
@@ -189,18 +198,14 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
             for n, client in ((1, c1), (2, c2)):
                 r = engine_rate(client, rec, cal_path, tmp / f"local{n}-{i}", n)
                 results[f"local {n}"].append(r)
-                print(f"  round {i + 1}, local cluster, {n} worker(s): {r['rate']:.2f} sets/s ({r['wall_s']:.1f} s "
-                      f"for {n_sets}), task mean {r['task_ms']:.0f} ms wall / {r['cpu_ms']:.0f} ms CPU, peak "
-                      f"RSS growth per worker {r['peak_growth_mb']:.0f} MB (RSS {r['peak_rss_mb']:.0f} MB), "
+                print(f"  round {i + 1}, local cluster, {n} worker(s): {_engine_line(r)}, "
                       f"load average {os.getloadavg()[0]:.1f}")
     address, procs = external_cluster(tmp, 2)
     try:
         with connect(address, None, timeout_s=60) as client:
             client.wait_for_workers(2, timeout=90)
             ext = engine_rate(client, rec, cal_path, tmp / "external", 2)
-        print(f"  external scheduler + 2 worker processes: {ext['rate']:.2f} sets/s ({ext['wall_s']:.1f} s), "
-              f"task mean {ext['task_ms']:.0f} ms wall / {ext['cpu_ms']:.0f} ms CPU, peak RSS growth per "
-              f"worker {ext['peak_growth_mb']:.0f} MB (RSS {ext['peak_rss_mb']:.0f} MB)")
+        print(f"  external scheduler + 2 worker processes: {_engine_line(ext)}")
     finally:
         for p in reversed(procs):
             p.terminate()
@@ -210,13 +215,14 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
     def med(key: str, n: int) -> float:
         return statistics.median(r[key] for r in results[f"local {n}"])
 
-    ratios = [b["rate"] / a["rate"] for a, b in zip(results["local 1"], results["local 2"], strict=True)]
+    ratios = [b["rate"] / a["rate"]
+              for a, b in zip(results["local 1"], results["local 2"], strict=True)]
     cpu1, cpu2 = med("cpu_ms", 1), med("cpu_ms", 2)
     rate1, rate2 = med("rate", 1), med("rate", 2)
-    print(f"ratios: 2 / 1 workers {statistics.median(ratios):.2f} x measured, median of {rounds} rounds "
-          f"({', '.join(f'{x:.2f}' for x in ratios)}; medians {rate1:.2f} and {rate2:.2f} sets/s; "
-          f"target >= 1.7); CPU per set 2 / 1 workers "
-          f"{cpu2 / cpu1:.2f} x, so with 2 idle cores {2 * cpu1 / cpu2:.2f} x; external / local 2 "
+    print(f"ratios: 2 / 1 workers {statistics.median(ratios):.2f} x measured, median of {rounds} "
+          f"rounds ({', '.join(f'{x:.2f}' for x in ratios)}; medians {rate1:.2f} and "
+          f"{rate2:.2f} sets/s; target >= 1.7); CPU per set 2 / 1 workers {cpu2 / cpu1:.2f} x, "
+          f"so with 2 idle cores {2 * cpu1 / cpu2:.2f} x; external / local 2 "
           f"{ext['rate'] / rate2:.2f} x")
     # on the worker, per set: its process CPU beyond the decoding and the noise fit +
     # Reconstructor.run of its task thread, over the latter (all from the same tasks)
@@ -224,29 +230,32 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
     rest = cpu1 - dec1 - rec1
     dec2, rec2 = med("decode_cpu_ms", 2), med("recon_cpu_ms", 2)
     rest2 = cpu2 - rec2  # decoding included
+    job_rest = c_job - c_run  # decoding included
     print(f"ratios: CPU per set at 1 worker {cpu1:.0f} ms = decode {dec1:.0f} + noise fit and "
-          f"Reconstructor.run {rec1:.0f} + rest {rest:.0f} (encoders, statistics, writes, Dask); overhead "
-          f"over Reconstructor.run: decode excluded {100 * rest / rec1:.0f} % (target <= 20 %), decode "
-          f"included {100 * (rest + dec1) / rec1:.0f} %; at 2 workers {100 * (rest2 - dec2) / rec2:.0f} % / "
-          f"{100 * rest2 / rec2:.0f} %; in-process job "
-          f"{100 * (c_job - c_decode - c_run) / c_run:.0f} % / {100 * (c_job - c_run) / c_run:.0f} %; "
-          f"decode / run {dec1 / rec1:.2f} x (in-process {codec} {c_decode / c_run:.2f} x, {codec2} "
-          f"{c_decode2 / c_run:.2f} x); wall between tasks {med('between_ms', 1):.0f} ms per set at 1 worker")
+          f"Reconstructor.run {rec1:.0f} + rest {rest:.0f} (encoders, statistics, writes, Dask); "
+          f"overhead over Reconstructor.run: decode excluded {100 * rest / rec1:.0f} % (target "
+          f"<= 20 %), decode included {100 * (rest + dec1) / rec1:.0f} %; at 2 workers "
+          f"{100 * (rest2 - dec2) / rec2:.0f} % / {100 * rest2 / rec2:.0f} %; in-process job "
+          f"{100 * (job_rest - c_decode) / c_run:.0f} % / {100 * job_rest / c_run:.0f} %")
+    print(f"ratios: decode / run {dec1 / rec1:.2f} x (in-process {codec} {c_decode / c_run:.2f} x, "
+          f"{codec2} {c_decode2 / c_run:.2f} x); wall between tasks {med('between_ms', 1):.0f} ms "
+          f"per set at 1 worker, {med('between_ms', 2):.0f} ms at 2")
     peak = max(r["peak_growth_mb"] for rs in results.values() for r in rs)
     print(f"ratios: peak RSS growth per worker / one set's frames ({frames_mb:.1f} MB) "
           f"{peak / frames_mb:.1f} x (target <= 4)")
     total = RECORDINGS * SETS_PER_HOUR
-    cpu_s = cpu1 / 1e3
-    load = os.getloadavg()[0]
-    print(f"arithmetic: per-set cost {cpu_s:.3f} CPU-s ({codec} frames, 3 files); {RECORDINGS} one-hour "
-          f"recordings = {RECORDINGS} x {SETS_PER_HOUR} = {total} sets = {total * cpu_s / 3600:.1f} CPU-hours")
+    print(f"arithmetic: per-set cost {cpu1 / 1e3:.3f} CPU-s at 1 worker, {cpu2 / 1e3:.3f} at 2 "
+          f"({codec} frames, 3 files); {RECORDINGS} one-hour recordings = {RECORDINGS} x "
+          f"{SETS_PER_HOUR} = {total} sets = {total * cpu2 / 1e3 / 3600:.1f} CPU-hours")
     cores = os.cpu_count() or 1
+    load = os.getloadavg()[0]
     for label, rate in ((f"measured here, 2 workers (load average {load:.1f})", rate2),
-                        (f"CPU-bound, {cores} idle cores, one worker each", cores / cpu_s)):
+                        (f"CPU-bound, {cores} idle cores, one worker each", cores * 1e3 / cpu2)):
         hours = total / rate / 3600
-        print(f"arithmetic: {label}: {rate:.2f} sets/s -> {hours:.1f} h on this machine, {hours / MACHINES:.2f} h "
-              f"({60 * hours / MACHINES:.0f} min) on {MACHINES} such machines (linear; shared storage must "
-              f"deliver {MACHINES * rate * 14:.0f} MB/s at 14 MB per set)")
+        print(f"arithmetic: {label}: {rate:.2f} sets/s -> {hours:.1f} h on this machine, "
+              f"{hours / MACHINES:.2f} h ({60 * hours / MACHINES:.0f} min) on {MACHINES} such "
+              f"machines (linear; shared storage must deliver {MACHINES * rate * 14:.0f} MB/s at "
+              f"14 MB per set)")
     return 0
 
 

@@ -318,8 +318,8 @@ def _empty_row(task: SetTask) -> dict[str, Any]:
     nan = math.nan
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
-            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan, "recon_cpu_ms": nan,
-            "status": "failed", "error": ""}
+            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan,
+            "recon_cpu_ms": nan, "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -496,7 +496,8 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
         # not on 8787, which another cluster on the machine may hold
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.CRITICAL,
-                               scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                               scheduler_kwargs={"dashboard": False,
+                                                 "dashboard_address": "127.0.0.1:0"},
                                env={"NUMBA_NUM_THREADS": "1",
                                     "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER",
                                                                             "workqueue")})

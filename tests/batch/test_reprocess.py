@@ -379,8 +379,8 @@ print(faults() - f0)
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or os.confstr("CS_GNU_LIBC_VERSION") is None,
-                    reason="glibc's mallopt")
+@pytest.mark.skipif(not sys.platform.startswith("linux")
+                    or os.confstr("CS_GNU_LIBC_VERSION") is None, reason="glibc's mallopt")
 def test_a_worker_reuses_freed_memory_under_dasks_trim_threshold():
     # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536: without the task's set-up
     # every large array is mapped and faulted in afresh (per 20 MB 5120 faults, or 10 in huge

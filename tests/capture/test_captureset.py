@@ -193,7 +193,7 @@ def test_zstd_set_with_a_frame_of_another_shape_or_payload_is_refused(tmp_path: 
     bad = tmp_path / "s" / "frame_07.npy.zst"
     # decoded in place into the stack when it fits; a frame that does not is named, not written
     bad.write_bytes(zstd_frame_bytes(frames[7, :, :10].copy()))
-    with pytest.raises(ValueError, match=r"frame_07.npy.zst: \(12, 10\) uint8 differs from the first"):
+    with pytest.raises(ValueError, match=r"frame_07.npy.zst: \(12, 10\) uint8 differs from"):
         read_capture_set(tmp_path / "s")
     bad.write_bytes(zstd_frame_bytes(frames[7].astype(np.uint16)))
     with pytest.raises(ValueError, match=r"frame_07.npy.zst: \(12, 20\) uint16 differs"):
@@ -201,7 +201,7 @@ def test_zstd_set_with_a_frame_of_another_shape_or_payload_is_refused(tmp_path: 
     raw = io.BytesIO()
     np.save(raw, frames[7])
     bad.write_bytes(zstandard.ZstdCompressor().compress(raw.getvalue()[:-5]))  # a short payload
-    with pytest.raises(ValueError, match="frame_07.npy.zst: unreadable frame .*data bytes for shape"):
+    with pytest.raises(ValueError, match="frame_07.npy.zst: unreadable frame .*data bytes for"):
         read_capture_set(tmp_path / "s")
     raw = io.BytesIO()
     np.save(raw, np.asfortranarray(frames[7]))
