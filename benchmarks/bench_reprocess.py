@@ -25,6 +25,11 @@ import argparse
 import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+# one BLAS thread, as Dask's nanny gives its workers: the in-process CPU figures are then a
+# worker's (two spinning OpenBLAS threads made the noise fit's CPU 60 ms instead of 16)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json
 import shutil
