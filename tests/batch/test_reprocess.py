@@ -144,6 +144,9 @@ def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_
         assert row["median_sigma_mm"] == pytest.approx(np.nanmedian(np.load(got / "sigma.npy")))
         assert row["timestamp"] == pd.Timestamp(s["timestamp"]).tz_convert(None)  # UTC
         assert row["motion_share"] == 0.0 and row["recon_ms"] > 0
+        # the task thread's decoding and reconstruction CPU, parts of its process's CPU
+        assert row["decode_cpu_ms"] > 0 and row["recon_cpu_ms"] > 0
+        assert row["decode_cpu_ms"] + row["recon_cpu_ms"] < row["cpu_ms"]
     # the second run skips every set: same digest, nothing rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / rec.name).rglob("*") if p.is_file() and p.suffix != ".parquet"}
     assert main(args) == 0
