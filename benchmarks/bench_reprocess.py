@@ -1,14 +1,18 @@
 """Reprocessing throughput: ``fringescope reprocess``'s engine on Dask against the work itself.
 
-N capture sets of 16 frames at 1384 × 1032 (the Grasshopper3, PNG on disk, as the recorder
-writes them), a synthetic rig with a closed-form Eq. (5). Measured in this process first:
-``Reconstructor.run`` alone (frames in memory, tables built), frame decoding
-(``read_capture_set``), and the whole per-set job in-process (decode + noise estimate +
-run + encode + atomic writes). Then sets per second through the engine with 1 and 2 local
-worker processes (embedded LocalCluster) and with an external ``dask scheduler`` + 2
-``dask worker`` processes on 127.0.0.1; each after one warm-up task per worker, so cluster
-start-up (printed apart) and JIT/cache loading are not in the rate. Peak memory per worker:
-the growth of its resident set (VmHWM, reset after the warm-up) over a batch.
+N capture sets of 16 frames at 1384 × 1032 (the Grasshopper3; ``frame_XX.npy.zst`` on disk as
+the recorder writes them, or PNG with ``--codec png``), a synthetic rig with a closed-form
+Eq. (5). Measured in this process first, on one core as a worker runs
+(:func:`app.batch.engine.one_core_per_task`): ``Reconstructor.run`` alone (frames in memory,
+tables built, the set's noise fitted inside it as in every run without a given model), its
+kernel with the noise given, frame decoding (``read_capture_set``, zstd and PNG), the encoders,
+and the whole per-set job (``run_set``: decode + run + encode + atomic writes). Then sets per
+second through the engine with 1 and 2 local worker processes (two embedded LocalClusters, the
+same batch on each in turn, ``--rounds`` times: the ratio is the median of the rounds' ratios,
+so the others' load on a shared machine falls on both alike) and with an external
+``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1; each after one warm-up task per
+worker, so cluster start-up (printed apart) and JIT/cache loading are not in the rate. Peak
+memory per worker: the growth of its resident set (VmHWM, reset after the warm-up) over a batch.
 
 Targets (issue 29): ≥ 1.7 × from 1 to 2 workers; engine overhead per set over
 ``Reconstructor.run`` ≤ 20 % (decoding reported apart); peak memory per worker ≤ 4 × one
@@ -21,6 +25,11 @@ import argparse
 import os
 
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+# one BLAS thread, as Dask's nanny gives its workers: the in-process CPU figures are then a
+# worker's (two spinning OpenBLAS threads made the noise fit's CPU 60 ms instead of 16)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json
 import shutil
@@ -39,7 +48,7 @@ sys.path.insert(0, str(ROOT))
 
 from timing import median_ms  # noqa: E402  (benchmarks/ is the script's folder)
 
-from app.batch.engine import connect, plan, run_tasks  # noqa: E402
+from app.batch.engine import connect, one_core_per_task, plan, run_tasks  # noqa: E402
 from app.batch.setjob import ReconOptions, new_reconstructor, output_files, reconstruct_captures  # noqa: E402
 from app.calib import load_calibration, save_calibration  # noqa: E402
 from app.capture import CaptureSet, read_capture_set, write_capture_set  # noqa: E402
@@ -52,14 +61,15 @@ RECORDINGS, MACHINES = 50, 20
 
 
 
-def make_sets(folder: Path, n: int) -> tuple[Path, Path]:
-    """``n`` set folders (two rendered scenes, copied) and the calibration file."""
+def make_sets(folder: Path, n: int, codec: str = "zstd") -> tuple[Path, Path]:
+    """``n`` set folders of ``codec`` frames (two rendered scenes, copied), the calibration file."""
     rig = Rig(width=WIDTH, height=HEIGHT, focal_px=200.0 * WIDTH / 160)
     surface = bump_surface(rig)
     rec = folder / "rec"
     for i in range(min(n, 2)):
         frames = rig.render(surface + 0.5 * i, noise=0.8, rng=np.random.default_rng(i))
-        write_capture_set(rec / f"set_{i:04d}", CaptureSet(frames, rig.schedule, exposure_ms=20.0))
+        write_capture_set(rec / f"set_{i:04d}", CaptureSet(frames, rig.schedule, exposure_ms=20.0),
+                          codec=codec)
     for i in range(2, n):
         shutil.copytree(rec / f"set_{i % 2:04d}", rec / f"set_{i:04d}")
     cal = folder / "calibration.json"
@@ -101,7 +111,18 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path, n_workers: in
     return {"rate": len(rows) / wall, "wall_s": wall, "peak_growth_mb": max(growth) / 1e6,
             "peak_rss_mb": max(peak.values()) / 1e6,
             "task_ms": statistics.mean(r["task_ms"] for r in rows),
-            "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows)}
+            "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows),
+            "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
+            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
+            # a worker's idle time per set: the engine's own cost between tasks
+            "between_ms": wall * 1e3 * n_workers / len(rows)
+            - statistics.mean(r["task_ms"] for r in rows)}
+
+
+def _engine_line(r: dict[str, float]) -> str:
+    return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s), task mean {r['task_ms']:.0f} ms wall / "
+            f"{r['cpu_ms']:.0f} ms CPU, peak RSS growth per worker {r['peak_growth_mb']:.0f} MB "
+            f"(RSS {r['peak_rss_mb']:.0f} MB)")
 
 
 def external_cluster(tmp: Path, n_workers: int) -> tuple[str, list[subprocess.Popen[bytes]]]:
@@ -124,29 +145,40 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sets", type=int, default=12, help="capture sets per batch (default 12)")
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the in-process timings (default 5)")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="batches on 1 and on 2 local workers, in turn (default 3)")
+    parser.add_argument("--codec", choices=("zstd", "png"), default="zstd",
+                        help="frame files of the batch (default zstd, as the recorder writes)")
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-reprocess-"))
     try:
-        return _run(tmp, args.sets, args.repeats)
+        return _run(tmp, args.sets, args.repeats, args.rounds, args.codec)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _run(tmp: Path, n_sets: int, repeats: int) -> int:
-    print(f"bench_reprocess: {n_sets} sets of 16 frames {WIDTH}x{HEIGHT} uint8 (PNG), {os.cpu_count()} CPUs, "
-          f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}")
-    rec, cal_path = make_sets(tmp, n_sets)
+def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
+    print(f"bench_reprocess: {n_sets} sets of 16 frames {WIDTH}x{HEIGHT} uint8 ({codec}), "
+          f"{os.cpu_count()} CPUs, "
+          f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
+          f"load average {os.getloadavg()[0]:.1f} at start")
+    rec, cal_path = make_sets(tmp, n_sets, codec)
     calibration = load_calibration(cal_path)
     options = ReconOptions()
     first = rec / "set_0000"
     capture = read_capture_set(first)
+    other = tmp / "other_codec"
+    write_capture_set(other, capture, codec="png" if codec == "zstd" else "zstd")
     frames_mb = capture.frames.nbytes / 1e6
+    one_core_per_task()  # as on a worker: the CPU figures below are one core's
     base = new_reconstructor(calibration, options)
+    noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=capture.max_code)
 
     t_run, c_run = median_ms(lambda: base.run(capture.frames, max_code=capture.max_code), repeats)
+    t_kernel, c_kernel = median_ms(lambda: base.run(capture.frames, max_code=capture.max_code,
+                                                    noise=noise), repeats)
     t_decode, c_decode = median_ms(lambda: read_capture_set(first), repeats)
-    t_noise, c_noise = median_ms(lambda: estimate_sensor_noise(capture.frames, capture.schedule,
-                                                               max_code=capture.max_code), repeats)
+    t_decode2, c_decode2 = median_ms(lambda: read_capture_set(other), repeats)
     recon = reconstruct_captures([capture], calibration, options, base=base)
     files = ("depth.npy", "sigma.npy", "reason.png")
     t_encode, c_encode = median_ms(lambda: output_files(recon, options, files), repeats)
@@ -156,62 +188,79 @@ def _run(tmp: Path, n_sets: int, repeats: int) -> int:
     task = SetTask("rec", 0, ("set_0000",), (str(first),), str(tmp / "inproc" / "set_0000"), files,
                    output_digest(key, options, files, 1), key)
     t_job, c_job = median_ms(lambda: run_set(task, calibration, options), repeats)
-    print(f"  in-process, median of {repeats}, wall / CPU ms: Reconstructor.run {t_run:.1f} / {c_run:.1f}; "
-          f"decode (read_capture_set) {t_decode:.1f} / {c_decode:.1f}; noise estimate {t_noise:.1f} / "
-          f"{c_noise:.1f}; encode 3 files {t_encode:.1f} / {c_encode:.1f}; whole job (run_set, with "
-          f"atomic writes) {t_job:.1f} / {c_job:.1f}")
+    codec2 = "png" if codec == "zstd" else "zstd"
+    print(f"  in-process, one core, median of {repeats}, wall / CPU ms: Reconstructor.run "
+          f"{t_run:.1f} / {c_run:.1f} (of which its noise fit {c_run - c_kernel:.1f}, kernel "
+          f"{c_kernel:.1f}); decode {codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: "
+          f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f}; "
+          f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}")
 
-    results: dict[str, dict[str, float]] = {}
-    for n in (1, 2):
-        t0 = time.perf_counter()
-        with connect(None, n) as client:
-            startup = time.perf_counter() - t0
-            results[f"local {n}"] = r = engine_rate(client, rec, cal_path, tmp / f"local{n}", n)
-        print(f"  local cluster, {n} worker(s): {r['rate']:.2f} sets/s ({r['wall_s']:.1f} s for {n_sets}), "
-              f"task mean {r['task_ms']:.0f} ms wall / {r['cpu_ms']:.0f} ms CPU, start-up {startup:.1f} s, peak RSS growth per worker "
-              f"{r['peak_growth_mb']:.0f} MB (RSS {r['peak_rss_mb']:.0f} MB)")
+    results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
+    t0 = time.perf_counter()
+    with connect(None, 1) as c1, connect(None, 2) as c2:
+        print(f"  local clusters of 1 and 2 workers started in {time.perf_counter() - t0:.1f} s")
+        for i in range(rounds):
+            for n, client in ((1, c1), (2, c2)):
+                r = engine_rate(client, rec, cal_path, tmp / f"local{n}-{i}", n)
+                results[f"local {n}"].append(r)
+                print(f"  round {i + 1}, local cluster, {n} worker(s): {_engine_line(r)}, "
+                      f"load average {os.getloadavg()[0]:.1f}")
     address, procs = external_cluster(tmp, 2)
     try:
         with connect(address, None, timeout_s=60) as client:
             client.wait_for_workers(2, timeout=90)
-            results["external 2"] = r = engine_rate(client, rec, cal_path, tmp / "external", 2)
-        print(f"  external scheduler + 2 worker processes: {r['rate']:.2f} sets/s ({r['wall_s']:.1f} s), "
-              f"task mean {r['task_ms']:.0f} ms wall / {r['cpu_ms']:.0f} ms CPU, peak RSS growth per worker {r['peak_growth_mb']:.0f} MB "
-              f"(RSS {r['peak_rss_mb']:.0f} MB)")
+            ext = engine_rate(client, rec, cal_path, tmp / "external", 2)
+        print(f"  external scheduler + 2 worker processes: {_engine_line(ext)}")
     finally:
         for p in reversed(procs):
             p.terminate()
         for p in procs:
             p.wait(timeout=30)
 
-    one, two = results["local 1"], results["local 2"]
-    per_set_ms = 1e3 / one["rate"]
-    dask_overhead = per_set_ms / one["task_ms"] - 1.0  # time between tasks: scheduling, result transfer
-    # CPU per set on the worker beyond decoding and Reconstructor.run, over Reconstructor.run
-    cpu_rest = one["cpu_ms"] - c_decode - c_run
-    overhead = cpu_rest / c_run
-    peak = max(r["peak_growth_mb"] for r in results.values())
-    print(f"ratios: 2 / 1 workers {two['rate'] / one['rate']:.2f} x measured (target >= 1.7); CPU per set "
-          f"2 / 1 workers {two['cpu_ms'] / one['cpu_ms']:.2f} x; external / local 2 "
-          f"{results['external 2']['rate'] / two['rate']:.2f} x")
-    print(f"ratios: CPU per set at 1 worker {one['cpu_ms']:.0f} ms = decode {c_decode:.0f} + run {c_run:.0f} "
-          f"+ rest {cpu_rest:.0f} (noise estimate {c_noise:.0f}, encode {c_encode:.0f}, writes and Dask "
-          f"{cpu_rest - c_noise - c_encode:.0f}); overhead over Reconstructor.run, decode excluded "
-          f"{100 * overhead:.0f} % (target <= 20 %); decode / run {c_decode / c_run:.1f} x; worker CPU / "
-          f"in-process job CPU {one['cpu_ms'] / c_job:.2f} x; wall between tasks {100 * dask_overhead:+.0f} % "
-          f"of a task's wall")
+    def med(key: str, n: int) -> float:
+        return statistics.median(r[key] for r in results[f"local {n}"])
+
+    ratios = [b["rate"] / a["rate"]
+              for a, b in zip(results["local 1"], results["local 2"], strict=True)]
+    cpu1, cpu2 = med("cpu_ms", 1), med("cpu_ms", 2)
+    rate1, rate2 = med("rate", 1), med("rate", 2)
+    print(f"ratios: 2 / 1 workers {statistics.median(ratios):.2f} x measured, median of {rounds} "
+          f"rounds ({', '.join(f'{x:.2f}' for x in ratios)}; medians {rate1:.2f} and "
+          f"{rate2:.2f} sets/s; target >= 1.7); CPU per set 2 / 1 workers {cpu2 / cpu1:.2f} x, "
+          f"so with 2 idle cores {2 * cpu1 / cpu2:.2f} x; external / local 2 "
+          f"{ext['rate'] / rate2:.2f} x")
+    # on the worker, per set: its process CPU beyond the decoding and the noise fit +
+    # Reconstructor.run of its task thread, over the latter (all from the same tasks)
+    dec1, rec1 = med("decode_cpu_ms", 1), med("recon_cpu_ms", 1)
+    rest = cpu1 - dec1 - rec1
+    dec2, rec2 = med("decode_cpu_ms", 2), med("recon_cpu_ms", 2)
+    rest2 = cpu2 - rec2  # decoding included
+    job_rest = c_job - c_run  # decoding included
+    print(f"ratios: CPU per set at 1 worker {cpu1:.0f} ms = decode {dec1:.0f} + noise fit and "
+          f"Reconstructor.run {rec1:.0f} + rest {rest:.0f} (encoders, statistics, writes, Dask); "
+          f"overhead over Reconstructor.run: decode excluded {100 * rest / rec1:.0f} % (target "
+          f"<= 20 %), decode included {100 * (rest + dec1) / rec1:.0f} %; at 2 workers "
+          f"{100 * (rest2 - dec2) / rec2:.0f} % / {100 * rest2 / rec2:.0f} %; in-process job "
+          f"{100 * (job_rest - c_decode) / c_run:.0f} % / {100 * job_rest / c_run:.0f} %")
+    print(f"ratios: decode / run {dec1 / rec1:.2f} x (in-process {codec} {c_decode / c_run:.2f} x, "
+          f"{codec2} {c_decode2 / c_run:.2f} x); wall between tasks {med('between_ms', 1):.0f} ms "
+          f"per set at 1 worker, {med('between_ms', 2):.0f} ms at 2")
+    peak = max(r["peak_growth_mb"] for rs in results.values() for r in rs)
     print(f"ratios: peak RSS growth per worker / one set's frames ({frames_mb:.1f} MB) "
           f"{peak / frames_mb:.1f} x (target <= 4)")
     total = RECORDINGS * SETS_PER_HOUR
-    cpu_s = two["cpu_ms"] / 1e3
+    print(f"arithmetic: per-set cost {cpu1 / 1e3:.3f} CPU-s at 1 worker, {cpu2 / 1e3:.3f} at 2 "
+          f"({codec} frames, 3 files); {RECORDINGS} one-hour recordings = {RECORDINGS} x "
+          f"{SETS_PER_HOUR} = {total} sets = {total * cpu2 / 1e3 / 3600:.1f} CPU-hours")
+    cores = os.cpu_count() or 1
     load = os.getloadavg()[0]
-    for label, rate in ((f"measured here (load average {load:.1f})", two["rate"]),
-                        (f"CPU-bound, 2 idle cores ({cpu_s:.2f} CPU-s per set)", 2 / cpu_s)):
+    for label, rate in ((f"measured here, 2 workers (load average {load:.1f})", rate2),
+                        (f"CPU-bound, {cores} idle cores, one worker each", cores * 1e3 / cpu2)):
         hours = total / rate / 3600
-        print(f"arithmetic: {RECORDINGS} one-hour recordings = {RECORDINGS} x {SETS_PER_HOUR} = {total} sets; "
-              f"{label}: {rate:.2f} sets/s -> {hours:.1f} h on this machine, {hours / MACHINES:.1f} h "
-              f"({60 * hours / MACHINES:.0f} min) on {MACHINES} such machines (linear; shared storage must "
-              f"deliver {MACHINES * rate * 14:.0f} MB/s at 14 MB per set)")
+        print(f"arithmetic: {label}: {rate:.2f} sets/s -> {hours:.1f} h on this machine, "
+              f"{hours / MACHINES:.2f} h ({60 * hours / MACHINES:.0f} min) on {MACHINES} such "
+              f"machines (linear; shared storage must deliver {MACHINES * rate * 14:.0f} MB/s at "
+              f"14 MB per set)")
     return 0
 
 

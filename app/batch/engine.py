@@ -57,7 +57,8 @@ CAPTURE_FILE = "capture.json"
 DEFAULT_FILES = ("depth.npy", "sigma.npy", "reason.png")
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
-           "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "status", "error")
+           "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
+           "recon_cpu_ms", "status", "error")
 MOTION_CODE = 8  # app.core.reasons.Reason.MOTION
 
 
@@ -277,11 +278,48 @@ def _base_reconstructor(cal_key: str, calibration: Calibration, options: ReconOp
     return base
 
 
+#: glibc's ``mallopt`` parameters, and the mmap threshold a worker gets: arrays up to it come
+#: from the heap and are reused by the next set (glibc's own rule when no threshold is set)
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD_BYTES = 32 * 2**20
+_process_ready = False
+
+
+def one_core_per_task() -> None:
+    """Run this thread's numerics on one core, and let the process reuse freed memory.
+
+    numba's kernel threads are a per-thread setting, so it is made in the task's thread
+    (also on workers started without ``NUMBA_NUM_THREADS=1``); OpenCV's pool is shared. A
+    worker's parallelism is its task threads. Dask's nanny starts workers with
+    ``MALLOC_TRIM_THRESHOLD_=65536``, which turns off glibc's dynamic mmap threshold: every
+    large array of every set is then mapped and faulted in afresh (+85 ms CPU per set on
+    1384 x 1032 frames); the process gets glibc's usual thresholds back (Linux, glibc only).
+    """
+    global _process_ready
+    import numba
+
+    if numba.get_num_threads() != 1:
+        numba.set_num_threads(1)
+    if _process_ready:
+        return
+    import ctypes
+
+    import cv2
+
+    cv2.setNumThreads(1)
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
+        libc.mallopt(M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD_BYTES)
+    _process_ready = True
+
+
 def _empty_row(task: SetTask) -> dict[str, Any]:
     nan = math.nan
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
-            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "status": "failed", "error": ""}
+            "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan,
+            "recon_cpu_ms": nan, "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -294,11 +332,12 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
     from app.batch.setjob import output_files, reconstruct_captures
     from app.service.schedules import calibration_for_schedule
 
-    t0, cpu0 = time.perf_counter(), time.process_time()
+    one_core_per_task()
+    t0, cpu0, thread0 = time.perf_counter(), time.process_time(), time.thread_time()
     row = _empty_row(task)
     try:
         captures = [read_set(u) for u in task.urls]
-        t_read = time.perf_counter()
+        t_read, thread_read = time.perf_counter(), time.thread_time()
         try:
             cal = calibration_for_schedule(calibration, captures[0].schedule)
         except ValueError as exc:
@@ -306,23 +345,30 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         check_bracket(captures, task.folders)
         recon = reconstruct_captures(captures, cal, options,
                                      base=_base_reconstructor(task.cal_key, cal, options))
+        thread_recon = time.thread_time()
         res = recon.result
-        finite = res.sigma[res.valid]
         stamp = captures[0].extra.get("timestamp")
+        exposure_ms = float(captures[0].exposure_ms)
+        del captures  # the frames: what follows needs only the result (a worker's peak memory)
+        finite = res.sigma[res.valid]
         row.update(
             timestamp=stamp if isinstance(stamp, str) else None,
-            exposure_ms=float(captures[0].exposure_ms),
+            exposure_ms=exposure_ms,
             valid_fraction=float(res.valid.mean()),
             median_sigma_mm=float(np.median(finite)) if finite.size else math.nan,
             motion_share=float(np.count_nonzero(res.reason == MOTION_CODE) / res.reason.size),
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
+            # this thread's CPU: the decoding, and the noise fit + Reconstructor.run
+            decode_cpu_ms=(thread_read - thread0) * 1e3,
+            recon_cpu_ms=(thread_recon - thread_read) * 1e3,
         )
+        del finite
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
         remove_file(_join(task.out_url, META_FILE))
-        for name, data in output_files(recon, options, task.files).items():
-            write_bytes(_join(task.out_url, name), data)
+        for name in task.files:  # encoded one at a time: one file's bytes in memory
+            write_bytes(_join(task.out_url, name), output_files(recon, options, (name,))[name])
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
                    cpu_ms=(time.process_time() - cpu0) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
@@ -444,11 +490,15 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
         n = workers or os.cpu_count() or 1
         if n < 1:
             raise ValueError(f"--workers: must be >= 1, got {n}")
-        # each worker's numba kernel gets its share of the cores, not all of them
-        threads = max(1, (os.cpu_count() or 1) // n)
+        # a worker process is one core: its numba kernel runs one thread (Dask's nanny
+        # already sets OMP/MKL/OPENBLAS_NUM_THREADS=1), so N workers never oversubscribe
+        # no dashboard; the scheduler's HTTP server (health, metrics) on a free loopback port,
+        # not on 8787, which another cluster on the machine may hold
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.CRITICAL,
-                               env={"NUMBA_NUM_THREADS": str(threads),
+                               scheduler_kwargs={"dashboard": False,
+                                                 "dashboard_address": "127.0.0.1:0"},
+                               env={"NUMBA_NUM_THREADS": "1",
                                     "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER",
                                                                             "workqueue")})
         client = Client(cluster, set_as_default=False)
@@ -472,7 +522,7 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms", "decode_ms",
-              "task_ms", "cpu_ms"):
+              "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
     frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce").dt.tz_convert(None)

@@ -170,8 +170,13 @@ def zstd_frame_bytes(frame: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]) -> b
     return bytes(zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(buf.getvalue()))
 
 
-def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
-    """A frame written by :func:`zstd_frame_bytes`; ``ValueError`` naming ``path`` if not one."""
+def read_zstd_frame(path: Path, out: npt.NDArray[Any] | None = None) -> npt.NDArray[Any]:
+    """A frame written by :func:`zstd_frame_bytes`; ``ValueError`` naming ``path`` if not one.
+
+    ``out``: an (H, W) array to decode into when the frame has its shape and dtype (a
+    reader filling a preallocated stack); a frame of another shape or dtype comes back as
+    a new array, untouched ``out``, for the caller to report.
+    """
     try:
         data = path.read_bytes()
     except OSError:
@@ -184,13 +189,42 @@ def read_zstd_frame(path: Path) -> npt.NDArray[Any]:
         raise ValueError(f"{path}: decompressed size {size} outside 0..{MAX_FRAME_BYTES} bytes")
     try:
         raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=MAX_FRAME_BYTES)
-        diff = np.load(io.BytesIO(raw), allow_pickle=False)
+        diff = _npy_view(raw)
     except (zstandard.ZstdError, ValueError, OSError, EOFError) as exc:
         raise ValueError(f"{path}: unreadable frame ({exc})") from None
     if diff.ndim != 2 or diff.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"{path}: expected an (H, W) uint8/uint16 frame, got {diff.shape} "
                          f"{diff.dtype}")
-    return np.cumsum(diff, axis=1, dtype=diff.dtype)
+    if out is None or out.shape != diff.shape or out.dtype != diff.dtype:
+        out = np.empty(diff.shape, diff.dtype)
+    if diff.dtype == np.uint8:
+        # numpy's uint8 cumsum along rows is ~3x slower than uint16's; the low byte of the
+        # uint16 running sum is the uint8 one (both wrap modulo 256)
+        wide = np.cumsum(diff, axis=1, dtype=np.uint16)
+        np.copyto(out, wide, casting="unsafe")
+    else:
+        np.cumsum(diff, axis=1, dtype=diff.dtype, out=out)
+    return out
+
+
+def _npy_view(raw: bytes) -> npt.NDArray[Any]:
+    """The array of ``.npy`` bytes as a read-only view on them (no copy); C order only."""
+    from numpy.lib import format as npy_format
+
+    head = io.BytesIO(raw)
+    version = npy_format.read_magic(head)
+    if version == (1, 0):
+        shape, fortran, dtype = npy_format.read_array_header_1_0(head)
+    elif version == (2, 0):
+        shape, fortran, dtype = npy_format.read_array_header_2_0(head)
+    else:
+        raise ValueError(f"unsupported .npy version {version}")
+    if fortran or dtype.hasobject:
+        raise ValueError("expected a C-ordered numeric array")
+    count = math.prod(shape)
+    if head.tell() + count * dtype.itemsize != len(raw):
+        raise ValueError(f"{len(raw) - head.tell()} data bytes for shape {shape} {dtype}")
+    return np.frombuffer(raw, dtype, count, head.tell()).reshape(shape)
 
 
 def encode_frames(frames: npt.NDArray[Any], codec: str = "png", workers: int = 1,
@@ -301,11 +335,13 @@ def read_capture_set(
             check_frame_headers([read_image_header(folder / n) for n in names], names, limits)
         except ValueError as exc:
             raise ValueError(f"{folder}/{exc}") from None
-    frames: list[npt.NDArray[Any]] = []
-    for name in names:
+    # the first frame fixes the stack's shape and dtype; the others are decoded into it
+    # (a zstd frame in place), so reading holds one set and at most one frame besides
+    stack: npt.NDArray[Any] | None = None
+    for i, name in enumerate(names):
         fpath = folder / name
-        img = (read_zstd_frame(fpath) if name.endswith(ZSTD_SUFFIX)
-               else cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED))
+        img = (read_zstd_frame(fpath, None if stack is None else stack[i])
+               if name.endswith(ZSTD_SUFFIX) else cv2.imread(str(fpath), cv2.IMREAD_UNCHANGED))
         if img is None:
             raise ValueError(f"{fpath}: missing or not a readable image")
         if img.ndim == 3 and img.shape[2] in (3, 4):
@@ -315,15 +351,19 @@ def read_capture_set(
             raise ValueError(f"{fpath}: expected a grey or colour image, got shape {img.shape}")
         if img.dtype not in (np.uint8, np.uint16):
             raise ValueError(f"{fpath}: expected 8- or 16-bit pixels, got {img.dtype}")
-        if frames and (img.shape != frames[0].shape or img.dtype != frames[0].dtype):
+        if stack is None:
+            stack = np.empty((len(names), *img.shape), img.dtype)
+        elif img.shape != stack.shape[1:] or img.dtype != stack.dtype:
             raise ValueError(
                 f"{fpath}: {img.shape} {img.dtype} differs from the first frame's "
-                f"{frames[0].shape} {frames[0].dtype}"
+                f"{stack.shape[1:]} {stack.dtype}"
             )
-        frames.append(img)
+        if img.ctypes.data != stack[i].ctypes.data:  # not decoded in place
+            stack[i] = img
     known = {"format", "pattern", "exposure_ms", "led", "frames", "bit_depth", "channel"}
+    if stack is None:  # the schedule has frames, so names does too
+        raise ValueError(f"{meta_path}: lists no frames")
     try:
-        stack: Any = np.stack(frames)  # uint8 or uint16, checked per file above
         return CaptureSet(
             frames=stack,
             schedule=schedule,

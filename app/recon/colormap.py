@@ -101,21 +101,30 @@ def reason_png(reason: npt.ArrayLike) -> bytes:
     r = np.asarray(reason)
     if r.ndim != 2 or not np.issubdtype(r.dtype, np.integer):
         raise ValueError(f"reason: expected an (H, W) integer array, got {r.dtype} {r.shape}")
+    # drawn in OpenCV's B, G, R order and written without PNG row filters: a batch writes
+    # one per set, and flat colours compress as well unfiltered
     lut = np.zeros((256, 3), np.uint8)
     lut[:] = (255, 0, 255)  # unknown codes stand out
     for code, color in REASON_COLORS.items():
-        lut[int(code)] = color
-    img = lut[np.clip(r, 0, 255).astype(np.uint8)]
+        lut[int(code)] = color[::-1]
+    codes = np.clip(r, 0, 255).astype(np.uint8, copy=False)
     row_h = 18
-    width = max(img.shape[1], 230)
-    canvas = np.full((img.shape[0] + 6 + row_h * len(REASON_COLORS), width, 3), 255, np.uint8)
-    canvas[: img.shape[0], : img.shape[1]] = img
+    width = max(r.shape[1], 230)
+    canvas = np.full((r.shape[0] + 6 + row_h * len(REASON_COLORS), width, 3), 255, np.uint8)
+    np.take(lut, codes, axis=0, out=canvas[: r.shape[0], : r.shape[1]])
+    if r.dtype == np.uint8:
+        counts = np.bincount(codes.ravel(), minlength=256)
+    else:  # codes outside 0..255 were clipped for the colours, not for the counts
+        counts = np.zeros(256, np.int64)
+        for code in REASON_COLORS:
+            counts[int(code)] = np.count_nonzero(r == code)
     total = max(r.size, 1)
     for i, (code, color) in enumerate(REASON_COLORS.items()):
-        y = img.shape[0] + 6 + i * row_h
-        cv2.rectangle(canvas, (4, y + 3), (16, y + 14), color, -1)
+        y = r.shape[0] + 6 + i * row_h
+        bgr = color[::-1]
+        cv2.rectangle(canvas, (4, y + 3), (16, y + 14), bgr, -1)
         cv2.rectangle(canvas, (4, y + 3), (16, y + 14), (0, 0, 0), 1)
-        frac = 100.0 * float(np.count_nonzero(r == code)) / total
+        frac = 100.0 * float(counts[int(code)]) / total
         cv2.putText(canvas, f"{int(code)} {code.name.lower()} {frac:.1f}%", (22, y + 13), _FONT, 0.4,
                     (0, 0, 0), 1, cv2.LINE_AA)
-    return png_bytes(canvas, rgb=True)
+    return png_bytes(canvas, filter_none=True)

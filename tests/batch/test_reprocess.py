@@ -144,6 +144,9 @@ def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_
         assert row["median_sigma_mm"] == pytest.approx(np.nanmedian(np.load(got / "sigma.npy")))
         assert row["timestamp"] == pd.Timestamp(s["timestamp"]).tz_convert(None)  # UTC
         assert row["motion_share"] == 0.0 and row["recon_ms"] > 0
+        # the task thread's decoding and reconstruction CPU, parts of its process's CPU
+        assert row["decode_cpu_ms"] > 0 and row["recon_cpu_ms"] > 0
+        assert row["decode_cpu_ms"] + row["recon_cpu_ms"] < row["cpu_ms"]
     # the second run skips every set: same digest, nothing rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / rec.name).rglob("*") if p.is_file() and p.suffix != ".parquet"}
     assert main(args) == 0
@@ -358,3 +361,38 @@ def test_a_rerun_stopped_among_the_writes_is_not_taken_as_finished(small, tmp_pa
     for options in (first, other):
         redo = plan([str(rec)], calibration, str(out), options)[0]
         assert task.folders[0] in [t.folders[0] for t in redo.todo] and not redo.reused
+
+
+_FAULTS = """
+import resource, sys
+import numpy as np
+from app.batch.engine import one_core_per_task
+import numba
+if sys.argv[1] == "worker":
+    one_core_per_task()
+    assert numba.get_num_threads() == 1, numba.get_num_threads()
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(2):  # as one set after another: a 20 MB array made, filled and freed
+    a = np.ones(20 * 2**20, np.uint8); del a
+f0 = faults()
+for _ in range(5):
+    a = np.ones(20 * 2**20, np.uint8); del a
+print(faults() - f0)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux")
+                    or os.confstr("CS_GNU_LIBC_VERSION") is None, reason="glibc's mallopt")
+def test_a_worker_reuses_freed_memory_under_dasks_trim_threshold():
+    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536: without the task's set-up
+    # every large array is mapped and faulted in afresh (per 20 MB 5120 faults, or 10 in huge
+    # pages); with it the heap keeps and reuses them
+    env = {**_env(), "MALLOC_TRIM_THRESHOLD_": "65536", "NUMBA_NUM_THREADS": "2"}
+    faults = {}
+    for mode in ("plain", "worker"):
+        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], env=env, capture_output=True,
+                             text=True, timeout=120, check=True)
+        faults[mode] = int(out.stdout.split()[-1])
+    assert faults["plain"] >= 5 * 10, faults
+    assert faults["worker"] * 20 < faults["plain"], faults

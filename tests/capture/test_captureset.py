@@ -179,3 +179,34 @@ def test_zstd_frame_refused_with_its_name(tmp_path: Path) -> None:
         read_capture_set(tmp_path / "s")
     with pytest.raises(ValueError, match="codec"):
         write_capture_set(tmp_path / "t", cap, codec="jpeg")
+
+
+def test_zstd_set_with_a_frame_of_another_shape_or_payload_is_refused(tmp_path: Path) -> None:
+    import io
+
+    import zstandard
+
+    from app.capture.captureset import zstd_frame_bytes
+
+    frames = np.random.default_rng(5).integers(0, 255, size=(16, 12, 20), dtype=np.uint8)
+    write_capture_set(tmp_path / "s", CaptureSet(frames=frames), codec="zstd")
+    bad = tmp_path / "s" / "frame_07.npy.zst"
+    # decoded in place into the stack when it fits; a frame that does not is named, not written
+    bad.write_bytes(zstd_frame_bytes(frames[7, :, :10].copy()))
+    with pytest.raises(ValueError, match=r"frame_07.npy.zst: \(12, 10\) uint8 differs from"):
+        read_capture_set(tmp_path / "s")
+    bad.write_bytes(zstd_frame_bytes(frames[7].astype(np.uint16)))
+    with pytest.raises(ValueError, match=r"frame_07.npy.zst: \(12, 20\) uint16 differs"):
+        read_capture_set(tmp_path / "s")
+    raw = io.BytesIO()
+    np.save(raw, frames[7])
+    bad.write_bytes(zstandard.ZstdCompressor().compress(raw.getvalue()[:-5]))  # a short payload
+    with pytest.raises(ValueError, match="frame_07.npy.zst: unreadable frame .*data bytes for"):
+        read_capture_set(tmp_path / "s")
+    raw = io.BytesIO()
+    np.save(raw, np.asfortranarray(frames[7]))
+    bad.write_bytes(zstandard.ZstdCompressor().compress(raw.getvalue()))
+    with pytest.raises(ValueError, match="frame_07.npy.zst: unreadable frame .*C-ordered"):
+        read_capture_set(tmp_path / "s")
+    bad.write_bytes(zstd_frame_bytes(frames[7]))
+    np.testing.assert_array_equal(read_capture_set(tmp_path / "s").frames, frames)
