@@ -227,15 +227,20 @@ class SetAssembler:
 
 
 class GroupWindow:
-    """Rolling mode: a set after every completed frequency group, from the newest groups.
+    """Rolling mode: a set after every frequency group, from the newest frame of every pattern.
 
-    A group is the ``steps`` frames of one frequency (pattern indices g·N … g·N + N − 1)
-    with consecutive frame counters. When a group completes, the newest complete group of
-    every frequency forms a set if together they span at most ``max_span_cycles`` projector
-    cycles of frames and share one exposure/LED setting. With the projector cycling through
-    the schedule that is one new set per group: G times the whole-set rate, each set sharing
-    G − 1 groups with the one before; a dropped frame costs only the set its group would
-    have completed (the group's previous copy stays until the next one completes).
+    The newest frame of each pattern index is kept. When a group ends (its last phase
+    arrives, or a frame of another group does) the newest frames of every pattern form a
+    set if each group's frames lie within one projector cycle of that group's newest (a
+    dropped frame leaves its phase's previous frame standing in, one cycle older at most),
+    the whole set spans at most ``max_span_cycles`` cycles of frames and shares one
+    exposure/LED setting. With the projector cycling through the schedule that is one new
+    set per group: G times the whole-set rate, each set sharing G − 1 groups with the one
+    before. A dropped frame costs no set unless it leaves a phase with nothing recent enough;
+    the motion test checks the groups (and so the stand-ins) against each other.
+
+    Counters: ``completed`` sets emitted, ``patched`` of them with a stand-in frame from an
+    earlier cycle, ``incomplete`` groups that ended without a set (once every pattern was seen).
     """
 
     def __init__(self, n_groups: int, steps: int, *,
@@ -248,37 +253,68 @@ class GroupWindow:
             raise ValueError(f"max_span_cycles: must be >= 1, got {max_span_cycles}")
         self.n_groups = n_groups
         self.steps = steps
-        self.max_span_frames = max_span_cycles * n_groups * steps
-        self._groups: list[tuple[Frame, ...] | None] = [None] * n_groups
-        self._pending: list[Frame] = []
+        self.n_frames = n_groups * steps
+        self.max_span_frames = max_span_cycles * self.n_frames
+        self._latest: list[Frame | None] = [None] * self.n_frames
+        # the group in progress: (group, frame counter of its phase 0), and whether it has a set
+        self._open: tuple[int, int] | None = None
+        self._open_done = True
+        self.completed = 0
+        self.patched = 0
+        self.incomplete = 0
 
     def clear(self) -> None:
-        self._groups = [None] * self.n_groups
-        self._pending = []
+        """Forget every frame held (a mode, schedule or device change)."""
+        self._latest = [None] * self.n_frames
+        self._open, self._open_done = None, True
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
-        """Add one frame; a set when ``frame`` completes a group and the newest groups form one."""
+        """Add one frame; a set when a group ends and the newest frames form one."""
         p = frame.pattern_index
-        if p < 0 or p >= self.n_groups * self.steps:
-            self._pending = []
+        if p < 0 or p >= self.n_frames:
             return None
         g, n = divmod(p, self.steps)
-        if n == 0:
-            self._pending = [frame]
-        elif self._pending and _follows(self._pending[-1], frame):
-            self._pending.append(frame)
-        else:
-            self._pending = []
+        instance = (g, frame.index - n)
+        out = None
+        if self._open is not None and instance != self._open and not self._open_done:
+            # the group in progress lost its last phase(s): it ends now, with stand-ins
+            out = self._emit(self._open[0], received_s)
+        if instance != self._open:
+            self._open, self._open_done = instance, False
+        self._latest[p] = frame
+        if n == self.steps - 1:
+            self._open_done = True
+            out = self._emit(g, received_s) or out
+        return out
+
+    def _emit(self, g: int, received_s: float) -> FrameSet | None:
+        """The newest frames as a set, if each group's stand-ins are recent enough."""
+        frames = tuple(f for f in self._latest if f is not None)
+        if len(frames) < self.n_frames:  # still filling (start-up, after a change): no loss
             return None
-        if len(self._pending) < self.steps:
+        if not self._fits(frames) or not _same_settings(frames):
+            self.incomplete += 1
             return None
-        self._groups[g], self._pending = tuple(self._pending), []
-        if any(grp is None for grp in self._groups):
-            return None
-        frames = tuple(f for grp in self._groups if grp is not None for f in grp)
+        self.completed += 1
         idx = [f.index for f in frames]
-        if max(idx) - min(idx) + 1 > self.max_span_frames or len(set(idx)) != len(frames):
-            return None
-        if not _same_settings(frames):
-            return None
+        if any(idx[k + 1] != idx[k] + 1 for k in range(g * self.steps, (g + 1) * self.steps - 1)) \
+                or any(self._stood_in(frames, h) for h in range(self.n_groups) if h != g):
+            self.patched += 1
         return FrameSet(frames, received_s, "rolling")
+
+    def _fits(self, frames: tuple[Frame, ...]) -> bool:
+        idx = [f.index for f in frames]
+        if max(idx) - min(idx) + 1 > self.max_span_frames or len(set(idx)) != len(idx):
+            return False
+        for h in range(self.n_groups):
+            group = idx[h * self.steps:(h + 1) * self.steps]
+            # the newest instance of the group starts at its newest frame minus that one's phase
+            newest = max(range(self.steps), key=lambda k: group[k])
+            start = group[newest] - newest
+            if min(group) < start - self.n_frames:  # a stand-in more than one cycle old
+                return False
+        return True
+
+    def _stood_in(self, frames: tuple[Frame, ...], h: int) -> bool:
+        idx = [f.index for f in frames[h * self.steps:(h + 1) * self.steps]]
+        return any(idx[k + 1] != idx[k] + 1 for k in range(self.steps - 1))
