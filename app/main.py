@@ -77,7 +77,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     instrument = Instrument(settings)
     igtl = _make_igtl(settings, instrument)
     recorder = Recorder(instrument, min_free_mb=settings.recording_min_free_mb,
-                        pose_source=None if igtl is None else igtl.latest_transforms)
+                        pose_source=None if igtl is None else igtl.latest_transforms,
+                        alarms=instrument.alarms)
     # the one link made after construction: the status shows the recording, the recorder
     # records the tracker's poses and the tracker sends the status (a circle of three)
     instrument.recorder = recorder

@@ -91,6 +91,14 @@ class CalibrationSummary(BaseModel):
         default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
 
 
+class AlarmOut(BaseModel):
+    id: int = Field(description="the alarm's number, for POST /api/alarms/{id}/ack")
+    source: str = Field(description="the part that raised it, e.g. recorder")
+    message: str
+    raised_at: str = Field(description="ISO 8601 UTC")
+    acknowledged_at: str | None = Field(None, description="ISO 8601 UTC; null: still shown")
+
+
 class StatusOut(BaseModel):
     state: Literal["starting", "calibrating", "running", "stalled", "stopped", "fault"] = Field(
         description="running only while depth maps arrive (one in the last 2 set periods); "
@@ -145,6 +153,8 @@ class StatusOut(BaseModel):
         default_factory=dict, description="the counters since the first depth map")
     calibration_session: dict[str, Any] | None = Field(
         None, description="the open calibration session (board, created, poses, solved) or null")
+    alarms: list[AlarmOut] = Field(
+        default_factory=list, description="alarms not yet acknowledged (POST /api/alarms/{id}/ack)")
 
 
 class ResultMeta(BaseModel):

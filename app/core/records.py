@@ -45,6 +45,20 @@ class DeviceStatus:
 
 
 @dataclass(frozen=True)
+class Alarm:
+    """A fault the user must acknowledge: it stays on the dashboard until then."""
+
+    id: int
+    source: str  # the part that raised it, e.g. "recorder"
+    message: str
+    raised_at: str  # ISO 8601 UTC
+    acknowledged_at: str | None = None  # ISO 8601 UTC; None: still shown
+
+    def to_dict(self) -> dict[str, Any]:
+        return _shallow(self)
+
+
+@dataclass(frozen=True)
 class Status:
     """The instrument's status (``GET /api/status``): state, rates, settings, counters.
 
@@ -90,12 +104,14 @@ class Status:
     warmup: dict[str, int] = field(default_factory=dict)
     since_warmup: dict[str, int] = field(default_factory=dict)
     calibration_session: dict[str, Any] | None = None  # the wizard's open session: board, poses
+    alarms: tuple[Alarm, ...] = ()  # raised and not yet acknowledged, oldest first
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
         d["calibration"] = None if self.calibration is None else self.calibration.to_dict()
         d["devices"] = [_shallow(dev) for dev in self.devices]
         d["warnings"] = list(self.warnings)
+        d["alarms"] = [a.to_dict() for a in self.alarms]
         return d
 
 

@@ -33,6 +33,7 @@ from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
+from app.service.alarms import AlarmBoard
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
@@ -79,6 +80,7 @@ class Instrument:
         self.calibrations = CalibrationManager(settings, self.pipeline)
         # attached by create_app: the recorder needs the OpenIGTLink server, which needs this
         self.recorder: RecordingState | None = None
+        self.alarms = AlarmBoard()  # faults shown until acknowledged (the recorder raises them)
         self._closed = False
         self._started = False
         self._schedule_lock = threading.Lock()
@@ -477,4 +479,5 @@ class Instrument:
             calibration_session=None if session is None else {
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},
+            alarms=self.alarms.active(),
         )
