@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from app.devices.base import Frame
-from app.service.framesets import GroupWindow, SetAssembler
+from app.service.framesets import GroupWindow, SetAssembler, depth_group_of
 
 N = 16
 
@@ -188,6 +188,33 @@ def test_a_stand_in_is_at_most_one_cycle_old():
     # on: no set until frame 53 brings that phase back (group 1 ends with frame 55)
     assert out == [15, 19, 23, 27, 31, 35, 55, 59, 63]
     assert win.incomplete == 4 and win.patched == 4
+
+
+def test_the_depth_group_takes_no_stand_in():
+    win = GroupWindow(4, 4, depth_group=3)  # the finest frequency last, as in paper-16
+    idx = [i for i in range(48) if i != 29]  # group 3 (frames 28..31) loses a frame
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    # at 31 the set would repeat the one of 27 (group 3 keeps its whole copy 12..15): none
+    assert [i for i, _ in got] == [15, 19, 23, 27, 35, 39, 43, 47]
+    assert got[4][1].frame_indices == [*range(32, 36), *range(20, 28), 12, 13, 14, 15]
+    assert win.incomplete == 1 and win.patched == 0
+    # a coarser group's lost frame is stood in for, as without a depth group
+    win = GroupWindow(4, 4, depth_group=3)
+    idx = [i for i in range(32) if i != 21]
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    assert [i for i, _ in got] == [15, 19, 23, 27, 31]
+    assert got[2][1].frame_indices[4:8] == [20, 5, 22, 23] and win.patched == 3
+
+
+def test_depth_group_of_is_the_finest_frequency():
+    assert depth_group_of((1, 4, 12, 36)) == 3
+    assert depth_group_of((36.0, 6.0, 1.0)) == 0
+    with pytest.raises(ValueError, match="frequencies"):
+        depth_group_of(())
+    with pytest.raises(ValueError, match="depth_group"):
+        GroupWindow(4, 4, depth_group=4)
 
 
 def test_rolling_sets_span_at_most_max_span_cycles():
