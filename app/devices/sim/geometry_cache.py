@@ -83,7 +83,10 @@ def save(cache_dir: Path, key: str, arrays: Geometry) -> None:
     """Store ``arrays`` under ``key`` atomically; a failure is logged, never raised (a cache)."""
     try:
         buf = io.BytesIO()
-        np.savez(buf, **arrays)
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as npz:  # np.savez's layout
+            for name, array in arrays.items():
+                with npz.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
         atomic_write_bytes(_path(cache_dir, key), buf.getvalue())
         files = sorted(cache_dir.glob(f"{_PREFIX}*.npz"), key=lambda p: p.stat().st_mtime)
         for old in files[:-MAX_FILES]:

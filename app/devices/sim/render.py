@@ -67,11 +67,16 @@ class Renderer:
         w, h = rig.camera.image_size
         self.shape = (h, w)
         geo = geometry if geometry is not None else self._trace_geometry()
-        self.rays, self.points = geo["rays"], geo["points"]
-        self._normals, self._material = geo["normals"], geo["material"]
-        self.sigma_cam, self.albedo = geo["sigma_cam"], geo["albedo"]
+        # all float64 but the material codes (asarray: no copy of arrays of that dtype)
+        self.rays: F64 = np.asarray(geo["rays"], np.float64)  # (H·W, 3)
+        self.points: F64 = np.asarray(geo["points"], np.float64)  # (H, W, 3) mm
+        self._normals: F64 = np.asarray(geo["normals"], np.float64)  # (H·W, 3)
+        self._material: npt.NDArray[np.uint8] = np.asarray(geo["material"], np.uint8)  # (H·W,)
+        self.sigma_cam: F64 = np.asarray(geo["sigma_cam"], np.float64)  # (H, W) px
+        self.albedo: F64 = np.asarray(geo["albedo"], np.float64)  # (H·W,)
         # (H, W) continuous projector coordinate along the fringe axis (the column for vertical fringes)
-        self.xp, self.grad_xp = geo["xp"], geo["grad_xp"]
+        self.xp: F64 = np.asarray(geo["xp"], np.float64)
+        self.grad_xp: F64 = np.asarray(geo["grad_xp"], np.float64)  # (H·W,)
         self.grad_median = float(geo["grad_median"])
         self._led_cache: dict[str, tuple[F32, F32, F32, F32]] = {}
         self._trig: tuple[F32, F32] | None = None
