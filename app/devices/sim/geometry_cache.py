@@ -72,8 +72,9 @@ def load(cache_dir: Path, key: str) -> Geometry | None:
 
 
 def save_in_background(cache_dir: Path, key: str, arrays: Geometry) -> threading.Thread:
-    """:func:`save` on a daemon thread: the first frames need not wait for the disk."""
-    thread = threading.Thread(target=save, args=(cache_dir, key, arrays), daemon=True,
+    """:func:`save` on a thread of its own: the first frames need not wait for the disk. Not a
+    daemon: a server stopped right after its first depth still leaves the file whole."""
+    thread = threading.Thread(target=save, args=(cache_dir, key, arrays), daemon=False,
                               name="fringescope-sim-geometry-cache")
     thread.start()
     return thread
