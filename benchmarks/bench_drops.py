@@ -4,8 +4,8 @@ The simulator renders every frame of a scene at its own instant (``--exposure-ms
 One stream keeps every frame, the other loses each with probability ``--drop-rate`` (seeded),
 as a starved CPU or a busy USB bus would. Both go through the service's own set grouping
 (``SetAssembler`` by frequency group: a dropped frame costs its group, an earlier cycle's copy
-stands in; rolling: ``GroupWindow``, each pattern's newest frame, a lost one's previous frame
-standing in) and reconstruction step (``Reconstruction.process``: the
+stands in; rolling: ``GroupWindow``, each pattern's newest frame, a coarser group's lost one's
+previous frame standing in) and reconstruction step (``Reconstruction.process``: the
 engine plus the motion test), with the exact (oracle) calibration of the undistorted rig, and
 each map is compared with the true surface at the map's instant.
 
