@@ -15,12 +15,16 @@ def test_acknowledge_route_typed_and_documented(tmp_path: Path) -> None:
     client = TestClient(app)  # no lifespan: the instrument is built, not started
     alarm = app.state.instrument.alarms.raise_alarm("recorder", "recording 'x' stopped: disk full")
 
+    st = client.get("/api/status")
+    assert st.status_code == 200 and st.headers["content-type"] == "application/json"
+    assert [a["message"] for a in st.json()["alarms"]] == [alarm.message]
     listed = client.get("/api/alarms").json()
     assert [a["id"] for a in listed] == [alarm.id] and listed[0]["acknowledged_at"] is None
     r = client.post(f"/api/alarms/{alarm.id}/ack")
     assert r.status_code == 200, r.text
     assert r.json()["id"] == alarm.id and r.json()["acknowledged_at"]
     assert client.get("/api/alarms").json() == []
+    assert client.get("/api/status").json()["alarms"] == []
     assert len(client.get("/api/alarms", params={"include_acknowledged": True}).json()) == 1
 
     r = client.post("/api/alarms/99/ack")
