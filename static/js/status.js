@@ -58,7 +58,9 @@ function showStatus(st) {
   const list = (st.warnings || []).map((w) => "⚠ " + w);
   if (st.phase) {
     const pct = typeof st.progress === "number" ? ` (${Math.round(100 * st.progress)} %)` : "";
-    list.unshift(`⏳ ${st.state}: ${st.phase}${pct}`);
+    // "calibrating: calibrating pose 2 of 8" says it twice: the phase alone when it names the state
+    const what = st.phase.startsWith(st.state) ? st.phase : `${st.state}: ${st.phase}`;
+    list.unshift(`⏳ ${what}${pct}`);
   } else if (st.state_reason && st.state !== "fault") {
     list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
   }
