@@ -107,7 +107,8 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
     period_s = max(args.exposure_ms, READOUT_MS) / 1000.0
     n_frames = int(round(args.seconds / period_s))
     grouping = {"set": SetAssembler(schedule.n_frames),
-                "rolling": GroupWindow(g, schedule.steps, depth_group=depth_group_of(schedule.frequencies))}
+                "rolling": GroupWindow(g, schedule.steps,
+                                       depth_group=depth_group_of(schedule.frequencies))}
     stats = {mode: ModeStats() for mode in grouping}
     truth_cache: dict[float, np.ndarray] = {}
 

@@ -35,7 +35,8 @@ def test_acknowledge_route_typed_and_documented(tmp_path: Path) -> None:
     paths = client.get("/openapi.json").json()["paths"]
     ack = paths["/api/alarms/{alarm_id}/ack"]["post"]
     assert {"200", "404", "422"} <= set(ack["responses"])
-    assert ack["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith("AlarmOut")
+    ok_schema = ack["responses"]["200"]["content"]["application/json"]["schema"]
+    assert ok_schema["$ref"].endswith("AlarmOut")
     assert "/api/alarms" in paths
     status_props = client.app.openapi()["components"]["schemas"]["StatusOut"]["properties"]
     assert "alarms" in status_props

@@ -24,7 +24,8 @@ DATA_NAME = "alarm-data"
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+def server(tmp_path_factory: pytest.TempPathFactory,
+           request: pytest.FixtureRequest) -> Iterator[str]:
     with live_server(tmp_path_factory, request, DATA_NAME) as base:
         yield base
 
@@ -49,13 +50,16 @@ def test_a_write_error_alarm_stays_until_acknowledged(
     r = httpx.post(server + "/api/recording/start", json={"name": "doomed"}, timeout=10)
     assert r.status_code == 200, r.text
     # the server's data folder (pytest also links it as "<name>current")
-    (folder,) = {p.resolve() for p in tmp_path_factory.getbasetemp().glob(f"{DATA_NAME}*/recordings/doomed")}
+    base = tmp_path_factory.getbasetemp()
+    (folder,) = {p.resolve() for p in base.glob(f"{DATA_NAME}*/recordings/doomed")}
     assert wait_for(lambda: httpx.get(server + "/api/recording", timeout=10).json()["sets"] >= 1,
                     120, 0.2), httpx.get(server + "/api/recording", timeout=10).json()
     _block(folder)
 
-    assert wait_for(lambda: httpx.get(server + "/api/status", timeout=10).json()["recording"] is None,
-                    60, 0.2), "the recording did not stop on the write error"
+    def stopped() -> bool:
+        return httpx.get(server + "/api/status", timeout=10).json()["recording"] is None
+
+    assert wait_for(stopped, 60, 0.2), "the recording did not stop on the write error"
     st = httpx.get(server + "/api/status", timeout=10).json()
     (warning,) = [w for w in st["warnings"] if "recording 'doomed' stopped" in w]
     (alarm,) = st["alarms"]

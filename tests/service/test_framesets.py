@@ -165,7 +165,8 @@ def test_rolling_sets_carry_on_past_a_drop():
     # no set is lost: frame 5 (the same phase, one cycle older) stands in for frame 21
     assert [i for i, _ in got] == [15, 19, 23, 27, 31, 35, 39, 43, 47]
     assert got[2][1].frame_indices == [16, 17, 18, 19, 20, 5, 22, 23, *range(8, 16)]
-    assert got[3][1].frame_indices == [16, 17, 18, 19, 20, 5, 22, 23, *range(24, 28), 12, 13, 14, 15]
+    assert got[3][1].frame_indices == [16, 17, 18, 19, 20, 5, 22, 23, *range(24, 28),
+                                       12, 13, 14, 15]
     assert got[6][1].frame_indices == list(range(32, 40)) + list(range(24, 32))  # 37 replaced 5
     assert [f.pattern_index for f in got[2][1].frames] == list(range(N))
     assert win.completed == 9 and win.patched == 4 and win.incomplete == 0

@@ -66,7 +66,8 @@ def load(cache_dir: Path, key: str) -> Geometry | None:
     except FileNotFoundError:
         return None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        log.warning("simulator geometry cache %s unreadable (%s): tracing the scene again", path, exc)
+        log.warning("simulator geometry cache %s unreadable (%s): tracing the scene again",
+                    path, exc)
         path.unlink(missing_ok=True)
         return None
 

@@ -98,8 +98,8 @@ class Renderer:
         rays = rig.camera.pixel_rays().reshape(-1, 3)
         hits = trace(replace(self.scene, motion=None, tool=None), rays, 0.0)
         points = hits.points.reshape(h, w, 3)
-        alb = hits.albedo.reshape(h, w) * integrate_print(self.scene.surface, hits.st, hits.material,
-                                                          (h, w))
+        printed = integrate_print(self.scene.surface, hits.st, hits.material, (h, w))
+        alb = hits.albedo.reshape(h, w) * printed
         z = points[..., 2]
         sigma_cam = defocus_sigma_px(np.nan_to_num(z, nan=rig.focus_mm), rig.focus_mm,
                                      rig.blur_per_inv_mm)

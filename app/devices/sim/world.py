@@ -35,8 +35,8 @@ def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: S
         if r is None:
             disk_key = geometry_cache.cache_key(key) if cache_dir is not None else ""
             geometry = geometry_cache.load(cache_dir, disk_key) if cache_dir is not None else None
-            r = Renderer(build_scene(name, rig), rig, schedule=schedule, sensor=sensor, projector_gamma=gamma,
-                         geometry=geometry)
+            r = Renderer(build_scene(name, rig), rig, schedule=schedule, sensor=sensor,
+                         projector_gamma=gamma, geometry=geometry)
             if cache_dir is not None and geometry is None:
                 geometry_cache.save_in_background(cache_dir, disk_key, r.geometry())
             if len(_RENDERERS) >= _MAX_RENDERERS:
