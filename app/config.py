@@ -39,6 +39,10 @@ class Settings(BaseSettings):
     # storage
     data_dir: Path = Path("data")
     calibration_file: Path | None = None
+    # what is rebuilt from parameters at every start (the simulator's traced scene geometry,
+    # ~150 MB a scene, at most 4 kept): shared by data folders; None: $XDG_CACHE_HOME/fringescope
+    # (~/.cache/fringescope)
+    cache_dir: Path | None = None
     # a recording stops (reason in /api/status warnings) when the data disk has less free space, MB
     recording_min_free_mb: float = Field(200.0, ge=0)
 

@@ -62,7 +62,7 @@ from app.recon.motion import (
 from app.recon.sensor import SensorNoise
 from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 from app.recon.validity import DEFAULT_GROSS_ERROR_MM
-from app.service.framesets import FrameSet, GroupWindow, SetAssembler
+from app.service.framesets import FrameSet, GroupWindow, SetAssembler, depth_group_of
 from app.service.reconstruction import Reconstruction
 from app.service.store import NewestQueue
 
@@ -106,7 +106,9 @@ def run_schedule(name: str, schedule: PatternSchedule, args: argparse.Namespace)
     recon = Reconstruction(NewestQueue(maxsize=1), lambda: engine, bit_depth=8, motion=test)
     period_s = max(args.exposure_ms, READOUT_MS) / 1000.0
     n_frames = int(round(args.seconds / period_s))
-    grouping = {"set": SetAssembler(schedule.n_frames), "rolling": GroupWindow(g, schedule.steps)}
+    grouping = {"set": SetAssembler(schedule.n_frames),
+                "rolling": GroupWindow(g, schedule.steps,
+                                       depth_group=depth_group_of(schedule.frequencies))}
     stats = {mode: ModeStats() for mode in grouping}
     truth_cache: dict[float, np.ndarray] = {}
 

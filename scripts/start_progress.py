@@ -22,9 +22,9 @@ import urllib.request
 from pathlib import Path
 
 # CPU seconds to the first depth, measured with benchmarks/bench_start.py on a 2-core
-# machine under load: a second start (stored calibration, cached kernels) about 6 s, a first
-# start (simulator calibration, kernel compilation) about 100 s
-SECOND_START_CPU_S = 6.0
+# machine under load: a second start (stored calibration, cached kernels and simulator scene
+# geometry) about 5 s, a first start (simulator calibration, kernel compilation) about 100 s
+SECOND_START_CPU_S = 5.0
 FIRST_START_EXTRA_CPU_S = 95.0
 
 

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
 
 from app.analysis.common import roi_mask
 
@@ -395,6 +394,8 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
     t_hi = np.array([t[comp == c].max() if np.any(comp == c) else 1.0 for c in range(n_comp)])
     lower = np.concatenate([[0.0], t_lo, np.full(n_comp, -0.5)])
     upper = np.concatenate([[np.inf], t_hi, np.full(n_comp, 0.5)])
+
+    from scipy.optimize import least_squares  # deferred: costs the live start-up CPU
 
     def solve(x_start: F64, sel: npt.NDArray[np.bool_]) -> F64:
         x_start = np.clip(x_start, np.nextafter(lower, upper), np.nextafter(upper, lower))

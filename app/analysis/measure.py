@@ -46,7 +46,6 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import Delaunay
 
 F64 = npt.NDArray[np.float64]
 KINDS = ("length", "point_to_line", "depth", "profile", "area")
@@ -786,6 +785,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     # a regular grid is all cocircular quadruples, slow for Qhull: triangulate the samples nudged by
     # 1e-3 px (a valid triangulation of the exact samples too), sample the surface at the exact ones
     nudge = np.random.default_rng(0).uniform(-1e-3, 1e-3, (len(su), 2))
+    from scipy.spatial import Delaunay  # deferred: scipy.spatial is not needed to start
+
     tri = Delaunay(np.column_stack([su, sv]) + nudge)
     simp = tri.simplices
     cu, cv = su[simp].mean(axis=1), sv[simp].mean(axis=1)

@@ -12,8 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 
 from app.analysis.common import select_points
 
@@ -69,6 +67,8 @@ def fit_sphere(points: npt.ArrayLike) -> SphereFit:
         d = pts - mean - p[:3]
         r = np.linalg.norm(d, axis=1)[:, None]
         return np.concatenate([-d / r, -np.ones((len(pts), 1))], axis=1)
+
+    from scipy.optimize import least_squares  # deferred: costs the live start-up CPU
 
     res = least_squares(resid, np.r_[center - mean, radius], jac=jac, method="lm")
     c = res.x[:3] + mean
@@ -148,6 +148,8 @@ def _ransac_sphere(pts: F64, radius_mm: float, band_mm: float, seed: int,
     """
     rng = np.random.default_rng(seed)
     score = pts if len(pts) <= score_size else pts[rng.choice(len(pts), score_size, replace=False)]
+    from scipy.spatial import cKDTree  # deferred, as least_squares
+
     tree = cKDTree(score)
     best_count, best = 0, None
     for _ in range(iterations):

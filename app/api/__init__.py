@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from app.api import (
+    alarms,
     analysis,
     calibration,
     control,
@@ -19,7 +20,8 @@ from app.api import (
 
 def api_router() -> APIRouter:
     router = APIRouter()
-    for module in (control, limits, results, calibration, analysis, measure, recordings, schedules, stream):
+    for module in (control, alarms, limits, results, calibration, analysis, measure, recordings,
+                   schedules, stream):
         router.include_router(module.router)
     return router
 

@@ -6,8 +6,9 @@ from dataclasses import asdict
 from typing import Any
 
 from fastapi import APIRouter, Body
+from fastapi.responses import Response
 
-from app.api.deps import InstrumentDep, PipelineDep
+from app.api.deps import InstrumentDep, InstrumentNowDep, PipelineDep
 from app.api.errors import COMMON, R400, R409, R422
 from app.api.schemas import (
     AcquisitionOut,
@@ -26,9 +27,12 @@ router = APIRouter(prefix="/api", tags=["control"])
 
 
 @router.get("/status", response_model=StatusOut, responses=COMMON)
-def status(inst: InstrumentDep) -> dict[str, Any]:
+async def status(inst: InstrumentNowDep) -> Response:
     """State, rates, latency, settings, calibration, devices and counters."""
-    return inst.status().to_dict()
+    # on the event loop, no worker-thread hop: the record is a few reads of counters (well
+    # under a millisecond), and pollers must not queue behind busy threads for it
+    body = StatusOut.model_validate(inst.status().to_dict()).model_dump_json()
+    return Response(body, media_type="application/json")
 
 
 @router.put("/exposure", response_model=ExposureOut, responses={**R400, **R422, **COMMON})

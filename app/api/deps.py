@@ -14,6 +14,7 @@ from fastapi.responses import Response
 
 from app.config import Settings
 from app.core.errors import DeviceUnavailable
+from app.service.alarms import AlarmBoard
 from app.service.calibrations import CalibrationManager
 from app.service.instrument import Instrument
 from app.service.pipeline import LivePipeline
@@ -27,11 +28,22 @@ def get_instrument(request: Request) -> Instrument:
     return inst  # type: ignore[no-any-return]
 
 
+async def get_instrument_now(request: Request) -> Instrument:
+    """The instrument, on the event loop: a plain (sync) dependency costs a worker-thread hop,
+    which under load (streams, busy cores) waits for a thread and for the GIL twice."""
+    return get_instrument(request)
+
+
 def get_recorder(request: Request) -> Recorder:
     rec = getattr(request.app.state, "recorder", None)
     if rec is None:
         raise DeviceUnavailable("recorder not available")
     return rec  # type: ignore[no-any-return]
+
+
+def get_alarms(request: Request) -> AlarmBoard:
+    """The alarms shown until acknowledged."""
+    return get_instrument(request).alarms
 
 
 def get_pipeline(request: Request) -> LivePipeline:
@@ -50,10 +62,12 @@ def get_settings(request: Request) -> Settings:
 
 
 InstrumentDep = Annotated[Instrument, Depends(get_instrument)]
+InstrumentNowDep = Annotated[Instrument, Depends(get_instrument_now)]
 PipelineDep = Annotated[LivePipeline, Depends(get_pipeline)]
 CalibrationsDep = Annotated[CalibrationManager, Depends(get_calibrations)]
 RecorderDep = Annotated[Recorder, Depends(get_recorder)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+AlarmsDep = Annotated[AlarmBoard, Depends(get_alarms)]
 
 
 def binary(data: bytes, media_type: str, headers: dict[str, Any] | None = None,

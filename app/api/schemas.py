@@ -140,8 +140,9 @@ def model_of(record: type[DataclassInstance], name: str,
 
 DeviceOut = model_of(DeviceStatus, "DeviceOut")
 CalibrationSummary = model_of(records.CalibrationSummary, "CalibrationSummary")
+AlarmOut = model_of(records.Alarm, "AlarmOut")
 StatusOut = model_of(Status, "StatusOut", {records.CalibrationSummary: CalibrationSummary,
-                                           DeviceStatus: DeviceOut})
+                                           DeviceStatus: DeviceOut, records.Alarm: AlarmOut})
 
 
 class ResultMeta(BaseModel):

@@ -55,6 +55,21 @@ class DeviceStatus:
 
 
 @dataclass(frozen=True)
+class Alarm:
+    """A fault the user must acknowledge: it stays on the dashboard until then."""
+
+    id: int = field(metadata=doc("the alarm's number, for POST /api/alarms/{id}/ack"))
+    source: str = field(metadata=doc("the part that raised it, e.g. recorder"))
+    message: str
+    raised_at: str = field(metadata=doc("ISO 8601 UTC"))
+    acknowledged_at: str | None = field(default=None, metadata=doc(
+        "ISO 8601 UTC; null: still shown"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return _shallow(self)
+
+
+@dataclass(frozen=True)
 class Status:
     """The instrument's status (``GET /api/status``): state, rates, settings, counters.
 
@@ -120,12 +135,15 @@ class Status:
         "the counters since the first depth map"))
     calibration_session: dict[str, Any] | None = field(default=None, metadata=doc(
         "the open calibration session (board, created, poses, solved) or null"))
+    alarms: tuple[Alarm, ...] = field(default=(), metadata=doc(
+        "alarms not yet acknowledged, oldest first (POST /api/alarms/{id}/ack)"))
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
         d["calibration"] = None if self.calibration is None else self.calibration.to_dict()
         d["devices"] = [_shallow(dev) for dev in self.devices]
         d["warnings"] = list(self.warnings)
+        d["alarms"] = [a.to_dict() for a in self.alarms]
         return d
 
 

@@ -15,6 +15,7 @@ only when chosen.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NamedTuple
 
 from app.core.schedule import PatternSchedule
@@ -37,6 +38,7 @@ class SimSpec:
     disconnect_every_s: float = 0.0
     realtime: bool = True
     rig: str = "default"
+    cache_dir: str | None = None  # where the scene's traced geometry is kept between starts
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,7 @@ def _sim_devices(spec: SimSpec) -> Devices:
         scene=spec.scene, seed=spec.seed, bit_depth=spec.bit_depth, drop_rate=spec.drop_rate,
         timeout_rate=spec.timeout_rate, disconnect_every_s=spec.disconnect_every_s,
         realtime=spec.realtime, rig=spec.rig,
+        cache_dir=None if spec.cache_dir is None else Path(spec.cache_dir),
     )
     return Devices(built.camera, built.projector, built.controller, built.world)
 

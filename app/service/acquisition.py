@@ -24,7 +24,7 @@ from app.service.devices import (
     start_devices,
     stop_devices,
 )
-from app.service.framesets import FrameSet, GroupWindow, SetAssembler
+from app.service.framesets import FrameSet, GroupWindow, SetAssembler, depth_group_of
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
 log = logging.getLogger("fringescope.service.acquisition")
@@ -61,7 +61,8 @@ class Acquisition:
         self.rolling = rolling
         self.on_frame = on_frame
         self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
-        self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
+        self.window = GroupWindow(len(schedule.frequencies), schedule.steps,
+                                  depth_group=depth_group_of(schedule.frequencies))
         self.camera_rate = RateMeter()
         self.frames_received = 0
         self.frames_dropped = 0
@@ -153,7 +154,8 @@ class Acquisition:
                 self._started = False  # the loop starts them again with the new patterns
             self.schedule = schedule
             self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
-            self.window = GroupWindow(len(schedule.frequencies), schedule.steps)
+            self.window = GroupWindow(len(schedule.frequencies), schedule.steps,
+                                  depth_group=depth_group_of(schedule.frequencies))
             self.queue.clear()
             on_swap(schedule)
         finally:

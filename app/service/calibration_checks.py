@@ -194,6 +194,11 @@ class ValidFractionWatch:
         self._recent: deque[float] = deque(maxlen=window)
         self._last_seq = -1
 
+    @property
+    def last_seq(self) -> int:
+        """The sequence number of the newest result observed (-1: none yet)."""
+        return self._last_seq
+
     def observe(self, seq: int, fraction: float) -> None:
         """One live result's valid fraction (0-1); a sequence number seen already is ignored."""
         if seq != self._last_seq:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from app.config import Settings
@@ -58,8 +60,17 @@ def device_specs(settings: Settings) -> DeviceSpecs:
             scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,
             drop_rate=settings.sim_drop_rate, timeout_rate=settings.sim_timeout_rate,
             disconnect_every_s=settings.sim_disconnect_every_s, realtime=True, rig=settings.sim_rig,
+            cache_dir=cache_dir(settings),
         ),
     )
+
+
+def cache_dir(settings: Settings) -> str:
+    """The folder of what the simulator rebuilds from parameters at every start."""
+    if settings.cache_dir is not None:
+        return str(settings.cache_dir)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return str(Path(base) / "fringescope")
 
 
 def create_devices(settings: Settings) -> DeviceBundle:

@@ -226,59 +226,135 @@ class SetAssembler:
         return FrameSet(frames, received_s, "set")
 
 
-class GroupWindow:
-    """Rolling mode: a set after every completed frequency group, from the newest groups.
+def depth_group_of(frequencies: tuple[float, ...] | list[float]) -> int:
+    """The group (capture-set order) of the finest frequency: its phase gives the live depth."""
+    if not frequencies:
+        raise ValueError("frequencies: at least one needed")
+    return max(range(len(frequencies)), key=lambda g: frequencies[g])
 
-    A group is the ``steps`` frames of one frequency (pattern indices g·N … g·N + N − 1)
-    with consecutive frame counters. When a group completes, the newest complete group of
-    every frequency forms a set if together they span at most ``max_span_cycles`` projector
-    cycles of frames and share one exposure/LED setting. With the projector cycling through
-    the schedule that is one new set per group: G times the whole-set rate, each set sharing
-    G − 1 groups with the one before; a dropped frame costs only the set its group would
-    have completed (the group's previous copy stays until the next one completes).
+
+class GroupWindow:
+    """Rolling mode: a set after every frequency group, from the newest frame of every pattern.
+
+    The newest frame of each pattern index is kept. When a group ends (its last phase
+    arrives, or a frame of another group does) the newest frames of every pattern form a
+    set if each group's frames lie within one projector cycle of that group's newest (a
+    dropped frame leaves its phase's previous frame standing in, one cycle older at most),
+    the whole set spans at most ``max_span_cycles`` cycles of frames and shares one
+    exposure/LED setting. With the projector cycling through the schedule that is one new
+    set per group: G times the whole-set rate, each set sharing G − 1 groups with the one
+    before. The motion test checks the groups (and so the stand-ins) against each other.
+
+    ``depth_group`` (the finest frequency's, whose phase is the depth) takes no stand-ins:
+    a frame of an earlier cycle among its phases would put the scene's motion straight into
+    the depth, where a coarser group's only moves its fringe order (which the engine's
+    order test guards). That group is the newest gap-free copy of its N frames; a set that
+    would repeat the last one (the depth group lost a frame, nothing else is new) is not
+    made.
+
+    Counters: ``completed`` sets emitted, ``patched`` of them with a stand-in frame from an
+    earlier cycle, ``incomplete`` groups that ended without a set (once every pattern was seen).
     """
 
-    def __init__(self, n_groups: int, steps: int, *,
+    def __init__(self, n_groups: int, steps: int, *, depth_group: int | None = None,
                  max_span_cycles: int = MAX_SPAN_CYCLES) -> None:
         if n_groups < 1:
             raise ValueError(f"n_groups: must be >= 1, got {n_groups}")
         if steps < 1:
             raise ValueError(f"steps: must be >= 1, got {steps}")
+        if depth_group is not None and not 0 <= depth_group < n_groups:
+            raise ValueError(f"depth_group: must be within 0..{n_groups - 1}, got {depth_group}")
         if max_span_cycles < 1:
             raise ValueError(f"max_span_cycles: must be >= 1, got {max_span_cycles}")
         self.n_groups = n_groups
         self.steps = steps
-        self.max_span_frames = max_span_cycles * n_groups * steps
-        self._groups: list[tuple[Frame, ...] | None] = [None] * n_groups
-        self._pending: list[Frame] = []
+        self.depth_group = depth_group
+        self.n_frames = n_groups * steps
+        self.max_span_frames = max_span_cycles * self.n_frames
+        self._latest: list[Frame | None] = [None] * self.n_frames
+        self._whole: tuple[Frame, ...] | None = None  # the depth group's newest gap-free copy
+        self._pending: list[Frame] = []  # the depth group in progress
+        # the group in progress: (group, frame counter of its phase 0), and whether it has a set
+        self._open: tuple[int, int] | None = None
+        self._open_done = True
+        self._emitted: list[int] = []  # frame counters of the last set made
+        self.completed = 0
+        self.patched = 0
+        self.incomplete = 0
 
     def clear(self) -> None:
-        self._groups = [None] * self.n_groups
-        self._pending = []
+        """Forget every frame held (a mode, schedule or device change)."""
+        self._latest = [None] * self.n_frames
+        self._whole, self._pending = None, []
+        self._open, self._open_done = None, True
+        self._emitted = []
 
     def feed(self, frame: Frame, received_s: float) -> FrameSet | None:
-        """Add one frame; a set when ``frame`` completes a group and the newest groups form one."""
+        """Add one frame; a set when a group ends and the newest frames form one."""
         p = frame.pattern_index
-        if p < 0 or p >= self.n_groups * self.steps:
+        if p < 0 or p >= self.n_frames:
             self._pending = []
             return None
         g, n = divmod(p, self.steps)
+        instance = (g, frame.index - n)
+        out = None
+        if self._open is not None and instance != self._open and not self._open_done:
+            # the group in progress lost its last phase(s): it ends now, with stand-ins
+            out = self._emit(received_s)
+        if instance != self._open:
+            self._open, self._open_done = instance, False
+        self._latest[p] = frame
+        if g == self.depth_group:
+            self._collect_whole(frame, n)
+        if n == self.steps - 1:
+            self._open_done = True
+            out = self._emit(received_s) or out
+        return out
+
+    def _collect_whole(self, frame: Frame, n: int) -> None:
         if n == 0:
             self._pending = [frame]
         elif self._pending and _follows(self._pending[-1], frame):
             self._pending.append(frame)
         else:
             self._pending = []
+        if len(self._pending) == self.steps:
+            self._whole, self._pending = tuple(self._pending), []
+
+    def _emit(self, received_s: float) -> FrameSet | None:
+        """The newest frames as a set, if each group's stand-ins are recent enough."""
+        latest = list(self._latest)
+        if self.depth_group is not None:
+            lo = self.depth_group * self.steps
+            latest[lo:lo + self.steps] = self._whole or [None] * self.steps
+        frames = tuple(f for f in latest if f is not None)
+        if len(frames) < self.n_frames:  # still filling (start-up, after a change): no loss
             return None
-        if len(self._pending) < self.steps:
-            return None
-        self._groups[g], self._pending = tuple(self._pending), []
-        if any(grp is None for grp in self._groups):
-            return None
-        frames = tuple(f for grp in self._groups if grp is not None for f in grp)
         idx = [f.index for f in frames]
-        if max(idx) - min(idx) + 1 > self.max_span_frames or len(set(idx)) != len(frames):
+        if idx == self._emitted:  # nothing new: the depth group lost a frame
+            self.incomplete += 1
             return None
-        if not _same_settings(frames):
+        if not self._fits(idx) or not _same_settings(frames):
+            self.incomplete += 1
             return None
+        self._emitted = idx
+        self.completed += 1
+        if any(self._stood_in(idx, h) for h in range(self.n_groups)):
+            self.patched += 1
         return FrameSet(frames, received_s, "rolling")
+
+    def _fits(self, idx: list[int]) -> bool:
+        if max(idx) - min(idx) + 1 > self.max_span_frames or len(set(idx)) != len(idx):
+            return False
+        for h in range(self.n_groups):
+            group = idx[h * self.steps:(h + 1) * self.steps]
+            # the newest instance of the group starts at its newest frame minus that one's phase
+            newest = max(range(self.steps), key=lambda k: group[k])
+            start = group[newest] - newest
+            if min(group) < start - self.n_frames:  # a stand-in more than one cycle old
+                return False
+        return True
+
+    def _stood_in(self, idx: list[int], h: int) -> bool:
+        group = idx[h * self.steps:(h + 1) * self.steps]
+        return any(group[k + 1] != group[k] + 1 for k in range(self.steps - 1))

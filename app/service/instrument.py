@@ -33,6 +33,7 @@ from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
+from app.service.alarms import AlarmBoard
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
@@ -74,6 +75,7 @@ class Instrument:
                                 noise_estimate_interval_s=settings.noise_estimate_interval_s)
         self.pipeline = LivePipeline(config, schedule_by_name(settings.schedule), devices)
         self.calibrations = CalibrationManager(settings, self.pipeline)
+        self.alarms = AlarmBoard()  # faults shown until acknowledged (the recorder raises them)
         self._closed = False
         self._started = False
         self._schedule_lock = threading.Lock()
@@ -86,7 +88,8 @@ class Instrument:
         self._twin_scene_moved = False  # the wizard put the twin's board in view
         # the status shows the recording and a schedule change waits for its end
         self.recorder = Recorder(self, min_free_mb=settings.recording_min_free_mb,
-                                 pose_source=None if poses is None else poses.latest)
+                                 pose_source=None if poses is None else poses.latest,
+                                 alarms=self.alarms)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -476,4 +479,5 @@ class Instrument:
             calibration_session=None if session is None else {
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},
+            alarms=self.alarms.active(),
         )

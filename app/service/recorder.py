@@ -13,7 +13,8 @@ Writes are atomic (:mod:`app.capture.recording`).
 
 Faults never kill the service: a write error, a full disk (``ENOSPC``) or a nearly full
 one stops the recording, and the reason is kept in ``last_error`` and in ``warning``,
-which ``GET /api/status`` carries in its ``warnings`` until the next recording starts.
+which ``GET /api/status`` carries in its ``warnings`` until the next recording starts;
+it is also raised as an alarm (``alarms``), shown on the dashboard until acknowledged.
 At construction, recordings a previous run left open are marked ``interrupted`` and
 half-written set folders are removed.
 """
@@ -49,6 +50,7 @@ from app.core.errors import Conflict, InvalidRequest, NotFound
 from app.core.limits import DEFAULT_LED
 from app.core.schedule import PatternSchedule
 from app.service.acquisition import Acquisition
+from app.service.alarms import AlarmBoard
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
@@ -88,12 +90,14 @@ class Recorder:
             work the writer then gets its share of both cores, not of one.
         pose_source: returns the newest received OpenIGTLink TRANSFORMs by device, stored
             with each recorded set (None: no tracker).
+        alarms: where a recording that stops on its own is raised as an alarm (None: nowhere).
     """
 
     def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
                  depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16,
                  encode_workers: int = 2,
-                 pose_source: Callable[[], dict[str, Any]] | None = None) -> None:
+                 pose_source: Callable[[], dict[str, Any]] | None = None,
+                 alarms: AlarmBoard | None = None) -> None:
         if codec not in FRAME_CODECS:
             raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
         if queue_sets < 1:
@@ -128,6 +132,7 @@ class Recorder:
         remove_stale_partials(self.root)
         # the newest received OpenIGTLink TRANSFORMs (a tracked scope's pose), by device
         self.pose_source = pose_source
+        self.alarms = alarms
         # the dashboard's measurements (kind + pixels), re-measured on every recorded depth map
         self.measurements: list[dict[str, Any]] = []
 
@@ -479,6 +484,8 @@ class Recorder:
         self.last_error = msg
         if warn:
             self.warning = msg
+            if self.alarms is not None:
+                self.alarms.raise_alarm("recorder", msg)
 
 
 # raw sets waiting for their depth map; depth_wait_s (3 s) holds about 11 of geometric-9's

@@ -1,7 +1,7 @@
 // The status bar: state, rates, devices, faults and warnings from GET /api/status.
 // Other panels subscribe with onStatus(fn) and get every new status after the bar.
 
-import { $, api, fmt, say } from "./api.js";
+import { $, api, el, fmt, say } from "./api.js";
 import { ui } from "./state.js";
 
 const listeners = [];
@@ -58,7 +58,9 @@ function showStatus(st) {
   const list = (st.warnings || []).map((w) => "⚠ " + w);
   if (st.phase) {
     const pct = typeof st.progress === "number" ? ` (${Math.round(100 * st.progress)} %)` : "";
-    list.unshift(`⏳ ${st.state}: ${st.phase}${pct}`);
+    // "calibrating: calibrating pose 2 of 8" says it twice: the phase alone when it names the state
+    const what = st.phase.startsWith(st.state) ? st.phase : `${st.state}: ${st.phase}`;
+    list.unshift(`⏳ ${what}${pct}`);
   } else if (st.state_reason && st.state !== "fault") {
     list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
   }
@@ -68,7 +70,42 @@ function showStatus(st) {
   }
   warnings.hidden = list.length === 0;
   warnings.textContent = list.join("   ");
+  showAlarms(st.alarms || []);
   for (const fn of listeners) fn(st);
+}
+
+let shownAlarms = "";
+
+// The unacknowledged alarms, each with its Acknowledge button; redrawn only when the list
+// changes, so a button is never replaced under the cursor.
+function showAlarms(alarms) {
+  const key = alarms.map((a) => a.id).join(",");
+  if (key === shownAlarms) return;
+  shownAlarms = key;
+  const box = $("alarms");
+  box.textContent = "";
+  for (const a of alarms) {
+    const row = el("div", undefined, "alarm");
+    row.dataset.alarmId = String(a.id);
+    row.appendChild(el("span", new Date(a.raised_at).toLocaleTimeString(), "alarm-time"));
+    row.appendChild(el("span", `ALARM (${a.source}): ${a.message}`, "alarm-text"));
+    const ack = el("button", "Acknowledge", "alarm-ack");
+    ack.addEventListener("click", () => acknowledge(a.id, ack));
+    row.appendChild(ack);
+    box.appendChild(row);
+  }
+  box.hidden = alarms.length === 0;
+}
+
+async function acknowledge(id, button) {
+  button.disabled = true;
+  try {
+    await api(`/api/alarms/${id}/ack`, { method: "POST" });
+    await pollStatus();
+  } catch (err) {
+    button.disabled = false;
+    say(`alarm: ${err.message}`, "error");
+  }
 }
 
 export async function pollStatus() {

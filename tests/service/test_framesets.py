@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from app.devices.base import Frame
-from app.service.framesets import GroupWindow, SetAssembler
+from app.service.framesets import GroupWindow, SetAssembler, depth_group_of
 
 N = 16
 
@@ -162,10 +162,60 @@ def test_rolling_sets_carry_on_past_a_drop():
     idx = [i for i in range(48) if i != 21]  # frame 21 (group 1, step 1) lost
     got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
            if (s := win.feed(f, 0.0)) is not None]
-    # group 1 of frames 20..23 never completes: only the set it would have completed (23) is
-    # lost; the next ones keep group 1 of frames 4..7 until group 1 of frames 36..39 replaces it
-    assert [i for i, _ in got] == [15, 19, 27, 31, 35, 39, 43, 47]
-    assert got[2][1].frame_indices == [*range(16, 20), *range(4, 8), *range(24, 28), *range(12, 16)]
+    # no set is lost: frame 5 (the same phase, one cycle older) stands in for frame 21
+    assert [i for i, _ in got] == [15, 19, 23, 27, 31, 35, 39, 43, 47]
+    assert got[2][1].frame_indices == [16, 17, 18, 19, 20, 5, 22, 23, *range(8, 16)]
+    assert got[3][1].frame_indices == [16, 17, 18, 19, 20, 5, 22, 23, *range(24, 28),
+                                       12, 13, 14, 15]
+    assert got[6][1].frame_indices == list(range(32, 40)) + list(range(24, 32))  # 37 replaced 5
+    assert [f.pattern_index for f in got[2][1].frames] == list(range(N))
+    assert win.completed == 9 and win.patched == 4 and win.incomplete == 0
+
+
+def test_a_lost_last_phase_ends_its_group_at_the_next_frame():
+    win = GroupWindow(4, 4)
+    idx = [i for i in range(32) if i != 23]  # the last phase of group 1 (frames 20..23) lost
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    assert [i for i, _ in got] == [15, 19, 24, 27, 31]  # group 1's set comes with frame 24
+    assert got[2][1].frame_indices == [16, 17, 18, 19, 20, 21, 22, 7, *range(8, 16)]
+
+
+def test_a_stand_in_is_at_most_one_cycle_old():
+    win = GroupWindow(4, 4)
+    idx = [i for i in range(64) if i not in (21, 37)]  # phase 5 lost in two cycles running
+    out = [f.index for f in frames(idx, [i % N for i in idx]) if win.feed(f, 0.0) is not None]
+    # frame 5 stands in for 21 (sets at 23 … 35); from 39 it would stand in for 37, two cycles
+    # on: no set until frame 53 brings that phase back (group 1 ends with frame 55)
+    assert out == [15, 19, 23, 27, 31, 35, 55, 59, 63]
+    assert win.incomplete == 4 and win.patched == 4
+
+
+def test_the_depth_group_takes_no_stand_in():
+    win = GroupWindow(4, 4, depth_group=3)  # the finest frequency last, as in paper-16
+    idx = [i for i in range(48) if i != 29]  # group 3 (frames 28..31) loses a frame
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    # at 31 the set would repeat the one of 27 (group 3 keeps its whole copy 12..15): none
+    assert [i for i, _ in got] == [15, 19, 23, 27, 35, 39, 43, 47]
+    assert got[4][1].frame_indices == [*range(32, 36), *range(20, 28), 12, 13, 14, 15]
+    assert win.incomplete == 1 and win.patched == 0
+    # a coarser group's lost frame is stood in for, as without a depth group
+    win = GroupWindow(4, 4, depth_group=3)
+    idx = [i for i in range(32) if i != 21]
+    got = [(f.index, s) for f in frames(idx, [i % N for i in idx])
+           if (s := win.feed(f, 0.0)) is not None]
+    assert [i for i, _ in got] == [15, 19, 23, 27, 31]
+    assert got[2][1].frame_indices[4:8] == [20, 5, 22, 23] and win.patched == 3
+
+
+def test_depth_group_of_is_the_finest_frequency():
+    assert depth_group_of((1, 4, 12, 36)) == 3
+    assert depth_group_of((36.0, 6.0, 1.0)) == 0
+    with pytest.raises(ValueError, match="frequencies"):
+        depth_group_of(())
+    with pytest.raises(ValueError, match="depth_group"):
+        GroupWindow(4, 4, depth_group=4)
 
 
 def test_rolling_sets_span_at_most_max_span_cycles():

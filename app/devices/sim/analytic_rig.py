@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from app.core.calibration import Calibration
 from app.core.geometric import GeometricModel
@@ -157,6 +156,8 @@ class Rig:
         w, h = self.schedule.width, self.schedule.height
         kp = np.array([[fp, 0.0, w / 2], [0.0, fp, h / 2], [0, 0, 1.0]])
         rt = np.linalg.solve(kp, self.P)
+        from scipy.spatial.transform import Rotation  # deferred: not needed to start
+
         rvec = Rotation.from_matrix(rt[:, :3]).as_rotvec()
         t = rt[:, 3].copy()
         t[1] = 0.0  # not observable along the fringe lines

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from app.core.limits import LIVE_BIT_DEPTHS
 from app.core.schedule import PatternSchedule
@@ -203,12 +204,13 @@ class SimDevices:
 def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, bit_depth: int | None = None,
                        drop_rate: float = 0.0, timeout_rate: float = 0.0, disconnect_every_s: float = 0.0,
                        realtime: bool = True, distortion: bool = True, reconnect_delay_s: float = 0.5,
-                       rig: str = "default") -> SimDevices:
+                       rig: str = "default", cache_dir: Path | None = None) -> SimDevices:
     """Camera, projector and controller sharing one simulated world (nothing opened yet).
 
-    ``rig``: the rig preset (optics.RIG_NAMES); ``bit_depth`` None: the rig sensor's native depth.
+    ``rig``: the rig preset (optics.RIG_NAMES); ``bit_depth`` None: the rig sensor's native depth;
+    ``cache_dir``: where the scene's traced geometry is kept between starts (None: not kept).
     """
-    world = SimulatedWorld(scene, seed=seed, distortion=distortion, rig=rig)
+    world = SimulatedWorld(scene, seed=seed, distortion=distortion, rig=rig, cache_dir=cache_dir)
     if bit_depth is None:
         bit_depth = world.rig.bit_depth
     if bit_depth not in LIVE_BIT_DEPTHS:

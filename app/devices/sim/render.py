@@ -54,7 +54,10 @@ class Renderer:
     """
 
     def __init__(self, scene: Scene, rig: SimRig, *, schedule: PatternSchedule | None = None,
-                 sensor: SensorModel | None = None, projector_gamma: float = 1.0) -> None:
+                 sensor: SensorModel | None = None, projector_gamma: float = 1.0,
+                 geometry: dict[str, npt.NDArray[np.generic]] | None = None) -> None:
+        """``geometry``: the arrays :meth:`geometry` returned for the same scene, rig and
+        schedule (e.g. from the disk cache), instead of tracing the scene again (seconds)."""
         self.scene, self.rig = scene, rig
         self.schedule = schedule or PatternSchedule()
         self.sensor = sensor or SensorModel()
@@ -63,21 +66,18 @@ class Renderer:
         self.qbar = float(self.lut[np.rint(255 * (0.5 + 0.5 * np.cos(theta))).astype(int)].mean())
         w, h = rig.camera.image_size
         self.shape = (h, w)
-        self.rays = rig.camera.pixel_rays().reshape(-1, 3)
-        rest = replace(scene, motion=None, tool=None)
-        hits = trace(rest, self.rays, 0.0)
-        self.points = hits.points.reshape(h, w, 3)
-        self._normals, self._material = hits.normals, hits.material
-        alb = hits.albedo.reshape(h, w) * integrate_print(scene.surface, hits.st, hits.material, (h, w))
-        z = self.points[..., 2]
-        self.sigma_cam = defocus_sigma_px(np.nan_to_num(z, nan=rig.focus_mm), rig.focus_mm, rig.blur_per_inv_mm)
-        self.albedo = blur_varying(alb, self.sigma_cam).ravel()
+        geo = geometry if geometry is not None else self._trace_geometry()
+        # all float64 but the material codes (asarray: no copy of arrays of that dtype)
+        self.rays: F64 = np.asarray(geo["rays"], np.float64)  # (H·W, 3)
+        self.points: F64 = np.asarray(geo["points"], np.float64)  # (H, W, 3) mm
+        self._normals: F64 = np.asarray(geo["normals"], np.float64)  # (H·W, 3)
+        self._material: npt.NDArray[np.uint8] = np.asarray(geo["material"], np.uint8)  # (H·W,)
+        self.sigma_cam: F64 = np.asarray(geo["sigma_cam"], np.float64)  # (H, W) px
+        self.albedo: F64 = np.asarray(geo["albedo"], np.float64)  # (H·W,)
         # (H, W) continuous projector coordinate along the fringe axis (the column for vertical fringes)
-        self.xp = rig.projector.fringe_coordinate(self.points, self.schedule.orientation)
-        gu, gv = np.gradient(self.xp, axis=1), np.gradient(self.xp, axis=0)
-        grad = np.hypot(gu, gv)
-        self.grad_median = float(np.nanmedian(grad))
-        self.grad_xp = np.where(np.isfinite(grad), grad, self.grad_median).ravel()
+        self.xp: F64 = np.asarray(geo["xp"], np.float64)
+        self.grad_xp: F64 = np.asarray(geo["grad_xp"], np.float64)  # (H·W,)
+        self.grad_median = float(geo["grad_median"])
         self._led_cache: dict[str, tuple[F32, F32, F32, F32]] = {}
         self._trig: tuple[F32, F32] | None = None
         self._cache_lock = threading.RLock()
@@ -91,6 +91,33 @@ class Renderer:
         # Projector output over one fringe period: cosine → 8-bit DMD level → response.
         frac = (np.arange(4096) + 0.5) / 4096
         self.qtab = self.lut[np.rint(255 * (0.5 + 0.5 * np.cos(2 * math.pi * frac))).astype(int)]
+
+    def _trace_geometry(self) -> dict[str, npt.NDArray[np.generic]]:
+        """The static scene's geometry as seen by the rig: what :meth:`geometry` returns."""
+        rig, (h, w) = self.rig, self.shape
+        rays = rig.camera.pixel_rays().reshape(-1, 3)
+        hits = trace(replace(self.scene, motion=None, tool=None), rays, 0.0)
+        points = hits.points.reshape(h, w, 3)
+        printed = integrate_print(self.scene.surface, hits.st, hits.material, (h, w))
+        alb = hits.albedo.reshape(h, w) * printed
+        z = points[..., 2]
+        sigma_cam = defocus_sigma_px(np.nan_to_num(z, nan=rig.focus_mm), rig.focus_mm,
+                                     rig.blur_per_inv_mm)
+        xp = rig.projector.fringe_coordinate(points, self.schedule.orientation)
+        grad = np.hypot(np.gradient(xp, axis=1), np.gradient(xp, axis=0))
+        grad_median = float(np.nanmedian(grad))
+        return {"rays": rays, "points": points, "normals": hits.normals, "material": hits.material,
+                "sigma_cam": sigma_cam, "albedo": blur_varying(alb, sigma_cam).ravel(), "xp": xp,
+                "grad_xp": np.where(np.isfinite(grad), grad, grad_median).ravel(),
+                "grad_median": np.asarray(grad_median)}
+
+    def geometry(self) -> dict[str, npt.NDArray[np.generic]]:
+        """The traced geometry (rays, points, normals, material, albedo, blur, projector
+        coordinate and its gradient), to build another Renderer of the same scene without
+        tracing: the arrays are shared, never written after construction."""
+        return {"rays": self.rays, "points": self.points, "normals": self._normals,
+                "material": self._material, "sigma_cam": self.sigma_cam, "albedo": self.albedo,
+                "xp": self.xp, "grad_xp": self.grad_xp, "grad_median": np.asarray(self.grad_median)}
 
     # -- shading ---------------------------------------------------------------------------
     def shade(self, points: F64, normals: F64, material: npt.NDArray[np.uint8], albedo: F64,

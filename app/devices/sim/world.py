@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
 from app.core.limits import DEFAULT_LED
 from app.core.schedule import PatternSchedule
+from app.devices.sim import geometry_cache
 from app.devices.sim.optics import SimRig, rig_by_name
 from app.devices.sim.radiometry import SensorModel
 from app.devices.sim.render import Renderer
@@ -24,12 +26,19 @@ _MAX_RENDERERS = 3
 
 
 def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: SensorModel, gamma: float,
-                    distortion: bool) -> Renderer:
+                    distortion: bool, cache_dir: Path | None = None) -> Renderer:
+    """The renderer of a named scene on a named rig, shared in memory and, with ``cache_dir``,
+    its traced geometry kept on disk for the next start (:mod:`geometry_cache`)."""
     key = (name, rig.name, distortion, schedule, sensor, gamma)
     with _RENDERERS_LOCK:
         r = _RENDERERS.get(key)
         if r is None:
-            r = Renderer(build_scene(name, rig), rig, schedule=schedule, sensor=sensor, projector_gamma=gamma)
+            disk_key = geometry_cache.cache_key(key) if cache_dir is not None else ""
+            geometry = geometry_cache.load(cache_dir, disk_key) if cache_dir is not None else None
+            r = Renderer(build_scene(name, rig), rig, schedule=schedule, sensor=sensor,
+                         projector_gamma=gamma, geometry=geometry)
+            if cache_dir is not None and geometry is None:
+                geometry_cache.save_in_background(cache_dir, disk_key, r.geometry())
             if len(_RENDERERS) >= _MAX_RENDERERS:
                 _RENDERERS.pop(next(iter(_RENDERERS)))
             _RENDERERS[key] = r
@@ -47,11 +56,14 @@ class SimulatedWorld:
 
     def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | str | None = None,
                  schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
-                 seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0) -> None:
-        """``rig``: a rig preset's name (see optics.RIG_NAMES; default ``"default"``) or a SimRig."""
+                 seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0,
+                 cache_dir: Path | None = None) -> None:
+        """``rig``: a rig preset's name (see optics.RIG_NAMES; default ``"default"``) or a SimRig;
+        ``cache_dir``: where a named scene's traced geometry is kept between starts (None: not)."""
         self._rig_named = not isinstance(rig, SimRig)  # named scenes may then share renderers
         self._named = scene if isinstance(scene, str) and self._rig_named else None
         self._distortion = distortion
+        self._cache_dir = cache_dir
         self.rig = rig if isinstance(rig, SimRig) else rig_by_name(rig or "default", distortion=distortion)
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
         self.schedule = schedule or PatternSchedule()
@@ -75,7 +87,8 @@ class SimulatedWorld:
             if self._renderer is None:
                 if self._named is not None:
                     self._renderer = shared_renderer(self._named, self.rig, self.schedule, self.sensor,
-                                                     self._projector_gamma, self._distortion)
+                                                     self._projector_gamma, self._distortion,
+                                                     self._cache_dir)
                 else:
                     self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
                                               projector_gamma=self._projector_gamma)
