@@ -7,6 +7,7 @@ from fastapi import APIRouter
 from app.api import (
     analysis,
     calibration,
+    change,
     control,
     limits,
     measure,
@@ -19,7 +20,8 @@ from app.api import (
 
 def api_router() -> APIRouter:
     router = APIRouter()
-    for module in (control, limits, results, calibration, analysis, measure, recordings, schedules, stream):
+    for module in (control, limits, results, calibration, analysis, measure, recordings, schedules, stream,
+                   change):
         router.include_router(module.router)
     return router
 

@@ -16,6 +16,7 @@ import inspect
 import threading
 import time
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -35,6 +36,7 @@ from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
+from app.service.change import ChangeService
 from app.service.devices import DeviceBundle, create_devices
 from app.service.pipeline import LivePipeline, PipelineConfig
 from app.service.reconstruction import LiveResult
@@ -88,6 +90,10 @@ class Instrument:
         # errors their part keeps without a time: (message, first seen monotonic, ISO time)
         self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
         self.results.subscribe(self._on_map)
+        # the change map against a reference kept in the data folder (its own thread)
+        self.change = ChangeService(Path(settings.data_dir) / "reference",
+                                    lambda: self.calibration)
+        self.results.subscribe(self.change.on_map)
         self._twin_scene_moved = False  # the wizard put the twin's board in view
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
@@ -119,6 +125,7 @@ class Instrument:
         self.pipeline.start(self.pipeline.devices or create_devices(self.settings))
         assert self.pipeline.devices is not None
         self.calibrations.load_initial(is_sim=self.pipeline.devices.is_sim)
+        self.change.start()
         self.pipeline.run()
 
     def close(self, timeout_s: float = 15.0) -> None:
@@ -127,11 +134,12 @@ class Instrument:
             return
         self._closed = True
         self.pipeline.close(timeout_s)
+        self.change.close(timeout_s)
         self.calibrations.join(timeout_s)
 
     def threads(self) -> list[threading.Thread]:
         """The instrument's own threads (for shutdown checks)."""
-        out = self.pipeline.threads()
+        out = self.pipeline.threads() + self.change.threads()
         if (creating := self.calibrations.thread()) is not None:
             out.append(creating)
         return out
