@@ -67,7 +67,7 @@ def _make_igtl(settings: Settings, instrument: Instrument) -> Any:
 
     return IgtlServer(instrument.results, host=settings.igtl_host, port=settings.igtl_port,
                       max_points=settings.igtl_max_points, status=lambda: instrument.status().to_dict(),
-                      placement=placement)
+                      placement=placement, changes=instrument.change.slot)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

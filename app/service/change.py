@@ -185,6 +185,9 @@ class ChangeService:
         self._thread: threading.Thread | None = None
         self._area: tuple[int, F32] | None = None  # (id of the reference points, pixel areas)
         self.last_error: str | None = None
+        self._recent: dict[int, LiveChange] = {}  # the newest maps' changes, by depth seq
+        self._recent_lock = threading.Lock()
+        self._recent_cond = threading.Condition(self._recent_lock)
 
     # -- lifecycle ---------------------------------------------------------------------
     def start(self) -> None:
@@ -218,7 +221,23 @@ class ChangeService:
                 self.last_error = str(exc)
                 continue
             if change is not None:
+                with self._recent_lock:
+                    self._recent[seq] = change
+                    while len(self._recent) > 16:
+                        self._recent.pop(next(iter(self._recent)))
+                    self._recent_cond.notify_all()
                 self.slot.publish(change)
+
+    def change_for(self, seq: int, wait_s: float) -> LiveChange | None:
+        """The change map of depth map ``seq``, waiting up to ``wait_s`` for it (None: none)."""
+        deadline = time.monotonic() + wait_s
+        with self._recent_cond:
+            while seq not in self._recent:
+                left = deadline - time.monotonic()
+                if left <= 0 or self._stop.is_set():
+                    return None
+                self._recent_cond.wait(min(left, 0.1))
+            return self._recent[seq]
 
     # -- the comparison ---------------------------------------------------------------------
     def compute(self, depth: F32, sigma: F32, points: F32, seq: int = 0) -> LiveChange | None:
@@ -278,6 +297,8 @@ class ChangeService:
                         cal.created)
         self.store.set(ref)
         self.slot.clear()
+        with self._recent_lock:
+            self._recent.clear()
         return ref
 
     def reference_from_capture(self, capture: CaptureSet,

@@ -122,3 +122,36 @@ def test_bad_reference_requests_are_refused_with_reasons(tmp_path, twin_calibrat
                 break
             time.sleep(0.2)
         assert r.status_code == 409 and "set a new reference" in r.json()["detail"]
+
+
+def test_recordings_and_openigtlink_carry_the_change_map(tmp_path, twin_calibration):
+    import pyigtl
+
+    settings = live_settings(tmp_path / "out", twin_calibration, sim_scene="tissue_still",
+                             igtl_port=0)
+    app = create_app(settings)
+    with TestClient(app) as client:
+        wait_for(client, lambda st: st["results_published"] >= 1, 300, "a depth map")
+        assert client.post("/api/reference").status_code == 200
+        _wait_change(client, 0)
+        igtl = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=app.state.igtl.port)
+        try:
+            msg = igtl.wait_for_message("FringescopeChange", timeout=60)
+        finally:
+            igtl.stop()
+        assert msg is not None
+        image = np.asarray(msg.image)
+        assert image.dtype == np.float32 and image.size == 1384 * 1032
+        assert np.isfinite(image).mean() > 0.5 and np.nanmax(np.abs(image)) < 2.0
+        r = client.post("/api/recording/start", json={"name": "withref"})
+        assert r.status_code == 200, r.text
+        wait_for(client, lambda st: st["results_published"] >= 6, 300, "more maps")
+        client.post("/api/recording/stop")
+    rec = tmp_path / "out" / "data" / "recordings" / "withref"
+    session = json.loads((rec / "session.json").read_text())
+    with_depth = [s for s in session["sets"] if s.get("depth")]
+    with_change = [s for s in with_depth if (rec / s["folder"] / "change.npy").is_file()]
+    assert with_depth and len(with_change) >= len(with_depth) - 1  # the last may be cut off
+    delta = np.load(rec / with_change[0]["folder"] / "change.npy")
+    assert delta.dtype == np.float32 and delta.shape == (1032, 1384)
+    assert with_change[0]["change"] == "fixed"
