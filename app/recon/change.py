@@ -294,8 +294,8 @@ class ChangeSummary:
     Attributes:
         changed_area_mm2: surface area of the changed pixels, mm² (pixels without an area
             counted at the median pixel area).
-        rise_mm, rise_sigma_mm, rise_px: the largest Δ among changed pixels, its σ_Δ and its
-            (v, u); None when no pixel rose significantly.
+        rise_mm, rise_sigma_mm, rise_px: the largest Δ among changed pixels whose own Δ is at
+            least 2 σ_Δ, its σ_Δ and its (v, u); None when no pixel rose significantly.
         sink_mm, sink_sigma_mm, sink_px: the same for the most negative Δ.
     """
 
@@ -323,12 +323,16 @@ def summarize(cmap: ChangeMap, area_mm2: F32 | None) -> ChangeSummary:
         a = area_mm2[ch]
         fill = float(np.nanmedian(area_mm2)) if np.isfinite(area_mm2).any() else 0.0
         area = float(np.where(np.isfinite(a), a, fill).sum())
-    d = np.where(ch, cmap.delta, np.nan)
+    # a window centre beside a change is flagged with its own Δ near 0: a rise or sink is
+    # named only where the pixel's own Δ is at least 2 σ_Δ
+    with np.errstate(invalid="ignore"):
+        own = ch & (np.abs(cmap.delta) >= 2.0 * cmap.sigma)
+    d = np.where(own, cmap.delta, np.nan)
     rise = sink = None
-    if ch.any() and np.nanmax(d) > 0:
+    if own.any() and np.nanmax(d) > 0:
         i = np.unravel_index(int(np.nanargmax(d)), d.shape)
         rise = (int(i[0]), int(i[1]))
-    if ch.any() and np.nanmin(d) < 0:
+    if own.any() and np.nanmin(d) < 0:
         i = np.unravel_index(int(np.nanargmin(d)), d.shape)
         sink = (int(i[0]), int(i[1]))
 
