@@ -44,7 +44,8 @@ def _make_viewer(settings: Settings, instrument: Instrument,
         log.warning("3-D viewer unavailable: %s", exc)
         return None, None
     viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points,
-                    measure_source=lambda: recorder.measurements)
+                    measure_source=lambda: recorder.measurements,
+                    change_source=instrument.change.latest_delta)
     return viewer, viewer_router(viewer)
 
 

@@ -30,7 +30,8 @@ def check_change_range(range_mm: float) -> float:
 
 
 def _lut() -> U8:
-    x = np.linspace(-1.0, 1.0, 256, dtype=np.float32)[:, None]
+    # 255 entries: entry 127 is exactly 0 (white)
+    x = np.linspace(-1.0, 1.0, 255, dtype=np.float32)[:, None]
     lo = _ANCHORS[0] + (x + 1.0) * (_ANCHORS[1] - _ANCHORS[0])
     hi = _ANCHORS[1] + x * (_ANCHORS[2] - _ANCHORS[1])
     out: U8 = np.rint(np.where(x < 0, lo, hi)).astype(np.uint8)
@@ -49,7 +50,7 @@ def delta_colormap(delta_mm: F32, range_mm: float = DEFAULT_CHANGE_RANGE_MM,
         raise ValueError(f"delta_mm: expected (H, W), got {d.shape}")
     r = check_change_range(range_mm)
     finite = np.isfinite(d)
-    idx = np.rint((np.clip(np.where(finite, d, 0.0) / r, -1.0, 1.0) + 1.0) * 127.5)
+    idx = np.rint((np.clip(np.where(finite, d, 0.0) / r, -1.0, 1.0) + 1.0) * 127.0)
     rgb = np.ascontiguousarray(_LUT[idx.astype(np.uint8)])
     rgb[~finite] = 0
     if changed is not None:
@@ -71,7 +72,7 @@ def delta_png(delta_mm: F32, changed: npt.NDArray[np.bool_] | None = None,
     canvas = np.full((h, img.shape[1] + pad + bar_w + label_w, 3), 255, np.uint8)
     canvas[: img.shape[0], : img.shape[1]] = img
     top, bottom = 10, h - 10
-    levels = np.linspace(255.0, 0.0, bottom - top).astype(np.uint8)
+    levels = np.rint(np.linspace(254.0, 0.0, bottom - top)).astype(np.uint8)
     x0 = img.shape[1] + pad
     canvas[top:bottom, x0:x0 + bar_w] = _LUT[levels][:, None, :]
     for frac in (1.0, 0.5, 0.0, -0.5, -1.0):

@@ -228,6 +228,13 @@ class ChangeService:
                     self._recent_cond.notify_all()
                 self.slot.publish(change)
 
+    def latest_delta(self) -> F32 | None:
+        """The newest change map's Δ (mm), or None (no reference, or none made yet)."""
+        if self.store.reference is None:
+            return None
+        _, change = self.slot.latest()
+        return None if change is None else change.result.cmap.delta
+
     def change_for(self, seq: int, wait_s: float) -> LiveChange | None:
         """The change map of depth map ``seq``, waiting up to ``wait_s`` for it (None: none)."""
         deadline = time.monotonic() + wait_s

