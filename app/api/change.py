@@ -66,7 +66,8 @@ class ChangeSummary(BaseModel):
 _UPLOAD = {"requestBody": {"required": False, "description": (
     "No body or {}: the newest depth map. JSON {\"recording\": NAME, \"index\": i}: that "
     "recorded set. Or an uploaded capture set (multipart files or one .zip, as "
-    "POST /api/reconstruct)."), "content": {
+    "POST /api/reconstruct). Rule (422 otherwise): recording and index together, a valid "
+    "recording name; an upload is a whole capture set for the calibration."), "content": {
     "application/json": {"schema": ReferenceRequest.model_json_schema()},
     **CAPTURE_UPLOAD["requestBody"]["content"]}}}
 
@@ -140,7 +141,8 @@ def change_latest(
     format: Literal["npy", "png", "color"] = "npy",
     field: Literal["delta", "sigma", "significance", "changed"] = Query(
         "delta", description="delta Δ (mm, + toward the scope), sigma σ_Δ (mm), significance "
-                             "|Δ|/σ_Δ, changed (bool mask; npy only)"),
+                             "|Δ|/σ_Δ, changed (bool mask). Rule (422 otherwise): "
+                             "field=changed with format=npy only"),
     range_mm: float = Query(1.0, gt=0, le=100, allow_inf_nan=False,
                             description="png/color of delta: colours span ±range_mm"),
     inst: Instrument = Depends(get_instrument),
