@@ -226,9 +226,13 @@ class _Pairs(NamedTuple):
 
 
 def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tuple[int, int],
-           camera_matrix: F64, dist_coeffs: F64) -> _Pairs:
+           camera_matrix: F64, dist_coeffs: F64, stride: int = 1) -> _Pairs:
     h, w = shape
     flat = points.reshape(-1, 3)
+    if stride > 1:  # every stride-th row and column of the current map only
+        thin = np.zeros_like(valid)
+        thin[::stride, ::stride] = valid[::stride, ::stride]
+        valid = thin
     keep = np.flatnonzero(valid.reshape(-1))
     moved = flat[keep].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
     front = moved[:, 2] > 0
@@ -244,7 +248,7 @@ def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tup
     # where the moved view is magnified some pixels get no point: they take a neighbour's (a
     # tangential offset of a pixel changes nothing along the normal to first order)
     grid = slot.reshape(h, w)
-    for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+    for dv, du in (() if stride > 1 else ((0, 1), (0, -1), (1, 0), (-1, 0))):
         empty = grid < 0
         src = np.full_like(grid, -1)  # src[v, u] = grid[v − dv, u − du], no wrap-around
         src[max(dv, 0):h + min(dv, 0), max(du, 0):w + min(du, 0)] = \
@@ -276,7 +280,8 @@ def refine_on_pixels(points: F32, sigma: F32, ref_points: F32, ref_sigma: F32,
     ref_flat = ref_points.reshape(-1, 3).astype(np.float64)
     out = transform.copy()
     for _ in range(iterations):
-        pr = _pairs(points, valid, out, (h, w), camera_matrix, dist_coeffs)
+        # a quarter of the pairs (every 2nd row and column) fix six parameters as well
+        pr = _pairs(points, valid, out, (h, w), camera_matrix, dist_coeffs, stride=2)
         n = normals[pr.hit]
         r = np.einsum("ij,ij->i", pr.moved - ref_flat[pr.hit], n)
         s2 = sigma.reshape(-1)[pr.src] ** 2 + ref_sigma.reshape(-1)[pr.hit] ** 2
