@@ -62,7 +62,8 @@ def _bump_pixel() -> tuple[float, float]:
     return float(uv[0, 0, 0]), float(uv[0, 0, 1])
 
 
-def test_change_mode_shows_the_bump_and_its_rise_on_hover(change_server: str, tmp_path: Path) -> None:
+def test_change_mode_shows_the_bump_and_its_rise_on_hover(change_server: str,
+                                                          tmp_path: Path) -> None:
     from playwright.sync_api import sync_playwright
 
     r = httpx.post(f"{change_server}/api/reference", content=_reference_zip(tmp_path),
@@ -87,7 +88,8 @@ def test_change_mode_shows_the_bump_and_its_rise_on_hover(change_server: str, tm
             pg.check("#show-change")
             pg.wait_for_function("window.fringescope.streamKind === 'change'", timeout=60_000)
             assert pg.text_content("#bar-title") == "change Δ, mm"
-            ticks = pg.eval_on_selector_all("#bar-ticks .tick", "els => els.map(e => e.textContent)")
+            ticks = pg.eval_on_selector_all("#bar-ticks .tick",
+                                            "els => els.map(e => e.textContent)")
             assert ticks == ["+1", "+0.5", "0", "-0.5", "-1"]
             # the bump's crest is red on the canvas: the diverging scale's rise side
             box = pg.eval_on_selector("#depth", "c => [c.width, c.height]")
