@@ -1,8 +1,8 @@
 """The live change map: a reference kept in the data folder, and each new map compared with it.
 
 The reference (depth, σ, points and where it came from) is written atomically to
-``<data_dir>/reference/`` (``reference.npz`` + ``reference.json``) and read back at start, so
-it survives a restart. While one is set, every published depth map is handed to a thread of
+``<data_dir>/reference/reference.npz`` (``reference.json`` beside it: the description, for
+people) and read back at start, so it survives a restart. While one is set, every published depth map is handed to a thread of
 its own (newest wins: the reconstruction thread never waits for it) that compares it
 (:func:`app.analysis.change.compare`) and publishes a :class:`LiveChange` in its slot.
 """
@@ -127,13 +127,13 @@ class ReferenceStore:
             return self._ref
 
     def _load(self) -> None:
-        meta_path, data_path = self.folder / "reference.json", self.folder / "reference.npz"
-        if not meta_path.is_file() or not data_path.is_file():
+        data_path = self.folder / "reference.npz"
+        if not data_path.is_file():
             return
         try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
             with np.load(data_path) as z:
                 arrays = {k: np.asarray(z[k], np.float32) for k in ("depth", "sigma", "points")}
+                meta = json.loads(str(z["meta"]))
             if meta.get("format") != REFERENCE_FORMAT:
                 raise ValueError(f"format {meta.get('format')!r}")
             self._ref = Reference(arrays["depth"], arrays["sigma"], arrays["points"],
@@ -143,16 +143,17 @@ class ReferenceStore:
             log.warning("reference in %s not loaded: %s", self.folder, exc)
 
     def set(self, ref: Reference) -> None:
+        meta = json.dumps({"format": REFERENCE_FORMAT, "created": ref.created,
+                           "source": ref.source, "calibration": ref.calibration})
         buf = io.BytesIO()
-        np.savez(buf, depth=ref.depth, sigma=ref.sigma, points=ref.points)
+        # one file holds the arrays and what they are: replaced atomically as a whole
+        np.savez(buf, depth=ref.depth, sigma=ref.sigma, points=ref.points, meta=np.array(meta))
         self.folder.mkdir(parents=True, exist_ok=True)
         with self._lock:
-            # the arrays first: a crash between the two leaves the old json naming old data
-            # only when both are present; a json newer than its arrays is caught at load
             atomic_write_bytes(self.folder / "reference.npz", buf.getvalue())
-            atomic_write_text(self.folder / "reference.json", json.dumps(
-                {"format": REFERENCE_FORMAT, "created": ref.created, "source": ref.source,
-                 "calibration": ref.calibration}, indent=2) + "\n")
+            # a copy of the description for people; the service reads the npz only
+            atomic_write_text(self.folder / "reference.json",
+                              json.dumps(json.loads(meta), indent=2) + "\n")
             self._ref = ref
 
     def clear(self) -> bool:
@@ -160,7 +161,7 @@ class ReferenceStore:
         with self._lock:
             had = self._ref is not None
             self._ref = None
-            for name in ("reference.json", "reference.npz"):
+            for name in ("reference.npz", "reference.json"):
                 (self.folder / name).unlink(missing_ok=True)
             return had
 

@@ -88,6 +88,7 @@ def test_reference_and_change_map_live_and_across_a_restart(tmp_path, twin_calib
         assert client.delete("/api/reference").status_code == 204
         assert client.delete("/api/reference").status_code == 404
         assert client.get("/api/reference").status_code == 404
+    assert not (data / "data" / "reference" / "reference.npz").exists()
     assert not (data / "data" / "reference" / "reference.json").exists()
 
 
@@ -109,10 +110,14 @@ def test_bad_reference_requests_are_refused_with_reasons(tmp_path, twin_calibrat
         # a reference taken with another calibration: 409 with the reason, nothing shown
         wait_for(client, lambda st: st["results_published"] >= 1, 300, "a depth map")
         assert client.post("/api/reference").status_code == 200
-    meta_path = data / "data" / "reference" / "reference.json"
-    meta = json.loads(meta_path.read_text())
+    npz_path = data / "data" / "reference" / "reference.npz"
+    with np.load(npz_path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
     meta["calibration"] = "2020-01-01T00:00:00"
-    meta_path.write_text(json.dumps(meta))
+    arrays["meta"] = np.array(json.dumps(meta))
+    with open(npz_path, "wb") as f:
+        np.savez(f, **arrays)
     with _client(data, twin_calibration) as client:
         wait_for(client, lambda st: st["results_published"] >= 2, 300, "depth maps")
         deadline = time.monotonic() + 60
