@@ -53,7 +53,8 @@ def _make_viewer(settings: Settings,
         return None, None
     recorder = instrument.recorder
     viewer = Viewer(instrument, port=settings.viewer_port, max_points=settings.viewer_max_points,
-                    measure_source=lambda: recorder.measurements)
+                    measure_source=lambda: recorder.measurements,
+                    change_source=instrument.change.latest_delta)
     return viewer, viewer_router(viewer)
 
 
@@ -78,7 +79,7 @@ def _make_igtl(settings: Settings, instrument: Instrument,
     return IgtlServer(instrument.results, host=settings.igtl_host, port=settings.igtl_port,
                       max_points=settings.igtl_max_points,
                       status=lambda: instrument.status().to_dict(), placement=placement,
-                      poses=poses)
+                      poses=poses, changes=instrument.change.slot)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

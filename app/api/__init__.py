@@ -8,6 +8,7 @@ from app.api import (
     alarms,
     analysis,
     calibration,
+    change,
     control,
     limits,
     measure,
@@ -21,7 +22,7 @@ from app.api import (
 def api_router() -> APIRouter:
     router = APIRouter()
     for module in (control, alarms, limits, results, calibration, analysis, measure, recordings,
-                   schedules, stream):
+                   schedules, stream, change):
         router.include_router(module.router)
     return router
 

@@ -38,7 +38,8 @@ JSON_LIMITS_BYTES: dict[tuple[str, str], int] = {
     ("PUT", "/api/measure/tool"): 1024 * 1024,
 }
 #: capture-set uploads: bounded by ``max_upload_mb`` and checked by app.api.upload
-UPLOAD_ROUTES = frozenset({("POST", "/api/reconstruct"), ("POST", "/api/phase")})
+UPLOAD_ROUTES = frozenset({("POST", "/api/reconstruct"), ("POST", "/api/phase"),
+                           ("POST", "/api/reference")})
 
 
 def json_limit_bytes(method: str, path: str) -> int:

@@ -227,6 +227,7 @@ class Recording:
         info: dict[str, Any] | None = None,
         codec: str = "png",
         encoded: list[bytes] | None = None,
+        change_mm: npt.ArrayLike | None = None,
     ) -> str:
         """Append one capture set (and its depth map) and return its folder name.
 
@@ -240,6 +241,8 @@ class Recording:
             encoded: the frames already encoded with ``codec``
                 (:func:`app.capture.captureset.encode_frames`), so that encoding can run
                 beside the previous set's writing.
+            change_mm: (H, W) change map Δ against the reference in mm (NaN not compared),
+                saved as ``change.npy`` (float32).
         """
         with self._lock:
             if self._closed:
@@ -248,6 +251,8 @@ class Recording:
             folder = f"set_{index:04d}"
             t = time.time() if timestamp is None else float(timestamp)
             extra = {"depth.npy": depth_npy_bytes(depth_mm)} if depth_mm is not None else {}
+            if change_mm is not None:
+                extra["change.npy"] = depth_npy_bytes(change_mm)
             stamped = CaptureSet(
                 frames=capture.frames, schedule=capture.schedule, exposure_ms=capture.exposure_ms,
                 led=capture.led, extra={**capture.extra, "timestamp": _iso(t), "index": index},

@@ -13,12 +13,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.outputs.change import delta_colormap
 from app.outputs.encoding import DEFAULT_RANGE_MM
 from app.outputs.encoding import texture_u8 as _texture_u8
 from app.recon.colormap import depth_colormap
 from app.service.reconstruction import LiveResult
 
-COLOR_MODES = ("height", "texture", "sigma")
+COLOR_MODES = ("height", "texture", "sigma", "change")
+CHANGE_RANGE_MM = 1.0  # the change colours span ±1 mm (blue sink, white none, red rise)
 SIGMA_RANGE_MM = (0.0, 0.1)  # colour range of the 1-σ depth noise
 PANEL_WIDTH_PX = 360  # GUI images are downscaled to this width: they are previews
 
@@ -38,6 +40,7 @@ def cloud_arrays(
     max_points: int,
     color_mode: str = "height",
     range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
+    change_mm: npt.NDArray[np.float32] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8], int]:
     """Decimated valid points of a result and their colours.
 
@@ -50,10 +53,13 @@ def cloud_arrays(
     max_points : int
         Upper bound on the returned count (a regular grid stride, so the cloud keeps
         the image's sampling pattern).
-    color_mode : {"height", "texture", "sigma"}
+    color_mode : {"height", "texture", "sigma", "change"}
         ``sigma``: the 1-σ depth noise (``result.sigma``, mm) over 0–0.1 mm.
     range_mm : (float, float)
         Height colour range.
+    change_mm : (H, W) float32 or None
+        ``change``: Δ against the change reference, mm (NaN, or None: drawn black), on the
+        diverging scale of :mod:`app.outputs.change` over ±1 mm.
 
     Returns
     -------
@@ -77,6 +83,10 @@ def cloud_arrays(
         sigma = getattr(result, "sigma", None)
         sig = np.full((h, w), np.nan, np.float32) if sigma is None else np.asarray(sigma)
         colors = depth_colormap(sig[::step, ::step], SIGMA_RANGE_MM)[keep]
+    elif color_mode == "change":
+        delta = (np.full((h, w), np.nan, np.float32)
+                 if change_mm is None or change_mm.shape != (h, w) else change_mm)
+        colors = delta_colormap(delta[::step, ::step], CHANGE_RANGE_MM)[keep]
     else:
         gray = texture_u8(result)[::step, ::step][keep]
         colors = np.repeat(gray[:, None], 3, axis=1)

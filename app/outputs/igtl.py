@@ -9,6 +9,8 @@ result is pushed, once, to every connected client as four messages (device names
 - ``FringescopeCloud`` — POLYDATA, the valid points in the camera frame, mm, decimated to at
   most ``max_points`` (every k-th valid pixel in raster order), one poly-vertex cell;
 - ``FringescopeStatus`` — STRING, the instrument's status as JSON.
+- ``FringescopeChange`` — IMAGE, float32 change Δ against the change reference in mm (NaN
+  where not compared), placed like the depth image; sent while a reference is set.
 
 Coordinates: the camera frame (x right, y down, z along the optical axis, mm) is sent as the
 world frame (flagged RAS, so Slicer takes it as is). Both images lie in the plane through the
@@ -62,6 +64,7 @@ DEPTH_DEVICE = "FringescopeDepth"
 TEXTURE_DEVICE = "FringescopeTexture"
 CLOUD_DEVICE = "FringescopeCloud"
 STATUS_DEVICE = "FringescopeStatus"
+CHANGE_DEVICE = "FringescopeChange"
 DEVICES = (DEPTH_DEVICE, TEXTURE_DEVICE, CLOUD_DEVICE, STATUS_DEVICE)
 
 HEADER_SIZE = pyigtl.MessageBase.IGTL_HEADER_SIZE
@@ -388,7 +391,8 @@ class IgtlServer:
     def __init__(self, results: LatestSlot[Any], *, host: str = "127.0.0.1", port: int = 18944,
                  max_points: int = 100_000, status: Callable[[], dict[str, Any]] | None = None,
                  placement: Callable[[], npt.NDArray[np.float64] | None] | None = None,
-                 poses: TrackerPoses | None = None) -> None:
+                 poses: TrackerPoses | None = None,
+                 changes: LatestSlot[Any] | None = None) -> None:
         if max_points < 1:
             raise ValueError(f"max_points: must be >= 1, got {max_points}")
         self.results = results
@@ -408,6 +412,10 @@ class IgtlServer:
         self.pushed = 0  # results packed and offered to the clients
         self.pushed_seq = 0  # the result sequence number pushed last
         self.last_error: str | None = None
+        # the change map against a reference (its own slot; pushed when it comes)
+        self.changes = changes
+        self._last_change: tuple[str, bytes] | None = None
+        self._unsubscribe_changes: Callable[[], None] | None = None
 
     @property
     def port(self) -> int:
@@ -426,6 +434,8 @@ class IgtlServer:
         for t in self._threads:
             t.start()
         self._unsubscribe = self.results.subscribe(self._on_result)
+        if self.changes is not None:
+            self._unsubscribe_changes = self.changes.subscribe(self._on_change)
         seq, latest = self.results.latest()
         if latest is not None:
             self._queue.put((seq, latest))
@@ -438,6 +448,8 @@ class IgtlServer:
         self.stopping = True
         if self._unsubscribe is not None:
             self._unsubscribe()
+        if self._unsubscribe_changes is not None:
+            self._unsubscribe_changes()
         self._queue.put(None)
         self._server.shutdown()
         self._server.server_close()
@@ -470,14 +482,36 @@ class IgtlServer:
         # called on the reconstruction thread: hand over, never block
         self._queue.put((seq, result))
 
+    def _on_change(self, _seq: int, change: Any) -> None:
+        """A change map (the change thread): ``FringescopeChange``, float32 Δ in mm (NaN not
+        compared), placed like the depth image, packed once and offered to every client."""
+        try:
+            matrix = self._placement() if self._placement is not None else None
+            delta = np.ascontiguousarray(np.asarray(change.result.cmap.delta, np.float32)[None])
+            data = pyigtl.ImageMessage(delta, ijk_to_world_matrix=np.eye(4) if matrix is None
+                                       else matrix, world_coordinate_system="ras",
+                                       timestamp=time.time(), device_name=CHANGE_DEVICE).pack()
+        except Exception as exc:  # a bad map must not end the stream
+            log.exception("OpenIGTLink: packing the change map failed")
+            self.last_error = f"OpenIGTLink: packing the change map failed: {exc}"
+            return
+        with self._lock:
+            self._last_change = (CHANGE_DEVICE, data)
+            clients = list(self._clients)
+        for c in clients:
+            c.offer(CHANGE_DEVICE, data)
+
     def _add(self, client: _Client) -> None:
         with self._lock:
             self._clients.append(client)
             latest = self._last
+            change = self._last_change
         log.info("OpenIGTLink client connected: %s", client.address)
         if latest is not None:  # a new client gets the latest result at once
             for device, data in latest:
                 client.offer(device, data)
+        if change is not None:
+            client.offer(*change)
 
     def _remove(self, client: _Client) -> None:
         with self._lock:

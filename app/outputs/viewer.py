@@ -91,6 +91,7 @@ class Viewer:
         range_mm: tuple[float, float] = DEFAULT_RANGE_MM,
         only_when_watched: bool = True,
         measure_source: Callable[[], list[dict[str, Any]]] | None = None,
+        change_source: Callable[[], npt.NDArray[np.float32] | None] | None = None,
     ) -> None:
         if max_points < 1:
             raise ValueError(f"max_points: must be >= 1, got {max_points}")
@@ -117,6 +118,8 @@ class Viewer:
         self._gui: dict[str, Any] = {}
         # the dashboard's measurements (kind + pixels) drawn on the cloud
         self.measure_source = measure_source
+        # the newest change map's Δ (mm) for the "change" colours (None: none)
+        self.change_source = change_source
         self._measure_nodes: list[Any] = []
         self.updates = 0  # results pushed to viser
         self.last_seq = 0
@@ -316,7 +319,10 @@ class Viewer:
         server = self._server
         if server is None:
             return
-        xyz, colors, step = cloud_arrays(result, self.max_points, self._color_mode, self._range_mm)
+        change = (self.change_source() if self.change_source is not None
+                  and self._color_mode == "change" else None)
+        xyz, colors, step = cloud_arrays(result, self.max_points, self._color_mode, self._range_mm,
+                                         change)
         # Previews from a strided copy: colouring all 1.4 Mpx for a 360 px panel is waste.
         k = max(1, np.asarray(result.depth).shape[1] // (2 * PANEL_WIDTH_PX))
         depth_rgb = preview(depth_colormap(np.asarray(result.depth)[::k, ::k], self._range_mm))

@@ -393,6 +393,35 @@ def _window_kernel(qh, mh, hot, radius, thresholds,  # type: ignore[no-untyped-d
                     cnt[u] -= mh[sub, u]
 
 
+def pooled_window_mask(qh: npt.NDArray[np.float32], mh: npt.NDArray[np.uint8],
+                       hot: npt.NDArray[np.bool_], window_px: int,
+                       thresholds: npt.NDArray[np.float32],
+                       ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.int32]]:
+    """The window half of the pooled test, for any per-pixel chi-square statistic Q.
+
+    Args:
+        qh: (H, W) float32, the sum of Q over the row's pixels u − r … u + r (0 where untested).
+        mh: (H, W) uint8, how many of those pixels were tested.
+        hot: (H, W) bool, pixels flagged on their own.
+        window_px: side k of the window (odd), r = k // 2.
+        thresholds: :func:`window_thresholds` for that window (entry m for m tested pixels).
+
+    Returns:
+        ((H, W) mask: the k × k window sum exceeds its threshold or ``hot``, (H,) int32 flagged
+        pixels per row).
+    """
+    radius = _check_window(window_px) // 2
+    if thresholds.shape != (window_px * window_px + 1,):
+        raise ValueError(f"thresholds: expected ({window_px * window_px + 1},), "
+                         f"got {thresholds.shape}")
+    h, w = qh.shape
+    mask = np.empty((h, w), np.bool_)
+    row_any = np.empty(h, np.int32)
+    with KERNEL_LOCK:
+        _window_kernel(qh, mh, hot, radius, thresholds, mask, row_any)
+    return mask, row_any
+
+
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def _invalidate(depth, sigma, points, valid, reason, v, u,  # type: ignore[no-untyped-def]
                 code):  # pragma: no cover - compiled
@@ -647,4 +676,4 @@ def map_time(timestamps: list[float] | npt.NDArray[np.float64], frequencies: tup
 __all__ = ["DEFAULT_FALSE_ALARM_RATE", "DEFAULT_GROW_PX", "DEFAULT_WINDOW_PX", "MOTION",
            "PIXEL_BOUND_RATE", "MotionPass", "MotionTest", "chi2_isf", "chi2_sf",
            "group_mid_times", "invalidate_motion", "map_time", "motion_k", "motion_mask",
-           "sigma_bounds", "window_thresholds"]
+           "pooled_window_mask", "sigma_bounds", "window_thresholds"]

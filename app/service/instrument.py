@@ -16,6 +16,7 @@ import inspect
 import threading
 import time
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,6 +37,7 @@ from app.service import calibration_store
 from app.service.alarms import AlarmBoard
 from app.service.calibration_session import CalibrationSession
 from app.service.calibrations import CalibrationManager
+from app.service.change import ChangeService
 from app.service.devices import DeviceBundle, create_devices
 from app.service.pipeline import LivePipeline, PipelineConfig
 from app.service.poses import TrackerPoses
@@ -85,6 +87,10 @@ class Instrument:
         # errors their part keeps without a time: (message, first seen monotonic, ISO time)
         self._seen_errors: dict[str, tuple[str, float, str | None]] = {}
         self.results.subscribe(self._on_map)
+        # the change map against a reference kept in the data folder (its own thread)
+        self.change = ChangeService(Path(settings.data_dir) / "reference",
+                                    lambda: self.calibration)
+        self.results.subscribe(self.change.on_map)
         self._twin_scene_moved = False  # the wizard put the twin's board in view
         # the status shows the recording and a schedule change waits for its end
         self.recorder = Recorder(self, min_free_mb=settings.recording_min_free_mb,
@@ -120,6 +126,7 @@ class Instrument:
         self.pipeline.start(self.pipeline.devices or create_devices(self.settings))
         assert self.pipeline.devices is not None
         self.calibrations.load_initial(is_sim=self.pipeline.devices.is_sim)
+        self.change.start()
         self.pipeline.run()
 
     def close(self, timeout_s: float = 15.0) -> None:
@@ -129,11 +136,12 @@ class Instrument:
         self._closed = True
         self.recorder.stop()  # finish a running recording before the devices stop
         self.pipeline.close(timeout_s)
+        self.change.close(timeout_s)
         self.calibrations.join(timeout_s)
 
     def threads(self) -> list[threading.Thread]:
         """The instrument's own threads (for shutdown checks)."""
-        out = self.pipeline.threads()
+        out = self.pipeline.threads() + self.change.threads()
         if (creating := self.calibrations.thread()) is not None:
             out.append(creating)
         return out

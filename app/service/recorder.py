@@ -459,14 +459,20 @@ class Recorder:
             raise self._stopped(rec, exc) from exc
         if self.encode_workers > 1:
             self.write_cpu_s += sum(pool_cpu)
+        change_mm = None
+        changes = getattr(self.instrument, "change", None)
+        if res is not None and changes is not None and changes.store.reference is not None:
+            live = changes.change_for(res.seq, CHANGE_WAIT_S)  # its own thread made it
+            info["change"] = "none" if live is None else live.result.mode
+            change_mm = None if live is None else live.result.cmap.delta
         return _Prepared(capture, None if res is None else res.depth,
-                         now_wall - (now_mono - fs.received_s), info, encoded)
+                         now_wall - (now_mono - fs.received_s), info, encoded, change_mm)
 
     def _store(self, rec: Recording, p: _Prepared) -> None:
         try:
             self._check_disk()
             rec.add_set(p.capture, depth_mm=p.depth_mm, timestamp=p.timestamp, info=p.info,
-                        codec=self.codec, encoded=p.encoded)
+                        codec=self.codec, encoded=p.encoded, change_mm=p.change_mm)
         except (OSError, ValueError) as exc:
             raise self._stopped(rec, exc) from exc
         self.sets_with_depth += p.depth_mm is not None
@@ -490,6 +496,9 @@ class Recorder:
 
 # raw sets waiting for their depth map; depth_wait_s (3 s) holds about 11 of geometric-9's
 _MAX_PENDING = 16
+#: how long a recorded set waits for its change map (the change thread makes it; a registered
+#: one can take longer: the set is then written without change.npy, info "change": "none")
+CHANGE_WAIT_S = 1.0
 _MAX_INBOX = 64  # sets and maps the collector has not looked at yet
 _Job = tuple[FrameSet, "LiveResult | None"]
 
@@ -503,6 +512,7 @@ class _Prepared:
     timestamp: float
     info: dict[str, Any]
     encoded: list[bytes]
+    change_mm: np.ndarray | None = None  # Δ against the change reference, mm (change.npy)
 
 
 class _StopRecording(Exception):

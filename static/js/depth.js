@@ -1,6 +1,9 @@
 // The depth view: the live colormap (WebSocket, polling as fallback), its colour range and bar.
 
 import { $, api, ApiError, fmt, say, withToken } from "./api.js";
+import {
+  changeMode, changeRange, drawChangeBar, fetchChange, setChangeRange, setupChange,
+} from "./change.js";
 import { drawColorbar } from "./colormap.js";
 import { drawRoi } from "./analysis.js";
 import { ui } from "./state.js";
@@ -12,13 +15,18 @@ const sigmaMode = () => $("show-sigma").checked;
 const shownRange = () => (sigmaMode() ? ui.sigmaRange : ui.range);
 
 function paintBar() {
+  if (changeMode()) {
+    $("bar-title").textContent = "change Δ, mm";
+    drawChangeBar($("colorbar"), $("bar-ticks"), changeRange());
+    return;
+  }
   const range = shownRange();
   $("bar-title").textContent = sigmaMode() ? "σ, mm" : "height, mm";
   if (range) drawColorbar($("colorbar"), $("bar-ticks"), range);
 }
 
 function showRangeInputs() {
-  const range = shownRange();
+  const range = changeMode() ? [-changeRange(), changeRange()] : shownRange();
   $("range-min").value = range ? String(range[0]) : "";
   $("range-max").value = range ? String(range[1]) : "";
   for (const id of ["range-min", "range-max"]) $(id).classList.remove("invalid");
@@ -26,6 +34,7 @@ function showRangeInputs() {
 
 // σ mode: the bar, its range inputs and the image switch to the σ map at once
 function onSigmaToggle() {
+  if ($("show-sigma").checked) $("show-change").checked = false;
   showRangeInputs();
   paintBar();
   ui.pendingBlob = null; // an image of the other kind waiting to be drawn
@@ -50,6 +59,13 @@ function onRangeChange() {
   $("range-min").classList.toggle("invalid", !ok);
   $("range-max").classList.toggle("invalid", !ok);
   if (!ok) return;
+  if (changeMode()) {
+    if (setChangeRange(lo, hi)) {
+      paintBar();
+      pollDepth(true);
+    }
+    return;
+  }
   if (sigmaMode()) {
     ui.sigmaRange = [lo, hi];
     paintBar();
@@ -134,7 +150,9 @@ export function connectStream() {
   ws.binaryType = "blob";
   ui.ws = ws;
   ws.onopen = () => { $("stream-kind").textContent = "live"; };
-  ws.onmessage = (ev) => { if (ui.ws === ws && !$("show-sigma").checked) showDepthBlob(ev.data, "stream"); };
+  ws.onmessage = (ev) => {
+    if (ui.ws === ws && !$("show-sigma").checked && !changeMode()) showDepthBlob(ev.data, "stream");
+  };
   ws.onclose = () => {
     if (ui.ws !== ws) return; // replaced on purpose
     ui.ws = null;
@@ -148,8 +166,16 @@ export function connectStream() {
 async function pollDepth(force = false) {
   const st = ui.status;
   const sigma = $("show-sigma").checked; // the σ map is polled, the stream carries depth
-  if (!force && !sigma && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
+  const change = changeMode(); // so is the change map
+  if (!force && !sigma && !change && ui.ws && ui.ws.readyState === WebSocket.OPEN) return;
   if (!st || !st.results_published) return; // nothing to fetch yet
+  if (change) {
+    try {
+      const blob = await fetchChange();
+      if (blob && changeMode()) await showDepthBlob(blob, "change");
+    } catch (_) { /* shown in the change line */ }
+    return;
+  }
   try {
     const query = sigma ? `field=sigma&${rangeQuery(ui.sigmaRange)}` : rangeQuery();
     const blob = await api(`/api/depth/latest?format=color&${query}`, { blob: true });
@@ -171,6 +197,7 @@ export function setupDepth() {
   paintBar();
   for (const id of ["range-min", "range-max"]) $(id).addEventListener("change", onRangeChange);
   $("show-sigma").addEventListener("change", onSigmaToggle);
+  setupChange(onSigmaToggle);
   onStatus(showWaiting);
   setInterval(() => pollDepth(), 700);
   connectStream();

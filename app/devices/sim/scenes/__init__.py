@@ -21,7 +21,9 @@ from app.devices.sim.scenes.tissue import (
     breathing_scene,
     flap_scene,
     pile_scene,
+    still_tissue_scene,
     tool_scene,
+    with_bumps,
 )
 
 SCENES: dict[str, Callable[[SimRig], Scene]] = {
@@ -36,6 +38,10 @@ SCENES: dict[str, Callable[[SimRig], Scene]] = {
     "sphere": sphere_scene,
     "breathing": breathing_scene,
     "tool": tool_scene,
+    "tissue_still": still_tissue_scene,
+    # the still loops with a 0.3 mm bump 3 mm across: the change map's demonstration
+    "tissue_bump": lambda rig: with_bumps(still_tissue_scene(rig), [(0.0, 0.0, 0.3, 3.0)],
+                                          "tissue_bump"),
 }
 
 

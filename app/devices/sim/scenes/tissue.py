@@ -13,6 +13,7 @@ from app.devices.sim.scenes.base import (
     F64,
     HeightField,
     Scene,
+    Sphere,
     Tool,
     frame_from_normal,
     smooth_noise,
@@ -180,3 +181,112 @@ def tool_scene(rig: SimRig, seed: int = 5) -> Scene:
 
     return Scene("tool", hf, tool=Tool(forceps, 1.3),
                  description="still intestine loops, forceps sweeping ±10 mm across them at 0.1 Hz")
+
+
+def still_tissue_scene(rig: SimRig, seed: int = 5) -> Scene:
+    """The intestine loops of :func:`pile_scene`, still: the reference scene of a change map."""
+    base = pile_scene(rig, seed)
+    return Scene("tissue_still", base.surface,
+                 description="still intestine loops (the change map's reference scene)")
+
+
+def with_bumps(scene: Scene, bumps: list[tuple[float, float, float, float]],
+               name: str | None = None) -> Scene:
+    """``scene`` with local bumps (height > 0) or dents (< 0) on its height field.
+
+    Args:
+        scene: the scene to deform (not changed).
+        bumps: ``(s_mm, t_mm, height_mm, diameter_mm)`` each: a raised-cosine bump
+            ``height·(1 + cos(π r / R)) / 2`` (R = diameter / 2) along the field's normal
+            centred at (s, t) of the field.
+        name: the new scene's name (default ``<name>_deformed``).
+    """
+    hf = scene.surface
+    ny, nx = hf.heights.shape
+    ss = hf.s0 + hf.ds * np.arange(nx)[None, :]
+    tt = hf.t0 + hf.ds * np.arange(ny)[:, None]
+    h = hf.heights.copy()
+    for s_mm, t_mm, height_mm, diameter_mm in bumps:
+        if not diameter_mm > 0:
+            raise ValueError(f"bumps: diameter must be > 0 mm, got {diameter_mm}")
+        r = np.hypot(ss - s_mm, tt - t_mm) / (0.5 * diameter_mm)
+        h += np.where(r < 1.0, 0.5 * height_mm * (1.0 + np.cos(math.pi * np.minimum(r, 1.0))),
+                      0.0)
+    surface = HeightField(hf.origin, hf.axes, h, hf.s0, hf.t0, hf.ds, hf.material, hf.texture,
+                          hf.printed)
+    return Scene(name or f"{scene.name}_deformed", surface, list(scene.spheres), scene.tool,
+                 scene.motion, scene.description + "; " + ", ".join(
+                     f"{'bump' if b[2] > 0 else 'dent'} {abs(b[2]):.2f} mm Ø {b[3]:.1f} mm"
+                     for b in bumps))
+
+
+def field_point(scene: Scene, s_mm: float, t_mm: float) -> F64:
+    """(3,) camera-frame point of the height field at (s, t) on its surface, mm."""
+    hf = scene.surface
+    i = int(round((t_mm - hf.t0) / hf.ds))
+    j = int(round((s_mm - hf.s0) / hf.ds))
+    out: F64 = hf.origin + hf.axes @ np.array([s_mm, t_mm, hf.heights[i, j]])
+    return out
+
+
+def scope_moved(scene: Scene, rotation_deg: float, axis: tuple[float, float, float],
+                translation_mm: tuple[float, float, float], pivot_mm: F64 | None = None,
+                name: str | None = None) -> Scene:
+    """``scene`` seen after the scope moved: every part moved rigidly in the camera frame.
+
+    ``X' = R (X − p) + p + t`` with R ``rotation_deg`` about ``axis`` through ``pivot_mm``
+    (default the surface's origin) and t ``translation_mm``; a scene motion and a tool path
+    move the same way.
+    """
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec(math.radians(rotation_deg) * np.asarray(axis, np.float64)
+                               / np.linalg.norm(axis)).as_matrix()
+    hf = scene.surface
+    pivot = hf.origin if pivot_mm is None else np.asarray(pivot_mm, np.float64)
+    shift = np.asarray(translation_mm, np.float64)
+
+    def move(p: F64) -> F64:
+        out: F64 = rot @ (np.asarray(p, np.float64) - pivot) + pivot + shift
+        return out
+
+    surface = HeightField(move(hf.origin), rot @ hf.axes, hf.heights, hf.s0, hf.t0, hf.ds,
+                          hf.material, hf.texture, hf.printed)
+    spheres = [Sphere(move(sp.centre), sp.radius_mm, sp.material) for sp in scene.spheres]
+    tool = None
+    if scene.tool is not None:
+        path = scene.tool.path
+
+        def moved_path(t: float) -> tuple[F64, F64]:
+            a, b = path(t)
+            return move(a), move(b)
+
+        tool = Tool(moved_path, scene.tool.radius_mm, scene.tool.material)
+    motion = None
+    if scene.motion is not None:
+        m = scene.motion
+
+        def motion_rotated(t: float) -> F64:
+            out: F64 = rot @ np.asarray(m(t), np.float64)
+            return out
+
+        motion = motion_rotated
+    return Scene(name or f"{scene.name}_moved", surface, spheres, tool, motion,
+                 scene.description + f"; scope moved {rotation_deg:g}° and "
+                 f"{np.linalg.norm(shift):g} mm")
+
+
+def pressing_tool(scene: Scene, s_mm: float, t_mm: float, press_mm: float,
+                  dent_diameter_mm: float, name: str | None = None) -> Scene:
+    """``scene`` with a still forceps tip pressing its surface at (s, t): a dent ``press_mm``
+    deep and ``dent_diameter_mm`` across, the tool's capsule (r 1.3 mm) resting in it."""
+    dented = with_bumps(scene, [(s_mm, t_mm, -press_mm, dent_diameter_mm)])
+    hf = dented.surface
+    radius = 1.3
+    tip_local = np.array([s_mm, t_mm, -press_mm + radius])
+    tip = hf.origin + hf.axes @ tip_local
+    direction = hf.axes @ np.array([0.3, -0.4, 1.0])  # the shaft rises toward the scope
+    end = tip + 40.0 * direction / np.linalg.norm(direction)
+    return Scene(name or f"{scene.name}_pressed", hf, list(dented.spheres),
+                 Tool(lambda t: (tip, end), radius), dented.motion,
+                 dented.description + f"; forceps pressing {press_mm:g} mm")

@@ -1,0 +1,176 @@
+"""The change map against analytic cases: exact Δ and σ_Δ, the null rate, a bump, the edges."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.recon.change import (
+    ChangeTest,
+    change_from_delta,
+    change_map,
+    pixel_area_mm2,
+    summarize,
+)
+from app.recon.motion import chi2_isf
+
+H, W = 1032, 1384
+
+
+def _sigma_field(rng: np.random.Generator, shape: tuple[int, int] = (H, W)) -> np.ndarray:
+    return rng.uniform(0.02, 0.1, shape).astype(np.float32)
+
+
+def _bump(shape: tuple[int, int], centre: tuple[float, float], radius_px: float,
+          height_mm: float) -> np.ndarray:
+    """A raised-cosine bump: ``height_mm`` at the centre, 0 beyond ``radius_px``."""
+    vv, uu = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    r = np.hypot(vv - centre[0], uu - centre[1]) / radius_px
+    return np.where(r < 1, 0.5 * height_mm * (1 + np.cos(math.pi * np.minimum(r, 1))), 0.0)
+
+
+def test_delta_and_sigma_are_exact_and_nan_where_either_map_is_invalid():
+    rng = np.random.default_rng(1)
+    ref = rng.uniform(2, 20, (60, 80)).astype(np.float32)
+    step = np.zeros_like(ref)
+    step[20:40, 30:60] = 0.5
+    cur = ref + step
+    s, s_ref = _sigma_field(rng, ref.shape), _sigma_field(rng, ref.shape)
+    cur[0, :10] = np.nan  # invalid now
+    ref[1, :10] = np.nan  # invalid in the reference
+    s[2, :10] = np.nan    # no σ: not comparable
+    cm = change_map(cur, s, ref, s_ref)
+    ok = np.ones(ref.shape, bool)
+    ok[:3, :10] = False
+    assert cm.compared == ok.sum()
+    assert np.isnan(cm.delta[~ok]).all() and np.isnan(cm.sigma[~ok]).all()
+    np.testing.assert_allclose(cm.delta[ok], (cur - ref)[ok], atol=1e-6)
+    np.testing.assert_allclose(cm.sigma[ok], np.hypot(s, s_ref)[ok], rtol=1e-6)
+    np.testing.assert_allclose(cm.significance[ok], np.abs(step[ok]) / np.hypot(s, s_ref)[ok],
+                               rtol=1e-5)
+    assert cm.delta.dtype == cm.sigma.dtype == np.float32 and cm.changed.dtype == bool
+    # a 0.5 mm step at σ_Δ ≤ 0.14 is flagged everywhere on it, nothing far from it
+    assert cm.changed[20:40, 30:60].all()
+    assert not cm.changed[:, :25].any() and not cm.changed[45:].any()
+    assert not cm.changed[~ok].any()
+
+
+def test_a_still_scene_flags_at_most_the_stated_share_and_no_more():
+    rng = np.random.default_rng(2)
+    shares = []
+    for _ in range(5):
+        truth = rng.uniform(0, 20, (H, W)).astype(np.float32)
+        s, s_ref = _sigma_field(rng), _sigma_field(rng)
+        cur = truth + s * rng.standard_normal((H, W)).astype(np.float32)
+        ref = truth + s_ref * rng.standard_normal((H, W)).astype(np.float32)
+        shares.append(change_map(cur, s, ref, s_ref).changed_share)
+    assert np.median(shares) <= 1e-4  # the default per-pixel rate
+    # the statistic is calibrated: at α = 1e-2 the share is near, never far above, α
+    cm = change_map(cur, s, ref, s_ref, test=ChangeTest(false_alarm_rate=1e-2))
+    assert 3e-3 < cm.changed_share <= 1.1e-2
+
+
+def test_the_thresholds_are_the_chi_square_quantiles_at_half_the_rate():
+    thr, q1 = ChangeTest(1e-4, 5).thresholds()
+    assert q1 == pytest.approx(chi2_isf(5e-5, 1), rel=1e-6)
+    assert thr[25] == pytest.approx(chi2_isf(5e-5, 25), rel=1e-6)
+    assert thr[0] == np.inf
+    thr1, q_none = ChangeTest(1e-4, 1).thresholds()
+    assert q_none == np.inf and thr1[1] == pytest.approx(chi2_isf(5e-5, 1), rel=1e-6)
+
+
+def test_a_small_bump_is_found_where_its_change_exceeds_half_its_height():
+    # 0.3 mm high, radius 50 px (3 mm across at 0.03 mm/px), both maps at σ = 0.045 mm
+    rng = np.random.default_rng(3)
+    truth = _bump((400, 500), (200, 250), 50, 0.3).astype(np.float32)
+    sig = np.full(truth.shape, 0.045, np.float32)
+    base = rng.uniform(5, 10, truth.shape).astype(np.float32)
+    ref = base + sig * rng.standard_normal(truth.shape).astype(np.float32)
+    cur = base + truth + sig * rng.standard_normal(truth.shape).astype(np.float32)
+    cm = change_map(cur, sig, ref, sig)
+    region = truth > 0.15
+    assert cm.changed[region].mean() >= 0.9
+    # at the crest Δ is within 2 σ_Δ of the truth (in 95 % of its pixels: Gaussian noise)
+    crest = truth >= 0.95 * 0.3
+    assert (np.abs(cm.delta - truth)[crest] <= 2 * cm.sigma[crest]).mean() >= 0.9
+    far = np.ones(truth.shape, bool)
+    far[130:270, 180:320] = False
+    assert cm.changed[far].mean() <= 1e-4
+
+
+def test_a_lone_strong_change_is_seen_and_lone_noise_is_not():
+    rng = np.random.default_rng(4)
+    sig = np.full((200, 200), 0.05, np.float32)
+    ref = np.zeros((200, 200), np.float32)
+    cur = (sig * rng.standard_normal(ref.shape)).astype(np.float32)
+    cur[100, 100] = 0.5  # 7 σ_Δ in one pixel: a thread, a speck of tissue
+    cm = change_map(cur, sig, ref, np.zeros_like(sig) + 1e-6)
+    assert cm.changed[100, 100]
+    # the pixel and the windows around it; elsewhere only the stated rate's false alarms
+    near = np.zeros(ref.shape, bool)
+    near[98:103, 98:103] = True
+    assert cm.changed[near].sum() >= 9 and cm.changed[~near].mean() <= 1e-3
+
+
+def test_change_from_delta_is_the_same_test():
+    rng = np.random.default_rng(5)
+    d = (0.05 * rng.standard_normal((100, 120))).astype(np.float32)
+    d[40:60, 40:60] += 0.3
+    s = np.full(d.shape, 0.05, np.float32)
+    a = change_from_delta(d, s)
+    b = change_map(d, s, np.zeros_like(d), np.zeros_like(d))
+    assert np.array_equal(a.changed, b.changed) and np.array_equal(a.delta, b.delta)
+    assert a.changed[45:55, 45:55].all()
+
+
+def test_summary_names_the_largest_rise_and_sink_and_the_area():
+    sig = np.full((50, 60), 0.02, np.float32)
+    ref = np.zeros((50, 60), np.float32)
+    cur = ref.copy()
+    cur[10:15, 10:15] = 0.4
+    cur[12, 12] = 0.6
+    cur[30:35, 40:45] = -0.3
+    cm = change_map(cur, sig, ref, sig)
+    area = np.full(cur.shape, 0.01, np.float32)
+    sm = summarize(cm, area)
+    assert sm.rise_px == (12, 12) and sm.rise_mm == pytest.approx(0.6)
+    assert sm.rise_sigma_mm == pytest.approx(math.hypot(0.02, 0.02), rel=1e-5)
+    assert sm.sink_mm == pytest.approx(-0.3) and sm.sink_px is not None
+    assert sm.changed_area_mm2 == pytest.approx(0.01 * cm.changed_pixels)
+    quiet = summarize(change_map(ref, sig, ref, sig), area)
+    assert quiet.rise_mm is None and quiet.sink_mm is None and quiet.changed_area_mm2 == 0
+
+
+def test_pixel_area_of_a_fronto_parallel_plane_is_the_footprint_squared():
+    f, z = 2000.0, 40.0
+    vv, uu = np.mgrid[0:30, 0:40].astype(np.float32)
+    pts = np.stack([(uu - 20) * z / f, (vv - 15) * z / f, np.full_like(uu, z)], -1)
+    pts[5, 5] = np.nan
+    area = pixel_area_mm2(pts)
+    assert np.nanmax(np.abs(area - (z / f) ** 2)) < 1e-9 + 1e-5 * (z / f) ** 2
+    assert np.isfinite(area[20:, 20:]).all()
+
+
+@pytest.mark.parametrize(("kwargs", "name"), [
+    ({"depth": np.zeros(5, np.float32)}, "depth"),
+    ({"sigma": np.zeros((4, 4), np.float32)}, "sigma"),
+    ({"ref_depth": np.zeros((3, 5), np.float32)}, "ref_depth"),
+    ({"ref_sigma": "x"}, "ref_sigma"),
+])
+def test_bad_arrays_are_named(kwargs, name):
+    args = {k: np.zeros((3, 4), np.float32) for k in ("depth", "sigma", "ref_depth", "ref_sigma")}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=name):
+        change_map(**args)
+
+
+@pytest.mark.parametrize(("kwargs", "name"), [
+    ({"false_alarm_rate": 0.0}, "false_alarm_rate"), ({"false_alarm_rate": float("nan")},
+                                                      "false_alarm_rate"),
+    ({"window_px": 4}, "window_px"), ({"window_px": 17}, "window_px"),
+])
+def test_bad_settings_are_named(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        ChangeTest(**kwargs)
