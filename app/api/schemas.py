@@ -229,11 +229,42 @@ class PoseOut(BaseModel):
     preview_url: str
 
 
+class PoseAdviceOut(BaseModel):
+    """The next board pose (app.calib.coverage.PoseAdvice)."""
+
+    region: str = Field(description="image region for the board's centre: 'lower-left', 'upper', 'centre', ...")
+    u_px: float = Field(description="that region's centre, column, px")
+    v_px: float = Field(description="that region's centre, row, px")
+    height_mm: float = Field(description="the board centre's height above the reference plane, mm")
+    tilt_vertical_deg: float = Field(description="tilt about the image's vertical axis, deg (+: right edge nearer)")
+    tilt_horizontal_deg: float = Field(description="tilt about the horizontal axis, deg (+: bottom edge nearer)")
+    text: str = Field(description="the advice in words")
+
+
+class CoverageOut(BaseModel):
+    """Image x height cells the found poses cover, and the model's sigma per cell."""
+
+    cells: list[int] = Field(description="[columns, rows] of image cells")
+    height_edges_mm: list[float] = Field(description="height bin edges above the reference plane, mm")
+    poses: int = Field(description="poses with the board found")
+    covered: list[list[list[int]]] = Field(description="[bin][row][col] 1 where board points fall")
+    sigma_model_um: list[list[list[float | None]]] = Field(
+        description="[bin][row][col] the depth model's 1-sigma at the cell centre, um (null: no model yet)")
+    covered_share: float = Field(description="share of cells with board points")
+    calibrated_share: float = Field(description="share of cells covered or with sigma_model within tolerance")
+    target_share: float = Field(description="calibrated share at which the volume counts as reached")
+    sigma_tolerance_um: float
+    reached: bool = Field(description="the calibrated volume reaches the target")
+    status: str = Field(description="the shares against the target, one line")
+    suggestion: PoseAdviceOut
+
+
 class SessionOut(BaseModel):
     board: dict[str, Any]
     created: str
     poses: list[PoseOut]
     solved: bool
+    coverage: CoverageOut
 
 
 class SolveIn(Strict):

@@ -435,6 +435,38 @@ def geometric_sigma(model: GeometricModel, plane: ReferencePlane,
     return sigma
 
 
+def report_coverage(samples: BoardSamples, plane: ReferencePlane, rays: Callable[[F64], F64],
+                    model: GeometricModel | None, spec: CoverageSpec | None = None
+                    ) -> tuple[CoverageMap, PoseAdvice]:
+    """Coverage and the next pose after a fit: its control points per pose (their board tilt from
+    a plane through each pose's points) and σ_model of its geometric model (None: no σ).
+
+    Args:
+        samples: the fit's control points (``CalibrationReport.samples``).
+        plane: the reference plane; rays: pixels (n, 2) → undistorted normalised rays (n, 2).
+        model: the fitted geometric model (``CalibrationReport.geometric``) or None.
+    """
+    pts = samples.points_mm(plane)
+    n0 = np.asarray(plane.normal, np.float64)
+    x_ax = np.array([1.0, 0.0, 0.0]) - n0[0] * n0
+    x_ax /= np.linalg.norm(x_ax)
+    y_ax = np.cross(n0, x_ax)
+    y_ax = y_ax if y_ax[1] >= 0 else -y_ax
+    poses = []
+    for k in np.unique(samples.pose):
+        sel = samples.pose == k
+        p = pts[sel]
+        _, _, vt = np.linalg.svd(p - p.mean(axis=0))
+        n_k = vt[2] if float(vt[2] @ n0) >= 0 else -vt[2]
+        c = float(n_k @ n0)
+        poses.append(PoseGeometry(np.stack([samples.u[sel], samples.v[sel]], axis=1), samples.z_mm[sel],
+                                  math.degrees(math.atan2(-float(n_k @ x_ax), c)),
+                                  math.degrees(math.atan2(-float(n_k @ y_ax), c))))
+    sigma = None if model is None else geometric_sigma(model, plane, rays)
+    cov = coverage_map(poses, samples.image_size, sigma=sigma, spec=spec)
+    return cov, suggest_pose(cov, poses)
+
+
 def _heights_on_plane(g: PoseGeometry, uv: F64, rays: F64, cam: F64, dist: F64,
                       plane: ReferencePlane) -> F64:
     """Heights (mm) of pixels ``uv`` on the board plane of pose ``g``: its dense samples' points

@@ -33,7 +33,7 @@ from app.devices.sim.scenes import board_poses, board_scene
 from app.recon import ReconResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
-from app.service.calibration_session import CalibrationSession
+from app.service.calibration_session import CalibrationSession, advice_dict, twin_board_pose
 from app.service.calibrations import CalibrationManager
 from app.service.devices import DeviceBundle, create_devices
 from app.service.pipeline import LivePipeline, PipelineConfig
@@ -150,35 +150,37 @@ class Instrument:
     def suggest_pose(self) -> dict[str, Any]:
         """Where to hold the board for the session's next pose; the twin puts its board there.
 
-        The poses are the simulator's calibration poses (pose 0 the reference plane, then up
-        to 18 mm higher, tilted by about 30°); the next one is the count of poses with the
-        board found. On the twin the board (the session's spec) moves there and the exposure
-        is set for it; on hardware the answer is the hint alone.
+        Pose 0 is the reference plane (flat, the farthest); after it the session's coverage
+        (:mod:`app.calib.coverage`) names the image region, height and tilts that add most
+        calibrated cells. On the twin the board (the session's spec) moves there and the
+        exposure is set for it; on hardware the answer is the advice alone. ``of`` is the
+        simulator's calibration series length, the poses planned at least.
         """
         session = self.calibrations.require_session()
         devices = self.pipeline.devices
         world = devices.world if devices is not None else None
         rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
-        poses = board_poses(rig, sim_calibration_poses(), seed=0)
-        k = min(sum(1 for p in session.poses if p.found), len(poses) - 1)
-        origin, axes = poses[k]
+        planned = sim_calibration_poses()
+        k = sum(1 for p in session.poses if p.found)
+        cov, advice = session.coverage()
+        pose = board_poses(rig, planned, seed=0)[0] if k == 0 else twin_board_pose(rig, session.board, advice)
+        origin, axes = pose
         ref = rig.reference
         height_mm = float(ref.normal @ origin + ref.offset_mm)
         cos_tilt = abs(float(axes[:, 2] @ ref.normal))  # axes: columns e_s, e_t, normal
         tilt_deg = float(np.degrees(np.arccos(min(cos_tilt, 1.0))))
         exposure_ms = None
         if world is not None:
-            world.set_scene(board_scene(rig, session.board, poses[k]))
+            world.set_scene(board_scene(rig, session.board, pose))
             self._twin_scene_moved = True
             exposure_ms = round(auto_exposure_ms(world, led=world.led, current=world.current,
                                                  bits=self.settings.bit_depth), 2)
             self.set_exposure(exposure_ms)
-        where = "flat on the reference plane (the farthest)" if k == 0 else \
-            f"{height_mm:.0f} mm above the reference plane, tilted {tilt_deg:.0f}°"
-        return {"index": k, "of": len(poses), "height_mm": round(height_mm, 2),
+        return {"index": k, "of": max(planned, k + 1), "height_mm": round(height_mm, 2),
                 "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
                 "exposure_ms": exposure_ms,
-                "hint": f"pose {k} of {len(poses)}: the whole board in view, {where}"}
+                "hint": f"pose {k} of {max(planned, k + 1)}: the whole board in view; {advice.text}",
+                "suggestion": advice_dict(advice), "coverage": session.coverage_dict()}
 
     def _restore_twin_scene(self) -> None:
         """After the session: the twin shows its configured scene again."""
