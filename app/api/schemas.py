@@ -48,6 +48,11 @@ class AutoExposureOut(BaseModel):
     saturation_limit: float
     trials: list[ExposureTrialOut]
     warning: str | None = None
+    bracket: bool = Field(False, description="exposure bracketing is on: the scene's lit pixels "
+                                             "invalid for low signal exceed the share below")
+    low_signal_share: float | None = Field(
+        None, description="share of lit, unsaturated pixels invalid for low signal at the chosen "
+                          "exposure (null: no calibration to judge with)")
 
 
 class LedIn(Strict):
@@ -60,11 +65,29 @@ class LedOut(BaseModel):
 
 
 class ModeIn(Strict):
-    rolling: StrictBool
+    rolling: StrictBool | None = Field(None, description="a depth map after every frequency group")
+    bracket: StrictBool | None = Field(
+        None, description="exposure bracketing: whole sets alternate between the exposure and "
+                          "+2 stops, fused per pixel (set mode only; half the depth rate)")
+
+    @model_validator(mode="after")
+    def _something(self) -> ModeIn:
+        if self.rolling is None and self.bracket is None:
+            raise ValueError("give rolling and/or bracket")
+        return self
 
 
 class ModeOut(BaseModel):
     mode: Literal["set", "rolling"]
+    bracket: bool = Field(description="exposure bracketing is on")
+
+
+class BracketOut(BaseModel):
+    on: bool
+    auto: bool = Field(description="switched on by the auto-exposure (the scene spans more "
+                                   "than one exposure)")
+    exposures_ms: list[float] = Field(description="[the exposure, the +2 stop one], ms")
+    note: str
 
 
 class AcquisitionOut(BaseModel):
@@ -122,7 +145,8 @@ class StatusOut(BaseModel):
         None, description="the camera noise model σ and the validity rule use: source (measured | nominal), "
                           "read_noise_dn, gain_dn_per_e, estimates")
     state_reason: str | None = Field(
-        None, description="why the state is not running, or the start-up phase")
+        None, description="why the state is not running, or the start-up phase; while running, "
+                          "what slows the depth rate (exposure bracketing)")
     phase: str | None = Field(
         None, description="start-up phase: 'calibrating pose k of n', 'compiling kernels', …; "
                           "null once depth maps come")
@@ -145,6 +169,9 @@ class StatusOut(BaseModel):
         default_factory=dict, description="the counters since the first depth map")
     calibration_session: dict[str, Any] | None = Field(
         None, description="the open calibration session (board, created, poses, solved) or null")
+    bracket: BracketOut | None = Field(
+        None, description="exposure bracketing while on (each map fuses two sets: half the depth "
+                          "rate); null when off")
 
 
 class ResultMeta(BaseModel):

@@ -90,6 +90,8 @@ class Status:
     warmup: dict[str, int] = field(default_factory=dict)
     since_warmup: dict[str, int] = field(default_factory=dict)
     calibration_session: dict[str, Any] | None = None  # the wizard's open session: board, poses
+    #: exposure bracketing when on: {"on", "auto", "exposures_ms": [base, long], "note"}; None off
+    bracket: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)

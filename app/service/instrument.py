@@ -208,6 +208,19 @@ class Instrument:
         self._changing("the mode change")
         self.pipeline.set_rolling(rolling)
 
+    def set_bracket(self, on: bool) -> None:
+        """Exposure bracketing on or off (``Conflict`` in rolling mode)."""
+        self._changing(f"exposure bracketing {'on' if on else 'off'}")
+        self.pipeline.set_bracket(on)
+
+    def bracket_status(self) -> dict[str, Any] | None:
+        """The status's ``bracket`` record: exposures, who switched it on, the rate note."""
+        acq, note = self.acquisition, self.pipeline.bracket_note()
+        if acq is None or note is None:
+            return None
+        return {"on": True, "auto": self.pipeline.bracket_auto,
+                "exposures_ms": [acq.exposure_ms, acq.bracket_long_ms], "note": note}
+
     def _changing(self, what: str) -> None:
         """Mark a change for the valid-fraction watch (a collapse after it is a status warning)."""
         self.calibrations.observe_live()
@@ -328,10 +341,10 @@ class Instrument:
             return "calibrating", self._calibration_phase()[0]
         if not acq.acquiring:
             return "stopped", "acquisition stopped (POST /api/acquisition/start)"
-        period = self._set_period_s()
+        period = self._set_period_s() * (2 if self.pipeline.bracketing else 1)  # a map per pair
         age = self._depth_age_s(now)
         if age is not None and age <= 2 * period:
-            return "running", None
+            return "running", self.pipeline.bracket_note()  # None unless bracketing: say why slower
         if self.calibration is None:
             return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
         if self.pipeline.engine_note:
@@ -476,6 +489,7 @@ class Instrument:
             patched_sets=counters["patched_sets"],
             warmup=dict(warmup),
             since_warmup=since,
+            bracket=self.bracket_status(),
             calibration_session=None if session is None else {
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},
