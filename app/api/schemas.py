@@ -186,6 +186,8 @@ class ResultMeta(BaseModel):
     recon_ms: float
     valid_fraction: float
     shape: list[int]
+    bracket_exposures_ms: list[float] | None = Field(
+        None, description="exposure bracketing: the two sets' exposures this map fuses (null: one set)")
     map_time: float | None = Field(None, description="the instant the depth stands for (frame timestamp clock, s): "
                                    "its finest frequency group's mid-exposure")
     moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")

@@ -30,7 +30,11 @@ function showStatus(st) {
       ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all`
       : "since start-up";
   }
-  $("m-mode").textContent = st.mode;
+  // exposure bracketing: two sets a map, the depth rate halves (the note says why)
+  $("m-mode").textContent = st.bracket
+    ? `${st.mode} · bracket ${st.bracket.exposures_ms.map((e) => fmt(e, 0)).join(" + ")} ms`
+    : st.mode;
+  $("m-mode").title = st.bracket ? st.bracket.note : "";
   const sch = st.schedule;
   $("m-sensor").textContent = (st.bit_depth ? `${st.bit_depth}-bit` : "–") + (sch
     ? ` · ${sch.unwrap || "hierarchical"} [${sch.frequencies.map((k) => +k.toFixed(2)).join(", ")}]×${sch.steps}` +
@@ -59,7 +63,7 @@ function showStatus(st) {
   if (st.phase) {
     const pct = typeof st.progress === "number" ? ` (${Math.round(100 * st.progress)} %)` : "";
     list.unshift(`⏳ ${st.state}: ${st.phase}${pct}`);
-  } else if (st.state_reason && st.state !== "fault") {
+  } else if (st.state_reason && st.state !== "fault" && st.state !== "running") {
     list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
   }
   if (st.last_error && st.last_error_resolved === false && st.state !== "fault") {

@@ -17,7 +17,7 @@ from app.calib.coverage import (
     suggest_pose,
 )
 from app.core.board import BoardSpec
-from app.devices.sim.optics import SimRig, default_rig, rotation_x, rotation_y
+from app.devices.sim.optics import SimRig, default_rig, rotation_y
 from app.devices.sim.scenes import board_points_mm, board_poses
 from app.devices.sim.scenes.base import frame_from_normal
 
