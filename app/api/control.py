@@ -46,7 +46,8 @@ def auto_exposure(
     exposure bracketing on if more than 10 % of the lit, unsaturated pixels stay invalid for low
     signal at it (the scene spans more than one exposure), off otherwise."""
     res = pipeline.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
-    return {**asdict(res), "bracket": pipeline.bracketing, "low_signal_share": pipeline.bracket_dim_share}
+    return {**asdict(res), "bracket": pipeline.bracketing,
+            "low_signal_share": pipeline.bracket_dim_share}
 
 
 @router.put("/led", response_model=LedOut, responses={**R400, **R422, **COMMON})

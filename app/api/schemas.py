@@ -187,7 +187,8 @@ class ResultMeta(BaseModel):
     valid_fraction: float
     shape: list[int]
     bracket_exposures_ms: list[float] | None = Field(
-        None, description="exposure bracketing: the two sets' exposures this map fuses (null: one set)")
+        None, description="exposure bracketing: the two sets' exposures this map fuses "
+                          "(null: one set)")
     map_time: float | None = Field(None, description="the instant the depth stands for (frame timestamp clock, s): "
                                    "its finest frequency group's mid-exposure")
     moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")
@@ -261,12 +262,15 @@ class PoseOut(BaseModel):
 class PoseAdviceOut(BaseModel):
     """The next board pose (app.calib.coverage.PoseAdvice)."""
 
-    region: str = Field(description="image region for the board's centre: 'lower-left', 'upper', 'centre', ...")
+    region: str = Field(description="image region for the board's centre: 'lower-left', "
+                                    "'upper', 'centre', ...")
     u_px: float = Field(description="that region's centre, column, px")
     v_px: float = Field(description="that region's centre, row, px")
     height_mm: float = Field(description="the board centre's height above the reference plane, mm")
-    tilt_vertical_deg: float = Field(description="tilt about the image's vertical axis, deg (+: right edge nearer)")
-    tilt_horizontal_deg: float = Field(description="tilt about the horizontal axis, deg (+: bottom edge nearer)")
+    tilt_vertical_deg: float = Field(
+        description="tilt about the image's vertical axis, deg (+: right edge nearer)")
+    tilt_horizontal_deg: float = Field(
+        description="tilt about the horizontal axis, deg (+: bottom edge nearer)")
     text: str = Field(description="the advice in words")
 
 
@@ -274,14 +278,18 @@ class CoverageOut(BaseModel):
     """Image x height cells the found poses cover, and the model's sigma per cell."""
 
     cells: list[int] = Field(description="[columns, rows] of image cells")
-    height_edges_mm: list[float] = Field(description="height bin edges above the reference plane, mm")
+    height_edges_mm: list[float] = Field(
+        description="height bin edges above the reference plane, mm")
     poses: int = Field(description="poses with the board found")
     covered: list[list[list[int]]] = Field(description="[bin][row][col] 1 where board points fall")
     sigma_model_um: list[list[list[float | None]]] = Field(
-        description="[bin][row][col] the depth model's 1-sigma at the cell centre, um (null: no model yet)")
+        description="[bin][row][col] the depth model's 1-sigma at the cell centre, um "
+                    "(null: no model yet)")
     covered_share: float = Field(description="share of cells with board points")
-    calibrated_share: float = Field(description="share of cells covered or with sigma_model within tolerance")
-    target_share: float = Field(description="calibrated share at which the volume counts as reached")
+    calibrated_share: float = Field(
+        description="share of cells covered or with sigma_model within tolerance")
+    target_share: float = Field(
+        description="calibrated share at which the volume counts as reached")
     sigma_tolerance_um: float
     reached: bool = Field(description="the calibrated volume reaches the target")
     status: str = Field(description="the shares against the target, one line")

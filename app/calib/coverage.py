@@ -1,4 +1,4 @@
-"""Calibration coverage: which image × height cells the board poses so far vouch for, and the next pose.
+"""Calibration coverage: the image × height cells the board poses so far vouch for; the next pose.
 
 The calibrated volume is cut into cells: image columns × rows × height bins above the reference
 plane (pose 0). A cell is *covered* when board points of some pose fall in it, and *calibrated*
@@ -58,7 +58,9 @@ class CoverageSpec:
 
     def __post_init__(self) -> None:
         if min(self.cells) < 1 or self.height_bins < 1:
-            raise ValueError(f"cells, height_bins: must be positive, got {self.cells}, {self.height_bins}")
+            raise ValueError(
+                f"cells, height_bins: must be positive, got {self.cells}, {self.height_bins}"
+            )
         lo, hi = self.height_range_mm
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ValueError(f"height_range_mm: need finite lo < hi, got {self.height_range_mm}")
@@ -158,36 +160,45 @@ class CoverageMap:
     def status_line(self) -> str:
         """One line: the shares against the target."""
         lo, hi = self.spec.height_range_mm
-        head = (f"coverage: {100 * self.calibrated_share:.0f} % of the image x {lo:g}-{hi:g} mm cells "
-                f"calibrated ({100 * self.covered_share:.0f} % with board points), "
-                f"target {100 * self.spec.target_share:.0f} %")
+        head = (
+            f"coverage: {100 * self.calibrated_share:.0f} % of the image x {lo:g}-{hi:g} mm cells "
+            f"calibrated ({100 * self.covered_share:.0f} % with board points), "
+            f"target {100 * self.spec.target_share:.0f} %"
+        )
         return head + (": reached" if self.reached else ": not yet")
 
     def table(self) -> str:
-        """Per height bin a character map of the cells (``#`` board points, ``+`` σ_model within the
-        tolerance, ``.`` neither) and the largest σ_model of the bin."""
+        """Per height bin a character map of the cells (``#`` board points, ``+`` σ_model within
+        the tolerance, ``.`` neither) and the largest σ_model of the bin."""
         edges = self.spec.height_edges_mm
         lines = [self.status_line()]
         for b in range(self.spec.height_bins):
             sig = self.sigma_mm[b]
             worst = f"{1000 * float(np.nanmax(sig)):.1f} um" if np.isfinite(sig).any() else "-"
-            lines.append(f"  heights {edges[b]:5.1f}-{edges[b + 1]:5.1f} mm (max sigma_model {worst}):")
+            lines.append(
+                f"  heights {edges[b]:5.1f}-{edges[b + 1]:5.1f} mm (max sigma_model {worst}):"
+            )
             for r in range(self.spec.cells[1]):
-                row = "".join("#" if self.covered[b, r, c] else "+" if self.calibrated[b, r, c] else "."
-                              for c in range(self.spec.cells[0]))
+                row = "".join(
+                    "#" if self.covered[b, r, c] else "+" if self.calibrated[b, r, c] else "."
+                    for c in range(self.spec.cells[0])
+                )
                 lines.append(f"    {row}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, object]:
-        """JSON-ready: shares, target, the maps as nested lists [bin][row][col] (σ in µm, None undefined)."""
+        """JSON-ready: shares, target, the maps as nested lists [bin][row][col] (σ in µm; None:
+        undefined)."""
         sig_um = np.round(1000.0 * self.sigma_mm, 3)
         return {
             "cells": list(self.spec.cells),
             "height_edges_mm": [round(float(x), 3) for x in self.spec.height_edges_mm],
             "poses": self.poses,
             "covered": self.covered.astype(int).tolist(),
-            "sigma_model_um": [[[float(x) if math.isfinite(x) else None for x in row] for row in b]
-                               for b in sig_um.tolist()],
+            "sigma_model_um": [
+                [[float(x) if math.isfinite(x) else None for x in row] for row in b]
+                for b in sig_um.tolist()
+            ],
             "covered_share": round(self.covered_share, 4),
             "calibrated_share": round(self.calibrated_share, 4),
             "target_share": self.spec.target_share,
@@ -196,8 +207,13 @@ class CoverageMap:
         }
 
 
-def coverage_map(poses: Sequence[PoseGeometry], image_size: tuple[int, int], *,
-                 sigma: SigmaFn | None = None, spec: CoverageSpec | None = None) -> CoverageMap:
+def coverage_map(
+    poses: Sequence[PoseGeometry],
+    image_size: tuple[int, int],
+    *,
+    sigma: SigmaFn | None = None,
+    spec: CoverageSpec | None = None,
+) -> CoverageMap:
     """The cells the board ``poses`` cover and σ_model per cell.
 
     Args:
@@ -218,11 +234,21 @@ def coverage_map(poses: Sequence[PoseGeometry], image_size: tuple[int, int], *,
     lo, hi = spec.height_range_mm
     points = np.zeros((nb, gh, gw), np.int64)
     for k, p in enumerate(poses):
-        uv, z = np.asarray(p.uv, np.float64).reshape(-1, 2), np.asarray(p.height_mm, np.float64).ravel()
+        uv, z = (
+            np.asarray(p.uv, np.float64).reshape(-1, 2),
+            np.asarray(p.height_mm, np.float64).ravel(),
+        )
         if len(uv) != len(z):
             raise ValueError(f"poses[{k}]: {len(uv)} pixels for {len(z)} heights")
-        ok = (np.isfinite(z) & (z >= lo) & (z <= hi) & (uv[:, 0] >= 0) & (uv[:, 0] < w)
-              & (uv[:, 1] >= 0) & (uv[:, 1] < h))
+        ok = (
+            np.isfinite(z)
+            & (z >= lo)
+            & (z <= hi)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < w)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < h)
+        )
         b = np.minimum(((z[ok] - lo) / (hi - lo) * nb).astype(np.int64), nb - 1)
         r = np.minimum((uv[ok, 1] * gh / h).astype(np.int64), gh - 1)
         c = np.minimum((uv[ok, 0] * gw / w).astype(np.int64), gw - 1)
@@ -251,9 +277,16 @@ def suggest_pose(cov: CoverageMap, poses: Sequence[PoseGeometry]) -> PoseAdvice:
     """
     w, h = cov.image_size
     if not poses:
-        return PoseAdvice("centre", w / 2, h / 2, 0.0, 0.0, 0.0,
-                          "lay the board flat at the farthest distance (pose 0, the reference plane), "
-                          "centred in the view")
+        return PoseAdvice(
+            "centre",
+            w / 2,
+            h / 2,
+            0.0,
+            0.0,
+            0.0,
+            "lay the board flat at the farthest distance (pose 0, the reference plane), "
+            "centred in the view",
+        )
     nb, gh, gw = cov.points.shape
     missing = ~cov.calibrated
     best: tuple[int, int, int] | None = None
@@ -261,7 +294,7 @@ def suggest_pose(cov: CoverageMap, poses: Sequence[PoseGeometry]) -> PoseAdvice:
     for b in range(nb):
         for i in range(3):
             for j in range(3):
-                block = missing[b, i * gh // 3:(i + 1) * gh // 3, j * gw // 3:(j + 1) * gw // 3]
+                block = missing[b, i * gh // 3 : (i + 1) * gh // 3, j * gw // 3 : (j + 1) * gw // 3]
                 key = (int(block.sum()), abs(i - 1) + abs(j - 1), -b)
                 if best is None or key > best:
                     best, where = key, (b, i, j)
@@ -277,19 +310,24 @@ def suggest_pose(cov: CoverageMap, poses: Sequence[PoseGeometry]) -> PoseAdvice:
     tv = -SUGGESTED_TILT_DEG if a else SUGGESTED_TILT_DEG
     th = -SUGGESTED_TILT_DEG if c else SUGGESTED_TILT_DEG
     place = "the centre of the view" if region == "centre" else f"the {region}"
-    text = (f"move the board to {place}, about {height:.0f} mm above the reference plane, and tilt it "
-            f"{abs(tv):.0f} deg about the vertical axis ({'right' if tv > 0 else 'left'} edge toward "
-            f"the scope) and {abs(th):.0f} deg about the horizontal axis "
-            f"({'bottom' if th > 0 else 'top'} edge toward the scope)")
+    text = (
+        f"move the board to {place}, about {height:.0f} mm above the reference plane, and tilt it "
+        f"{abs(tv):.0f} deg about the vertical axis ({'right' if tv > 0 else 'left'} edge toward "
+        f"the scope) and {abs(th):.0f} deg about the horizontal axis "
+        f"({'bottom' if th > 0 else 'top'} edge toward the scope)"
+    )
     if cov.reached:
-        text = f"target reached ({100 * cov.calibrated_share:.0f} % of cells calibrated): solve now; " \
-               f"or, to tighten sigma_model further, {text}"
+        text = (
+            f"target reached ({100 * cov.calibrated_share:.0f} % of cells calibrated): solve now; "
+            f"or, to tighten sigma_model further, {text}"
+        )
     cu = (j + 0.5) * w / 3
     cv_ = (i + 0.5) * h / 3
     return PoseAdvice(region, float(cu), float(cv_), height, tv, th, text)
 
 
 # -- board poses from detections (the wizard's quick view, before any solve) ------------------
+
 
 @dataclass(frozen=True)
 class BoardViews:
@@ -316,8 +354,13 @@ class BoardViews:
         return np.asarray(out, np.float64).reshape(-1, 2)
 
 
-def board_views(image_points: Sequence[npt.ArrayLike], object_points: Sequence[npt.ArrayLike],
-                image_size: tuple[int, int], *, grid: int = 13) -> BoardViews:
+def board_views(
+    image_points: Sequence[npt.ArrayLike],
+    object_points: Sequence[npt.ArrayLike],
+    image_size: tuple[int, int],
+    *,
+    grid: int = 13,
+) -> BoardViews:
     """Camera and board poses from detected board points (view 0 the reference plane).
 
     A quick fit for guidance, not the calibration: one view takes a nominal focal length (the
@@ -331,15 +374,21 @@ def board_views(image_points: Sequence[npt.ArrayLike], object_points: Sequence[n
         grid: each view's board is sampled on grid × grid points over its corners' extent.
     """
     if not image_points or len(image_points) != len(object_points):
-        raise ValueError(f"image_points: need one array per view of object_points, got "
-                         f"{len(image_points)} and {len(object_points)}")
+        raise ValueError(
+            f"image_points: need one array per view of object_points, got "
+            f"{len(image_points)} and {len(object_points)}"
+        )
     img = [np.asarray(p, np.float32).reshape(-1, 1, 2) for p in image_points]
     obj = [np.asarray(p, np.float32).reshape(-1, 3) for p in object_points]
     w, h = (int(x) for x in image_size)
     cam = np.array([[float(w), 0.0, (w - 1) / 2], [0.0, float(w), (h - 1) / 2], [0.0, 0.0, 1.0]])
     dist = np.zeros(5)
-    fixed = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
-             | cv2.CALIB_FIX_K3)
+    fixed = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K2
+        | cv2.CALIB_FIX_K3
+    )
     if len(img) == 1:
         ok, rvec, tvec = cv2.solvePnP(obj[0], img[0], cam, dist)
         if not ok:
@@ -373,15 +422,25 @@ def board_views(image_points: Sequence[npt.ArrayLike], object_points: Sequence[n
         xyz = board @ rot.T + tvec
         n_k = rot[:, 2] if float(rot[:, 2] @ tvec) < 0 else -rot[:, 2]
         c = float(n_k @ normal)
-        out.append(PoseGeometry(
-            uv.reshape(-1, 2).astype(np.float64), xyz @ normal + offset,
-            math.degrees(math.atan2(-float(n_k @ x_ax), c)), math.degrees(math.atan2(-float(n_k @ y_ax), c))))
+        out.append(
+            PoseGeometry(
+                uv.reshape(-1, 2).astype(np.float64),
+                xyz @ normal + offset,
+                math.degrees(math.atan2(-float(n_k @ x_ax), c)),
+                math.degrees(math.atan2(-float(n_k @ y_ax), c)),
+            )
+        )
     return BoardViews(cam, dist, ReferencePlane(normal, offset), out, (w, h))
 
 
-def model_sigma(views: BoardViews, phases: Sequence[npt.NDArray[np.floating]],
-                image_points: Sequence[npt.ArrayLike], *, fringes: int,
-                projector_width_px: int) -> SigmaFn | None:
+def model_sigma(
+    views: BoardViews,
+    phases: Sequence[npt.NDArray[np.floating]],
+    image_points: Sequence[npt.ArrayLike],
+    *,
+    fringes: int,
+    projector_width_px: int,
+) -> SigmaFn | None:
     """σ_model from a quick geometric-model fit to the board corners' phases: the jackknife over
     poses (:meth:`GeometricModel.height_sigma`); None with fewer than three poses or when the
     corners do not determine the model.
@@ -411,9 +470,17 @@ def model_sigma(views: BoardViews, phases: Sequence[npt.NDArray[np.floating]],
         ps.append(sample_phase(ph, uv))
         pose.append(np.full(len(uv), k, np.int64))
     u, v = np.concatenate(us), np.concatenate(vs)
-    samples = BoardSamples(u, v, views.rays(np.stack([u, v], axis=1)), np.concatenate(ps), np.concatenate(zs),
-                           np.concatenate(pose), views.image_size,
-                           int(fringes), int(projector_width_px))
+    samples = BoardSamples(
+        u,
+        v,
+        views.rays(np.stack([u, v], axis=1)),
+        np.concatenate(ps),
+        np.concatenate(zs),
+        np.concatenate(pose),
+        views.image_size,
+        int(fringes),
+        int(projector_width_px),
+    )
     try:
         model = GeometricModel.fit(samples, plane)
     except (ValueError, np.linalg.LinAlgError):
@@ -421,8 +488,9 @@ def model_sigma(views: BoardViews, phases: Sequence[npt.NDArray[np.floating]],
     return geometric_sigma(model, plane, views.rays)
 
 
-def geometric_sigma(model: GeometricModel, plane: ReferencePlane,
-                    rays: Callable[[F64], F64]) -> SigmaFn | None:
+def geometric_sigma(
+    model: GeometricModel, plane: ReferencePlane, rays: Callable[[F64], F64]
+) -> SigmaFn | None:
     """σ_model of a fitted geometric model (its jackknife), or None when it has none (a model
     read from a file)."""
     if len(model.jackknife) < 3:
@@ -430,14 +498,20 @@ def geometric_sigma(model: GeometricModel, plane: ReferencePlane,
 
     def sigma(uv: F64, height_mm: F64) -> F64:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        return model.height_sigma(uv[:, 0], uv[:, 1], rays(uv), np.asarray(height_mm, np.float64), plane)
+        return model.height_sigma(
+            uv[:, 0], uv[:, 1], rays(uv), np.asarray(height_mm, np.float64), plane
+        )
 
     return sigma
 
 
-def report_coverage(samples: BoardSamples, plane: ReferencePlane, rays: Callable[[F64], F64],
-                    model: GeometricModel | None, spec: CoverageSpec | None = None
-                    ) -> tuple[CoverageMap, PoseAdvice]:
+def report_coverage(
+    samples: BoardSamples,
+    plane: ReferencePlane,
+    rays: Callable[[F64], F64],
+    model: GeometricModel | None,
+    spec: CoverageSpec | None = None,
+) -> tuple[CoverageMap, PoseAdvice]:
     """Coverage and the next pose after a fit: its control points per pose (their board tilt from
     a plane through each pose's points) and σ_model of its geometric model (None: no σ).
 
@@ -459,20 +533,33 @@ def report_coverage(samples: BoardSamples, plane: ReferencePlane, rays: Callable
         _, _, vt = np.linalg.svd(p - p.mean(axis=0))
         n_k = vt[2] if float(vt[2] @ n0) >= 0 else -vt[2]
         c = float(n_k @ n0)
-        poses.append(PoseGeometry(np.stack([samples.u[sel], samples.v[sel]], axis=1), samples.z_mm[sel],
-                                  math.degrees(math.atan2(-float(n_k @ x_ax), c)),
-                                  math.degrees(math.atan2(-float(n_k @ y_ax), c))))
+        poses.append(
+            PoseGeometry(
+                np.stack([samples.u[sel], samples.v[sel]], axis=1),
+                samples.z_mm[sel],
+                math.degrees(math.atan2(-float(n_k @ x_ax), c)),
+                math.degrees(math.atan2(-float(n_k @ y_ax), c)),
+            )
+        )
     sigma = None if model is None else geometric_sigma(model, plane, rays)
     cov = coverage_map(poses, samples.image_size, sigma=sigma, spec=spec)
     return cov, suggest_pose(cov, poses)
 
 
-def _heights_on_plane(g: PoseGeometry, uv: F64, rays: F64, cam: F64, dist: F64,
-                      plane: ReferencePlane) -> F64:
+def _heights_on_plane(
+    g: PoseGeometry, uv: F64, rays: F64, cam: F64, dist: F64, plane: ReferencePlane
+) -> F64:
     """Heights (mm) of pixels ``uv`` on the board plane of pose ``g``: its dense samples' points
     fitted by a plane (camera frame), the pixels' rays intersected with it."""
-    r_s = np.concatenate([np.asarray(cv2.undistortPoints(g.uv.reshape(-1, 1, 2), cam, dist),
-                                     np.float64).reshape(-1, 2), np.ones((len(g.uv), 1))], axis=1)
+    r_s = np.concatenate(
+        [
+            np.asarray(cv2.undistortPoints(g.uv.reshape(-1, 1, 2), cam, dist), np.float64).reshape(
+                -1, 2
+            ),
+            np.ones((len(g.uv), 1)),
+        ],
+        axis=1,
+    )
     n = np.asarray(plane.normal, np.float64)
     pts = r_s * ((g.height_mm - plane.offset_mm) / (r_s @ n))[:, None]
     centre = pts.mean(axis=0)

@@ -170,7 +170,8 @@ class Acquisition:
 
     @property
     def bracket_long_ms(self) -> float:
-        """The bracket's second exposure: ``bracket_stops`` stops over :attr:`exposure_ms`, capped."""
+        """The bracket's second exposure: ``bracket_stops`` stops over :attr:`exposure_ms`
+        (capped at the longest exposure)."""
         return min(self.exposure_ms * 2.0**self.bracket_stops, EXPOSURE_RANGE_MS[1])
 
     def set_bracket(self, on: bool) -> None:

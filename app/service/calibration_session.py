@@ -170,8 +170,9 @@ class CalibrationSession:
             phases = [p.phase for p in found if p.phase is not None]
             try:
                 views = board_views(img, [p.detection.object_points for p in found], size)
-                sigma = model_sigma(views, phases, img, fringes=int(round(float(sched.frequencies[-1]))),
-                                    projector_width_px=sched.axis_length) if len(phases) == len(found) else None
+                fringes = int(round(float(sched.frequencies[-1])))
+                sigma = None if len(phases) != len(found) else model_sigma(
+                    views, phases, img, fringes=fringes, projector_width_px=sched.axis_length)
                 cov = coverage_map(views.poses, size, sigma=sigma)
                 result = cov, suggest_pose(cov, views.poses)
             except (ValueError, cv2.error, np.linalg.LinAlgError) as exc:  # guidance only: say why
@@ -186,7 +187,8 @@ class CalibrationSession:
     def coverage_dict(self) -> dict[str, Any]:
         """:meth:`coverage` as the REST answers carry it: the map and the suggestion."""
         cov, advice = self.coverage()
-        return {**cov.to_dict(), "status": cov.status_line() if cov.poses else "no pose with the board yet",
+        status = cov.status_line() if cov.poses else "no pose with the board yet"
+        return {**cov.to_dict(), "status": status,
                 "suggestion": advice_dict(advice)}
 
     def pose(self, index: int) -> Pose:
@@ -241,7 +243,8 @@ def advice_dict(advice: PoseAdvice) -> dict[str, Any]:
 def twin_board_pose(rig: SimRig, board: BoardSpec, advice: PoseAdvice, *, margin_px: float = 40.0
                     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """(origin, axes) of the twin's board for ``advice``: its centre on the ray of the advised
-    pixel at the advised height, tilted as advised (signs of :class:`~app.calib.coverage.PoseGeometry`);
+    pixel at the advised height, tilted as advised (signs of
+    :class:`~app.calib.coverage.PoseGeometry`);
     moved toward the image centre until every corner is ``margin_px`` inside the image.
 
     Args:

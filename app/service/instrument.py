@@ -163,7 +163,10 @@ class Instrument:
         planned = sim_calibration_poses()
         k = sum(1 for p in session.poses if p.found)
         cov, advice = session.coverage()
-        pose = board_poses(rig, planned, seed=0)[0] if k == 0 else twin_board_pose(rig, session.board, advice)
+        if k == 0:  # the reference plane, where the simulator's own calibration puts it
+            pose = board_poses(rig, planned, seed=0)[0]
+        else:
+            pose = twin_board_pose(rig, session.board, advice)
         origin, axes = pose
         ref = rig.reference
         height_mm = float(ref.normal @ origin + ref.offset_mm)
@@ -179,7 +182,8 @@ class Instrument:
         return {"index": k, "of": max(planned, k + 1), "height_mm": round(height_mm, 2),
                 "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
                 "exposure_ms": exposure_ms,
-                "hint": f"pose {k} of {max(planned, k + 1)}: the whole board in view; {advice.text}",
+                "hint": f"pose {k} of {max(planned, k + 1)}: the whole board in view; "
+                        f"{advice.text}",
                 "suggestion": advice_dict(advice), "coverage": session.coverage_dict()}
 
     def _restore_twin_scene(self) -> None:

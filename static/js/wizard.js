@@ -66,8 +66,9 @@ function renderReport(r) {
 const CELL_PX = 9;
 const GAP_PX = 12;
 
-/** The coverage map: per height bin a grid of the image cells (green: board points; teal: the
- * model's sigma within tolerance; red: neither), the shares against the target and the next pose. */
+/** The coverage map: per height bin a grid of the image cells (green: board points; teal:
+ * the model's sigma within tolerance; red: neither), the shares against the target and the
+ * next pose. */
 function renderCoverage(cov) {
   const box = $("coverage");
   if (!cov) {

@@ -39,10 +39,12 @@ def _rate(client: TestClient, seconds: float) -> float:
 
 
 @pytest.mark.slow
-def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(tmp_path: Path,
-                                                              sim_calibration_file: Path) -> None:
-    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="anastomosis",
-                             exposure_ms=20.0)
+def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
+    tmp_path: Path, sim_calibration_file: Path
+) -> None:
+    settings = live_settings(
+        tmp_path, sim_calibration_file, sim_scene="anastomosis", exposure_ms=20.0
+    )
     app = create_app(settings)
     with TestClient(app) as client:
         wait_for(client, lambda s: s["results_published"] >= 2, 300, "first results")
@@ -57,18 +59,24 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(tmp_path: Path,
         r = client.put("/api/mode", json={"rolling": True})
         assert r.status_code == 409 and '"bracket": false' in r.json()["detail"]
         fused = _maps(client, 3, 120, bracket=True)
-        assert all(m["bracket_exposures_ms"] == [20.0, 80.0] and m["exposure_ms"] == 20.0
-                   for m in fused)
+        assert all(
+            m["bracket_exposures_ms"] == [20.0, 80.0] and m["exposure_ms"] == 20.0 for m in fused
+        )
         st = wait_for(client, lambda s: s["state"] == "running", 30, "running while bracketing")
         assert st["bracket"]["exposures_ms"] == [20.0, 80.0] and st["bracket"]["auto"] is False
-        assert "depth rate halves" in st["bracket"]["note"] and st["state_reason"] == st["bracket"]["note"]
+        assert (
+            "depth rate halves" in st["bracket"]["note"]
+            and st["state_reason"] == st["bracket"]["note"]
+        )
         assert st["mode"] == "set"
         rate_fused = _rate(client, 8.0)
 
         v_plain = sum(m["valid_fraction"] for m in plain) / len(plain)
         v_fused = sum(m["valid_fraction"] for m in fused) / len(fused)
-        print(f"\nanastomosis live, 20 ms: valid {100 * v_plain:.1f} % at {rate_plain:.2f} maps/s; "
-              f"bracketed 20 + 80 ms: valid {100 * v_fused:.1f} % at {rate_fused:.2f} maps/s")
+        print(
+            f"\nanastomosis live, 20 ms: valid {100 * v_plain:.1f} % at {rate_plain:.2f} maps/s; "
+            f"bracketed 20 + 80 ms: valid {100 * v_fused:.1f} % at {rate_fused:.2f} maps/s"
+        )
         assert v_fused > 2.0 * v_plain
         assert rate_fused < 0.75 * rate_plain
 

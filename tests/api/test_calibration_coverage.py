@@ -26,8 +26,9 @@ def _block(region: str) -> tuple[int, int]:
 
 
 @pytest.mark.slow
-def test_the_advice_drives_the_twin_and_the_coverage_grows(tmp_path: Path,
-                                                          sim_calibration_file: Path) -> None:
+def test_the_advice_drives_the_twin_and_the_coverage_grows(
+    tmp_path: Path, sim_calibration_file: Path
+) -> None:
     settings = live_settings(tmp_path, sim_calibration_file, sim_scene="plane", sim_seed=13)
     app = create_app(settings)
     with TestClient(app) as client:

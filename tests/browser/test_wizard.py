@@ -134,7 +134,7 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     assert [e for e in errors if not any(s in e for s in ignored)] == [], "\n".join(errors)
 
 
-#: the coverage canvas's cell colours (static/js/wizard.js): board points, sigma_model within tolerance
+#: the coverage canvas's cell colours (static/js/wizard.js): board points, sigma_model in tolerance
 GREEN, TEAL = (0x2E, 0x9D, 0x4F), (0x5F, 0xB3, 0xB3)
 CANVAS_COLOURS = """() => {
   const c = document.querySelector('#coverage-map');
@@ -168,15 +168,18 @@ def test_the_wizard_draws_the_coverage_and_says_where_to_go_next(page: tuple[Any
     assert GREEN not in _colours(pg)
     for k in range(3):
         pg.click("#btn-suggest")
-        pg.wait_for_function("document.querySelector('#pose-line').textContent.includes('Capture pose')",
-                             timeout=90_000)
-        advice = httpx.get(f"{server}/api/calibration/session", timeout=30).json()["coverage"]["suggestion"]
+        pg.wait_for_function(
+            "document.querySelector('#pose-line').textContent.includes('Capture pose')",
+            timeout=90_000)
+        session = httpx.get(f"{server}/api/calibration/session", timeout=30).json()
+        advice = session["coverage"]["suggestion"]
         if k > 0:  # the words on the page are the session's advice, which moved the twin's board
             assert advice["text"] in (pg.text_content("#pose-line") or "")
             assert "deg about the vertical axis" in advice["text"]
         pg.wait_for_timeout(2000)  # frames in flight may predate the move
         pg.click("#btn-capture")
-        pg.wait_for_function("document.querySelector('#pose-line').className === 'ok'", timeout=90_000)
+        pg.wait_for_function("document.querySelector('#pose-line').className === 'ok'",
+                             timeout=90_000)
         pg.wait_for_function(
             f"document.querySelector('#coverage-line').textContent.includes('% of the image')"
             f" && document.querySelectorAll('#pose-table tbody tr').length === {k + 1}",
@@ -194,7 +197,8 @@ def test_the_wizard_draws_the_coverage_and_says_where_to_go_next(page: tuple[Any
     # a reload draws the same map from the session
     pg.reload(wait_until="load")
     pg.wait_for_function(SESSION_OPEN)
-    pg.wait_for_function("document.querySelector('#coverage-line').textContent.includes('% of the image')")
+    pg.wait_for_function(
+        "document.querySelector('#coverage-line').textContent.includes('% of the image')")
     assert GREEN in _colours(pg)
     pg.click("#btn-cancel-session")
     pg.wait_for_function(NO_SESSION)

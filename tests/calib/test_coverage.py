@@ -25,8 +25,9 @@ BOARD = BoardSpec("checkerboard", 12, 9, 1.4)
 FRINGES, PROJ_W = 36, 608
 
 
-def _views(rig: SimRig, poses: list[tuple[np.ndarray, np.ndarray]], phase_noise_rad: float = 0.0
-           ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+def _views(
+    rig: SimRig, poses: list[tuple[np.ndarray, np.ndarray]], phase_noise_rad: float = 0.0
+) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
     """Per pose: detected corners (exact projections), board points, and the (H, W) finest phase
     of the board's plane (the projector column of each pixel's ray on it, plus seeded noise)."""
     rng = np.random.default_rng(5)
@@ -68,7 +69,10 @@ def test_board_views_recover_heights_and_tilt_signs() -> None:
         ss, tt = np.meshgrid(s, t)
         truth = _heights(rig, o + np.stack([ss.ravel(), tt.ravel(), 0 * ss.ravel()], 1) @ axes.T)
         assert np.max(np.abs(g.height_mm - truth)) < 0.05
-    assert abs(views.poses[0].tilt_vertical_deg) < 0.5 and abs(views.poses[0].tilt_horizontal_deg) < 0.5
+    assert (
+        abs(views.poses[0].tilt_vertical_deg) < 0.5
+        and abs(views.poses[0].tilt_horizontal_deg) < 0.5
+    )
     # the known pose: its normal turned toward -x, so its right edge is nearer the scope
     last = views.poses[-1]
     assert last.tilt_vertical_deg == pytest.approx(20.0, abs=1.0)
@@ -90,8 +94,9 @@ def test_coverage_counts_cells_and_share() -> None:
     assert cov.covered_share == pytest.approx(3 / 18)
     assert np.isnan(cov.sigma_mm).all() and not cov.reached  # no model: σ undefined
     # a σ_model within the tolerance everywhere below 10 mm makes those cells calibrated
-    cov2 = coverage_map([p0, p1, p1], (300, 300), spec=spec,
-                        sigma=lambda uv, z: np.where(z < 10.0, 1e-4, 1e-2))
+    cov2 = coverage_map(
+        [p0, p1, p1], (300, 300), spec=spec, sigma=lambda uv, z: np.where(z < 10.0, 1e-4, 1e-2)
+    )
     assert cov2.calibrated[0].all() and cov2.calibrated_share == pytest.approx(10 / 18)
     assert cov2.reached
     assert cov2.to_dict()["sigma_model_um"][0][0][0] == pytest.approx(0.1)
@@ -123,7 +128,9 @@ def test_model_sigma_from_the_jackknife_grows_away_from_the_boards() -> None:
     poses = board_poses(rig, 8, seed=0)
     img, obj, phases = _views(rig, poses, phase_noise_rad=0.02)
     views = board_views(img, obj, rig.image_size)
-    assert model_sigma(views, phases[:2], img[:2], fringes=FRINGES, projector_width_px=PROJ_W) is None
+    assert (
+        model_sigma(views, phases[:2], img[:2], fringes=FRINGES, projector_width_px=PROJ_W) is None
+    )
     sigma = model_sigma(views, phases, img, fringes=FRINGES, projector_width_px=PROJ_W)
     assert sigma is not None
     spec = CoverageSpec()
@@ -133,10 +140,16 @@ def test_model_sigma_from_the_jackknife_grows_away_from_the_boards() -> None:
     # noisy phases: σ_model is small where the boards were and grows far beyond their heights
     inside = s[cov.covered]
     assert 1e-5 < np.median(inside) < 5e-3
-    far = coverage_map(views.poses, rig.image_size, sigma=sigma,
-                       spec=CoverageSpec(height_range_mm=(40.0, 60.0), height_bins=1)).sigma_mm
-    print(f"\nsigma_model median {1000 * np.median(inside):.2f} um inside, {1000 * np.median(far):.2f} um "
-          "at 40-60 mm")
+    far = coverage_map(
+        views.poses,
+        rig.image_size,
+        sigma=sigma,
+        spec=CoverageSpec(height_range_mm=(40.0, 60.0), height_bins=1),
+    ).sigma_mm
+    print(
+        f"\nsigma_model median {1000 * np.median(inside):.2f} um inside, "
+        f"{1000 * np.median(far):.2f} um at 40-60 mm"
+    )
     assert np.median(far) > 3 * np.median(inside)
     print(f"\n{cov.table()}")
     assert math.isfinite(cov.calibrated_share) and cov.calibrated_share >= cov.covered_share

@@ -20,15 +20,29 @@ from app.service.store import NewestQueue
 @pytest.fixture(scope="module")
 def bracket() -> tuple[dict[float, np.ndarray], Reconstructor]:
     world = SimulatedWorld("anastomosis", seed=4, distortion=False)
-    sets = {e: np.stack([world.render(i, 0.0, exposure_ms=e, gain=1.0, bits=8) for i in range(16)])
-            for e in (20.0, 80.0)}
+    sets = {
+        e: np.stack([world.render(i, 0.0, exposure_ms=e, gain=1.0, bits=8) for i in range(16)])
+        for e in (20.0, 80.0)
+    }
     return sets, Reconstructor(ideal_calibration(world.rig, world.schedule))
 
 
 def frame_set(frames: np.ndarray, exposure_ms: float, first_index: int) -> FrameSet:
-    return FrameSet(tuple(Frame(frames[p], index=first_index + p, timestamp=0.03 * (first_index + p),
-                                pattern_index=p, exposure_ms=exposure_ms, led="green")
-                          for p in range(16)), 0.0, "set")
+    return FrameSet(
+        tuple(
+            Frame(
+                frames[p],
+                index=first_index + p,
+                timestamp=0.03 * (first_index + p),
+                pattern_index=p,
+                exposure_ms=exposure_ms,
+                led="green",
+            )
+            for p in range(16)
+        ),
+        0.0,
+        "set",
+    )
 
 
 def test_a_pair_of_exposures_makes_one_fused_map(bracket) -> None:
@@ -36,7 +50,9 @@ def test_a_pair_of_exposures_makes_one_fused_map(bracket) -> None:
     # measuring off: every set with the engine's (nominal) noise model, as compared below
     rec = Reconstruction(NewestQueue(1), lambda: engine, noise_estimate_interval_s=0.0)
     noise = engine.noise or SensorNoise.typical(255)
-    assert rec.process_bracket(engine, frame_set(sets[20.0], 20.0, 0)) is None  # waits for its partner
+    assert (
+        rec.process_bracket(engine, frame_set(sets[20.0], 20.0, 0)) is None
+    )  # waits for its partner
     # a lost set leaves two of one exposure: the newer one waits instead
     assert rec.process_bracket(engine, frame_set(sets[20.0], 20.0, 16)) is None
     fused = rec.process_bracket(engine, frame_set(sets[80.0], 80.0, 32))
@@ -48,7 +64,9 @@ def test_a_pair_of_exposures_makes_one_fused_map(bracket) -> None:
     assert np.array_equal(fused.valid, want.valid) and np.array_equal(fused.reason, want.reason)
     assert np.array_equal(fused.depth, want.depth, equal_nan=True)
     assert fused.valid.sum() > max(short.valid.sum(), long_.valid.sum())
-    print(f"\nanastomosis (offline render): valid {100 * short.valid.mean():.1f} % at 20 ms, "
-          f"{100 * long_.valid.mean():.1f} % at 80 ms, fused {100 * fused.valid.mean():.1f} %")
+    print(
+        f"\nanastomosis (offline render): valid {100 * short.valid.mean():.1f} % at 20 ms, "
+        f"{100 * long_.valid.mean():.1f} % at 80 ms, fused {100 * fused.valid.mean():.1f} %"
+    )
     # the pair is spent: the next set starts a new one
     assert rec.process_bracket(engine, frame_set(sets[20.0], 20.0, 48)) is None
