@@ -21,6 +21,7 @@ from app.api.schemas import (
     ModeOut,
     StatusOut,
 )
+from app.core.errors import Conflict
 
 router = APIRouter(prefix="/api", tags=["control"])
 
@@ -61,6 +62,8 @@ def put_mode(body: ModeIn, inst: InstrumentDep) -> ModeOut:
     """Rolling mode (a depth map after every frame from the last 16, motion-masked) and/or
     exposure bracketing (whole sets alternate between the exposure and +2 stops, each pair fused
     per pixel: half the depth rate). Both at once: 409."""
+    if body.rolling and body.bracket:
+        raise Conflict("mode: rolling maps cannot fuse an exposure bracket; ask for one of them")
     if body.bracket is False:
         inst.set_bracket(False)
     if body.rolling is not None:

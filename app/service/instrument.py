@@ -345,7 +345,9 @@ class Instrument:
             return "calibrating", self._calibration_phase()[0]
         if not acq.acquiring:
             return "stopped", "acquisition stopped (POST /api/acquisition/start)"
-        period = self._set_period_s() * (2 if self.pipeline.bracketing else 1)  # a map per pair
+        period = self._set_period_s()
+        if self.pipeline.bracketing:  # a map per pair: a set at each exposure (frame time ∝ it)
+            period *= 1.0 + acq.bracket_long_ms / acq.exposure_ms
         age = self._depth_age_s(now)
         if age is not None and age <= 2 * period:
             return "running", self.pipeline.bracket_note()  # None unless bracketing: say why slower
