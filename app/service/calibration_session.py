@@ -159,12 +159,13 @@ class CalibrationSession:
             if self._coverage is not None:
                 return self._coverage
             found = [p for p in self.poses if p.found]
+            shape = self.poses[0].capture.frames.shape if self.poses else (0, 1, 1)
             version = self._version
+        size = (int(shape[2]), int(shape[1]))  # before any pose: unknown, a 1 x 1 image
         if not found:
-            cov = coverage_map([], (1, 1))
+            cov = coverage_map([], size)
             result = cov, suggest_pose(cov, [])
         else:
-            size = (found[0].capture.frames.shape[2], found[0].capture.frames.shape[1])
             img = [p.detection.image_points for p in found]
             sched = found[0].capture.schedule
             phases = [p.phase for p in found if p.phase is not None]
