@@ -50,7 +50,9 @@ def test_the_advice_drives_the_twin_and_the_coverage_grows(
             cov = pose["coverage"]
             assert cov["poses"] == k + 1
             after = np.array(cov["covered"])
-            assert (after >= before).all()  # cells once covered stay covered
+            # each pose adds cells (earlier poses' heights move a little as the camera is refitted
+            # with more poses, so a cell on a bin edge may change sides)
+            assert after.sum() > before.sum()
             if k > 0:
                 # the advised ninth at the advised height bin gained board points
                 edges = np.array(cov["height_edges_mm"])
