@@ -43,7 +43,7 @@ class Pose:
     capture: CaptureSet
     detection: Detection
     preview_png: bytes
-    phase: np.ndarray | None = None  # (H, W) float32 finest unwrapped phase, rad, when found
+    phase: npt.NDArray[np.float32] | None = None  # (H, W) finest unwrapped phase, rad, when found
     created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="seconds"))
 
     @property
