@@ -30,10 +30,8 @@ function showStatus(st) {
       ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all`
       : "since start-up";
   }
-  // exposure bracketing: two sets a map, the depth rate halves (the note says why)
-  $("m-mode").textContent = st.bracket
-    ? `${st.mode} · bracket ${st.bracket.exposures_ms.map((e) => fmt(e, 0)).join(" + ")} ms`
-    : st.mode;
+  // exposure bracketing: as wide as "rolling" (the bar must not move); its note below
+  $("m-mode").textContent = st.bracket ? "bracket" : st.mode;
   $("m-mode").title = st.bracket ? st.bracket.note : "";
   const sch = st.schedule;
   $("m-sensor").textContent = (st.bit_depth ? `${st.bit_depth}-bit` : "–") + (sch
@@ -66,6 +64,7 @@ function showStatus(st) {
   } else if (st.state_reason && st.state !== "fault" && st.state !== "running") {
     list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
   }
+  if (st.bracket) list.push(`ⓘ ${st.bracket.note}`); // why the depth rate halved
   if (st.last_error && st.last_error_resolved === false && st.state !== "fault") {
     const at = st.last_error_at ? new Date(st.last_error_at).toLocaleTimeString() : "";
     list.push(`⚠ last error ${at}: ${st.last_error}`);
