@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StrictBool, model_validator
+from pydantic.json_schema import SkipJsonSchema
 
 from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
@@ -65,8 +66,13 @@ class LedOut(BaseModel):
 
 
 class ModeIn(Strict):
-    rolling: StrictBool | None = Field(None, description="a depth map after every frequency group")
-    bracket: StrictBool | None = Field(
+    # at least one of the two (the document says so: minProperties), neither null
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False,
+                              json_schema_extra={"minProperties": 1})
+
+    rolling: StrictBool | SkipJsonSchema[None] = Field(
+        None, description="a depth map after every frequency group")
+    bracket: StrictBool | SkipJsonSchema[None] = Field(
         None, description="exposure bracketing: whole sets alternate between the exposure and "
                           "+2 stops, fused per pixel (set mode only; half the depth rate)")
 
