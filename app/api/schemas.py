@@ -77,7 +77,10 @@ class ModeIn(Strict):
                           "+2 stops, fused per pixel (set mode only; half the depth rate)")
 
     @model_validator(mode="after")
-    def _something(self) -> ModeIn:
+    def _given_and_not_null(self) -> ModeIn:
+        for name in ("rolling", "bracket"):
+            if name in self.model_fields_set and getattr(self, name) is None:
+                raise ValueError(f"{name}: must be true or false, not null")
         if self.rolling is None and self.bracket is None:
             raise ValueError("give rolling and/or bracket")
         return self
