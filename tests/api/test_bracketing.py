@@ -95,7 +95,9 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
             f"set ({rate_plain[1]:.2f} maps/s on the virtual clock); bracketed 20 + 80 ms: valid "
             f"{100 * v_fused:.1f} %, {rate_fused[0]:.2f} maps per set ({rate_fused[1]:.2f} maps/s)"
         )
-        assert v_fused > v_plain
+        # the valid shares are the figure, not a verdict: plain and fused maps come from
+        # different moments of a moving scene (two runs: 46.8 -> 54.5 % and 55.1 -> 53.6 %); that a
+        # pair's fusion validates more than either set is tests/service/test_bracketing.py's check
         assert rate_fused[0] <= 0.6 * rate_plain[0]  # one map per pair of sets
 
         r = client.put("/api/mode", json={"bracket": False})
