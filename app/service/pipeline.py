@@ -198,7 +198,7 @@ class LivePipeline:
         if on and acq.rolling:
             raise Conflict("bracket: exposure bracketing fuses whole sets; "
                            "PUT /api/mode {\"rolling\": false} first")
-        self.reconstruction.bracket = bool(on)
+        self.reconstruction.set_bracket(on)
         acq.set_bracket(on)
         self.bracket_auto = bool(on and auto)
 

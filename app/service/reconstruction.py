@@ -151,6 +151,11 @@ class Reconstruction:
     def start_thread(self) -> None:
         self._thread.start()
 
+    def set_bracket(self, on: bool) -> None:
+        """Pair sets of two exposures from now on (or not); a waiting first of a pair is dropped."""
+        self.bracket = bool(on)
+        self._bracket_first = None
+
     def shutdown(self, timeout_s: float = 10.0) -> None:
         self._stop.set()
         if self._thread.is_alive():
