@@ -17,6 +17,8 @@ from app.api.schemas import (
     ActivateIn,
     BoardIn,
     CalibrationSummary,
+    CoverageOut,
+    PoseAdviceOut,
     PoseOut,
     SessionOut,
     SolveIn,
@@ -78,6 +80,8 @@ class PoseSuggestionOut(BaseModel):
     moved: bool = Field(description="the simulator moved its board there (false on hardware)")
     exposure_ms: float | None = Field(description="the exposure set for the twin's board (or null)")
     hint: str = Field(description="where to hold the board, one line")
+    suggestion: PoseAdviceOut
+    coverage: CoverageOut
 
 
 @router.post("/session/suggested-pose", response_model=PoseSuggestionOut,
@@ -103,7 +107,8 @@ def cancel_session(inst: InstrumentDep) -> SessionCancelOut:
 
 @router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})
 def capture_pose(calibrations: CalibrationsDep) -> dict[str, Any]:
-    """Capture the current view as a pose: {index, found, corners, preview_url, corner_points}."""
+    """Capture the current view as a pose: {index, found, corners, preview_url, corner_points,
+    coverage} (coverage: the cells covered so far, sigma_model per cell, the next pose)."""
     return calibrations.capture_pose(15.0)
 
 

@@ -22,6 +22,7 @@ from app.api.schemas import (
     ModeOut,
     StatusOut,
 )
+from app.core.errors import Conflict
 
 router = APIRouter(prefix="/api", tags=["control"])
 
@@ -46,9 +47,12 @@ def auto_exposure(
     pipeline: PipelineDep,
     body: AutoExposureIn = Body(default_factory=AutoExposureIn),
 ) -> Any:
-    """Longest exposure whose sets keep saturation under the limit (grabs a few real sets)."""
+    """Longest exposure whose sets keep saturation under the limit (grabs a few real sets); then
+    exposure bracketing on if more than 10 % of the lit, unsaturated pixels stay invalid for low
+    signal at it (the scene spans more than one exposure), off otherwise."""
     res = pipeline.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
-    return asdict(res)
+    return {**asdict(res), "bracket": pipeline.bracketing,
+            "low_signal_share": pipeline.bracket_dim_share}
 
 
 @router.put("/led", response_model=LedOut, responses={**R400, **R422, **COMMON})
@@ -57,11 +61,22 @@ def put_led(body: LedIn, inst: InstrumentDep) -> LedOut:
     return LedOut(led=inst.set_led(body.led))
 
 
-@router.put("/mode", response_model=ModeOut, responses={**R400, **R422, **COMMON})
+@router.put("/mode", response_model=ModeOut, responses={**R400, **R409, **R422, **COMMON})
 def put_mode(body: ModeIn, inst: InstrumentDep) -> ModeOut:
-    """Rolling mode: a depth map after every frame from the last 16 (motion-masked)."""
-    inst.set_rolling(body.rolling)
-    return ModeOut(mode="rolling" if body.rolling else "set")
+    """Rolling mode (a depth map after every frame from the last 16, motion-masked) and/or
+    exposure bracketing (whole sets alternate between the exposure and +2 stops, each pair fused
+    per pixel: half the depth rate). Both at once: 409."""
+    if body.rolling and body.bracket:
+        raise Conflict("mode: rolling maps cannot fuse an exposure bracket; ask for one of them")
+    if body.bracket is False:
+        inst.set_bracket(False)
+    if body.rolling is not None:
+        inst.set_rolling(body.rolling)
+    if body.bracket:
+        inst.set_bracket(True)
+    acq = inst.acquisition
+    return ModeOut(mode="rolling" if acq is not None and acq.rolling else "set",
+                   bracket=inst.pipeline.bracketing)
 
 
 @router.post("/acquisition/start", response_model=AcquisitionOut, responses=COMMON)

@@ -27,6 +27,7 @@ from pydantic import (
     create_model,
     model_validator,
 )
+from pydantic.json_schema import SkipJsonSchema
 
 from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
@@ -75,6 +76,11 @@ class AutoExposureOut(BaseModel):
     saturation_limit: float
     trials: list[ExposureTrialOut]
     warning: str | None = None
+    bracket: bool = Field(False, description="exposure bracketing is on: the scene's lit pixels "
+                                             "invalid for low signal exceed the share below")
+    low_signal_share: float | None = Field(
+        None, description="share of lit, unsaturated pixels invalid for low signal at the chosen "
+                          "exposure (null: no calibration to judge with)")
 
 
 class LedIn(Strict):
@@ -87,11 +93,29 @@ class LedOut(BaseModel):
 
 
 class ModeIn(Strict):
-    rolling: StrictBool
+    # at least one of the two (the document says so: minProperties), neither null
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False,
+                              json_schema_extra={"minProperties": 1})
+
+    rolling: StrictBool | SkipJsonSchema[None] = Field(
+        None, description="a depth map after every frequency group")
+    bracket: StrictBool | SkipJsonSchema[None] = Field(
+        None, description="exposure bracketing: whole sets alternate between the exposure and "
+                          "+2 stops, fused per pixel (set mode only; half the depth rate)")
+
+    @model_validator(mode="after")
+    def _given_and_not_null(self) -> ModeIn:
+        for name in ("rolling", "bracket"):
+            if name in self.model_fields_set and getattr(self, name) is None:
+                raise ValueError(f"{name}: must be true or false, not null")
+        if self.rolling is None and self.bracket is None:
+            raise ValueError("give rolling and/or bracket")
+        return self
 
 
 class ModeOut(BaseModel):
     mode: Literal["set", "rolling"]
+    bracket: bool = Field(description="exposure bracketing is on")
 
 
 class AcquisitionOut(BaseModel):
@@ -141,8 +165,10 @@ def model_of(record: type[DataclassInstance], name: str,
 DeviceOut = model_of(DeviceStatus, "DeviceOut")
 CalibrationSummary = model_of(records.CalibrationSummary, "CalibrationSummary")
 AlarmOut = model_of(records.Alarm, "AlarmOut")
+BracketOut = model_of(records.Bracket, "BracketOut")
 StatusOut = model_of(Status, "StatusOut", {records.CalibrationSummary: CalibrationSummary,
-                                           DeviceStatus: DeviceOut, records.Alarm: AlarmOut})
+                                           DeviceStatus: DeviceOut, records.Alarm: AlarmOut,
+                                           records.Bracket: BracketOut})
 
 
 class ResultMeta(BaseModel):
@@ -157,6 +183,9 @@ class ResultMeta(BaseModel):
     recon_ms: float
     valid_fraction: float
     shape: list[int]
+    bracket_exposures_ms: list[float] | None = Field(
+        None, description="exposure bracketing: the two sets' exposures this map fuses "
+                          "(null: one set)")
     map_time: float | None = Field(None, description="the instant the depth stands for (frame timestamp clock, s): "
                                    "its finest frequency group's mid-exposure")
     moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")
@@ -227,11 +256,49 @@ class PoseOut(BaseModel):
     preview_url: str
 
 
+class PoseAdviceOut(BaseModel):
+    """The next board pose (app.calib.coverage.PoseAdvice)."""
+
+    region: str = Field(description="image region for the board's centre: 'lower-left', "
+                                    "'upper', 'centre', ...")
+    u_px: float = Field(description="that region's centre, column, px")
+    v_px: float = Field(description="that region's centre, row, px")
+    height_mm: float = Field(description="the board centre's height above the reference plane, mm")
+    tilt_vertical_deg: float = Field(
+        description="tilt about the image's vertical axis, deg (+: right edge nearer)")
+    tilt_horizontal_deg: float = Field(
+        description="tilt about the horizontal axis, deg (+: bottom edge nearer)")
+    text: str = Field(description="the advice in words")
+
+
+class CoverageOut(BaseModel):
+    """Image x height cells the found poses cover, and the model's sigma per cell."""
+
+    cells: list[int] = Field(description="[columns, rows] of image cells")
+    height_edges_mm: list[float] = Field(
+        description="height bin edges above the reference plane, mm")
+    poses: int = Field(description="poses with the board found")
+    covered: list[list[list[int]]] = Field(description="[bin][row][col] 1 where board points fall")
+    sigma_model_um: list[list[list[float | None]]] = Field(
+        description="[bin][row][col] the depth model's 1-sigma at the cell centre, um "
+                    "(null: no model yet)")
+    covered_share: float = Field(description="share of cells with board points")
+    calibrated_share: float = Field(
+        description="share of cells covered or with sigma_model within tolerance")
+    target_share: float = Field(
+        description="calibrated share at which the volume counts as reached")
+    sigma_tolerance_um: float
+    reached: bool = Field(description="the calibrated volume reaches the target")
+    status: str = Field(description="the shares against the target, one line")
+    suggestion: PoseAdviceOut
+
+
 class SessionOut(BaseModel):
     board: dict[str, Any]
     created: str
     poses: list[PoseOut]
     solved: bool
+    coverage: CoverageOut
 
 
 class SolveIn(Strict):

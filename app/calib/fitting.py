@@ -100,6 +100,10 @@ class CalibrationReport:
     held_out: dict[str, dict[str, float | int | str | None]] = field(default_factory=dict)
     uncovered: list[str] = field(default_factory=list)
     camera: CameraFit | None = None
+    #: the control points of the fit and the geometric model fitted to them (with its jackknife,
+    #: which files do not keep): what the coverage report (app.calib.coverage) reads
+    samples: BoardSamples | None = None
+    geometric: GeometricModel | None = None
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -429,8 +433,10 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         ],
         extra={"camera_model": camfit.summary()},
     )
+    geo_fit = models.get("geometric")
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
-                             held_out=held_out, uncovered=uncovered, camera=camfit)
+                             held_out=held_out, uncovered=uncovered, camera=camfit, samples=samples,
+                             geometric=geo_fit if isinstance(geo_fit, GeometricModel) else None)
 
 
 def _key(x: object) -> float:

@@ -38,6 +38,24 @@ def run(args: argparse.Namespace) -> int:
     if dropped:
         print(f"dropped poses: {', '.join(dropped)}")
     print(f"active model: {report.calibration.model.name}")
+    _print_coverage(report)
     out = save_calibration(report.calibration, Path(args.output))
     print(f"wrote {out}")
     return 0
+
+
+def _print_coverage(report: Any) -> None:
+    """The image x height cells the poses cover, sigma_model per cell, and the pose to add."""
+    from app.calib.coverage import report_coverage
+    from app.calib.model import undistort_points
+
+    if report.samples is None:
+        return
+    cal = report.calibration
+    cov, advice = report_coverage(
+        report.samples, cal.reference_plane,
+        lambda uv: undistort_points(uv, cal.camera_matrix, cal.dist_coeffs), report.geometric)
+    print(cov.table())
+    if report.geometric is None:
+        print("sigma_model: no geometric model fitted; cells count by board points only")
+    print(("next pose (optional): " if cov.reached else "next pose: ") + advice.text)

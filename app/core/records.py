@@ -70,6 +70,23 @@ class Alarm:
 
 
 @dataclass(frozen=True)
+class Bracket:
+    """Live exposure bracketing while it is on: sets alternate between two exposures."""
+
+    on: bool
+    auto: bool = field(metadata=doc(
+        "switched on by the auto-exposure (the scene spans more than one exposure)"))
+    exposures_ms: tuple[float, ...] = field(metadata=doc(
+        "[the exposure, the +2 stop one], ms"))
+    note: str
+
+    def to_dict(self) -> dict[str, Any]:
+        d = _shallow(self)
+        d["exposures_ms"] = list(self.exposures_ms)
+        return d
+
+
+@dataclass(frozen=True)
 class Status:
     """The instrument's status (``GET /api/status``): state, rates, settings, counters.
 
@@ -111,7 +128,8 @@ class Status:
         "the camera noise model σ and the validity rule use: source (measured | nominal), "
         "read_noise_dn, gain_dn_per_e, estimates"))
     state_reason: str | None = field(default=None, metadata=doc(
-        "why the state is not running, or the start-up phase"))
+        "why the state is not running, or the start-up phase; while running, "
+        "what slows the depth rate (exposure bracketing)"))
     phase: str | None = field(default=None, metadata=doc(
         "start-up phase: 'calibrating pose k of n', 'compiling kernels', …; "
         "null once depth maps come"))
@@ -137,6 +155,9 @@ class Status:
         "the open calibration session (board, created, poses, solved) or null"))
     alarms: tuple[Alarm, ...] = field(default=(), metadata=doc(
         "alarms not yet acknowledged, oldest first (POST /api/alarms/{id}/ack)"))
+    bracket: Bracket | None = field(default=None, metadata=doc(
+        "exposure bracketing while on (each map fuses two sets: half the depth rate); "
+        "null when off"))
 
     def to_dict(self) -> dict[str, Any]:
         d = _shallow(self)
@@ -144,6 +165,7 @@ class Status:
         d["devices"] = [_shallow(dev) for dev in self.devices]
         d["warnings"] = list(self.warnings)
         d["alarms"] = [a.to_dict() for a in self.alarms]
+        d["bracket"] = None if self.bracket is None else self.bracket.to_dict()
         return d
 
 

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 
+from app.core.limits import EXPOSURE_RANGE_MS
 from app.core.schedule import PatternSchedule
 from app.devices.base import Frame
 from app.devices.errors import DeviceError, DeviceTimeout
@@ -59,6 +60,9 @@ class Acquisition:
         self.exposure_ms = float(exposure_ms)
         self.led = led
         self.rolling = rolling
+        # exposure bracketing: whole sets alternate between exposure_ms and bracket_long_ms
+        self.bracket = False
+        self.bracket_stops = 2.0
         self.on_frame = on_frame
         self.assembler = SetAssembler(schedule.n_frames, schedule.steps)
         self.window = GroupWindow(len(schedule.frequencies), schedule.steps,
@@ -165,6 +169,20 @@ class Acquisition:
         with self._lock:
             self.rolling = bool(rolling)
         self.window.clear()
+
+    @property
+    def bracket_long_ms(self) -> float:
+        """The bracket's second exposure: ``bracket_stops`` stops over :attr:`exposure_ms`
+        (capped at the longest exposure)."""
+        long_ms = float(self.exposure_ms * 2.0**self.bracket_stops)
+        return min(long_ms, float(EXPOSURE_RANGE_MS[1]))
+
+    def set_bracket(self, on: bool) -> None:
+        """Alternate whole sets between :attr:`exposure_ms` and :attr:`bracket_long_ms` (from the
+        next set); off: back to :attr:`exposure_ms` alone."""
+        with self._lock:
+            self.bracket = bool(on)
+            self._pending["exposure_ms"] = self.exposure_ms
 
     # -- the loop ----------------------------------------------------------------------
     def _run(self) -> None:
@@ -286,12 +304,21 @@ class Acquisition:
         whole = self.assembler.feed(frame, received_s)
         if whole is not None:
             self.sets.publish(whole)
+            if self.bracket and not self.rolling:
+                self._next_bracket_exposure(whole.exposure_ms)
         if self.rolling:
             rolled = self.window.feed(frame, received_s)
             if rolled is not None:
                 self._queue_set(rolled)
         elif whole is not None:
             self._queue_set(whole)
+
+    def _next_bracket_exposure(self, last_ms: float) -> None:
+        """After a whole set at ``last_ms``: the next one at the bracket's other exposure."""
+        with self._lock:
+            base = self.exposure_ms
+            short = abs(last_ms - base) <= 1e-3 * base + 1e-3
+            self._pending["exposure_ms"] = self.bracket_long_ms if short else base
 
     def _queue_set(self, frame_set: FrameSet) -> None:
         self.frames_since_set = self.dropped_since_set = 0

@@ -7,6 +7,7 @@ is the reference plane.
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -17,13 +18,24 @@ import numpy as np
 import numpy.typing as npt
 
 from app.calib.board import Detection, detect_board, texture_to_u8
+from app.calib.coverage import (
+    CoverageMap,
+    PoseAdvice,
+    board_views,
+    coverage_map,
+    model_sigma,
+    suggest_pose,
+)
 from app.calib.fitting import CalibrationReport, calibrate_sets
 from app.capture.captureset import CaptureSet
 from app.core.board import BoardSpec
 from app.core.encoding import png_bytes
 from app.core.errors import NotFound
 from app.core.schedule import PatternSchedule
+from app.devices.sim.optics import SimRig
 from app.recon import compute_phase
+
+log = logging.getLogger("fringescope.service")
 
 
 @dataclass
@@ -31,6 +43,7 @@ class Pose:
     capture: CaptureSet
     detection: Detection
     preview_png: bytes
+    phase: npt.NDArray[np.float32] | None = None  # (H, W) finest unwrapped phase, rad, when found
     created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="seconds"))
 
     @property
@@ -118,6 +131,8 @@ class CalibrationSession:
         self.report: CalibrationReport | None = None  # once solved
         self.created = datetime.now(UTC).isoformat(timespec="seconds")
         self.lock = threading.Lock()
+        self._coverage: tuple[CoverageMap, PoseAdvice] | None = None
+        self._version = 0  # poses added or deleted
 
     def add(self, capture: CaptureSet) -> tuple[int, Pose]:
         """Detect the board in ``capture`` and keep it as the next pose."""
@@ -126,13 +141,58 @@ class CalibrationSession:
             res = compute_phase(capture.frames, capture.schedule, max_code=capture.max_code)
             tex = texture_to_u8(res.texture)
             det = detect_board(tex, self.board)
+            phase = res.phase if det.found else None
         else:
-            det = _NOT_FOUND
-        pose = Pose(capture, det, preview_png(tex, self.board, det))
+            det, phase = _NOT_FOUND, None
+        pose = Pose(capture, det, preview_png(tex, self.board, det), phase)
         with self.lock:
             self.poses.append(pose)
             self.report = None
-            return len(self.poses) - 1, pose
+            self._coverage = None
+            self._version += 1
+            index = len(self.poses) - 1
+        self.coverage()  # the map and the next pose, while the user looks at this one
+        return index, pose
+
+    def coverage(self) -> tuple[CoverageMap, PoseAdvice]:
+        """The image x height cells the found poses cover, σ_model per cell and the next pose
+        (:mod:`app.calib.coverage`; recomputed after a pose is added or deleted)."""
+        with self.lock:
+            if self._coverage is not None:
+                return self._coverage
+            found = [p for p in self.poses if p.found]
+            shape = self.poses[0].capture.frames.shape if self.poses else (0, 1, 1)
+            version = self._version
+        size = (int(shape[2]), int(shape[1]))  # before any pose: unknown, a 1 x 1 image
+        if not found:
+            cov = coverage_map([], size)
+            result = cov, suggest_pose(cov, [])
+        else:
+            img = [p.detection.image_points for p in found]
+            sched = found[0].capture.schedule
+            phases = [p.phase for p in found if p.phase is not None]
+            try:
+                views = board_views(img, [p.detection.object_points for p in found], size)
+                fringes = int(round(float(sched.frequencies[-1])))
+                sigma = None if len(phases) != len(found) else model_sigma(
+                    views, phases, img, fringes=fringes, projector_width_px=sched.axis_length)
+                cov = coverage_map(views.poses, size, sigma=sigma)
+                result = cov, suggest_pose(cov, views.poses)
+            except (ValueError, cv2.error, np.linalg.LinAlgError) as exc:  # guidance only: say why
+                log.warning("calibration coverage: %s", exc)
+                cov = coverage_map([], size)
+                result = cov, suggest_pose(cov, [])
+        with self.lock:
+            if self._version == version:  # no pose added or deleted meanwhile
+                self._coverage = result
+        return result
+
+    def coverage_dict(self) -> dict[str, Any]:
+        """:meth:`coverage` as the REST answers carry it: the map and the suggestion."""
+        cov, advice = self.coverage()
+        status = cov.status_line() if cov.poses else "no pose with the board yet"
+        return {**cov.to_dict(), "status": status,
+                "suggestion": advice_dict(advice)}
 
     def pose(self, index: int) -> Pose:
         with self.lock:
@@ -146,6 +206,8 @@ class CalibrationSession:
                 raise NotFound(f"pose {index}: no such pose (have {len(self.poses)})")
             del self.poses[index]
             self.report = None
+            self._coverage = None
+            self._version += 1
 
     def summaries(self) -> list[dict[str, Any]]:
         with self.lock:
@@ -170,4 +232,53 @@ class CalibrationSession:
             "created": self.created,
             "poses": self.summaries(),
             "solved": self.report is not None,
+            "coverage": self.coverage_dict(),
         }
+
+
+def advice_dict(advice: PoseAdvice) -> dict[str, Any]:
+    """A :class:`PoseAdvice` as JSON."""
+    return {"region": advice.region, "u_px": round(advice.u_px, 1), "v_px": round(advice.v_px, 1),
+            "height_mm": round(advice.height_mm, 2), "tilt_vertical_deg": advice.tilt_vertical_deg,
+            "tilt_horizontal_deg": advice.tilt_horizontal_deg, "text": advice.text}
+
+
+def twin_board_pose(rig: SimRig, board: BoardSpec, advice: PoseAdvice, *, margin_px: float = 40.0
+                    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """(origin, axes) of the twin's board for ``advice``: its centre on the ray of the advised
+    pixel at the advised height, tilted as advised (signs of
+    :class:`~app.calib.coverage.PoseGeometry`);
+    moved toward the image centre until every corner is ``margin_px`` inside the image.
+
+    Args:
+        rig: the twin's rig (its camera and reference plane).
+        board: the session's board (its corners must stay in view).
+        advice: the suggestion.
+    """
+    from app.devices.sim.scenes import board_points_mm
+    from app.devices.sim.scenes.base import frame_from_normal
+
+    ref = rig.reference
+    n0 = np.asarray(ref.normal, np.float64)
+    x_ax = np.array([1.0, 0.0, 0.0]) - n0[0] * n0
+    x_ax /= np.linalg.norm(x_ax)
+    y_ax = np.cross(n0, x_ax)
+    y_ax = y_ax if y_ax[1] >= 0 else -y_ax
+    tv, th = np.radians(advice.tilt_vertical_deg), np.radians(advice.tilt_horizontal_deg)
+    normal = n0 - np.tan(tv) * x_ax - np.tan(th) * y_ax
+    normal /= np.linalg.norm(normal)
+    w, h = rig.image_size
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    target = np.array([advice.u_px, advice.v_px])
+    corners = board_points_mm(board)
+    pose = frame_from_normal(np.zeros(3), normal)
+    for step in np.linspace(1.0, 0.0, 21):
+        uv = centre + step * (target - centre)
+        ray = rig.camera.rays(np.array([uv[0]]), np.array([uv[1]])).reshape(3)
+        origin = ray * (advice.height_mm - ref.offset_mm) / float(n0 @ ray)
+        pose = frame_from_normal(origin, normal)
+        px = rig.camera.project(origin + corners @ pose[1].T)
+        if (px.min(axis=0) >= margin_px).all() and (px[:, 0] <= w - 1 - margin_px).all() \
+                and (px[:, 1] <= h - 1 - margin_px).all():
+            break
+    return pose

@@ -239,7 +239,8 @@ class CalibrationManager:
         """Grab the next whole set of the current view and add it to the session."""
         session = self.require_session()
         index, pose = session.add(self.pipeline.next_capture(timeout_s))
-        return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist()}
+        return {**pose.summary(index), "corner_points": pose.detection.image_points.tolist(),
+                "coverage": session.coverage_dict()}
 
     def solve_session(self, *, robust: bool = False) -> CalibrationReport:
         """Fit the session's poses; too few or unusable poses are a Conflict with the reason."""

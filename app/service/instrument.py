@@ -26,7 +26,7 @@ from app.config import Settings
 from app.core.calibration import Calibration
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import full_scale
-from app.core.records import State, Status
+from app.core.records import Bracket, State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
 from app.devices.sim.offline import auto_exposure_ms, simulate_calibration_folder
 from app.devices.sim.optics import rig_by_name
@@ -35,7 +35,7 @@ from app.recon import ReconResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
 from app.service.alarms import AlarmBoard
-from app.service.calibration_session import CalibrationSession
+from app.service.calibration_session import CalibrationSession, advice_dict, twin_board_pose
 from app.service.calibrations import CalibrationManager
 from app.service.change import ChangeService
 from app.service.devices import DeviceBundle, create_devices
@@ -160,35 +160,41 @@ class Instrument:
     def suggest_pose(self) -> dict[str, Any]:
         """Where to hold the board for the session's next pose; the twin puts its board there.
 
-        The poses are the simulator's calibration poses (pose 0 the reference plane, then up
-        to 18 mm higher, tilted by about 30°); the next one is the count of poses with the
-        board found. On the twin the board (the session's spec) moves there and the exposure
-        is set for it; on hardware the answer is the hint alone.
+        Pose 0 is the reference plane (flat, the farthest); after it the session's coverage
+        (:mod:`app.calib.coverage`) names the image region, height and tilts that add most
+        calibrated cells. On the twin the board (the session's spec) moves there and the
+        exposure is set for it; on hardware the answer is the advice alone. ``of`` is the
+        simulator's calibration series length, the poses planned at least.
         """
         session = self.calibrations.require_session()
         devices = self.pipeline.devices
         world = devices.world if devices is not None else None
         rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
-        poses = board_poses(rig, sim_calibration_poses(), seed=0)
-        k = min(sum(1 for p in session.poses if p.found), len(poses) - 1)
-        origin, axes = poses[k]
+        planned = sim_calibration_poses()
+        k = sum(1 for p in session.poses if p.found)
+        cov, advice = session.coverage()
+        if k == 0:  # the reference plane, where the simulator's own calibration puts it
+            pose = board_poses(rig, planned, seed=0)[0]
+        else:
+            pose = twin_board_pose(rig, session.board, advice)
+        origin, axes = pose
         ref = rig.reference
         height_mm = float(ref.normal @ origin + ref.offset_mm)
         cos_tilt = abs(float(axes[:, 2] @ ref.normal))  # axes: columns e_s, e_t, normal
         tilt_deg = float(np.degrees(np.arccos(min(cos_tilt, 1.0))))
         exposure_ms = None
         if world is not None:
-            world.set_scene(board_scene(rig, session.board, poses[k]))
+            world.set_scene(board_scene(rig, session.board, pose))
             self._twin_scene_moved = True
             exposure_ms = round(auto_exposure_ms(world, led=world.led, current=world.current,
                                                  bits=self.settings.bit_depth), 2)
             self.set_exposure(exposure_ms)
-        where = "flat on the reference plane (the farthest)" if k == 0 else \
-            f"{height_mm:.0f} mm above the reference plane, tilted {tilt_deg:.0f}°"
-        return {"index": k, "of": len(poses), "height_mm": round(height_mm, 2),
+        return {"index": k, "of": max(planned, k + 1), "height_mm": round(height_mm, 2),
                 "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
                 "exposure_ms": exposure_ms,
-                "hint": f"pose {k} of {len(poses)}: the whole board in view, {where}"}
+                "hint": f"pose {k} of {max(planned, k + 1)}: the whole board in view; "
+                        f"{advice.text}",
+                "suggestion": advice_dict(advice), "coverage": session.coverage_dict()}
 
     def _restore_twin_scene(self) -> None:
         """After the session: the twin shows its configured scene again."""
@@ -215,6 +221,19 @@ class Instrument:
     def set_rolling(self, rolling: bool) -> None:
         self._changing("the mode change")
         self.pipeline.set_rolling(rolling)
+
+    def set_bracket(self, on: bool) -> None:
+        """Exposure bracketing on or off (``Conflict`` in rolling mode)."""
+        self._changing(f"exposure bracketing {'on' if on else 'off'}")
+        self.pipeline.set_bracket(on)
+
+    def bracket_status(self) -> Bracket | None:
+        """The status's ``bracket`` record: exposures, who switched it on, the rate note."""
+        acq, note = self.acquisition, self.pipeline.bracket_note()
+        if acq is None or note is None:
+            return None
+        return Bracket(on=True, auto=self.pipeline.bracket_auto,
+                       exposures_ms=(acq.exposure_ms, acq.bracket_long_ms), note=note)
 
     def _changing(self, what: str) -> None:
         """Mark a change for the valid-fraction watch (a collapse after it is a status warning)."""
@@ -337,9 +356,11 @@ class Instrument:
         if not acq.acquiring:
             return "stopped", "acquisition stopped (POST /api/acquisition/start)"
         period = self._set_period_s()
+        if self.pipeline.bracketing:  # a map per pair: a set at each exposure (frame time ∝ it)
+            period *= 1.0 + acq.bracket_long_ms / acq.exposure_ms
         age = self._depth_age_s(now)
         if age is not None and age <= 2 * period:
-            return "running", None
+            return "running", self.pipeline.bracket_note()  # None unless bracketing: say why slower
         if self.calibration is None:
             return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
         if self.pipeline.engine_note:
@@ -484,6 +505,7 @@ class Instrument:
             patched_sets=counters["patched_sets"],
             warmup=dict(warmup),
             since_warmup=since,
+            bracket=self.bracket_status(),
             calibration_session=None if session is None else {
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},

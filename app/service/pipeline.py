@@ -12,14 +12,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from app.capture.captureset import CaptureSet
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import DEFAULT_LED, EXPOSURE_RANGE_MS, LEDS, full_scale
+from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
 from app.recon import Reconstructor
 from app.recon.exposure import (
     DEFAULT_SATURATION_LIMIT,
     AutoExposureResult,
+    bracket_exposures,
     choose_exposure,
     set_statistics,
 )
@@ -35,6 +39,10 @@ from app.service.devices import DeviceBundle
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult, Reconstruction
 from app.service.store import LatestSlot, NewestQueue
+
+#: share of a scene's lit, unsaturated pixels invalid for low signal at the auto exposure beyond
+#: which the auto-exposure switches exposure bracketing on
+BRACKET_DIM_SHARE = 0.10
 
 
 @dataclass(frozen=True)
@@ -73,6 +81,8 @@ class LivePipeline:
         self._engine: Reconstructor | None = None
         self.engine_note: str | None = None  # why there is no engine although a calibration is loaded
         self.closed = False
+        self.bracket_auto = False  # bracketing was switched on by the auto-exposure
+        self.bracket_dim_share: float | None = None  # the auto-exposure's last judgement
 
     # -- lifecycle -------------------------------------------------------------------------
     def start(self, devices: DeviceBundle) -> None:
@@ -168,7 +178,39 @@ class LivePipeline:
         return led
 
     def set_rolling(self, rolling: bool) -> None:
+        if rolling and self.bracketing:
+            raise Conflict("mode: rolling maps cannot fuse an exposure bracket; "
+                           "PUT /api/mode {\"bracket\": false} first")
         self._acq().set_rolling(rolling)
+
+    @property
+    def bracketing(self) -> bool:
+        """Whole sets alternate between the exposure and +2 stops, fused per pixel in pairs."""
+        return self.acquisition is not None and self.acquisition.bracket
+
+    def set_bracket(self, on: bool, *, auto: bool = False) -> None:
+        """Exposure bracketing on or off (set mode only: a rolling map has no pair of sets).
+
+        Raises:
+            Conflict: ``on`` while in rolling mode.
+        """
+        acq = self._acq()
+        if on and acq.rolling:
+            raise Conflict("bracket: exposure bracketing fuses whole sets; "
+                           "PUT /api/mode {\"rolling\": false} first")
+        self.reconstruction.set_bracket(on)
+        acq.set_bracket(on)
+        self.bracket_auto = bool(on and auto)
+
+    def bracket_note(self) -> str | None:
+        """What bracketing does to the depth rate, for the status (None when off)."""
+        acq = self.acquisition
+        if acq is None or not acq.bracket:
+            return None
+        how = "switched on by the auto-exposure: the scene spans more than one exposure" \
+            if self.bracket_auto else "on"
+        return (f"exposure bracketing {how}; each depth map fuses a {acq.exposure_ms:g} ms and a "
+                f"{acq.bracket_long_ms:g} ms set, so the depth rate halves")
 
     def set_acquiring(self, on: bool) -> None:
         self._acq().set_acquiring(on)
@@ -220,10 +262,39 @@ class LivePipeline:
             fs = 255 if frames.dtype.itemsize == 1 else top
             return set_statistics(frames, self.schedule, fs)
 
+        was_bracketing, self.bracket_dim_share = self.bracketing, None
+        if was_bracketing:  # the search grabs sets at its own exposures
+            self.set_bracket(False)
         try:
             result = choose_exposure(measure, saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
         except Exception:
             self.set_exposure(before)
+            if was_bracketing:
+                self.set_bracket(True, auto=self.bracket_auto)
             raise
         self.set_exposure(result.exposure_ms)
+        self.auto_bracket(result.exposure_ms, max_exposure_ms)
         return result
+
+    def auto_bracket(self, exposure_ms: float, max_exposure_ms: float) -> float | None:
+        """After the auto-exposure: bracketing on when the scene's range exceeds one exposure —
+        more than :data:`BRACKET_DIM_SHARE` of its lit, unsaturated pixels invalid for low signal
+        at ``exposure_ms`` while a longer exposure is possible — else off (in set mode only).
+
+        Returns:
+            The dim share measured on a set at ``exposure_ms`` (None: no engine, nothing judged).
+        """
+        engine, acq = self._engine, self._acq()
+        if engine is None or acq.rolling:
+            return None
+        timeout = 5.0 + 3 * self.schedule.n_frames * max(exposure_ms, 30.0) / 1000.0
+        capture = self.next_capture(timeout, exposure_ms=exposure_ms)
+        res = engine.run(capture.frames, noise=self.reconstruction.noise.current)
+        dim = np.isin(res.reason, (int(Reason.LOW_MODULATION), int(Reason.UNCERTAIN)))
+        lit = res.texture > 0.02 * capture.max_code  # the scene, not the unlit background
+        considered = lit & (res.reason != int(Reason.SATURATED))
+        share = float(dim[considered].mean()) if considered.any() else 0.0
+        longer = len(bracket_exposures(exposure_ms, max_exposure_ms=max_exposure_ms)) > 1
+        self.set_bracket(share > BRACKET_DIM_SHARE and longer, auto=True)
+        self.bracket_dim_share = share
+        return share

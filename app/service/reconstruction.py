@@ -7,6 +7,7 @@ reconstruction takes less than one set's acquisition.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -18,7 +19,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app.recon import Reconstructor
+from app.recon import ReconResult, Reconstructor
+from app.recon.fusion import fuse_exposures
 from app.recon.motion import MotionTest, map_time
 from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
@@ -69,6 +71,8 @@ class LiveResult:
     uncertain_moving_pixels: int = 0
     noise: SensorNoise | None = None
     noise_source: NoiseSource = "given"  # or "set"/"nominal": the engine's own until measured
+    #: exposure bracketing: the two sets' exposures (ms) this map fuses (None: one set)
+    bracket_exposures_ms: tuple[float, float] | None = None
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -99,6 +103,8 @@ class LiveResult:
             "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
             "scene_moved": self.scene_moved, "uncertain_moving_pixels": self.uncertain_moving_pixels,
             "shape": list(self.shape),
+            "bracket_exposures_ms": None if self.bracket_exposures_ms is None
+            else list(self.bracket_exposures_ms),
         }
 
 
@@ -135,11 +141,20 @@ class Reconstruction:
         self.recon_times = RecentValues(100)
         self.completed = 0
         self.last_error: str | None = None
+        #: exposure bracketing (set mode): a map only from two consecutive sets of different
+        #: exposures, fused per pixel (app.recon.fusion); the first of a pair waits here
+        self.bracket = False
+        self._bracket_first: tuple[FrameSet, ReconResult, float] | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fringescope-reconstruction", daemon=True)
 
     def start_thread(self) -> None:
         self._thread.start()
+
+    def set_bracket(self, on: bool) -> None:
+        """Pair sets of two exposures from now on (or not); a waiting first of a pair is dropped."""
+        self.bracket = bool(on)
+        self._bracket_first = None
 
     def shutdown(self, timeout_s: float = 10.0) -> None:
         self._stop.set()
@@ -160,10 +175,13 @@ class Reconstruction:
             if engine is None:
                 continue
             try:
-                result = self.process(engine, fs)
+                result = self.process_bracket(engine, fs) if self.bracket and fs.mode == "set" \
+                    else self.process(engine, fs)
             except Exception as exc:  # a bad set must not kill the thread
                 self.last_error = f"reconstruction: {exc}"
                 log.warning("reconstruction failed: %s", exc, exc_info=True)
+                continue
+            if result is None:  # the first set of a bracket: its partner comes next
                 continue
             result.seq = self.results.publish(result)
             self.completed += 1
@@ -174,8 +192,8 @@ class Reconstruction:
             if self.noise.due(time.monotonic(), schedule):  # after publishing: no map waits for it
                 self.noise.update(fs.stack(), schedule, int(result.full_scale), time.monotonic())
 
-    def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
-        """Reconstruct one set with the motion test (both modes) into a :class:`LiveResult`."""
+    def _run_engine(self, engine: Reconstructor, fs: FrameSet) -> tuple[ReconResult, float, float]:
+        """(result, full scale, milliseconds) of one set with the live noise and motion test."""
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
@@ -183,7 +201,39 @@ class Reconstruction:
         if noise is None and self.noise.interval_s == 0.0:  # measuring off: the nominal sensor
             noise = engine.noise or SensorNoise.typical(int(full_scale))
         res = engine.run(frames, noise=noise, motion=self.motion)
-        recon_ms = 1000.0 * (time.perf_counter() - t0)
+        return res, full_scale, 1000.0 * (time.perf_counter() - t0)
+
+    def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:
+        """Reconstruct one set with the motion test (both modes) into a :class:`LiveResult`."""
+        res, full_scale, recon_ms = self._run_engine(engine, fs)
+        return self._live(engine, fs, res, full_scale, recon_ms)
+
+    def process_bracket(self, engine: Reconstructor, fs: FrameSet) -> LiveResult | None:
+        """One set of an exposure bracket: None for the first of a pair (kept); for the second
+        (another exposure) both fused per pixel, the smaller-σ valid member winning
+        (:func:`~app.recon.fusion.fuse_exposures`, as ``reconstruct`` does with several sets)."""
+        res, full_scale, recon_ms = self._run_engine(engine, fs)
+        first, self._bracket_first = self._bracket_first, (fs, res, recon_ms)
+        e = float(fs.exposure_ms)
+        if first is None or abs(float(first[0].exposure_ms) - e) <= 1e-3 * e + 1e-3:
+            return None  # no partner yet (or a lost set left two of one exposure)
+        self._bracket_first = None
+        pair = sorted([first, (fs, res, recon_ms)], key=lambda m: float(m[0].exposure_ms))
+        fused = fuse_exposures([m[1] for m in pair], [float(m[0].exposure_ms) for m in pair]).result
+        a, b = first[1], res
+        moved = None if a.motion is None or b.motion is None else a.motion | b.motion
+        fused = dataclasses.replace(
+            fused, motion=moved, moved_pixels=a.moved_pixels + b.moved_pixels,
+            scene_moved=a.scene_moved or b.scene_moved, motion_ms=a.motion_ms + b.motion_ms,
+            uncertain_moving_pixels=a.uncertain_moving_pixels + b.uncertain_moving_pixels,
+            noise=b.noise, noise_source=b.noise_source)
+        live = self._live(engine, fs, fused, full_scale, recon_ms + first[2])
+        live.exposure_ms = float(pair[0][0].exposure_ms)
+        live.bracket_exposures_ms = (float(pair[0][0].exposure_ms), float(pair[1][0].exposure_ms))
+        return live
+
+    def _live(self, engine: Reconstructor, fs: FrameSet, res: ReconResult, full_scale: float,
+              recon_ms: float) -> LiveResult:
         sched = engine.calibration.pattern
         return LiveResult(
             depth=res.depth, points=res.points, valid=res.valid, reason=res.reason,

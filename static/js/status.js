@@ -30,7 +30,9 @@ function showStatus(st) {
       ? `since the first depth map; ${warm[key]} during start-up, ${st[key]} in all`
       : "since start-up";
   }
-  $("m-mode").textContent = st.mode;
+  // exposure bracketing: as wide as "rolling" (the bar must not move); its note below
+  $("m-mode").textContent = st.bracket ? "bracket" : st.mode;
+  $("m-mode").title = st.bracket ? st.bracket.note : "";
   const sch = st.schedule;
   $("m-sensor").textContent = (st.bit_depth ? `${st.bit_depth}-bit` : "–") + (sch
     ? ` · ${sch.unwrap || "hierarchical"} [${sch.frequencies.map((k) => +k.toFixed(2)).join(", ")}]×${sch.steps}` +
@@ -61,9 +63,10 @@ function showStatus(st) {
     // "calibrating: calibrating pose 2 of 8" says it twice: the phase alone when it names the state
     const what = st.phase.startsWith(st.state) ? st.phase : `${st.state}: ${st.phase}`;
     list.unshift(`⏳ ${what}${pct}`);
-  } else if (st.state_reason && st.state !== "fault") {
+  } else if (st.state_reason && st.state !== "fault" && st.state !== "running") {
     list.unshift(`⚠ ${st.state}: ${st.state_reason}`);
   }
+  if (st.bracket) list.push(`ⓘ ${st.bracket.note}`); // why the depth rate halved
   if (st.last_error && st.last_error_resolved === false && st.state !== "fault") {
     const at = st.last_error_at ? new Date(st.last_error_at).toLocaleTimeString() : "";
     list.push(`⚠ last error ${at}: ${st.last_error}`);

@@ -63,6 +63,50 @@ function renderReport(r) {
   box.appendChild(table);
 }
 
+const CELL_PX = 9;
+const GAP_PX = 12;
+
+/** The coverage map: per height bin a grid of the image cells (green: board points; teal:
+ * the model's sigma within tolerance; red: neither), the shares against the target and the
+ * next pose. */
+function renderCoverage(cov) {
+  const box = $("coverage");
+  if (!cov) {
+    box.hidden = true;
+    return;
+  }
+  box.hidden = false;
+  const [cols, rows] = cov.cells;
+  const bins = cov.covered.length;
+  const canvas = $("coverage-map");
+  canvas.width = bins * (cols * CELL_PX + GAP_PX);
+  canvas.height = rows * CELL_PX + 16;
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  ctx.font = "10px sans-serif";
+  for (let b = 0; b < bins; b += 1) {
+    const x0 = b * (cols * CELL_PX + GAP_PX);
+    for (let r = 0; r < rows; r += 1) {
+      for (let c = 0; c < cols; c += 1) {
+        const sigma = cov.sigma_model_um[b][r][c];
+        const ok = sigma !== null && sigma <= cov.sigma_tolerance_um;
+        ctx.fillStyle = cov.covered[b][r][c] ? "#2e9d4f" : ok ? "#5fb3b3" : "#b04040";
+        ctx.fillRect(x0 + c * CELL_PX, r * CELL_PX, CELL_PX - 1, CELL_PX - 1);
+      }
+    }
+    ctx.fillStyle = "#888";
+    const lo = cov.height_edges_mm[b];
+    const hi = cov.height_edges_mm[b + 1];
+    ctx.fillText(`${fmt(lo, 0)}–${fmt(hi, 0)} mm`, x0, rows * CELL_PX + 12);
+  }
+  const line = $("coverage-line");
+  line.textContent = cov.status;
+  line.className = cov.reached ? "ok" : "muted";
+  $("suggestion-line").textContent = cov.reached
+    ? "calibrated volume reached: Solve"
+    : `next pose: ${cov.suggestion.text}`;
+}
+
 function boardLine(b) {
   const size = b.inner_corners ?? b.grid ?? [];
   const pitch = b.square_mm ?? b.spacing_mm;
@@ -82,6 +126,7 @@ function showSession(session) {
       (session.solved ? " · solved" : "")
     : "no session open";
   renderPoses(open ? session.poses : []);
+  renderCoverage(open ? session.coverage : null);
   if (!open) {
     $("solve-report").textContent = "";
     $("pose-preview").hidden = true;
@@ -156,6 +201,7 @@ export function setupWizard() {
       ? `${s.hint} — the simulator's board is there (exposure ${fmt(s.exposure_ms, 1)} ms): ` +
         "Capture pose"
       : `${s.hint}, then Capture pose`;
+    renderCoverage(s.coverage);
     pollStatus();
   }));
   $("btn-capture").addEventListener("click", (ev) => act(ev.target, "capture pose", async () => {
@@ -169,6 +215,7 @@ export function setupWizard() {
         : `pose ${pose.index}: no board found — bring the whole board into view, ` +
           "or change the exposure";
       line.className = pose.found ? "ok" : "bad";
+      renderCoverage(pose.coverage);
       await showPosePreview(pose.preview_url);
     } catch (err) {
       line.textContent = "";

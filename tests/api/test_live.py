@@ -195,7 +195,8 @@ def test_mjpeg_stream_parts(live: TestClient) -> None:
 
 def test_rolling_mode_labels_results(live: TestClient) -> None:
     try:
-        assert live.put("/api/mode", json={"rolling": True}).json() == {"mode": "rolling"}
+        assert live.put("/api/mode", json={"rolling": True}).json() == {"mode": "rolling",
+                                                                          "bracket": False}
         meta = wait_result(live, lambda m: m["mode"] == "rolling", 20, "a rolling result")
         windows = [meta["frame_indices"]]
         while len(windows) < 4:

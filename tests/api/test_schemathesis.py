@@ -166,7 +166,7 @@ def test_instrument_survived(live_app: Any) -> None:
     inst = live_app.state.instrument
     assert inst.acquisition is not None and inst.acquisition.alive and inst.pipeline.reconstruction.alive
     client = TestClient(live_app, headers=AUTH)  # no `with`: the module's lifespan is already running
-    client.put("/api/mode", json={"rolling": False}, headers=AUTH)
+    client.put("/api/mode", json={"rolling": False, "bracket": False}, headers=AUTH)
     client.post("/api/acquisition/start", headers=AUTH)
     client.put("/api/exposure", json={"exposure_ms": 10}, headers=AUTH)
     client.post("/api/recording/stop", headers=AUTH)

@@ -132,3 +132,76 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
     # the refused schedule change is logged by the browser as a failed fetch; no 3-D viewer here
     ignored = ("status of 409", "/viser/")
     assert [e for e in errors if not any(s in e for s in ignored)] == [], "\n".join(errors)
+
+
+#: the coverage canvas's cell colours (static/js/wizard.js): board points, sigma_model in tolerance
+GREEN, TEAL = (0x2E, 0x9D, 0x4F), (0x5F, 0xB3, 0xB3)
+CANVAS_COLOURS = """() => {
+  const c = document.querySelector('#coverage-map');
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  const seen = {};
+  for (let i = 0; i < d.length; i += 4) seen[`${d[i]},${d[i + 1]},${d[i + 2]}`] = 1;
+  return Object.keys(seen);
+}"""
+
+
+def _colours(pg: Any) -> set[tuple[int, ...]]:
+    return {tuple(int(x) for x in k.split(",")) for k in pg.evaluate(CANVAS_COLOURS)}
+
+
+def test_the_wizard_draws_the_coverage_and_says_where_to_go_next(page: tuple[Any, list[str]],
+                                                                 server: str) -> None:
+    pg, errors = page
+    httpx.delete(f"{server}/api/calibration/session")
+    pg.reload(wait_until="load")
+    _open_wizard(pg)
+    pg.wait_for_function(NO_SESSION)
+    assert pg.is_hidden("#coverage")
+    pg.fill("#board-cols", "9")
+    pg.fill("#board-rows", "6")
+    pg.fill("#board-pitch", "2.0")
+    pg.click("#btn-session")
+    pg.wait_for_function(SESSION_OPEN)
+    # before any pose: the map is empty and the advice is the reference plane
+    pg.wait_for_selector("#coverage", state="visible")
+    assert "reference plane" in (pg.text_content("#suggestion-line") or "")
+    assert GREEN not in _colours(pg)
+    for k in range(3):
+        pg.click("#btn-suggest")
+        pg.wait_for_function(
+            "document.querySelector('#pose-line').textContent.includes('Capture pose')",
+            timeout=90_000)
+        session = httpx.get(f"{server}/api/calibration/session", timeout=30).json()
+        advice = session["coverage"]["suggestion"]
+        if k > 0:  # the words on the page are the session's advice, which moved the twin's board
+            assert advice["text"] in (pg.text_content("#pose-line") or "")
+            assert "deg about the vertical axis" in advice["text"]
+        pg.wait_for_timeout(2000)  # frames in flight may predate the move
+        pg.click("#btn-capture")
+        pg.wait_for_function("document.querySelector('#pose-line').className === 'ok'",
+                             timeout=90_000)
+        pg.wait_for_function(
+            f"document.querySelector('#coverage-line').textContent.includes('% of the image')"
+            f" && document.querySelectorAll('#pose-table tbody tr').length === {k + 1}",
+            timeout=30_000)
+        line = pg.text_content("#coverage-line") or ""
+        cov = httpx.get(f"{server}/api/calibration/session", timeout=30).json()["coverage"]
+        assert cov["status"] == line and cov["poses"] == k + 1
+        assert f"next pose: {cov['suggestion']['text']}" == pg.text_content("#suggestion-line") \
+            or cov["reached"]
+        print(f"\npose {k}: {line}")
+    colours = _colours(pg)
+    assert GREEN in colours  # cells with board points
+    # teal exactly when the model's sigma vouches for cells beyond the board points (three poses on)
+    assert (TEAL in colours) == (cov["calibrated_share"] > cov["covered_share"])
+    # a reload draws the same map from the session
+    pg.reload(wait_until="load")
+    pg.wait_for_function(SESSION_OPEN)
+    pg.wait_for_function(
+        "document.querySelector('#coverage-line').textContent.includes('% of the image')")
+    assert GREEN in _colours(pg)
+    pg.click("#btn-cancel-session")
+    pg.wait_for_function(NO_SESSION)
+    assert pg.is_hidden("#coverage")
+    ignored = ("/viser/",)
+    assert [e for e in errors if not any(s in e for s in ignored)] == [], "\n".join(errors)

@@ -56,6 +56,10 @@ def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
     eq5, geo = cal.held_out["eq5"]["rms_mm"], cal.held_out["geometric"]["rms_mm"]
     best = "eq5" if eq5 < 0.98 * geo else "geometric"
     assert cal.model.name == best and f"active model: {best}" in text
+    # the coverage of the image x height cells, per bin a map, and the pose to add in words
+    assert "coverage: " in text and "% of the image x 0-20 mm cells calibrated" in text
+    assert text.count("  heights ") == 4 and "max sigma_model" in text
+    assert "next pose" in text and "deg about the vertical axis" in text
     assert len(cal.pose_residuals) == len(STANDARD_POSES)
     assert all(p["corners"] == BOARD.n_points for p in cal.pose_residuals)
     # Heights of a fresh plane 10 mm above the reference, from its exact phase.

@@ -1,0 +1,110 @@
+"""Live exposure bracketing through the lifespan on the twin's `anastomosis` scene: sets
+alternate between the exposure and +2 stops, each pair fused per pixel; the status says the
+depth rate halves; the valid share against single exposures is printed (the issue's figure)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.devices.sim.devices import create_sim_devices
+from app.main import create_app
+from app.service.devices import DeviceBundle
+from tests.helpers.live_app import live_settings, wait_for
+
+
+def _maps(client: TestClient, n: int, timeout_s: float, *, bracket: bool) -> list[dict[str, Any]]:
+    """The next ``n`` new results' metadata, of the given kind (one set or a fused pair)."""
+    out: list[dict[str, Any]] = []
+    seen = client.get("/api/result/latest").json().get("seq", -1)
+    deadline = time.monotonic() + timeout_s
+    while len(out) < n and time.monotonic() < deadline:
+        meta = client.get("/api/result/latest").json()
+        if meta.get("seq", -1) != seen:
+            seen = meta["seq"]
+            if (meta.get("bracket_exposures_ms") is not None) == bracket:
+                out.append(meta)
+        time.sleep(0.05)
+    assert len(out) == n, f"only {len(out)} of {n} maps (bracket={bracket}) in {timeout_s} s"
+    return out
+
+
+def _rate(client: TestClient, sets: int, timeout_s: float) -> tuple[float, float]:
+    """(depth maps per whole set, maps per second) over the next ``sets`` whole sets. The twin
+    runs on a virtual clock here (the renderer sets the pace on a busy machine), so maps per set
+    is the rate's measure: a camera's set period is fixed by its exposure."""
+    a = client.get("/api/status").json()
+    t0 = time.monotonic()
+    b = wait_for(client, lambda s: s["sets_completed"] >= a["sets_completed"] + sets, timeout_s,
+                 f"{sets} sets")
+    maps = b["results_published"] - a["results_published"]
+    return maps / (b["sets_completed"] - a["sets_completed"]), maps / (time.monotonic() - t0)
+
+
+@pytest.mark.slow
+def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
+    tmp_path: Path, sim_calibration_file: Path
+) -> None:
+    settings = live_settings(
+        tmp_path, sim_calibration_file, sim_scene="anastomosis", exposure_ms=20.0,
+        # the nominal camera noise: fitting it to this scene's sets at 20 ms on the virtual clock
+        # failed every set ("read_noise_dn must be > 0"), before bracketing was switched on
+        noise_estimate_interval_s=0.0,
+    )
+    app = create_app(settings)
+    # the twin on a virtual clock: its anastomosis renders slower than real time on a loaded
+    # machine, and a real-time camera would drop frames until no set is whole
+    sim = create_sim_devices(scene="anastomosis", seed=1, realtime=False)
+    app.state.instrument.pipeline.devices = DeviceBundle(sim.camera, sim.projector,
+                                                         sim.controller, sim.world)
+    with TestClient(app) as client:
+        wait_for(client, lambda s: s["results_published"] >= 2, 300, "first results")
+        assert client.put("/api/mode", json={}).status_code == 422  # neither field: a clear 422
+        r = client.put("/api/mode", json={"rolling": True, "bracket": True})
+        assert r.status_code == 409 and client.get("/api/status").json()["mode"] == "set"
+        plain = _maps(client, 3, 60, bracket=False)
+        assert all(m["exposure_ms"] == 20.0 for m in plain)
+        rate_plain = _rate(client, 6, 300)
+
+        r = client.put("/api/mode", json={"bracket": True})
+        assert r.status_code == 200 and r.json() == {"mode": "set", "bracket": True}
+        # rolling maps cannot fuse a pair: refused, naming the way out, nothing changed
+        r = client.put("/api/mode", json={"rolling": True})
+        assert r.status_code == 409 and '"bracket": false' in r.json()["detail"]
+        fused = _maps(client, 3, 120, bracket=True)
+        assert all(
+            m["bracket_exposures_ms"] == [20.0, 80.0] and m["exposure_ms"] == 20.0 for m in fused
+        )
+        st = wait_for(client, lambda s: s["state"] == "running", 30, "running while bracketing")
+        assert st["bracket"]["exposures_ms"] == [20.0, 80.0] and st["bracket"]["auto"] is False
+        assert (
+            "depth rate halves" in st["bracket"]["note"]
+            and st["state_reason"] == st["bracket"]["note"]
+        )
+        assert st["mode"] == "set"
+        rate_fused = _rate(client, 6, 300)
+
+        v_plain = sum(m["valid_fraction"] for m in plain) / len(plain)
+        v_fused = sum(m["valid_fraction"] for m in fused) / len(fused)
+        print(
+            f"\nanastomosis live, 20 ms: valid {100 * v_plain:.1f} %, {rate_plain[0]:.2f} maps per "
+            f"set ({rate_plain[1]:.2f} maps/s on the virtual clock); bracketed 20 + 80 ms: valid "
+            f"{100 * v_fused:.1f} %, {rate_fused[0]:.2f} maps per set ({rate_fused[1]:.2f} maps/s)"
+        )
+        # the valid shares are the issue's figure, not a verdict: plain and fused maps come from
+        # different moments of a moving scene (two runs: 46.8 -> 54.5 % and 55.1 -> 53.6 %); that a
+        # pair's fusion validates more than either set is tests/service/test_bracketing.py's check
+        assert rate_fused[0] <= 0.6 * rate_plain[0]  # one map per pair of sets
+
+        r = client.put("/api/mode", json={"bracket": False})
+        assert r.status_code == 200 and r.json() == {"mode": "set", "bracket": False}
+        # the set in flight when it was switched off may still come, alone, at its own exposure
+        again = _maps(client, 3, 90, bracket=False)
+        assert all(m["exposure_ms"] in (20.0, 80.0) for m in again)
+        assert again[-1]["exposure_ms"] == 20.0 and again[-2]["exposure_ms"] == 20.0
+        st = client.get("/api/status").json()
+        assert st["bracket"] is None
