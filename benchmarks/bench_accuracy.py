@@ -6,7 +6,7 @@ and a bright 0.72 mm suture → reconstruct → validate against the simulator's
     python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8] [--board checkerboard]
                                         [--partial-boards | --full-boards] [--keep DIR] [--strict] [--seed S]
                                         [--exposure auto|MS]
-    python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR] [--strict]
+    python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR] [--oracle] [--strict]
 
 Each target scene (DOF target, planes, spheres) is captured at the exposure the instrument's own
 auto-exposure picks for it (``--exposure auto``, the default: app.recon.exposure.choose_exposure,
@@ -37,7 +37,8 @@ the issue's targets: valid share of the lit, unsaturated pixels inside the calib
 (DOF black print excluded; and the share refused only as ``outside the calibrated field``),
 every ninth's RMS(error/σ) in 0.85–1.15 and |mean error| ≤ 0.005 mm (≤ 2 σ_model where the
 result carries a σ_model above 2.5 µm), RMS(error/σ) of random lengths (``--lengths`` per scene)
-in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each.
+in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each. ``--oracle`` adds, per scene, the same figures with the
+twin's true geometry as the calibration (app.devices.sim.ideal.true_geometric_calibration).
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ from app.devices.sim import (  # noqa: E402
     rig_by_name,
     simulate_calibration_folder,
 )
+from app.devices.sim.ideal import true_geometric_calibration  # noqa: E402
 from app.devices.sim.random_rig import RandomRig, random_rig, simulate_random_calibration  # noqa: E402
 from app.devices.sim.scenes import build_scene  # noqa: E402
 from app.devices.sim.scenes.base import frame_from_normal  # noqa: E402
@@ -199,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
                          "drawn from seed S + i; per rig the issue's targets, then the share of rigs "
                          "meeting each")
     ap.add_argument("--lengths", type=int, default=40, help="random lengths per scene (--random-rigs)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="--random-rigs: also reconstruct each scene with the twin's true geometry as the "
+                         "calibration (what rendering and reconstruction do without a calibration fit)")
     args = ap.parse_args(argv)
     if args.random_rigs:
         if args.random_rigs < 0:
@@ -532,6 +537,15 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
         print("  ninth   px      RMS(e/s)  mean mm   limit")
         for k, (n_px, z, mean, limit) in enumerate(cells):
             print(f"  ({k // 3},{k % 3}) {n_px:>8} {z:>9.2f} {mean:>+9.4f} {limit:>7.4f}")
+        if args.oracle:
+            true_cal = true_geometric_calibration(rig, cal.pattern, cal.height_range_mm)
+            res_t = Reconstructor(true_cal, max_code=2**bits - 1).run(cs.frames)
+            cells_t = [c for c in ninth_z_figures(res_t, truth, np.asarray(res_t.sigma, np.float64), in_vol)
+                       if c[0] >= 50]
+            print(f"  with the twin's true geometry as the calibration: valid "
+                  f"{float((in_vol & res_t.valid).sum() / max(n_in, 1)):.4f}, ninth RMS(e/sigma) "
+                  f"{min(c[1] for c in cells_t):.2f}..{max(c[1] for c in cells_t):.2f}, max |mean| "
+                  f"{max(abs(c[2]) for c in cells_t):.4f} mm", flush=True)
         out["scenes"][scene_name] = {"valid": valid, "outside_field": outside_field, "outside_lens": outside_lens,
                                      "cells": cells,
                                      "gross": gross, "bias_mm": whole_bias}
