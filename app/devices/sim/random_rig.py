@@ -153,10 +153,10 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     within ±3 % of the image centre; k1 ∈ [−0.30, +0.05], k2 ∈ [−0.05, +0.10] (redrawn until
     invertible to the image corners); bit depth 8, 10 or 12; baseline 4–12 mm and triangulation
     angle at the reference point 7–18° (the working distance, 36–54 mm, follows from them); the
-    reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (fewer, down to 5 × 4, while a square would
-    span < 30 px at the reference plane) reaching
-    ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board poses (default drawn
-    in 6–16).
+    reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (one fewer
+    each way, until 5 columns or 4 rows, while a square would span < 30 px at the reference
+    plane) reaching ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board
+    poses (default drawn in 6–16).
 
     Raises:
         ValueError: ``coverage`` outside 1/3–1 or ``poses`` outside 6–16 (naming the argument).
