@@ -123,9 +123,10 @@ def true_geometric_calibration(rig: SimRig, schedule: PatternSchedule | None = N
         raise ValueError("schedule: the oracle models vertical fringes only")
     proj = rig.projector
     rot = proj.R.T  # camera → projector frame: X_p = Rᵀ (X − C)
-    model = GeometricModel(Rotation.from_matrix(rot).as_rotvec(), -rot @ proj.centre, float(proj.K[0, 0]),
-                           float(proj.K[0, 2]), 0.0, int(schedule.axis_length), int(schedule.frequencies[-1]),
-                           region=SupportedRegion())
+    model = GeometricModel(Rotation.from_matrix(rot).as_rotvec(), -rot @ proj.centre,
+                           float(proj.K[0, 0]), float(proj.K[0, 2]), 0.0, int(schedule.axis_length),
+                           int(schedule.frequencies[-1]), region=SupportedRegion())
     return Calibration(rig.K.copy(), rig.dist.copy(), rig.image_size, rig.reference.normal.copy(),
-                       float(rig.reference.offset_mm), pattern=schedule, height_range_mm=height_range_mm,
-                       model=model, extra={"source": "fringescope simulator true_geometric_calibration (oracle)"})
+                       float(rig.reference.offset_mm), pattern=schedule,
+                       height_range_mm=height_range_mm, model=model,
+                       extra={"source": "fringescope simulator true_geometric_calibration"})

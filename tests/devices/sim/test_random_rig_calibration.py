@@ -31,7 +31,9 @@ RIGS = [(6, 1.0, 0.90), (10, 0.5, 0.30)]
 
 
 @pytest.mark.parametrize(("seed", "coverage", "min_valid"), RIGS)
-def test_random_rig_calibrates_and_measures_without_gross_errors(tmp_path, seed, coverage, min_valid):  # noqa: ANN001
+def test_random_rig_calibrates_and_measures_without_gross_errors(
+    tmp_path, seed, coverage, min_valid
+):  # noqa: ANN001
     rr = random_rig(seed, coverage=coverage, poses=6)
     folder = simulate_random_calibration(tmp_path / "calib", rr, seed=seed)
     report = calibrate_folder(folder)
@@ -58,8 +60,10 @@ def test_random_rig_calibrates_and_measures_without_gross_errors(tmp_path, seed,
     # whole-scene bias within the 0.005 mm; the error's spread at the noise σ it reports
     e = err[inside & res.valid]
     s = res.sigma.astype(np.float64)[inside & res.valid]
-    print(f"{rr.describe()}: valid {share:.4f}, mean error {e.mean():+.4f} mm, RMS(e/sigma) "
-          f"{np.sqrt(np.mean((e / s) ** 2)):.3f}, max |e| {np.abs(err[valid]).max():.4f} mm")
+    print(
+        f"{rr.describe()}: valid {share:.4f}, mean error {e.mean():+.4f} mm, RMS(e/sigma) "
+        f"{np.sqrt(np.mean((e / s) ** 2)):.3f}, max |e| {np.abs(err[valid]).max():.4f} mm"
+    )
     assert abs(float(e.mean())) <= 0.005, rr.describe()
     assert 0.8 <= float(np.sqrt(np.mean((e / s) ** 2))) <= 1.3, rr.describe()
 
