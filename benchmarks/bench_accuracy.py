@@ -6,7 +6,8 @@ and a bright 0.72 mm suture → reconstruct → validate against the simulator's
     python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8] [--board checkerboard]
                                         [--partial-boards | --full-boards] [--keep DIR] [--strict] [--seed S]
                                         [--exposure auto|MS]
-    python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR] [--strict]
+    python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR]
+                                        [--oracle] [--strict]
 
 Each target scene (DOF target, planes, spheres) is captured at the exposure the instrument's own
 auto-exposure picks for it (``--exposure auto``, the default: app.recon.exposure.choose_exposure,
@@ -37,7 +38,8 @@ the issue's targets: valid share of the lit, unsaturated pixels inside the calib
 (DOF black print excluded; and the share refused only as ``outside the calibrated field``),
 every ninth's RMS(error/σ) in 0.85–1.15 and |mean error| ≤ 0.005 mm (≤ 2 σ_model where the
 result carries a σ_model above 2.5 µm), RMS(error/σ) of random lengths (``--lengths`` per scene)
-in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each.
+in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each. ``--oracle`` adds, per scene, the same figures with the
+twin's true geometry as the calibration (app.devices.sim.ideal.true_geometric_calibration).
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ from app.devices.sim import (  # noqa: E402
     rig_by_name,
     simulate_calibration_folder,
 )
+from app.devices.sim.ideal import true_geometric_calibration  # noqa: E402
 from app.devices.sim.random_rig import RandomRig, random_rig, simulate_random_calibration  # noqa: E402
 from app.devices.sim.scenes import build_scene  # noqa: E402
 from app.devices.sim.scenes.base import frame_from_normal  # noqa: E402
@@ -195,10 +198,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="'auto' (the instrument's auto-exposure per target scene, the default) or a fixed "
                          "exposure in ms for the target scenes (20: the twin's default)")
     ap.add_argument("--random-rigs", type=int, default=0, metavar="N",
-                    help="instead of the presets: N random rigs (app/devices/sim/random_rig.py), rig i "
-                         "drawn from seed S + i; per rig the issue's targets, then the share of rigs "
-                         "meeting each")
-    ap.add_argument("--lengths", type=int, default=40, help="random lengths per scene (--random-rigs)")
+                    help="instead of the presets: N random rigs (app/devices/sim/random_rig.py), "
+                         "rig i drawn from seed S + i; per rig the issue's targets, then the share "
+                         "of rigs meeting each")
+    ap.add_argument("--lengths", type=int, default=40,
+                    help="random lengths per scene (--random-rigs)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="--random-rigs: also reconstruct each scene with the twin's true geometry "
+                         "as the calibration (what rendering and reconstruction do without a fit)")
     args = ap.parse_args(argv)
     if args.random_rigs:
         if args.random_rigs < 0:
@@ -389,7 +396,8 @@ MODEL_SIGMA_SMALL_MM = 0.0025
 
 def ninth_z_figures(res, truth, sigma, mask, sigma_model=None):  # noqa: ANN001, ANN201
     """Per ninth (row-major) over ``mask & valid``: (pixels, RMS(error/σ), mean error mm, bias
-    limit mm): the limit is 0.005 mm, or 2·RMS(σ_model) where the result's σ_model exceeds 2.5 µm."""
+    limit mm): the limit is 0.005 mm, or 2·RMS(σ_model) where the result's σ_model exceeds
+    2.5 µm."""
     err = np.asarray(res.depth, np.float64) - truth
     ok = mask & res.valid & np.isfinite(err) & np.isfinite(sigma) & (sigma > 0)
     h, w = err.shape
@@ -405,7 +413,9 @@ def ninth_z_figures(res, truth, sigma, mask, sigma_model=None):  # noqa: ANN001,
                 continue
             limit = BIAS_MM
             if sigma_model is not None:
-                sm = float(np.sqrt(np.mean(np.square(np.asarray(sigma_model, np.float64)[win][sel]))))
+                sm = float(
+                    np.sqrt(np.mean(np.square(np.asarray(sigma_model, np.float64)[win][sel])))
+                )
                 if sm > MODEL_SIGMA_SMALL_MM:
                     limit = 2.0 * sm
             out.append((int(e.size), float(np.sqrt(np.mean((e / s) ** 2))), float(e.mean()), limit))
@@ -422,13 +432,20 @@ def calibration_vs_truth(cal, rr: RandomRig) -> str:  # noqa: ANN001
     n_t, n_c = rig.reference.normal, np.asarray(cal.plane_normal, np.float64)
     tilt = np.degrees(np.arccos(min(1.0, float(n_t @ n_c))))
     w, h = rig.image_size
-    u, v = np.array([(w - 1) / 2, 0.0, w - 1.0, 0.0, w - 1.0]), np.array([(h - 1) / 2, 0.0, 0.0, h - 1.0, h - 1.0])
+    u, v = (
+        np.array([(w - 1) / 2, 0.0, w - 1.0, 0.0, w - 1.0]),
+        np.array([(h - 1) / 2, 0.0, 0.0, h - 1.0, h - 1.0]),
+    )
     rays = rig.camera.rays(u, v)
     pts = ((0.0 - rig.reference.offset_mm) / (rays @ n_t))[:, None] * rays
     dh = pts @ n_c + cal.plane_offset_mm
-    return (f"calibration vs truth: principal point {dpp[0]:+.2f}, {dpp[1]:+.2f} px; reference plane tilt "
-            f"{tilt:.3f} deg, height of the true plane at the centre {dh[0]:+.4f} mm, at the image corners "
-            + ", ".join(f"{x:+.4f}" for x in dh[1:]) + " mm")
+    return (
+        f"calibration vs truth: principal point {dpp[0]:+.2f}, {dpp[1]:+.2f} px; reference plane "
+        f"tilt {tilt:.3f} deg, height of the true plane at the centre {dh[0]:+.4f} mm, at the "
+        "image corners "
+        + ", ".join(f"{x:+.4f}" for x in dh[1:])
+        + " mm"
+    )
 
 
 def lens_field_mask(cal):  # noqa: ANN001, ANN201
@@ -440,7 +457,9 @@ def lens_field_mask(cal):  # noqa: ANN001, ANN201
         return np.ones((h, w), bool)
     k = np.asarray(cal.camera_matrix, np.float64)
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    return ((u - k[0, 2]) / (radius * k[0, 0])) ** 2 + ((v - k[1, 2]) / (radius * k[1, 1])) ** 2 <= 1.0
+    return ((u - k[0, 2]) / (radius * k[0, 0])) ** 2 + (
+        (v - k[1, 2]) / (radius * k[1, 1])
+    ) ** 2 <= 1.0
 
 
 def random_lengths(res, truth_pts, cal, n, rng):  # noqa: ANN001, ANN201
@@ -456,8 +475,18 @@ def random_lengths(res, truth_pts, cal, n, rng):  # noqa: ANN001, ANN201
         i, j = rng.choice(len(uu), 2, replace=False)
         pix = [[int(uu[i]), int(vv[i])], [int(uu[j]), int(vv[j])]]
         try:
-            m = measure("length", res.points, res.valid, res.sigma, pix, snap_px=0.0, plane_normal=normal,
-                        reason=res.reason, calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
+            m = measure(
+                "length",
+                res.points,
+                res.valid,
+                res.sigma,
+                pix,
+                snap_px=0.0,
+                plane_normal=normal,
+                reason=res.reason,
+                calibration_sigma_mm=cal_sigma,
+                calibration_length_mm=cal_length,
+            )
             t = measure("length", truth_pts, ok, None, pix, snap_px=0.0, plane_normal=normal)
         except ValueError:
             continue
@@ -473,7 +502,9 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
     bits = rig.bit_depth
     print(f"\n=== {rig.name}: {rr.describe()} ===", flush=True)
     t0 = time.perf_counter()
-    folder = simulate_random_calibration(base / f"calib_{rig.name}", rr, seed=rr.seed, overwrite=True)
+    folder = simulate_random_calibration(
+        base / f"calib_{rig.name}", rr, seed=rr.seed, overwrite=True
+    )
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
@@ -484,11 +515,15 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
     cal = report.calibration
     k_err = np.abs(cal.camera_matrix[0, 0] / rig.K[0, 0] - 1)
     held = cal.held_out.get(cal.model.name, {})
-    print(f"simulated {rr.poses} poses in {t_sim:.0f} s, calibrated in {time.perf_counter() - t0:.0f} s: model "
-          f"{cal.model.name}, reprojection {report.reprojection_px:.3f} px, fit RMS {report.rms_mm:.4f} mm, "
-          f"held-out RMS {held.get('rms_mm')}, lens {report.camera.model if report.camera else '-'}, "
-          f"|f/f_true - 1| {k_err:.1e}, heights {cal.height_range_mm[0]:.2f}..{cal.height_range_mm[1]:.2f} mm",
-          flush=True)
+    print(
+        f"simulated {rr.poses} poses in {t_sim:.0f} s, calibrated in "
+        f"{time.perf_counter() - t0:.0f} s: model {cal.model.name}, reprojection "
+        f"{report.reprojection_px:.3f} px, fit RMS {report.rms_mm:.4f} mm, held-out RMS "
+        f"{held.get('rms_mm')}, lens {report.camera.model if report.camera else '-'}, "
+        f"|f/f_true - 1| {k_err:.1e}, heights {cal.height_range_mm[0]:.2f}.."
+        f"{cal.height_range_mm[1]:.2f} mm",
+        flush=True,
+    )
     print(calibration_vs_truth(cal, rr), flush=True)
     rec = Reconstructor(cal, with_phase=True, max_code=2**bits - 1)
     rng = np.random.default_rng(rr.seed)
@@ -497,7 +532,9 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
     for scene_name, seed in (("dof_target", 3), ("intestine_flap", 4)):
         ae = instrument_exposure(scene_name, seed=seed, rig=rig)
         world = SimulatedWorld(scene_name, seed=seed, rig=rig)
-        cs, truth32, points = render_capture_set(world.scene, seed=seed, world=world, exposure_ms=ae.exposure_ms)
+        cs, truth32, points = render_capture_set(
+            world.scene, seed=seed, world=world, exposure_ms=ae.exposure_ms
+        )
         res = rec.run(cs.frames)
         truth = truth32.astype(np.float64)
         lit = lit_mask(world, points)
@@ -521,20 +558,47 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
         errs_all.append(e_len)
         sig_all.append(s_len)
         len_z = float(np.sqrt(np.mean((e_len / s_len) ** 2))) if e_len.size else float("nan")
+        len_rms = float(np.sqrt(np.mean(e_len**2))) if e_len.size else float("nan")
         with np.errstate(invalid="ignore"):
-            whole_bias = float(np.nanmean(err[in_vol & res.valid])) if (in_vol & res.valid).any() else float("nan")
-        print(f"{scene_name}: {ae.exposure_ms:.1f} ms, noise {res.noise_source}; lit unsaturated px in volume "
-              f"{n_in}, valid {valid:.4f}, refused as outside the field {outside_field:.4f} (beyond the lens "
-              f"model's field {outside_lens:.4f}); mean error "
-              f"{whole_bias:+.4f} mm; gross {gross}; lengths {e_len.size}: RMS error "
-              f"{float(np.sqrt(np.mean(e_len ** 2))) if e_len.size else float('nan'):.4f} mm, RMS(err/sigma) "
-              f"{len_z:.2f}", flush=True)
+            whole_bias = (
+                float(np.nanmean(err[in_vol & res.valid]))
+                if (in_vol & res.valid).any()
+                else float("nan")
+            )
+        print(
+            f"{scene_name}: {ae.exposure_ms:.1f} ms, noise {res.noise_source}; lit unsaturated px "
+            f"in volume {n_in}, valid {valid:.4f}, refused as outside the field "
+            f"{outside_field:.4f} (beyond the lens model's field {outside_lens:.4f}); mean error "
+            f"{whole_bias:+.4f} mm; gross {gross}; lengths {e_len.size}: RMS error "
+            f"{len_rms:.4f} mm, RMS(err/sigma) {len_z:.2f}",
+            flush=True,
+        )
         print("  ninth   px      RMS(e/s)  mean mm   limit")
         for k, (n_px, z, mean, limit) in enumerate(cells):
             print(f"  ({k // 3},{k % 3}) {n_px:>8} {z:>9.2f} {mean:>+9.4f} {limit:>7.4f}")
-        out["scenes"][scene_name] = {"valid": valid, "outside_field": outside_field, "outside_lens": outside_lens,
-                                     "cells": cells,
-                                     "gross": gross, "bias_mm": whole_bias}
+        if args.oracle:
+            true_cal = true_geometric_calibration(rig, cal.pattern, cal.height_range_mm)
+            res_t = Reconstructor(true_cal, max_code=2**bits - 1).run(cs.frames)
+            cells_t = [
+                c
+                for c in ninth_z_figures(res_t, truth, np.asarray(res_t.sigma, np.float64), in_vol)
+                if c[0] >= 50
+            ]
+            print(
+                f"  with the twin's true geometry as the calibration: valid "
+                f"{float((in_vol & res_t.valid).sum() / max(n_in, 1)):.4f}, ninth RMS(e/sigma) "
+                f"{min(c[1] for c in cells_t):.2f}..{max(c[1] for c in cells_t):.2f}, max |mean| "
+                f"{max(abs(c[2]) for c in cells_t):.4f} mm",
+                flush=True,
+            )
+        out["scenes"][scene_name] = {
+            "valid": valid,
+            "outside_field": outside_field,
+            "outside_lens": outside_lens,
+            "cells": cells,
+            "gross": gross,
+            "bias_mm": whole_bias,
+        }
         out["gross"] += gross
     e, s = np.concatenate(errs_all), np.concatenate(sig_all)
     out["lengths"] = int(e.size)
@@ -546,7 +610,9 @@ def run_one_random_rig(rr: RandomRig, args: argparse.Namespace, base: Path) -> d
 def random_rig_verdicts(r: dict) -> dict[str, bool]:
     """Which of the issue's targets rig ``r`` meets."""
     if "error" in r:
-        return {k: False for k in ("coverage", "ninth_rms_z", "ninth_bias", "lengths", "zero_gross")}
+        return {
+            k: False for k in ("coverage", "ninth_rms_z", "ninth_bias", "lengths", "zero_gross")
+        }
     cells = [c for sc in r["scenes"].values() for c in sc["cells"] if c[0] >= 50]
     return {
         "coverage": all(sc["valid"] >= COVERAGE_TARGET for sc in r["scenes"].values()),
@@ -569,10 +635,14 @@ def run_random_rigs(args: argparse.Namespace) -> int:
         r["describe"] = rr.describe()
         r["coverage"] = rr.coverage
         rows.append(r)
-    print(f"\n=== {len(rows)} random rigs (seeds {args.seed}..{args.seed + len(rows) - 1}), "
-          f"{time.perf_counter() - t_all:.0f} s ===")
-    head = (f"{'rig':<11}{'board':>6}{'bits':>5}{'valid DOF':>10}{'tissue':>8}{'out-field':>10}"
-            f"{'lens':>7}{'ninth z':>14}{'max|mean|':>10}{'len z':>7}{'gross':>6}  missed")
+    print(
+        f"\n=== {len(rows)} random rigs (seeds {args.seed}..{args.seed + len(rows) - 1}), "
+        f"{time.perf_counter() - t_all:.0f} s ==="
+    )
+    head = (
+        f"{'rig':<11}{'board':>6}{'bits':>5}{'valid DOF':>10}{'tissue':>8}{'out-field':>10}"
+        f"{'lens':>7}{'ninth z':>14}{'max|mean|':>10}{'len z':>7}{'gross':>6}  missed"
+    )
     print(head)
     print("-" * len(head))
     verdicts = []
@@ -586,19 +656,24 @@ def run_random_rigs(args: argparse.Namespace) -> int:
         zs = [c[1] for s in sc.values() for c in s["cells"] if c[0] >= 50]
         means = [abs(c[2]) for s in sc.values() for c in s["cells"] if c[0] >= 50]
         bits = r["describe"].split("-bit")[0].rsplit(" ", 1)[-1]
-        print(f"{r['rig']:<11}{r['coverage']:>6.2f}{bits:>5}{sc['dof_target']['valid']:>10.4f}"
-              f"{sc['intestine_flap']['valid']:>8.4f}"
-              f"{max(s['outside_field'] for s in sc.values()):>10.4f}"
-              f"{max(s['outside_lens'] for s in sc.values()):>7.4f}"
-              f"{min(zs):>7.2f}-{max(zs):<6.2f}{max(means):>10.4f}{r['length_rms_z']:>7.2f}{r['gross']:>6}  "
-              + (",".join(k for k, ok in v.items() if not ok) or "-"))
+        print(
+            f"{r['rig']:<11}{r['coverage']:>6.2f}{bits:>5}{sc['dof_target']['valid']:>10.4f}"
+            f"{sc['intestine_flap']['valid']:>8.4f}"
+            f"{max(s['outside_field'] for s in sc.values()):>10.4f}"
+            f"{max(s['outside_lens'] for s in sc.values()):>7.4f}"
+            f"{min(zs):>7.2f}-{max(zs):<6.2f}{max(means):>10.4f}{r['length_rms_z']:>7.2f}"
+            f"{r['gross']:>6}  "
+            + (",".join(k for k, ok in v.items() if not ok) or "-")
+        )
     print("\nshare of rigs meeting each target (issue 26: >= 90 %; zero gross on every rig):")
     missed = 0
-    for key, text in (("coverage", f"valid >= {COVERAGE_TARGET:.0%} of lit unsaturated px in the volume"),
-                      ("ninth_rms_z", f"every ninth RMS(error/sigma) in {NINTH_RMS_Z[0]}-{NINTH_RMS_Z[1]}"),
-                      ("ninth_bias", "every ninth |mean error| <= 0.005 mm (2 sigma_model where larger)"),
-                      ("lengths", f">= 40 lengths, RMS(error/sigma) in {LENGTH_RMS_Z[0]}-{LENGTH_RMS_Z[1]}"),
-                      ("zero_gross", "zero gross errors (> 0.5 mm) on valid pixels")):
+    for key, text in (
+        ("coverage", f"valid >= {COVERAGE_TARGET:.0%} of lit unsaturated px in the volume"),
+        ("ninth_rms_z", f"every ninth RMS(error/sigma) in {NINTH_RMS_Z[0]}-{NINTH_RMS_Z[1]}"),
+        ("ninth_bias", "every ninth |mean error| <= 0.005 mm (2 sigma_model where larger)"),
+        ("lengths", f">= 40 lengths, RMS(error/sigma) in {LENGTH_RMS_Z[0]}-{LENGTH_RMS_Z[1]}"),
+        ("zero_gross", "zero gross errors (> 0.5 mm) on valid pixels"),
+    ):
         share = float(np.mean([v[key] for v in verdicts]))
         need = 1.0 if key == "zero_gross" else 0.9
         missed += share < need

@@ -100,3 +100,34 @@ def eq5_height(cal: Calibration, phi: np.ndarray, u: np.ndarray, v: np.ndarray) 
         den = den + (d[2 + 2 * i] + d[3 + 2 * i] * pp) * m
     z: np.ndarray = num / den
     return z
+
+
+def true_geometric_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
+                               height_range_mm: tuple[float, float] = (-8.0, 24.0)) -> Calibration:
+    """The twin's own geometry as a calibration (a test oracle): the rig's camera (with its lens
+    distortion), reference plane and projector pose and intrinsics along the fringe axis, in the
+    geometric depth model (exact for a pinhole projector, any camera distortion), supported
+    everywhere. Reconstructing with it separates what the rendering and reconstruction do from
+    what a calibration fit adds.
+
+    Raises:
+        ValueError: horizontal fringes (not modelled here), naming ``schedule``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from app.core.calibration import Calibration
+    from app.core.depth_model import SupportedRegion
+    from app.core.geometric import GeometricModel
+
+    schedule = schedule or PatternSchedule()
+    if schedule.orientation != "vertical":
+        raise ValueError("schedule: the oracle models vertical fringes only")
+    proj = rig.projector
+    rot = proj.R.T  # camera → projector frame: X_p = Rᵀ (X − C)
+    model = GeometricModel(Rotation.from_matrix(rot).as_rotvec(), -rot @ proj.centre,
+                           float(proj.K[0, 0]), float(proj.K[0, 2]), 0.0, int(schedule.axis_length),
+                           int(schedule.frequencies[-1]), region=SupportedRegion())
+    return Calibration(rig.K.copy(), rig.dist.copy(), rig.image_size, rig.reference.normal.copy(),
+                       float(rig.reference.offset_mm), pattern=schedule,
+                       height_range_mm=height_range_mm, model=model,
+                       extra={"source": "fringescope simulator true_geometric_calibration"})

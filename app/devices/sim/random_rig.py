@@ -82,12 +82,14 @@ class RandomRig:
         cam = self.rig.camera
         w, h = cam.image_size
         k1, k2 = float(cam.dist[0]), float(cam.dist[1])
-        return (f"{w}x{h}, f = {cam.K[0, 0]:.0f} px, pp offset ({cam.K[0, 2] - (w - 1) / 2:+.0f}, "
-                f"{cam.K[1, 2] - (h - 1) / 2:+.0f}) px, k1 {k1:+.3f} k2 {k2:+.3f}, "
-                f"{self.rig.bit_depth}-bit, triangulation {self.triangulation_deg:.1f} deg, baseline "
-                f"{self.baseline_mm:.1f} mm, reference {self.rig.reference_point_mm[2]:.1f} mm, "
-                f"board {self.board.cols}x{self.board.rows} x {self.board.pitch_mm:.3f} mm reaching "
-                f"{self.coverage:.2f}, {self.poses} poses")
+        return (
+            f"{w}x{h}, f = {cam.K[0, 0]:.0f} px, pp offset ({cam.K[0, 2] - (w - 1) / 2:+.0f}, "
+            f"{cam.K[1, 2] - (h - 1) / 2:+.0f}) px, k1 {k1:+.3f} k2 {k2:+.3f}, "
+            f"{self.rig.bit_depth}-bit, triangulation {self.triangulation_deg:.1f} deg, baseline "
+            f"{self.baseline_mm:.1f} mm, reference {self.rig.reference_point_mm[2]:.1f} mm, "
+            f"board {self.board.cols}x{self.board.rows} x {self.board.pitch_mm:.3f} mm reaching "
+            f"{self.coverage:.2f}, {self.poses} poses"
+        )
 
 
 def _corner_radius(K: F64, size: tuple[int, int]) -> float:
@@ -127,7 +129,9 @@ def _projector_focal(camera: CameraModel, R: F64, centre: F64, reference: SimRig
     return 0.97 * min((DMD_SIZE[0] / 2) / worst_x, (DMD_SIZE[1] / 2) / worst_y)
 
 
-def _scaled_board(rig: SimRig, cols: int, rows: int, poses: list[tuple[F64, F64]], reach: float) -> BoardSpec:
+def _scaled_board(
+    rig: SimRig, cols: int, rows: int, poses: list[tuple[F64, F64]], reach: float
+) -> BoardSpec:
     """The board of ``cols`` × ``rows`` inner corners whose pitch (0.001 mm steps) makes its reach
     over ``poses`` just ``reach`` (bisection on the pitch; the reach grows with it)."""
     lo, hi = 0.05, 5.0
@@ -153,10 +157,10 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     within ±3 % of the image centre; k1 ∈ [−0.30, +0.05], k2 ∈ [−0.05, +0.10] (redrawn until
     invertible to the image corners); bit depth 8, 10 or 12; baseline 4–12 mm and triangulation
     angle at the reference point 7–18° (the working distance, 36–54 mm, follows from them); the
-    reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (fewer, down to 5 × 4, while a square would
-    span < 30 px at the reference plane) reaching
-    ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board poses (default drawn
-    in 6–16).
+    reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (one fewer
+    each way, until 5 columns or 4 rows, while a square would span < 30 px at the reference
+    plane) reaching ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board
+    poses (default drawn in 6–16).
 
     Raises:
         ValueError: ``coverage`` outside 1/3–1 or ``poses`` outside 6–16 (naming the argument).
@@ -187,7 +191,9 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
         distance = baseline / math.tan(math.radians(tri))
         if 36.0 <= distance <= 54.0:
             break
-    normal = rotation_x(rng.uniform(-5, 5)) @ rotation_y(rng.uniform(-5, 5)) @ np.array([0.0, 0.0, -1.0])
+    normal = (
+        rotation_x(rng.uniform(-5, 5)) @ rotation_y(rng.uniform(-5, 5)) @ np.array([0.0, 0.0, -1.0])
+    )
     point = np.array([0.0, 0.0, distance])
     reference = plane_through(point, normal)
     centre = np.array([baseline, 0.0, 0.0])
@@ -195,12 +201,23 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     R = rotation_y(-math.degrees(math.atan2(baseline, distance)) + rng.uniform(-2.0, 2.0))
     draft = SimRig(camera, ProjectorModel(np.eye(3), R, centre, DMD_SIZE), reference, point)
     fp = _projector_focal(camera, R, centre, draft)
-    Kp = np.array([[fp, 0.0, (DMD_SIZE[0] - 1) / 2], [0.0, fp, (DMD_SIZE[1] - 1) / 2], [0.0, 0.0, 1.0]])
+    Kp = np.array(
+        [[fp, 0.0, (DMD_SIZE[0] - 1) / 2], [0.0, fp, (DMD_SIZE[1] - 1) / 2], [0.0, 0.0, 1.0]]
+    )
     projector = ProjectorModel(Kp, R, centre, DMD_SIZE)
     focus = distance - rng.uniform(9.0, 13.0)
-    rig = SimRig(camera, projector, reference, point, focus_mm=focus, blur_per_inv_mm=0.12 * f_px,
-                 projector_focus_mm=distance - 10.0, name=f"random-{seed}", bit_depth=bits,
-                 partial_boards=False)
+    rig = SimRig(
+        camera,
+        projector,
+        reference,
+        point,
+        focus_mm=focus,
+        blur_per_inv_mm=0.12 * f_px,
+        projector_focus_mm=distance - 10.0,
+        name=f"random-{seed}",
+        bit_depth=bits,
+        partial_boards=False,
+    )
     n_poses = int(rng.integers(POSES_RANGE[0], POSES_RANGE[1] + 1)) if poses is None else poses
     reach = float(rng.uniform(*COVERAGE_RANGE)) if coverage is None else float(coverage)
     cols, rows = int(rng.integers(8, 13)), int(rng.integers(6, 10))
@@ -211,12 +228,25 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     while _square_px(rig, board) < MIN_SQUARE_PX and min(cols - 5, rows - 4) > 0:
         cols, rows = cols - 1, rows - 1
         board = _scaled_board(rig, cols, rows, pose_list, reach)
-    return RandomRig(rig, seed, board, central_fraction(rig, board.pitch_mm, board, pose_list), n_poses,
-                     float(tri), float(baseline), pose_seed)
+    return RandomRig(
+        rig,
+        seed,
+        board,
+        central_fraction(rig, board.pitch_mm, board, pose_list),
+        n_poses,
+        float(tri),
+        float(baseline),
+        pose_seed,
+    )
 
 
-def simulate_random_calibration(out_dir: str | os.PathLike[str], rr: RandomRig, *, seed: int | None = None,
-                                overwrite: bool = False) -> Path:
+def simulate_random_calibration(
+    out_dir: str | os.PathLike[str],
+    rr: RandomRig,
+    *,
+    seed: int | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Write ``board.json`` and ``pose_00/`` … of ``rr``'s board at its poses, as
     :func:`app.devices.sim.simulate_calibration_folder` does for a preset (the board's paper a
     1.5-pitch margin around its print; each pose exposed so the white paper stays unsaturated;
@@ -229,12 +259,25 @@ def simulate_random_calibration(out_dir: str | os.PathLike[str], rr: RandomRig, 
     paper_half_mm = (max(spec.cols, spec.rows) + 1) * spec.pitch_mm / 2 + 1.5 * spec.pitch_mm
     atomic_write_text(out / "board.json", json.dumps(spec.to_dict(), indent=2) + "\n")
     for k, pose in enumerate(rr.pose_list()):
-        world = SimulatedWorld(board_scene(rr.rig, spec, pose, paper_half_mm=paper_half_mm), rig=rr.rig,
-                               seed=int(rng.integers(2**31)))
+        world = SimulatedWorld(
+            board_scene(rr.rig, spec, pose, paper_half_mm=paper_half_mm),
+            rig=rr.rig,
+            seed=int(rng.integers(2**31)),
+        )
         exposure = round(auto_exposure_ms(world, bits=rr.rig.bit_depth), 2)
         cap, depth, _ = render_capture_set(world.scene, exposure_ms=exposure, world=world)
-        cap.extra["simulated"].update({"board_origin_mm": pose[0].tolist(), "board_axes": pose[1].tolist(),
-                                       "pose": k, "random_rig_seed": rr.seed})
-        write_capture_set(out / f"pose_{k:02d}", cap, overwrite=overwrite,
-                          extra_files={"truth_depth.npy": npy_bytes(depth)})
+        cap.extra["simulated"].update(
+            {
+                "board_origin_mm": pose[0].tolist(),
+                "board_axes": pose[1].tolist(),
+                "pose": k,
+                "random_rig_seed": rr.seed,
+            }
+        )
+        write_capture_set(
+            out / f"pose_{k:02d}",
+            cap,
+            overwrite=overwrite,
+            extra_files={"truth_depth.npy": npy_bytes(depth)},
+        )
     return out
