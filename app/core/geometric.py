@@ -180,9 +180,8 @@ class GeometricModel(DepthModel):
         """This model's region with each extrapolation verified to ``tolerance_mm``.
 
         Inside the boards' data — the calibrated height range and the boards' phase range
-        (:attr:`data_phase_rad`) — the model is supported. Beyond it (the phase margin of
-        :attr:`region`, heights up to ``margin_mm`` past the calibrated range) only where the
-        model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
+        (:attr:`data_phase_rad`) — the model is supported. Beyond it (other phases, heights up to
+        ``margin_mm`` past the calibrated range) only where the model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
         (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
@@ -196,8 +195,9 @@ class GeometricModel(DepthModel):
             height_range_mm: the calibrated (lo, hi) height range, mm.
 
         Returns:
-            A :class:`SupportedRegion` with this region's phase range and field and the new
-            height grid; this region unchanged without a jackknife.
+            A :class:`SupportedRegion` with this region's field, the new height grid and the phase
+            range of every verified place (this region's phase range at least); this region
+            unchanged without a jackknife.
         """
         w, h = (int(x) for x in image_size)
         gw, gh = (int(x) for x in cells)
@@ -224,6 +224,9 @@ class GeometricModel(DepthModel):
         nr = r3 @ np.asarray(plane.normal, np.float64)
         ok = np.empty((len(hs), gh, gw), bool)
         in_data = np.empty((len(hs), gh, gw), bool)
+        # the phases the model is verified at: the boards' (with the region's margin) and every
+        # tested place beyond them whose σ passes (the kernel tests each pixel's σ itself)
+        ph_lo, ph_hi = self.region.phase_rad if self.region.phase_rad is not None else (math.inf, -math.inf)
         for k, hk in enumerate(hs):
             with np.errstate(divide="ignore", invalid="ignore"):
                 pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
@@ -231,6 +234,8 @@ class GeometricModel(DepthModel):
             data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
             sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
+            if good.any():
+                ph_lo, ph_hi = min(ph_lo, float(np.min(phi[good]))), max(ph_hi, float(np.max(phi[good])))
             ok[k] = good.reshape(gh, gw, -1).all(axis=2)
             in_data[k] = data.reshape(gh, gw, -1).any(axis=2)
         grid = np.empty((gh, gw, 2))
@@ -253,7 +258,8 @@ class GeometricModel(DepthModel):
                 grid[i, j] = (hs[a], hs[b])
         # the kernel tests the MEASURED height: one step of allowance for its noise (σ changes
         # little over it), else a surface on a verified end would lose half its pixels
-        return SupportedRegion(self.region.phase_rad, grid, (cw, ch), self.region.field_px, step_mm)
+        phase = (ph_lo, ph_hi) if ph_lo <= ph_hi else self.region.phase_rad
+        return SupportedRegion(phase, grid, (cw, ch), self.region.field_px, step_mm)
 
     def params(self) -> dict[str, Any]:
         return {
