@@ -166,7 +166,13 @@ async def reconstruct(
         noise_note=res.noise_note,
         read_noise_dn=noise.read_noise_dn if noise is not None else float("nan"),
         gain_dn_per_e=noise.gain_dn_per_e if noise is not None else float("nan"),
+        sigma_median_mm=_median(res.sigma, res.valid), sigma_noise_median_mm=_median(res.sigma_noise, res.valid),
+        sigma_model_median_mm=_median(res.sigma_model, res.valid),
     )
+
+
+def _median(values: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_]) -> float | None:
+    return float(np.median(values[valid])) if valid.any() else None
 
 
 @router.post(
