@@ -21,8 +21,8 @@ from app.recon.fusion import FusedExposures
 from app.recon.sensor import NoiseSource
 
 #: every file a set's reconstruction can write, in writing order
-ALL_FILES = ("depth.npy", "sigma.npy", "sigma_noise.npy", "sigma_model.npy", "points.ply", "depth.png",
-             "reason.png")
+ALL_FILES = ("depth.npy", "sigma.npy", "sigma_noise.npy", "sigma_model.npy", "points.ply",
+             "depth.png", "reason.png")
 
 
 @dataclass(frozen=True)

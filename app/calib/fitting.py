@@ -417,7 +417,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     for name, fitted in models.items():
         left_out: list[DepthModel] = []
         held_out[name] = _held_out_errors(name, samples, plane, left_out)
-        if isinstance(fitted, Eq5Model):  # its jackknife: the held-out fits (the geometric fit has its own)
+        if isinstance(fitted, Eq5Model):  # its jackknife: the held-out fits (geometric: its own)
             fitted.jackknife = [m for m in left_out if isinstance(m, Eq5Model)]
     if model is None:
         model = _better_model(models, held_out)

@@ -30,7 +30,8 @@ def _intensity_u8(intensity: npt.NDArray[np.generic], mask: npt.NDArray[np.bool_
 
 
 def ply_bytes(
-    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike, sigma: npt.ArrayLike | None = None,
+    points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike,
+    sigma: npt.ArrayLike | None = None,
     *, sigma_noise: npt.ArrayLike | None = None, sigma_model: npt.ArrayLike | None = None,
 ) -> bytes:
     """Encode the valid points of a depth map as a binary little-endian PLY.
@@ -65,7 +66,8 @@ def ply_bytes(
         a = np.asarray(arr)
         arg = name.removesuffix("_mm")
         if a.shape != pts.shape[:2] or not np.issubdtype(a.dtype, np.floating):
-            raise ValueError(f"{arg}: expected a float array of shape {pts.shape[:2]}, got {a.dtype} {a.shape}")
+            raise ValueError(f"{arg}: expected a float array of shape {pts.shape[:2]}, "
+                             f"got {a.dtype} {a.shape}")
         sigmas[name] = a
     mask = ok & np.all(np.isfinite(pts), axis=2)
     verts = np.empty(int(mask.sum()), _vertex_dtype(tuple(sigmas)))
@@ -94,8 +96,8 @@ def write_ply(
     sigma_model: npt.ArrayLike | None = None,
 ) -> Path:
     """Write :func:`ply_bytes` to ``path`` atomically."""
-    return atomic_write_bytes(path, ply_bytes(points, valid, intensity, sigma, sigma_noise=sigma_noise,
-                                              sigma_model=sigma_model))
+    data = ply_bytes(points, valid, intensity, sigma, sigma_noise=sigma_noise, sigma_model=sigma_model)
+    return atomic_write_bytes(path, data)
 
 
 def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:

@@ -161,7 +161,8 @@ class Calibration:
         u, v = self.project_rays(ray)
         return self.model.height_deviations(u, v, ray, height, self.reference_plane)
 
-    def project_rays(self, ray_xy: npt.ArrayLike) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    def project_rays(self, ray_xy: npt.ArrayLike
+                     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Pixels (u, v) of undistorted normalised rays (n, 2): OpenCV's radial (k1, k2, k3; the
         rational k4..k6) and tangential (p1, p2) distortion and the camera matrix."""
         r = np.asarray(ray_xy, np.float64).reshape(-1, 2)

@@ -306,7 +306,8 @@ class DepthModel(ABC):
         """(n,) the finest phase (rad) this model assigns to a surface at ``height_mm`` (n,) at
         pixels (u, v) with rays ``ray_xy`` (n, 2): the inverse of :meth:`height_at`."""
 
-    def height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+    def height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                          plane: ReferencePlane) -> F64:
         """(K, n) float64 height errors (mm) of this model whose Gram matrix is the covariance of
         its heights at n (pixel, height) places: ``cov(h_i, h_j) = Σ_k D[k, i]·D[k, j]``.
 
@@ -328,10 +329,12 @@ class DepthModel(ABC):
         hs = np.stack([m.height_at(uu, vv, rxy, phi, plane) for m in self.jackknife])
         rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
         if self.alternative is not None:
-            rows = np.concatenate([rows, (self.alternative.height_at(uu, vv, rxy, phi, plane) - h)[None]])
+            alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
+            rows = np.concatenate([rows, alt[None]])
         return np.asarray(rows, np.float64)
 
-    def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+    def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                     plane: ReferencePlane) -> F64:
         """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy``
         (n, 2)) for a surface at ``height_mm``: the root sum of squares of
         :meth:`height_deviations`; NaN without a jackknife."""

@@ -226,7 +226,8 @@ class GeometricModel(DepthModel):
         in_data = np.empty((len(hs), gh, gw), bool)
         # the phases the model is verified at: the boards' (with the region's margin) and every
         # tested place beyond them whose σ passes (the kernel tests each pixel's σ itself)
-        ph_lo, ph_hi = self.region.phase_rad if self.region.phase_rad is not None else (math.inf, -math.inf)
+        no_phase = (math.inf, -math.inf)
+        ph_lo, ph_hi = self.region.phase_rad if self.region.phase_rad is not None else no_phase
         for k, hk in enumerate(hs):
             with np.errstate(divide="ignore", invalid="ignore"):
                 pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
@@ -235,7 +236,8 @@ class GeometricModel(DepthModel):
             sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
             if good.any():
-                ph_lo, ph_hi = min(ph_lo, float(np.min(phi[good]))), max(ph_hi, float(np.max(phi[good])))
+                ph_lo = min(ph_lo, float(np.min(phi[good])))
+                ph_hi = max(ph_hi, float(np.max(phi[good])))
             ok[k] = good.reshape(gh, gw, -1).all(axis=2)
             in_data[k] = data.reshape(gh, gw, -1).any(axis=2)
         grid = np.empty((gh, gw, 2))

@@ -455,7 +455,8 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, sing_rtol, lo, hi,  # type: ignore[no-untyped-def]
-               p_lo, p_hi, read_var, gain, max_sigma, s0, s1, s2, s3, s4, sm_mid, sm_inv_half, max_sigma2):
+               p_lo, p_hi, read_var, gain, max_sigma, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
+               max_sigma2):
     # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`); ``c`` is the phase stage's reason. σ is the total: the sensor
@@ -523,8 +524,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             b1 += (k11 * x + k10) * x + k9
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u], sm_mid,
-                                   sm_inv_half, max_sigma2)
+                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   sm_mid, sm_inv_half, max_sigma2)
             hbuf[u] = h
             sbuf[u] = sig
             code[u] = c
@@ -537,8 +538,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             b1 = (k11 * x + k10) * x + k9
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u], sm_mid,
-                                   sm_inv_half, max_sigma2)
+                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   sm_mid, sm_inv_half, max_sigma2)
             hbuf[u] = h
             sbuf[u] = sig
             code[u] = c

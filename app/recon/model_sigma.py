@@ -56,7 +56,9 @@ class ModelSigmaTable:
         height is NaN, +inf where the model is undefined."""
         h = np.asarray(height_mm, np.float32)
         if h.shape != (len(self.rows), self.coefs.shape[2]):
-            raise ValueError(f"height_mm: expected shape {(len(self.rows), self.coefs.shape[2])}, got {h.shape}")
+            raise ValueError(
+                f"height_mm: expected shape {(len(self.rows), self.coefs.shape[2])}, got {h.shape}"
+            )
         c = self.coefs[self.rows]  # (H, DEGREE + 1, W)
         x = (h - np.float32(self.mid_mm)) * np.float32(self.inv_half_mm)
         with np.errstate(invalid="ignore", over="ignore"):
@@ -64,7 +66,8 @@ class ModelSigmaTable:
             for k in range(c.shape[1] - 2, -1, -1):  # Horner, as the kernel
                 var = var * x + c[:, k]
             return np.asarray(np.sqrt(np.maximum(var, np.float32(0.0))), np.float32) + np.where(
-                np.isnan(h), np.float32(np.nan), np.float32(0.0))
+                np.isnan(h), np.float32(np.nan), np.float32(0.0)
+            )
 
 
 def zero_table(image_size: tuple[int, int]) -> ModelSigmaTable:
@@ -73,15 +76,22 @@ def zero_table(image_size: tuple[int, int]) -> ModelSigmaTable:
     return ModelSigmaTable(np.zeros((1, DEGREE + 1, w), np.float32), np.zeros(h, np.int64))
 
 
-def model_sigma_table(calibration: Calibration, rays: RayTables, height_range_mm: tuple[float, float],
-                      *, table_rows: int = TABLE_ROWS, column_step_px: int = COLUMN_STEP_PX,
-                      height_nodes: int = HEIGHT_NODES) -> ModelSigmaTable | None:
+def model_sigma_table(
+    calibration: Calibration,
+    rays: RayTables,
+    height_range_mm: tuple[float, float],
+    *,
+    table_rows: int = TABLE_ROWS,
+    column_step_px: int = COLUMN_STEP_PX,
+    height_nodes: int = HEIGHT_NODES,
+) -> ModelSigmaTable | None:
     """σ_model of ``calibration``'s depth model for the kernel (module docstring).
 
     Args:
         calibration: the calibration; its model's jackknife gives the uncertainty.
         rays: the calibration's per-pixel rays (:func:`app.recon.points.calibration_ray_tables`).
-        height_range_mm: (lo, hi) heights the polynomial is fitted over, mm (the volume with its margin).
+        height_range_mm: (lo, hi) heights the polynomial is fitted over, mm (the volume with its
+            margin).
         table_rows, column_step_px, height_nodes: the table's resolution (≥ 1, ≥ 1, > DEGREE).
 
     Returns:
@@ -91,7 +101,9 @@ def model_sigma_table(calibration: Calibration, rays: RayTables, height_range_mm
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise ValueError(f"height_range_mm: need finite lo < hi, got {height_range_mm}")
     if table_rows < 1 or column_step_px < 1 or height_nodes < DEGREE + 1:
-        raise ValueError(f"table_rows, column_step_px, height_nodes: need >= 1, >= 1, >= {DEGREE + 1}")
+        raise ValueError(
+            f"table_rows, column_step_px, height_nodes: need >= 1, >= 1, >= {DEGREE + 1}"
+        )
     model = calibration.model
     if len(model.jackknife) < 3:
         return None
@@ -101,16 +113,24 @@ def model_sigma_table(calibration: Calibration, rays: RayTables, height_range_mm
     cols = np.unique(np.append(np.arange(0, w, column_step_px), w - 1))
     hs = np.linspace(lo, hi, height_nodes)
     vv, uu, hh = np.meshgrid(band_v, cols, hs, indexing="ij")  # (R, J, K)
-    rxy = np.stack([np.asarray(rays.rx, np.float64)[vv, uu], np.asarray(rays.ry, np.float64)[vv, uu]], axis=-1)
-    d = model.height_deviations(uu.ravel().astype(np.float64), vv.ravel().astype(np.float64),
-                                rxy.reshape(-1, 2), hh.ravel(), calibration.reference_plane)
+    rxy = np.stack(
+        [np.asarray(rays.rx, np.float64)[vv, uu], np.asarray(rays.ry, np.float64)[vv, uu]], axis=-1
+    )
+    d = model.height_deviations(
+        uu.ravel().astype(np.float64),
+        vv.ravel().astype(np.float64),
+        rxy.reshape(-1, 2),
+        hh.ravel(),
+        calibration.reference_plane,
+    )
     var = np.sum(d * d, axis=0).reshape(n_rows, len(cols), height_nodes)
     # least squares on the centred, scaled height keeps the fit well conditioned (and float32 exact)
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     vander = np.vander((hs - mid) / half, DEGREE + 1, increasing=True)  # (K, DEGREE + 1)
     finite = np.all(np.isfinite(var), axis=2)
-    fit = np.linalg.lstsq(vander, np.where(np.isfinite(var), var, 0.0).reshape(-1, height_nodes).T,
-                          rcond=None)[0].T.reshape(n_rows, len(cols), DEGREE + 1)
+    fit = np.linalg.lstsq(
+        vander, np.where(np.isfinite(var), var, 0.0).reshape(-1, height_nodes).T, rcond=None
+    )[0].T.reshape(n_rows, len(cols), DEGREE + 1)
     fit[..., 0] = np.where(finite, fit[..., 0], np.inf)  # undefined: σ = ∞
     fit[..., 1:] = np.where(finite[..., None], fit[..., 1:], 0.0)
     u_all = np.arange(w, dtype=np.float64)

@@ -161,7 +161,8 @@ class ReconResult:
         """(H, W) float32 the calibration's 1-σ height uncertainty, mm, NaN invalid (computed
         on each access from :attr:`depth`; 0 where the calibration carries none)."""
         if self.model_sigma is None:
-            return np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan)).astype(np.float32)
+            zero = np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan))
+            return zero.astype(np.float32)
         return self.model_sigma.sigma_mm(self.depth)
 
     @property
@@ -173,7 +174,8 @@ class ReconResult:
 def split_noise(sigma: F32, sigma_model: F32) -> F32:
     """The sensor-noise part ``√(σ² − σ_model²)`` of total σ maps (float32, mm)."""
     with np.errstate(invalid="ignore"):
-        return np.sqrt(np.maximum(sigma * sigma - sigma_model * sigma_model, np.float32(0.0))).astype(np.float32)
+        var = np.maximum(sigma * sigma - sigma_model * sigma_model, np.float32(0.0))
+        return np.sqrt(var).astype(np.float32)
 
 
 def _phase_numpy(
@@ -547,12 +549,13 @@ class Reconstructor:
                 vfac = 0.5 * steps * k[-1] ** 2 / (k**2 * m2).sum(axis=0)
         else:
             vfac = phase_variance_factor(m2[-1], steps)
-        sigma_model = self._model_sigma_kernel.sigma_mm(height.astype(np.float32)).astype(np.float64)
+        table = self._model_sigma_kernel
+        sigma_model = table.sigma_mm(height.astype(np.float32)).astype(np.float64)
         with np.errstate(invalid="ignore"):
             sigma_noise = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
             sigma = np.sqrt(sigma_noise**2 + sigma_model**2)
             uncertain = sigma > self._sigma_limit_mm if self._sigma_limit_mm is not None else None
-            if self._sigma_limit_mm is not None:  # the model's own σ fails the rule: outside the field
+            if self._sigma_limit_mm is not None:  # the model's own σ fails the rule: outside field
                 outside_field = outside_field | ~(sigma_model <= self._sigma_limit_mm)
         reason = assign_reasons(
             phi.shape,

@@ -82,7 +82,8 @@ def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
                     plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm,
-                    calibration_length_mm=calibration_length_mm, calibration=calibration, fill_holes=True)
+                    calibration_length_mm=calibration_length_mm, calibration=calibration,
+                    fill_holes=True)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
         raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()

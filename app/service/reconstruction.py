@@ -83,7 +83,8 @@ class LiveResult:
         if self.sigma is None:
             return None
         if self.model_sigma is None:
-            return np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan)).astype(np.float32)
+            zero = np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan))
+            return zero.astype(np.float32)
         return self.model_sigma.sigma_mm(self.depth)
 
     @property

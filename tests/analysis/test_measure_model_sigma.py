@@ -22,13 +22,17 @@ from tests.core.test_depth_models import _band_samples, _calibration, _geometric
 def scene() -> tuple[Calibration, object]:
     rig = Rig()
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    model = GeometricModel.fit(_band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=11), plane)
+    model = GeometricModel.fit(
+        _band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=11), plane
+    )
     cal = _calibration(rig, model)  # valid columns ≳ 90: the rest lies beyond the boards' phases
     frames = rig.render(bump_surface(rig), background=110.0, amplitude=90.0, noise=1.0)
     return cal, Reconstructor(cal, noise=SensorNoise(0.5, 4.0)).run(frames)
 
 
-def _jackknife_sigma_of_length(cal: Calibration, res: object, a: tuple[int, int], b: tuple[int, int]) -> float:
+def _jackknife_sigma_of_length(
+    cal: Calibration, res: object, a: tuple[int, int], b: tuple[int, int]
+) -> float:
     """σ of the length from the leave-one-pose-out models themselves: each maps the phase the
     active model gives at the two points to heights, the points move along their rays."""
     model = cal.model
@@ -52,15 +56,26 @@ def _jackknife_sigma_of_length(cal: Calibration, res: object, a: tuple[int, int]
     return math.sqrt(var)
 
 
-@pytest.mark.parametrize("a, b", [((95, 10), (155, 110)), ((100, 60), (150, 60)), ((120, 60), (123, 60))])
+@pytest.mark.parametrize(
+    "a, b", [((95, 10), (155, 110)), ((100, 60), (150, 60)), ((120, 60), (123, 60))]
+)
 def test_length_calibration_sigma_is_the_jackknife_spread_of_lengths(scene, a, b):
     cal, res = scene
     assert res.valid[a[1], a[0]] and res.valid[b[1], b[0]]
-    m = M.length(res.points, res.valid, res.sigma_noise, [a, b], plane_normal=cal.plane_normal, calibration=cal)
+    m = M.length(
+        res.points,
+        res.valid,
+        res.sigma_noise,
+        [a, b],
+        plane_normal=cal.plane_normal,
+        calibration=cal,
+    )
     want = _jackknife_sigma_of_length(cal, res, a, b)
     assert want > 0
     assert m.extra["sigma_calibration_mm"] == pytest.approx(want, rel=0.02, abs=1e-6)
-    assert m.sigma_mm == pytest.approx(math.hypot(m.extra["sigma_noise_mm"], m.extra["sigma_calibration_mm"]))
+    assert m.sigma_mm == pytest.approx(
+        math.hypot(m.extra["sigma_noise_mm"], m.extra["sigma_calibration_mm"])
+    )
 
 
 def test_nearby_points_share_most_of_the_calibration_error(scene):
@@ -68,7 +83,14 @@ def test_nearby_points_share_most_of_the_calibration_error(scene):
     the two points' σ_model would give (√2·σ_model); the same points as independent would not."""
     cal, res = scene
     a, b = (120, 60), (123, 60)
-    m = M.length(res.points, res.valid, res.sigma_noise, [a, b], plane_normal=cal.plane_normal, calibration=cal)
+    m = M.length(
+        res.points,
+        res.valid,
+        res.sigma_noise,
+        [a, b],
+        plane_normal=cal.plane_normal,
+        calibration=cal,
+    )
     sm = res.sigma_model
     independent = math.hypot(float(sm[a[1], a[0]]), float(sm[b[1], b[0]]))
     assert independent > 1e-3
@@ -76,25 +98,37 @@ def test_nearby_points_share_most_of_the_calibration_error(scene):
 
 
 def test_noise_part_is_independent_between_pixels(scene):
-    """The noise part uses ``sigma`` as given (here the noise map): the same as without calibration."""
+    """The noise part uses ``sigma`` as given (here the noise map): as without a calibration."""
     cal, res = scene
     pix = [(95, 10), (155, 110)]
-    with_cal = M.length(res.points, res.valid, res.sigma_noise, pix, plane_normal=cal.plane_normal, calibration=cal)
+    with_cal = M.length(
+        res.points, res.valid, res.sigma_noise, pix, plane_normal=cal.plane_normal, calibration=cal
+    )
     without = M.length(res.points, res.valid, res.sigma_noise, pix, plane_normal=cal.plane_normal)
     assert with_cal.extra["sigma_noise_mm"] == pytest.approx(without.sigma_mm, rel=1e-9)
     assert without.extra["sigma_calibration_mm"] == 0.0
 
 
-@pytest.mark.parametrize("kind, pixels", [
-    ("depth", [(95, 10), (155, 10), (125, 110), (125, 60)]),
-    ("point_to_line", [(95, 10), (155, 110), (130, 30)]),
-    ("area", [(100, 30), (150, 30), (150, 90), (100, 90)]),
-    ("profile", [(95, 60), (155, 60)]),
-])
+@pytest.mark.parametrize(
+    "kind, pixels",
+    [
+        ("depth", [(95, 10), (155, 10), (125, 110), (125, 60)]),
+        ("point_to_line", [(95, 10), (155, 110), (130, 30)]),
+        ("area", [(100, 30), (150, 30), (150, 90), (100, 90)]),
+        ("profile", [(95, 60), (155, 60)]),
+    ],
+)
 def test_every_kind_takes_the_calibration_covariance(scene, kind, pixels):
     cal, res = scene
-    m = M.measure(kind, res.points, res.valid, res.sigma_noise, pixels, plane_normal=cal.plane_normal,
-                  calibration=cal)
+    m = M.measure(
+        kind,
+        res.points,
+        res.valid,
+        res.sigma_noise,
+        pixels,
+        plane_normal=cal.plane_normal,
+        calibration=cal,
+    )
     s = m.extra["sigma_calibration_mm"]
     assert math.isfinite(s) and s > 0.0
     assert m.sigma_mm >= m.extra["sigma_noise_mm"]

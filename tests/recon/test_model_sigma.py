@@ -30,14 +30,20 @@ def fitted() -> tuple[Rig, Calibration]:
     """A geometric model fitted to noisy board samples in a band of heights: a real jackknife."""
     rig = Rig()
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    model = GeometricModel.fit(_band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=7), plane)
+    model = GeometricModel.fit(
+        _band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=7), plane
+    )
     assert len(model.jackknife) >= 3 and model.alternative is not None
     return rig, _calibration(rig, model)
 
 
 def _direct_sigma(cal: Calibration, u: np.ndarray, v: np.ndarray, h: np.ndarray) -> np.ndarray:
-    rays = undistort_points(np.stack([u, v], 1).astype(np.float64), cal.camera_matrix, cal.dist_coeffs)
-    return cal.model.height_sigma(u.astype(np.float64), v.astype(np.float64), rays, h, cal.reference_plane)
+    rays = undistort_points(
+        np.stack([u, v], 1).astype(np.float64), cal.camera_matrix, cal.dist_coeffs
+    )
+    return cal.model.height_sigma(
+        u.astype(np.float64), v.astype(np.float64), rays, h, cal.reference_plane
+    )
 
 
 def test_model_sigma_limit_is_the_gross_error_rule():
@@ -73,7 +79,10 @@ def test_saved_calibration_keeps_the_uncertainty(fitted, tmp_path):
     h = np.array([3.0, 15.0, 28.0])
     np.testing.assert_allclose(_direct_sigma(back, u, v, h), _direct_sigma(cal, u, v, h), rtol=1e-9)
     bare = cal.to_dict()
-    del bare["model"]["jackknife"], bare["model"]["alternative"]  # a file from before: σ_model unknown
+    del (
+        bare["model"]["jackknife"],
+        bare["model"]["alternative"],
+    )  # a file from before: σ_model unknown
     assert Reconstructor(Calibration.from_dict(bare)).model_sigma is None
 
 
@@ -95,8 +104,16 @@ def test_total_sigma_is_noise_and_model_in_quadrature(fitted, fast):
     """The same frames with and without the calibration's jackknife: the σ² difference is the
     jackknife variance at each pixel's measured height."""
     rig, cal = fitted
-    bare = Calibration.from_dict({**cal.to_dict(), "model": {
-        k: v for k, v in cal.model.to_dict().items() if k not in ("jackknife", "alternative")}})
+    bare = Calibration.from_dict(
+        {
+            **cal.to_dict(),
+            "model": {
+                k: v
+                for k, v in cal.model.to_dict().items()
+                if k not in ("jackknife", "alternative")
+            },
+        }
+    )
     frames = rig.render(bump_surface(rig), background=110.0, amplitude=90.0, noise=1.0)
     with_model = Reconstructor(cal, noise=NOISE).run(frames, fast=fast)
     noise_only = Reconstructor(bare, noise=NOISE).run(frames, fast=fast)
@@ -108,10 +125,15 @@ def test_total_sigma_is_noise_and_model_in_quadrature(fitted, fast):
     pick = np.random.default_rng(3).choice(len(vv), 2000, replace=False)
     vv, uu = vv[pick], uu[pick]
     direct = _direct_sigma(cal, uu, vv, with_model.depth[vv, uu].astype(np.float64))
-    var_diff = with_model.sigma[vv, uu].astype(np.float64) ** 2 - noise_only.sigma[vv, uu].astype(np.float64) ** 2
+    var_diff = (
+        with_model.sigma[vv, uu].astype(np.float64) ** 2
+        - noise_only.sigma[vv, uu].astype(np.float64) ** 2
+    )
     np.testing.assert_allclose(np.sqrt(np.maximum(var_diff, 0.0)), direct, rtol=0.05, atol=5e-4)
     np.testing.assert_allclose(with_model.sigma_model[vv, uu], direct, rtol=0.02, atol=2e-4)
-    np.testing.assert_allclose(with_model.sigma_noise[ok], noise_only.sigma[ok], rtol=2e-3, atol=1e-5)
+    np.testing.assert_allclose(
+        with_model.sigma_noise[ok], noise_only.sigma[ok], rtol=2e-3, atol=1e-5
+    )
 
 
 def test_fast_and_numpy_agree_with_the_model_sigma(fitted):
@@ -147,9 +169,14 @@ def test_outputs_write_both_parts(fitted, tmp_path):
     rig, cal = fitted
     frames = rig.render(bump_surface(rig), background=110.0, amplitude=90.0, noise=1.0)
     res = Reconstructor(cal, noise=NOISE).run(frames)
-    files = output_files(SetReconstruction(res, None, (20.0,), True), ReconOptions(),
-                         ("sigma.npy", "sigma_noise.npy", "sigma_model.npy", "points.ply"))
-    sig, noise, model = (np.load(io.BytesIO(files[n])) for n in ("sigma.npy", "sigma_noise.npy", "sigma_model.npy"))
+    files = output_files(
+        SetReconstruction(res, None, (20.0,), True),
+        ReconOptions(),
+        ("sigma.npy", "sigma_noise.npy", "sigma_model.npy", "points.ply"),
+    )
+    sig, noise, model = (
+        np.load(io.BytesIO(files[n])) for n in ("sigma.npy", "sigma_noise.npy", "sigma_model.npy")
+    )
     ok = res.valid
     assert np.array_equal(np.isfinite(noise), ok) and np.array_equal(np.isfinite(model), ok)
     np.testing.assert_allclose(sig[ok] ** 2, noise[ok] ** 2 + model[ok] ** 2, rtol=1e-4)
