@@ -222,7 +222,8 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
         raise ValueError("calibration: expected a Calibration")
     if calibration is not None and len(calibration.model.jackknife) < 3:
         calibration = None  # a file without the model's own uncertainty: the two terms above
-    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma), float(cal_length), calibration)
+    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma), float(cal_length),
+                    calibration)
 
 
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:

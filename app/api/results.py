@@ -71,18 +71,19 @@ def depth_latest(
         name = {"npy": f"{field}.npy", "png": f"{field}_um.png", "tiff": f"{field}.tiff",
                 "color": f"{field}_color.png"}[format]
         if format == "npy":
-            return binary(res.cached(f"{field}-npy", lambda: encoding.npy_bytes(sig())), "application/octet-stream",
-                          headers, name)
+            data = res.cached(f"{field}-npy", lambda: encoding.npy_bytes(sig()))
+            return binary(data, "application/octet-stream", headers, name)
         if format == "png":
-            return binary(res.cached(f"{field}-png", lambda: encoding.depth_png_um(sig())), "image/png", headers,
-                          name)
+            data = res.cached(f"{field}-png", lambda: encoding.depth_png_um(sig()))
+            return binary(data, "image/png", headers, name)
         if format == "tiff":
             from app.capture.recording import depth_tiff_bytes
 
-            return binary(res.cached(f"{field}-tiff", lambda: depth_tiff_bytes(sig())), "image/tiff", headers, name)
+            data = res.cached(f"{field}-tiff", lambda: depth_tiff_bytes(sig()))
+            return binary(data, "image/tiff", headers, name)
         srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm, 0.1 if max_mm is None else max_mm)
-        return binary(res.cached((f"{field}-color", srng), lambda: encoding.depth_color_png(sig(), srng)),
-                      "image/png", headers, name)
+        data = res.cached((f"{field}-color", srng), lambda: encoding.depth_color_png(sig(), srng))
+        return binary(data, "image/png", headers, name)
     if format == "npy":
         data = res.cached("npy", lambda: encoding.npy_bytes(res.depth))
         return binary(data, "application/octet-stream", headers, "depth.npy")
@@ -123,10 +124,11 @@ def reason_legend() -> dict[str, Any]:
 
 @router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}, **R409, **COMMON})
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
-    """Valid points (camera frame, mm) with texture intensity and σ (total, noise, calibration), binary PLY."""
+    """Valid points (camera frame, mm) with texture intensity and σ (total, noise and
+    calibration), binary PLY."""
     res = inst.latest_result()
-    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture, res.sigma,
-                                                         res.sigma_noise, res.sigma_model))
+    data = res.cached("ply", lambda: encoding.ply_bytes(
+        res.points, res.valid, res.texture, res.sigma, res.sigma_noise, res.sigma_model))
     return binary(data, "application/octet-stream", result_headers(res.metadata()), "points.ply")
 
 
@@ -166,7 +168,8 @@ async def reconstruct(
         noise_note=res.noise_note,
         read_noise_dn=noise.read_noise_dn if noise is not None else float("nan"),
         gain_dn_per_e=noise.gain_dn_per_e if noise is not None else float("nan"),
-        sigma_median_mm=_median(res.sigma, res.valid), sigma_noise_median_mm=_median(res.sigma_noise, res.valid),
+        sigma_median_mm=_median(res.sigma, res.valid),
+        sigma_noise_median_mm=_median(res.sigma_noise, res.valid),
         sigma_model_median_mm=_median(res.sigma_model, res.valid),
     )
 

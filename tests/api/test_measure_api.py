@@ -43,7 +43,7 @@ def test_measure_on_the_latest_result_matches_the_functions(live: TestClient) ->
             normal, cal_sigma, cal_length = calibration_terms(inst.calibration)
             held = inst.calibration.held_out[inst.calibration.model.name]
             assert (cal_sigma, cal_length) == (held["systematic_mm"], held["correlation_mm"])
-            # the noise part independent between pixels, the calibration's through its own covariance
+            # the noise part independent between pixels, the calibration's by its covariance
             ref = measure(kind, res.points, res.valid, res.sigma_noise, pix, plane_normal=normal,
                           calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length,
                           calibration=inst.calibration)
