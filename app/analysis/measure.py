@@ -47,6 +47,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.core.calibration import Calibration
+
 F64 = npt.NDArray[np.float64]
 KINDS = ("length", "point_to_line", "depth", "profile", "area")
 #: how many points each kind needs (profile/area: at least)
@@ -162,6 +164,18 @@ class _Surface:
     reason: npt.NDArray[Any] | None
     cal_sigma: float = 0.0  # per-point calibration height uncertainty, mm
     cal_length: float = 0.0  # its correlation length, mm (0: independent between points)
+    calibration: Calibration | None = None  # its own error model (replaces the two above)
+
+    @property
+    def has_cal(self) -> bool:
+        return self.calibration is not None or self.cal_sigma > 0
+
+    def cal_rows(self, x: F64) -> F64:
+        """(K, n) the calibration's height errors at points ``x`` (n, 3) (their Gram matrix is the
+        covariance); 0 rows without a calibration; NaN points contribute nothing."""
+        assert self.calibration is not None
+        d = self.calibration.height_deviations(x)
+        return np.asarray(np.where(np.isfinite(d), d, 0.0), np.float64)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -183,7 +197,7 @@ class _Surface:
 
 def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
              plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None, cal_sigma: float = 0.0,
-             cal_length: float = 0.0) -> _Surface:
+             cal_length: float = 0.0, calibration: Calibration | None = None) -> _Surface:
     pts = np.asarray(points)
     if pts.ndim != 3 or pts.shape[2] != 3 or not np.issubdtype(pts.dtype, np.floating):
         raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
@@ -203,7 +217,12 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
         raise ValueError(f"calibration_sigma_mm: need a finite value >= 0, got {cal_sigma}")
     if not (math.isfinite(cal_length) and cal_length >= 0):
         raise ValueError(f"calibration_length_mm: need a finite value >= 0, got {cal_length}")
-    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma), float(cal_length))
+    if calibration is not None and not isinstance(calibration, Calibration):
+        raise ValueError("calibration: expected a Calibration")
+    if calibration is not None and len(calibration.model.jackknife) < 3:
+        calibration = None  # a file without the model's own uncertainty: the two terms above
+    return _Surface(pts, ok, sig, n / np.linalg.norm(n), r, float(cal_sigma), float(cal_length),
+                    calibration)
 
 
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
@@ -353,6 +372,8 @@ def _correlation(surf: _Surface, a: F64, b: F64) -> F64:
 def _cal_sigma(surf: _Surface, coef: F64, x: F64, chunk: int = 1024) -> float:
     """σ of Σ_i coef_i · e_i for the calibration's height errors e_i at points ``x`` (n, 3), mm."""
     coef = np.asarray(coef, np.float64)
+    if surf.calibration is not None and len(coef):
+        return float(np.linalg.norm(surf.cal_rows(x) @ coef))
     if surf.cal_sigma <= 0 or len(coef) == 0:
         return 0.0
     var = 0.0
@@ -366,7 +387,7 @@ def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64
     """The value, its σ from the pixels' noise and, in quadrature, from the calibration term."""
     noise = _propagate(f, pts, dirs, sig, ids)
     cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts) \
-        if surf.cal_sigma > 0 else 0.0
+        if surf.has_cal else 0.0
     return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
                        extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal,
                               "coverage": min(p.coverage for p in picks)})
@@ -386,6 +407,7 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
            pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
            calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None,
            fill_holes: bool = False) -> Measurement:
     """3-D distance between two clicked pixels.
 
@@ -410,7 +432,8 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     Returns:
         :class:`Measurement`, value and σ in mm.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
+                    calibration)
     px = _pixels(pixels)
     _count("length", px)
     picks = _picks(surf, px, snap_px, fill=fill_holes)
@@ -427,12 +450,14 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
 def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
                   pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
                   plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None) -> Measurement:
     """Distance (mm, ≥ 0) of point 1 from the 3-D line through points 2 and 3.
 
     Arguments as :func:`length`, with three pixels: the point, then two on the line.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
+                    calibration)
     px = _pixels(pixels)
     _count("point_to_line", px)
     picks = _picks(surf, px, snap_px)
@@ -475,13 +500,15 @@ def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
           pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, snap_px: float = 3.0,
           plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None) -> Measurement:
     """Signed distance (mm) of point 1 from the plane through points 2, 3, 4.
 
     Positive toward the scope (above the reference, as heights in the depth map); a pit
     below the plane reads negative. Arguments as :func:`length`, with four pixels.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
+                    calibration)
     px = _pixels(pixels)
     _count("depth", px)
     picks = _picks(surf, px, snap_px)
@@ -516,6 +543,7 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
            calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
@@ -538,7 +566,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         reference: None, or three (u, v) pixels spanning the reference plane.
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
+                    calibration)
     px = _pixels(pixels)
     _count("profile", px)
     ref_picks: list[PickedPoint] = []
@@ -616,7 +645,11 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
 
     var_noise = variance(ssig, rsig)
     var_cal = np.zeros(len(sp))
-    if surf.cal_sigma > 0:  # Σ over the sample and the reference points of g_a g_b ρ(a, b), times s²
+    if surf.calibration is not None:  # e = g_self·e_s + Σ_r g_r·e_r with e = rows' combination
+        comb = g_self[None, :] * surf.cal_rows(np.where(ok[:, None], sp, np.nan)) \
+            + np.einsum("rs,kr->ks", np.array(g_ref), surf.cal_rows(rpts))
+        var_cal = np.sum(np.where(ok[None, :], comb, 0.0) ** 2, axis=0)
+    elif surf.cal_sigma > 0:  # Σ over the sample and the reference points of g_a g_b ρ(a, b), times s²
         gr = np.array(g_ref)  # (R, S)
         rho_sr = _correlation(surf, np.where(ok[:, None], sp, 0.0), rpts)  # (S, R)
         var_cal = (g_self**2 + 2.0 * g_self * np.einsum("rs,sr->s", gr, rho_sr)
@@ -673,7 +706,8 @@ def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
 def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
          pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5, snap_px: float = 3.0,
          plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> Measurement:
+           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None) -> Measurement:
     """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
 
     The surface, smoothed by a ``window_px`` box mean of the valid points, is sampled on a
@@ -697,7 +731,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
+                    calibration)
     px = _pixels(pixels)
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
@@ -904,6 +939,7 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
             plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
            calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+           calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``.
 
@@ -917,7 +953,8 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     if reference is not None and kind != "profile":
         raise ValueError(f"reference: only a profile takes reference points, not {kind}")
     kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
-                          "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm}
+                          "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm,
+                          "calibration": calibration}
     if kind == "profile":
         return profile(points, valid, sigma, pixels, reference=reference, fill_holes=fill_holes,
                        **kw)

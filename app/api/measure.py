@@ -26,7 +26,7 @@ def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str,
     else:
         res = inst.latest_result()
         source = {"seq": res.seq, "created": res.created}
-    out = measure_result(res, spec, normal, cal_sigma, cal_length)
+    out = measure_result(res, spec, normal, cal_sigma, cal_length, inst.calibrations.calibration)
     out["source"] = source
     return out
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
+import numpy.typing as npt
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
@@ -14,10 +15,26 @@ from app.api.errors import COMMON, R400, R409, R413, R415, R422
 from app.api.schemas import CAPTURE_UPLOAD, PhaseSummary, ReconstructSummary, ResultMeta
 from app.api.upload import capture_from_request
 from app.outputs import encoding
+from app.recon import ReconResult
 from app.service.instrument import Instrument
 from app.service.phase import decode_capture
+from app.service.reconstruction import LiveResult
 
 router = APIRouter(prefix="/api", tags=["results"])
+SigmaField = Literal["depth", "sigma", "sigma_noise", "sigma_model"]
+FIELD_HELP = ("depth; or sigma: its total 1-σ uncertainty, mm (sensor noise ⊕ calibration), "
+              "sigma_noise / sigma_model: its two parts")
+
+
+def _field(res: LiveResult | ReconResult, field: SigmaField) -> npt.NDArray[np.float32] | None:
+    """The map ``field`` names (None: the result has no σ)."""
+    if field == "sigma":
+        return res.sigma
+    if field == "sigma_noise":
+        return res.sigma_noise
+    if field == "sigma_model":
+        return res.sigma_model
+    return res.depth
 
 
 @router.get("/result/latest", response_model=ResultMeta, responses={**R409, **COMMON})
@@ -36,30 +53,37 @@ def depth_latest(
     min_mm: float | None = Query(None, allow_inf_nan=False, description="colour range start, mm. "
                                  "Rule (422 otherwise): min_mm < max_mm"),
     max_mm: float | None = Query(None, allow_inf_nan=False, description="colour range end, mm"),
-    field: Literal["depth", "sigma"] = Query("depth", description="depth, or sigma: its 1-σ noise, mm"),
+    field: SigmaField = Query("depth", description=FIELD_HELP),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:
     """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar.
 
-    ``field=sigma`` gives the per-pixel 1-σ depth noise (mm) in the same encodings
+    ``field=sigma`` gives the per-pixel total 1-σ depth uncertainty (mm; sensor noise ⊕
+    calibration), ``sigma_noise`` and ``sigma_model`` its two parts, in the same encodings
     (``color`` defaults to 0–0.1 mm)."""
     res = inst.latest_result()
     headers = result_headers(res.metadata())
-    if field == "sigma":
-        sig = res.sigma if res.sigma is not None else np.full_like(res.depth, np.nan)
-        name = {"npy": "sigma.npy", "png": "sigma_um.png", "tiff": "sigma.tiff", "color": "sigma_color.png"}[format]
+    if field != "depth":
+        def sig() -> npt.NDArray[np.float32]:
+            arr = _field(res, field)
+            return arr if arr is not None else np.full_like(res.depth, np.nan)
+
+        name = {"npy": f"{field}.npy", "png": f"{field}_um.png", "tiff": f"{field}.tiff",
+                "color": f"{field}_color.png"}[format]
         if format == "npy":
-            return binary(res.cached("sigma-npy", lambda: encoding.npy_bytes(sig)), "application/octet-stream",
-                          headers, name)
+            data = res.cached(f"{field}-npy", lambda: encoding.npy_bytes(sig()))
+            return binary(data, "application/octet-stream", headers, name)
         if format == "png":
-            return binary(res.cached("sigma-png", lambda: encoding.depth_png_um(sig)), "image/png", headers, name)
+            data = res.cached(f"{field}-png", lambda: encoding.depth_png_um(sig()))
+            return binary(data, "image/png", headers, name)
         if format == "tiff":
             from app.capture.recording import depth_tiff_bytes
 
-            return binary(res.cached("sigma-tiff", lambda: depth_tiff_bytes(sig)), "image/tiff", headers, name)
+            data = res.cached(f"{field}-tiff", lambda: depth_tiff_bytes(sig()))
+            return binary(data, "image/tiff", headers, name)
         srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm, 0.1 if max_mm is None else max_mm)
-        return binary(res.cached(("sigma-color", srng), lambda: encoding.depth_color_png(sig, srng)), "image/png",
-                      headers, name)
+        data = res.cached((f"{field}-color", srng), lambda: encoding.depth_color_png(sig(), srng))
+        return binary(data, "image/png", headers, name)
     if format == "npy":
         data = res.cached("npy", lambda: encoding.npy_bytes(res.depth))
         return binary(data, "application/octet-stream", headers, "depth.npy")
@@ -100,9 +124,11 @@ def reason_legend() -> dict[str, Any]:
 
 @router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}, **R409, **COMMON})
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
-    """Valid points (camera frame, mm) with texture intensity, binary PLY."""
+    """Valid points (camera frame, mm) with texture intensity and σ (total, noise and
+    calibration), binary PLY."""
     res = inst.latest_result()
-    data = res.cached("ply", lambda: encoding.ply_bytes(res.points, res.valid, res.texture, res.sigma))
+    data = res.cached("ply", lambda: encoding.ply_bytes(
+        res.points, res.valid, res.texture, res.sigma, res.sigma_noise, res.sigma_model))
     return binary(data, "application/octet-stream", result_headers(res.metadata()), "points.ply")
 
 
@@ -114,7 +140,7 @@ def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
 )
 async def reconstruct(
     request: Request, format: Literal["json", "npy"] = "json",
-    field: Literal["depth", "sigma"] = Query("depth", description="format=npy: depth, or sigma (1-σ, mm)"),
+    field: SigmaField = Query("depth", description="format=npy: " + FIELD_HELP),
     inst: Instrument = Depends(get_instrument),
 ) -> Any:
     """Reconstruct an uploaded capture set (capture.json + frame PNGs, or one .zip).
@@ -127,7 +153,8 @@ async def reconstruct(
     capture = await capture_from_request(request, limit, frame_size=size)
     res = await run_in_threadpool(inst.reconstruct_capture, capture)
     if format == "npy":
-        data = res.sigma if field == "sigma" else res.depth
+        data = _field(res, field)
+        data = data if data is not None else np.full_like(res.depth, np.nan)
         return binary(encoding.npy_bytes(data), "application/octet-stream", None, f"{field}.npy")
     finite = res.depth[np.isfinite(res.depth)]
     noise = res.noise
@@ -141,7 +168,14 @@ async def reconstruct(
         noise_note=res.noise_note,
         read_noise_dn=noise.read_noise_dn if noise is not None else float("nan"),
         gain_dn_per_e=noise.gain_dn_per_e if noise is not None else float("nan"),
+        sigma_median_mm=_median(res.sigma, res.valid),
+        sigma_noise_median_mm=_median(res.sigma_noise, res.valid),
+        sigma_model_median_mm=_median(res.sigma_model, res.valid),
     )
+
+
+def _median(values: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_]) -> float | None:
+    return float(np.median(values[valid])) if valid.any() else None
 
 
 @router.post(

@@ -219,6 +219,13 @@ class ReconstructSummary(BaseModel):
     noise_note: str = ""
     read_noise_dn: float = Field(description="the noise model's signal-independent σ, DN")
     gain_dn_per_e: float = Field(description="the noise model's shot-noise gain, DN per electron")
+    sigma_median_mm: float | None = Field(
+        None, description="median over valid pixels of the total 1-σ, mm (sensor noise ⊕ "
+                          "calibration; ?format=npy&field=sigma: the map)")
+    sigma_noise_median_mm: float | None = Field(
+        None, description="the same of its sensor-noise part, mm")
+    sigma_model_median_mm: float | None = Field(
+        None, description="the same of the calibration's part, mm")
 
 
 PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]

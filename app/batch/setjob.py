@@ -21,7 +21,8 @@ from app.recon.fusion import FusedExposures
 from app.recon.sensor import NoiseSource
 
 #: every file a set's reconstruction can write, in writing order
-ALL_FILES = ("depth.npy", "sigma.npy", "points.ply", "depth.png", "reason.png")
+ALL_FILES = ("depth.npy", "sigma.npy", "sigma_noise.npy", "sigma_model.npy", "points.ply",
+             "depth.png", "reason.png")
 
 
 @dataclass(frozen=True)
@@ -143,8 +144,10 @@ def output_files(recon: SetReconstruction, options: ReconOptions,
                  names: Sequence[str] = ALL_FILES) -> dict[str, bytes]:
     """The bytes of the output files ``names`` (a subset of :data:`ALL_FILES`), in that order.
 
-    ``depth.npy``/``sigma.npy``: (H, W) float32 mm, NaN invalid; ``points.ply``: the valid
-    points with intensity and σ; ``depth.png``: the colormap over ``options.range_mm``;
+    ``depth.npy``/``sigma.npy``: (H, W) float32 mm, NaN invalid (σ the total, noise ⊕
+    calibration); ``sigma_noise.npy``/``sigma_model.npy``: its two parts, the same way;
+    ``points.ply``: the valid points with intensity and the three σ; ``depth.png``: the
+    colormap over ``options.range_mm``;
     ``reason.png``: the per-pixel reason codes.
     """
     from app.capture.ply import ply_bytes
@@ -158,7 +161,10 @@ def output_files(recon: SetReconstruction, options: ReconOptions,
     makers = {
         "depth.npy": lambda: npy_bytes(res.depth),
         "sigma.npy": lambda: npy_bytes(res.sigma),
-        "points.ply": lambda: ply_bytes(res.points, res.valid, res.texture, res.sigma),
+        "sigma_noise.npy": lambda: npy_bytes(res.sigma_noise),
+        "sigma_model.npy": lambda: npy_bytes(res.sigma_model),
+        "points.ply": lambda: ply_bytes(res.points, res.valid, res.texture, res.sigma,
+                                        sigma_noise=res.sigma_noise, sigma_model=res.sigma_model),
         "depth.png": lambda: render_depth_png(res.depth, options.range_mm),
         "reason.png": lambda: reason_png(res.reason),
     }

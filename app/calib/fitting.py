@@ -410,7 +410,7 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     try:
         geo = GeometricModel.fit(samples, plane)
         geo.region = geo.region.field_limited(field_px)
-        # where the model's own (jackknife) uncertainty meets the accuracy target, and no farther
+        # where the model's own (jackknife) uncertainty passes the gross-error rule, and no farther
         geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
                                          (float(z[use].min()), float(z[use].max())))
         models["geometric"] = geo
@@ -418,8 +418,11 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         if model == "geometric":
             raise
         held_out["geometric"] = {"error": str(exc)}
-    for name in models:
-        held_out[name] = _held_out_errors(name, samples, plane)
+    for name, fitted in models.items():
+        left_out: list[DepthModel] = []
+        held_out[name] = _held_out_errors(name, samples, plane, left_out)
+        if isinstance(fitted, Eq5Model):  # its jackknife: the held-out fits (geometric: its own)
+            fitted.jackknife = [m for m in left_out if isinstance(m, Eq5Model)]
     if model is None:
         model = _better_model(models, held_out)
     calibration = Calibration(
@@ -456,10 +459,11 @@ def _better_model(models: dict[str, DepthModel], held_out: dict[str, dict[str, f
     return "eq5" if eq5 < EQ5_PREFERENCE * geo else "geometric"
 
 
-def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
-                     ) -> dict[str, float | int | str | None]:
+def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane,
+                     fitted: list[DepthModel] | None = None) -> dict[str, float | int | str | None]:
     """Leave-one-pose-out height errors (mm) of model ``name``: fit on the other poses,
-    evaluate on the left-out one; RMS and max |error| over all left-out points."""
+    evaluate on the left-out one; RMS and max |error| over all left-out points. The
+    leave-one-out fits are appended to ``fitted`` when given."""
     kind: type[DepthModel] = Eq5Model if name == "eq5" else GeometricModel
     errors, where = [], []
     poses = np.unique(samples.pose)
@@ -471,6 +475,8 @@ def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane
             m = kind.fit(train, plane)
         except ValueError:
             continue  # the others alone do not determine the model
+        if fitted is not None:
+            fitted.append(m)
         errors.append(m.height_at(test.u, test.v, test.ray_xy, test.phi, plane) - test.z_mm)
         where.append(_board_points(test, plane))
     if not errors:

@@ -1,5 +1,6 @@
 """Point clouds as binary little-endian PLY: valid points only, float32 x y z + uchar intensity
-(+ float32 ``sigma_mm``, the 1-σ depth noise, when given)."""
+(+ float32 ``sigma_mm``, the total 1-σ depth uncertainty, when given, and its parts
+``sigma_noise_mm`` and ``sigma_model_mm``, when given)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from app.atomic import atomic_write_bytes
 VERTEX_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")])
 VERTEX_SIGMA_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"),
                                ("sigma_mm", "<f4")])
+#: the optional float32 properties after ``intensity``, in file order
+SIGMA_PROPERTIES = ("sigma_mm", "sigma_noise_mm", "sigma_model_mm")
 
 
 def _intensity_u8(intensity: npt.NDArray[np.generic],
@@ -31,6 +34,7 @@ def _intensity_u8(intensity: npt.NDArray[np.generic],
 def ply_bytes(
     points: npt.ArrayLike, valid: npt.ArrayLike, intensity: npt.ArrayLike,
     sigma: npt.ArrayLike | None = None,
+    *, sigma_noise: npt.ArrayLike | None = None, sigma_model: npt.ArrayLike | None = None,
 ) -> bytes:
     """Encode the valid points of a depth map as a binary little-endian PLY.
 
@@ -40,11 +44,13 @@ def ply_bytes(
             in row-major order.
         intensity: (H, W) any numeric; uint8 is written as is, anything else is scaled
             so its maximum over the written pixels becomes 255.
-        sigma: optional (H, W) 1-σ depth noise, mm, written as float32 ``sigma_mm``.
+        sigma: optional (H, W) total 1-σ depth uncertainty, mm, written as float32 ``sigma_mm``.
+        sigma_noise, sigma_model: optional (H, W) its sensor-noise and calibration parts, mm,
+            written as float32 ``sigma_noise_mm`` and ``sigma_model_mm``.
 
     Returns:
-        PLY file contents: vertices with float32 ``x y z``, uchar ``intensity`` (and float32
-        ``sigma_mm``).
+        PLY file contents: vertices with float32 ``x y z``, uchar ``intensity`` (and the float32
+        σ properties given, in the order of :data:`SIGMA_PROPERTIES`).
     """
     pts = np.asarray(points)
     ok = np.asarray(valid)
@@ -58,20 +64,25 @@ def ply_bytes(
     if inten.shape != pts.shape[:2] or not numeric:
         raise ValueError(f"intensity: expected a numeric array of shape {pts.shape[:2]}, "
                          f"got {inten.dtype} {inten.shape}")
-    sig = None if sigma is None else np.asarray(sigma)
-    if sig is not None and (sig.shape != pts.shape[:2]
-                            or not np.issubdtype(sig.dtype, np.floating)):
-        raise ValueError(f"sigma: expected a float array of shape {pts.shape[:2]}, "
-                         f"got {sig.dtype} {sig.shape}")
+    sigmas: dict[str, npt.NDArray[np.generic]] = {}
+    for name, arr in zip(SIGMA_PROPERTIES, (sigma, sigma_noise, sigma_model), strict=True):
+        if arr is None:
+            continue
+        a = np.asarray(arr)
+        arg = name.removesuffix("_mm")
+        if a.shape != pts.shape[:2] or not np.issubdtype(a.dtype, np.floating):
+            raise ValueError(f"{arg}: expected a float array of shape {pts.shape[:2]}, "
+                             f"got {a.dtype} {a.shape}")
+        sigmas[name] = a
     mask = ok & np.all(np.isfinite(pts), axis=2)
-    verts = np.empty(int(mask.sum()), VERTEX_DTYPE if sig is None else VERTEX_SIGMA_DTYPE)
+    verts = np.empty(int(mask.sum()), _vertex_dtype(tuple(sigmas)))
     sel = pts[mask].astype(np.float32)
     verts["x"], verts["y"], verts["z"] = sel[:, 0], sel[:, 1], sel[:, 2]
     verts["intensity"] = _intensity_u8(inten, mask)
     extra = ""
-    if sig is not None:
-        verts["sigma_mm"] = sig[mask]
-        extra = "property float sigma_mm\n"
+    for name, a in sigmas.items():
+        verts[name] = a[mask]
+        extra += f"property float {name}\n"
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment fringescope point cloud, camera frame, mm\n"
         f"element vertex {verts.size}\n"
@@ -81,17 +92,25 @@ def ply_bytes(
     return header.encode("ascii") + verts.tobytes()
 
 
+def _vertex_dtype(sigma_names: tuple[str, ...]) -> np.dtype[np.void]:
+    return np.dtype([*VERTEX_DTYPE.descr, *((n, "<f4") for n in sigma_names)])
+
+
 def write_ply(
     path: str | os.PathLike[str], points: npt.ArrayLike, valid: npt.ArrayLike,
-    intensity: npt.ArrayLike, sigma: npt.ArrayLike | None = None,
+    intensity: npt.ArrayLike,
+    sigma: npt.ArrayLike | None = None, *, sigma_noise: npt.ArrayLike | None = None,
+    sigma_model: npt.ArrayLike | None = None,
 ) -> Path:
     """Write :func:`ply_bytes` to ``path`` atomically."""
-    return atomic_write_bytes(path, ply_bytes(points, valid, intensity, sigma))
+    data = ply_bytes(points, valid, intensity, sigma, sigma_noise=sigma_noise,
+                     sigma_model=sigma_model)
+    return atomic_write_bytes(path, data)
 
 
 def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:
-    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z,
-    intensity[, sigma_mm])."""
+    """Read a PLY written by :func:`write_ply` into a structured array (x, y, z, intensity and the
+    σ properties it has)."""
     data = Path(path).read_bytes()
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
@@ -100,5 +119,5 @@ def read_ply(path: str | os.PathLike[str]) -> npt.NDArray[np.void]:
     if "format binary_little_endian 1.0" not in header:
         raise ValueError(f"{path}: only binary little-endian PLY is supported")
     count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    dtype = VERTEX_SIGMA_DTYPE if "property float sigma_mm" in header else VERTEX_DTYPE
+    dtype = _vertex_dtype(tuple(n for n in SIGMA_PROPERTIES if f"property float {n}" in header))
     return np.frombuffer(data, dtype, count=count, offset=end + len(b"end_header\n"))

@@ -81,10 +81,12 @@ def run(args: argparse.Namespace) -> int:
     # σ from the camera noise this set shows (N > 3), as `reconstruct` and `validate`
     res = Reconstructor(calibration, max_code=args.max_code).run(capture.frames, max_code=max_code)
     normal, cal_sigma, cal_length = calibration_terms(calibration)
-    m = measure(KINDS[kind], res.points, res.valid, res.sigma, getattr(args, kind),
+    # the noise part is independent between pixels; the calibration's enters through its covariance
+    m = measure(KINDS[kind], res.points, res.valid, res.sigma_noise, getattr(args, kind),
                 reference=args.reference, snap_px=args.snap_px, plane_normal=normal,
                 reason=res.reason, calibration_sigma_mm=0.0 if args.noise_only else cal_sigma,
-                calibration_length_mm=cal_length)
+                calibration_length_mm=cal_length,
+                calibration=None if args.noise_only else calibration)
     out = {"set": set_dir.name, **m.to_dict(), "noise_source": res.noise_source}
     print(json.dumps(out, separators=(",", ":")))
     return 0

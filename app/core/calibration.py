@@ -151,6 +151,34 @@ class Calibration:
     def reference_plane(self) -> ReferencePlane:
         return ReferencePlane(self.plane_normal, self.plane_offset_mm)
 
+    def height_deviations(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """(K, n) the depth model's height errors (mm) at camera-frame points (n, 3), mm, whose
+        Gram matrix is their covariance (:meth:`~app.core.depth_model.DepthModel.height_deviations`:
+        the errors the calibration shares between points); K = 0 when it carries none. The
+        pixel of each point is its projection through the camera model."""
+        x = np.asarray(points_mm, np.float64).reshape(-1, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ray = x[:, :2] / x[:, 2:3]
+            height = x @ self.plane_normal + self.plane_offset_mm
+        u, v = self.project_rays(ray)
+        return self.model.height_deviations(u, v, ray, height, self.reference_plane)
+
+    def project_rays(self, ray_xy: npt.ArrayLike
+                     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Pixels (u, v) of undistorted normalised rays (n, 2): OpenCV's radial (k1, k2, k3; the
+        rational k4..k6) and tangential (p1, p2) distortion and the camera matrix."""
+        r = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        d = np.zeros(8)
+        d[:min(8, self.dist_coeffs.size)] = self.dist_coeffs.ravel()[:8]
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
+        x, y = r[:, 0], r[:, 1]
+        r2 = x * x + y * y
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        k = self.camera_matrix
+        return k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]
+
     def check_frames(self, frames_shape: tuple[int, ...]) -> None:
         """Raise ``ValueError`` if frames of ``frames_shape`` (F, H, W) do not fit."""
         if len(frames_shape) != 3:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
 
@@ -280,6 +281,12 @@ class DepthModel(ABC):
 
     name: ClassVar[str]
     region: SupportedRegion
+    #: the fits with one board pose left out each (empty: unknown): their spread is the
+    #: model's own uncertainty (:meth:`height_deviations`)
+    jackknife: Sequence[DepthModel]
+    #: another model form fitted to the same data (None: none): where the two disagree the
+    #: choice between them is uncertain too
+    alternative: DepthModel | None
 
     @classmethod
     @abstractmethod
@@ -295,6 +302,48 @@ class DepthModel(ABC):
         """Reference float64 heights (mm) at pixels (u, v) with rays ``ray_xy`` (n, 2) and phases φ."""
 
     @abstractmethod
+    def phase_at(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+        """(n,) the finest phase (rad) this model assigns to a surface at ``height_mm`` (n,) at
+        pixels (u, v) with rays ``ray_xy`` (n, 2): the inverse of :meth:`height_at`."""
+
+    def height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                          plane: ReferencePlane) -> F64:
+        """(K, n) float64 height errors (mm) of this model whose Gram matrix is the covariance of
+        its heights at n (pixel, height) places: ``cov(h_i, h_j) = Σ_k D[k, i]·D[k, j]``.
+
+        The rows are the delete-one-pose jackknife (G rows, ``√((G−1)/G)·(h_g − h̄)``: each
+        leave-one-pose-out fit maps the phase this model gives at the place to a height) and,
+        with an :attr:`alternative`, its height minus this model's. The same board poses move
+        every place's height, so the errors of two places are correlated as the rows say.
+        K = 0 without a jackknife of at least 3 poses (the uncertainty is unknown).
+        """
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        n = len(rxy)
+        g = len(self.jackknife)
+        if g < 3:
+            return np.zeros((0, n))
+        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (n,))
+        uu = np.broadcast_to(np.asarray(u, np.float64).ravel(), (n,))
+        vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
+        phi = self.phase_at(uu, vv, rxy, h, plane)
+        hs = np.stack([m.height_at(uu, vv, rxy, phi, plane) for m in self.jackknife])
+        rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
+        if self.alternative is not None:
+            alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
+            rows = np.concatenate([rows, alt[None]])
+        return np.asarray(rows, np.float64)
+
+    def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                     plane: ReferencePlane) -> F64:
+        """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy``
+        (n, 2)) for a surface at ``height_mm``: the root sum of squares of
+        :meth:`height_deviations`; NaN without a jackknife."""
+        d = self.height_deviations(u, v, ray_xy, height_mm, plane)
+        if d.shape[0] == 0:
+            return np.full(d.shape[1], np.nan)
+        return np.asarray(np.sqrt(np.sum(d * d, axis=0)), np.float64)
+
+    @abstractmethod
     def params(self) -> dict[str, Any]:
         """The model's parameters as a JSON object (without name and region)."""
 
@@ -304,7 +353,12 @@ class DepthModel(ABC):
         """Inverse of :meth:`params`; ``ValueError`` naming what is wrong."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, **self.params(), "supported_region": self.region.to_dict()}
+        out = {"name": self.name, **self.params(), "supported_region": self.region.to_dict()}
+        if self.jackknife:  # the model's own uncertainty, re-derived at load
+            out["jackknife"] = [m.params() for m in self.jackknife]
+        if self.alternative is not None:
+            out["alternative"] = self.alternative.params()
+        return out
 
 
 def row_tables_zero(image_size: tuple[int, int]) -> tuple[F64, F64]:

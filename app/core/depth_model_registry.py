@@ -27,4 +27,17 @@ def depth_model_from_dict(data: Any) -> DepthModel:
     if name not in DEPTH_MODELS:
         raise ValueError(f"model: unknown name {name!r} (expected one of {list(DEPTH_MODELS)})")
     region = SupportedRegion.from_dict(data.get("supported_region"))
-    return DEPTH_MODELS[name].from_params(data, region)
+    kind = DEPTH_MODELS[name]
+    model = kind.from_params(data, region)
+    jack = data.get("jackknife", [])
+    alt = data.get("alternative")
+    if not isinstance(jack, list) or not all(isinstance(p, dict) for p in jack):
+        raise ValueError("model.jackknife: expected a list of objects")
+    if alt is not None and not isinstance(alt, dict):
+        raise ValueError("model.alternative: expected an object")
+    try:
+        model.jackknife = [kind.from_params(p, SupportedRegion()) for p in jack]
+        model.alternative = None if alt is None else kind.from_params(alt, SupportedRegion())
+    except ValueError as exc:
+        raise ValueError(f"model.jackknife: {exc}") from None
+    return model

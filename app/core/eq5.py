@@ -207,6 +207,10 @@ class Eq5Model(DepthModel):
     denominator: F64
     normalization: dict[str, tuple[float, float]]
     region: SupportedRegion = field(default_factory=SupportedRegion)
+    #: the fits with one board pose left out each (set by the calibration; saved with the
+    #: model): their spread is the model's own uncertainty
+    jackknife: list[Eq5Model] = field(default_factory=list, repr=False, compare=False)
+    alternative: Eq5Model | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.numerator, self.denominator, self.normalization = check_eq5(
@@ -222,6 +226,20 @@ class Eq5Model(DepthModel):
     def height_at(self, u: F64, v: F64, ray_xy: F64, phi: F64, plane: ReferencePlane) -> F64:
         un, vn, pn = normalize(self.normalization, u, v, phi)
         return evaluate(self.numerator, self.denominator, un, vn, pn)
+
+    def phase_at(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+        # Eq. (5) is linear over linear in φ': z = (A + B·φ')/(C + D·φ') ⇒ φ' = (A − zC)/(zD − B)
+        un, vn, _ = normalize(self.normalization, u, v, np.zeros(np.shape(u)))
+        b0 = basis(un, vn, np.zeros(un.size))
+        b1 = basis(un, vn, np.ones(un.size))
+        num0 = 1.0 + b0[:, 1:] @ self.numerator
+        num1 = 1.0 + b1[:, 1:] @ self.numerator
+        den0, den1 = b0 @ self.denominator, b1 @ self.denominator
+        z = np.asarray(height_mm, np.float64).ravel()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pn = (num0 - z * den0) / (z * (den1 - den0) - (num1 - num0))
+        p0, sp = self.normalization["phi"]
+        return np.asarray(pn * sp + p0, np.float64)
 
     def polys(self) -> list[tuple[float, ...]]:
         """Coefficients of a0, a1, b0, b1 on the basis (1, u', v', u'², v'², u'v')."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from statistics import NormalDist
 from typing import Any, ClassVar
 
 import numpy as np
@@ -51,9 +52,13 @@ PHASE_FLOOR_PX = 0.01  # projector px: held-out errors below this count as exact
 #: independent; the poses are)
 K1_CONFIDENCE = 0.95
 #: the depth model's own uncertainty (1 σ, jackknife over poses) allowed at a supported (pixel,
-#: height): half of the accuracy target |mean error| <= 0.005 mm, so that a 2 σ calibration
-#: error still meets it
-MODEL_SIGMA_TOLERANCE_MM = 0.0025
+#: height): the bound of the gross-error rule on a pixel's total σ
+#: (``app.recon.validity.max_depth_sigma_mm()``: an error beyond 0.5 mm at most once in 1e6,
+#: 0.102 mm). Below it the model's σ is part of every pixel's σ (noise ⊕ calibration), so the
+#: model needs no tighter bound of its own; beyond it no pixel could pass the rule.
+GROSS_ERROR_MM = 0.5
+GROSS_ERROR_RATE = 1e-6
+MODEL_SIGMA_TOLERANCE_MM = GROSS_ERROR_MM / NormalDist().inv_cdf(1.0 - GROSS_ERROR_RATE / 2.0)
 CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
 
 
@@ -85,11 +90,11 @@ class GeometricModel(DepthModel):
     projector_width_px: int
     fringes: int
     region: SupportedRegion = field(default_factory=SupportedRegion)
-    #: the fits with one board pose left out each (set by :meth:`fit`; not serialised): their
-    #: spread is the model's own uncertainty (:meth:`height_sigma`)
+    #: the fits with one board pose left out each (set by :meth:`fit`; saved with the model): their
+    #: spread is the model's own uncertainty (:meth:`~app.core.depth_model.DepthModel.height_sigma`)
     jackknife: list[GeometricModel] = field(default_factory=list, repr=False, compare=False)
     #: the other projector model fitted to the same data (with k1 for a pinhole, a pinhole for
-    #: k1; set by :meth:`fit`, not serialised): where the two disagree, the choice is uncertain
+    #: k1; set by :meth:`fit`): where the two disagree, the choice is uncertain
     alternative: GeometricModel | None = field(default=None, repr=False, compare=False)
     #: the boards' own phase range (no margin; set by :meth:`fit`, not serialised)
     data_phase_rad: tuple[float, float] | None = field(default=None, repr=False, compare=False)
@@ -160,27 +165,13 @@ class GeometricModel(DepthModel):
         phi0, inv_sphi = self.phase_normalization()
         return np.asarray(xd / inv_sphi + phi0, np.float64)
 
-    def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
-        """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy`` (n, 2))
-        for a surface at ``height_mm``: the jackknife over board poses — each leave-one-pose-out fit
-        maps the phase this model gives there to a height; σ² = (G−1)/G·Σ(h_g − h̄)² — plus, in
-        quadrature, the difference to the :attr:`alternative` projector model's height (the
-        uncertainty of the choice between a pinhole and k1). NaN without a jackknife (a model
-        not made by :meth:`fit`, or fewer than 3 poses)."""
+    def phase_at(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
         rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
-        h = np.broadcast_to(np.asarray(height_mm, np.float64), (len(rxy),))
-        g = len(self.jackknife)
-        if g < 3:
-            return np.full(len(rxy), np.nan)
+        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (len(rxy),))
         r = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             pts = r * ((h - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64)))[:, None]
-        phi = self.phase_of_points(pts)
-        hs = np.stack([m.height_at(u, v, rxy, phi, plane) for m in self.jackknife])
-        var = (g - 1) / g * np.sum((hs - hs.mean(axis=0)) ** 2, axis=0)
-        if self.alternative is not None:
-            var = var + (self.alternative.height_at(u, v, rxy, phi, plane) - h) ** 2
-        return np.asarray(np.sqrt(var), np.float64)
+        return self.phase_of_points(pts)
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
                         rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
@@ -189,9 +180,8 @@ class GeometricModel(DepthModel):
         """This model's region with each extrapolation verified to ``tolerance_mm``.
 
         Inside the boards' data — the calibrated height range and the boards' phase range
-        (:attr:`data_phase_rad`) — the model is supported. Beyond it (the phase margin of
-        :attr:`region`, heights up to ``margin_mm`` past the calibrated range) only where the
-        model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
+        (:attr:`data_phase_rad`) — the model is supported. Beyond it (other phases, heights up to
+        ``margin_mm`` past the calibrated range) only where the model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
         (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
@@ -205,8 +195,9 @@ class GeometricModel(DepthModel):
             height_range_mm: the calibrated (lo, hi) height range, mm.
 
         Returns:
-            A :class:`SupportedRegion` with this region's phase range and field and the new
-            height grid; this region unchanged without a jackknife.
+            A :class:`SupportedRegion` with this region's field, the new height grid and the phase
+            range of every verified place (this region's phase range at least); this region
+            unchanged without a jackknife.
         """
         w, h = (int(x) for x in image_size)
         gw, gh = (int(x) for x in cells)
@@ -233,6 +224,10 @@ class GeometricModel(DepthModel):
         nr = r3 @ np.asarray(plane.normal, np.float64)
         ok = np.empty((len(hs), gh, gw), bool)
         in_data = np.empty((len(hs), gh, gw), bool)
+        # the phases the model is verified at: the boards' (with the region's margin) and every
+        # tested place beyond them whose σ passes (the kernel tests each pixel's σ itself)
+        no_phase = (math.inf, -math.inf)
+        ph_lo, ph_hi = self.region.phase_rad if self.region.phase_rad is not None else no_phase
         for k, hk in enumerate(hs):
             with np.errstate(divide="ignore", invalid="ignore"):
                 pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
@@ -240,6 +235,9 @@ class GeometricModel(DepthModel):
             data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
             sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
+            if good.any():
+                ph_lo = min(ph_lo, float(np.min(phi[good])))
+                ph_hi = max(ph_hi, float(np.max(phi[good])))
             ok[k] = good.reshape(gh, gw, -1).all(axis=2)
             in_data[k] = data.reshape(gh, gw, -1).any(axis=2)
         grid = np.empty((gh, gw, 2))
@@ -262,7 +260,8 @@ class GeometricModel(DepthModel):
                 grid[i, j] = (hs[a], hs[b])
         # the kernel tests the MEASURED height: one step of allowance for its noise (σ changes
         # little over it), else a surface on a verified end would lose half its pixels
-        return SupportedRegion(self.region.phase_rad, grid, (cw, ch), self.region.field_px, step_mm)
+        phase = (ph_lo, ph_hi) if ph_lo <= ph_hi else self.region.phase_rad
+        return SupportedRegion(phase, grid, (cw, ch), self.region.field_px, step_mm)
 
     def params(self) -> dict[str, Any]:
         return {

@@ -103,10 +103,13 @@ def reason_png(reason: npt.NDArray[np.uint8]) -> bytes:
 
 
 def ply_bytes(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_], intensity: Any,
-              sigma: npt.NDArray[np.float32] | None = None) -> bytes:
+              sigma: npt.NDArray[np.float32] | None = None,
+              sigma_noise: npt.NDArray[np.float32] | None = None,
+              sigma_model: npt.NDArray[np.float32] | None = None) -> bytes:
     from app.capture.ply import ply_bytes as encode
 
-    return bytes(encode(points, valid, intensity, sigma))
+    return bytes(encode(points, valid, intensity, sigma, sigma_noise=sigma_noise,
+                        sigma_model=sigma_model))
 
 
 def legend_header() -> str:

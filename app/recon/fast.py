@@ -91,7 +91,9 @@ class HeightArgs(NamedTuple):
     grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
     range rad, ``field_u_lo``/``field_u_hi`` (H,) the supported columns of every row: the
     camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
-    mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F."""
+    mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F; the
+    model's own σ: ``sm_coefs`` (R, 5, W), ``sm_rows`` (H,), ``sm_mid`` and ``sm_inv_half`` of
+    :class:`~app.recon.model_sigma.ModelSigmaTable`."""
 
     u_norm: npt.NDArray[np.float32]
     row_coefs: npt.NDArray[np.float32]
@@ -118,6 +120,10 @@ class HeightArgs(NamedTuple):
     combine: bool
     half_steps: np.float32
     inv_frames: np.float32
+    sm_coefs: npt.NDArray[np.float32]
+    sm_rows: npt.NDArray[np.int64]
+    sm_mid: np.float32
+    sm_inv_half: np.float32
 
 
 class Outputs(NamedTuple):
@@ -449,19 +455,26 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, sing_rtol, lo, hi,  # type: ignore[no-untyped-def]
-               p_lo, p_hi, read_var, gain, max_sigma):  # pragma: no cover - compiled
+               p_lo, p_hi, read_var, gain, max_sigma, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
+               max_sigma2):
+    # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
-    :mod:`app.core.depth_model`); ``c`` is the phase stage's reason."""
+    :mod:`app.core.depth_model`); ``c`` is the phase stage's reason. σ is the total: the sensor
+    noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k, x = (h − sm_mid)·sm_inv_half,
+    :mod:`app.recon.model_sigma`); a model σ beyond the rule's bound (``max_sigma2`` = its
+    square) is outside the calibrated field."""
     pp = (p - phi0) * inv_sphi
     t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
     h = (a0 + a1 * t) / dd
     slope = (a1 * b0 - a0 * b1) / (dd * dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
-    sig = abs(slope) * np.sqrt((read_var + gain * tot) * vf)
+    x = (h - sm_mid) * sm_inv_half
+    sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
+    sig = np.sqrt(slope * slope * ((read_var + gain * tot) * vf) + sm2)
     singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
     in_volume = (h >= lo) & (h <= hi)
-    in_field = (h >= rlo) & (h <= rhi) & (p >= p_lo) & (p <= p_hi)
+    in_field = (h >= rlo) & (h <= rhi) & (p >= p_lo) & (p <= p_hi) & (sm2 <= max_sigma2)
     hc = _UNCERTAIN if sig > max_sigma else _OK
     hc = _OUTSIDE_FIELD if not in_field else hc
     hc = _OUTSIDE_VOLUME if not in_volume else hc
@@ -488,6 +501,10 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
     p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
     inv_frames = m.inv_frames
     un = m.u_norm
+    sc = m.sm_coefs[m.sm_rows[v]]  # (5, W): σ_model² = Σ s_k·x^k of every column
+    sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
+    sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
+    max_sigma2 = max_sigma * max_sigma
     q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat, as in _points_row
     if not m.combine:
         half_steps = m.half_steps
@@ -507,7 +524,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             b1 += (k11 * x + k10) * x + k9
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma)
+                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   sm_mid, sm_inv_half, max_sigma2)
             hbuf[u] = h
             sbuf[u] = sig
             code[u] = c
@@ -520,7 +538,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             b1 = (k11 * x + k10) * x + k9
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma)
+                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   sm_mid, sm_inv_half, max_sigma2)
             hbuf[u] = h
             sbuf[u] = sig
             code[u] = c
@@ -890,6 +909,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
+        np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.float32(0), np.float32(1),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
                   np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy(),

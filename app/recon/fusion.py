@@ -107,6 +107,7 @@ def fuse_exposures(results: Sequence[ReconResult], exposures_ms: Sequence[float]
         phase=None if members[0].phase is None else take([r.phase for r in members if r.phase is not None]),
         elapsed_ms=float(sum(r.elapsed_ms for r in members)),
         sigma=take([r.sigma for r in members]),
+        model_sigma=members[0].model_sigma,  # one calibration: σ_model follows the fused depth
         recovered=int(sum(r.recovered for r in members)),
     )
     member = np.where(any_valid, best, -1).astype(np.int8)

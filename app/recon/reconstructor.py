@@ -28,6 +28,7 @@ from app.recon.model import (
     outside_volume,
     pixel_tables,
 )
+from app.recon.model_sigma import ModelSigmaTable, model_sigma_table, zero_table
 from app.recon.noise import resolve_sensor_noise
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
@@ -113,8 +114,14 @@ class ReconResult:
         phase: float32 unwrapped finest phase used for depth, radians, NaN invalid;
             None unless the reconstructor was made with ``with_phase=True``.
         elapsed_ms: wall time of the reconstruction (JIT compilation excluded), ms.
-        sigma: float32 1-σ depth noise, mm, NaN invalid: the sensor noise of the pixel's
-            intensities through the modulation to the phase and through the model's ∂z/∂φ.
+        sigma: float32 total 1-σ depth uncertainty, mm, NaN invalid: ``√(sigma_noise² +
+            sigma_model²)``. Its parts: :attr:`sigma_noise`, the sensor noise of the pixel's
+            intensities through the modulation to the phase and through the model's ∂z/∂φ
+            (independent between pixels), and :attr:`sigma_model`, the calibration's own
+            uncertainty at the pixel and its height (the depth model's jackknife over board
+            poses, :mod:`app.recon.model_sigma`; shared between nearby pixels).
+        model_sigma: the table :attr:`sigma_model` is evaluated from; None when the
+            calibration carries no uncertainty (a file without a jackknife): σ_model is then 0.
         recovered: pixels with clipped samples whose phase was fitted from the rest
             (see :mod:`app.recon.phase`).
         motion: with a motion test (``run(..., motion=...)``), the grown (H, W) bool motion
@@ -147,6 +154,28 @@ class ReconResult:
     noise: SensorNoise | None = None
     noise_source: NoiseSource = "given"
     noise_note: str = ""
+    model_sigma: ModelSigmaTable | None = None
+
+    @property
+    def sigma_model(self) -> F32:
+        """(H, W) float32 the calibration's 1-σ height uncertainty, mm, NaN invalid (computed
+        on each access from :attr:`depth`; 0 where the calibration carries none)."""
+        if self.model_sigma is None:
+            zero = np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan))
+            return zero.astype(np.float32)
+        return self.model_sigma.sigma_mm(self.depth)
+
+    @property
+    def sigma_noise(self) -> F32:
+        """(H, W) float32 the sensor-noise part of :attr:`sigma`, mm, NaN invalid."""
+        return split_noise(self.sigma, self.sigma_model)
+
+
+def split_noise(sigma: F32, sigma_model: F32) -> F32:
+    """The sensor-noise part ``√(σ² − σ_model²)`` of total σ maps (float32, mm)."""
+    with np.errstate(invalid="ignore"):
+        var = np.maximum(sigma * sigma - sigma_model * sigma_model, np.float32(0.0))
+        return np.sqrt(var).astype(np.float32)
 
 
 def _phase_numpy(
@@ -360,6 +389,7 @@ class Reconstructor:
         self._outputs = _OutputPool()
         if self.fast:
             _ = self._fast_tables
+        _ = self._model_sigma_kernel
         if self.min_modulation is None:
             _ = self._snr_min  # the rule's bisection (cached per schedule) outside the first run
 
@@ -368,6 +398,19 @@ class Reconstructor:
         """The UNCERTAIN test's depth-σ limit, mm: ``max_sigma_mm`` if given, else the validity
         rule's bound from ``gross_error_mm`` (None: no such test)."""
         return self._sigma_limit_mm
+
+    @cached_property
+    def _rays(self) -> RayTables:
+        return calibration_ray_tables(self.calibration)
+
+    @cached_property
+    def model_sigma(self) -> ModelSigmaTable | None:
+        """The calibration's own σ per pixel and height (None: the calibration carries none)."""
+        return model_sigma_table(self.calibration, self._rays, self._bounds_mm)
+
+    @cached_property
+    def _model_sigma_kernel(self) -> ModelSigmaTable:
+        return self.model_sigma or zero_table(self.calibration.image_size)
 
     @cached_property
     def _height_tables(self) -> HeightTables:
@@ -380,7 +423,7 @@ class Reconstructor:
             np.ascontiguousarray(t.u_norm, np.float32), np.ascontiguousarray(t.row_coefs, np.float32),
             np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
         )
-        return f32, ray_quotients(calibration_ray_tables(self.calibration))
+        return f32, ray_quotients(self._rays)
 
     @cached_property
     def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32, np.float32, F32]:
@@ -397,7 +440,7 @@ class Reconstructor:
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
-        rays = calibration_ray_tables(self.calibration)
+        rays = self._rays
         return pixel_tables(self._height_tables, ray_quotients(rays, dtype=np.float64)), rays
 
     @cached_property
@@ -470,6 +513,7 @@ class Reconstructor:
         else:
             res = self._run_numpy(frames, max_code, min_mod, camera)
         res.noise, res.noise_source, res.noise_note = camera, source, note
+        res.model_sigma = self.model_sigma
         res.motion, res.moved_pixels, res.scene_moved = None, 0, False
         res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
         if motion is not None:
@@ -505,9 +549,14 @@ class Reconstructor:
                 vfac = 0.5 * steps * k[-1] ** 2 / (k**2 * m2).sum(axis=0)
         else:
             vfac = phase_variance_factor(m2[-1], steps)
+        table = self._model_sigma_kernel
+        sigma_model = table.sigma_mm(height.astype(np.float32)).astype(np.float64)
         with np.errstate(invalid="ignore"):
-            sigma = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
+            sigma_noise = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
+            sigma = np.sqrt(sigma_noise**2 + sigma_model**2)
             uncertain = sigma > self._sigma_limit_mm if self._sigma_limit_mm is not None else None
+            if self._sigma_limit_mm is not None:  # the model's own σ fails the rule: outside field
+                outside_field = outside_field | ~(sigma_model <= self._sigma_limit_mm)
         reason = assign_reasons(
             phi.shape,
             saturated=reason == 2,
@@ -566,6 +615,8 @@ class Reconstructor:
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
+            self._model_sigma_kernel.coefs, self._model_sigma_kernel.rows,
+            f32(self._model_sigma_kernel.mid_mm), f32(self._model_sigma_kernel.inv_half_mm),
         )
         recovered = np.zeros(frames.shape[1], np.int32)
         o = _fast.Outputs(out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,

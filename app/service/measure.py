@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.analysis.measure import MIN_COVERAGE, measure
+from app.core.calibration import Calibration
 from app.core.errors import InvalidRequest
 
 
@@ -30,6 +31,15 @@ class MeasurableResult(Protocol):
     def reason(self) -> npt.NDArray[np.uint8]: ...
     @property
     def sigma(self) -> npt.NDArray[np.float32] | None: ...
+    @property
+    def sigma_noise(self) -> npt.NDArray[np.float32] | None: ...
+
+
+def _noise_sigma(result: MeasurableResult) -> npt.NDArray[np.float32] | None:
+    """The independent (sensor-noise) part of the result's σ: the calibration's part is shared
+    between points and enters a measurement through its own covariance."""
+    sigma = result.sigma_noise if result.sigma is not None and result.sigma.size else None
+    return sigma if sigma is not None and sigma.size else None
 
 
 def _nonneg(x: Any) -> float | None:
@@ -57,20 +67,23 @@ def calibration_terms(cal: Any) -> tuple[npt.NDArray[np.float64] | None, float, 
 
 
 def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal: npt.ArrayLike | None = None,
-                   calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0) -> dict[str, Any]:
+                   calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+                   calibration: Calibration | None = None) -> dict[str, Any]:
     """One measurement (``spec``: kind, points, optional reference and snap_px) as a JSON-able dict.
 
     ``plane_normal`` is the calibration's reference-plane normal (the direction of the
     per-pixel height noise); None takes the optical axis. ``calibration_sigma_mm`` and
-    ``calibration_length_mm``: see :func:`calibration_terms`.
+    ``calibration_length_mm``: see :func:`calibration_terms`; ``calibration``: its depth
+    model's own uncertainty, correlated between the points (replaces the two when it has one).
     """
     t0 = time.perf_counter()
-    sigma = result.sigma if result.sigma is not None and result.sigma.size else None
+    sigma = _noise_sigma(result)
     try:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
                     plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm,
-                    calibration_length_mm=calibration_length_mm, fill_holes=True)
+                    calibration_length_mm=calibration_length_mm, calibration=calibration,
+                    fill_holes=True)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
         raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()
@@ -115,7 +128,7 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
 
     segs: list[tuple[Any, Any]] = []
     labels: list[tuple[npt.NDArray[np.float32], str]] = []
-    sigma = result.sigma if result.sigma is not None and result.sigma.size else None
+    sigma = _noise_sigma(result)
     for spec in specs:
         try:
             m = measure_fn(spec["kind"], result.points, result.valid, sigma, spec["points"],

@@ -21,7 +21,9 @@ import numpy.typing as npt
 
 from app.recon import ReconResult, Reconstructor
 from app.recon.fusion import fuse_exposures
+from app.recon.model_sigma import ModelSigmaTable
 from app.recon.motion import MotionTest, map_time
+from app.recon.reconstructor import split_noise
 from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
 from app.service.sensor_noise import LiveNoise
@@ -35,7 +37,9 @@ class LiveResult:
 
     Arrays as ``ReconResult``: depth (H, W) f32 mm NaN-invalid, points (H, W, 3) f32 mm,
     valid (H, W) bool, reason (H, W) uint8, texture/modulation (H, W) f32 in sensor units.
-    ``sigma`` (H, W) f32 1-σ depth noise, mm, NaN invalid (None when not computed).
+    ``sigma`` (H, W) f32 total 1-σ depth uncertainty (noise ⊕ calibration), mm, NaN invalid
+    (None when not computed); its parts :attr:`sigma_noise` and :attr:`sigma_model` (from
+    ``model_sigma``, the calibration's σ table, on access).
     ``motion`` (H, W) bool: pixels whose frequency groups disagree beyond the sensor noise
     (:mod:`app.recon.motion`; invalid with reason MOTION unless saturated), in both modes.
     ``noise``: the camera noise model the engine used (the measured one once there is one).
@@ -73,8 +77,25 @@ class LiveResult:
     noise_source: NoiseSource = "given"  # or "set"/"nominal": the engine's own until measured
     #: exposure bracketing: the two sets' exposures (ms) this map fuses (None: one set)
     bracket_exposures_ms: tuple[float, float] | None = None
+    model_sigma: ModelSigmaTable | None = None
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def sigma_model(self) -> npt.NDArray[np.float32] | None:
+        """The calibration's part of ``sigma``, mm, NaN invalid (0 where it carries none)."""
+        if self.sigma is None:
+            return None
+        if self.model_sigma is None:
+            zero = np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan))
+            return zero.astype(np.float32)
+        return self.model_sigma.sigma_mm(self.depth)
+
+    @property
+    def sigma_noise(self) -> npt.NDArray[np.float32] | None:
+        """The sensor-noise part of ``sigma``, mm, NaN invalid."""
+        model = self.sigma_model
+        return None if self.sigma is None or model is None else split_noise(self.sigma, model)
 
     @property
     def latency_ms(self) -> float:
@@ -246,5 +267,5 @@ class Reconstruction:
                                 combined=engine.combine_frequencies),
             moved_pixels=res.moved_pixels, motion_ms=res.motion_ms, scene_moved=res.scene_moved,
             uncertain_moving_pixels=res.uncertain_moving_pixels, noise=res.noise,
-            noise_source=res.noise_source,
+            noise_source=res.noise_source, model_sigma=res.model_sigma,
         )

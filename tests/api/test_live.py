@@ -155,6 +155,24 @@ def test_sigma_field_matches_depth(live: TestClient) -> None:
     assert b"property float sigma_mm" in ply.content[:400]
 
 
+def test_sigma_parts_of_the_live_result(live: TestClient) -> None:
+    """σ (total) = σ_noise ⊕ σ_model on one published result; both parts in the PLY too."""
+    for _ in range(50):
+        got = {f: live.get(f"/api/depth/latest?format=npy&field={f}")
+               for f in ("sigma", "sigma_noise", "sigma_model")}
+        if len({r.headers["x-fringescope-seq"] for r in got.values()}) == 1:
+            break
+    sig, noise, model = (np.load(io.BytesIO(got[f].content)).astype(np.float64)
+                         for f in ("sigma", "sigma_noise", "sigma_model"))
+    ok = np.isfinite(sig)
+    assert ok.any() and np.array_equal(ok, np.isfinite(model)) and np.array_equal(ok, np.isfinite(noise))
+    np.testing.assert_allclose(sig[ok] ** 2, noise[ok] ** 2 + model[ok] ** 2, rtol=1e-4)
+    assert np.median(model[ok]) > 0.0  # the simulator's calibration carries its jackknife
+    assert live.get("/api/depth/latest?format=color&field=sigma_model").status_code == 200
+    head = live.get("/api/pointcloud/latest.ply").content[:600]
+    assert b"property float sigma_noise_mm" in head and b"property float sigma_model_mm" in head
+
+
 def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     tex = live.get("/api/texture/latest.png")
     assert tex.status_code == 200 and tex.headers["content-type"] == "image/png"

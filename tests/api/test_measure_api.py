@@ -43,8 +43,10 @@ def test_measure_on_the_latest_result_matches_the_functions(live: TestClient) ->
             normal, cal_sigma, cal_length = calibration_terms(inst.calibration)
             held = inst.calibration.held_out[inst.calibration.model.name]
             assert (cal_sigma, cal_length) == (held["systematic_mm"], held["correlation_mm"])
-            ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal,
-                          calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
+            # the noise part independent between pixels, the calibration's by its covariance
+            ref = measure(kind, res.points, res.valid, res.sigma_noise, pix, plane_normal=normal,
+                          calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length,
+                          calibration=inst.calibration)
             assert body["value_mm"] == pytest.approx(ref.value_mm, rel=1e-9)
             assert body["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-9) and body["sigma_mm"] > 0
             assert 0 < body["extra"]["sigma_noise_mm"] <= body["sigma_mm"]

@@ -56,6 +56,26 @@ def test_multipart_upload_reconstructs_the_dof_target(live: TestClient, dof_set:
     assert np.mean(np.abs(err)) < 0.15, f"mean |error| {np.mean(np.abs(err)):.3f} mm"
 
 
+def test_upload_gives_sigma_and_its_two_parts(live: TestClient,
+                                              dof_set: tuple[Path, np.ndarray]) -> None:
+    """σ is the total, noise ⊕ calibration: both parts as maps and as medians in the summary."""
+    folder, _ = dof_set
+    maps = {}
+    for field in ("sigma", "sigma_noise", "sigma_model"):
+        r = live.post(f"/api/reconstruct?format=npy&field={field}", files=_files(folder))
+        assert r.status_code == 200, r.text
+        maps[field] = np.load(io.BytesIO(r.content)).astype(np.float64)
+    ok = np.isfinite(maps["sigma"])
+    assert ok.mean() > 0.3 and np.array_equal(ok, np.isfinite(maps["sigma_model"]))
+    parts = maps["sigma_noise"][ok] ** 2 + maps["sigma_model"][ok] ** 2
+    np.testing.assert_allclose(maps["sigma"][ok] ** 2, parts, rtol=1e-4)
+    assert np.median(maps["sigma_model"][ok]) > 0.0  # the simulator's calibration has a jackknife
+    body = live.post("/api/reconstruct", files=_files(folder)).json()
+    assert body["sigma_median_mm"] == pytest.approx(float(np.median(maps["sigma"][ok])), rel=1e-6)
+    model_median = float(np.median(maps["sigma_model"][ok]))
+    assert body["sigma_model_median_mm"] == pytest.approx(model_median, rel=1e-6)
+
+
 def test_zip_upload_as_file_and_as_body(live: TestClient, dof_set: tuple[Path, np.ndarray]) -> None:
     folder, _ = dof_set
     data = _zip(folder)

@@ -1,0 +1,121 @@
+"""Issue 26's targets for σ = noise ⊕ calibration on the twin, boards covering the central half.
+
+Calibrates the default rig from simulated partial boards, reconstructs the tilted plane (it
+fills the field) and checks coverage inside the calibrated volume, σ's honesty per image ninth
+and for 40 random lengths, the bias where the model is certain, and that no valid pixel is
+grossly wrong.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.analysis import measure as M
+from app.calib import calibrate_folder
+from app.core.reasons import Reason
+from app.devices.sim import SimulatedWorld, render_capture_set, simulate_calibration_folder
+from app.recon import Reconstructor
+
+pytestmark = pytest.mark.slow
+
+
+def _lit(world: SimulatedWorld, points: np.ndarray) -> np.ndarray:
+    p = points.astype(np.float64)
+    proj = world.rig.projector
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = proj.to_projector(p)
+        xp, yp = proj.column(p), proj.row(p)
+        w, h = proj.size
+        return (
+            np.isfinite(p).all(-1)
+            & (q[..., 2] > 0)
+            & (xp >= -0.5)
+            & (xp <= w - 0.5)
+            & (yp >= -0.5)
+            & (yp <= h - 0.5)
+        )
+
+
+@pytest.fixture(scope="module")
+def plane(tmp_path_factory):  # noqa: ANN001, ANN201
+    folder = simulate_calibration_folder(
+        tmp_path_factory.mktemp("cal") / "calib",
+        board="checkerboard",
+        poses=8,
+        seed=1,
+        overwrite=True,
+        rig="default",
+        partial_boards=True,
+    )
+    cal = calibrate_folder(folder).calibration
+    world = SimulatedWorld("plane", seed=4, rig="default")
+    cs, truth, points = render_capture_set(world.scene, seed=4, world=world, exposure_ms=40.0)
+    res = Reconstructor(cal).run(cs.frames)
+    return cal, world, truth, points, res
+
+
+def test_coverage_inside_the_calibrated_volume(plane):
+    cal, world, truth, points, res = plane
+    lo, hi = cal.height_range_mm
+    cx, cy, rx, ry = cal.model.region.field_px or (0.0, 0.0, math.inf, math.inf)
+    vv, uu = np.mgrid[: truth.shape[0], : truth.shape[1]]
+    in_camera_field = ((uu - cx) / rx) ** 2 + (
+        (vv - cy) / ry
+    ) ** 2 <= 1.0  # the lens model's support
+    inside = (
+        _lit(world, points)
+        & (res.reason != Reason.SATURATED)
+        & (truth >= lo)
+        & (truth <= hi)
+        & in_camera_field
+    )
+    assert inside.sum() > 100_000
+    assert res.valid[inside].mean() >= 0.97, np.bincount(res.reason[inside], minlength=9)
+
+
+def test_sigma_is_honest_in_every_ninth_and_no_gross_error(plane):
+    cal, world, truth, points, res = plane
+    err = res.depth.astype(np.float64) - truth
+    assert not np.any(np.abs(err[res.valid]) > 0.5)
+    h, w = truth.shape
+    sm = res.sigma_model
+    for i in range(3):
+        for j in range(3):
+            cell = np.zeros_like(res.valid)
+            cell[i * h // 3 : (i + 1) * h // 3, j * w // 3 : (j + 1) * w // 3] = True
+            ok = cell & res.valid
+            if ok.sum() < 1000:
+                continue
+            z = err[ok] / res.sigma[ok]
+            assert 0.85 <= math.sqrt(float(np.mean(z * z))) <= 1.15, (i, j)
+            certain = ok & (sm <= 0.0025)
+            if certain.sum() >= 1000:
+                assert abs(float(np.mean(err[certain]))) <= 0.005, (i, j)
+            loose = ok & (sm > 0.0025)
+            if loose.sum() >= 1000:
+                assert abs(float(np.mean(err[loose]))) <= 2.0 * float(np.mean(sm[loose])), (i, j)
+
+
+def test_forty_random_lengths_have_an_honest_sigma(plane):
+    cal, world, truth, points, res = plane
+    vv, uu = np.nonzero(res.valid)
+    rng = np.random.default_rng(26)
+    z = []
+    for _ in range(40):
+        a, b = rng.choice(len(vv), 2, replace=False)
+        pa, pb = (int(uu[a]), int(vv[a])), (int(uu[b]), int(vv[b]))
+        m = M.length(
+            res.points,
+            res.valid,
+            res.sigma_noise,
+            [pa, pb],
+            plane_normal=cal.plane_normal,
+            calibration=cal,
+        )
+        true = float(np.linalg.norm(points[pb[1], pb[0]].astype(np.float64) - points[pa[1], pa[0]]))
+        z.append((m.value_mm - true) / m.sigma_mm)
+    rms = math.sqrt(float(np.mean(np.square(z))))
+    assert 0.8 <= rms <= 1.25, rms
