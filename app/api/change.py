@@ -106,7 +106,7 @@ async def set_reference(request: Request,
                                       inst.reconstruct_capture)
         return ref.describe()
     res = inst.latest_result()
-    ref = inst.change.set_reference(res.depth, res.sigma, res.points,
+    ref = inst.change.set_reference(res.depth, res.sigma_noise, res.points,
                                     {"kind": "live", "seq": res.seq})
     return ref.describe()
 

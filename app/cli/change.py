@@ -112,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
         results.append(reconstruct_captures([c], cal, ReconOptions()).result)
     ref, cur = results
     test = ChangeTest(false_alarm_rate=args.false_alarm_rate)
-    result = compare(cur.depth, cur.sigma, cur.points, ref.depth, ref.sigma, ref.points,
+    # the sensor noise only: one pixel's calibration error is the same in both maps and
+    # cancels in their difference
+    result = compare(cur.depth, cur.sigma_noise, cur.points, ref.depth, ref.sigma_noise, ref.points,
                      camera_matrix=calibration.camera_matrix,
                      dist_coeffs=calibration.dist_coeffs, test=test, register=args.register)
     if result.mode == "failed":

@@ -217,7 +217,9 @@ class ChangeService:
                 continue
             seq, result = item
             try:
-                change = self.compute(result.depth, result.sigma, result.points, seq)
+                # the sensor noise only: one pixel's calibration error is the same in both maps and
+                # cancels in their difference
+                change = self.compute(result.depth, result.sigma_noise, result.points, seq)
             except (ValueError, Conflict) as exc:
                 self.last_error = str(exc)
                 continue
@@ -314,7 +316,7 @@ class ChangeService:
                                source: dict[str, Any]) -> Reference:
         """Reconstruct a capture set with the active calibration and keep it as the reference."""
         res = reconstruct(capture)
-        return self.set_reference(res.depth, res.sigma if res.sigma.size else None, res.points,
+        return self.set_reference(res.depth, res.sigma_noise if res.sigma.size else None, res.points,
                                   source)
 
     def reference_from_recording(self, recordings: Path, name: str, index: int,
