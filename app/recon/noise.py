@@ -41,7 +41,8 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
 
     Returns:
         :class:`~app.recon.reconstructor.SensorNoise` fitted to the residual variance
-        against mean intensity (gain and read noise clipped at 0).
+        against mean intensity (gain clipped at 0, read noise at least
+        :data:`QUANTISATION_NOISE_DN`).
 
     Raises:
         ValueError: N = 3 (no residual), wrong frame count, or too few usable pixels.
@@ -73,9 +74,16 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
         raise ValueError("frames: fewer than 100 unsaturated, non-black pixels to estimate the noise from")
     fit = max(1, int(usable.sum()) // MAX_FIT_PIXELS)  # a regular share of the usable pixels
     read_var, gain = _trimmed_fit(intensity[usable][::fit], var[usable][::fit], dof * k)
-    return SensorNoise(gain_dn_per_e=max(float(gain), 0.0), read_noise_dn=math.sqrt(max(float(read_var), 0.0)))
+    # a fit can reach 0 read noise (motion in the set inflates the shot-noise slope); no sensor
+    # is below its rounding, and the motion test needs a read noise > 0
+    read_dn = max(math.sqrt(max(float(read_var), 0.0)), QUANTISATION_NOISE_DN)
+    return SensorNoise(gain_dn_per_e=max(float(gain), 0.0), read_noise_dn=read_dn)
 
 
+
+
+#: the noise of rounding to whole codes, DN (uniform over one code: 1/√12)
+QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)
 
 
 def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
