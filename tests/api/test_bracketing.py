@@ -68,7 +68,7 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
         assert r.status_code == 409 and client.get("/api/status").json()["mode"] == "set"
         plain = _maps(client, 3, 60, bracket=False)
         assert all(m["exposure_ms"] == 20.0 for m in plain)
-        rate_plain = _rate(client, 6, 300)
+        rate_plain = _rate(client, 12, 300)
 
         r = client.put("/api/mode", json={"bracket": True})
         assert r.status_code == 200 and r.json() == {"mode": "set", "bracket": True}
@@ -86,7 +86,7 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
             and st["state_reason"] == st["bracket"]["note"]
         )
         assert st["mode"] == "set"
-        rate_fused = _rate(client, 6, 300)
+        rate_fused = _rate(client, 12, 300)
 
         v_plain = sum(m["valid_fraction"] for m in plain) / len(plain)
         v_fused = sum(m["valid_fraction"] for m in fused) / len(fused)
