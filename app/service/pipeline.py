@@ -289,7 +289,9 @@ class LivePipeline:
             return None
         timeout = 5.0 + 3 * self.schedule.n_frames * max(exposure_ms, 30.0) / 1000.0
         capture = self.next_capture(timeout, exposure_ms=exposure_ms)
-        res = engine.run(capture.frames, noise=self.reconstruction.noise.current)
+        frames = capture.frames
+        full = 255.0 if frames.dtype == np.uint8 else float(full_scale(self.config.bit_depth))
+        res = engine.run(frames, noise=self.reconstruction.live_noise(engine, full))
         dim = np.isin(res.reason, (int(Reason.LOW_MODULATION), int(Reason.UNCERTAIN)))
         lit = res.texture > 0.02 * capture.max_code  # the scene, not the unlit background
         considered = lit & (res.reason != int(Reason.SATURATED))

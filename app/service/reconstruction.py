@@ -213,15 +213,20 @@ class Reconstruction:
             if self.noise.due(time.monotonic(), schedule):  # after publishing: no map waits for it
                 self.noise.update(fs.stack(), schedule, int(result.full_scale), time.monotonic())
 
+    def live_noise(self, engine: Reconstructor, full_scale: float) -> SensorNoise | None:
+        """The camera noise model live sets are reconstructed with: the measured one; None until
+        measured (the engine fits it to each set); with measuring off the engine's or nominal."""
+        noise = self.noise.current
+        if noise is None and self.noise.interval_s == 0.0:
+            noise = engine.noise or SensorNoise.typical(int(full_scale))
+        return noise
+
     def _run_engine(self, engine: Reconstructor, fs: FrameSet) -> tuple[ReconResult, float, float]:
         """(result, full scale, milliseconds) of one set with the live noise and motion test."""
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
-        noise = self.noise.current  # None until measured: the engine fits it to this set
-        if noise is None and self.noise.interval_s == 0.0:  # measuring off: the nominal sensor
-            noise = engine.noise or SensorNoise.typical(int(full_scale))
-        res = engine.run(frames, noise=noise, motion=self.motion)
+        res = engine.run(frames, noise=self.live_noise(engine, full_scale), motion=self.motion)
         return res, full_scale, 1000.0 * (time.perf_counter() - t0)
 
     def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:

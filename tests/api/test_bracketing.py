@@ -68,7 +68,7 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
         assert r.status_code == 409 and client.get("/api/status").json()["mode"] == "set"
         plain = _maps(client, 3, 60, bracket=False)
         assert all(m["exposure_ms"] == 20.0 for m in plain)
-        rate_plain = _rate(client, 6, 300)
+        rate_plain = _rate(client, 12, 300)
 
         r = client.put("/api/mode", json={"bracket": True})
         assert r.status_code == 200 and r.json() == {"mode": "set", "bracket": True}
@@ -86,7 +86,7 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
             and st["state_reason"] == st["bracket"]["note"]
         )
         assert st["mode"] == "set"
-        rate_fused = _rate(client, 6, 300)
+        rate_fused = _rate(client, 12, 300)
 
         v_plain = sum(m["valid_fraction"] for m in plain) / len(plain)
         v_fused = sum(m["valid_fraction"] for m in fused) / len(fused)
@@ -108,3 +108,33 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
         assert again[-1]["exposure_ms"] == 20.0 and again[-2]["exposure_ms"] == 20.0
         st = client.get("/api/status").json()
         assert st["bracket"] is None
+
+
+@pytest.mark.slow
+def test_the_auto_exposure_decides_bracketing_from_the_scene(tmp_path: Path,
+                                                             sim_calibration_file: Path) -> None:
+    settings = live_settings(tmp_path, sim_calibration_file, sim_scene="anastomosis",
+                             exposure_ms=20.0, noise_estimate_interval_s=0.0)
+    app = create_app(settings)
+    sim = create_sim_devices(scene="anastomosis", seed=1, realtime=False)
+    app.state.instrument.pipeline.devices = DeviceBundle(sim.camera, sim.projector,
+                                                         sim.controller, sim.world)
+    with TestClient(app) as client:
+        wait_for(client, lambda s: s["results_published"] >= 1, 300, "first result")
+        assert client.put("/api/mode", json={"bracket": True}).status_code == 200  # by hand first
+        r = client.post("/api/exposure/auto", json={})
+        assert r.status_code == 200, r.text
+        out = r.json()
+        share = out["low_signal_share"]
+        assert share is not None and 0.0 <= share <= 1.0
+        longer = out["exposure_ms"] < 100.0
+        # the auto-exposure's verdict replaces the manual choice: on only beyond 10 % dim pixels
+        assert out["bracket"] == (share > 0.10 and longer)
+        st = client.get("/api/status").json()
+        assert st["exposure_ms"] == out["exposure_ms"]
+        if out["bracket"]:
+            assert st["bracket"]["auto"] is True and "auto-exposure" in st["bracket"]["note"]
+        else:
+            assert st["bracket"] is None
+        print(f"\nanastomosis auto-exposure: {out['exposure_ms']:g} ms, "
+              f"{100 * share:.1f} % of lit pixels low-signal, bracketing {out['bracket']}")
