@@ -49,13 +49,15 @@ def bench(scene: str, frames: int, rig: str = "default") -> None:
     fps, fps_cpu = frames / wall, frames / cpu
     print(f"{scene:16s} {fps:7.1f} frames/s wall ({fps / TARGET_FPS:4.2f}x target), "
           f"{fps_cpu:7.1f} per CPU-s ({fps_cpu / TARGET_FPS:4.2f}x target); "
-          f"numpy {np.dtype(dtype).name} noise baseline {frames / bwall:7.1f}/s wall, {frames / bcpu:7.1f}/CPU-s; "
+          f"numpy {np.dtype(dtype).name} noise baseline {frames / bwall:7.1f}/s wall, "
+          f"{frames / bcpu:7.1f}/CPU-s; "
           f"sim/baseline {fps / (frames / bwall):4.2f} wall, {fps_cpu / (frames / bcpu):4.2f} CPU")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--scenes", nargs="*", default=["plane", "dof_target", "intestine_pile", "anastomosis"])
+    ap.add_argument("--scenes", nargs="*",
+                    default=["plane", "dof_target", "intestine_pile", "anastomosis"])
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--rig", default="default", help="simulator rig preset: default or endoscope")
     args = ap.parse_args()

@@ -18,7 +18,7 @@ def test_the_benchmarks_are_found():
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.stem)
 def test_benchmark_prints_its_usage(script: Path):
-    run = subprocess.run([sys.executable, str(script), "--help"], cwd=ROOT, capture_output=True, text=True,
-                         timeout=120)
+    run = subprocess.run([sys.executable, str(script), "--help"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "usage" in run.stdout.lower()

@@ -28,8 +28,8 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
     write_bump_set(tmp_path)
     cal = load_calibration(tmp_path / "calibration.json")
     cap = read_capture_set(tmp_path / "set")
-    res = Reconstructor(cal, noise=estimate_sensor_noise(cap.frames, cap.schedule, max_code=cap.max_code)).run(
-        cap.frames, max_code=cap.max_code)
+    noise = estimate_sensor_noise(cap.frames, cap.schedule, max_code=cap.max_code)
+    res = Reconstructor(cal, noise=noise).run(cap.frames, max_code=cap.max_code)
     h, w = res.valid.shape
     cases = {
         "--length": ("length", [[20, 20], [w - 20, h - 20]]),
@@ -45,7 +45,8 @@ def test_measure_prints_one_json_line_matching_the_functions(tmp_path, capsys):
         assert len(lines) == 1
         got = json.loads(lines[0])
         ref = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=cal.plane_normal,
-                      calibration_sigma_mm=calibration_terms(cal)[1], calibration_length_mm=calibration_terms(cal)[2])
+                      calibration_sigma_mm=calibration_terms(cal)[1],
+                      calibration_length_mm=calibration_terms(cal)[2])
         assert got["kind"] == kind and got["set"] == "set" and got["noise_source"] == "set"
         assert got["value_mm"] == pytest.approx(ref.value_mm, rel=1e-6)
         assert got["sigma_mm"] == pytest.approx(ref.sigma_mm, rel=1e-6) and got["sigma_mm"] > 0
@@ -59,7 +60,8 @@ def test_noise_only_leaves_out_the_calibration_term(tmp_path, capsys):
     noise = json.loads(_run(tmp_path, capsys, "--length", "20,20,100,90", "--noise-only")[1])
     assert noise["sigma_mm"] == pytest.approx(with_cal["extra"]["sigma_noise_mm"], rel=1e-9)
     c = calibration_terms(cal)[1]
-    expected = noise["sigma_mm"] if c == 0 else math.hypot(noise["sigma_mm"], with_cal["extra"]["sigma_calibration_mm"])
+    expected = (noise["sigma_mm"] if c == 0
+                else math.hypot(noise["sigma_mm"], with_cal["extra"]["sigma_calibration_mm"]))
     assert with_cal["sigma_mm"] == pytest.approx(expected, rel=1e-9)
 
 
@@ -72,7 +74,8 @@ def test_invalid_click_snaps(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("args", "needle"), [
-    (["--length", "3,3,60,60"], "point 1 (3, 3): invalid pixel (LOW_MODULATION) and no valid pixel within 3 px"),
+    (["--length", "3,3,60,60"],
+     "point 1 (3, 3): invalid pixel (LOW_MODULATION) and no valid pixel within 3 px"),
     (["--length", "1,2,3"], "expected pairs u,v"),
     (["--length", "10,10"], "needs exactly 2 points, got 1"),
     (["--length=-10,10,20,20"], "point 1 (-10, 10): outside the"),

@@ -51,7 +51,8 @@ def test_validate_uses_the_validity_rule_of_reconstruct_and_suggests_an_exposure
     assert fig["low_signal_fraction"] > 0.5
     chosen = instrument_exposure("anastomosis", seed=SEED).exposure_ms
     assert fig["suggested_exposure_ms"] == pytest.approx(chosen) and chosen > 20.0
-    assert "invalid for low signal at 20 ms" in fig["warning"] and f"{chosen:g} ms" in fig["warning"]
+    assert "invalid for low signal at 20 ms" in fig["warning"]
+    assert f"{chosen:g} ms" in fig["warning"]
     assert "suggested_exposure_ms" in table
 
 
@@ -63,7 +64,8 @@ def test_feature_without_roi_is_refused_in_one_line(
     assert len(err.splitlines()) == 1 and "--roi" in err
 
 
-def test_simulate_list_shows_descriptions_and_true_dimensions(capsys: pytest.CaptureFixture[str]) -> None:
+def test_simulate_list_shows_descriptions_and_true_dimensions(
+        capsys: pytest.CaptureFixture[str]) -> None:
     from app.devices.sim import list_scenes
 
     assert main(["simulate", "--list"]) == 0

@@ -38,11 +38,14 @@ class Rig:
 
     @property
     def camera_matrix(self) -> np.ndarray:
-        return np.array([[self.f_px, 0, (self.width - 1) / 2], [0, self.f_px, (self.height - 1) / 2], [0, 0, 1.0]])
+        return np.array([[self.f_px, 0, (self.width - 1) / 2],
+                         [0, self.f_px, (self.height - 1) / 2],
+                         [0, 0, 1.0]])
 
     def rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         k = self.camera_matrix
-        return np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], axis=-1)
+        return np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)],
+                        axis=-1)
 
     def phase_of_points(self, x: np.ndarray) -> np.ndarray:
         """Finest-frequency phase (rad) lighting camera-frame points x (..., 3) mm."""
@@ -61,7 +64,8 @@ class Rig:
     def observe(self, board: BoardSpec, rmat: np.ndarray, tvec: np.ndarray, name: str = "",
                 noise_px: float = 0.0, rng: np.random.Generator | None = None) -> PoseObservation:
         obj = board.object_points()
-        img, _ = cv2.projectPoints(obj, cv2.Rodrigues(rmat)[0], tvec, self.camera_matrix, np.zeros(5))
+        rvec = cv2.Rodrigues(rmat)[0]
+        img, _ = cv2.projectPoints(obj, rvec, tvec, self.camera_matrix, np.zeros(5))
         img = img.reshape(-1, 2)
         if noise_px:
             img = img + (rng or np.random.default_rng(0)).normal(0, noise_px, img.shape)
@@ -101,8 +105,8 @@ def raycast_scene(rig: Rig, plane: tuple[np.ndarray, np.ndarray], *,
                   sphere: tuple[np.ndarray, float] | None = None,
                   cylinder: tuple[np.ndarray, np.ndarray, float] | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points (H, W, 3) of the nearest surface, and a surface id map (0 plane, 1 sphere,
-    2 cylinder). ``plane`` = (unit normal, point); ``sphere`` = (centre, radius);
+    """Camera-frame points (H, W, 3) of the nearest surface, and a surface id map (0 plane,
+    1 sphere, 2 cylinder). ``plane`` = (unit normal, point); ``sphere`` = (centre, radius);
     ``cylinder`` = (axis point, unit axis direction, radius)."""
     vv, uu = np.mgrid[0 : rig.height, 0 : rig.width].astype(np.float64)
     r = rig.rays(uu, vv)
@@ -146,7 +150,8 @@ def fringe_stack(rig: Rig, phi: np.ndarray, albedo: np.ndarray, *, noise_dn: flo
     for k in sched.frequencies:
         for d in sched.shifts_rad:
             img = albedo * (110.0 + 100.0 * np.cos(phi * k / sched.frequencies[-1] + d))
-            frames.append(np.clip(np.rint(img + rng.normal(0, noise_dn, img.shape)), 0, 255).astype(np.uint8))
+            noisy = np.rint(img + rng.normal(0, noise_dn, img.shape))
+            frames.append(np.clip(noisy, 0, 255).astype(np.uint8))
     return np.stack(frames)
 
 
@@ -165,8 +170,8 @@ def render_board(board: BoardSpec, rmat: np.ndarray, tvec: np.ndarray, rig: Rig)
     x = lo[0] + (xx + 0.5) / SCALE
     y = lo[1] + (yy + 0.5) / SCALE
     if board.type == "checkerboard":
-        inside = (x > -board.pitch_mm) & (x < board.cols * board.pitch_mm) & (y > -board.pitch_mm) & (
-            y < board.rows * board.pitch_mm)
+        inside = ((x > -board.pitch_mm) & (x < board.cols * board.pitch_mm)
+                  & (y > -board.pitch_mm) & (y < board.rows * board.pitch_mm))
         dark = ((np.floor(x / board.pitch_mm) + np.floor(y / board.pitch_mm)) % 2 == 0) & inside
     else:
         dark = np.zeros((h, w), bool)
@@ -174,7 +179,9 @@ def render_board(board: BoardSpec, rmat: np.ndarray, tvec: np.ndarray, rig: Rig)
             dark |= (x - px) ** 2 + (y - py) ** 2 < (0.35 * board.pitch_mm) ** 2
     raster = np.where(dark, 30, 220).astype(np.uint8)
     # raster pixel → board mm → image
-    s = np.array([[1 / SCALE, 0, lo[0] + 0.5 / SCALE], [0, 1 / SCALE, lo[1] + 0.5 / SCALE], [0, 0, 1]])
+    s = np.array([[1 / SCALE, 0, lo[0] + 0.5 / SCALE],
+                  [0, 1 / SCALE, lo[1] + 0.5 / SCALE],
+                  [0, 0, 1]])
     # Supersample 4x (pixel centres at (4i + 1.5)) then box-average, so edges are area-weighted.
     up = np.array([[4.0, 0, 1.5], [0, 4.0, 1.5], [0, 0, 1]])
     hmat = up @ rig.camera_matrix @ np.column_stack([rmat[:, 0], rmat[:, 1], tvec]) @ s

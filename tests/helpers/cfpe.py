@@ -26,7 +26,8 @@ PLATE, CLOTH, BUST, BOTTLE = 1, 4, 6, 8
 
 
 def schedule(steps: int) -> PatternSchedule:
-    return PatternSchedule(frequencies=FREQS, steps=steps, width=1920, height=1080, unwrap="heterodyne")
+    return PatternSchedule(frequencies=FREQS, steps=steps, width=1920, height=1080,
+                           unwrap="heterodyne")
 
 
 @cache
@@ -37,7 +38,8 @@ def frames(scene: int, steps: int) -> npt.NDArray[np.uint8]:
     for period in PERIODS_PX:
         index = {42: 0, 45: 1, 48: 2}[period]
         for s in picks:
-            img = cv2.imread(str(CFPE / "recordings" / f"{scene:02d}{12 * index + s:02d}.png"), cv2.IMREAD_UNCHANGED)
+            path = CFPE / "recordings" / f"{scene:02d}{12 * index + s:02d}.png"
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             assert img is not None and img.dtype == np.uint8 and img.ndim == 2
             out.append(img)
     return np.stack(out)

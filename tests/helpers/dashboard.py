@@ -37,20 +37,24 @@ def live_server(tmp_path_factory: pytest.TempPathFactory, request: pytest.Fixtur
     from app.main import create_app
 
     calibration = request.getfixturevalue("browser_calibration_file")
-    fields: dict[str, Any] = {"sim_seed": 7, "exposure_ms": EXPOSURE_MS, "viewer_max_points": 100_000}
+    fields: dict[str, Any] = {"sim_seed": 7, "exposure_ms": EXPOSURE_MS,
+                              "viewer_max_points": 100_000}
     settings = Settings(data_dir=tmp_path_factory.mktemp(name), calibration_file=calibration,
                         api_token=token, **(fields | overrides))
     auth = {"Authorization": f"Bearer {token}"} if token else {}
     with serve(create_app(settings)) as host:
         base = f"http://{host}"
-        ok = wait_for(lambda: httpx.get(f"{base}/api/status", headers=auth).json()["results_published"] >= 2,
-                      600, 0.5)
+        def published() -> bool:
+            return httpx.get(f"{base}/api/status", headers=auth).json()["results_published"] >= 2
+
+        ok = wait_for(published, 600, 0.5)
         assert ok, httpx.get(f"{base}/api/status", headers=auth).json()
         yield base
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+def server(tmp_path_factory: pytest.TempPathFactory,
+           request: pytest.FixtureRequest) -> Iterator[str]:
     with live_server(tmp_path_factory, request, "fringescope-data") as base:
         yield base
 
@@ -75,7 +79,8 @@ def page(server: str) -> Iterator[tuple[Any, list[str]]]:
             pg.on("console", on_console)
             pg.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
             pg.goto(server + "/", wait_until="load")
-            pg.wait_for_function("window.fringescope && window.fringescope.framesShown >= 1", timeout=60_000)
+            pg.wait_for_function("window.fringescope && window.fringescope.framesShown >= 1",
+                                 timeout=60_000)
             yield pg, errors
         finally:
             browser.close()

@@ -207,7 +207,8 @@ class ProjectorContract(_Common):
         device.close()
 
     def check_loaded(self, device: Projector, schedule: PatternSchedule) -> None:
-        """Backends that can show what they hold check it here (the emulator's patterns, the twin's)."""
+        """Backends that can show what they hold check it here (the emulator's patterns, the
+        twin's)."""
 
 
 class ControllerContract(_Common):
@@ -278,4 +279,5 @@ class ControllerContract(_Common):
             device.set_led("uv")
 
 
-__all__ = ["CameraContract", "ControllerContract", "ProjectorContract", "DeviceTimeout", "DeviceDisconnected"]
+__all__ = ["CameraContract", "ControllerContract", "ProjectorContract", "DeviceTimeout",
+           "DeviceDisconnected"]

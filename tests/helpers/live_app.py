@@ -11,7 +11,8 @@ from fastapi.testclient import TestClient
 
 from app.config import Settings
 
-LIVE_EXPOSURE_MS = 30.0  # the paper's range; the simulator renders each frame well within the period
+# the paper's range; the simulator renders each frame well within the period
+LIVE_EXPOSURE_MS = 30.0
 LIVE_SCENE = "dof_target"  # static: cheap to render, and has a known truth
 
 

@@ -56,7 +56,8 @@ def surface_result(height: int = 120, width: int = 160, bump_mm: float = 10.0,
 
 
 class SurfaceSource:
-    """Latest-result slot plus the control surface the viewer uses (validating like the Instrument)."""
+    """Latest-result slot plus the control surface the viewer uses (validating like the
+    Instrument)."""
 
     def __init__(self) -> None:
         self.store: LatestSlot[LiveResult] = LatestSlot()

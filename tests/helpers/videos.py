@@ -19,7 +19,8 @@ def write_video(path: Path, n: int = N, fps: float = 100.0) -> Path:
     assert writer.isOpened()
     for k in range(n):
         img = np.full((H, W, 3), frame_level(k), np.uint8)
-        img[:, :, 2] = np.uint8(min(255, frame_level(k) + 20))  # some colour, so mono conversion matters
+        # some colour, so mono conversion matters
+        img[:, :, 2] = np.uint8(min(255, frame_level(k) + 20))
         writer.write(img)
     writer.release()
     return path

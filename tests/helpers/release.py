@@ -1,0 +1,54 @@
+"""Memory between test modules: give back what a module's tests left behind.
+
+A module-scoped autouse fixture (loaded by tests/conftest.py) runs after each test module:
+
+- FastAPI (0.165) keeps every endpoint callable it has classified in module-level
+  ``functools.lru_cache``s (4096 entries) of ``fastapi.dependencies.models``. An endpoint
+  defined inside ``create_app`` (the API fallback, the viewer relay) closes over its app, so
+  every app a test built — its Instrument, devices, results and recorder, 100–300 MB — stayed
+  alive until the end of the session. Those caches are emptied (FastAPI refills them as it
+  goes; only the classification of a callable is cached).
+- Cyclic garbage is collected: an Instrument, its threads' queues and its result slot form
+  cycles the collector reaches by allocation counts, not by size.
+- The freed heap goes back to the system (glibc ``malloc_trim``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import functools
+import gc
+from collections.abc import Iterator
+
+import pytest
+
+
+def _malloc_trim() -> None:
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return
+    with contextlib.suppress(OSError, AttributeError):  # not glibc: nothing to trim
+        ctypes.CDLL(name).malloc_trim(0)
+
+
+def fastapi_callable_caches() -> list[functools._lru_cache_wrapper[object]]:
+    """The ``lru_cache``s of ``fastapi.dependencies.models`` (they hold endpoint callables)."""
+    from fastapi.dependencies import models
+
+    return [f for f in vars(models).values() if isinstance(f, functools._lru_cache_wrapper)]
+
+
+def release_memory() -> None:
+    """Forget FastAPI's classified endpoints, collect cycles, trim the heap."""
+    for cache in fastapi_callable_caches():
+        cache.cache_clear()
+    gc.collect()
+    _malloc_trim()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_after_module() -> Iterator[None]:
+    yield
+    release_memory()
