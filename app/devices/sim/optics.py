@@ -279,7 +279,7 @@ RIG_NAMES = tuple(RIGS)
 
 #: the projector defect of the ``*-projector-defect`` variants: radial (k1, k2) and gamma
 DEFECT_RADIAL = (0.05, 0.0)
-DEFECT_GAMMA = 1.6
+DEFECT_GAMMA = 1.1
 DEFECT_SUFFIX = "-projector-defect"
 
 
