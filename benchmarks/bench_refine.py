@@ -1,7 +1,7 @@
 """The joint (corners + phase) refinement on twin rigs, with and without a projector defect.
 
-    python benchmarks/bench_refine.py [--rig default default-projector-defect] [--poses 8] [--seed 1]
-                                      [--accuracy]
+    python benchmarks/bench_refine.py [--rig default default-projector-defect] [--poses 8]
+                                      [--seed 1] [--accuracy]
 
 Per rig: simulate a calibration folder, calibrate it (``app.calib.calibrate_folder``, as
 ``fringescope calibrate`` does) and print the refinement's verdict (accepted or rejected, with
@@ -45,8 +45,8 @@ def refinement_figures(rig_name: str, poses: int, seed: int, folder: Path) -> bo
     cal, cam, ref = report.calibration, report.camera, report.refinement
     assert cam is not None
     opencv_rms = cam.rms_px
-    print(f"\n=== {rig_name} (seed {seed}, {poses} poses; simulated in {t_sim:.0f} s, calibrated in "
-          f"{t_cal:.0f} s) ===")
+    print(f"\n=== {rig_name} (seed {seed}, {poses} poses; simulated in {t_sim:.0f} s, "
+          f"calibrated in {t_cal:.0f} s) ===")
     print(ref.reason if ref is not None else "phase refinement not tried")
     if ref is not None and not ref.accepted and math.isfinite(ref.joint_rms_px):
         print(f"  the rejected joint fit's corner RMS: {ref.joint_rms_px:.4f} px "
@@ -78,8 +78,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from bench_accuracy import run_rig
 
-        acc = argparse.Namespace(poses=args.poses, board="checkerboard", partial_boards=None, corners_only=False,
-                                 keep=None, strict=False, seed=args.seed, exposure="auto")
+        acc = argparse.Namespace(poses=args.poses, board="checkerboard", partial_boards=None,
+                                 corners_only=False, keep=None, strict=False, seed=args.seed,
+                                 exposure="auto")
         for name in args.rig:
             run_rig(name, acc)
     return 0 if ok else 1

@@ -256,11 +256,11 @@ class RefinementOut(BaseModel):
     reprojection stays within the corners' noise of the corners-only fit (app.calib.refine)."""
 
     accepted: bool
-    corners_rms_px: float | None = Field(description="corners-only fit's RMS reprojection, px per corner")
-    joint_rms_px: float | None = Field(description="joint fit's RMS reprojection on the same corners, px")
+    corners_rms_px: float | None = Field(description="corners-only fit's RMS reprojection, px")
+    joint_rms_px: float | None = Field(description="joint fit's RMS reprojection, same corners, px")
     noise_px: float | None = Field(description="the corners' noise per coordinate, px")
-    chi2: float | None = Field(description="the joint fit's squared distance from the corners-only fit, "
-                                           "in the corners' covariance")
+    chi2: float | None = Field(description="the joint fit's squared distance from the corners-only "
+                                           "fit, in the corners' covariance")
     chi2_limit: float | None = Field(description="chi-square quantile (99 %) it must not exceed")
     parameters: int = Field(description="camera and pose parameters of the corner fit")
     reason: str = Field(description="what was kept and why (rejected: the corners-only camera)")

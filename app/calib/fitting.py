@@ -100,7 +100,7 @@ class CalibrationReport:
     held_out: dict[str, dict[str, float | int | str | None]] = field(default_factory=dict)
     uncovered: list[str] = field(default_factory=list)
     camera: CameraFit | None = None
-    refinement: RefinementCheck | None = None  # the joint (corners + phase) fit's verdict; None: not tried
+    refinement: RefinementCheck | None = None  # the joint fit's verdict; None: not tried
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -315,9 +315,10 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         free = DISTORTION_TERMS[camfit.model]
         refined = _refine_with_phase(obs, obj, img, cam, dist, rvecs, tvecs, schedule, free)
         if refined is None:
-            refinement = RefinementCheck(False, float(rms_px), math.nan, math.nan, math.nan, math.nan, 0,
-                                         "phase refinement not possible (too few phase points on a board, or "
-                                         "the joint fit failed): the corners-only camera and poses are kept")
+            refinement = RefinementCheck(
+                False, float(rms_px), math.nan, math.nan, math.nan, math.nan, 0,
+                "phase refinement not possible (too few phase points on a board, or the joint fit "
+                "failed): the corners-only camera and poses are kept")
         else:
             # the joint fit must not spoil the camera: else the corners-only one stands
             refinement = check_refinement(obj, img, cam, dist, rvecs, tvecs, refined, free)

@@ -228,8 +228,9 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     kd = camera(x)
     out_r = [pose(x, k)[:3].reshape(3, 1).copy() for k in range(nv)]
     out_t = [pose(x, k)[3:].reshape(3, 1).copy() for k in range(nv)]
-    # per corner (both coordinates), as cv2.calibrateCamera's RMS: comparable with the corners-only fit
-    reproj = float(np.sqrt(2.0 * np.mean(np.concatenate([corner_res(x, k, kd) for k in range(nv)]) ** 2)))
+    # per corner (both coordinates), as cv2.calibrateCamera's RMS: comparable with the corner fit
+    corner_all = np.concatenate([corner_res(x, k, kd) for k in range(nv)])
+    reproj = float(np.sqrt(2.0 * np.mean(corner_all**2)))
     change = [1e3 * math.acos(min(1.0, abs(float(_rotation(np.ravel(a))[:, 2] @ _rotation(np.ravel(b))[:, 2]))))
               for a, b in zip(rvecs, out_r, strict=True)]
     return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change)
@@ -271,7 +272,8 @@ class RefinementCheck:
 
 
 def corner_sum_squares(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
-                       cam: F64, dist: F64, rvecs: list[F64], tvecs: list[F64]) -> tuple[float, int]:
+                       cam: F64, dist: F64, rvecs: list[F64], tvecs: list[F64]
+                       ) -> tuple[float, int]:
     """Sum of squared corner reprojection residuals (px², both coordinates) and the corner count.
 
     Args:
@@ -288,9 +290,9 @@ def corner_sum_squares(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     return ssr, n
 
 
-def check_refinement(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]], cam: F64,
-                     dist: F64, rvecs: list[F64], tvecs: list[F64], refined: RefinedPoses,
-                     free_dist: tuple[int, ...]) -> RefinementCheck:
+def check_refinement(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                     cam: F64, dist: F64, rvecs: list[F64], tvecs: list[F64],
+                     refined: RefinedPoses, free_dist: tuple[int, ...]) -> RefinementCheck:
     """Accept the joint fit only if its corners stay within their noise of the corners-only fit.
 
     Args:
@@ -305,8 +307,8 @@ def check_refinement(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     from scipy.stats import chi2 as chi2_dist
 
     ssr0, n = corner_sum_squares(obj, img, cam, dist, rvecs, tvecs)
-    ssr1, _ = corner_sum_squares(obj, img, refined.camera_matrix, refined.dist_coeffs, refined.rvecs,
-                                 refined.tvecs)
+    ssr1, _ = corner_sum_squares(obj, img, refined.camera_matrix, refined.dist_coeffs,
+                                 refined.rvecs, refined.tvecs)
     p = 4 + len(free_dist) + 6 * len(obj)
     dof = 2 * n - p
     if dof <= 0:
@@ -316,11 +318,11 @@ def check_refinement(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     limit = float(chi2_dist.ppf(ACCEPT_QUANTILE, p))
     rms0, rms1 = math.sqrt(ssr0 / n), math.sqrt(ssr1 / n)
     accepted = bool(math.isfinite(ssr1) and chi2 <= limit)
-    what = (f"corner reprojection {rms1:.3f} px (corners only {rms0:.3f} px, noise {math.sqrt(noise2):.3f} px "
-            f"per coordinate): chi2 {chi2:.1f} {'<=' if accepted else '>'} {limit:.1f} (p = {p}, "
-            f"{100 * ACCEPT_QUANTILE:.0f} %)")
+    what = (f"corner reprojection {rms1:.3f} px (corners only {rms0:.3f} px, noise "
+            f"{math.sqrt(noise2):.3f} px per coordinate): chi2 {chi2:.1f} "
+            f"{'<=' if accepted else '>'} {limit:.1f} (p = {p}, {100 * ACCEPT_QUANTILE:.0f} %)")
     reason = (f"phase refinement accepted: {what}" if accepted else
-              f"phase refinement rejected, the corners-only camera and poses are kept: the phase drags "
-              f"the camera beyond the corners' noise ({what}); the projector does not follow the model "
-              f"(lens distortion across the fringes, uncorrected gamma?)")
+              f"phase refinement rejected, the corners-only camera and poses are kept: the phase "
+              f"drags the camera beyond the corners' noise ({what}); the projector does not follow "
+              f"the model (lens distortion across the fringes, uncorrected gamma?)")
     return RefinementCheck(accepted, rms0, rms1, math.sqrt(noise2), chi2, limit, p, reason)

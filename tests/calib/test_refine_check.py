@@ -45,14 +45,15 @@ class DefectProjectorRig(Rig):
     def phase_of_points(self, x: np.ndarray) -> np.ndarray:
         xp = (x - np.array(self.proj_center_mm)) @ rot(0, self.proj_yaw_deg).T
         xn, yn = xp[..., 0] / xp[..., 2], xp[..., 1] / xp[..., 2]
-        col = self.proj_f_px * xn * (1.0 + self.proj_k1 * (xn * xn + yn * yn)) + self.schedule.width / 2
+        radial = 1.0 + self.proj_k1 * (xn * xn + yn * yn)
+        col = self.proj_f_px * xn * radial + self.schedule.width / 2
         return 2 * math.pi * self.schedule.frequencies[-1] * col / self.schedule.width
 
 
 def _observations(rig: Rig) -> list[PoseObservation]:
     rng = np.random.default_rng(7)
-    return [rig.observe(BOARD, *board_pose(BOARD, *p[:4], p[4]), f"pose_{i:02d}", noise_px=NOISE_PX, rng=rng)
-            for i, p in enumerate(STANDARD_POSES)]
+    return [rig.observe(BOARD, *board_pose(BOARD, *p[:4], p[4]), f"pose_{i:02d}", noise_px=NOISE_PX,
+                        rng=rng) for i, p in enumerate(STANDARD_POSES)]
 
 
 def _corner_rms(rep, obs) -> float:
@@ -63,7 +64,8 @@ def _corner_rms(rep, obs) -> float:
     img = [o.image_points.astype(np.float64).reshape(-1, 1, 2) for o in obs]
     rv, tv = [], []
     for o, i in zip(obj, img, strict=True):
-        _, r, t = cv2.solvePnP(o, i, cal.camera_matrix, cal.dist_coeffs, flags=cv2.SOLVEPNP_ITERATIVE)
+        _, r, t = cv2.solvePnP(o, i, cal.camera_matrix, cal.dist_coeffs,
+                               flags=cv2.SOLVEPNP_ITERATIVE)
         rv.append(r)
         tv.append(t)
     ssr, n = corner_sum_squares(obj, img, cal.camera_matrix, cal.dist_coeffs, rv, tv)
@@ -78,14 +80,16 @@ def test_defect_projector_refinement_rejected_corners_only_camera_kept():
     corners_only = fit_observations(obs, size, rig.schedule, refine=False)
     ref = rep.refinement
     assert ref is not None and ref.accepted is False
-    assert ref.chi2 > ref.chi2_limit and ref.joint_rms_px > 1.1 * ref.corners_rms_px  # what it would have cost
+    # what it would have cost
+    assert ref.chi2 > ref.chi2_limit and ref.joint_rms_px > 1.1 * ref.corners_rms_px
     # the corners-only camera, exactly, and its reprojection within 1.1 x OpenCV's camera-only RMS
-    np.testing.assert_array_equal(rep.calibration.camera_matrix, corners_only.calibration.camera_matrix)
-    np.testing.assert_array_equal(rep.calibration.dist_coeffs, corners_only.calibration.dist_coeffs)
+    kept, alone = rep.calibration, corners_only.calibration
+    np.testing.assert_array_equal(kept.camera_matrix, alone.camera_matrix)
+    np.testing.assert_array_equal(kept.dist_coeffs, alone.dist_coeffs)
     assert rep.camera is not None
     assert rep.reprojection_px <= 1.1 * rep.camera.rms_px
     assert _corner_rms(rep, obs) <= 1.1 * rep.camera.rms_px
-    # the noise is the corners-only fit's residual: σ² = SSR₀ / (2n − p), here ≈ the corners' 0.05 px
+    # the noise: the corners-only fit's residual, σ² = SSR₀ / (2n − p), ≈ the corners' 0.05 px
     assert ref.noise_px == pytest.approx(NOISE_PX, rel=0.15)
     assert ref.parameters == 4 + len(DISTORTION_TERMS[rep.camera.model]) + 6 * len(obs)
     assert "phase refinement rejected" in rep.table() and "corners-only camera" in rep.table()
