@@ -84,8 +84,9 @@ def test_defect_projector_refinement_rejected_corners_only_camera_kept():
     assert ref.chi2 > ref.chi2_limit and ref.joint_rms_px > 1.1 * ref.corners_rms_px
     # the corners-only camera, exactly, and its reprojection within 1.1 x OpenCV's camera-only RMS
     kept, alone = rep.calibration, corners_only.calibration
-    np.testing.assert_array_equal(kept.camera_matrix, alone.camera_matrix)
-    np.testing.assert_array_equal(kept.dist_coeffs, alone.dist_coeffs)
+    # (OpenCV's threaded solver may differ in the last bits between two runs)
+    np.testing.assert_allclose(kept.camera_matrix, alone.camera_matrix, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(kept.dist_coeffs, alone.dist_coeffs, rtol=0, atol=1e-9)
     assert rep.camera is not None
     assert rep.reprojection_px <= 1.1 * rep.camera.rms_px
     assert _corner_rms(rep, obs) <= 1.1 * rep.camera.rms_px
