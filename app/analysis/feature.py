@@ -56,6 +56,9 @@ class FeatureHeight:
         polarity: ``"bright"`` or ``"dark"`` (as given, or as found).
         curvature_per_px2: k of the fitted profile, mm per squared unit of the section
             coordinates (px², or mm² with ``coords_mm``).
+        blur: σ of the image blur measured across the thread's edges in the texture, in the
+            section coordinates' unit (px, or mm with ``coords_mm``); ``height_mm`` includes
+            the crest's restoration by k·σ².
     """
 
     height_mm: float
@@ -67,6 +70,7 @@ class FeatureHeight:
     height_se_mm: float = math.nan
     polarity: str = "bright"
     curvature_per_px2: float = math.nan
+    blur: float = 0.0
 
 
 @dataclass
@@ -168,13 +172,27 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     # each segment's own flanks (its ring, by image distance: not a neighbour's, and not cut where
     # the thread hides the tissue right behind it, which metric coordinates would show as a gap)
     rings = [ring & (cv2.dilate((labels == c).astype(np.uint8), _disk(outer)) > 0) for c in comps]
+    # The camera's blur mixes neighbouring pixels' fringes, so the depth map is blurred with the
+    # same kernel as the texture: a crest h = H − k·t² blurred by a Gaussian of σ reads
+    # H − k·σ², where its neighbourhood is thread alone (within 2σ of its edges the tissue, of
+    # another albedo, weighs in). σ is measured on the thread's edges in the texture.
+    edge = _edge_blur(tex, coords, labels, comps, far & np.isfinite(tex), area)
+    blur = edge.sigma
     sections: list[_Section] = []
     for i, c in enumerate(comps):
         sections += _sections(resid, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
-                              flank_degree)
+                              flank_degree, 2.0 * blur)
     if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
-    height, k, per_section, _, se = _joint_profile(sections, int(block_sections))
+    height, k, per_section, _, se, offsets = _joint_profile(sections, int(block_sections))
+    # the crest, blurred as the texture is (see above), restored: for a parabola the drop is
+    # k·σ²; a round thread's, with the tissue's weight near its edges, from its forward model
+    fitted, drop = height, 0.0
+    for _ in range(3):  # the drop depends (weakly) on the height it restores
+        drop = _crest_drop(fitted + drop, offsets, edge, blur)
+    drop_se = abs(_crest_drop(fitted + drop, offsets, edge, blur + edge.sigma_se) - drop)
+    height = fitted + drop
+    per_section = per_section + drop
     # The jackknife over sections cannot see the baseline surface's own error, common to all of
     # them where the flank lines do not absorb it (its curvature across the feature): add it,
     # propagated linearly through the same sections.
@@ -184,10 +202,11 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         moved: list[_Section] = []
         for i, c in enumerate(comps):
             moved += _sections(phi, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
-                               flank_degree)
+                               flank_degree, 2.0 * blur)
         hm = np.concatenate([sec.h for sec in moved])
         effect[m] = -float(hm.mean())
-    se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0))) if math.isfinite(se) else se
+    se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0) + drop_se**2)) \
+        if math.isfinite(se) else se
     return FeatureHeight(
         height_mm=height,
         height_std_mm=float(per_section.std(ddof=1)) if len(per_section) > 1 else 0.0,
@@ -198,6 +217,7 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         height_se_mm=se,
         polarity=polarity,
         curvature_per_px2=k,
+        blur=blur,
     )
 
 
@@ -217,7 +237,7 @@ def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
     level = 0.5 * float(np.median(resid[sel]))
     if not level > 0:
         return labels
-    raised = ok & (resid > level)
+    raised = ok & ((resid > level) | (_local_mean(resid, ok) > level))
     out = labels.copy()
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     for c in comps:
@@ -242,13 +262,28 @@ def _trim_to_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
     level = 0.5 * float(np.median(resid[sel]))
     if not level > 0:
         return labels, np.zeros(labels.shape, bool)
-    raised = ok & (resid > level)
+    raised = ok & ((resid > level) | (_local_mean(resid, ok) > level))
     out = labels.copy()
     for c in comps:
         seg = labels == c
         if int((seg & raised).sum()) >= min_area:
             out[seg & ~raised] = 0
     return out, raised
+
+
+def _local_mean(resid: F64, ok: npt.NDArray[np.bool_], box: int = 5) -> F64:
+    """Mean of ``resid`` over the valid pixels of each ``box``×``box`` neighbourhood (NaN: none).
+
+    A pixel counts as raised if it or its neighbourhood stands above the level: judged by its own
+    noisy height alone, the thread's pixels whose noise lowers them would be cut out and those it
+    lifts kept (a crest read high).
+    """
+    m = ok.astype(np.float64)
+    num = cv2.boxFilter(np.where(ok, resid, 0.0), -1, (box, box), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)
+    den = cv2.boxFilter(m, -1, (box, box), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.asarray(np.where(den > 0, num / den, np.nan), np.float64)
 
 
 def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: float) -> str:
@@ -299,14 +334,17 @@ def _pixel_coordinates(shape: tuple[int, ...], coords_mm: npt.ArrayLike | None) 
 
 
 def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-              slab_px: float, comp: int, flank_degree: int = 1) -> list[_Section]:
+              slab_px: float, comp: int, flank_degree: int = 1, edge_margin: float = 0.0
+              ) -> list[_Section]:
     """Cross-sections (one pixel pitch along the segment's long axis) levelled through both flanks.
 
     In each cross-section the baseline is refined by a polynomial of ``flank_degree`` (a line
     where a flank has too few pixels for more) through the ring pixels on both flanks (within
     ``slab_px`` along the axis), as a caliper rests on both sides; the central
     60 % of the section, chosen by position (not by value, which would favour upward noise),
-    is kept — the part of a round thread a parabola describes well.
+    is kept — the part of a round thread a parabola describes well — and of it only what lies
+    ``edge_margin`` (section units) or more inside the section's edges (where the blur mixes in
+    the tissue), at least the central pixels.
     """
     ys, xs = np.nonzero(seg)
     if len(xs) < min_px:
@@ -331,10 +369,18 @@ def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDA
     out: list[_Section] = []
     order = np.argsort(section, kind="stable")
     bounds = np.flatnonzero(np.diff(section[order])) + 1
-    for idx in np.split(order, bounds):
-        if len(idx) < min_px:
-            continue
+    groups = [idx for idx in np.split(order, bounds) if len(idx) >= min_px]
+    if not groups:
+        return []
+    # A thread's ends (cut, or diving into the tissue) are no crest: within about its width of
+    # an end its height falls, and the blur drags it further along the thread. Sections closer
+    # than the segment's median width (plus a pitch) to either end are left out.
+    width = float(np.median([np.ptp(across[idx]) for idx in groups])) + step
+    s_lo, s_hi = float(along.min()) + width, float(along.max()) - width
+    for idx in groups:
         s0 = float(section[idx[0]]) * step
+        if not s_lo <= s0 <= s_hi:
+            continue
         lo, hi = np.searchsorted(r_along, [s0 - slab, s0 + slab])
         fa, fv = r_across[lo:hi], r_val[lo:hi]
         if (fa < across[idx].min()).sum() < 2 or (fa > across[idx].max()).sum() < 2:
@@ -343,13 +389,144 @@ def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDA
         deg = flank_degree if min(left, right) >= 3 * flank_degree else 1
         t, h = across[idx], r[idx] - np.polyval(np.polyfit(fa, fv, deg), across[idx])
         t_c, half = 0.5 * (t.max() + t.min()), 0.5 * float(np.ptp(t))
-        top = np.abs(t - t_c) <= 0.6 * half
+        reach = max(min(0.6 * half, half - edge_margin), 0.35 * half, 1.5 * step)
+        top = np.abs(t - t_c) <= reach
         if top.sum() >= 3 and np.ptp(t[top]) > 0:
             out.append(_Section(comp, s0, t[top], h[top]))
     return out
 
 
-def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, F64, F64, float]:
+@dataclass
+class _Edge:
+    """The thread's edges in the texture: blur σ and its standard error, half-width (section units)
+    and the thread's brightness over the tissue's (the fringe amplitude ratio)."""
+
+    sigma: float = 0.0
+    sigma_se: float = 0.0
+    half_width: float = math.nan
+    albedo_ratio: float = 1.0
+
+
+def _edge_blur(tex: F64, coords: F64, labels: npt.NDArray[np.int32], comps: list[int],
+               region: npt.NDArray[np.bool_], area: npt.NDArray[np.bool_]) -> _Edge:
+    """σ of the image blur across the thread (and its SE, the thread's half-width and brightness
+    ratio), in the section coordinates.
+
+    Per segment, the texture of the pixels around it (``region``, away from its ends) against
+    their distance across its axis is fitted with a blurred band:
+    A + g·t + (B − A)·[Φ((t − c₁)/σ) − Φ((t − c₂)/σ)] (tissue level A with a gradient g,
+    thread level B, edges c₁ < c₂, Gaussian σ). The segments' figures are combined weighted by
+    the inverse variances of their σ; σ = 0 (SE 0) where no fit converges (e.g. a thread wider
+    than the region, or no contrast).
+
+    Args:
+        tex: (H, W) texture; coords: (H, W, 2) section coordinates; labels, comps: the segments.
+        region: (H, W) bool pixels near the segments with a finite texture; area: the ROI.
+    """
+    from scipy.optimize import least_squares  # deferred: costs the live start-up CPU
+    from scipy.special import ndtr
+
+    estimates: list[tuple[float, float, float, float]] = []
+    for c in comps:
+        ys, xs = np.nonzero(labels == c)
+        xy = coords[ys, xs]
+        if len(xy) < 10 or not np.isfinite(xy).all():
+            continue
+        centre = xy.mean(axis=0)
+        _, _, vt = np.linalg.svd(xy - centre, full_matrices=False)
+        along, across = (xy - centre) @ vt[0], (xy - centre) @ vt[1]
+        width = float(np.percentile(across, 98) - np.percentile(across, 2))
+        near = region & area & (cv2.dilate((labels == c).astype(np.uint8), _disk(8)) > 0)
+        ry, rx = np.nonzero(near)
+        rxy = coords[ry, rx] - centre
+        ra, rt, rv = rxy @ vt[0], rxy @ vt[1], tex[ry, rx]
+        keep = (ra > along.min() + width) & (ra < along.max() - width)
+        keep &= np.isfinite(rt) & np.isfinite(rv)
+        ra, rt, rv = ra[keep], rt[keep], rv[keep]
+        if len(rt) < 30 or not width > 0:
+            continue
+        outside = np.abs(rt - 0.5 * (across.min() + across.max())) > 0.5 * width + 0.25 * width
+        inside = np.abs(rt - 0.5 * (across.min() + across.max())) < 0.25 * width
+        if outside.sum() < 5 or inside.sum() < 5:
+            continue
+        a0, b0 = float(np.median(rv[outside])), float(np.median(rv[inside]))
+        if not abs(b0 - a0) > 0:
+            continue
+        lo, hi = float(np.percentile(across, 2)), float(np.percentile(across, 98))
+
+        def misfit(p: F64, t: F64 = rt, v: F64 = rv) -> F64:
+            """Blurred band minus the texture: tissue A + g·t, thread B within c₁..c₂, blur σ."""
+            band = ndtr((t - p[3]) / p[5]) - ndtr((t - p[4]) / p[5])
+            return np.asarray(p[0] + p[1] * t + (p[2] - p[0]) * band - v, np.float64)
+
+        x0 = np.array([a0, 0.0, b0, lo, hi, 0.05 * width])
+        lower = np.array([-np.inf, -np.inf, -np.inf, lo - width, lo, 1e-4 * width])
+        upper = np.array([np.inf, np.inf, np.inf, hi, hi + width, width])
+        try:
+            fit = least_squares(misfit, np.clip(x0, lower + 1e-12, upper - 1e-12),
+                                bounds=(lower, upper), method="trf", x_scale="jac")
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        dof = len(rv) - len(x0)
+        s2 = float(np.sum(fit.fun**2)) / max(dof, 1)
+        try:
+            cov = s2 * np.linalg.inv(fit.jac.T @ fit.jac)
+        except np.linalg.LinAlgError:
+            continue
+        var = float(cov[5, 5])
+        if fit.success and var > 0 and math.isfinite(var) and fit.x[0] > 0 and fit.x[2] > 0:
+            estimates.append((float(fit.x[5]), var, 0.5 * float(fit.x[4] - fit.x[3]),
+                              float(fit.x[2] / fit.x[0])))
+    if not estimates:
+        return _Edge()
+    e = np.array(estimates)
+    w = 1.0 / e[:, 1]
+    sigma = float(np.sum(w * e[:, 0]) / np.sum(w))
+    # an edge sharper than half a pixel is unresolved: its fit's SE (a flat minimum) is no measure,
+    # the blur lies within [0, half a pixel]
+    ys, xs = np.nonzero(np.isin(labels, comps))
+    right = coords[ys, np.minimum(xs + 1, coords.shape[1] - 1)]
+    pitch = float(np.nanmedian(np.linalg.norm(right - coords[ys, xs], axis=1))) if len(xs) else 1.0
+    se = min(float(math.sqrt(1.0 / np.sum(w))), max(sigma, 0.5 * pitch))
+    half, ratio = (float(np.sum(w * e[:, j]) / np.sum(w)) for j in (2, 3))
+    return _Edge(sigma, se, half, ratio)
+
+
+def _crest_drop(height_mm: float, offsets: F64, edge: _Edge, sigma: float) -> float:
+    """How much lower than a round thread's crest its blurred depth profile reads, mm, when fitted
+    with a parabola at the section pixels' ``offsets`` from the crest axis (section units).
+
+    The thread: a round cross-section of height ``height_mm`` and half-width ``edge.half_width``,
+    brightness ``edge.albedo_ratio`` times the tissue's. The depth map: the camera's Gaussian blur
+    ``sigma`` mixes the fringes, so each pixel's depth is the blur-weighted mean of its
+    neighbours' depths, weighted by their fringe amplitude. The parabola fit of that profile at
+    the offsets, against the true crest, gives the drop (the parabola-vs-circle difference with
+    it: 0 blur still gives a small one).
+    """
+    r_u = edge.half_width
+    if not (r_u > 0 and height_mm > 0 and offsets.size >= 3):
+        return 0.0
+    step = max(min(sigma, r_u) / 20.0, r_u / 2000.0)  # resolves the blur, bounded grid
+    reach = r_u + 6.0 * sigma + float(np.max(np.abs(offsets)))
+    d = np.arange(-reach, reach + step, step)
+    inside = np.abs(d) < r_u
+    radius = 0.5 * height_mm
+    h = np.where(inside, radius * (1.0 + np.sqrt(np.clip(1.0 - (d / r_u) ** 2, 0.0, None))), 0.0)
+    a = np.where(inside, edge.albedo_ratio, 1.0)
+    if sigma > 0:
+        from scipy.ndimage import gaussian_filter1d
+
+        s_steps = sigma / step
+        h = (gaussian_filter1d(a * h, s_steps, mode="nearest")
+             / gaussian_filter1d(a, s_steps, mode="nearest"))
+    obs = np.interp(offsets, d, h)
+    design = np.column_stack([np.ones_like(offsets), -offsets * offsets])
+    coef, *_ = np.linalg.lstsq(design, obs, rcond=None)
+    return float(height_mm - coef[0])
+
+
+def _joint_profile(sections: list[_Section], block: int
+                   ) -> tuple[float, float, F64, F64, float, F64]:
     """Fit h = H_i − k·(t − a_c − b_c·s)² to every section's central pixels at once: one curvature
     k and one crest axis a_c + b_c·s per segment c shared by all sections, a crest height H_i per
     section i. H_i is eliminated in closed form (for a given shape it is the section's mean of
@@ -359,7 +536,8 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
     standard error of H is a delete-one-block jackknife (blocks of ``block`` consecutive sections
     in a segment), each block's fit redone, so the shape's own uncertainty counts.
 
-    Returns (H, k, per-section heights (n,), their weights (n,) = pixels used, standard error of H).
+    Returns (H, k, per-section heights (n,), their weights (n,) = pixels used, standard error of H,
+    the used pixels' offsets from the crest axis (m,)).
     """
     comp = np.concatenate([np.full(len(s.t), s.comp) for s in sections])
     sec = np.concatenate([np.full(len(s.t), i) for i, s in enumerate(sections)])
@@ -444,7 +622,9 @@ def _joint_profile(sections: list[_Section], block: int) -> tuple[float, float, 
             est.append(height(solve(x, sel), sel))
         e_j = np.array(est)
         se = float(math.sqrt((nxt - 1) / nxt * np.sum((e_j - e_j.mean()) ** 2)))
-    return height(x, use), k, per[keep], w[keep], se
+    a_fit, b_fit = x[1 : 1 + n_comp], x[1 + n_comp :]
+    offsets = (t - a_fit[comp] - b_fit[comp] * ds)[use]
+    return height(x, use), k, per[keep], w[keep], se, np.asarray(offsets, np.float64)
 
 
 def _quadratic_basis(coords: F64, sel: npt.NDArray[np.bool_]) -> F64:

@@ -153,6 +153,7 @@ def solve(
         "table": report.table(),
         "model": report.calibration.model.name,
         "held_out": report.held_out,
+        "refinement": None if report.refinement is None else report.refinement.to_dict(),
     }
 
 

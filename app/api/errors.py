@@ -114,32 +114,38 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Exception, internal)
 
 
+async def _api_fallback(request: Request) -> JSONResponse:
+    """404 for an unknown ``/api`` path, 405 listing the allowed methods for a known one.
+
+    Module-level and reading the routes from ``request.app``: an endpoint defined inside
+    :func:`install_api_fallback` would hold its app, and FastAPI's endpoint caches would then
+    keep every app (and its Instrument) a process ever built.
+    """
+    path = request.url.path
+    allowed = set()
+    for method in METHODS:
+        scope = {**request.scope, "method": method}
+        for route in request.app.router.routes:
+            if isinstance(route, Mount) or getattr(route, "endpoint", None) is _api_fallback:
+                continue
+            if route.matches(scope)[0] is Match.FULL:
+                allowed.add(method)
+                break
+    if not allowed:
+        return JSONResponse({"detail": f"no such API route: {path}"}, status_code=404)
+    allow = ", ".join(sorted(allowed - {"HEAD"}))
+    return JSONResponse({"detail": f"{request.method} not allowed on {path} (allowed: {allow})"},
+                        status_code=405, headers={"Allow": allow})
+
+
 def install_api_fallback(app: FastAPI) -> None:
     """Unknown ``/api`` paths are 404 and wrong methods 405 listing every allowed method.
 
     Without it the dashboard mounted at ``/`` would answer them (405 ``Allow: GET, HEAD``).
     Call after every API route is included and before the dashboard is mounted.
     """
-
-    async def fallback(request: Request) -> JSONResponse:
-        path = request.url.path
-        allowed = set()
-        for method in METHODS:
-            scope = {**request.scope, "method": method}
-            for route in app.router.routes:
-                if route is fallback_route or isinstance(route, Mount):
-                    continue
-                if route.matches(scope)[0] is Match.FULL:
-                    allowed.add(method)
-                    break
-        if not allowed:
-            return JSONResponse({"detail": f"no such API route: {path}"}, status_code=404)
-        allow = ", ".join(sorted(allowed - {"HEAD"}))
-        return JSONResponse({"detail": f"{request.method} not allowed on {path} (allowed: {allow})"},
-                            status_code=405, headers={"Allow": allow})
-
-    app.add_api_route("/api/{rest:path}", fallback, include_in_schema=False, methods=list(METHODS))
-    fallback_route = app.router.routes[-1]
+    app.add_api_route("/api/{rest:path}", _api_fallback, include_in_schema=False,
+                      methods=list(METHODS))
 
 
 # -- OpenAPI: the answers a route can give besides its 200 -----------------------------------------

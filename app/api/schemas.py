@@ -323,6 +323,21 @@ class PoseReportOut(BaseModel):
     height_mm: list[float | None]
 
 
+class RefinementOut(BaseModel):
+    """The joint (corners + phase) refinement's verdict: accepted only while its corner
+    reprojection stays within the corners' noise of the corners-only fit (app.calib.refine)."""
+
+    accepted: bool
+    corners_rms_px: float | None = Field(description="corners-only fit's RMS reprojection, px")
+    joint_rms_px: float | None = Field(description="joint fit's RMS reprojection, same corners, px")
+    noise_px: float | None = Field(description="the corners' noise per coordinate, px")
+    chi2: float | None = Field(description="the joint fit's squared distance from the corners-only "
+                                           "fit, in the corners' covariance")
+    chi2_limit: float | None = Field(description="chi-square quantile (99 %) it must not exceed")
+    parameters: int = Field(description="camera and pose parameters of the corner fit")
+    reason: str = Field(description="what was kept and why (rejected: the corners-only camera)")
+
+
 class SolveOut(BaseModel):
     poses: list[PoseReportOut]
     rms_mm: float | None
@@ -332,6 +347,8 @@ class SolveOut(BaseModel):
     model: str = Field("eq5", description="the depth model the fit keeps: eq5 | geometric")
     held_out: dict[str, dict[str, float | int | str | None]] = Field(
         default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
+    refinement: RefinementOut | None = Field(
+        None, description="the joint (corners + phase) refinement's verdict; null when not tried")
 
 
 class ActivateIn(Strict):

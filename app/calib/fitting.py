@@ -20,7 +20,7 @@ import numpy.typing as npt
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
 from app.calib.model import undistort_points
-from app.calib.refine import RefinedPoses, refine_board_poses
+from app.calib.refine import RefinedPoses, RefinementCheck, check_refinement, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
 from app.core.calibration import Calibration
@@ -104,6 +104,7 @@ class CalibrationReport:
     #: which files do not keep): what the coverage report (app.calib.coverage) reads
     samples: BoardSamples | None = None
     geometric: GeometricModel | None = None
+    refinement: RefinementCheck | None = None  # the joint fit's verdict; None: not tried
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
@@ -126,6 +127,8 @@ class CalibrationReport:
                          "Eq. (5) does not support depth there")
         if self.camera is not None:
             lines.extend(self._camera_lines(self.camera))
+        if self.refinement is not None:
+            lines.append(self.refinement.reason)
         lines.extend(self._projector_lines())
         if self.held_out:
             lines.append("")
@@ -311,9 +314,20 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; tilt the board "
             f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses so the camera model is determined"
         )
-    refined = None
+    refined, refinement = None, None
     if dense and refine:
-        refined = _refine_with_phase(obs, obj, img, cam, dist, rvecs, tvecs, schedule, DISTORTION_TERMS[camfit.model])
+        free = DISTORTION_TERMS[camfit.model]
+        refined = _refine_with_phase(obs, obj, img, cam, dist, rvecs, tvecs, schedule, free)
+        if refined is None:
+            refinement = RefinementCheck(
+                False, float(rms_px), math.nan, math.nan, math.nan, math.nan, 0,
+                "phase refinement not possible (too few phase points on a board, or the joint fit "
+                "failed): the corners-only camera and poses are kept")
+        else:
+            # the joint fit must not spoil the camera: else the corners-only one stands
+            refinement = check_refinement(obj, img, cam, dist, rvecs, tvecs, refined, free)
+            if not refinement.accepted:
+                refined = None
         if refined is not None:
             rvecs, tvecs = refined.rvecs, refined.tvecs
             rots = [cv2.Rodrigues(r)[0] for r in rvecs]
@@ -437,9 +451,12 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         extra={"camera_model": camfit.summary()},
     )
     geo_fit = models.get("geometric")
+    if refinement is not None:
+        calibration.extra["refinement"] = refinement.to_dict()
     return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
                              held_out=held_out, uncovered=uncovered, camera=camfit, samples=samples,
-                             geometric=geo_fit if isinstance(geo_fit, GeometricModel) else None)
+                             geometric=geo_fit if isinstance(geo_fit, GeometricModel) else None,
+                             refinement=refinement)
 
 
 def _key(x: object) -> float:

@@ -16,6 +16,17 @@ intrinsics (focal lengths, principal point and the distortion terms the camera c
 chose): the corners of a small board leave the principal point loose by about a pixel, and the
 board pixels' rays depend on it. The corners fix what the phase cannot (the board's position
 within its plane, the overall scale); the phase fixes the tilts the corners leave loose.
+
+The joint fit is kept only if it does not spoil the camera (:func:`check_refinement`): a
+projector the model does not describe (lens distortion across the fringes, an uncorrected
+gamma) drags the camera and poses to fit its phase, and the corners then show it. The corners'
+noise comes from the corners-only fit: σ² = SSR₀ / (2n − p) px² per coordinate (SSR₀ its sum
+of squared corner residuals over n corners, p its free parameters: intrinsics, the free
+distortion terms, six per view). Moving those p parameters by Δθ raises the corners' sum of
+squares by ΔSSR = Δθᵀ JᵀJ Δθ, so ΔSSR / σ² is the squared Mahalanobis distance of the joint
+fit's camera and poses from the corners-only ones in the corners' own covariance σ²(JᵀJ)⁻¹.
+The joint fit is accepted when ΔSSR / σ² ≤ χ²_p(0.99): its camera lies within the corners'
+99 % confidence region; otherwise the corners-only camera and poses stand, with the reason.
 """
 
 from __future__ import annotations
@@ -30,6 +41,7 @@ import numpy.typing as npt
 from app.core.geometric import _decompose, _dlt_1d, _rotation
 
 F64 = npt.NDArray[np.float64]
+ACCEPT_QUANTILE = 0.99  # the joint fit's camera must lie within the corners' 99 % confidence region
 MIN_PHASE_POINTS = 50  # per pose
 OUTLIER_SCALES = 5.0  # board pixels whose start residual exceeds 5 robust noise scales are dropped
 
@@ -37,8 +49,9 @@ OUTLIER_SCALES = 5.0  # board pixels whose start residual exceeds 5 robust noise
 @dataclass
 class RefinedPoses:
     """Result of :func:`refine_board_poses`: the camera (``camera_matrix`` (3, 3), ``dist_coeffs``
-    (5,)), per view ``rvecs``/``tvecs`` (3, 1), the corners' RMS reprojection error (px) and the
-    board normals' change (mrad) per view."""
+    (5,)), per view ``rvecs``/``tvecs`` (3, 1), the corners' RMS reprojection error (px, per
+    corner as ``cv2.calibrateCamera`` reports it: √(Σ|Δuv|² / n)) and the board normals' change
+    (mrad) per view."""
 
     camera_matrix: F64
     dist_coeffs: F64
@@ -215,7 +228,101 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     kd = camera(x)
     out_r = [pose(x, k)[:3].reshape(3, 1).copy() for k in range(nv)]
     out_t = [pose(x, k)[3:].reshape(3, 1).copy() for k in range(nv)]
-    reproj = float(np.sqrt(np.mean(np.concatenate([corner_res(x, k, kd) for k in range(nv)]) ** 2)))
+    # per corner (both coordinates), as cv2.calibrateCamera's RMS: comparable with the corner fit
+    corner_all = np.concatenate([corner_res(x, k, kd) for k in range(nv)])
+    reproj = float(np.sqrt(2.0 * np.mean(corner_all**2)))
     change = [1e3 * math.acos(min(1.0, abs(float(_rotation(np.ravel(a))[:, 2] @ _rotation(np.ravel(b))[:, 2]))))
               for a, b in zip(rvecs, out_r, strict=True)]
     return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change)
+
+
+@dataclass
+class RefinementCheck:
+    """Whether the joint (corners + phase) fit keeps the camera within the corners' noise.
+
+    Attributes:
+        accepted: True: the joint fit's camera and poses are used; False: the corners-only ones.
+        corners_rms_px: the corners-only fit's RMS reprojection error, px per corner (OpenCV's).
+        joint_rms_px: the joint fit's RMS reprojection error on the same corners, px per corner.
+        noise_px: the corners' noise σ per coordinate, px: √(SSR₀ / (2n − p)).
+        chi2: ΔSSR / σ², the joint fit's squared Mahalanobis distance from the corners-only fit.
+        chi2_limit: χ²_p at :data:`ACCEPT_QUANTILE`, p = ``parameters``.
+        parameters: free parameters of the corner fit (intrinsics, distortion terms, 6 per view).
+        reason: one line saying what was kept and why.
+    """
+
+    accepted: bool
+    corners_rms_px: float
+    joint_rms_px: float
+    noise_px: float
+    chi2: float
+    chi2_limit: float
+    parameters: int
+    reason: str
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-able record (calibration file, REST answer); non-finite numbers as None."""
+        def num(x: float) -> float | None:
+            return round(float(x), 6) if math.isfinite(x) else None
+
+        return {"accepted": self.accepted, "corners_rms_px": num(self.corners_rms_px),
+                "joint_rms_px": num(self.joint_rms_px), "noise_px": num(self.noise_px),
+                "chi2": num(self.chi2), "chi2_limit": num(self.chi2_limit),
+                "parameters": self.parameters, "reason": self.reason}
+
+
+def corner_sum_squares(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                       cam: F64, dist: F64, rvecs: list[F64], tvecs: list[F64]
+                       ) -> tuple[float, int]:
+    """Sum of squared corner reprojection residuals (px², both coordinates) and the corner count.
+
+    Args:
+        obj, img: per view (n, 3) board points (mm) and (n, 1, 2) detected pixels.
+        cam, dist: camera matrix (3, 3) and OpenCV distortion (k1, k2, p1, p2, k3).
+        rvecs, tvecs: per view board pose (OpenCV convention).
+    """
+    ssr, n = 0.0, 0
+    for o, i, rv, tv in zip(obj, img, rvecs, tvecs, strict=True):
+        uv, _ = cv2.projectPoints(np.asarray(o, np.float64), rv, tv, cam, dist)
+        d = uv.reshape(-1, 2) - np.asarray(i, np.float64).reshape(-1, 2)
+        ssr += float(np.sum(d * d))
+        n += len(d)
+    return ssr, n
+
+
+def check_refinement(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                     cam: F64, dist: F64, rvecs: list[F64], tvecs: list[F64],
+                     refined: RefinedPoses, free_dist: tuple[int, ...]) -> RefinementCheck:
+    """Accept the joint fit only if its corners stay within their noise of the corners-only fit.
+
+    Args:
+        obj, img: per view (n, 3) board points (mm) and (n, 1, 2) detected pixels.
+        cam, dist, rvecs, tvecs: the corners-only calibration (least squares on the corners).
+        refined: the joint fit (:func:`refine_board_poses`).
+        free_dist: the distortion terms both fits leave free (indices into k1, k2, p1, p2, k3).
+
+    Returns:
+        :class:`RefinementCheck` (the rule is in the module docstring).
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    ssr0, n = corner_sum_squares(obj, img, cam, dist, rvecs, tvecs)
+    ssr1, _ = corner_sum_squares(obj, img, refined.camera_matrix, refined.dist_coeffs,
+                                 refined.rvecs, refined.tvecs)
+    p = 4 + len(free_dist) + 6 * len(obj)
+    dof = 2 * n - p
+    if dof <= 0:
+        raise ValueError(f"obj: {n} corners cannot determine {p} camera and pose parameters")
+    noise2 = max(ssr0 / dof, 1e-12)
+    chi2 = max(ssr1 - ssr0, 0.0) / noise2
+    limit = float(chi2_dist.ppf(ACCEPT_QUANTILE, p))
+    rms0, rms1 = math.sqrt(ssr0 / n), math.sqrt(ssr1 / n)
+    accepted = bool(math.isfinite(ssr1) and chi2 <= limit)
+    what = (f"corner reprojection {rms1:.3f} px (corners only {rms0:.3f} px, noise "
+            f"{math.sqrt(noise2):.3f} px per coordinate): chi2 {chi2:.1f} "
+            f"{'<=' if accepted else '>'} {limit:.1f} (p = {p}, {100 * ACCEPT_QUANTILE:.0f} %)")
+    reason = (f"phase refinement accepted: {what}" if accepted else
+              f"phase refinement rejected, the corners-only camera and poses are kept: the phase "
+              f"drags the camera beyond the corners' noise ({what}); the projector does not follow "
+              f"the model (lens distortion across the fringes, uncorrected gamma?)")
+    return RefinementCheck(accepted, rms0, rms1, math.sqrt(noise2), chi2, limit, p, reason)

@@ -84,6 +84,10 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         assert len(report["poses"]) == 7 and "all" in report["table"]
         assert report["rms_mm"] < 0.1 and report["reprojection_px"] < 1.0
         assert report["height_range_mm"][1] > 10
+        # the joint refinement's verdict, with its reason (the twin's projector follows the model)
+        ref = report["refinement"]
+        assert ref["accepted"] is True and ref["chi2"] <= ref["chi2_limit"], ref
+        assert ref["reason"] in report["table"]
 
         r = client.post("/api/calibration/session/activate", json={"name": "wizard"})
         assert r.status_code == 200 and r.json()["name"] == "wizard"

@@ -11,13 +11,19 @@ Rig presets, by name (:func:`rig_by_name`, :data:`RIG_NAMES`):
 - ``endoscope``: another sensor and lens (1280 × 1024, f = 1200 px), a wider triangulation
   (16° / 10 mm), endoscope-like barrel distortion k1 = −0.25 (normalised coordinates), a
   12-bit sensor, and calibration boards that cover only the central half of the field.
+
+Variants (also by name, not among the presets): ``default-projector-defect`` and
+``endoscope-projector-defect`` give the projector a defect the calibration's models lack
+(:func:`projector_defect_rig`): radial lens distortion across the fringes (2-D, so a fringe
+of equal phase is bent along its length) and a DMD response gamma left uncorrected (the
+fringes are not sinusoidal; with N = 4 steps the harmonics leave a periodic phase error).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -130,20 +136,33 @@ class ProjectorModel:
     R: F64
     centre: F64
     size: tuple[int, int] = (608, 684)  # (width, height) of the DMD
+    # radial lens distortion (k1, k2) in normalised projector coordinates; (0, 0) = pinhole.
+    # Applied where frames of static scenes are rendered (column/row); the moving-scene
+    # kernels use the pinhole coefficients (:meth:`column_coefficients`) and ignore it.
+    radial: tuple[float, float] = (0.0, 0.0)
 
     def to_projector(self, points: F64) -> F64:
         """Camera-frame points (…, 3) in the projector frame."""
         return mat3(np.asarray(points, np.float64) - self.centre, self.R)
 
+    def _distortion(self, q: F64) -> F64 | float:
+        """Radial factor 1 + k1·r² + k2·r⁴ of projector-frame points q (…, 3); 1.0 if none."""
+        k1, k2 = self.radial
+        if k1 == 0.0 and k2 == 0.0:
+            return 1.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r2 = (q[..., 0] ** 2 + q[..., 1] ** 2) / q[..., 2] ** 2
+        return np.asarray(1.0 + r2 * (k1 + k2 * r2), np.float64)
+
     def column(self, points: F64) -> F64:
         """Continuous projector column x_p (pixel centres at integers) of points (…, 3)."""
         q = self.to_projector(points)
-        x_p: F64 = self.K[0, 0] * q[..., 0] / q[..., 2] + self.K[0, 2]
+        x_p: F64 = self.K[0, 0] * self._distortion(q) * q[..., 0] / q[..., 2] + self.K[0, 2]
         return x_p
 
     def row(self, points: F64) -> F64:
         q = self.to_projector(points)
-        y_p: F64 = self.K[1, 1] * q[..., 1] / q[..., 2] + self.K[1, 2]
+        y_p: F64 = self.K[1, 1] * self._distortion(q) * q[..., 1] / q[..., 2] + self.K[1, 2]
         return y_p
 
     def column_coefficients(self) -> tuple[F64, float, F64, float]:
@@ -206,6 +225,7 @@ class SimRig:
     name: str = "default"
     bit_depth: int = 8  # the sensor's native ADC depth: offline rendering uses it unless told otherwise
     partial_boards: bool = False  # simulated calibration boards cover only the central half of the field
+    projector_gamma: float = 1.0  # DMD response exponent, uncorrected (1 = linear, the LightCrafter's)
 
     @property
     def K(self) -> F64:
@@ -262,10 +282,43 @@ RIGS: dict[str, Callable[..., SimRig]] = {"default": default_rig, "endoscope": e
 RIG_NAMES = tuple(RIGS)
 
 
+#: the projector defect of the ``*-projector-defect`` variants: radial (k1, k2) and gamma
+DEFECT_RADIAL = (0.05, 0.0)
+DEFECT_GAMMA = 1.1
+DEFECT_SUFFIX = "-projector-defect"
+
+
+def projector_defect_rig(base: SimRig, *, radial: tuple[float, float] = DEFECT_RADIAL,
+                         gamma: float = DEFECT_GAMMA) -> SimRig:
+    """``base`` with a projector defect the calibration's depth models lack.
+
+    Args:
+        base: the rig to alter.
+        radial: the projector lens's radial distortion (k1, k2), normalised projector
+            coordinates: the default k1 = 0.05 (default rig's projector) moves the DMD's edge
+            columns by ≈ 5 px at its middle row and ≈ 12 px at its corners, bending each fringe
+            along its length (the models' projector has at most k1 *along* the fringe axis).
+        gamma: DMD response exponent left uncorrected (> 0; 1 = linear).
+
+    Returns:
+        A new :class:`SimRig` named ``<base name>-projector-defect``.
+    """
+    if not gamma > 0:
+        raise ValueError(f"gamma: must be positive, got {gamma}")
+    if not all(math.isfinite(k) for k in radial):
+        raise ValueError(f"radial: need finite (k1, k2), got {radial}")
+    proj = replace(base.projector, radial=(float(radial[0]), float(radial[1])))
+    return replace(base, projector=proj, projector_gamma=float(gamma), name=base.name + DEFECT_SUFFIX)
+
+
 def rig_by_name(name: str, *, distortion: bool = True) -> SimRig:
-    """The rig preset ``name`` (one of :data:`RIG_NAMES`); ValueError naming ``rig`` otherwise."""
+    """The rig preset ``name`` (one of :data:`RIG_NAMES`), or a preset's projector-defect variant
+    (``<preset>-projector-defect``, :func:`projector_defect_rig`); ValueError naming ``rig`` otherwise."""
+    base = name[: -len(DEFECT_SUFFIX)] if name.endswith(DEFECT_SUFFIX) else name
     try:
-        make = RIGS[name]
+        make = RIGS[base]
     except KeyError:
-        raise ValueError(f"rig: unknown {name!r}; choose from {', '.join(RIG_NAMES)}") from None
-    return make(distortion=distortion)
+        raise ValueError(f"rig: unknown {name!r}; choose from {', '.join(RIG_NAMES)} "
+                         f"(or a preset with {DEFECT_SUFFIX!r})") from None
+    rig = make(distortion=distortion)
+    return projector_defect_rig(rig) if base != name else rig

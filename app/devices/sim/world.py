@@ -56,10 +56,11 @@ class SimulatedWorld:
 
     def __init__(self, scene: str | Scene = "anastomosis", *, rig: SimRig | str | None = None,
                  schedule: PatternSchedule | None = None, sensor: SensorModel | None = None,
-                 seed: int | None = None, distortion: bool = True, projector_gamma: float = 1.0,
-                 cache_dir: Path | None = None) -> None:
+                 seed: int | None = None, distortion: bool = True,
+                 projector_gamma: float | None = None, cache_dir: Path | None = None) -> None:
         """``rig``: a rig preset's name (see optics.RIG_NAMES; default ``"default"``) or a SimRig;
-        ``cache_dir``: where a named scene's traced geometry is kept between starts (None: not)."""
+        ``projector_gamma``: the DMD response exponent (None: the rig's); ``cache_dir``: where a
+        named scene's traced geometry is kept between starts (None: not)."""
         self._rig_named = not isinstance(rig, SimRig)  # named scenes may then share renderers
         self._named = scene if isinstance(scene, str) and self._rig_named else None
         self._distortion = distortion
@@ -68,7 +69,7 @@ class SimulatedWorld:
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
         self.schedule = schedule or PatternSchedule()
         self.sensor = sensor or SensorModel()
-        self._projector_gamma = projector_gamma
+        self._projector_gamma = self.rig.projector_gamma if projector_gamma is None else projector_gamma
         self._renderer: Renderer | None = None
         self._lock = threading.Lock()
         self.seed_seq = np.random.SeedSequence(seed)
