@@ -38,8 +38,7 @@ JSON_LIMITS_BYTES: dict[tuple[str, str], int] = {
     ("PUT", "/api/measure/tool"): 1024 * 1024,
 }
 #: capture-set uploads: bounded by ``max_upload_mb`` and checked by app.api.upload
-UPLOAD_ROUTES = frozenset({("POST", "/api/reconstruct"), ("POST", "/api/phase"),
-                           ("POST", "/api/reference")})
+UPLOAD_ROUTES = frozenset({("POST", "/api/reconstruct"), ("POST", "/api/phase")})
 
 
 def json_limit_bytes(method: str, path: str) -> int:
@@ -47,16 +46,19 @@ def json_limit_bytes(method: str, path: str) -> int:
     return JSON_LIMITS_BYTES.get((method, path), DEFAULT_JSON_LIMIT_BYTES)
 
 
-def json_routes(schema: dict[str, Any]) -> list[tuple[str, re.Pattern[str], int]]:
-    """(method, path pattern, body limit) of every operation of an OpenAPI document that
-    takes a JSON body (the document is the one list of routes every FastAPI version gives)."""
+def json_routes(schema: dict[str, Any]) -> list[tuple[str, re.Pattern[str], int, bool]]:
+    """(method, path pattern, body limit, also takes other bodies) of every operation of an
+    OpenAPI document that takes a JSON body (the document is the one list of routes every
+    FastAPI version gives). A route that also takes an upload (``POST /api/reference``) is
+    checked only when the request's body is JSON."""
     out = []
     for path, item in schema.get("paths", {}).items():
         pattern = re.compile("^" + re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(path)) + "$")
         for method, op in item.items():
             content = op.get("requestBody", {}).get("content", {}) if isinstance(op, dict) else {}
             if "application/json" in content and (method.upper(), path) not in UPLOAD_ROUTES:
-                out.append((method.upper(), pattern, json_limit_bytes(method.upper(), path)))
+                mixed = len(content) > 1
+                out.append((method.upper(), pattern, json_limit_bytes(method.upper(), path), mixed))
     return out
 
 
@@ -71,14 +73,18 @@ class BodyLimitMiddleware:
     def __init__(self, app: ASGIApp, routes_of: FastAPI) -> None:
         self.app = app
         self.routes_of = routes_of
-        self._routes: list[tuple[str, re.Pattern[str], int]] | None = None
+        self._routes: list[tuple[str, re.Pattern[str], int, bool]] | None = None
 
-    def limit(self, method: str, path: str) -> tuple[int, str] | None:
-        """(body limit in bytes, route) for a request, or None when it is not a JSON route."""
+    def limit(self, method: str, path: str, content_type: str = "application/json"
+              ) -> tuple[int, str] | None:
+        """(body limit in bytes, route) for a request, or None when it is not a JSON route
+        (or a route that also takes uploads, given one)."""
         if self._routes is None:  # the routes are all included by the first request
             self._routes = json_routes(self.routes_of.openapi())
-        for route_method, pattern, limit in self._routes:
+        for route_method, pattern, limit, mixed in self._routes:
             if route_method == method and pattern.match(path):
+                if mixed and content_type and "json" not in content_type:
+                    return None  # an upload: the route's own limit and checks
                 return limit, f"{method} {path}"
         return None
 
@@ -86,8 +92,9 @@ class BodyLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        found = self.limit(scope.get("method", "GET"), scope.get("path", ""))
         headers = {k.decode("latin-1").lower(): v for k, v in scope.get("headers", [])}
+        content_type = headers.get("content-type", b"").decode("latin-1").lower()
+        found = self.limit(scope.get("method", "GET"), scope.get("path", ""), content_type)
         if found is None or (
             "content-length" not in headers and "transfer-encoding" not in headers
         ):

@@ -6,6 +6,7 @@ import json
 from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
@@ -89,11 +90,15 @@ async def set_reference(request: Request,
                                       inst.reconstruct_capture, {"kind": "upload"})
         return ref.describe()
     body = await read_body(request, _JSON_LIMIT_BYTES)
+    try:  # the body-limit middleware has refused deep nesting and non-finite numbers
+        doc = json.loads(body) if body.strip() else {}
+    except ValueError as exc:
+        raise InvalidRequest(f"body: not JSON ({str(exc).splitlines()[0]})") from None
     try:
-        req = ReferenceRequest.model_validate(json.loads(body) if body.strip() else {})
-    except (ValueError, ValidationError, RecursionError) as exc:
-        raise InvalidRequest(f"body: expected {{}} or {{\"recording\": NAME, \"index\": i}} "
-                             f"({str(exc).splitlines()[0]})") from None
+        req = ReferenceRequest.model_validate(doc)
+    except ValidationError as exc:  # one line naming the field, as every JSON route
+        raise RequestValidationError(
+            [{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
     if (req.recording is None) != (req.index is None):
         raise InvalidRequest("body: give both recording and index, or neither")
     if req.recording is not None and req.index is not None:
