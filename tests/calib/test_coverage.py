@@ -93,9 +93,11 @@ def test_coverage_counts_cells_and_share() -> None:
     assert np.array_equal(cov.points, expected)
     assert cov.covered_share == pytest.approx(3 / 18)
     assert np.isnan(cov.sigma_mm).all() and not cov.reached  # no model: σ undefined
-    # a σ_model within the tolerance everywhere below 10 mm makes those cells calibrated
+    # a σ_model within the tolerance (the validity rule's, ~0.1 mm) everywhere below 10 mm
+    # makes those cells calibrated; 1 mm above fails it
+    assert 1e-4 < spec.sigma_tolerance_mm < 1.0
     cov2 = coverage_map(
-        [p0, p1, p1], (300, 300), spec=spec, sigma=lambda uv, z: np.where(z < 10.0, 1e-4, 1e-2)
+        [p0, p1, p1], (300, 300), spec=spec, sigma=lambda uv, z: np.where(z < 10.0, 1e-4, 1.0)
     )
     assert cov2.calibrated[0].all() and cov2.calibrated_share == pytest.approx(10 / 18)
     assert cov2.reached
