@@ -65,6 +65,10 @@ def server(
         FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file),
         NUMBA_THREADING_LAYER="workqueue",
     )
+    # the server's log goes to a file: a pipe nobody reads fills (64 KiB, ~600 access-log
+    # lines of a fast status poller) and then blocks the server's event loop on its next line
+    log_path = tmp / "server.log"
+    log = open(log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed after the server
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -79,7 +83,7 @@ def server(
             str(tmp / "data"),
         ],
         env=env,
-        stdout=subprocess.PIPE,
+        stdout=log,
         stderr=subprocess.STDOUT,
         text=True,
     )
@@ -93,15 +97,16 @@ def server(
             except (httpx.HTTPError, KeyError, ValueError):
                 pass
             time.sleep(0.3)
-        assert proc.poll() is None, proc.stdout.read() if proc.stdout else "server exited"
+        assert proc.poll() is None, log_path.read_text(encoding="utf-8")[-4000:]
         yield base, proc.pid
     finally:
         proc.send_signal(signal.SIGINT)
         try:
-            proc.communicate(timeout=60)
+            proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.communicate()
+            proc.wait()
+        log.close()
 
 
 @pytest.mark.parametrize("route", ["/api/reconstruct", "/api/phase"])
