@@ -40,9 +40,6 @@ def test_status_and_depth_rate_unchanged_by_50_streams(sim_calibration_file: Pat
     assert load["results_per_s"] >= 0.85 * base["results_per_s"], fig
     # p50 is the discriminating figure (streams holding worker threads made it 10x)
     assert load["p50_ms"] <= 2.0 * base["p50_ms"] + 20.0, fig
-    # issue 25's tail target is open: on a quiet 2-core machine p99 under 50 streams was
-    # 133-237 ms against a 29-31 ms baseline (the server, the readers' process and the pollers
-    # share two cores). Reported as an expected failure until it is met, never as a pass.
-    if load["p99_ms"] > max(50.0, 3.0 * base["p99_ms"]):
-        pytest.xfail(f"issue 25: /api/status p99 {load['p99_ms']:.0f} ms under 50 streams "
-                     f"(baseline {base['p99_ms']:.0f} ms; target 50 ms)")
+    # the tail: /api/status p99 within 50 ms under the 50 streams (the async status route and
+    # the once-per-map calibration check; 12 ms measured on a quiet 2-core machine)
+    assert load["p99_ms"] <= 50.0, fig
