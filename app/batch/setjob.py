@@ -148,11 +148,13 @@ def output_files(recon: SetReconstruction, options: ReconOptions,
     calibration); ``sigma_noise.npy``/``sigma_model.npy``: its two parts, the same way;
     ``points.ply``: the valid points with intensity and the three σ; ``depth.png``: the
     colormap over ``options.range_mm``;
-    ``reason.png``: the per-pixel reason codes.
+    ``reason.png``: the per-pixel reason codes, as a palette PNG (the pixels of
+    :func:`app.recon.colormap.reason_png`, see :mod:`app.batch.reasonpng`).
     """
+    from app.batch.reasonpng import reason_png_indexed
     from app.capture.ply import ply_bytes
     from app.core.encoding import npy_bytes
-    from app.recon import reason_png, render_depth_png
+    from app.recon import render_depth_png
 
     unknown = [n for n in names if n not in ALL_FILES]
     if unknown:
@@ -166,7 +168,7 @@ def output_files(recon: SetReconstruction, options: ReconOptions,
         "points.ply": lambda: ply_bytes(res.points, res.valid, res.texture, res.sigma,
                                         sigma_noise=res.sigma_noise, sigma_model=res.sigma_model),
         "depth.png": lambda: render_depth_png(res.depth, options.range_mm),
-        "reason.png": lambda: reason_png(res.reason),
+        "reason.png": lambda: reason_png_indexed(res.reason),
     }
     return {n: makers[n]() for n in names}
 
