@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import logging
 import math
@@ -35,9 +36,13 @@ from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
-import numpy as np
-
-from app.batch.setjob import ALL_FILES, ReconOptions, check_bracket, new_reconstructor
+from app.batch.setjob import (
+    ALL_FILES,
+    FileWriter,
+    ReconOptions,
+    check_bracket,
+    new_reconstructor,
+)
 from app.core.calibration import Calibration
 
 if TYPE_CHECKING:
@@ -59,7 +64,6 @@ DEFAULT_FILES = ("depth.npy", "sigma.npy", "reason.png")
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
            "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
            "recon_cpu_ms", "status", "error")
-MOTION_CODE = 8  # app.core.reasons.Reason.MOTION
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,41 @@ def write_bytes(url: str, data: bytes) -> None:
         atomic_write_bytes(path, data)
     else:
         fs.pipe_file(path, data)
+
+
+def write_files(url: str, writers: Sequence[tuple[str, FileWriter]]) -> None:
+    """Write each ``(name, writer)`` file into the folder ``url``, each whole.
+
+    Locally each goes to a hidden temporary (``.NAME.*.tmp``), synced and renamed over
+    ``name``, and the folder is synced once after them (so a file written later, e.g.
+    ``reprocess.json``, is never on disk before these); an object store gets one put each.
+    """
+    fs, path = _fs(url)
+    if not _is_local(fs):
+        for name, write in writers:
+            buf = io.BytesIO()
+            write(buf)
+            fs.pipe_file(_join(path, name), buf.getvalue())
+        return
+    os.makedirs(path, exist_ok=True)
+    for name, write in writers:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=path)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                write(fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, os.path.join(path, name))
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def remove_stale_temporaries(url: str) -> int:
@@ -329,7 +368,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
     calibration does not fit, a full disk) becomes the row's ``error`` with status
     ``failed``; the set's earlier outputs, if any, stay as they were.
     """
-    from app.batch.setjob import output_files, reconstruct_captures
+    from app.batch.setjob import output_writers, reconstruct_captures, set_statistics
     from app.service.schedules import calibration_for_schedule
 
     one_core_per_task()
@@ -350,30 +389,29 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         stamp = captures[0].extra.get("timestamp")
         exposure_ms = float(captures[0].exposure_ms)
         del captures  # the frames: what follows needs only the result (a worker's peak memory)
-        finite = res.sigma[res.valid]
+        stats = set_statistics(res)
         row.update(
             timestamp=stamp if isinstance(stamp, str) else None,
             exposure_ms=exposure_ms,
-            valid_fraction=float(res.valid.mean()),
-            median_sigma_mm=float(np.median(finite)) if finite.size else math.nan,
-            motion_share=float(np.count_nonzero(res.reason == MOTION_CODE) / res.reason.size),
+            valid_fraction=stats.valid_fraction,
+            median_sigma_mm=stats.median_sigma_mm,
+            motion_share=stats.motion_share,
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
             # this thread's CPU: the decoding, and the noise fit + Reconstructor.run
             decode_cpu_ms=(thread_read - thread0) * 1e3,
             recon_cpu_ms=(thread_recon - thread_read) * 1e3,
         )
-        del finite
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
         remove_file(_join(task.out_url, META_FILE))
-        for name in task.files:  # encoded one at a time: one file's bytes in memory
-            write_bytes(_join(task.out_url, name), output_files(recon, options, (name,))[name])
+        write_files(task.out_url, list(output_writers(recon, options, task.files).items()))
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
                    cpu_ms=(time.process_time() - cpu0) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
                 "files": list(task.files), "options": options.to_dict(), "row": row}
-        write_bytes(_join(task.out_url, META_FILE), (json.dumps(meta, indent=2) + "\n").encode())
+        meta_bytes = (json.dumps(meta, indent=2) + "\n").encode()
+        write_files(task.out_url, [(META_FILE, lambda fh: fh.write(meta_bytes) and None)])
     except Exception as exc:  # noqa: BLE001 - a set that fails is a row, never the end of the batch
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}".splitlines()[0],
                    task_ms=(time.perf_counter() - t0) * 1e3)

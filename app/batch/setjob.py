@@ -7,11 +7,15 @@ are the same bytes for the same calibration and options.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import io
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import PurePath
+from typing import BinaryIO
 
 import numpy as np
+import numpy.typing as npt
 
 from app.capture import CaptureSet
 from app.core.calibration import Calibration
@@ -140,6 +144,46 @@ def reconstruct_captures(
     return SetReconstruction(fused.result, fused, exposures, rec.fast)
 
 
+#: writes one output file's bytes to an open binary file
+FileWriter = Callable[[BinaryIO], None]
+
+
+def output_writers(recon: SetReconstruction, options: ReconOptions,
+                   names: Sequence[str] = ALL_FILES) -> dict[str, FileWriter]:
+    """Writers of the output files ``names`` (a subset of :data:`ALL_FILES`), in that order.
+
+    Each writes its file's bytes (see :func:`output_files`) to an open binary file; the
+    ``.npy`` arrays go straight from memory to the file (no copy of their bytes).
+    """
+    from app.batch.reasonpng import reason_png_indexed
+    from app.capture.ply import ply_bytes
+    from app.recon import render_depth_png
+
+    unknown = [n for n in names if n not in ALL_FILES]
+    if unknown:
+        raise ValueError(f"names: unknown output files {unknown}; choose from {list(ALL_FILES)}")
+    res = recon.result
+
+    def array(values: Callable[[], npt.NDArray[np.float32]]) -> FileWriter:
+        return lambda fh: np.save(fh, values(), allow_pickle=False)
+
+    def encoded(make: Callable[[], bytes]) -> FileWriter:
+        return lambda fh: fh.write(make()) and None
+
+    makers: dict[str, FileWriter] = {
+        "depth.npy": array(lambda: res.depth),
+        "sigma.npy": array(lambda: res.sigma),
+        "sigma_noise.npy": array(lambda: res.sigma_noise),
+        "sigma_model.npy": array(lambda: res.sigma_model),
+        "points.ply": encoded(lambda: ply_bytes(res.points, res.valid, res.texture, res.sigma,
+                                                sigma_noise=res.sigma_noise,
+                                                sigma_model=res.sigma_model)),
+        "depth.png": encoded(lambda: render_depth_png(res.depth, options.range_mm)),
+        "reason.png": encoded(lambda: reason_png_indexed(res.reason)),
+    }
+    return {n: makers[n] for n in names}
+
+
 def output_files(recon: SetReconstruction, options: ReconOptions,
                  names: Sequence[str] = ALL_FILES) -> dict[str, bytes]:
     """The bytes of the output files ``names`` (a subset of :data:`ALL_FILES`), in that order.
@@ -151,26 +195,67 @@ def output_files(recon: SetReconstruction, options: ReconOptions,
     ``reason.png``: the per-pixel reason codes, as a palette PNG (the pixels of
     :func:`app.recon.colormap.reason_png`, see :mod:`app.batch.reasonpng`).
     """
-    from app.batch.reasonpng import reason_png_indexed
-    from app.capture.ply import ply_bytes
-    from app.core.encoding import npy_bytes
-    from app.recon import render_depth_png
+    out = {}
+    for name, write in output_writers(recon, options, names).items():
+        buf = io.BytesIO()
+        write(buf)
+        out[name] = buf.getvalue()
+    return out
 
-    unknown = [n for n in names if n not in ALL_FILES]
-    if unknown:
-        raise ValueError(f"names: unknown output files {unknown}; choose from {list(ALL_FILES)}")
-    res = recon.result
-    makers = {
-        "depth.npy": lambda: npy_bytes(res.depth),
-        "sigma.npy": lambda: npy_bytes(res.sigma),
-        "sigma_noise.npy": lambda: npy_bytes(res.sigma_noise),
-        "sigma_model.npy": lambda: npy_bytes(res.sigma_model),
-        "points.ply": lambda: ply_bytes(res.points, res.valid, res.texture, res.sigma,
-                                        sigma_noise=res.sigma_noise, sigma_model=res.sigma_model),
-        "depth.png": lambda: render_depth_png(res.depth, options.range_mm),
-        "reason.png": lambda: reason_png_indexed(res.reason),
-    }
-    return {n: makers[n]() for n in names}
+
+def median_float32(values: npt.NDArray[np.float32]) -> float:
+    """``float(np.median(values))`` of a 1-D float32 array, partitioning ``values`` in place.
+
+    Non-negative floats order as their int32 bit patterns, and numpy partitions int32
+    several times faster than float32 (measured 1.7 vs 13 ms on 1.4 M values): σ maps take
+    that path; an array with negative values goes to ``np.median``. Empty: NaN.
+    """
+    if values.dtype != np.float32 or values.ndim != 1:
+        raise ValueError(f"values: expected a 1-D float32 array, got {values.dtype} "
+                         f"{values.shape}")
+    n = values.size
+    if n == 0:
+        return math.nan
+    keys = values.view(np.int32)
+    if int(keys.max()) > 0x7F800000:  # a NaN (positive sign bit): np.median gives NaN
+        return math.nan
+    if int(keys.min()) < 0:  # a negative number (or -0.0, a negative NaN): numpy's own way
+        return float(np.median(values))
+    k = n // 2
+    keys.partition(k)
+    middle = [int(keys[k])] if n % 2 else [int(keys[:k].max()), int(keys[k])]
+    # the mean of the middle one or two in float32, as np.median computes it
+    return float(np.mean(np.array(middle, np.int32).view(np.float32)))
+
+
+@dataclass(frozen=True)
+class SetStatistics:
+    """A result's figures for the batch table.
+
+    Attributes:
+        valid_fraction: share of valid pixels, 0..1.
+        median_sigma_mm: median total σ over the valid pixels, mm (NaN: none valid).
+        motion_share: share of pixels with reason MOTION, 0..1.
+    """
+
+    valid_fraction: float
+    median_sigma_mm: float
+    motion_share: float
+
+
+def set_statistics(result: ReconResult) -> SetStatistics:
+    """:class:`SetStatistics` of ``result``: a pass over ``valid``, ``sigma`` and ``reason``
+    each (the σ of the valid pixels copied once and partitioned in place)."""
+    from app.core.reasons import Reason
+
+    size = result.valid.size
+    if size == 0:
+        return SetStatistics(math.nan, math.nan, math.nan)
+    valid_count = int(np.count_nonzero(result.valid))
+    sigma = result.sigma[result.valid] if valid_count else np.empty(0, np.float32)
+    median = median_float32(sigma) if sigma.dtype == np.float32 else float(np.median(sigma))
+    motion = int(np.count_nonzero(result.reason == int(Reason.MOTION)))
+    return SetStatistics(valid_count / size, median, motion / size)
 
 
 def summary_line(recon: SetReconstruction) -> str:
