@@ -1,22 +1,28 @@
 """Reprocessing throughput: ``fringescope reprocess``'s engine on Dask against the work itself.
 
-N capture sets of 16 frames at 1384 × 1032 (the Grasshopper3; ``frame_XX.npy.zst`` on disk as
-the recorder writes them, or PNG with ``--codec png``), a synthetic rig with a closed-form
+N capture sets of 16 frames at 1384 × 1032 (the Grasshopper3; ``frame_XX.npy.zst`` on disk
+as the recorder writes them, or PNG with ``--codec png``), a synthetic rig with a closed-form
 Eq. (5). Measured in this process first, on one core as a worker runs
 (:func:`app.batch.engine.one_core_per_task`): ``Reconstructor.run`` alone (frames in memory,
 tables built, the set's noise fitted inside it as in every run without a given model), its
-kernel with the noise given, frame decoding (``read_capture_set``, zstd and PNG), the encoders,
-and the whole per-set job (``run_set``: decode + run + encode + atomic writes). Then sets per
-second through the engine with 1 and 2 local worker processes (two embedded LocalClusters, the
-same batch on each in turn, ``--rounds`` times: the ratio is the median of the rounds' ratios,
-so the others' load on a shared machine falls on both alike) and with an external
-``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1; each after one warm-up task per
-worker, so cluster start-up (printed apart) and JIT/cache loading are not in the rate. Peak
-memory per worker: the growth of its resident set (VmHWM, reset after the warm-up) over a batch.
+kernel with the noise given, frame decoding (``read_capture_set``, zstd and PNG), the
+encoders, the table statistics, the whole per-set job (``run_set``: decode + run + encode +
+atomic writes), and the client's plan and table. Then sets per second through the engine
+with 1 and 2 local worker processes (two embedded LocalClusters, the same batch on each in
+turn, ``--rounds`` times: the ratio is the median of the rounds' ratios, so the others' load
+on a shared machine falls on both alike) and (not with ``--quick``) with an external
+``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1; each after one warm-up task
+per worker, so cluster start-up (printed apart) and JIT/cache loading are not in the rate.
+CPU per set: every process of the run (client, scheduler, nannies, workers; /proc), so the
+overhead includes Dask's own cost. Peak memory per worker: the growth of its resident set
+(VmHWM, reset after the warm-up) over a batch. ``/proc/loadavg`` is printed before, per
+round and after: on a shared machine the CPU figures hold, the rates follow the load.
 
-Targets (issue 29): ≥ 1.7 × from 1 to 2 workers; engine overhead per set over
+Targets (issue 29): ≥ 1.7 × from 1 to 2 workers; overhead per set over
 ``Reconstructor.run`` ≤ 20 % (decoding reported apart); peak memory per worker ≤ 4 × one
 set's frames. Closes with the arithmetic for 50 one-hour recordings (~7,000 sets each).
+``python benchmarks/bench_reprocess.py --quick`` (< 3 min) prints the rates, their ratio, the
+overhead and the peak memory.
 """
 
 from __future__ import annotations
@@ -49,7 +55,13 @@ sys.path.insert(0, str(ROOT))
 from timing import median_ms  # noqa: E402  (benchmarks/ is the script's folder)
 
 from app.batch.engine import connect, one_core_per_task, plan, run_tasks  # noqa: E402
-from app.batch.setjob import ReconOptions, new_reconstructor, output_files, reconstruct_captures  # noqa: E402
+from app.batch.setjob import (  # noqa: E402
+    ReconOptions,
+    new_reconstructor,
+    output_files,
+    reconstruct_captures,
+    set_statistics,
+)
 from app.calib import load_calibration, save_calibration  # noqa: E402
 from app.capture import CaptureSet, read_capture_set, write_capture_set  # noqa: E402
 from app.devices.sim.analytic_rig import Rig, bump_surface  # noqa: E402
@@ -94,17 +106,51 @@ def _status_kb(key: str) -> int:
     raise RuntimeError(f"{key} not in /proc/self/status")
 
 
-def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path, n_workers: int) -> dict[str, float]:
-    """Sets/s of a batch after a warm-up task per worker, and the peak RSS growth per worker."""
+def tree_cpu_s(root: int | None = None) -> float:
+    """CPU seconds (user + system) of process ``root`` (default this one) and all its living
+    descendants: the client, the embedded scheduler, the nannies and the workers."""
+    root = os.getpid() if root is None else root
+    tick = os.sysconf("SC_CLK_TCK")
+    parent: dict[int, int] = {}
+    cpu: dict[int, float] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        pid = int(entry.name)
+        parent[pid] = int(fields[1])
+        cpu[pid] = (int(fields[11]) + int(fields[12])) / tick
+    total = 0.0
+    for pid, seconds in cpu.items():
+        p = pid
+        while p > 1 and p != root:
+            p = parent.get(p, 0)
+        if p == root:
+            total += seconds
+    return total
+
+
+def loadavg() -> str:
+    return Path("/proc/loadavg").read_text().strip()
+
+
+def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path,
+                n_workers: int, cpu_root: int | None = None) -> dict[str, float]:
+    """Sets/s of a batch after a warm-up task per worker, the CPU of the whole process tree
+    per set (``cpu_root``: the tree's root, default this process), and the peak RSS growth
+    per worker."""
     calibration = load_calibration(cal_path)
     warm = plan([str(rec)], calibration, str(out / "warm"), ReconOptions())[0].todo[:n_workers]
-    for _task, row in run_tasks(client, warm, calibration, ReconOptions()):
+    for _task, row in run_tasks(client, warm, calibration, ReconOptions(), batch=1):
         assert row["status"] == "done", row["error"]
     base = client.run(_reset_peak)
     tasks = plan([str(rec)], calibration, str(out / "batch"), ReconOptions())[0].todo
-    t0 = time.perf_counter()
+    cpu0, t0 = tree_cpu_s(cpu_root), time.perf_counter()
     rows = [row for _t, row in run_tasks(client, tasks, calibration, ReconOptions())]
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, tree_cpu_s(cpu_root) - cpu0
     assert all(r["status"] == "done" for r in rows), [r["error"] for r in rows if r["error"]]
     peak = client.run(_peak)
     growth = [peak[w] - base[w] for w in base]
@@ -112,56 +158,75 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path, n_workers: in
             "peak_rss_mb": max(peak.values()) / 1e6,
             "task_ms": statistics.mean(r["task_ms"] for r in rows),
             "cpu_ms": statistics.mean(r["cpu_ms"] for r in rows),
+            # every process of the run, per set: workers, nannies, scheduler, client
+            "tree_cpu_ms": cpu * 1e3 / len(rows),
             "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
-            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
-            # a worker's idle time per set: the engine's own cost between tasks
-            "between_ms": wall * 1e3 * n_workers / len(rows)
-            - statistics.mean(r["task_ms"] for r in rows)}
+            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows)}
 
 
 def _engine_line(r: dict[str, float]) -> str:
-    return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s), task mean {r['task_ms']:.0f} ms wall / "
-            f"{r['cpu_ms']:.0f} ms CPU, peak RSS growth per worker {r['peak_growth_mb']:.0f} MB "
-            f"(RSS {r['peak_rss_mb']:.0f} MB)")
+    return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s); CPU per set {r['tree_cpu_ms']:.0f} ms "
+            f"all processes (in the task {r['cpu_ms']:.0f} ms: decode {r['decode_cpu_ms']:.0f}, "
+            f"noise fit + run {r['recon_cpu_ms']:.0f}); peak RSS growth per worker "
+            f"{r['peak_growth_mb']:.0f} MB (RSS {r['peak_rss_mb']:.0f} MB)")
 
 
 def external_cluster(tmp: Path, n_workers: int) -> tuple[str, list[subprocess.Popen[bytes]]]:
+    """``dask scheduler`` + ``n_workers`` ``dask worker`` processes on 127.0.0.1, with the
+    embedded cluster's quiet settings as environment variables (as the README says)."""
+    from app.batch.engine import WORKER_CONFIG
+
     dask = Path(sys.executable).parent / "dask"
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_NUM_THREADS": "1"}
+    spawn = "distributed.nanny.pre-spawn-environ."
+    quiet = {("DASK_" + k.upper().replace(".", "__").replace("-", "_")
+              if not k.startswith(spawn) else k[len(spawn):]): str(v)
+             for k, v in WORKER_CONFIG.items()}
+    env = {**os.environ, **quiet, "PYTHONPATH": str(ROOT), "NUMBA_NUM_THREADS": "1"}
     sched_file = tmp / "scheduler.json"
     log = open(tmp / "dask.log", "wb")  # noqa: SIM115 - lives as long as the processes
-    procs = [subprocess.Popen([str(dask), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(sched_file)], env=env, stdout=log, stderr=log)]
+    procs = [subprocess.Popen([str(dask), "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)],
+                              env=env, stdout=log, stderr=log)]
     while not sched_file.exists():
         time.sleep(0.1)
     time.sleep(0.2)
     address = json.loads(sched_file.read_text())["address"]
-    procs += [subprocess.Popen([str(dask), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
-                                "--no-dashboard"], env=env, stdout=log, stderr=log) for _ in range(n_workers)]
+    procs += [subprocess.Popen([str(dask), "worker", address, "--host", "127.0.0.1",
+                                "--nthreads", "1", "--no-dashboard"],
+                               env=env, stdout=log, stderr=log) for _ in range(n_workers)]
     return address, procs
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sets", type=int, default=12, help="capture sets per batch (default 12)")
-    parser.add_argument("--repeats", type=int, default=5, help="repeats of the in-process timings (default 5)")
+    parser.add_argument("--sets", type=int, default=32, help="capture sets per batch (default 32)")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="repeats of the in-process timings (default 5)")
     parser.add_argument("--rounds", type=int, default=3,
                         help="batches on 1 and on 2 local workers, in turn (default 3)")
     parser.add_argument("--codec", choices=("zstd", "png"), default="zstd",
                         help="frame files of the batch (default zstd, as the recorder writes)")
+    parser.add_argument("--quick", action="store_true",
+                        help="24 sets, 3 repeats, 2 rounds, no external cluster (< 3 min): the "
+                             "1 and 2 worker rates, their ratio, the overhead and peak memory")
     args = parser.parse_args()
+    if args.quick:
+        args.sets, args.repeats, args.rounds = 24, 3, 2
     tmp = Path(tempfile.mkdtemp(prefix="bench-reprocess-"))
     try:
-        return _run(tmp, args.sets, args.repeats, args.rounds, args.codec)
+        return _run(tmp, args.sets, args.repeats, args.rounds, args.codec,
+                    external=not args.quick)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
+def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
+         external: bool) -> int:
+    t_start = time.perf_counter()
     print(f"bench_reprocess: {n_sets} sets of 16 frames {WIDTH}x{HEIGHT} uint8 ({codec}), "
           f"{os.cpu_count()} CPUs, "
-          f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
-          f"load average {os.getloadavg()[0]:.1f} at start")
+          f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}; "
+          f"/proc/loadavg before: {loadavg()}")
     rec, cal_path = make_sets(tmp, n_sets, codec)
     calibration = load_calibration(cal_path)
     options = ReconOptions()
@@ -174,7 +239,8 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
     base = new_reconstructor(calibration, options)
     noise = estimate_sensor_noise(capture.frames, capture.schedule, max_code=capture.max_code)
 
-    t_run, c_run = median_ms(lambda: base.run(capture.frames, max_code=capture.max_code), repeats)
+    t_run, c_run = median_ms(lambda: base.run(capture.frames, max_code=capture.max_code),
+                             repeats)
     t_kernel, c_kernel = median_ms(lambda: base.run(capture.frames, max_code=capture.max_code,
                                                     noise=noise), repeats)
     t_decode, c_decode = median_ms(lambda: read_capture_set(first), repeats)
@@ -182,18 +248,39 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
     recon = reconstruct_captures([capture], calibration, options, base=base)
     files = ("depth.npy", "sigma.npy", "reason.png")
     t_encode, c_encode = median_ms(lambda: output_files(recon, options, files), repeats)
-    from app.batch.engine import SetTask, calibration_key, output_digest, run_set
+    t_png, c_png = median_ms(lambda: output_files(recon, options, ("reason.png",)), repeats)
+    t_stats, c_stats = median_ms(lambda: set_statistics(recon.result), repeats)
+    from app.batch.engine import (
+        SetTask,
+        calibration_key,
+        output_digest,
+        run_set,
+        write_table,
+    )
 
     key = calibration_key(calibration)
-    task = SetTask("rec", 0, ("set_0000",), (str(first),), str(tmp / "inproc" / "set_0000"), files,
-                   output_digest(key, options, files, 1), key)
-    t_job, c_job = median_ms(lambda: run_set(task, calibration, options), repeats)
+    digest = output_digest(key, options, files, 1)
+    outs = iter(range(10**6))  # a new output folder per job, as in a batch (no overwriting)
+    t_job, c_job = median_ms(
+        lambda: run_set(SetTask("rec", 0, ("set_0000",), (str(first),),
+                                str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
+                        calibration, options), repeats)
+    # the client's work per recording: the plan (lists the sets, reads the first) and the table
+    planned = plan([str(rec)], calibration, str(tmp / "planned"), options)
+    rows = [run_set(t, calibration, options) for t in planned[0].todo[:2]]
+    rows = [{**rows[i % 2], "index": i} for i in range(n_sets)]
+    t_plan, c_plan = median_ms(lambda: plan([str(rec)], calibration, str(tmp / "p"), options),
+                               repeats)
+    t_table, c_table = median_ms(lambda: write_table(str(tmp / "table"), rows), repeats)
+    client_ms = (c_plan + c_table) / n_sets
     codec2 = "png" if codec == "zstd" else "zstd"
     print(f"  in-process, one core, median of {repeats}, wall / CPU ms: Reconstructor.run "
           f"{t_run:.1f} / {c_run:.1f} (of which its noise fit {c_run - c_kernel:.1f}, kernel "
           f"{c_kernel:.1f}); decode {codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: "
-          f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f}; "
-          f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}")
+          f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f} "
+          f"(reason.png {t_png:.1f} / {c_png:.1f}); statistics {t_stats:.1f} / {c_stats:.1f}; "
+          f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}; plan + table of "
+          f"{n_sets} sets {c_plan:.1f} + {c_table:.1f} CPU ms ({client_ms:.2f} per set)")
 
     results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
     t0 = time.perf_counter()
@@ -203,64 +290,68 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str) -> int:
             for n, client in ((1, c1), (2, c2)):
                 r = engine_rate(client, rec, cal_path, tmp / f"local{n}-{i}", n)
                 results[f"local {n}"].append(r)
-                print(f"  round {i + 1}, local cluster, {n} worker(s): {_engine_line(r)}, "
-                      f"load average {os.getloadavg()[0]:.1f}")
-    address, procs = external_cluster(tmp, 2)
-    try:
-        with connect(address, None, timeout_s=60) as client:
-            client.wait_for_workers(2, timeout=90)
-            ext = engine_rate(client, rec, cal_path, tmp / "external", 2)
-        print(f"  external scheduler + 2 worker processes: {_engine_line(ext)}")
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            p.wait(timeout=30)
+                print(f"  round {i + 1}, local cluster, {n} worker(s): {_engine_line(r)}; "
+                      f"/proc/loadavg {loadavg()}")
+    ext: dict[str, float] | None = None
+    if external:
+        address, procs = external_cluster(tmp, 2)
+        try:
+            with connect(address, None, timeout_s=60) as client:
+                client.wait_for_workers(2, timeout=90)
+                ext = engine_rate(client, rec, cal_path, tmp / "external", 2)
+            print(f"  external scheduler + 2 worker processes: {_engine_line(ext)}")
+        finally:
+            for p in reversed(procs):
+                p.terminate()
+            for p in procs:
+                p.wait(timeout=30)
 
     def med(key: str, n: int) -> float:
         return statistics.median(r[key] for r in results[f"local {n}"])
 
     ratios = [b["rate"] / a["rate"]
               for a, b in zip(results["local 1"], results["local 2"], strict=True)]
-    cpu1, cpu2 = med("cpu_ms", 1), med("cpu_ms", 2)
+    cpu1, cpu2 = med("tree_cpu_ms", 1), med("tree_cpu_ms", 2)
     rate1, rate2 = med("rate", 1), med("rate", 2)
-    print(f"ratios: 2 / 1 workers {statistics.median(ratios):.2f} x measured, median of {rounds} "
-          f"rounds ({', '.join(f'{x:.2f}' for x in ratios)}; medians {rate1:.2f} and "
-          f"{rate2:.2f} sets/s; target >= 1.7); CPU per set 2 / 1 workers {cpu2 / cpu1:.2f} x, "
-          f"so with 2 idle cores {2 * cpu1 / cpu2:.2f} x; external / local 2 "
-          f"{ext['rate'] / rate2:.2f} x")
-    # on the worker, per set: its process CPU beyond the decoding and the noise fit +
-    # Reconstructor.run of its task thread, over the latter (all from the same tasks)
-    dec1, rec1 = med("decode_cpu_ms", 1), med("recon_cpu_ms", 1)
-    rest = cpu1 - dec1 - rec1
-    dec2, rec2 = med("decode_cpu_ms", 2), med("recon_cpu_ms", 2)
-    rest2 = cpu2 - rec2  # decoding included
-    job_rest = c_job - c_run  # decoding included
-    print(f"ratios: CPU per set at 1 worker {cpu1:.0f} ms = decode {dec1:.0f} + noise fit and "
-          f"Reconstructor.run {rec1:.0f} + rest {rest:.0f} (encoders, statistics, writes, Dask); "
-          f"overhead over Reconstructor.run: decode excluded {100 * rest / rec1:.0f} % (target "
-          f"<= 20 %), decode included {100 * (rest + dec1) / rec1:.0f} %; at 2 workers "
-          f"{100 * (rest2 - dec2) / rec2:.0f} % / {100 * rest2 / rec2:.0f} %; in-process job "
-          f"{100 * (job_rest - c_decode) / c_run:.0f} % / {100 * job_rest / c_run:.0f} %")
-    print(f"ratios: decode / run {dec1 / rec1:.2f} x (in-process {codec} {c_decode / c_run:.2f} x, "
-          f"{codec2} {c_decode2 / c_run:.2f} x); wall between tasks {med('between_ms', 1):.0f} ms "
-          f"per set at 1 worker, {med('between_ms', 2):.0f} ms at 2")
+    print(f"ratios: 2 / 1 workers {statistics.median(ratios):.2f} x measured, median of "
+          f"{rounds} rounds ({', '.join(f'{x:.2f}' for x in ratios)}; medians {rate1:.2f} and "
+          f"{rate2:.2f} sets/s; target >= 1.7); CPU per set (all processes) {cpu1:.0f} ms at "
+          f"1 worker, {cpu2:.0f} ms at 2 ({cpu2 / cpu1:.2f} x), so with 2 idle cores "
+          f"{2 * cpu1 / cpu2:.2f} x"
+          + (f"; external / local 2 {ext['rate'] / rate2:.2f} x" if ext is not None else ""))
+    # per set, all processes: everything beyond the decoding and the noise fit +
+    # Reconstructor.run of the task thread (both from the same tasks) is the engine's
+    # overhead, plus the client's plan and table (measured in-process, per set)
+    for n, cpu in ((1, cpu1), (2, cpu2)):
+        dec, run = med("decode_cpu_ms", n), med("recon_cpu_ms", n)
+        rest = cpu - dec - run + client_ms
+        print(f"ratios: overhead over Reconstructor.run at {n} worker(s): decode excluded "
+              f"{100 * rest / run:.0f} % (target <= 20 %), decode included "
+              f"{100 * (rest + dec) / run:.0f} %; per set {cpu:.0f} ms CPU = decode {dec:.0f} "
+              f"+ noise fit and Reconstructor.run {run:.0f} + rest {rest - client_ms:.0f} "
+              f"(statistics, encoders, writes, Dask) + plan and table {client_ms:.1f}")
+    job_rest = c_job - c_run - c_decode
+    print(f"ratios: in-process job overhead over Reconstructor.run {100 * job_rest / c_run:.0f} "
+          f"% decode excluded, {100 * (job_rest + c_decode) / c_run:.0f} % included; decode "
+          f"/ run {codec} {c_decode / c_run:.2f} x, {codec2} {c_decode2 / c_run:.2f} x")
     peak = max(r["peak_growth_mb"] for rs in results.values() for r in rs)
     print(f"ratios: peak RSS growth per worker / one set's frames ({frames_mb:.1f} MB) "
           f"{peak / frames_mb:.1f} x (target <= 4)")
     total = RECORDINGS * SETS_PER_HOUR
     print(f"arithmetic: per-set cost {cpu1 / 1e3:.3f} CPU-s at 1 worker, {cpu2 / 1e3:.3f} at 2 "
-          f"({codec} frames, 3 files); {RECORDINGS} one-hour recordings = {RECORDINGS} x "
-          f"{SETS_PER_HOUR} = {total} sets = {total * cpu2 / 1e3 / 3600:.1f} CPU-hours")
+          f"({codec} frames, 3 files, all processes); {RECORDINGS} one-hour recordings = "
+          f"{RECORDINGS} x {SETS_PER_HOUR} = {total} sets = {total * cpu2 / 1e3 / 3600:.1f} "
+          f"CPU-hours")
     cores = os.cpu_count() or 1
-    load = os.getloadavg()[0]
-    for label, rate in ((f"measured here, 2 workers (load average {load:.1f})", rate2),
+    for label, rate in ((f"measured here, 2 workers (load {os.getloadavg()[0]:.1f})", rate2),
                         (f"CPU-bound, {cores} idle cores, one worker each", cores * 1e3 / cpu2)):
         hours = total / rate / 3600
         print(f"arithmetic: {label}: {rate:.2f} sets/s -> {hours:.1f} h on this machine, "
               f"{hours / MACHINES:.2f} h ({60 * hours / MACHINES:.0f} min) on {MACHINES} such "
-              f"machines (linear; shared storage must deliver {MACHINES * rate * 14:.0f} MB/s at "
-              f"14 MB per set)")
+              f"machines (linear; shared storage must deliver {MACHINES * rate * 14:.0f} MB/s "
+              f"at 14 MB per set)")
+    print(f"bench_reprocess: done in {time.perf_counter() - t_start:.0f} s; /proc/loadavg "
+          f"after: {loadavg()}")
     return 0
 
 

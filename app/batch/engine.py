@@ -1,12 +1,14 @@
 """``fringescope reprocess``: whole recordings through the per-set job on Dask distributed.
 
-The client plans one task per capture set (or per exposure bracket of consecutive sets),
-skips sets whose outputs already carry the same digest (calibration + options + files),
-ships the calibration once to every worker (``scatter(broadcast=True)``) and submits the
-tasks; each worker reads its set itself (frames never travel through the client), runs
-:func:`app.batch.setjob.reconstruct_captures`, writes the files atomically, and returns a
-small row. A set that fails is a row with its error. A worker that dies mid-task is
-replaced by the scheduler, which reruns the task elsewhere (outputs are rewritten whole).
+The client plans one set task per capture set (or per exposure bracket of consecutive
+sets), skips sets whose outputs already carry the same digest (calibration + options +
+files), ships the calibration once to every worker (``scatter(broadcast=True)``) and submits
+the set tasks, a few consecutive ones per Dask task (:func:`sets_per_task`: Dask's own cost
+per task is a few ms of CPU); each worker reads its sets itself (frames never travel through
+the client), runs :func:`app.batch.setjob.reconstruct_captures`, writes the files
+atomically, and returns a small row per set. A set that fails is a row with its error. A
+worker that dies mid-task is replaced by the scheduler, which reruns the task elsewhere
+(outputs are rewritten whole).
 
 Paths are fsspec URLs (a plain path is the local file system): workers on other machines
 read recordings from shared storage or an object store.
@@ -34,7 +36,7 @@ import uuid
 import warnings
 from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
 from app.batch.setjob import (
     ALL_FILES,
@@ -60,6 +62,21 @@ TABLE_FILE = "sets.parquet"
 SESSION_FILE = "session.json"
 CAPTURE_FILE = "capture.json"
 DEFAULT_FILES = ("depth.npy", "sigma.npy", "reason.png")
+#: Dask settings of the embedded cluster's workers. No statistical profiler sampling every
+#: thread's stack 100 times a second (it feeds the dashboard, which is off), and the
+#: event-loop watchdog and system monitor at a slower pace: on an idle worker these cost ~2 %
+#: of a core. One malloc arena (set before the worker process starts): a task runs in a
+#: worker thread, whose own arena handed a set's large arrays back to the system after each
+#: set, to be faulted in afresh by the next (~1,350 page faults per set of 1384 x 1032).
+#: Workers started by hand take them as environment variables (README).
+WORKER_CONFIG: dict[str, object] = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": "1",
+}
+#: at most this many sets per Dask task, and at least this many tasks per worker
+MAX_SETS_PER_TASK, TASKS_PER_WORKER = 8, 4
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
            "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
@@ -250,7 +267,8 @@ def list_sets(url: str) -> list[str]:
         folders = [f for f in folders if fs.isfile(_join(path, f, CAPTURE_FILE))]
     else:
         folders = sorted(
-            name for name in (str(e).rstrip("/").rsplit("/", 1)[-1] for e in fs.ls(path, detail=False))
+            name for name in (str(e).rstrip("/").rsplit("/", 1)[-1]
+                              for e in fs.ls(path, detail=False))
             if not name.startswith(".") and fs.isfile(_join(path, name, CAPTURE_FILE))
         )
     if not folders:
@@ -306,7 +324,8 @@ _BASES: dict[tuple[str, str, str], Reconstructor] = {}
 _MAX_BASES = 4
 
 
-def _base_reconstructor(cal_key: str, calibration: Calibration, options: ReconOptions) -> Reconstructor:
+def _base_reconstructor(cal_key: str, calibration: Calibration,
+                        options: ReconOptions) -> Reconstructor:
     key = (cal_key, json.dumps(calibration.pattern.to_dict(), sort_keys=True),
            json.dumps(options.to_dict(), sort_keys=True))
     base = _BASES.get(key)
@@ -411,7 +430,10 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
                 "files": list(task.files), "options": options.to_dict(), "row": row}
         meta_bytes = (json.dumps(meta, indent=2) + "\n").encode()
-        write_files(task.out_url, [(META_FILE, lambda fh: fh.write(meta_bytes) and None)])
+
+        def write_meta(fh: BinaryIO) -> None:
+            fh.write(meta_bytes)
+        write_files(task.out_url, [(META_FILE, write_meta)])
     except Exception as exc:  # noqa: BLE001 - a set that fails is a row, never the end of the batch
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}".splitlines()[0],
                    task_ms=(time.perf_counter() - t0) * 1e3)
@@ -420,8 +442,9 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
 
 # --- the client's side -----------------------------------------------------------------
 
-def plan(recordings: Sequence[str], calibration: Calibration, out_url: str, options: ReconOptions, *,
-         files: Sequence[str] = DEFAULT_FILES, bracket: int = 1) -> list[RecordingPlan]:
+def plan(recordings: Sequence[str], calibration: Calibration, out_url: str,
+         options: ReconOptions, *, files: Sequence[str] = DEFAULT_FILES,
+         bracket: int = 1) -> list[RecordingPlan]:
     """Check the input and plan the tasks; ``ValueError`` (one line) before any work.
 
     Each recording must list capture sets, and its first set must fit the calibration
@@ -440,7 +463,8 @@ def plan(recordings: Sequence[str], calibration: Calibration, out_url: str, opti
     names = [recording_name(u) for u in recordings]
     dupes = {n for n in names if names.count(n) > 1}
     if dupes:
-        raise ValueError(f"recordings: two recordings named {sorted(dupes)[0]!r} would share an output folder")
+        raise ValueError(f"recordings: two recordings named {sorted(dupes)[0]!r} would share "
+                         "an output folder")
     plans = []
     for url, name in zip(recordings, names, strict=True):
         folders = list_sets(url)
@@ -502,13 +526,15 @@ class Progress:
 
 
 @contextlib.contextmanager
-def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10.0) -> Iterator[Client]:
+def connect(scheduler: str | None, workers: int | None, *,
+            timeout_s: float = 10.0) -> Iterator[Client]:
     """A Dask client: to ``scheduler`` (``tcp://HOST:PORT``), or to an embedded local
     cluster of ``workers`` single-threaded worker processes (default: the cores).
 
     Raises:
         ValueError: the scheduler cannot be reached, or has no worker, within ``timeout_s``.
     """
+    import dask.config
     from distributed import Client, LocalCluster
 
     cluster: LocalCluster | None = None
@@ -518,12 +544,14 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
         try:
             client = Client(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
         except (OSError, TimeoutError) as exc:
-            raise ValueError(f"--scheduler {scheduler}: cannot connect ({exc})".splitlines()[0]) from None
+            raise ValueError(
+                f"--scheduler {scheduler}: cannot connect ({exc})".splitlines()[0]) from None
         try:
             client.wait_for_workers(1, timeout=timeout_s)
         except (OSError, TimeoutError):
             client.close()
-            raise ValueError(f"--scheduler {scheduler}: no worker joined within {timeout_s:g} s") from None
+            raise ValueError(f"--scheduler {scheduler}: no worker joined within "
+                             f"{timeout_s:g} s") from None
     else:
         n = workers or os.cpu_count() or 1
         if n < 1:
@@ -532,13 +560,14 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
         # already sets OMP/MKL/OPENBLAS_NUM_THREADS=1), so N workers never oversubscribe
         # no dashboard; the scheduler's HTTP server (health, metrics) on a free loopback port,
         # not on 8787, which another cluster on the machine may hold
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, silence_logs=logging.CRITICAL,
-                               scheduler_kwargs={"dashboard": False,
-                                                 "dashboard_address": "127.0.0.1:0"},
-                               env={"NUMBA_NUM_THREADS": "1",
-                                    "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER",
-                                                                            "workqueue")})
+        with dask.config.set(WORKER_CONFIG):  # the nanny hands it to its worker
+            cluster = LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                dashboard_address=None, silence_logs=logging.CRITICAL,
+                scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                env={"NUMBA_NUM_THREADS": "1",
+                     "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER",
+                                                             "workqueue")})
         client = Client(cluster, set_as_default=False)
     try:
         yield client
@@ -549,7 +578,8 @@ def connect(scheduler: str | None, workers: int | None, *, timeout_s: float = 10
 
 
 def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
-    """Write ``rows`` (sorted by index) as ``OUT/<recording>/sets.parquet``, whole; return its URL."""
+    """Write ``rows`` (sorted by index) as ``OUT/<recording>/sets.parquet``, whole; return
+    its URL."""
     import pandas as pd
 
     with warnings.catch_warnings():  # fastparquet probes a pandas option deprecated in pandas 3
@@ -559,11 +589,12 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     ordered = sorted(rows, key=lambda r: int(r["index"]))
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
-    for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms", "decode_ms",
-              "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
+    for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms",
+              "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
-    frame["timestamp"] = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce").dt.tz_convert(None)
+    stamps = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce")
+    frame["timestamp"] = stamps.dt.tz_convert(None)
     for c in ("folder", "status", "error"):
         frame[c] = frame[c].fillna("").astype(str)
     url = _join(out_url, TABLE_FILE)
@@ -575,38 +606,63 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     return url
 
 
+def sets_per_task(n_tasks: int, n_workers: int) -> int:
+    """How many set tasks one Dask task runs: enough to spread Dask's own cost per task
+    (a few ms of scheduler, client and worker CPU) over several sets, while every worker
+    still gets at least :data:`TASKS_PER_WORKER` tasks to balance the end of the run."""
+    if n_tasks < 0 or n_workers < 1:
+        raise ValueError(f"n_tasks, n_workers: need >= 0 and >= 1, got {n_tasks}, {n_workers}")
+    return max(1, min(MAX_SETS_PER_TASK, n_tasks // (TASKS_PER_WORKER * n_workers)))
+
+
+def run_batch(tasks: Sequence[SetTask], calibration: Calibration,
+              options: ReconOptions) -> list[dict[str, Any]]:
+    """:func:`run_set` for each of ``tasks`` in turn (one Dask task); their rows."""
+    return [run_set(t, calibration, options) for t in tasks]
+
+
 def run_tasks(
     client: Client, tasks: Sequence[SetTask], calibration: Calibration, options: ReconOptions, *,
-    on_submitted: Callable[[Client], None] | None = None,
+    on_submitted: Callable[[Client], None] | None = None, batch: int | None = None,
 ) -> Generator[tuple[SetTask, dict[str, Any]], None, None]:
     """Run ``tasks`` on the cluster; yield (task, row) as each finishes.
 
-    The calibration goes to every worker once; each task reads its own frames. A task
-    whose every attempt died with its worker is a failed row. Leaving the loop early
-    (Ctrl-C) cancels the tasks not yet finished.
+    The calibration goes to every worker once; each task reads its own frames. ``batch``
+    consecutive tasks run as one Dask task (None: :func:`sets_per_task` for the workers
+    connected now); their rows come together. A Dask task whose every attempt died with
+    its worker gives failed rows. Leaving the loop early (Ctrl-C) cancels the tasks not
+    yet finished.
     """
     from distributed import as_completed
 
+    if batch is None:
+        batch = sets_per_task(len(tasks), max(1, len(client.scheduler_info()["workers"])))
+    if batch < 1:
+        raise ValueError(f"batch: must be >= 1, got {batch}")
     cal_future = client.scatter(calibration, broadcast=True, hash=False)
     run_id = uuid.uuid4().hex[:8]
+    groups = [tuple(tasks[i:i + batch]) for i in range(0, len(tasks), batch)]
     futures = {
-        client.submit(run_set, t, cal_future, options, pure=False,
-                      key=f"reprocess-{run_id}-{t.recording}-{t.folders[0]}"): t
-        for t in tasks
+        client.submit(run_batch, g, cal_future, options, pure=False,
+                      key=f"reprocess-{run_id}-{g[0].recording}-{g[0].folders[0]}-{len(g)}"): g
+        for g in groups
     }
     if on_submitted is not None:
         on_submitted(client)
     finished = False
     try:
         for fut in as_completed(futures, loop=client.loop):
-            task = futures[fut]
+            group = futures[fut]
             try:
-                row = fut.result()
+                rows = fut.result()
             except Exception as exc:  # noqa: BLE001 - e.g. the task killed every worker it ran on
-                row = _empty_row(task)
-                row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                rows = []
+                for task in group:
+                    row = _empty_row(task)
+                    row["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                    rows.append(row)
             fut.release()
-            yield task, row
+            yield from zip(group, rows, strict=True)
         finished = True
     finally:
         if not finished:

@@ -85,7 +85,8 @@ def check_bracket(captures: Sequence[CaptureSet], names: Sequence[str]) -> None:
     first, first_name = captures[0], PurePath(names[0]).name
     for name, c in zip(names[1:], captures[1:], strict=True):
         if c.schedule != first.schedule:
-            raise ValueError(f"{name}: a bracket's sets need one schedule; {first_name} has another")
+            raise ValueError(f"{name}: a bracket's sets need one schedule; {first_name} has "
+                             "another")
         if c.frames.shape != first.frames.shape:
             raise ValueError(f"{name}: frames {c.frames.shape[1:]} differ from {first_name}'s "
                              f"{first.frames.shape[1:]}")
@@ -94,8 +95,8 @@ def check_bracket(captures: Sequence[CaptureSet], names: Sequence[str]) -> None:
 def new_reconstructor(calibration: Calibration, options: ReconOptions,
                       noise: SensorNoise | None = None) -> Reconstructor:
     """The :class:`~app.recon.Reconstructor` the options ask for (its per-pixel tables built)."""
-    return Reconstructor(calibration, max_code=options.max_code, fast=not options.numpy, noise=noise,
-                         min_modulation=options.min_modulation)
+    return Reconstructor(calibration, max_code=options.max_code, fast=not options.numpy,
+                         noise=noise, min_modulation=options.min_modulation)
 
 
 def reconstruct_captures(
@@ -123,7 +124,8 @@ def reconstruct_captures(
     source: NoiseSource = "nominal"
     note = ""
     for c in captures:  # the first set that shows its noise gives it to the bracket
-        est, source, note = resolve_sensor_noise(c.frames, c.schedule, options.max_code or c.max_code)
+        est, source, note = resolve_sensor_noise(c.frames, c.schedule,
+                                                 options.max_code or c.max_code)
         if source == "set":
             noise = est
             break
@@ -168,7 +170,9 @@ def output_writers(recon: SetReconstruction, options: ReconOptions,
         return lambda fh: np.save(fh, values(), allow_pickle=False)
 
     def encoded(make: Callable[[], bytes]) -> FileWriter:
-        return lambda fh: fh.write(make()) and None
+        def write(fh: BinaryIO) -> None:
+            fh.write(make())
+        return write
 
     makers: dict[str, FileWriter] = {
         "depth.npy": array(lambda: res.depth),
