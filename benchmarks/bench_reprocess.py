@@ -13,8 +13,9 @@ turn, ``--rounds`` times: the ratio is the median of the rounds' ratios, so the 
 on a shared machine falls on both alike) and (not with ``--quick``) with an external
 ``dask scheduler`` + 2 ``dask worker`` processes on 127.0.0.1; each after one warm-up task
 per worker, so cluster start-up (printed apart) and JIT/cache loading are not in the rate.
-CPU per set: every process of the run (client, scheduler, nannies, workers; /proc), so the
-overhead includes Dask's own cost. Peak memory per worker: the growth of its resident set
+CPU per set: every process of the run (client, scheduler, the cluster's nannies and
+workers; /proc), so the overhead includes Dask's own cost (the idle other cluster's
+scheduler, in this process, is counted too). Peak memory per worker: the growth of its resident set
 (VmHWM, reset after the warm-up) over a batch. ``/proc/loadavg`` is printed before, per
 round and after: on a shared machine the CPU figures hold, the rates follow the load.
 
@@ -106,31 +107,25 @@ def _status_kb(key: str) -> int:
     raise RuntimeError(f"{key} not in /proc/self/status")
 
 
-def tree_cpu_s(root: int | None = None) -> float:
-    """CPU seconds (user + system) of process ``root`` (default this one) and all its living
-    descendants: the client, the embedded scheduler, the nannies and the workers."""
-    root = os.getpid() if root is None else root
+def cpu_s(pids: set[int]) -> float:
+    """CPU seconds (user + system) so far of the processes ``pids`` (those still living)."""
     tick = os.sysconf("SC_CLK_TCK")
-    parent: dict[int, int] = {}
-    cpu: dict[int, float] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    total = 0.0
+    for pid in pids:
         try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         except OSError:  # gone meanwhile
             continue
-        pid = int(entry.name)
-        parent[pid] = int(fields[1])
-        cpu[pid] = (int(fields[11]) + int(fields[12])) / tick
-    total = 0.0
-    for pid, seconds in cpu.items():
-        p = pid
-        while p > 1 and p != root:
-            p = parent.get(p, 0)
-        if p == root:
-            total += seconds
+        total += (int(fields[11]) + int(fields[12])) / tick
     return total
+
+
+def cluster_pids(client: Any, *others: int) -> set[int]:
+    """The processes of a run: this one (the client; an embedded cluster's scheduler), each
+    worker and its parent (the nanny), and ``others`` (an external scheduler)."""
+    workers = client.run(os.getpid)
+    parents = client.run(os.getppid)
+    return {os.getpid(), *workers.values(), *parents.values(), *others}
 
 
 def loadavg() -> str:
@@ -138,19 +133,20 @@ def loadavg() -> str:
 
 
 def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path,
-                n_workers: int, cpu_root: int | None = None) -> dict[str, float]:
-    """Sets/s of a batch after a warm-up task per worker, the CPU of the whole process tree
-    per set (``cpu_root``: the tree's root, default this process), and the peak RSS growth
-    per worker."""
+                n_workers: int, *others: int) -> dict[str, float]:
+    """Sets/s of a batch after a warm-up task per worker, the CPU per set of every process
+    of the run (:func:`cluster_pids`; ``others``: an external scheduler's pid), and the peak
+    RSS growth per worker."""
     calibration = load_calibration(cal_path)
     warm = plan([str(rec)], calibration, str(out / "warm"), ReconOptions())[0].todo[:n_workers]
     for _task, row in run_tasks(client, warm, calibration, ReconOptions(), batch=1):
         assert row["status"] == "done", row["error"]
     base = client.run(_reset_peak)
     tasks = plan([str(rec)], calibration, str(out / "batch"), ReconOptions())[0].todo
-    cpu0, t0 = tree_cpu_s(cpu_root), time.perf_counter()
+    pids = cluster_pids(client, *others)
+    cpu0, t0 = cpu_s(pids), time.perf_counter()
     rows = [row for _t, row in run_tasks(client, tasks, calibration, ReconOptions())]
-    wall, cpu = time.perf_counter() - t0, tree_cpu_s(cpu_root) - cpu0
+    wall, cpu = time.perf_counter() - t0, cpu_s(pids) - cpu0
     assert all(r["status"] == "done" for r in rows), [r["error"] for r in rows if r["error"]]
     peak = client.run(_peak)
     growth = [peak[w] - base[w] for w in base]
@@ -298,7 +294,7 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
         try:
             with connect(address, None, timeout_s=60) as client:
                 client.wait_for_workers(2, timeout=90)
-                ext = engine_rate(client, rec, cal_path, tmp / "external", 2)
+                ext = engine_rate(client, rec, cal_path, tmp / "external", 2, procs[0].pid)
             print(f"  external scheduler + 2 worker processes: {_engine_line(ext)}")
         finally:
             for p in reversed(procs):

@@ -62,17 +62,22 @@ def palette_png_bytes(rows: npt.NDArray[np.uint8], palette: npt.NDArray[np.uint8
                      _chunk(b"IDAT", data), _chunk(b"IEND", b"")))
 
 
-def _legend_bgr(counts: npt.NDArray[np.int64], total: int, width: int) -> npt.NDArray[np.uint8]:
-    """The legend strip below the map, B, G, R: drawn as :func:`reason_png` draws it."""
-    strip = np.full((LEGEND_GAP_PX + LEGEND_ROW_PX * len(REASON_COLORS), width, 3), 255, np.uint8)
-    for i, (code, color) in enumerate(REASON_COLORS.items()):
+def _legend_bgr(counts: npt.NDArray[np.int64], total: int,
+                width: int) -> npt.NDArray[np.uint8]:
+    """The legend strip below the map, B, G, R, as :func:`reason_png` draws it: its left
+    part as wide as the drawing needs (at most ``width``); the rest of the strip is white."""
+    labels = [f"{int(code)} {code.name.lower()} {100.0 * float(counts[int(code)]) / total:.1f}%"
+              for code in REASON_COLORS]
+    # the text's advance plus a margin for its anti-aliased edge
+    drawn = 22 + max(cv2.getTextSize(t, _FONT, 0.4, 1)[0][0] for t in labels) + 8
+    strip = np.full((LEGEND_GAP_PX + LEGEND_ROW_PX * len(REASON_COLORS), min(width, drawn), 3),
+                    255, np.uint8)
+    for i, (label, color) in enumerate(zip(labels, REASON_COLORS.values(), strict=True)):
         y = LEGEND_GAP_PX + i * LEGEND_ROW_PX
         bgr = color[::-1]
         cv2.rectangle(strip, (4, y + 3), (16, y + 14), bgr, -1)
         cv2.rectangle(strip, (4, y + 3), (16, y + 14), (0, 0, 0), 1)
-        frac = 100.0 * float(counts[int(code)]) / total
-        cv2.putText(strip, f"{int(code)} {code.name.lower()} {frac:.1f}%", (22, y + 13), _FONT,
-                    0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(strip, label, (22, y + 13), _FONT, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     return strip
 
 
@@ -125,7 +130,7 @@ def reason_png_indexed(reason: npt.ArrayLike, level: int = 1) -> bytes:
     if len(set(colours) | {(v, v, v) for v in levels.tolist()}
            | {(k >> 16, (k >> 8) & 255, k & 255) for k in other.tolist()}) > 256:
         return reason_png(r)
-    if width < canvas_w:  # the canvas right of a narrow map is white
+    if width < canvas_w or strip.shape[1] < canvas_w:  # white right of the map or legend
         index_of((255, 255, 255))
     for v in levels.tolist():
         grey_index[v] = index_of((v, v, v))
@@ -139,7 +144,9 @@ def reason_png_indexed(reason: npt.ArrayLike, level: int = 1) -> bytes:
         np.take(code_index, codes, out=rows[:height, 1:1 + width], mode="wrap")
     if width < canvas_w:
         rows[:height, 1 + width:] = colours[(255, 255, 255)]
-    legend = rows[height:, 1:]
+    legend = rows[height:, 1:1 + strip.shape[1]]
+    if strip.shape[1] < canvas_w:
+        rows[height:, 1 + strip.shape[1]:] = colours[(255, 255, 255)]
     np.take(grey_index, strip[..., 0], out=legend, mode="wrap")
     legend[~grey] = other_index[inverse.ravel()]
     palette = np.array(list(colours), np.uint8).reshape(-1, 3)

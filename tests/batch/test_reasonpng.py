@@ -29,6 +29,10 @@ def _maps() -> dict[str, np.ndarray]:
         "int16 beyond 0..255": rng.integers(-3, 300, (50, 60)).astype(np.int16),
         "narrower than the legend": np.full((10, 10), Reason.MOTION, np.uint8),
         "all ok": np.zeros((30, 40), np.uint8),
+        # the longest legend line (100.0 % of the longest name), on canvases about its width
+        "longest label, wide": np.full((20, 400), Reason.UNWRAP_INCONSISTENT, np.uint8),
+        "longest label, 231 px": np.full((20, 231), Reason.UNWRAP_INCONSISTENT, np.uint8),
+        "longest label, 200 px": np.full((20, 200), Reason.UNWRAP_INCONSISTENT, np.uint8),
     }
 
 
