@@ -395,7 +395,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
     row = _empty_row(task)
     try:
         captures = [read_set(u) for u in task.urls]
-        t_read, thread_read = time.perf_counter(), time.thread_time()
+        t_read, thread_read, cpu_read = time.perf_counter(), time.thread_time(), time.process_time()
         try:
             cal = calibration_for_schedule(calibration, captures[0].schedule)
         except ValueError as exc:
@@ -403,7 +403,7 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         check_bracket(captures, task.folders)
         recon = reconstruct_captures(captures, cal, options,
                                      base=_base_reconstructor(task.cal_key, cal, options))
-        thread_recon = time.thread_time()
+        cpu_recon = time.process_time()
         res = recon.result
         stamp = captures[0].extra.get("timestamp")
         exposure_ms = float(captures[0].exposure_ms)
@@ -417,9 +417,10 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
             motion_share=stats.motion_share,
             recon_ms=float(res.elapsed_ms),
             decode_ms=(t_read - t0) * 1e3,
-            # this thread's CPU: the decoding, and the noise fit + Reconstructor.run
+            # the decoding's CPU is this thread's; the noise fit + Reconstructor.run's the
+            # process's, as numba's workqueue runs the kernel on a thread of its own
             decode_cpu_ms=(thread_read - thread0) * 1e3,
-            recon_cpu_ms=(thread_recon - thread_read) * 1e3,
+            recon_cpu_ms=(cpu_recon - cpu_read) * 1e3,
         )
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
