@@ -319,13 +319,15 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
     # Reconstructor.run of the task thread (both from the same tasks) is the engine's
     # overhead, plus the client's plan and table (measured in-process, per set)
     for n, cpu in ((1, cpu1), (2, cpu2)):
-        dec, run = med("decode_cpu_ms", n), med("recon_cpu_ms", n)
+        dec, run, task = med("decode_cpu_ms", n), med("recon_cpu_ms", n), med("cpu_ms", n)
         rest = cpu - dec - run + client_ms
         print(f"ratios: overhead over Reconstructor.run at {n} worker(s): decode excluded "
               f"{100 * rest / run:.0f} % (target <= 20 %), decode included "
               f"{100 * (rest + dec) / run:.0f} %; per set {cpu:.0f} ms CPU = decode {dec:.0f} "
               f"+ noise fit and Reconstructor.run {run:.0f} + rest {rest - client_ms:.0f} "
-              f"(statistics, encoders, writes, Dask) + plan and table {client_ms:.1f}")
+              f"(in the task {task - dec - run:.0f}: statistics, encoders, writes, the worker's "
+              f"other threads; outside it {cpu - task:.0f}: Dask's scheduler, client, nanny and "
+              f"worker between tasks) + plan and table {client_ms:.1f}")
     job_rest = c_job - c_run - c_decode
     print(f"ratios: in-process job overhead over Reconstructor.run {100 * job_rest / c_run:.0f} "
           f"% decode excluded, {100 * (job_rest + c_decode) / c_run:.0f} % included; decode "
