@@ -62,3 +62,44 @@ def test_bad_arrays_name_the_argument():
         palette_png_bytes(np.zeros((2, 1), np.uint8), np.zeros((1, 3), np.uint8))
     with pytest.raises(ValueError, match="^palette"):
         palette_png_bytes(np.zeros((2, 3), np.uint8), np.zeros((257, 3), np.uint8))
+
+
+_DECODE_JS = """async (b64) => {
+    const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+    const bitmap = await createImageBitmap(new Blob([bytes], {type: "image/png"}),
+                                           {colorSpaceConversion: "none"});
+    const canvas = new OffscreenCanvas(bitmap.width, bitmap.height);
+    const ctx = canvas.getContext("2d");
+    ctx.drawImage(bitmap, 0, 0);
+    const rgba = ctx.getImageData(0, 0, bitmap.width, bitmap.height).data;
+    let text = "";
+    for (let i = 0; i < rgba.length; i += 8192) {
+        text += String.fromCharCode.apply(null, rgba.subarray(i, i + 8192));
+    }
+    return [bitmap.width, bitmap.height, btoa(text)];
+}"""
+
+
+def test_a_browser_gets_the_reference_pixels():
+    """Chromium's own PNG decoder (a user opening reason.png) draws the reference image."""
+    import base64
+
+    from tests.helpers.dashboard import CHROMIUM, CHROMIUM_ARGS
+
+    if not CHROMIUM.exists():
+        pytest.skip("Chromium not installed at /usr/bin/chromium (make test installs it)")
+    from playwright.sync_api import sync_playwright
+
+    reason = _maps()["unknown codes"]
+    expected = cv2.imdecode(np.frombuffer(reason_png(reason), np.uint8), cv2.IMREAD_COLOR)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page()
+            width, height, data = page.evaluate(
+                _DECODE_JS, base64.b64encode(reason_png_indexed(reason)).decode())
+        finally:
+            browser.close()
+    rgba = np.frombuffer(base64.b64decode(data), np.uint8).reshape(height, width, 4)
+    assert (rgba[..., 3] == 255).all()
+    np.testing.assert_array_equal(rgba[..., 2::-1], expected)
