@@ -12,7 +12,6 @@ import httpx
 import pytest
 
 from app.config import Settings
-from tests.api.conftest import sim_calibration_file  # noqa: F401
 from tests.helpers.outputs import serve, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -36,7 +36,6 @@ from app.outputs.igtl import (
 )
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
-from tests.api.conftest import sim_calibration_file  # noqa: F401
 from tests.helpers.live_app import live_settings, wait_for
 
 register_codecs()  # pyigtl 0.3.4 cannot unpack POLYDATA itself
@@ -327,7 +326,7 @@ def _packed_sizes(server: IgtlServer, res: LiveResult) -> list[int]:
 
 # -- the live app: IMAGE equals REST ----------------------------------------------------------
 @pytest.fixture(scope="module")
-def live_igtl(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:  # noqa: F811
+def live_igtl(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:
     settings = live_settings(tmp_path_factory.mktemp("igtl"), sim_calibration_file, igtl_port=0,
                              igtl_max_points=20_000)
     with TestClient(create_app(settings)) as client:
