@@ -115,7 +115,9 @@ def test_polarity_found_or_given():
     assert feature_height(depth, tex).polarity == "bright"
 
 
-def _thread_on(base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False):
+def _thread_on(
+    base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False
+):
     """A thread of ``diameter`` lying on the surface ``base_fn(along_mm, across_mm)``, imaged with
     pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates, mm."""
     h, w = 220, 260
@@ -219,7 +221,8 @@ def _oblique_view(slope=0.25, view_deg=30.0, diameter=0.72, px_mm=0.03):
     depth_row, x_row, on_row = [], [], []
     for c in cols:
         m = np.abs(u - c * px_mm) <= 0.02 * px_mm  # the samples on (about) this pixel's central ray
-        if not m.any():  # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+        # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+        if not m.any():
             depth_row.append((c * px_mm + r * np.cos(th)) / np.sin(th))
             x_row.append(-r)
             on_row.append(True)
@@ -246,4 +249,6 @@ def test_metric_sections_remove_the_crest_parallax():
         image = feature_height(depth, tex)
         assert metric.height_mm == pytest.approx(0.72, abs=0.004), slope
         # image space: off by about −slope · 0.72 · tan 30° (0.10 mm), right only on level tissue
-        assert image.height_mm - 0.72 == pytest.approx(-slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03), slope
+        assert image.height_mm - 0.72 == pytest.approx(
+            -slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03
+        ), slope

@@ -102,7 +102,12 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         cap, truth, _ = render_capture_set("dof_target", seed=5, exposure_ms=20.0)
         files = [("files", ("capture.json", _capture_json(cap), "application/json"))]
         for i, frame in enumerate(cap.frames):
-            files.append(("files", (f"frame_{i:02d}.png", cv2.imencode(".png", frame)[1].tobytes(), "image/png")))
+            files.append(
+                (
+                    "files",
+                    (f"frame_{i:02d}.png", cv2.imencode(".png", frame)[1].tobytes(), "image/png"),
+                )
+            )
         r = client.post("/api/reconstruct?format=npy", files=files)
         assert r.status_code == 200, r.text
         _assert_accurate(np.load(io.BytesIO(r.content)), truth)
@@ -111,7 +116,9 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         show(world, build_scene("dof_target", world.rig))
         client.put("/api/exposure", json={"exposure_ms": 20.0})
         done = client.get("/api/status").json()["results_published"]
-        wait_for(client, lambda s: s["results_published"] >= done + 3, 60, "live results of the target")
+        wait_for(
+            client, lambda s: s["results_published"] >= done + 3, 60, "live results of the target"
+        )
         live_depth = np.load(io.BytesIO(client.get("/api/depth/latest?format=npy").content))
         _assert_accurate(live_depth, world.truth(0.0)[0])
 
@@ -119,8 +126,13 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
 def _capture_json(cap: Any) -> bytes:
     import json
 
-    meta = {"format": "fringescope.capture/1", "pattern": cap.schedule.to_dict(), "exposure_ms": cap.exposure_ms,
-            "led": cap.led, "frames": [f"frame_{i:02d}.png" for i in range(len(cap.frames))]}
+    meta = {
+        "format": "fringescope.capture/1",
+        "pattern": cap.schedule.to_dict(),
+        "exposure_ms": cap.exposure_ms,
+        "led": cap.led,
+        "frames": [f"frame_{i:02d}.png" for i in range(len(cap.frames))],
+    }
     return json.dumps(meta).encode()
 
 

@@ -74,8 +74,11 @@ def _mjpeg(host: str) -> tuple[socket.socket, bytes]:
 
 def _ws(host: str) -> tuple[socket.socket, bytes]:
     key = base64.b64encode(secrets.token_bytes(16)).decode()
-    return _open(host, f"GET /api/stream/depth HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
-                       f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n")
+    return _open(
+        host,
+        f"GET /api/stream/depth HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
+        f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n",
+    )
 
 
 def test_streams_over_the_cap_get_429_and_free_their_slot(server: tuple[str, FastAPI]) -> None:

@@ -35,7 +35,11 @@ def test_geometric_model_matches_the_closed_form_pinhole_rig():
     rig = Rig()
     cal = rig_calibration(rig, geometric_of(rig))
     tables = calibration_model_tables(cal)
-    for h in (bump_surface(rig), np.zeros((rig.height, rig.width)), np.full((rig.height, rig.width), 30.0)):
+    for h in (
+        bump_surface(rig),
+        np.zeros((rig.height, rig.width)),
+        np.full((rig.height, rig.width), 30.0),
+    ):
         height, singular = evaluate_height(tables, rig.finest_phase(h))
         assert not singular.any()
         assert np.max(np.abs(height - h)) < 1e-6  # mm
@@ -60,8 +64,12 @@ def test_equal_phase_intersection_against_brute_force():
     brute = []
     for ri, pi, xi in zip(r3, phi, x, strict=True):
         s0 = xi[2]
-        s = brentq(lambda s, ri=ri, pi=pi: projector_phase(model, (s * ri)[None])[0] - pi, 0.5 * s0, 1.5 * s0,
-                   xtol=1e-13)
+        s = brentq(
+            lambda s, ri=ri, pi=pi: projector_phase(model, (s * ri)[None])[0] - pi,
+            0.5 * s0,
+            1.5 * s0,
+            xtol=1e-13,
+        )
         brute.append((s * ri) @ plane.normal + plane.offset_mm)
     closed = model.height_at(u, v, rays, phi, plane)
     np.testing.assert_allclose(closed, brute, atol=1e-6)
@@ -75,7 +83,9 @@ def test_equal_phase_intersection_against_brute_force():
     phi_i = np.full((rig.height, rig.width), np.nan)
     phi_i[vi, ui] = phi
     h_tab, _ = evaluate_height(tables, phi_i)
-    np.testing.assert_allclose(h_tab[vi, ui], model.height_at(ui, vi, rays_i, phi, plane), atol=1e-6)
+    np.testing.assert_allclose(
+        h_tab[vi, ui], model.height_at(ui, vi, rays_i, phi, plane), atol=1e-6
+    )
 
 
 def test_geometric_fit_recovers_the_projector():
@@ -127,7 +137,9 @@ def test_version_1_file_loads(tmp_path):
     cal = rig.calibration()
     data = cal.to_dict()
     data["format"] = "fringescope.calibration/1"
-    data["model"] = {k: v for k, v in data["model"].items() if k not in ("name", "supported_region")}
+    data["model"] = {
+        k: v for k, v in data["model"].items() if k not in ("name", "supported_region")
+    }
     del data["held_out"]
     (tmp_path / "v1.json").write_text(json.dumps(data))
     back = load_calibration(tmp_path / "v1.json")
@@ -162,8 +174,9 @@ def test_geometric_model_reconstructs_in_both_paths(fast):
     rig = Rig()
     cal = rig_calibration(rig, geometric_of(rig))
     h = bump_surface(rig)
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     assert res.valid.mean() > 0.99
     err = np.abs(res.depth - h)[res.valid]
     assert np.percentile(err, 99) < 0.01
@@ -178,8 +191,9 @@ def test_projector_field_bounds_the_geometric_model(fast):
     phi = rig.finest_phase(h)
     cut = float(np.median(phi))
     cal.model.region = SupportedRegion(phase_rad=(-1.0, cut))
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     clear = np.abs(phi - cut) > 1e-3
     out = res.reason == Reason.OUTSIDE_FIELD
     assert np.array_equal(out[clear], (phi > cut)[clear])
@@ -228,8 +242,9 @@ def test_field_ellipse_refuses_depth_beyond_it_in_both_paths(fast):
     field = (rig.width * 0.45, rig.height * 0.55, rig.width * 0.3, rig.height * 0.35)
     cal.model.region = SupportedRegion(field_px=field)
     h = bump_surface(rig)
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     vv, uu = np.mgrid[0:rig.height, 0:rig.width]
     e = ((uu - field[0]) / field[2]) ** 2 + ((vv - field[1]) / field[3]) ** 2
     clear = np.abs(e - 1.0) > 1e-3
@@ -250,7 +265,9 @@ def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_o
     assert fitted.k1 == 0.0
     lo, hi = fitted.region.phase_rad
     span = samples.phi.max() - samples.phi.min()
-    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(samples.phi.max() + span / 6.0)
+    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(
+        samples.phi.max() + span / 6.0
+    )
 
 
 def test_phase_of_points_inverts_the_equal_phase_surfaces():
@@ -306,7 +323,9 @@ def test_height_sigma_matches_the_monte_carlo_scatter_of_the_fit():
     rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
     heights, sig, fitted = (5.0, 15.0, 30.0), [], []
     for seed in range(24):
-        m = GeometricModel.fit(band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane)
+        m = GeometricModel.fit(
+            band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane
+        )
         assert m.k1 == 0.0
         row_s, row_h = [], []
         for h in heights:
@@ -336,7 +355,9 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
         return undistort_points(uv, rig.K, np.zeros(5))
 
     exact = GeometricModel.fit(band_samples(rig, truth, plane, (8.0, 22.0), 0.0, seed=1), plane)
-    region = exact.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0)
+    region = exact.verified_region(
+        (rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0
+    )
     g = region.height_grid_mm
     assert g.shape == (3, 4, 2) and region.cell_px == (rig.width / 4, rig.height / 3)
     assert np.all(g[..., 0] == 0.0) and np.all(g[..., 1] == 30.0)
@@ -345,10 +366,18 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
 
     noisy = GeometricModel.fit(band_samples(rig, truth, plane, (8.0, 22.0), 0.03, seed=1), plane)
     tol = 0.004
-    region = noisy.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0,
-                                   tolerance_mm=tol)
+    region = noisy.verified_region(
+        (rig.width, rig.height),
+        plane,
+        rays,
+        (8.0, 22.0),
+        cells=(4, 3),
+        margin_mm=8.0,
+        tolerance_mm=tol,
+    )
     g = region.height_grid_mm
-    assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)  # the middle of the boards kept …
+    # the middle of the boards kept …
+    assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)
     assert np.sum(g[..., 0] > 0.0) + np.sum(g[..., 1] < 30.0) >= 6  # … the uncertain margin cut
     cw, ch = region.cell_px
     for i in range(3):
@@ -368,8 +397,12 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
 def test_height_allowance_widens_the_bounds_for_measured_heights_only(tmp_path):
     """The grid bounds hold for true heights; a measured one may pass them by the allowance
     (both reconstruction paths), and the allowance round-trips through the file."""
-    region = SupportedRegion(phase_rad=(0.0, 10.0), height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
-                             cell_px=(2.0, 2.0), height_allowance_mm=0.25)
+    region = SupportedRegion(
+        phase_rad=(0.0, 10.0),
+        height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
+        cell_px=(2.0, 2.0),
+        height_allowance_mm=0.25,
+    )
     h = np.array([[0.8, 2.2, 1.5, 1.5]])
     p = np.full((1, 4), 5.0)
     np.testing.assert_array_equal(region.outside(h, p), [[True, True, True, True]])

@@ -20,7 +20,11 @@ def instrument(tmp_path: Path, sim_calibration_file: Path) -> Iterator[Instrumen
     cal_dir = tmp_path / "calibrations"
     cal_dir.mkdir()
     shutil.copy(sim_calibration_file, cal_dir / "sim.json")
-    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, sim_seed=2, exposure_ms=30.0, sim_scene="dof_target"))
+    inst = Instrument(
+        Settings(
+            data_dir=tmp_path, viewer=False, sim_seed=2, exposure_ms=30.0, sim_scene="dof_target"
+        )
+    )
     inst.start()
     try:
         yield inst
@@ -79,8 +83,14 @@ def test_controls_validate_and_status_explains(instrument: Instrument) -> None:
 
 
 def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_file: Path) -> None:
-    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, calibration_file=sim_calibration_file,
-                                sim_scene="dof_target"))
+    inst = Instrument(
+        Settings(
+            data_dir=tmp_path,
+            viewer=False,
+            calibration_file=sim_calibration_file,
+            sim_scene="dof_target",
+        )
+    )
     inst.start()
     wait_until(lambda: inst.acquisition.frames_received > 0, 120, "frames")
     threads = inst.threads()
