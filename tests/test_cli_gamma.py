@@ -1,4 +1,5 @@
-"""``fringescope gamma`` then ``fringescope phase --phase-error`` on real captures (CFPE, see its README).
+"""``fringescope gamma`` then ``fringescope phase --phase-error`` on real captures (CFPE, see its
+README).
 
 The table is learned on one scene's 12-step capture and corrects another scene's 4-step set:
 the issue-14 validity target for the plate is met only with it (the raw 4-step plate is
@@ -44,7 +45,8 @@ def test_table_learned_on_the_bust_lifts_the_plate_above_95_percent_valid(tmp_pa
     raw = float((np.load(tmp_path / "raw" / "reason.npy") == 0)[use].mean())
     corrected = float((np.load(tmp_path / "corrected" / "reason.npy") == 0)[use].mean())
     print(
-        f"\ncfpe plate 4-step via the CLI: valid {100 * raw:.2f} % raw, {100 * corrected:.2f} % with the bust's table"
+        f"\ncfpe plate 4-step via the CLI: valid {100 * raw:.2f} % raw, "
+        f"{100 * corrected:.2f} % with the bust's table"
     )
     assert corrected >= 0.95 and corrected > raw
 

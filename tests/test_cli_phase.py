@@ -60,9 +60,9 @@ def test_phase_writes_outputs_for_a_12_bit_heterodyne_set(tmp_path, capsys):
 
 
 def test_12_bit_set_needs_its_bit_depth(tmp_path, capsys):
-    """Without ``bit_depth`` the sensor is taken as 16-bit: the validity rule's noise model is then that of a
-    16-bit ADC (σ_I ≈ 100 codes at A = 2000), and B = 1000 is too weak for this heterodyne chain: all dropped.
-    An explicit ``--min-modulation`` replaces the rule."""
+    """Without ``bit_depth`` the sensor is taken as 16-bit: the validity rule's noise model is then
+    that of a 16-bit ADC (σ_I ≈ 100 codes at A = 2000), and B = 1000 is too weak for this
+    heterodyne chain: all dropped. An explicit ``--min-modulation`` replaces the rule."""
     _twelve_bit_set(tmp_path)
     meta_path = tmp_path / "set" / "capture.json"
     meta = json.loads(meta_path.read_text())

@@ -1,4 +1,5 @@
-"""``scripts/start_progress.py`` (make run's progress lines) against the real app on the simulator."""
+"""``scripts/start_progress.py`` (make run's progress lines) against the real app on the
+simulator."""
 
 from __future__ import annotations
 

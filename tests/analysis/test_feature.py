@@ -83,7 +83,8 @@ def _noisy(sigma, seed, dark=False, diameter=0.72, corr_px=0.0):
 
 @pytest.mark.parametrize("dark", [False, True], ids=["bright", "dark"])
 def test_height_expectation_does_not_move_with_noise(dark):
-    """Mean over seeds at each noise level equals the noise-free height (the crest is not pushed up)."""
+    """Mean over seeds at each noise level equals the noise-free height (the crest is not pushed
+    up)."""
     clean = feature_height(*_noisy(0.0, 0, dark)[:2]).height_mm
     assert clean == pytest.approx(0.72, abs=0.006)
     for sigma in (0.03, 0.06, 0.1):
@@ -119,7 +120,8 @@ def _thread_on(
     base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False
 ):
     """A thread of ``diameter`` lying on the surface ``base_fn(along_mm, across_mm)``, imaged with
-    pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates, mm."""
+    pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates,
+    mm."""
     h, w = 220, 260
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     x_mm, y_mm = (xx - 130) * px_mm[0], (yy - 110) * px_mm[1]

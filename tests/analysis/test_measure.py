@@ -64,7 +64,8 @@ def test_point_to_line_and_depth_analytic():
     t = plane((0.4, -0.2, 1.0), 45.0)
     m = M.depth(t, ones(t), np.full((H, W), 0.02), [(77, 91), (10, 10), (190, 20), (100, 150)])
     assert abs(m.value_mm) < 1e-9
-    # sphere pole against the plane of three rim points at one image radius: R(1 − cos θ), positive (nearer)
+    # sphere pole against the plane of three rim points at one image radius: R(1 − cos θ), positive
+    # (nearer)
     s = sphere()
     rho = 30.0
     ang = np.deg2rad([90, 210, 330])

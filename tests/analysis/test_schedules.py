@@ -37,7 +37,8 @@ def test_wrapped_phase_sigma_matches_monte_carlo(steps):
 def _monte_carlo_order_errors(
     schedule: PatternSchedule, sigma: float, n_px: int, seed: int
 ) -> float:
-    """Fraction of pixels whose finest unwrapped phase is off by a fringe (no consistency rejection)."""
+    """Fraction of pixels whose finest unwrapped phase is off by a fringe (no consistency
+    rejection)."""
     rng = np.random.default_rng(seed)
     # projector coordinate / axis length, away from the absolute phase's wrap
     x = rng.uniform(0.1, 0.9, n_px)

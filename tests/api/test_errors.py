@@ -186,7 +186,8 @@ def test_each_domain_error_has_its_status_and_reason(exc: DomainError, code: int
     "exc", [ValueError("x: must be positive"), IndexError("list index"), KeyError("k")]
 )
 def test_anything_else_is_a_logged_500(exc: Exception, caplog: pytest.LogCaptureFixture) -> None:
-    """A ValueError or IndexError from a bug is not the client's fault: 500, traceback in the log."""
+    """A ValueError or IndexError from a bug is not the client's fault: 500, traceback in the
+    log."""
     with caplog.at_level(logging.ERROR, logger="fringescope.api"):
         r = TestClient(_app_raising(exc), raise_server_exceptions=False).get("/boom")
     assert r.status_code == 500 and type(exc).__name__ in r.json()["detail"]
@@ -196,7 +197,8 @@ def test_anything_else_is_a_logged_500(exc: Exception, caplog: pytest.LogCapture
 
 
 def test_every_route_documents_what_it_can_answer(tmp_path: Path) -> None:
-    """Each operation that needs the instrument lists 503; one that takes input lists 422 with a schema."""
+    """Each operation that needs the instrument lists 503; one that takes input lists 422 with a
+    schema."""
     spec = create_app(Settings(data_dir=tmp_path, viewer=False)).openapi()
     # these answer without the instrument: the legend and the health/sign-in routes
     no_instrument = {"/api/reason/legend", "/healthz", "/api/auth", "/api/login", "/api/logout"}

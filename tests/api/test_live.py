@@ -54,7 +54,8 @@ def test_the_live_engine_uses_the_cameras_measured_noise(live: TestClient) -> No
     inst = live.app.state.instrument  # type: ignore[attr-defined]
     seq0 = inst.results.latest()[0]
     seq, res = inst.results.wait_newer(seq0, 10)  # a map made after the estimate
-    # passed to the engine with every set (σ, the validity rule, the motion test), not installed in it
+    # passed to the engine with every set (σ, the validity rule, the motion test), not installed in
+    # it
     assert res is not None and res.noise is inst.pipeline.reconstruction.noise.current
 
 
@@ -205,7 +206,8 @@ def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     meta = live.get("/api/result/latest").json()
     h, w = meta["shape"]
     assert 0 < n <= h * w
-    # a still scene: the raw motion flags stay at the still rate, so no moving-scene σ bound was applied
+    # a still scene: the raw motion flags stay at the still rate, so no moving-scene σ bound was
+    # applied
     assert meta["scene_moved"] is False and meta["uncertain_moving_pixels"] == 0
     assert n == pytest.approx(meta["valid_fraction"] * h * w, rel=0.2)
 

@@ -1,4 +1,5 @@
-"""POST /api/measure and the measure tool on the live simulator (lifespan running), and on a recording."""
+"""POST /api/measure and the measure tool on the live simulator (lifespan running), and on a
+recording."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""POST /api/phase (calibration-free decoding of an upload) and the status's bit depth and schedule."""
+"""POST /api/phase (calibration-free decoding of an upload) and the status's bit depth and
+schedule."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Schedules through the lifespan: the table with predictions, switching, refusals, and the carry-over rule."""
+"""Schedules through the lifespan: the table with predictions, switching, refusals, and the
+carry-over rule."""
 
 from __future__ import annotations
 
@@ -107,7 +108,8 @@ def test_setting_names_the_schedule(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_calibration_that_does_not_apply_is_never_used(
     tmp_path: Path, sim_calibration_file: Path
 ) -> None:
-    """The carry-over rule in the service: another finest pattern → no engine, and the status says why."""
+    """The carry-over rule in the service: another finest pattern → no engine, and the status says
+    why."""
     inst = Instrument(
         Settings(data_dir=tmp_path, viewer=False, autostart=False, schedule="geometric-9")
     )

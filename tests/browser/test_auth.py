@@ -77,7 +77,8 @@ def test_dashboard_asks_once_then_works(server: str) -> None:
             assert len(dialogs) == 1  # not asked again in this browser session
             # a change (bearer header from the kept token) works too
             status = pg.evaluate(
-                "fetch('/api/exposure', {method: 'PUT', headers: {'Content-Type': 'application/json',"
+                "fetch('/api/exposure', {method: 'PUT',"
+                " headers: {'Content-Type': 'application/json',"
                 " Authorization: 'Bearer ' + sessionStorage.getItem('fringescope_token')},"
                 f" body: JSON.stringify({{exposure_ms: {EXPOSURE_MS}}})}}).then(r => r.status)"
             )

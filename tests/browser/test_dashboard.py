@@ -136,8 +136,8 @@ def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str
 def test_schedule_selector_lists_predictions_and_switches(
     page: tuple[Any, list[str]], server: str
 ) -> None:
-    """The selector shows every registered schedule with its predicted σ and order-error rate; choosing
-    one reaches the status, and the schedule line follows."""
+    """The selector shows every registered schedule with its predicted σ and order-error rate;
+    choosing one reaches the status, and the schedule line follows."""
     pg, errors = page
     rows = httpx.get(f"{server}/api/schedules").json()
     pg.wait_for_function("document.querySelectorAll('#schedule option').length > 0", timeout=10_000)
@@ -213,7 +213,8 @@ def test_record_button_records_and_lists(page: tuple[Any, list[str]], server: st
         lambda: httpx.get(f"{server}/api/status").json().get("recording") is None, 30, 0.2
     )
     pg.wait_for_function(
-        "[...document.querySelectorAll('#recordings a')].some(a => a.textContent.startsWith('browser_take'))",
+        "[...document.querySelectorAll('#recordings a')]"
+        ".some(a => a.textContent.startsWith('browser_take'))",
         timeout=15_000,
     )
     names = [r["name"] for r in httpx.get(f"{server}/api/recordings").json()]

@@ -105,11 +105,13 @@ def test_depth_image_does_not_move_over_live_updates(browser: Any, server: str, 
         for value, state in (("0", "stopped"), ("88888.8", "calibrating"), ("–", "fault")):
             pg.evaluate(
                 """([value, state]) => {
-                  for (const id of ["m-camera", "m-depth", "m-latency", "m-dropped", "m-incomplete"])
+                  for (const id of ["m-camera", "m-depth", "m-latency", "m-dropped",
+                                    "m-incomplete"])
                     document.getElementById(id).textContent = value;
                   document.getElementById("m-mode").textContent = value === "0" ? "set" : "rolling";
                   document.getElementById("m-sensor").textContent =
-                    value === "0" ? "8-bit" : "16-bit · heterodyne [1, 4.25, 12.5, 36.75]×12 horizontal";
+                    value === "0" ? "8-bit"
+                                  : "16-bit · heterodyne [1, 4.25, 12.5, 36.75]×12 horizontal";
                   document.getElementById("state").textContent = state;
                   const w = document.getElementById("warnings");
                   w.hidden = value === "0";

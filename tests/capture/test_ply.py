@@ -28,8 +28,8 @@ def test_round_trip_valid_points_only(tmp_path):
     assert head.startswith("ply\nformat binary_little_endian 1.0\n")
     assert f"element vertex {valid.sum()}\n" in head
     assert (
-        "property float x\nproperty float y\nproperty float z\nproperty uchar intensity\nend_header\n"
-        in head
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar intensity\nend_header\n" in head
     )
     assert len(path.read_bytes()) == head.index("end_header\n") + 11 + 13 * valid.sum()
 

@@ -1,5 +1,6 @@
 """The REAL firmware source (hardware/firmware/…/fringescope_controller.ino), built for the host
-with a small Arduino shim, on a pty: same replies as the Python emulator, and the driver works with it."""
+with a small Arduino shim, on a pty: same replies as the Python emulator, and the driver works with
+it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""GenICam camera through harvesters and the simulated GenTL producer shipped in the ``genicam`` wheel."""
+"""GenICam camera through harvesters and the simulated GenTL producer shipped in the ``genicam``
+wheel."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Serial LED/trigger controller: protocol document ↔ emulator ↔ firmware, and the driver over a real pty."""
+"""Serial LED/trigger controller: protocol document ↔ emulator ↔ firmware, and the driver over a
+real pty."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""OpenIGTLink server (issue 16) with pyigtl's own client: decoding, REST equality, clients, memory."""
+"""OpenIGTLink server (issue 16) with pyigtl's own client: decoding, REST equality, clients,
+memory."""
 
 from __future__ import annotations
 

@@ -124,7 +124,8 @@ def test_low_signal_names_the_share_and_the_exposure_only_when_most_of_the_roi_i
     assert dark.suggested_exposure_ms == 100.0
     assert (
         dark.message()
-        == "60% of the ROI is invalid for low signal at 20 ms: the auto-exposure would choose 100 ms"
+        == "60% of the ROI is invalid for low signal at 20 ms: "
+        "the auto-exposure would choose 100 ms"
     )
     with pytest.raises(ValueError, match="area"):
         low_signal(reason, area[:10], peak, mod, 20.0, 255.0)

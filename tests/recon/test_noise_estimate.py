@@ -54,8 +54,8 @@ def test_estimate_needs_more_than_three_steps():
 
 
 def test_projector_gamma_harmonics_are_not_noise():
-    """A gamma-distorted fringe (10–90 % of the projector range, γ = 2.2): with N = 12 the estimate still
-    finds the sensor's noise."""
+    """A gamma-distorted fringe (10–90 % of the projector range, γ = 2.2): with N = 12 the estimate
+    still finds the sensor's noise."""
     rig = Rig(width=320, height=240, focal_px=400.0, schedule=PatternSchedule(steps=12))
     lin = (
         rig.render(bump_surface(rig), background=30000.0, amplitude=24000.0, dtype=np.uint16)

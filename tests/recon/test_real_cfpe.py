@@ -68,7 +68,8 @@ def test_12_step_phase_matches_a_textbook_decoder(scene):
     diff = ours.phase[ok] - ref[ok]
     rms = float(np.sqrt(np.mean(diff**2)))
     print(
-        f"\ncfpe scene {scene:02d}: 12-step vs textbook decoder RMS {rms:.4f} rad over {ok.sum()} px, "
+        f"\ncfpe scene {scene:02d}: 12-step vs textbook decoder RMS {rms:.4f} rad "
+        f"over {ok.sum()} px, "
         f"valid {100 * (ours.reason == 0)[usable(scene)].mean():.2f} % of usable"
     )
     assert rms <= 0.03
@@ -107,7 +108,8 @@ def test_4_step_heterodyne_against_12_step(scene, other):
         (f"gamma LUT from scene {other:02d}", corrected),
     ):
         print(
-            f"\ncfpe scene {scene:02d} 4-step heterodyne ({name}): valid {100 * valid:.2f} % of usable px, "
+            f"\ncfpe scene {scene:02d} 4-step heterodyne ({name}): "
+            f"valid {100 * valid:.2f} % of usable px, "
             f"order errors {100 * orders:.4f} %, RMS {rms:.4f} rad vs 12-step over {n} px"
         )
     for _valid, orders, rms, _ in (raw, corrected):
@@ -118,7 +120,8 @@ def test_4_step_heterodyne_against_12_step(scene, other):
 
 
 def test_gamma_correction_learned_on_one_scene_reduces_the_error_on_others():
-    """Zhang & Huang's phase-error LUT learned on the bust (12-step reference), applied elsewhere."""
+    """Zhang & Huang's phase-error LUT learned on the bust (12-step reference), applied
+    elsewhere."""
     lut = _lut(BUST)
     # the table is the N = 4 gamma signature: mostly the 4th harmonic of the phase, a few 0.01 rad
     grid = (np.arange(lut.error_rad.shape[1]) + 0.5) * TWO_PI / lut.error_rad.shape[1]
@@ -130,7 +133,8 @@ def test_gamma_correction_learned_on_one_scene_reduces_the_error_on_others():
         after = _four_vs_twelve(scene, lut)[2]
         errors[scene] = (before, after)
         print(
-            f"\ncfpe scene {scene:02d}: 4-step RMS vs 12-step {before:.4f} rad before, {after:.4f} rad after "
+            f"\ncfpe scene {scene:02d}: 4-step RMS vs 12-step {before:.4f} rad before, "
+            f"{after:.4f} rad after "
             f"the gamma LUT learned on scene {BUST:02d}"
         )
     assert errors[PLATE][1] < 0.9 * errors[PLATE][0]
@@ -148,8 +152,10 @@ def test_real_shadows_and_highlights_are_invalid_not_wrong():
         both = (four.reason == 0) & (twelve.reason == 0)
         wrong = np.abs(four.phase[both] - twelve.phase[both]) > math.pi
         print(
-            f"\ncfpe scene {scene:02d} 4-step: reasons {np.bincount(four.reason.ravel(), minlength=4).tolist()}, "
-            f"recovered {four.recovered} px with a clipped shift, order errors {wrong.sum()} of {both.sum()}"
+            f"\ncfpe scene {scene:02d} 4-step: "
+            f"reasons {np.bincount(four.reason.ravel(), minlength=4).tolist()}, "
+            f"recovered {four.recovered} px with a clipped shift, "
+            f"order errors {wrong.sum()} of {both.sum()}"
         )
         assert wrong.mean() < 1e-3
     # the bottle's highlight clips some shifts: those pixels are refitted from the others

@@ -1,4 +1,5 @@
-"""Issue 14's simulator target: a 45° target with one shift clipped in about a quarter of its pixels."""
+"""Issue 14's simulator target: a 45° target with one shift clipped in about a quarter of its
+pixels."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def test_clipped_shift_in_a_quarter_of_the_target_keeps_99_percent_valid_without
     clipped = (bright.frames >= 255).reshape(-1, steps, *truth.shape).sum(axis=1).max(axis=0)
     one = clipped == 1
     print(
-        f"\nsim dof_target at 1.35x exposure: {100 * one[target].mean():.1f} % of target px with one clipped "
+        f"\nsim dof_target at 1.35x exposure: {100 * one[target].mean():.1f} % "
+        f"of target px with one clipped "
         f"shift, {100 * (clipped >= 2)[target].mean():.2f} % with more"
     )
     assert 0.2 < one[target].mean() < 0.35
@@ -37,7 +39,8 @@ def test_clipped_shift_in_a_quarter_of_the_target_keeps_99_percent_valid_without
         both = ref_valid & res.valid & one
         bias = float(np.mean(res.depth[both] - ref_depth[both]))
         print(
-            f"{'fast' if fast else 'numpy'}: {res.recovered} px recovered, {100 * kept:.2f} % of the one-clipped "
+            f"{'fast' if fast else 'numpy'}: {res.recovered} px recovered, "
+            f"{100 * kept:.2f} % of the one-clipped "
             f"target px stay valid, added bias {bias * 1e3:+.2f} um"
         )
         assert res.recovered >= one[target & ref_valid].sum() * 0.99

@@ -153,7 +153,8 @@ def _het9_wrapped(x, w=608.0):
 def test_slip_front_of_30_35_36_is_the_analytic_one():
     from app.recon.unwrap import order_slip_front, order_slip_margin
 
-    # m = ±6: φ_30 unmoved, φ_35 by 2π·6/36; m = ±1: φ_30 by 2π/6, φ_35 by 2π/36 (grid 0.005 rad, rounded down)
+    # m = ±6: φ_30 unmoved, φ_35 by 2π·6/36; m = ±1: φ_30 by 2π/6, φ_35 by 2π/36 (grid 0.005 rad,
+    # rounded down)
     front = order_slip_front(HET9)
     np.testing.assert_allclose(front, [[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]], atol=0.005)
     # never looser

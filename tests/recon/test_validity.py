@@ -47,8 +47,9 @@ def test_step_gains_of_both_chains():
 def _monte_carlo(
     schedule: PatternSchedule, snr: float, n_px: int, seed: int
 ) -> tuple[float, float]:
-    """(undetected order-error rate, inconsistent rate) of ``schedule``'s real decoder (N-step phase,
-    then :func:`unwrap_phases`) on uint16 pixels at phasor SNR ``snr`` in every frequency."""
+    """(undetected order-error rate, inconsistent rate) of ``schedule``'s real decoder (N-step
+    phase, then :func:`unwrap_phases`) on uint16 pixels at phasor SNR ``snr`` in every
+    frequency."""
     rng = np.random.default_rng(seed)
     n = schedule.steps
     sigma_i = 40.0  # codes: quantisation is negligible

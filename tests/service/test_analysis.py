@@ -19,7 +19,8 @@ SUTURE_MM = 0.72  # the anastomosis scene's thread height
 
 @pytest.fixture(scope="module")
 def suture() -> tuple[LiveResult, tuple[int, int, int, int], np.ndarray]:
-    """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as published."""
+    """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as
+    published."""
     rig = default_rig(distortion=False)
     cal = ideal_calibration(rig)
     # centred on a breathing extremum so that the tissue is nearly still during the set

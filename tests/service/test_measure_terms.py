@@ -1,4 +1,5 @@
-"""app.service.measure.calibration_terms: the systematic part and its correlation length, or an old file's RMS."""
+"""app.service.measure.calibration_terms: the systematic part and its correlation length, or an old
+file's RMS."""
 
 from types import SimpleNamespace
 

@@ -59,7 +59,8 @@ def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(s
     moved[4:8][(slice(None), *patch)] = np.clip(
         moved[4:8][(slice(None), *patch)].astype(int) + 40, 0, 255
     )
-    # rolling: the set after group 1 completes (frames 16..19 hold group 0, 20..23 group 1, then 8..15)
+    # rolling: the set after group 1 completes (frames 16..19 hold group 0, 20..23 group 1, then
+    # 8..15)
     idx = list(range(16)) if mode == "set" else list(range(16, 24)) + list(range(8, 16))
     res = rec.process(engine, frame_set(moved, idx, mode))
     inner = (slice(402, 458), slice(602, 698))

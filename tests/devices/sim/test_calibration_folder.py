@@ -1,4 +1,5 @@
-"""Calibration folders: board.json, pose capture sets, boards that OpenCV finds sub-pixel exactly."""
+"""Calibration folders: board.json, pose capture sets, boards that OpenCV finds sub-pixel
+exactly."""
 
 from __future__ import annotations
 

@@ -103,7 +103,8 @@ def test_moving_scene_with_tool_matches_reference(anastomosis: Renderer):
 
 @pytest.mark.parametrize("bits", [8, 12])
 def test_noisy_frame_is_mean_plus_raster_noise(anastomosis: Renderer, bits: int):
-    """The fused frame equals the stored-mean path: the mean frame, then add_noise in raster order."""
+    """The fused frame equals the stored-mean path: the mean frame, then add_noise in raster
+    order."""
     r = anastomosis
     t_s, pattern = 0.7, 3
     state = np.array([987654321], np.uint64)

@@ -1,4 +1,5 @@
-"""Rig presets of the twin: the endoscope rig's sensor, lens distortion, 12-bit frames, partial boards."""
+"""Rig presets of the twin: the endoscope rig's sensor, lens distortion, 12-bit frames, partial
+boards."""
 
 from __future__ import annotations
 
@@ -193,8 +194,8 @@ def test_endoscope_rig_calibrates_end_to_end(endo_calibration):
 
 
 def test_rig_selected_by_settings_everywhere_the_simulator_is_built(tmp_path):
-    """FRINGESCOPE_SIM_RIG reaches the devices of the factory and of the service, and the simulator's
-    own calibration file is per rig (nothing is rendered here)."""
+    """FRINGESCOPE_SIM_RIG reaches the devices of the factory and of the service, and the
+    simulator's own calibration file is per rig (nothing is rendered here)."""
     from app.config import Settings
     from app.devices.factory import create_devices as factory_devices
     from app.service.calibration_store import sim_file_name

@@ -1,4 +1,5 @@
-"""Scenes: names, reference-plane alignment, metrology shapes, motion amplitudes (sparse rays, cheap)."""
+"""Scenes: names, reference-plane alignment, metrology shapes, motion amplitudes (sparse rays,
+cheap)."""
 
 from __future__ import annotations
 
