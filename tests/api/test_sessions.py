@@ -8,17 +8,14 @@ server on loopback, and the start-up refusal through the real ``fringescope serv
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
@@ -28,6 +25,8 @@ from app.api.sessions import FIRST_HOLD_OFF_S, FREE_FAILURES, FailureThrottle, S
 from app.cli.serve import proxy_options
 from app.config import Settings
 from app.main import create_app
+from tests.helpers.outputs import serve
+from tests.helpers.served import free_port
 
 TOKEN = "session-token_0123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -181,33 +180,17 @@ def test_secure_cookie_over_https_and_from_a_trusted_proxy(tmp_path: Path) -> No
     )
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture()
-def served(tmp_path: Path) -> Iterator[str]:
-    """The app behind a real uvicorn on loopback, configured as ``fringescope serve`` does."""
-    port = _free_port()
+def served(tmp_path: Path, sim_calibration_file: Path) -> Iterator[str]:
+    """The app behind a real uvicorn on loopback, configured as ``fringescope serve`` does (with
+    a calibration: without one the simulator's calibration starts, and shutting down waits
+    for it)."""
     settings = Settings(
-        api_token=TOKEN, data_dir=tmp_path, viewer=False, trusted_proxies=["127.0.0.1"]
+        api_token=TOKEN, data_dir=tmp_path, viewer=False, trusted_proxies=["127.0.0.1"],
+        calibration_file=sim_calibration_file,
     )
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
-                            **proxy_options(settings.trusted_proxies))
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert server.started
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(30)
+    with serve(create_app(settings), **proxy_options(settings.trusted_proxies)) as host:
+        yield f"http://{host}"
 
 
 def test_real_server_behind_a_tls_proxy_sets_secure(served: str) -> None:
@@ -244,7 +227,7 @@ def test_serve_refuses_a_short_token_in_one_line(tmp_path: Path) -> None:
         FRINGESCOPE_VIEWER="false",
         NUMBA_THREADING_LAYER="workqueue",
     )
-    r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(_free_port()),
+    r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(free_port()),
                         "--data-dir", str(tmp_path / "data")],
                        capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 2, r.stderr
