@@ -17,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.helpers.live_app import live_settings, wait_for
+from tests.helpers.live_app import capture_after_change, live_settings, wait_for
 
 
 def show(world: Any, scene: Any) -> None:
@@ -27,15 +27,6 @@ def show(world: Any, scene: Any) -> None:
         return
     with world._lock:  # SimulatedWorld has no public scene setter yet
         world.scene, world._named, world._renderer = scene, None, None
-
-
-def capture_after_change(client: TestClient) -> dict[str, Any]:
-    """Let two whole sets pass (frames in flight may predate the change), then capture a pose."""
-    done = client.get("/api/status").json()["sets_completed"]
-    wait_for(client, lambda s: s["sets_completed"] >= done + 2, 60, "two sets after the change")
-    r = client.post("/api/calibration/session/poses")
-    assert r.status_code == 200, r.text
-    return r.json()
 
 
 @pytest.mark.slow

@@ -54,6 +54,17 @@ def wait_result(client: TestClient, predicate: Callable[[dict[str, Any]], bool],
     raise AssertionError(f"timed out waiting for {what}; last result: {meta}")
 
 
+def capture_after_change(client: TestClient) -> dict[str, Any]:
+    """Let two whole sets pass (frames in flight may predate the change), then capture a
+    calibration pose through the session API."""
+    done = client.get("/api/status").json()["sets_completed"]
+    wait_for(client, lambda s: s["sets_completed"] >= done + 2, 60, "two sets after the change")
+    r = client.post("/api/calibration/session/poses")
+    assert r.status_code == 200, r.text
+    result: dict[str, Any] = r.json()
+    return result
+
+
 def app_on_virtual_clock(settings: Settings, scene: str, seed: int = 1) -> FastAPI:
     """The real app whose simulated devices run on a virtual clock (``realtime=False``): a
     scene that renders slower than real time on a loaded machine still gives whole sets,
