@@ -23,7 +23,11 @@ HET = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwra
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     data = tmp_path_factory.mktemp("phase-api")
-    with TestClient(create_app(Settings(data_dir=data, viewer=False, autostart=False))) as c:
+    # no controller: the devices are not all simulated, so no simulator calibration is made in
+    # the background (shutting down waited for it, up to 120 s) and none is ever active
+    settings = Settings(data_dir=data, viewer=False, autostart=False, controller="none")
+    with TestClient(create_app(settings)) as c:
+        assert c.get("/api/status").json()["calibration"] is None
         yield c
 
 
