@@ -96,11 +96,18 @@ def test_reconstruct_applies_the_calibration_carry_over_rule(tmp_path, capsys):
     pattern, same depth); a set whose finest pattern differs is refused with one line, exit 2."""
     h = write_bump_set(tmp_path)
     cal = str(tmp_path / "calibration.json")
-    for name, schedule in (("nine", SCHEDULES["geometric-9"]), ("finest12", PatternSchedule((1, 4, 12), 4))):
+    for name, schedule in (
+        ("nine", SCHEDULES["geometric-9"]),
+        ("finest12", PatternSchedule((1, 4, 12), 4)),
+    ):
         rig = Rig(schedule=schedule)
-        write_capture_set(tmp_path / name, CaptureSet(rig.render(h, noise=0.5, rng=np.random.default_rng(5)),
-                                                      schedule))
-    assert main(["reconstruct", str(tmp_path / "nine"), "-c", cal, "-o", str(tmp_path / "out9")]) == 0
+        write_capture_set(
+            tmp_path / name,
+            CaptureSet(rig.render(h, noise=0.5, rng=np.random.default_rng(5)), schedule),
+        )
+    assert (
+        main(["reconstruct", str(tmp_path / "nine"), "-c", cal, "-o", str(tmp_path / "out9")]) == 0
+    )
     depth = np.load(tmp_path / "out9" / "depth.npy")
     ok = np.isfinite(depth)
     assert ok.mean() > 0.95 and np.max(np.abs(depth[ok] - h[ok])) < 0.1
@@ -115,7 +122,8 @@ def test_explicit_min_modulation_replaces_the_validity_rule(tmp_path, capsys):
     write_bump_set(tmp_path)
     args = ["reconstruct", str(tmp_path / "set"), "-c", str(tmp_path / "calibration.json")]
     assert main([*args, "-o", str(tmp_path / "rule")]) == 0
-    assert main([*args, "-o", str(tmp_path / "high"), "--min-modulation", "200"]) == 0  # B = 90: none pass
+    # B = 90: none pass
+    assert main([*args, "-o", str(tmp_path / "high"), "--min-modulation", "200"]) == 0
     assert np.isfinite(np.load(tmp_path / "rule" / "depth.npy")).mean() > 0.95
     assert np.isnan(np.load(tmp_path / "high" / "depth.npy")).all()
     capsys.readouterr()
@@ -130,12 +138,22 @@ def _bracket(tmp_path):
     neither alone measures the whole scene."""
     rig = Rig()
     h = bump_surface(rig)
-    albedo = np.where(np.arange(rig.width) < rig.width // 2, 1.0, 0.02)[None, :] * np.ones((rig.height, 1))
+    albedo = np.where(np.arange(rig.width) < rig.width // 2, 1.0, 0.02)[None, :] * np.ones(
+        (rig.height, 1)
+    )
     for exposure_ms, seed in ((10.0, 1), (40.0, 2)):
         gain = exposure_ms / 10.0
-        frames = rig.render(h, background=110.0 * gain * albedo, amplitude=90.0 * gain * albedo, noise=0.6,
-                            rng=np.random.default_rng(seed))
-        write_capture_set(tmp_path / f"set{exposure_ms:g}", CaptureSet(frames, rig.schedule, exposure_ms=exposure_ms))
+        frames = rig.render(
+            h,
+            background=110.0 * gain * albedo,
+            amplitude=90.0 * gain * albedo,
+            noise=0.6,
+            rng=np.random.default_rng(seed),
+        )
+        write_capture_set(
+            tmp_path / f"set{exposure_ms:g}",
+            CaptureSet(frames, rig.schedule, exposure_ms=exposure_ms),
+        )
     save_calibration(rig.calibration(), tmp_path / "calibration.json")
     return h
 
@@ -148,7 +166,9 @@ def test_an_exposure_bracket_is_fused(tmp_path, capsys):
         assert main(["reconstruct", *map(str, sets), "-c", cal, "-o", str(tmp_path / sub)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and "fused from 10 ms" in lines[2] and "40 ms" in lines[2]
-    valid = {sub: np.isfinite(np.load(tmp_path / sub / "depth.npy")) for sub in ("short", "long", "both")}
+    valid = {
+        sub: np.isfinite(np.load(tmp_path / sub / "depth.npy")) for sub in ("short", "long", "both")
+    }
     assert valid["short"].mean() < 0.6 and valid["long"].mean() < 0.6
     assert valid["both"].mean() > 0.99
     depth = np.load(tmp_path / "both" / "depth.npy")
@@ -164,8 +184,17 @@ def test_a_bracket_of_different_schedules_is_one_line_error(tmp_path, capsys):
     nine = SCHEDULES["geometric-9"]
     frames = np.zeros((nine.n_frames, rig.height, rig.width), np.uint8)
     write_capture_set(tmp_path / "nine", CaptureSet(frames, nine))
-    rc = main(["reconstruct", str(tmp_path / "set10"), str(tmp_path / "nine"), "-c", str(tmp_path / "calibration.json"),
-               "-o", str(tmp_path / "out")])
+    rc = main(
+        [
+            "reconstruct",
+            str(tmp_path / "set10"),
+            str(tmp_path / "nine"),
+            "-c",
+            str(tmp_path / "calibration.json"),
+            "-o",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "nine" in err[0] and "schedule" in err[0], err
     assert not (tmp_path / "out").exists()

@@ -46,8 +46,9 @@ SUTURE_TRUTH_MM = 0.72  # anastomosis scene: suture radius 0.36 mm
 
 @pytest.fixture(scope="module")
 def calibration(tmp_path_factory):
-    folder = simulate_calibration_folder(tmp_path_factory.mktemp("sim") / "calib", board="checkerboard",
-                                         poses=POSES, seed=1)
+    folder = simulate_calibration_folder(
+        tmp_path_factory.mktemp("sim") / "calib", board="checkerboard", poses=POSES, seed=1
+    )
     return calibrate_folder(folder).calibration
 
 
@@ -66,7 +67,9 @@ def _supported(calibration, world, truth, points):
     """Pixels whose TRUE (height, phase) lie in the calibration's supported region (the issue's
     "inside the supported region"; the true phase from the twin's projector geometry)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        xp = world.rig.projector.fringe_coordinate(points.astype(np.float64), calibration.pattern.orientation)
+        xp = world.rig.projector.fringe_coordinate(
+            points.astype(np.float64), calibration.pattern.orientation
+        )
     return supported_mask(calibration.model.region, truth, true_phase_rad(xp, calibration.pattern))
 
 
@@ -88,8 +91,14 @@ def dof_report(calibration, reconstructor):
     st = (points.astype(np.float64) - origin) @ axes
     black = ruler_printer()(st[..., 0], st[..., 1]) < 0.5  # printed marks: low modulation by design
     sup = _supported(calibration, world, truth, points)
-    rep = plane_target_report(calibration, res, truth, world.noise_sigma(background_codes(res)), exclude=black,
-                              supported=sup)
+    rep = plane_target_report(
+        calibration,
+        res,
+        truth,
+        world.noise_sigma(background_codes(res)),
+        exclude=black,
+        supported=sup,
+    )
     lo, hi = calibration.height_range_mm
     with np.errstate(invalid="ignore"):
         in_volume = (truth >= lo) & (truth <= hi) & ~black
@@ -101,7 +110,8 @@ def dof_report(calibration, reconstructor):
 def test_dof_target(dof_report):
     rep = dof_report
     assert rep["valid_fraction"] >= 0.99  # of the pixels inside the supported region …
-    assert rep["supported_share"] >= 0.6  # … which holds most of the target in the calibrated volume
+    # … which holds most of the target in the calibrated volume
+    assert rep["supported_share"] >= 0.6
     assert rep["max_abs_error_mm"] <= 0.5
     assert rep["precision_ratio"] <= 1.15
     assert rep["outside_valid"] == 0 or rep["outside_max_abs_error_mm"] <= 0.5
@@ -143,12 +153,20 @@ def sphere_report(calibration, reconstructor, sphere_auto_exposure):
     sup = _supported(calibration, world, truth, points)
 
     def report(result):
-        return sphere_target_report(calibration, result, truth, points, [s.centre for s in spheres],
-                                    spheres[0].radius_mm, projector_centre_mm=world.rig.projector.centre,
-                                    supported=sup)
+        return sphere_target_report(
+            calibration,
+            result,
+            truth,
+            points,
+            [s.centre for s in spheres],
+            spheres[0].radius_mm,
+            projector_centre_mm=world.rig.projector.centre,
+            supported=sup,
+        )
 
     rep = report(res)
-    found = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)  # segmentation, as the CLI does
+    # segmentation, as the CLI does
+    found = sphere_figures(res.points, 2 * spheres[0].radius_mm, res.valid)
     rep["segmented_ps_mm"] = found.ps_mm
     rep["bracket_ms"] = bracket
     rep["single"] = report(members[0])
@@ -176,7 +194,8 @@ def test_sphere_auto_exposure_keeps_saturation_under_its_limit(sphere_auto_expos
     # the search lengthens the twin's 20 ms default: nothing on the scene saturates there
     ae = sphere_auto_exposure
     assert ae.exposure_ms > 20.0 and ae.saturated_fraction <= ae.saturation_limit
-    assert any(t.saturated_fraction > ae.saturation_limit for t in ae.trials)  # the next step up clips
+    # the next step up clips
+    assert any(t.saturated_fraction > ae.saturation_limit for t in ae.trials)
 
 
 def test_sphere_valid_fraction(sphere_report):
@@ -186,7 +205,8 @@ def test_sphere_valid_fraction(sphere_report):
     assert len(sphere_report["bracket_ms"]) == 2
     assert sphere_report["lit_valid_fraction"] >= 0.99
     assert sphere_report["lit_valid_fraction"] > sphere_report["single"]["lit_valid_fraction"]
-    assert sphere_report["unlit_fraction"] > 0.0  # the sphere's own shadow is in view, and not counted
+    # the sphere's own shadow is in view, and not counted
+    assert sphere_report["unlit_fraction"] > 0.0
 
 
 def test_suture_height(calibration, reconstructor):
@@ -194,8 +214,11 @@ def test_suture_height(calibration, reconstructor):
     scene = build_scene("anastomosis", rig)
     exposure_ms = 30.0
     period_s = max(exposure_ms, READOUT_MS) / 1000.0
-    t0 = 1.0 - 7.5 * period_s - exposure_ms / 2000.0  # set centred on the breathing extremum (t = 1 s)
-    world, cs, truth, points = _capture(scene, seed=7, t0_s=t0, exposure_ms=exposure_ms, current=1.0)
+    # set centred on the breathing extremum (t = 1 s)
+    t0 = 1.0 - 7.5 * period_s - exposure_ms / 2000.0
+    world, cs, truth, points = _capture(
+        scene, seed=7, t0_s=t0, exposure_ms=exposure_ms, current=1.0
+    )
     res = reconstructor.run(cs.frames)
     origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
     st = (points.astype(np.float64) - origin) @ axes

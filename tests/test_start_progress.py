@@ -1,4 +1,5 @@
-"""``scripts/start_progress.py`` (make run's progress lines) against the real app on the simulator."""
+"""``scripts/start_progress.py`` (make run's progress lines) against the real app on the
+simulator."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ import httpx
 import pytest
 
 from app.config import Settings
-from tests.api.conftest import sim_calibration_file  # noqa: F401
 from tests.helpers.outputs import serve, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,7 +23,11 @@ SCRIPT = ROOT / "scripts" / "start_progress.py"
 def stored(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Path:
     """A data folder holding a stored simulator calibration (as after a first start)."""
     given = os.environ.get("FRINGESCOPE_TEST_SIM_CALIBRATION")
-    source = Path(given) if given and Path(given).is_file() else request.getfixturevalue("sim_calibration_file")
+    source = (
+        Path(given)
+        if given and Path(given).is_file()
+        else request.getfixturevalue("sim_calibration_file")
+    )
     data = tmp_path_factory.mktemp("progress-data")
     (data / "calibrations").mkdir()
     (data / "calibrations" / "sim.json").write_bytes(Path(source).read_bytes())
@@ -39,14 +43,18 @@ def live(stored: Path) -> Iterator[str]:
         yield f"http://{host}"
 
 
-def run(url: str, data_dir: Path, cache_dir: Path, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+def run(
+    url: str, data_dir: Path, cache_dir: Path, timeout_s: float = 300
+) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
     return subprocess.run([sys.executable, str(SCRIPT), "--url", url, "--data-dir", str(data_dir),
                            "--timeout-s", str(timeout_s)], capture_output=True, text=True, env=env,
                           timeout=timeout_s + 60)
 
 
-def test_second_start_estimate_then_phases_until_first_depth(live: str, stored: Path, tmp_path: Path) -> None:
+def test_second_start_estimate_then_phases_until_first_depth(
+    live: str, stored: Path, tmp_path: Path
+) -> None:
     cache = tmp_path / "cache"
     (cache / "recon").mkdir(parents=True)
     (cache / "recon" / "fast._phase-1.py311.nbi").write_bytes(b"x")  # compiled kernels present
@@ -61,7 +69,9 @@ def test_second_start_estimate_then_phases_until_first_depth(live: str, stored: 
 
 
 def test_first_start_says_what_it_does_and_how_long(live: str, tmp_path: Path) -> None:
-    assert wait_for(lambda: httpx.get(live + "/api/status").json()["results_published"] >= 1, 300, 0.5)
+    assert wait_for(
+        lambda: httpx.get(live + "/api/status").json()["results_published"] >= 1, 300, 0.5
+    )
     done = run(live, tmp_path / "empty-data", tmp_path / "empty-cache")
     assert done.returncode == 0, done.stdout + done.stderr
     first, estimate = done.stdout.splitlines()[:2]

@@ -73,8 +73,12 @@ def test_ninths_on_a_constructed_case():
     assert mid_left["valid_fraction"] == 1.0  # the invalid ones were saturated
     assert bottom_mid["gross"] == 12
     cols_out = truth[0] < 0.0  # columns below the volume: all in the left third
-    assert cells[0]["outside_pixels"] == 30 * int(cols_out.sum()) and cells[1]["outside_pixels"] == 0
-    assert cells[0]["outside_valid"] == cells[0]["outside_pixels"] and cells[0]["outside_gross"] == 0
+    assert (
+        cells[0]["outside_pixels"] == 30 * int(cols_out.sum()) and cells[1]["outside_pixels"] == 0
+    )
+    assert (
+        cells[0]["outside_valid"] == cells[0]["outside_pixels"] and cells[0]["outside_gross"] == 0
+    )
     lit = np.zeros((h, w), bool)
     empty = ninths_report(_fake_result(depth, valid), truth, (0.0, 20.0), sigma, lit=lit)
     assert all(c["pixels"] == 0 and np.isnan(c["valid_fraction"]) for c in empty)

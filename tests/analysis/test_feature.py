@@ -83,7 +83,8 @@ def _noisy(sigma, seed, dark=False, diameter=0.72, corr_px=0.0):
 
 @pytest.mark.parametrize("dark", [False, True], ids=["bright", "dark"])
 def test_height_expectation_does_not_move_with_noise(dark):
-    """Mean over seeds at each noise level equals the noise-free height (the crest is not pushed up)."""
+    """Mean over seeds at each noise level equals the noise-free height (the crest is not pushed
+    up)."""
     clean = feature_height(*_noisy(0.0, 0, dark)[:2]).height_mm
     assert clean == pytest.approx(0.72, abs=0.006)
     for sigma in (0.03, 0.06, 0.1):
@@ -115,9 +116,12 @@ def test_polarity_found_or_given():
     assert feature_height(depth, tex).polarity == "bright"
 
 
-def _thread_on(base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False):
+def _thread_on(
+    base_fn, diameter=0.72, px_mm=(0.04, 0.04), angle_deg=20.0, sigma=0.0, seed=0, dark=False
+):
     """A thread of ``diameter`` lying on the surface ``base_fn(along_mm, across_mm)``, imaged with
-    pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates, mm."""
+    pixel pitch ``px_mm`` (x, y) on the surface; returns depth, texture and (H, W, 2) coordinates,
+    mm."""
     h, w = 220, 260
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     x_mm, y_mm = (xx - 130) * px_mm[0], (yy - 110) * px_mm[1]
@@ -219,7 +223,8 @@ def _oblique_view(slope=0.25, view_deg=30.0, diameter=0.72, px_mm=0.03):
     depth_row, x_row, on_row = [], [], []
     for c in cols:
         m = np.abs(u - c * px_mm) <= 0.02 * px_mm  # the samples on (about) this pixel's central ray
-        if not m.any():  # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+        # the ray meets the thread's side below its equator (x = −r, seen obliquely)
+        if not m.any():
             depth_row.append((c * px_mm + r * np.cos(th)) / np.sin(th))
             x_row.append(-r)
             on_row.append(True)
@@ -246,4 +251,6 @@ def test_metric_sections_remove_the_crest_parallax():
         image = feature_height(depth, tex)
         assert metric.height_mm == pytest.approx(0.72, abs=0.004), slope
         # image space: off by about −slope · 0.72 · tan 30° (0.10 mm), right only on level tissue
-        assert image.height_mm - 0.72 == pytest.approx(-slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03), slope
+        assert image.height_mm - 0.72 == pytest.approx(
+            -slope * 0.72 * np.tan(np.radians(30.0)), abs=0.03
+        ), slope

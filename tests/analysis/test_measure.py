@@ -49,7 +49,9 @@ def test_length_on_a_fronto_parallel_plane():
     assert m.value_mm == pytest.approx(160 / F * 50, rel=1e-9)
     # noise along z, segment lateral: only the rays' slant carries noise into the length
     assert 0 < m.sigma_mm < 0.01
-    assert [p.pixel for p in m.points] == [(20, 30), (180, 30)] and not any(p.snapped for p in m.points)
+    assert [p.pixel for p in m.points] == [(20, 30), (180, 30)] and not any(
+        p.snapped for p in m.points
+    )
 
 
 def test_point_to_line_and_depth_analytic():
@@ -62,7 +64,8 @@ def test_point_to_line_and_depth_analytic():
     t = plane((0.4, -0.2, 1.0), 45.0)
     m = M.depth(t, ones(t), np.full((H, W), 0.02), [(77, 91), (10, 10), (190, 20), (100, 150)])
     assert abs(m.value_mm) < 1e-9
-    # sphere pole against the plane of three rim points at one image radius: R(1 − cos θ), positive (nearer)
+    # sphere pole against the plane of three rim points at one image radius: R(1 − cos θ), positive
+    # (nearer)
     s = sphere()
     rho = 30.0
     ang = np.deg2rad([90, 210, 330])
@@ -118,7 +121,9 @@ def test_profile_of_a_known_bump_against_its_chord_and_a_plane():
     assert m.value_mm == pytest.approx(1.0, abs=2e-3)  # the peak, toward the scope
     assert abs(prof.height_mm[0]) < 1e-9 and abs(prof.height_mm[-1]) < 1e-6
     # the same against a plane of three far points on the flat part
-    m2 = M.profile(b, ok, None, [(10, CY), (W - 11, CY)], reference=[(5, 5), (W - 5, 5), (5, H - 5)])
+    m2 = M.profile(
+        b, ok, None, [(10, CY), (W - 11, CY)], reference=[(5, 5), (W - 5, 5), (5, H - 5)]
+    )
     assert m2.value_mm == pytest.approx(1.0, abs=2e-3)
     assert m2.extra["reference"] == "plane"
     assert m2.profile is not None and np.nanmax(m2.profile.distance_mm) > 0
@@ -140,26 +145,38 @@ def test_sigma_matches_monte_carlo(kind):
     m = M.measure(kind, base, ok, sig, pix)
     vals = []
     for _ in range(300):
-        vals.append(M.measure(kind, noisy(base, sig, rng), ok, sig, pix).value_mm if kind != "profile" else
-                    M.measure(kind, noisy(base, sig, rng), ok, sig, pix).profile.height_mm[30])
+        vals.append(
+            M.measure(kind, noisy(base, sig, rng), ok, sig, pix).value_mm
+            if kind != "profile"
+            else M.measure(kind, noisy(base, sig, rng), ok, sig, pix).profile.height_mm[30]
+        )
     ref = m.sigma_mm if kind != "profile" else m.profile.sigma_mm[30]
     observed = float(np.std(vals))
     assert observed / ref == pytest.approx(1.0, abs=0.15)  # 300 draws: std of a std ≈ 4 %
     if kind == "area":  # the roughness correction removes the noise's inflation of the area
-        assert abs(np.mean(vals) - m.extra["raw_mm2"]) < 3 * observed / math.sqrt(300) + 1e-3 * m.value_mm
+        assert (
+            abs(np.mean(vals) - m.extra["raw_mm2"])
+            < 3 * observed / math.sqrt(300) + 1e-3 * m.value_mm
+        )
 
 
 def test_calibration_term_adds_in_quadrature():
     p = plane((0.3, 0.1, 1.0), 40.0)
     ok = ones(p)
     sig = np.full((H, W), 0.02)
-    for kind, pix in (("length", [(30, 40), (160, 120)]), ("depth", [(100, 80), (30, 30), (170, 40), (90, 140)]),
-                      ("profile", [(40, 80), (160, 80)]), ("area", [(60, 50), (140, 55), (130, 110), (70, 105)])):
+    for kind, pix in (
+        ("length", [(30, 40), (160, 120)]),
+        ("depth", [(100, 80), (30, 30), (170, 40), (90, 140)]),
+        ("profile", [(40, 80), (160, 80)]),
+        ("area", [(60, 50), (140, 55), (130, 110), (70, 105)]),
+    ):
         base = M.measure(kind, p, ok, sig, pix)
         m = M.measure(kind, p, ok, sig, pix, calibration_sigma_mm=0.01)
         assert m.value_mm == base.value_mm
         assert m.extra["sigma_noise_mm"] == pytest.approx(base.sigma_mm, rel=1e-9)
-        assert m.sigma_mm == pytest.approx(math.hypot(base.sigma_mm, m.extra["sigma_calibration_mm"]), rel=1e-9)
+        assert m.sigma_mm == pytest.approx(
+            math.hypot(base.sigma_mm, m.extra["sigma_calibration_mm"]), rel=1e-9
+        )
         if kind != "area":  # the same propagation with σ 0.01 for every point: half the noise's
             assert m.extra["sigma_calibration_mm"] == pytest.approx(0.5 * base.sigma_mm, rel=1e-6)
         else:  # systematic: not reduced by the box means, so larger than the noise's half
@@ -175,8 +192,11 @@ def test_snapping_and_refusals_name_the_point():
     reason = np.where(ok, 0, 1).astype(np.uint8)
     m = M.length(p, ok, None, [(52, 50), (150, 100)], reason=reason)
     assert m.points[0].snapped and m.points[0].snap_px == 1.0 and m.points[0].pixel == (52, 49)
-    with pytest.raises(ValueError, match=r"point 2 \(52, 52\): invalid pixel \(LOW_MODULATION\) and no valid pixel "
-                                         r"within 2 px"):
+    with pytest.raises(
+        ValueError,
+        match=r"point 2 \(52, 52\): invalid pixel \(LOW_MODULATION\) and no valid pixel "
+        r"within 2 px",
+    ):
         M.length(p, ok, None, [(150, 100), (52, 52)], snap_px=2, reason=reason)
     with pytest.raises(ValueError, match=r"point 1 \(-3, 10\): outside the 200x160 image"):
         M.length(p, ok, None, [(-3, 10), (10, 10)])
@@ -188,9 +208,12 @@ def test_snapping_and_refusals_name_the_point():
         M.point_to_line(p, ok, None, [(100, 100), (10, 10), (10, 10)])
     with pytest.raises(ValueError, match="points 2 .*, 3 .*, 4 .*: collinear"):
         M.depth(p, ok, None, [(100, 100), (10, 10), (20, 20), (30, 30)])
-    with pytest.raises(ValueError, match=r"smallest angle is 2\.\d° < 5°"):  # nearly collinear: ill-defined
+    # nearly collinear: ill-defined
+    with pytest.raises(ValueError, match=r"smallest angle is 2\.\d° < 5°"):
         M.depth(p, ok, None, [(100, 100), (10, 10), (110, 10), (60, 12)])
-    assert M.depth(p, ok, None, [(100, 100), (10, 10), (110, 10), (60, 20)]).value_mm == pytest.approx(0, abs=1e-9)
+    assert M.depth(
+        p, ok, None, [(100, 100), (10, 10), (110, 10), (60, 20)]
+    ).value_mm == pytest.approx(0, abs=1e-9)
     with pytest.raises(ValueError, match="area: needs at least 3 points, got 2"):
         M.area(p, ok, None, [(10, 10), (20, 20)])
     with pytest.raises(ValueError, match="edges 1-2 and 3-4 cross"):
@@ -214,7 +237,9 @@ def test_profile_gap_and_result_to_dict():
     ok[80, 100:105] = False
     m = M.profile(p, ok, np.full((H, W), 0.02), [(50, 80), (150, 80)])
     assert m.profile is not None
-    assert np.isnan(m.profile.height_mm[50:55]).all() and np.isfinite(m.profile.height_mm[:50]).all()
+    assert (
+        np.isnan(m.profile.height_mm[50:55]).all() and np.isfinite(m.profile.height_mm[:50]).all()
+    )
     d = m.to_dict()
     assert d["kind"] == "profile" and d["profile"]["height_mm"][50] is None and d["unit"] == "mm"
     assert len(d["points"]) == 2 and d["snapped"] is False
@@ -228,7 +253,9 @@ def test_calibration_term_correlated_by_distance():
     sig = np.full((H, W), 0.02)
     pix = [(30, 40), (160, 120)]
     s = 0.01
-    indep = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s).extra["sigma_calibration_mm"]
+    indep = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s).extra[
+        "sigma_calibration_mm"
+    ]
     common = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s,
                        calibration_length_mm=1e9).extra["sigma_calibration_mm"]
     mid = M.measure("length", p, ok, sig, pix, calibration_sigma_mm=s,

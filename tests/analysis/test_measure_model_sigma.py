@@ -10,22 +10,16 @@ import pytest
 
 from app.analysis import measure as M
 from app.core.calibration import Calibration
-from app.core.depth_model import ReferencePlane
-from app.core.geometric import GeometricModel
-from app.devices.sim.analytic_rig import Rig, bump_surface
+from app.devices.sim.analytic_rig import bump_surface
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
-from tests.core.test_depth_models import _band_samples, _calibration, _geometric_of
+from tests.helpers.analytic_models import band_fitted_calibration
+from tests.helpers.calibrated_lengths import calibrated_length
 
 
 @pytest.fixture(scope="module")
 def scene() -> tuple[Calibration, object]:
-    rig = Rig()
-    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    model = GeometricModel.fit(
-        _band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=11), plane
-    )
-    cal = _calibration(rig, model)  # valid columns ≳ 90: the rest lies beyond the boards' phases
+    rig, cal = band_fitted_calibration(seed=11)  # valid columns ≳ 90
     frames = rig.render(bump_surface(rig), background=110.0, amplitude=90.0, noise=1.0)
     return cal, Reconstructor(cal, noise=SensorNoise(0.5, 4.0)).run(frames)
 
@@ -62,14 +56,7 @@ def _jackknife_sigma_of_length(
 def test_length_calibration_sigma_is_the_jackknife_spread_of_lengths(scene, a, b):
     cal, res = scene
     assert res.valid[a[1], a[0]] and res.valid[b[1], b[0]]
-    m = M.length(
-        res.points,
-        res.valid,
-        res.sigma_noise,
-        [a, b],
-        plane_normal=cal.plane_normal,
-        calibration=cal,
-    )
+    m = calibrated_length(res, cal, [a, b])
     want = _jackknife_sigma_of_length(cal, res, a, b)
     assert want > 0
     assert m.extra["sigma_calibration_mm"] == pytest.approx(want, rel=0.02, abs=1e-6)
@@ -83,14 +70,7 @@ def test_nearby_points_share_most_of_the_calibration_error(scene):
     the two points' σ_model would give (√2·σ_model); the same points as independent would not."""
     cal, res = scene
     a, b = (120, 60), (123, 60)
-    m = M.length(
-        res.points,
-        res.valid,
-        res.sigma_noise,
-        [a, b],
-        plane_normal=cal.plane_normal,
-        calibration=cal,
-    )
+    m = calibrated_length(res, cal, [a, b])
     sm = res.sigma_model
     independent = math.hypot(float(sm[a[1], a[0]]), float(sm[b[1], b[0]]))
     assert independent > 1e-3
@@ -101,9 +81,7 @@ def test_noise_part_is_independent_between_pixels(scene):
     """The noise part uses ``sigma`` as given (here the noise map): as without a calibration."""
     cal, res = scene
     pix = [(95, 10), (155, 110)]
-    with_cal = M.length(
-        res.points, res.valid, res.sigma_noise, pix, plane_normal=cal.plane_normal, calibration=cal
-    )
+    with_cal = calibrated_length(res, cal, pix)
     without = M.length(res.points, res.valid, res.sigma_noise, pix, plane_normal=cal.plane_normal)
     assert with_cal.extra["sigma_noise_mm"] == pytest.approx(without.sigma_mm, rel=1e-9)
     assert without.extra["sigma_calibration_mm"] == 0.0

@@ -18,7 +18,11 @@ def test_phase_noise_is_uncorrelated_between_neighbouring_pixels() -> None:
     for seed in (100, 101):  # the same surface, two sensor-noise realisations
         world.reseed(seed)
         cs, _, _ = render_capture_set(world.scene, world=world, exposure_ms=30.0)
-        phases.append(np.asarray(compute_phase(cs.frames, cs.schedule, max_code=cs.max_code).phase, np.float64))
+        phases.append(
+            np.asarray(
+                compute_phase(cs.frames, cs.schedule, max_code=cs.max_code).phase, np.float64
+            )
+        )
     d = phases[0] - phases[1]
     ok = np.isfinite(d) & (np.abs(d) < 1.0)  # noise, not a 2π unwrapping slip
     d = np.where(ok, d - d[ok].mean(), np.nan)

@@ -39,6 +39,8 @@ def test_height_noise_uses_model_slope():
     from app.calib import height_mm
     vv, uu = np.mgrid[0:rig.height, 0:rig.width]
     fd = (height_mm(cal, uu, vv, phase + 0.05) - height_mm(cal, uu, vv, phase - 0.05)) / 0.1
-    np.testing.assert_allclose(slope[200:300, 250:400], fd.reshape(slope.shape)[200:300, 250:400], rtol=1e-3)
+    np.testing.assert_allclose(
+        slope[200:300, 250:400], fd.reshape(slope.shape)[200:300, 250:400], rtol=1e-3
+    )
     sz = height_noise_mm(cal, phase, 2.0, np.full(phase.shape, 50.0))
     np.testing.assert_allclose(sz, np.abs(slope) * 2.0 * math.sqrt(0.5) / 50.0, rtol=1e-12)

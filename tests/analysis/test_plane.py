@@ -11,7 +11,8 @@ from app.analysis import fit_plane_mlesac, plane_accuracy
 
 
 def _incline(h=240, w=320, sigma=0.0, bias=None, seed=0):
-    """(H, W, 3) points of a 45° plane (rising toward the camera along x) with noise along its normal."""
+    """(H, W, 3) points of a 45° plane (rising toward the camera along x) with noise along its
+    normal."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     x = (xx - w / 2) * 0.05

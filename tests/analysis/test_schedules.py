@@ -34,14 +34,20 @@ def test_wrapped_phase_sigma_matches_monte_carlo(steps):
     assert np.std(err) == pytest.approx(predicted, rel=0.03)
 
 
-def _monte_carlo_order_errors(schedule: PatternSchedule, sigma: float, n_px: int, seed: int) -> float:
-    """Fraction of pixels whose finest unwrapped phase is off by a fringe (no consistency rejection)."""
+def _monte_carlo_order_errors(
+    schedule: PatternSchedule, sigma: float, n_px: int, seed: int
+) -> float:
+    """Fraction of pixels whose finest unwrapped phase is off by a fringe (no consistency
+    rejection)."""
     rng = np.random.default_rng(seed)
-    x = rng.uniform(0.1, 0.9, n_px)  # projector coordinate / axis length, away from the absolute phase's wrap
+    # projector coordinate / axis length, away from the absolute phase's wrap
+    x = rng.uniform(0.1, 0.9, n_px)
     freqs = np.asarray(schedule.frequencies, np.float64)
     true = TWO_PI * freqs[:, None] * x[None]
     wrapped = np.mod(true + rng.normal(0, sigma, true.shape), TWO_PI)[:, None, :]
-    unwrapped, _ = unwrap_phases(wrapped, schedule.frequencies, schedule.unwrap, consistency_rad=math.pi)
+    unwrapped, _ = unwrap_phases(
+        wrapped, schedule.frequencies, schedule.unwrap, consistency_rad=math.pi
+    )
     return float(np.mean(np.abs(unwrapped[-1, 0] - true[-1]) > math.pi))
 
 
@@ -55,7 +61,8 @@ def test_order_error_probability_matches_monte_carlo(schedule, sigma):
     p = float(order_error_probability(schedule, sigma))
     assert 2e-3 < p < 0.1  # a rate the sample resolves
     measured = _monte_carlo_order_errors(schedule, sigma, n_px, seed=7)
-    tol = 4.0 * math.sqrt(p * (1 - p) / n_px) + 0.1 * p  # binomial 4σ + the Gaussian-tail approximation
+    # binomial 4σ + the Gaussian-tail approximation
+    tol = 4.0 * math.sqrt(p * (1 - p) / n_px) + 0.1 * p
     assert measured == pytest.approx(p, abs=tol)
 
 
@@ -69,7 +76,10 @@ def test_hierarchical_step_sigma_is_the_textbook_form():
 
 def test_equal_ratios_minimise_the_worst_step():
     """The rule behind the 9-frame schedule: for 1 → k → 36 the largest step σ is least at k = 6."""
-    worst = {k: float(step_sigmas_rad(PatternSchedule((1, k, 36), 3), 0.05).max()) for k in (2, 3, 4, 6, 9, 12, 18)}
+    worst = {
+        k: float(step_sigmas_rad(PatternSchedule((1, k, 36), 3), 0.05).max())
+        for k in (2, 3, 4, 6, 9, 12, 18)
+    }
     assert min(worst, key=worst.get) == 6
 
 

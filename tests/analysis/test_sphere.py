@@ -39,7 +39,9 @@ def test_noisy_sphere_size_and_form():
 def test_sphere_found_among_background_plane():
     sphere = _cap(sigma=0.01, n=5000)
     rng = np.random.default_rng(2)
-    plane = np.stack([rng.uniform(-15, 15, 8000), rng.uniform(-15, 15, 8000), np.full(8000, 75.0)], axis=1)
+    plane = np.stack(
+        [rng.uniform(-15, 15, 8000), rng.uniform(-15, 15, 8000), np.full(8000, 75.0)], axis=1
+    )
     plane = plane[np.linalg.norm(plane[:, :2] - [1.0, -2.0], axis=1) > 5.5]
     figs = sphere_figures(np.concatenate([sphere, plane]), 10.0)
     assert abs(figs.ps_mm) < 0.005

@@ -102,7 +102,12 @@ def test_every_openapi_operation_needs_the_token(app: FastAPI, client: TestClien
         assert wrong.status_code == 401, (method, path)
         ok = client.request(method, url, headers=AUTH)
         assert ok.status_code not in (401, 403), (method, path, ok.status_code, ok.text[:200])
-        assert ok.status_code < 500 or ok.status_code in (503, 507), (method, path, ok.status_code, ok.text[:200])
+        assert ok.status_code < 500 or ok.status_code in (503, 507), (
+            method,
+            path,
+            ok.status_code,
+            ok.text[:200],
+        )
         op = spec["paths"][path][method.lower()]
         assert op.get("security") == [{"bearer": []}] and "401" in op["responses"], (method, path)
 
@@ -111,7 +116,9 @@ def test_routes_outside_openapi_websockets_viewer_static(app: FastAPI, client: T
     in_spec = {p for _, p in openapi_operations(app)}
     others = [(p, r) for p, r in all_routes(app) if p not in in_spec]
     kinds = {type(r).__name__ for _, r in others}
-    assert any(isinstance(r, WebSocketRoute) for _, r in others) and any(isinstance(r, Mount) for _, r in others), kinds
+    assert any(isinstance(r, WebSocketRoute) for _, r in others) and any(
+        isinstance(r, Mount) for _, r in others
+    ), kinds
     checked = 0
     for path, route in others:
         if isinstance(route, WebSocketRoute):
@@ -142,12 +149,20 @@ def test_routes_outside_openapi_websockets_viewer_static(app: FastAPI, client: T
         else:  # e.g. the viewer relay's HTTP routes
             url = concrete(path)
             assert client.get(url, follow_redirects=False).status_code == 401, path
-            assert client.get(url, headers=AUTH, follow_redirects=False).status_code not in (401, 403), path
+            assert client.get(url, headers=AUTH, follow_redirects=False).status_code not in (
+                401,
+                403,
+            ), path
             cookie = {"cookie": session_cookie(client)}
-            assert client.get(url, headers=cookie, follow_redirects=False).status_code not in (401, 403), path
+            assert client.get(url, headers=cookie, follow_redirects=False).status_code not in (
+                401,
+                403,
+            ), path
             # the token itself as the cookie opens nothing: the cookie is a session id
             as_cookie = {"cookie": f"{TOKEN_COOKIE}={TOKEN}"}
-            assert client.get(url, headers=as_cookie, follow_redirects=False).status_code == 401, path
+            assert client.get(url, headers=as_cookie, follow_redirects=False).status_code == 401, (
+                path
+            )
             checked += 1
     assert checked == len(others)
     assert any(p.startswith("/viser") for p, _ in others)
@@ -161,8 +176,10 @@ def test_login_cookie_opens_reads_and_streams_not_writes(client: TestClient) -> 
     assert r.status_code == 200 and r.json()["authenticated"] is True
     cookie = r.headers["set-cookie"]
     assert cookie.startswith(f"{TOKEN_COOKIE}=") and TOKEN not in cookie
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Secure" not in cookie  # plain HTTP
-    assert "expires" not in cookie.lower() and "max-age" not in cookie.lower()  # a browser-session cookie
+    # plain HTTP
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Secure" not in cookie
+    # a browser-session cookie
+    assert "expires" not in cookie.lower() and "max-age" not in cookie.lower()
     assert client.get("/api/auth").json() == {"token_required": True, "authenticated": True}
     assert client.get("/api/status").status_code not in (401, 403)
     assert client.get("/api/recordings").status_code == 200

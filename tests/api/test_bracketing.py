@@ -11,10 +11,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from app.devices.sim.devices import create_sim_devices
-from app.main import create_app
-from app.service.devices import DeviceBundle
-from tests.helpers.live_app import live_settings, wait_for
+from tests.helpers.live_app import app_on_virtual_clock, live_settings, wait_for
 
 
 def _maps(client: TestClient, n: int, timeout_s: float, *, bracket: bool) -> list[dict[str, Any]]:
@@ -55,13 +52,7 @@ def test_live_bracketing_fuses_pairs_and_says_the_rate_halves(
         # failed every set ("read_noise_dn must be > 0"), before bracketing was switched on
         noise_estimate_interval_s=0.0,
     )
-    app = create_app(settings)
-    # the twin on a virtual clock: its anastomosis renders slower than real time on a loaded
-    # machine, and a real-time camera would drop frames until no set is whole
-    sim = create_sim_devices(scene="anastomosis", seed=1, realtime=False)
-    app.state.instrument.pipeline.devices = DeviceBundle(sim.camera, sim.projector,
-                                                         sim.controller, sim.world)
-    with TestClient(app) as client:
+    with TestClient(app_on_virtual_clock(settings, "anastomosis")) as client:
         wait_for(client, lambda s: s["results_published"] >= 2, 300, "first results")
         assert client.put("/api/mode", json={}).status_code == 422  # neither field: a clear 422
         r = client.put("/api/mode", json={"rolling": True, "bracket": True})
@@ -115,11 +106,7 @@ def test_the_auto_exposure_decides_bracketing_from_the_scene(tmp_path: Path,
                                                              sim_calibration_file: Path) -> None:
     settings = live_settings(tmp_path, sim_calibration_file, sim_scene="anastomosis",
                              exposure_ms=20.0, noise_estimate_interval_s=0.0)
-    app = create_app(settings)
-    sim = create_sim_devices(scene="anastomosis", seed=1, realtime=False)
-    app.state.instrument.pipeline.devices = DeviceBundle(sim.camera, sim.projector,
-                                                         sim.controller, sim.world)
-    with TestClient(app) as client:
+    with TestClient(app_on_virtual_clock(settings, "anastomosis")) as client:
         wait_for(client, lambda s: s["results_published"] >= 1, 300, "first result")
         assert client.put("/api/mode", json={"bracket": True}).status_code == 200  # by hand first
         r = client.post("/api/exposure/auto", json={})

@@ -10,8 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.api.test_calibration_workflow import capture_after_change
-from tests.helpers.live_app import live_settings, wait_for
+from tests.helpers.live_app import capture_after_change, live_settings, wait_for
 
 _ROWS = {"upper": 0, "lower": 2}
 _COLS = {"left": 0, "right": 2}

@@ -82,7 +82,9 @@ def test_corrupted_calibrations_are_refused_and_change_nothing(
     good = json.loads(sim_calibration_file.read_text())
     active_before = client.get("/api/calibration").json()
     file_before = client.get("/api/calibration/file").content
-    stored_before = {p.name: p.read_bytes() for p in folder.glob("*.json")} if folder.is_dir() else {}
+    stored_before = (
+        {p.name: p.read_bytes() for p in folder.glob("*.json")} if folder.is_dir() else {}
+    )
     fraction_before = _valid_fraction_after(client)
     assert fraction_before > 0.3  # the 45° target is mostly measured
 
@@ -94,15 +96,21 @@ def test_corrupted_calibrations_are_refused_and_change_nothing(
         assert reason in r.json()["detail"], (name, r.json())
         assert r.json()["detail"].count("\n") == 0
     # a well-formed calibration sent as text/plain
-    r = client.put("/api/calibration/file", content=json.dumps(good), headers={"content-type": "text/plain"})
-    assert r.status_code == 422 and "Content-Type must be application/json" in r.json()["detail"], r.text
+    r = client.put(
+        "/api/calibration/file", content=json.dumps(good), headers={"content-type": "text/plain"}
+    )
+    assert r.status_code == 422 and "Content-Type must be application/json" in r.json()["detail"], (
+        r.text
+    )
     # force skips the dry run, never the physical checks
     r = _put(client, _corrupted(good, _fx_zero), "?force=true")
     assert r.status_code == 422 and "focal lengths" in r.json()["detail"]
 
     assert client.get("/api/calibration").json() == active_before
     assert client.get("/api/calibration/file").content == file_before
-    stored_after = {p.name: p.read_bytes() for p in folder.glob("*.json")} if folder.is_dir() else {}
+    stored_after = (
+        {p.name: p.read_bytes() for p in folder.glob("*.json")} if folder.is_dir() else {}
+    )
     assert stored_after == stored_before and "active.json" not in stored_after
     fraction_after = _valid_fraction_after(client)
     assert abs(fraction_after - fraction_before) < 0.02, (fraction_before, fraction_after)
@@ -128,9 +136,12 @@ def test_dry_run_refuses_a_collapse_unless_forced_and_the_status_warns(
 
     r = _put(client, narrow, "?force=true")
     assert r.status_code == 200 and r.json()["name"] == "uploaded", r.text
-    assert json.loads((folder / "active.json").read_text())["model"]["supported_region"]["phase_rad"] \
-        == [lo, lo + 1.0]
-    st = wait_for(client, lambda s: any("collapsed" in w for w in s["warnings"]), 60, "collapse warning")
+    assert json.loads((folder / "active.json").read_text())["model"]["supported_region"][
+        "phase_rad"
+    ] == [lo, lo + 1.0]
+    st = wait_for(
+        client, lambda s: any("collapsed" in w for w in s["warnings"]), 60, "collapse warning"
+    )
     warning = next(w for w in st["warnings"] if "collapsed" in w)
     assert "after activating calibration 'uploaded'" in warning, warning
     assert _valid_fraction_after(client) < 0.5 * fraction_before

@@ -17,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from tests.helpers.live_app import live_settings, wait_for
+from tests.helpers.live_app import capture_after_change, live_settings, wait_for
 
 
 def show(world: Any, scene: Any) -> None:
@@ -27,15 +27,6 @@ def show(world: Any, scene: Any) -> None:
         return
     with world._lock:  # SimulatedWorld has no public scene setter yet
         world.scene, world._named, world._renderer = scene, None, None
-
-
-def capture_after_change(client: TestClient) -> dict[str, Any]:
-    """Let two whole sets pass (frames in flight may predate the change), then capture a pose."""
-    done = client.get("/api/status").json()["sets_completed"]
-    wait_for(client, lambda s: s["sets_completed"] >= done + 2, 60, "two sets after the change")
-    r = client.post("/api/calibration/session/poses")
-    assert r.status_code == 200, r.text
-    return r.json()
 
 
 @pytest.mark.slow
@@ -102,7 +93,12 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         cap, truth, _ = render_capture_set("dof_target", seed=5, exposure_ms=20.0)
         files = [("files", ("capture.json", _capture_json(cap), "application/json"))]
         for i, frame in enumerate(cap.frames):
-            files.append(("files", (f"frame_{i:02d}.png", cv2.imencode(".png", frame)[1].tobytes(), "image/png")))
+            files.append(
+                (
+                    "files",
+                    (f"frame_{i:02d}.png", cv2.imencode(".png", frame)[1].tobytes(), "image/png"),
+                )
+            )
         r = client.post("/api/reconstruct?format=npy", files=files)
         assert r.status_code == 200, r.text
         _assert_accurate(np.load(io.BytesIO(r.content)), truth)
@@ -111,7 +107,9 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
         show(world, build_scene("dof_target", world.rig))
         client.put("/api/exposure", json={"exposure_ms": 20.0})
         done = client.get("/api/status").json()["results_published"]
-        wait_for(client, lambda s: s["results_published"] >= done + 3, 60, "live results of the target")
+        wait_for(
+            client, lambda s: s["results_published"] >= done + 3, 60, "live results of the target"
+        )
         live_depth = np.load(io.BytesIO(client.get("/api/depth/latest?format=npy").content))
         _assert_accurate(live_depth, world.truth(0.0)[0])
 
@@ -119,8 +117,13 @@ def test_calibration_workflow_end_to_end(tmp_path: Path, sim_calibration_file: P
 def _capture_json(cap: Any) -> bytes:
     import json
 
-    meta = {"format": "fringescope.capture/1", "pattern": cap.schedule.to_dict(), "exposure_ms": cap.exposure_ms,
-            "led": cap.led, "frames": [f"frame_{i:02d}.png" for i in range(len(cap.frames))]}
+    meta = {
+        "format": "fringescope.capture/1",
+        "pattern": cap.schedule.to_dict(),
+        "exposure_ms": cap.exposure_ms,
+        "led": cap.led,
+        "frames": [f"frame_{i:02d}.png" for i in range(len(cap.frames))],
+    }
     return json.dumps(meta).encode()
 
 

@@ -92,7 +92,8 @@ def test_corrupt_deflate_stream_is_422(client: TestClient) -> None:
 
 
 def test_zip_bomb_ratio_is_refused(client: TestClient) -> None:
-    bomb = _zip({"capture.json": CAPTURE, "frame_00.png": b"\0" * 900_000})  # ~1000x, under the size limit
+    # ~1000x, under the size limit
+    bomb = _zip({"capture.json": CAPTURE, "frame_00.png": b"\0" * 900_000})
     assert len(bomb) < 5_000
     code, detail = _post_zip(client, bomb)
     assert code == 422 and "zip bomb" in detail, detail
@@ -139,13 +140,19 @@ def test_multipart_zip_with_traversal_is_422(client: TestClient) -> None:
 
 def test_calibration_upload_that_is_not_a_calibration_is_422(client: TestClient) -> None:
     for body in (b"[1, 2]", b"{}", b'{"format": "fringescope.calibration/1"}', b"\xff\xfe"):
-        r = client.put("/api/calibration/file", content=body, headers={"content-type": "application/json"})
+        r = client.put(
+            "/api/calibration/file", content=body, headers={"content-type": "application/json"}
+        )
         assert r.status_code == 422 and r.json()["detail"], (body, r.text)
 
 
 def test_no_session_is_a_conflict_not_503(client: TestClient) -> None:
-    for method, path in (("GET", "/api/calibration/session"), ("GET", "/api/calibration/session/poses"),
-                         ("POST", "/api/calibration/session/solve"), ("POST", "/api/calibration/session/activate")):
+    for method, path in (
+        ("GET", "/api/calibration/session"),
+        ("GET", "/api/calibration/session/poses"),
+        ("POST", "/api/calibration/session/solve"),
+        ("POST", "/api/calibration/session/activate"),
+    ):
         r = client.request(method, path)
         assert r.status_code == 409 and "session" in r.json()["detail"], (path, r.text)
 
@@ -161,16 +168,26 @@ def _app_raising(exc: BaseException) -> FastAPI:
     return app
 
 
-@pytest.mark.parametrize("exc, code", [(InvalidRequest("bad x"), 422), (Conflict("not now"), 409),
-                                       (NotFound("no y"), 404), (DeviceUnavailable("unplugged"), 503)])
+@pytest.mark.parametrize(
+    "exc, code",
+    [
+        (InvalidRequest("bad x"), 422),
+        (Conflict("not now"), 409),
+        (NotFound("no y"), 404),
+        (DeviceUnavailable("unplugged"), 503),
+    ],
+)
 def test_each_domain_error_has_its_status_and_reason(exc: DomainError, code: int) -> None:
     r = TestClient(_app_raising(exc)).get("/boom")
     assert r.status_code == code and r.json() == {"detail": exc.detail}
 
 
-@pytest.mark.parametrize("exc", [ValueError("x: must be positive"), IndexError("list index"), KeyError("k")])
+@pytest.mark.parametrize(
+    "exc", [ValueError("x: must be positive"), IndexError("list index"), KeyError("k")]
+)
 def test_anything_else_is_a_logged_500(exc: Exception, caplog: pytest.LogCaptureFixture) -> None:
-    """A ValueError or IndexError from a bug is not the client's fault: 500, traceback in the log."""
+    """A ValueError or IndexError from a bug is not the client's fault: 500, traceback in the
+    log."""
     with caplog.at_level(logging.ERROR, logger="fringescope.api"):
         r = TestClient(_app_raising(exc), raise_server_exceptions=False).get("/boom")
     assert r.status_code == 500 and type(exc).__name__ in r.json()["detail"]
@@ -180,7 +197,8 @@ def test_anything_else_is_a_logged_500(exc: Exception, caplog: pytest.LogCapture
 
 
 def test_every_route_documents_what_it_can_answer(tmp_path: Path) -> None:
-    """Each operation that needs the instrument lists 503; one that takes input lists 422 with a schema."""
+    """Each operation that needs the instrument lists 503; one that takes input lists 422 with a
+    schema."""
     spec = create_app(Settings(data_dir=tmp_path, viewer=False)).openapi()
     # these answer without the instrument: the legend and the health/sign-in routes
     no_instrument = {"/api/reason/legend", "/healthz", "/api/auth", "/api/login", "/api/logout"}
@@ -190,7 +208,10 @@ def test_every_route_documents_what_it_can_answer(tmp_path: Path) -> None:
             assert "503" in codes or path in no_instrument, (method, path, codes)
             if op.get("parameters") or op.get("requestBody"):
                 assert "422" in codes, (method, path, codes)
-                assert "detail" in op["responses"]["422"]["content"]["application/json"]["schema"]["properties"]
+                assert (
+                    "detail"
+                    in op["responses"]["422"]["content"]["application/json"]["schema"]["properties"]
+                )
 
 
 # -- hostile names, nesting and numbers in uploads ---------------------------------------------

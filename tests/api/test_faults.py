@@ -35,12 +35,16 @@ def test_a_dropped_frame_costs_only_its_group(tmp_path: Path, sim_calibration_fi
             time.sleep(0.3)
 
 
-def test_a_camera_dropping_most_frames_gives_no_depth_and_says_why(tmp_path: Path, sim_calibration_file: Path) -> None:
+def test_a_camera_dropping_most_frames_gives_no_depth_and_says_why(
+    tmp_path: Path, sim_calibration_file: Path
+) -> None:
     # half the frames dropped: a group of 4 survives with p = 1/16, all 4 groups within 3
     # cycles with p = 0.001 a cycle: practically no depth, and the status says why
     settings = live_settings(tmp_path, sim_calibration_file, sim_drop_rate=0.5)
     with TestClient(create_app(settings)) as client:
-        st = wait_for(client, lambda s: any("dropped" in w for w in s["warnings"]), 60, "the drop warning")
+        st = wait_for(
+            client, lambda s: any("dropped" in w for w in s["warnings"]), 60, "the drop warning"
+        )
         warning = next(w for w in st["warnings"] if "dropped" in w)
         assert "4 consecutive frames" in warning and st["frames_dropped"] > 0
         assert st["state"] != "running" and st["depth_fps"] == 0
@@ -58,8 +62,12 @@ def test_disconnect_shows_a_fault_and_recovers(tmp_path: Path, sim_calibration_f
         st = wait_for(client, lambda s: s["state"] == "fault", 30, "fault state")
         assert st["last_error"] and st["faults"] >= 1
         before = st["results_published"]
-        st = wait_for(client, lambda s: s["state"] == "running" and s["results_published"] > before, 30,
-                      "recovery with new results")
+        st = wait_for(
+            client,
+            lambda s: s["state"] == "running" and s["results_published"] > before,
+            30,
+            "recovery with new results",
+        )
         assert st["faults"] >= 1 and st["last_error"]
         # the fault stays on record, with its time, marked resolved by the maps after it
         assert st["last_error_resolved"] is True and st["last_error_at"]
@@ -135,7 +143,9 @@ def _port_free(port: int) -> bool:
 
 
 @pytest.mark.parametrize("viewer", [False, True])
-def test_shutdown_joins_every_thread(tmp_path: Path, sim_calibration_file: Path, viewer: bool) -> None:
+def test_shutdown_joins_every_thread(
+    tmp_path: Path, sim_calibration_file: Path, viewer: bool
+) -> None:
     if viewer:
         pytest.importorskip("app.outputs.viewer")
     before = {t.ident for t in threading.enumerate()}

@@ -11,10 +11,6 @@ multipart file names of 300 characters answered 4xx. The server's memory is read
 from __future__ import annotations
 
 import os
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -24,16 +20,11 @@ import httpx
 import pytest
 
 from tests.helpers.hostile import capture_json, png_bomb_zip, zero_png
+from tests.helpers.served import ServedApp, free_port
 
 pytestmark = pytest.mark.slow
 
 MB = 1024 * 1024
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _memory_kb(pid: int) -> dict[str, int]:
@@ -57,7 +48,7 @@ def server(
 ) -> Iterator[tuple[str, int]]:
     """(base URL, pid) of a served app with the simulator's calibration, acquisition stopped."""
     tmp = tmp_path_factory.mktemp("hostile-server")
-    port = _free_port()
+    port = free_port()
     config = tmp / "fringescope.toml"
     config.write_text("[fringescope]\nautostart = false\nviewer = false\n", encoding="utf-8")
     env = dict(
@@ -65,48 +56,25 @@ def server(
         FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file),
         NUMBA_THREADING_LAYER="workqueue",
     )
-    # the server's log goes to a file: a pipe nobody reads fills (64 KiB, ~600 access-log
-    # lines of a fast status poller) and then blocks the server's event loop on its next line
-    log_path = tmp / "server.log"
-    log = open(log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed after the server
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "app",
-            "serve",
-            "--port",
-            str(port),
-            "--config",
-            str(config),
-            "--data-dir",
-            str(tmp / "data"),
-        ],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        text=True,
+    server = ServedApp(
+        ["--port", str(port), "--config", str(config), "--data-dir", str(tmp / "data")],
+        env,
+        tmp / "server.log",
     )
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and proc.poll() is None:
+        while time.monotonic() < deadline and server.running():
             try:
                 if httpx.get(f"{base}/api/status", timeout=2).json()["calibration"]:
                     break
             except (httpx.HTTPError, KeyError, ValueError):
                 pass
             time.sleep(0.3)
-        assert proc.poll() is None, log_path.read_text(encoding="utf-8")[-4000:]
-        yield base, proc.pid
+        assert server.running(), server.log()
+        yield base, server.pid
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.close()
+        server.stop()
 
 
 @pytest.mark.parametrize("route", ["/api/reconstruct", "/api/phase"])

@@ -54,7 +54,8 @@ def test_the_live_engine_uses_the_cameras_measured_noise(live: TestClient) -> No
     inst = live.app.state.instrument  # type: ignore[attr-defined]
     seq0 = inst.results.latest()[0]
     seq, res = inst.results.wait_newer(seq0, 10)  # a map made after the estimate
-    # passed to the engine with every set (σ, the validity rule, the motion test), not installed in it
+    # passed to the engine with every set (σ, the validity rule, the motion test), not installed in
+    # it
     assert res is not None and res.noise is inst.pipeline.reconstruction.noise.current
 
 
@@ -62,7 +63,9 @@ def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:
     try:
         r = live.put("/api/exposure", json={"exposure_ms": 14.5})
         assert r.status_code == 200 and r.json()["exposure_ms"] == 14.5
-        meta = wait_result(live, lambda m: m["exposure_ms"] == 14.5, 20, "exposure 14.5 in the frames")
+        meta = wait_result(
+            live, lambda m: m["exposure_ms"] == 14.5, 20, "exposure 14.5 in the frames"
+        )
         assert len(meta["frame_indices"]) == 16
         r = live.put("/api/led", json={"led": "red"})
         assert r.status_code == 200
@@ -91,22 +94,32 @@ def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:
         ("post", "/api/analysis/plane", {"roi": [1, 2, 3]}),
         ("post", "/api/analysis/feature", {"roi": "all"}),
         ("post", "/api/calibration/session", {"type": "hexagons"}),
-        ("post", "/api/calibration/session", {"type": "checkerboard", "inner_corners": [1, 6], "square_mm": 2}),
+        (
+            "post",
+            "/api/calibration/session",
+            {"type": "checkerboard", "inner_corners": [1, 6], "square_mm": 2},
+        ),
         ("post", "/api/calibration/session", {"type": "checkerboard", "inner_corners": [8, 6]}),
     ],
 )
-def test_bad_input_is_422_with_a_reason(live: TestClient, method: str, path: str, body: object) -> None:
+def test_bad_input_is_422_with_a_reason(
+    live: TestClient, method: str, path: str, body: object
+) -> None:
     r = getattr(live, method)(path, json=body)
     assert r.status_code == 422, r.text
     assert r.json()["detail"]
 
 
 def test_malformed_json_is_422(live: TestClient) -> None:
-    r = live.put("/api/exposure", content=b"{not json", headers={"content-type": "application/json"})
+    r = live.put(
+        "/api/exposure", content=b"{not json", headers={"content-type": "application/json"}
+    )
     assert r.status_code == 422 and r.json()["detail"]
 
 
-@pytest.mark.parametrize("query", ["format=bmp", "format=color&min_mm=10&max_mm=5", "format=color&min_mm=nan"])
+@pytest.mark.parametrize(
+    "query", ["format=bmp", "format=color&min_mm=10&max_mm=5", "format=color&min_mm=nan"]
+)
 def test_bad_depth_query_is_422(live: TestClient, query: str) -> None:
     r = live.get(f"/api/depth/latest?{query}")
     assert r.status_code == 422 and r.json()["detail"]
@@ -135,7 +148,8 @@ def test_depth_formats_agree(live: TestClient) -> None:
     assert np.abs(png[valid].astype(np.int64) - expect).max() <= 1
     r = live.get("/api/depth/latest?format=color&min_mm=0&max_mm=20")
     color = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
-    assert color.shape[0] >= depth.shape[0] and color.shape[1] > depth.shape[1]  # image + colour bar
+    # image + colour bar
+    assert color.shape[0] >= depth.shape[0] and color.shape[1] > depth.shape[1]
 
 
 def test_sigma_field_matches_depth(live: TestClient) -> None:
@@ -165,7 +179,11 @@ def test_sigma_parts_of_the_live_result(live: TestClient) -> None:
     sig, noise, model = (np.load(io.BytesIO(got[f].content)).astype(np.float64)
                          for f in ("sigma", "sigma_noise", "sigma_model"))
     ok = np.isfinite(sig)
-    assert ok.any() and np.array_equal(ok, np.isfinite(model)) and np.array_equal(ok, np.isfinite(noise))
+    assert (
+        ok.any()
+        and np.array_equal(ok, np.isfinite(model))
+        and np.array_equal(ok, np.isfinite(noise))
+    )
     np.testing.assert_allclose(sig[ok] ** 2, noise[ok] ** 2 + model[ok] ** 2, rtol=1e-4)
     assert np.median(model[ok]) > 0.0  # the simulator's calibration carries its jackknife
     assert live.get("/api/depth/latest?format=color&field=sigma_model").status_code == 200
@@ -188,7 +206,8 @@ def test_texture_reason_and_pointcloud(live: TestClient) -> None:
     meta = live.get("/api/result/latest").json()
     h, w = meta["shape"]
     assert 0 < n <= h * w
-    # a still scene: the raw motion flags stay at the still rate, so no moving-scene σ bound was applied
+    # a still scene: the raw motion flags stay at the still rate, so no moving-scene σ bound was
+    # applied
     assert meta["scene_moved"] is False and meta["uncertain_moving_pixels"] == 0
     assert n == pytest.approx(meta["valid_fraction"] * h * w, rel=0.2)
 
@@ -219,7 +238,9 @@ def test_rolling_mode_labels_results(live: TestClient) -> None:
         windows = [meta["frame_indices"]]
         while len(windows) < 4:
             seq = meta["seq"]
-            meta = wait_result(live, lambda m, seq=seq: m["seq"] > seq, 10, "the next rolling result")
+            meta = wait_result(
+                live, lambda m, seq=seq: m["seq"] > seq, 10, "the next rolling result"
+            )
             assert meta["mode"] == "rolling"
             windows.append(meta["frame_indices"])
         for idx in windows:  # always the last 16 consecutive frames, in capture-set order
@@ -241,7 +262,12 @@ def test_acquisition_stop_and_start(live: TestClient) -> None:
     time.sleep(0.5)
     assert live.get("/api/status").json()["frames_received"] == frames  # the camera really stopped
     assert live.post("/api/acquisition/start").json()["acquiring"] is True
-    wait_for(live, lambda s: s["state"] == "running" and s["frames_received"] > frames + 16, 30, "running again")
+    wait_for(
+        live,
+        lambda s: s["state"] == "running" and s["frames_received"] > frames + 16,
+        30,
+        "running again",
+    )
 
 
 def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
@@ -250,9 +276,13 @@ def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
     data = r.json()
     assert data["format"] == "fringescope.calibration/2"
     summary = live.get("/api/calibration").json()
-    assert summary["model"] == data["model"]["name"] and set(summary["held_out"]) <= {"eq5", "geometric"}
+    assert summary["model"] == data["model"]["name"] and set(summary["held_out"]) <= {
+        "eq5",
+        "geometric",
+    }
     other = "eq5" if data["model"]["name"] == "geometric" else "geometric"
-    corrupted = dict(data, model=dict(data["model"], name=other))  # one model's numbers under the other's name
+    # one model's numbers under the other's name
+    corrupted = dict(data, model=dict(data["model"], name=other))
     r = live.put("/api/calibration/file", json=corrupted)
     assert r.status_code == 422 and "model" in r.json()["detail"] and "\n" not in r.json()["detail"]
     bad = dict(data, format="something/9")
@@ -261,7 +291,9 @@ def test_calibration_file_round_trip_and_validation(live: TestClient) -> None:
     wrong_size = dict(data, image_size=[640, 480])
     r = live.put("/api/calibration/file", json=wrong_size)
     assert r.status_code == 422 and "image size" in r.json()["detail"]
-    r = live.put("/api/calibration/file", content=b"[1, 2", headers={"content-type": "application/json"})
+    r = live.put(
+        "/api/calibration/file", content=b"[1, 2", headers={"content-type": "application/json"}
+    )
     assert r.status_code == 422
     r = live.put("/api/calibration/file", json=data)
     assert r.status_code == 200 and r.json()["name"] == "uploaded"
@@ -276,14 +308,25 @@ def test_plane_analysis_in_an_roi(live: TestClient) -> None:
     assert r.status_code in (200, 422), r.text
     if r.status_code == 200:
         body = r.json()
-        assert body["points"] > 10 and body["precision_mm"] is not None and body["precision_mm"] >= 0
+        assert (
+            body["points"] > 10 and body["precision_mm"] is not None and body["precision_mm"] >= 0
+        )
     r = live.post("/api/analysis/plane", json={"roi": [0, 0, w + 10, h + 10]})
     assert r.status_code == 422 and "roi" in r.json()["detail"]
 
 
 def test_openapi_lists_the_fixed_routes(live: TestClient) -> None:
     paths = live.get("/openapi.json").json()["paths"]
-    for p in ("/api/status", "/api/exposure", "/api/led", "/api/acquisition/start", "/api/acquisition/stop",
-              "/api/depth/latest", "/api/pointcloud/latest.ply", "/api/reconstruct", "/api/calibration/file"):
+    for p in (
+        "/api/status",
+        "/api/exposure",
+        "/api/led",
+        "/api/acquisition/start",
+        "/api/acquisition/stop",
+        "/api/depth/latest",
+        "/api/pointcloud/latest.ply",
+        "/api/reconstruct",
+        "/api/calibration/file",
+    ):
         assert p in paths
     assert live.get("/docs").status_code == 200

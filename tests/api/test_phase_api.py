@@ -1,4 +1,5 @@
-"""POST /api/phase (calibration-free decoding of an upload) and the status's bit depth and schedule."""
+"""POST /api/phase (calibration-free decoding of an upload) and the status's bit depth and
+schedule."""
 
 from __future__ import annotations
 
@@ -22,15 +23,26 @@ HET = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=4, unwra
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     data = tmp_path_factory.mktemp("phase-api")
-    with TestClient(create_app(Settings(data_dir=data, viewer=False, autostart=False))) as c:
+    # no controller: the devices are not all simulated, so no simulator calibration is made in
+    # the background (shutting down waited for it, up to 120 s) and none is ever active
+    settings = Settings(data_dir=data, viewer=False, autostart=False, controller="none")
+    with TestClient(create_app(settings)) as c:
+        assert c.get("/api/status").json()["calibration"] is None
         yield c
 
 
 def _set(folder: Path) -> tuple[Rig, np.ndarray]:
     rig = Rig(schedule=HET)
     h = bump_surface(rig)
-    frames = rig.render(h, background=2000, amplitude=1000, noise=3.0, dtype=np.uint16, max_code=4095,
-                        rng=np.random.default_rng(3))
+    frames = rig.render(
+        h,
+        background=2000,
+        amplitude=1000,
+        noise=3.0,
+        dtype=np.uint16,
+        max_code=4095,
+        rng=np.random.default_rng(3),
+    )
     frames[0:2, 40:50, 40:50] = 4095  # two shifts of four clipped: saturated
     frames[4, 60:70, 60:70] = 4095  # one clipped: recovered
     write_capture_set(folder, CaptureSet(frames, HET, bit_depth=12))
@@ -38,8 +50,13 @@ def _set(folder: Path) -> tuple[Rig, np.ndarray]:
 
 
 def _files(folder: Path) -> list[tuple[str, tuple[str, bytes, str]]]:
-    return [("files", (p.name, p.read_bytes(), "application/json" if p.suffix == ".json" else "image/png"))
-            for p in sorted(folder.iterdir())]
+    return [
+        (
+            "files",
+            (p.name, p.read_bytes(), "application/json" if p.suffix == ".json" else "image/png"),
+        )
+        for p in sorted(folder.iterdir())
+    ]
 
 
 def test_phase_of_an_uploaded_heterodyne_12_bit_set(client: TestClient, tmp_path: Path) -> None:

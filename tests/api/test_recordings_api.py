@@ -6,9 +6,7 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
-import sys
 import time
 import zipfile
 from collections.abc import Callable
@@ -24,15 +22,10 @@ from fastapi.testclient import TestClient
 from app.capture.captureset import read_capture_set
 from app.main import create_app
 from tests.helpers.live_app import live_settings, wait_for
+from tests.helpers.served import ServedApp, free_port
 
 TOKEN = "rec-token-123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None:
@@ -40,7 +33,8 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
     settings = live_settings(tmp_path, sim_calibration_file, api_token=TOKEN, exposure_ms=40.0)
     with TestClient(create_app(settings)) as client:
         assert client.get("/api/status").status_code == 401  # reads need the token too
-        assert client.post("/api/login", headers=AUTH).status_code == 200  # session cookie for reads
+        # a session cookie for reads
+        assert client.post("/api/login", headers=AUTH).status_code == 200
         wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
         assert client.post("/api/recording/start", json={"name": "op-1"}).status_code == 401
         r = client.post("/api/recording/start", json={"name": "op-1"}, headers=AUTH)
@@ -58,7 +52,8 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
         assert session["name"] == "op-1" and session["stopped"] is not None
         assert "api_token" not in session["settings"]  # the secret never reaches the disk
         assert client.get("/api/status").json()["recording"] is None
-        assert client.post("/api/recording/stop", headers=AUTH).json() == {"recording": None, "stopped": None}
+        stopped = client.post("/api/recording/stop", headers=AUTH).json()
+        assert stopped == {"recording": None, "stopped": None}
 
         # what is on disk is whole capture sets of gap-free groups, depth maps of the right shape
         root = Path(settings.data_dir) / "recordings" / "op-1"
@@ -115,25 +110,23 @@ def test_record_live_session(tmp_path: Path, sim_calibration_file: Path) -> None
 
 
 def _serve(tmp_path: Path, calibration: Path, port: int, *wrap: str,
-           **env_extra: str) -> subprocess.Popen[str]:
+           **env_extra: str) -> ServedApp:
     """``fringescope serve`` as its own process (optionally under ``wrap``, e.g. unshare)."""
     env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration),
                FRINGESCOPE_VIEWER="false", FRINGESCOPE_SIM_SCENE="dof_target",
                FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_EXPOSURE_MS="30",
                FRINGESCOPE_SCHEDULE="geometric-9", NUMBA_THREADING_LAYER="workqueue", **env_extra)
-    cmd = [sys.executable, "-m", "app", "serve", "--port", str(port),
-           "--data-dir", str(tmp_path / "data")]
-    return subprocess.Popen([*wrap, *cmd], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    args = ["--port", str(port), "--data-dir", str(tmp_path / "data")]
+    return ServedApp(args, env, tmp_path / f"server-{port}-{time.monotonic_ns()}.log", wrap)
 
 
-def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool], timeout_s: float,
+def _poll(url: str, server: ServedApp, predicate: Callable[[Any], bool], timeout_s: float,
           what: str) -> Any:
     deadline, body = time.monotonic() + timeout_s, None
     while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            out = proc.stdout.read() if proc.stdout else ""
-            raise AssertionError(f"server exited {proc.returncode} waiting for {what}: {out}")
+        if not server.running():
+            raise AssertionError(f"server exited {server.proc.returncode} waiting for {what}: "
+                                 f"{server.log()}")
         try:
             body = httpx.get(url, timeout=5).json()
             if predicate(body):
@@ -144,41 +137,31 @@ def _poll(url: str, proc: subprocess.Popen[str], predicate: Callable[[Any], bool
     raise AssertionError(f"timed out waiting for {what}; last answer: {body}")
 
 
-def _stop(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-
-
 def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
         tmp_path: Path, sim_calibration_file: Path) -> None:
-    port = _free_port()
+    port = free_port()
     base = f"http://127.0.0.1:{port}"
-    proc = _serve(tmp_path, sim_calibration_file, port)
+    server = _serve(tmp_path, sim_calibration_file, port)
     try:
-        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+        _poll(base + "/api/status", server, lambda s: s["results_published"] >= 1, 180,
               "first depth map")
         r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
         assert r.status_code == 200, r.text
-        _poll(base + "/api/recording", proc, lambda s: s["sets_with_depth"] >= 4, 120,
+        _poll(base + "/api/recording", server, lambda s: s["sets_with_depth"] >= 4, 120,
               "four recorded sets")
-        os.kill(proc.pid, signal.SIGKILL)  # mid-recording: the writer is busy with the next set
-        proc.wait(timeout=30)
+        os.kill(server.pid, signal.SIGKILL)  # mid-recording: the writer is busy with the next set
+        server.proc.wait(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        if server.running():
+            server.proc.kill()
+            server.proc.wait()
     root = tmp_path / "data" / "recordings" / "crashed"
     before = json.loads((root / "session.json").read_text())
     assert before["stopped"] is None and "interrupted" not in before  # what the crash left
 
-    proc = _serve(tmp_path, sim_calibration_file, port)
+    server = _serve(tmp_path, sim_calibration_file, port)
     try:
-        listed = _poll(base + "/api/recordings", proc, lambda x: isinstance(x, list), 180,
+        listed = _poll(base + "/api/recordings", server, lambda x: isinstance(x, list), 180,
                        "the listing")
         (summary,) = listed
         assert summary["name"] == "crashed" and summary["interrupted"] is True
@@ -199,7 +182,7 @@ def test_killed_server_leaves_an_interrupted_recording_of_whole_sets(
         r = httpx.post(base + "/api/recording/start", json={"name": "crashed"}, timeout=10)
         assert r.status_code == 409  # the interrupted recording is kept under its name
     finally:
-        _stop(proc)
+        server.stop()
 
 
 def _can_mount_tmpfs(tmp_path: Path) -> bool:
@@ -217,18 +200,18 @@ def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
         pytest.skip("no user/mount namespaces here (unshare -rm): no small disk for the server")
     data = tmp_path / "data"
     data.mkdir()
-    port = _free_port()
+    port = free_port()
     base = f"http://127.0.0.1:{port}"
     mount = f'mount -t tmpfs -o size=40m tmpfs {data} && exec "$@"'
     wrap = ("unshare", "-rm", "sh", "-c", mount, "sh")
-    proc = _serve(tmp_path, sim_calibration_file, port, *wrap,
-                  FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
+    server = _serve(tmp_path, sim_calibration_file, port, *wrap,
+                    FRINGESCOPE_RECORDING_MIN_FREE_MB="0")
     try:
-        _poll(base + "/api/status", proc, lambda s: s["results_published"] >= 1, 180,
+        _poll(base + "/api/status", server, lambda s: s["results_published"] >= 1, 180,
               "first depth map")
         r = httpx.post(base + "/api/recording/start", json={"name": "full"}, timeout=10)
         assert r.status_code == 200, r.text
-        st = _poll(base + "/api/status", proc, lambda s: s["recording"] is None, 120,
+        st = _poll(base + "/api/status", server, lambda s: s["recording"] is None, 120,
                    "the recording to stop")
         (warning,) = [w for w in st["warnings"] if "recording 'full' stopped" in w]
         assert "disk full" in warning and "No space left on device" in warning, warning
@@ -241,7 +224,7 @@ def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
         assert 1 <= summary["n_sets"] == len(meta["sets"]) < 8  # ~11 MB a set on 40 MB
         # the service goes on: depth keeps coming; the warning stays until a new recording starts
         seq = httpx.get(base + "/api/status", timeout=10).json()["results_published"]
-        st = _poll(base + "/api/status", proc, lambda s: s["results_published"] > seq + 2, 60,
+        st = _poll(base + "/api/status", server, lambda s: s["results_published"] > seq + 2, 60,
                    "more depth")
         assert warning in st["warnings"] and st["state"] == "running"
         httpx.delete(base + "/api/recordings/full", timeout=10)
@@ -250,4 +233,4 @@ def test_a_full_disk_stops_the_recording_with_the_reason_in_status(
         assert warning not in httpx.get(base + "/api/status", timeout=10).json()["warnings"]
         httpx.post(base + "/api/recording/stop", timeout=30)
     finally:
-        _stop(proc)
+        server.stop()

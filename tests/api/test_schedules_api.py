@@ -1,4 +1,5 @@
-"""Schedules through the lifespan: the table with predictions, switching, refusals, and the carry-over rule."""
+"""Schedules through the lifespan: the table with predictions, switching, refusals, and the
+carry-over rule."""
 
 from __future__ import annotations
 
@@ -30,10 +31,18 @@ def test_schedules_table_predicts_from_the_live_rig(live: TestClient) -> None:
     # same pixels, same finest pattern: σ scales as √(2/N) exactly (medians of scaled values)
     ratio = rows["geometric-9"]["predicted_sigma_mm"] / rows["paper-16"]["predicted_sigma_mm"]
     assert ratio == pytest.approx(math.sqrt(4 / 3), rel=1e-3)
-    assert rows["geometric-12"]["predicted_sigma_mm"] == pytest.approx(rows["paper-16"]["predicted_sigma_mm"], rel=1e-3)
+    assert rows["geometric-12"]["predicted_sigma_mm"] == pytest.approx(
+        rows["paper-16"]["predicted_sigma_mm"], rel=1e-3
+    )
     # fewer, farther-apart frequencies unwrap less reliably
-    assert rows["paper-16"]["predicted_order_error_rate"] <= rows["geometric-12"]["predicted_order_error_rate"]
-    assert rows["geometric-9"]["predicted_order_error_rate"] <= rows["heterodyne-9"]["predicted_order_error_rate"]
+    assert (
+        rows["paper-16"]["predicted_order_error_rate"]
+        <= rows["geometric-12"]["predicted_order_error_rate"]
+    )
+    assert (
+        rows["geometric-9"]["predicted_order_error_rate"]
+        <= rows["heterodyne-9"]["predicted_order_error_rate"]
+    )
 
 
 @pytest.mark.parametrize("body", [{"name": "nope"}, {"name": 5}, {}, {"name": "paper-16", "x": 1}])
@@ -49,7 +58,11 @@ def test_switch_reloads_the_devices_and_keeps_the_calibration(live: TestClient) 
         assert r.status_code == 200, r.text
         assert r.json()["frames_per_depth"] == 9
         st = live.get("/api/status").json()
-        assert st["schedule"]["name"] == "geometric-9" and st["schedule"]["frequencies"] == [1, 6, 36]
+        assert st["schedule"]["name"] == "geometric-9" and st["schedule"]["frequencies"] == [
+            1,
+            6,
+            36,
+        ]
         assert st["schedule"]["steps"] == 3 and st["schedule"]["frames_per_depth"] == 9
         assert st["schedule"]["calibration_applies"] is True
         meta = wait_result(live, lambda m: len(m["frame_indices"]) == 9, 60, "a 9-frame depth map")
@@ -58,7 +71,8 @@ def test_switch_reloads_the_devices_and_keeps_the_calibration(live: TestClient) 
         assert projector["state"] in ("running", "open")
         rows = {x["name"]: x for x in live.get("/api/schedules").json()}
         assert rows["geometric-9"]["active"] and not rows["paper-16"]["active"]
-        assert live.put("/api/schedule", json={"name": "geometric-9"}).status_code == 200  # idempotent
+        # idempotent
+        assert live.put("/api/schedule", json={"name": "geometric-9"}).status_code == 200
     finally:
         assert live.put("/api/schedule", json={"name": "paper-16"}).status_code == 200
     wait_result(live, lambda m: len(m["frame_indices"]) == 16, 60, "a 16-frame depth map again")
@@ -91,16 +105,28 @@ def test_setting_names_the_schedule(monkeypatch: pytest.MonkeyPatch) -> None:
         Settings()
 
 
-def test_calibration_that_does_not_apply_is_never_used(tmp_path: Path, sim_calibration_file: Path) -> None:
-    """The carry-over rule in the service: another finest pattern → no engine, and the status says why."""
-    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, autostart=False, schedule="geometric-9"))
+def test_calibration_that_does_not_apply_is_never_used(
+    tmp_path: Path, sim_calibration_file: Path
+) -> None:
+    """The carry-over rule in the service: another finest pattern → no engine, and the status says
+    why."""
+    inst = Instrument(
+        Settings(data_dir=tmp_path, viewer=False, autostart=False, schedule="geometric-9")
+    )
     try:
-        assert inst.schedule == SCHEDULES["geometric-9"] and inst.status().to_dict()["schedule"]["name"] == "geometric-9"
+        assert (
+            inst.schedule == SCHEDULES["geometric-9"]
+            and inst.status().to_dict()["schedule"]["name"] == "geometric-9"
+        )
         cal = load_calibration(sim_calibration_file)  # made with paper-16: carries over
         inst.calibrations.activate(cal, name="sim", persist=False)
-        assert inst.pipeline.has_engine and inst.status().to_dict()["schedule"]["calibration_applies"] is True
+        assert (
+            inst.pipeline.has_engine
+            and inst.status().to_dict()["schedule"]["calibration_applies"] is True
+        )
         assert inst.pipeline._live_engine().calibration.pattern == SCHEDULES["geometric-9"]  # type: ignore[union-attr]
-        other = PatternSchedule((1, 4, 12), 4)  # finest 12: its phase is another projector coordinate
+        # finest 12: its phase is another projector coordinate
+        other = PatternSchedule((1, 4, 12), 4)
         inst.pipeline.set_schedule(other, inst.calibrations.engine_for)
         st = inst.status().to_dict()
         assert not inst.pipeline.has_engine and st["schedule"]["calibration_applies"] is False
@@ -109,8 +135,13 @@ def test_calibration_that_does_not_apply_is_never_used(tmp_path: Path, sim_calib
         why = inst.pipeline.why_no_result()
         assert why is not None and "does not apply" in str(why)
         rows = {r["name"]: r for r in inst.schedules()}
-        assert all(r["calibration_applies"] for r in rows.values()) and not any(r["active"] for r in rows.values())
-        assert rows["paper-16"]["prediction_source"] == "nominal" and rows["paper-16"]["predicted_sigma_mm"] is None
+        assert all(r["calibration_applies"] for r in rows.values()) and not any(
+            r["active"] for r in rows.values()
+        )
+        assert (
+            rows["paper-16"]["prediction_source"] == "nominal"
+            and rows["paper-16"]["predicted_sigma_mm"] is None
+        )
         inst.pipeline.set_schedule(SCHEDULES["paper-16"], inst.calibrations.engine_for)
         assert inst.pipeline.has_engine and not inst.status().to_dict()["warnings"]
         with pytest.raises(ValueError, match="orientation"):  # activation checks the same rule

@@ -96,8 +96,12 @@ schema.app = PROXY
 
 @pytest.fixture(scope="module")
 def live_app(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[Any]:
-    cfg = live_settings(tmp_path_factory.mktemp("schemathesis"), sim_calibration_file, api_token=TOKEN,
-                        max_upload_mb=5.0)
+    cfg = live_settings(
+        tmp_path_factory.mktemp("schemathesis"),
+        sim_calibration_file,
+        api_token=TOKEN,
+        max_upload_mb=5.0,
+    )
     app = create_app(cfg)
     with TestClient(app) as client:  # runs the lifespan: the Instrument starts (and stops after)
         client.headers.update(AUTH)  # with a token set, /api/status needs it too
@@ -158,17 +162,26 @@ def test_stateful_links(live_app: Any) -> None:
         pass
 
     assert machine.bundles, "no OpenAPI links found: the stateful run would test nothing"
-    run_state_machine_as_test(Workflow, settings=settings(max_examples=15, stateful_step_count=6, **HYPOTHESIS))
+    run_state_machine_as_test(
+        Workflow, settings=settings(max_examples=15, stateful_step_count=6, **HYPOTHESIS)
+    )
 
 
 def test_instrument_survived(live_app: Any) -> None:
     """After the fuzzing the app still answers and its threads still run (runs last here)."""
     inst = live_app.state.instrument
-    assert inst.acquisition is not None and inst.acquisition.alive and inst.pipeline.reconstruction.alive
-    client = TestClient(live_app, headers=AUTH)  # no `with`: the module's lifespan is already running
+    assert (
+        inst.acquisition is not None
+        and inst.acquisition.alive
+        and inst.pipeline.reconstruction.alive
+    )
+    # no `with`: the module's lifespan is already running
+    client = TestClient(live_app, headers=AUTH)
     client.put("/api/mode", json={"rolling": False, "bracket": False}, headers=AUTH)
     client.post("/api/acquisition/start", headers=AUTH)
     client.put("/api/exposure", json={"exposure_ms": 10}, headers=AUTH)
     client.post("/api/recording/stop", headers=AUTH)
     before = client.get("/api/status", headers=AUTH).json()["results_published"]
-    wait_for(client, lambda st: st["results_published"] > before, 60, "a new result after the fuzzing")
+    wait_for(
+        client, lambda st: st["results_published"] > before, 60, "a new result after the fuzzing"
+    )

@@ -162,7 +162,9 @@ def test_websocket_origin_checked() -> None:
                 pass
             assert err.value.code == 1008
     for origin in ("http://testserver", "https://ok.example"):
-        with client.websocket_connect(f"/api/stream?token={TOKEN}", headers={"origin": origin}) as ws:
+        with client.websocket_connect(
+            f"/api/stream?token={TOKEN}", headers={"origin": origin}
+        ) as ws:
             assert ws.receive_text() == "frame"
 
 
@@ -201,7 +203,9 @@ def test_upload_limit_announced_and_streamed() -> None:
     assert client.post("/api/raw", content=chunks(900)).json() == {"bytes": 900}
     r = client.post("/api/file", files={"upload": ("a.bin", b"y" * 4000)})
     assert r.status_code == 413 and "too large" in r.json()["detail"]
-    r = client.put("/api/exposure", content=chunks(3000), headers={"content-type": "application/json"})
+    r = client.put(
+        "/api/exposure", content=chunks(3000), headers={"content-type": "application/json"}
+    )
     assert r.status_code == 413
     r = client.post("/api/raw", content=b"abc", headers={"content-length": "x"})
     assert r.status_code == 400

@@ -1,9 +1,9 @@
-"""``fringescope serve`` as a real process: flags reach the settings, the API answers, Ctrl-C stops it."""
+"""``fringescope serve`` as a real process: flags reach the settings, the API answers, Ctrl-C
+stops it."""
 
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -12,48 +12,42 @@ from pathlib import Path
 
 import httpx
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.helpers.served import ServedApp, free_port
 
 
 def test_serve_starts_answers_and_stops(tmp_path: Path, sim_calibration_file: Path) -> None:
-    port = _free_port()
+    port = free_port()
     config = tmp_path / "fringescope.toml"
-    config.write_text('[fringescope]\nexposure_ms = 42.0\nautostart = false\nviewer = false\n', encoding="utf-8")
-    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file), NUMBA_THREADING_LAYER="workqueue")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "app", "serve", "--port", str(port), "--config", str(config),
-         "--data-dir", str(tmp_path / "data")],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    config.write_text(
+        "[fringescope]\nexposure_ms = 42.0\nautostart = false\nviewer = false\n",
+        encoding="utf-8",
     )
+    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(sim_calibration_file),
+               NUMBA_THREADING_LAYER="workqueue")
+    server = ServedApp(["--port", str(port), "--config", str(config),
+                        "--data-dir", str(tmp_path / "data")], env, tmp_path / "server.log")
     try:
         deadline = time.monotonic() + 120
         status = None
-        while time.monotonic() < deadline and proc.poll() is None:
+        while time.monotonic() < deadline and server.running():
             try:
                 status = httpx.get(f"http://127.0.0.1:{port}/api/status", timeout=2).json()
                 break
             except httpx.HTTPError:
                 time.sleep(0.3)
-        assert status is not None, proc.stdout.read() if proc.poll() is not None else "no answer"
+        assert status is not None, server.log() if not server.running() else "no answer"
         assert status["exposure_ms"] == 42.0  # from the config file
         assert status["state"] == "stopped" and status["calibration"]["name"] == "sim"
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            out, _ = proc.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            raise
-    assert proc.returncode == 0, out
+        returncode = server.stop()
+    assert returncode == 0, server.log()
 
 
 def test_serve_bad_config_is_one_line_and_exit_2(tmp_path: Path) -> None:
-    r = subprocess.run([sys.executable, "-m", "app", "serve", "--config", str(tmp_path / "missing.toml")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "app", "serve", "--config", str(tmp_path / "missing.toml")],
+        capture_output=True, text=True, timeout=120,
+    )
     assert r.returncode == 2
     assert "config file not found" in r.stderr and "Traceback" not in r.stderr
 
@@ -65,7 +59,7 @@ def test_serve_with_the_igtl_port_taken_is_one_line_and_exit_2(tmp_path: Path) -
         port = int(taken.getsockname()[1])
         env = dict(os.environ, FRINGESCOPE_IGTL_PORT=str(port), FRINGESCOPE_VIEWER="false",
                    NUMBA_THREADING_LAYER="workqueue")
-        r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(_free_port()),
+        r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(free_port()),
                             "--data-dir", str(tmp_path / "data")],
                            capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 2, r.stderr

@@ -8,17 +8,14 @@ server on loopback, and the start-up refusal through the real ``fringescope serv
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
@@ -28,6 +25,8 @@ from app.api.sessions import FIRST_HOLD_OFF_S, FREE_FAILURES, FailureThrottle, S
 from app.cli.serve import proxy_options
 from app.config import Settings
 from app.main import create_app
+from tests.helpers.outputs import serve
+from tests.helpers.served import free_port
 
 TOKEN = "session-token_0123"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -84,7 +83,9 @@ def test_sessions_expire_and_die_when_the_token_changes(tmp_path: Path) -> None:
     app.state.settings.api_token = "another-token_4567"  # the operator changes the token
     assert TestClient(app).get("/api/recordings", headers=cookie(sid)).status_code == 401
     assert TestClient(app).get("/api/recordings", headers=AUTH).status_code == 401
-    r = TestClient(app).get("/api/recordings", headers={"Authorization": "Bearer another-token_4567"})
+    r = TestClient(app).get(
+        "/api/recordings", headers={"Authorization": "Bearer another-token_4567"}
+    )
     assert r.status_code == 200
     # and a restarted server knows no session of the previous one
     fresh = make_app(tmp_path)
@@ -95,7 +96,11 @@ def test_session_store_and_throttle_by_the_clock() -> None:
     now = [100.0]
     store = SessionStore(ttl_s=10.0, clock=lambda: now[0])
     sid = store.open(TOKEN)
-    assert store.valid(sid, TOKEN) and not store.valid(sid, TOKEN + "x") and not store.valid("nope", TOKEN)
+    assert (
+        store.valid(sid, TOKEN)
+        and not store.valid(sid, TOKEN + "x")
+        and not store.valid("nope", TOKEN)
+    )
     now[0] += 9.9
     assert store.valid(sid, TOKEN)
     now[0] += 0.2
@@ -111,7 +116,8 @@ def test_session_store_and_throttle_by_the_clock() -> None:
     for _ in range(8):
         throttle.failed("a")
         holds.append(throttle.held_off_s("a"))
-    assert holds == pytest.approx([FIRST_HOLD_OFF_S * 2**i for i in range(6)] + [60.0, 60.0])  # doubling, capped
+    # doubling, capped
+    assert holds == pytest.approx([FIRST_HOLD_OFF_S * 2**i for i in range(6)] + [60.0, 60.0])
     assert throttle.held_off_s("b") == 0.0
     throttle.succeeded("a")
     assert throttle.held_off_s("a") == 0.0
@@ -140,7 +146,10 @@ def test_wrong_tokens_hold_the_client_off(tmp_path: Path) -> None:
     assert guesser.get("/api/recordings").status_code == 401
     time.sleep(max(0.0, FIRST_HOLD_OFF_S + 0.05 - (time.monotonic() - t0)))
     assert guesser.get("/api/recordings", headers=AUTH).status_code == 200  # clears the count
-    assert guesser.get("/api/status", headers={"Authorization": "Bearer wrong-again-000"}).status_code == 401
+    assert (
+        guesser.get("/api/status", headers={"Authorization": "Bearer wrong-again-000"}).status_code
+        == 401
+    )
     spec = guesser.get("/openapi.json").json()
     assert "429" in spec["paths"]["/api/status"]["get"]["responses"]
 
@@ -152,7 +161,9 @@ def test_secure_cookie_over_https_and_from_a_trusted_proxy(tmp_path: Path) -> No
     forwarded = {"X-Forwarded-Proto": "https", "X-Forwarded-For": "198.51.100.4"}
     r = TestClient(app, client=(PROXY, 4000)).post("/api/login", headers={**AUTH, **forwarded})
     assert "; Secure" in r.headers["set-cookie"]
-    r = TestClient(app, client=("192.0.2.50", 4000)).post("/api/login", headers={**AUTH, **forwarded})
+    r = TestClient(app, client=("192.0.2.50", 4000)).post(
+        "/api/login", headers={**AUTH, **forwarded}
+    )
     assert "Secure" not in r.headers["set-cookie"]  # anyone can send the header
     # behind the proxy every client is throttled on its own forwarded address
     for i in range(FREE_FAILURES + 1):
@@ -161,38 +172,31 @@ def test_secure_cookie_over_https_and_from_a_trusted_proxy(tmp_path: Path) -> No
     held = TestClient(app, client=(PROXY, 4000)).get("/api/status", headers={**AUTH, **forwarded})
     assert held.status_code == 429
     other = {**forwarded, "X-Forwarded-For": "198.51.100.5"}
-    assert TestClient(app, client=(PROXY, 4000)).get("/api/recordings", headers={**AUTH, **other}).status_code == 200
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    assert (
+        TestClient(app, client=(PROXY, 4000))
+        .get("/api/recordings", headers={**AUTH, **other})
+        .status_code
+        == 200
+    )
 
 
 @pytest.fixture()
-def served(tmp_path: Path) -> Iterator[str]:
-    """The app behind a real uvicorn on loopback, configured as ``fringescope serve`` does."""
-    port = _free_port()
-    settings = Settings(api_token=TOKEN, data_dir=tmp_path, viewer=False, trusted_proxies=["127.0.0.1"])
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
-                            **proxy_options(settings.trusted_proxies))
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert server.started
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(30)
+def served(tmp_path: Path, sim_calibration_file: Path) -> Iterator[str]:
+    """The app behind a real uvicorn on loopback, configured as ``fringescope serve`` does (with
+    a calibration: without one the simulator's calibration starts, and shutting down waits
+    for it)."""
+    settings = Settings(
+        api_token=TOKEN, data_dir=tmp_path, viewer=False, trusted_proxies=["127.0.0.1"],
+        calibration_file=sim_calibration_file,
+    )
+    with serve(create_app(settings), **proxy_options(settings.trusted_proxies)) as host:
+        yield f"http://{host}"
 
 
 def test_real_server_behind_a_tls_proxy_sets_secure(served: str) -> None:
-    r = httpx.post(f"{served}/api/login", headers={**AUTH, "X-Forwarded-Proto": "https"}, timeout=30)
+    r = httpx.post(
+        f"{served}/api/login", headers={**AUTH, "X-Forwarded-Proto": "https"}, timeout=30
+    )
     assert r.status_code == 200 and "; Secure" in r.headers["set-cookie"]
     r = httpx.post(f"{served}/api/login", headers=AUTH, timeout=30)
     assert r.status_code == 200 and "Secure" not in r.headers["set-cookie"]
@@ -217,9 +221,13 @@ def test_security_headers_on_the_dashboard(tmp_path: Path) -> None:
 
 
 def test_serve_refuses_a_short_token_in_one_line(tmp_path: Path) -> None:
-    env = dict(os.environ, FRINGESCOPE_API_TOKEN="x" * (MIN_TOKEN_CHARS - 1), FRINGESCOPE_VIEWER="false",
-               NUMBA_THREADING_LAYER="workqueue")
-    r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(_free_port()),
+    env = dict(
+        os.environ,
+        FRINGESCOPE_API_TOKEN="x" * (MIN_TOKEN_CHARS - 1),
+        FRINGESCOPE_VIEWER="false",
+        NUMBA_THREADING_LAYER="workqueue",
+    )
+    r = subprocess.run([sys.executable, "-m", "app", "serve", "--port", str(free_port()),
                         "--data-dir", str(tmp_path / "data")],
                        capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 2, r.stderr

@@ -34,7 +34,14 @@ def test_short_soak_survives_faults(sim_calibration_file: Path) -> None:
     assert proc.returncode == 0, out
     assert out.rstrip().endswith("PASS")
     # the figures the script promises are all there
-    for label in ("memory (RSS)", "threads", "device faults", "frames dropped", "client 3", "server exit"):
+    for label in (
+        "memory (RSS)",
+        "threads",
+        "device faults",
+        "frames dropped",
+        "client 3",
+        "server exit",
+    ):
         assert label in out, label
     episodes = int(re.search(r"(\d+) episodes", out).group(1))  # type: ignore[union-attr]
     assert episodes >= 2  # 45 s with an unplug every 15 s

@@ -1,7 +1,7 @@
 """Streams hold no worker thread, and a client holds at most ``max_streams_per_client``.
 
-A real uvicorn server on loopback (the app built on the simulator, no calibration: the
-streams wait for depth, which is all the cap needs); real sockets, raw HTTP and WebSocket
+A real uvicorn server on loopback (the app built on the simulator, acquisition stopped:
+the streams wait for depth, which is all the cap needs); real sockets, raw HTTP and WebSocket
 handshakes.
 """
 
@@ -12,7 +12,6 @@ import json
 import secrets
 import socket
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,38 +19,25 @@ from types import FrameType
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI
 
 from app.config import Settings
 from app.main import create_app
+from tests.helpers.outputs import serve
 
 CAP = 3
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture()
-def server(tmp_path: Path) -> Iterator[tuple[str, FastAPI]]:
-    port = _free_port()
+def server(tmp_path: Path, sim_calibration_file: Path) -> Iterator[tuple[str, FastAPI]]:
+    # with a calibration, nothing calibrates in the background: without one the simulator's
+    # calibration starts, and shutting the app down waits for it (uvicorn's thread outlived
+    # the fixture's 30 s join, the calibration went on during the next tests)
     app = create_app(Settings(data_dir=tmp_path, viewer=False, autostart=False,
+                              calibration_file=sim_calibration_file,
                               max_streams_per_client=CAP))
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not srv.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert srv.started
-    try:
-        yield f"127.0.0.1:{port}", app
-    finally:
-        srv.should_exit = True
-        thread.join(30)
+    with serve(app) as host:
+        yield host, app
 
 
 def _open(host: str, request: str) -> tuple[socket.socket, bytes]:
@@ -74,8 +60,11 @@ def _mjpeg(host: str) -> tuple[socket.socket, bytes]:
 
 def _ws(host: str) -> tuple[socket.socket, bytes]:
     key = base64.b64encode(secrets.token_bytes(16)).decode()
-    return _open(host, f"GET /api/stream/depth HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
-                       f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n")
+    return _open(
+        host,
+        f"GET /api/stream/depth HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\n"
+        f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n",
+    )
 
 
 def test_streams_over_the_cap_get_429_and_free_their_slot(server: tuple[str, FastAPI]) -> None:

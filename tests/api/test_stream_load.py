@@ -23,9 +23,22 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_status_and_depth_rate_unchanged_by_50_streams(sim_calibration_file: Path) -> None:
     run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_streams.py"), "--calibration", str(sim_calibration_file),
-         "--baseline-s", "6", "--load-s", "8", "--json"],
-        cwd=ROOT, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "bench_streams.py"),
+            "--calibration",
+            str(sim_calibration_file),
+            "--baseline-s",
+            "6",
+            "--load-s",
+            "8",
+            "--json",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     print(run.stdout)
     fig = json.loads(run.stdout.strip().splitlines()[-1])

@@ -40,7 +40,9 @@ def _zip(folder: Path, prefix: str = "set/") -> bytes:
     return buf.getvalue()
 
 
-def test_multipart_upload_reconstructs_the_dof_target(live: TestClient, dof_set: tuple[Path, np.ndarray]) -> None:
+def test_multipart_upload_reconstructs_the_dof_target(
+    live: TestClient, dof_set: tuple[Path, np.ndarray]
+) -> None:
     folder, truth = dof_set
     r = live.post("/api/reconstruct", files=_files(folder))
     assert r.status_code == 200, r.text
@@ -105,7 +107,11 @@ def test_broken_uploads_are_422_naming_the_file(live: TestClient, dof_set: tuple
 
 
 def test_bad_zip_and_wrong_type(live: TestClient) -> None:
-    r = live.post("/api/reconstruct", content=b"PK\x03\x04garbage", headers={"content-type": "application/zip"})
+    r = live.post(
+        "/api/reconstruct",
+        content=b"PK\x03\x04garbage",
+        headers={"content-type": "application/zip"},
+    )
     assert r.status_code == 422 and "zip" in r.json()["detail"]
     r = live.post("/api/reconstruct", content=b"hello", headers={"content-type": "text/plain"})
     assert r.status_code == 415 and r.json()["detail"]
@@ -118,7 +124,9 @@ def test_upload_over_the_limit_is_413(tmp_path: Path, sim_calibration_file: Path
     with TestClient(create_app(settings)) as client:
         r = client.post("/api/reconstruct", files=_files(folder))
         assert r.status_code == 413 and "limit" in r.json()["detail"]
-        r = client.post("/api/reconstruct", content=_zip(folder), headers={"content-type": "application/zip"})
+        r = client.post(
+            "/api/reconstruct", content=_zip(folder), headers={"content-type": "application/zip"}
+        )
         assert r.status_code == 413
 
 
@@ -129,7 +137,8 @@ def _rms_ratio(depth: np.ndarray, sigma: np.ndarray, truth: np.ndarray) -> float
 
 
 def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
-        live: TestClient, sim_calibration_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    live: TestClient, sim_calibration_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A twin camera 4× noisier than the nominal sensor: every path fits the noise to the set."""
     from app.calib import load_calibration
     from app.cli import main
@@ -138,7 +147,9 @@ def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
     from app.recon import Reconstructor, SensorNoise
 
     nominal = SensorModel()  # 16× fewer electrons for the same DN: shot and read σ 4× the nominal
-    noisy = SensorModel(full_well_e=nominal.full_well_e / 16, photons_scale=nominal.photons_scale / 16)
+    noisy = SensorModel(
+        full_well_e=nominal.full_well_e / 16, photons_scale=nominal.photons_scale / 16
+    )
     world = SimulatedWorld("dof_target", seed=7, sensor=noisy)
     capture, truth, _ = render_capture_set("dof_target", seed=7, world=world)
     folder = write_capture_set(tmp_path / "set", capture)
@@ -154,15 +165,32 @@ def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
     body = r.json()
     assert body["noise_source"] == "set"
     assert body["read_noise_dn"] == pytest.approx(py.noise.read_noise_dn)
-    rest_depth = np.load(io.BytesIO(live.post("/api/reconstruct?format=npy", files=_files(folder)).content))
+    rest_depth = np.load(
+        io.BytesIO(live.post("/api/reconstruct?format=npy", files=_files(folder)).content)
+    )
     r = live.post("/api/reconstruct?format=npy&field=sigma", files=_files(folder))
     assert r.status_code == 200 and "sigma.npy" in r.headers["content-disposition"]
     rest_sigma = np.load(io.BytesIO(r.content))
     ratio_rest = _rms_ratio(rest_depth, rest_sigma, truth)
 
-    assert main(["reconstruct", str(folder), "-c", str(sim_calibration_file), "-o", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(folder),
+                "-c",
+                str(sim_calibration_file),
+                "-o",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     assert "noise_source=set" in capsys.readouterr().out
-    cli_depth, cli_sigma = np.load(tmp_path / "out" / "depth.npy"), np.load(tmp_path / "out" / "sigma.npy")
+    cli_depth, cli_sigma = (
+        np.load(tmp_path / "out" / "depth.npy"),
+        np.load(tmp_path / "out" / "sigma.npy"),
+    )
     ratio_cli = _rms_ratio(cli_depth, cli_sigma, truth)
 
     print(f"RMS(error/sigma): python {ratio_py:.3f}, REST {ratio_rest:.3f}, CLI {ratio_cli:.3f}")

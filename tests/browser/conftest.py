@@ -1,6 +1,6 @@
 """Browser-test fixtures.
 
-``sim_calibration_file`` is the API tests' session fixture (simulated board poses →
+``sim_calibration_file`` is the suite's session fixture (simulated board poses →
 calibration, minutes on a busy machine); ``FRINGESCOPE_TEST_SIM_CALIBRATION`` may name
 an existing simulator calibration file to skip making one.
 """
@@ -12,15 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.api.conftest import sim_calibration_file as _make_sim_calibration_file
 from tests.helpers.dashboard import page, server  # noqa: F401  (per-module fixtures: the app, one page)
-
-_make = _make_sim_calibration_file.__wrapped__  # type: ignore[attr-defined]
 
 
 @pytest.fixture(scope="session")
-def browser_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def browser_calibration_file(request: pytest.FixtureRequest) -> Path:
     given = os.environ.get("FRINGESCOPE_TEST_SIM_CALIBRATION")
     if given and Path(given).is_file():
         return Path(given)
-    return Path(_make(tmp_path_factory))
+    return Path(request.getfixturevalue("sim_calibration_file"))

@@ -35,7 +35,9 @@ def _canvas_png(pg: Any, selector: str) -> bytes:
 def test_page_loads_without_console_errors(page: tuple[Any, list[str]], server: str) -> None:
     pg, errors = page
     assert pg.title() == "Fringescope"
-    pg.wait_for_function("document.querySelector('#state').textContent === 'running'", timeout=30_000)
+    pg.wait_for_function(
+        "document.querySelector('#state').textContent === 'running'", timeout=30_000
+    )
     # The status bar shows the figures of /api/status.
     for sel in ("#m-camera", "#m-depth", "#m-dropped", "#m-incomplete"):
         assert float(pg.text_content(sel) or "nan") >= 0, sel
@@ -60,7 +62,9 @@ def test_depth_image_changes_over_time(page: tuple[Any, list[str]]) -> None:
     assert img0 != img1
     assert pg.evaluate("window.fringescope.streamKind") == "stream"  # the WebSocket, not polling
     # The canvas holds the depth part only, at the sensor's aspect ratio, TURBO-coloured.
-    w, h = pg.evaluate("[document.querySelector('#depth').width, document.querySelector('#depth').height]")
+    w, h = pg.evaluate(
+        "[document.querySelector('#depth').width, document.querySelector('#depth').height]"
+    )
     sw, sh = pg.evaluate("window.fringescope.sensor")
     assert abs(w / h - sw / sh) < 0.02
     rgb = cv2.imdecode(np.frombuffer(img1, np.uint8), cv2.IMREAD_COLOR)[..., ::-1].reshape(-1, 3)
@@ -100,7 +104,9 @@ def test_3d_view_renders_points(page: tuple[Any, list[str]], server: str) -> Non
     assert errors == []
 
 
-def test_controls_take_their_ranges_from_the_limits_route(page: tuple[Any, list[str]], server: str) -> None:
+def test_controls_take_their_ranges_from_the_limits_route(
+    page: tuple[Any, list[str]], server: str
+) -> None:
     """The LED choices, exposure range and colour range come from GET /api/limits (not the page)."""
     pg, errors = page
     limits = httpx.get(f"{server}/api/limits").json()
@@ -120,29 +126,46 @@ def test_exposure_slider_reaches_status(page: tuple[Any, list[str]], server: str
     target = 37 if round(before) != 37 else 41
     pg.locator("#exposure").fill(str(target))
     assert pg.text_content("#exposure-value") == str(target)
-    ok = wait_for(lambda: httpx.get(f"{server}/api/status").json()["exposure_ms"] == target, 10, 0.2)
+    ok = wait_for(
+        lambda: httpx.get(f"{server}/api/status").json()["exposure_ms"] == target, 10, 0.2
+    )
     assert ok, httpx.get(f"{server}/api/status").json()["exposure_ms"]
     assert errors == []
 
 
-def test_schedule_selector_lists_predictions_and_switches(page: tuple[Any, list[str]], server: str) -> None:
-    """The selector shows every registered schedule with its predicted σ and order-error rate; choosing
-    one reaches the status, and the schedule line follows."""
+def test_schedule_selector_lists_predictions_and_switches(
+    page: tuple[Any, list[str]], server: str
+) -> None:
+    """The selector shows every registered schedule with its predicted σ and order-error rate;
+    choosing one reaches the status, and the schedule line follows."""
     pg, errors = page
     rows = httpx.get(f"{server}/api/schedules").json()
     pg.wait_for_function("document.querySelectorAll('#schedule option').length > 0", timeout=10_000)
-    options = pg.evaluate("[...document.querySelectorAll('#schedule option')].map(o => [o.value, o.textContent])")
+    options = pg.evaluate(
+        "[...document.querySelectorAll('#schedule option')].map(o => [o.value, o.textContent])"
+    )
     assert [v for v, _ in options] == [r["name"] for r in rows]
     assert all("frames" in text and "order err" in text and "σ" in text for _, text in options)
     try:
         pg.select_option("#schedule", "geometric-9")
-        ok = wait_for(lambda: httpx.get(f"{server}/api/status").json()["schedule"]["name"] == "geometric-9", 20, 0.2)
+        ok = wait_for(
+            lambda: httpx.get(f"{server}/api/status").json()["schedule"]["name"] == "geometric-9",
+            20,
+            0.2,
+        )
         assert ok, httpx.get(f"{server}/api/status").json()["schedule"]
-        pg.wait_for_function("document.querySelector('#schedule-line').textContent.includes('[1, 6, 36] × 3')",
-                             timeout=10_000)
+        pg.wait_for_function(
+            "document.querySelector('#schedule-line').textContent.includes('[1, 6, 36] × 3')",
+            timeout=10_000,
+        )
     finally:
-        httpx.put(f"{server}/api/schedule", json={"name": "paper-16"}, timeout=30)  # builds an engine, waits a set
-        assert wait_for(lambda: len(httpx.get(f"{server}/api/result/latest").json()["frame_indices"]) == 16, 60, 0.2)
+        # builds an engine, waits a set
+        httpx.put(f"{server}/api/schedule", json={"name": "paper-16"}, timeout=30)
+        assert wait_for(
+            lambda: len(httpx.get(f"{server}/api/result/latest").json()["frame_indices"]) == 16,
+            60,
+            0.2,
+        )
     assert errors == []
 
 
@@ -163,7 +186,10 @@ def test_roi_drag_maps_to_sensor_pixels_and_measures(page: tuple[Any, list[str]]
     roi = req.value.post_data_json["roi"]
     # Display position → sensor pixels (the canvas is scaled to fit the panel).
     expected = [0.25 * sw, 0.30 * sh, 0.55 * sw, 0.70 * sh]
-    assert all(abs(a - b) <= 0.01 * sw + 2 for a, b in zip(roi, expected, strict=True)), (roi, expected)
+    assert all(abs(a - b) <= 0.01 * sw + 2 for a, b in zip(roi, expected, strict=True)), (
+        roi,
+        expected,
+    )
     pg.wait_for_function("!document.querySelector('#roi-result').textContent.startsWith('measuring')",
                          timeout=60_000)
     text = pg.text_content("#roi-result") or ""
@@ -175,13 +201,20 @@ def test_record_button_records_and_lists(page: tuple[Any, list[str]], server: st
     pg, errors = page
     pg.fill("#record-name", "browser_take")
     pg.click("#btn-record")
-    assert wait_for(lambda: httpx.get(f"{server}/api/status").json().get("recording") == "browser_take", 15, 0.2)
-    pg.wait_for_function("document.querySelector('#btn-record').textContent.includes('Stop')", timeout=15_000)
+    assert wait_for(
+        lambda: httpx.get(f"{server}/api/status").json().get("recording") == "browser_take", 15, 0.2
+    )
+    pg.wait_for_function(
+        "document.querySelector('#btn-record').textContent.includes('Stop')", timeout=15_000
+    )
     pg.wait_for_timeout(3000)  # let at least one set be written
     pg.click("#btn-record")
-    assert wait_for(lambda: httpx.get(f"{server}/api/status").json().get("recording") is None, 30, 0.2)
+    assert wait_for(
+        lambda: httpx.get(f"{server}/api/status").json().get("recording") is None, 30, 0.2
+    )
     pg.wait_for_function(
-        "[...document.querySelectorAll('#recordings a')].some(a => a.textContent.startsWith('browser_take'))",
+        "[...document.querySelectorAll('#recordings a')]"
+        ".some(a => a.textContent.startsWith('browser_take'))",
         timeout=15_000,
     )
     names = [r["name"] for r in httpx.get(f"{server}/api/recordings").json()]

@@ -32,7 +32,9 @@ WATCHED = "#depth, #statusbar, #statusbar > *, #warnings, .depth-panel .panel-he
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[str]:
+def server(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Iterator[str]:
     with live_server(tmp_path_factory, request, "layout-data", viewer=False) as base:
         yield base
 
@@ -55,7 +57,9 @@ def open_page(browser: Any, server: str, width: int) -> Any:
     pg = browser.new_page(viewport={"width": width, "height": 1000}, bypass_csp=True)
     pg.goto(server + "/", wait_until="load")
     # live: a depth image drawn (the canvas takes the sensor's aspect) and the status polled
-    pg.wait_for_function("window.fringescope.framesShown >= 1 && window.fringescope.status", timeout=120_000)
+    pg.wait_for_function(
+        "window.fringescope.framesShown >= 1 && window.fringescope.status", timeout=120_000
+    )
     pg.wait_for_timeout(1500)  # the colour range from /api/limits, a second status
     return pg
 
@@ -68,7 +72,11 @@ def moved(before: list[list[float]], after: list[list[float]]) -> float:
     """Largest change of any coordinate, px (inf if elements came or went)."""
     if len(before) != len(after):
         return float("inf")
-    return max(abs(a - b) for ba, bb in zip(before, after, strict=True) for a, b in zip(ba, bb, strict=True))
+    return max(
+        abs(a - b)
+        for ba, bb in zip(before, after, strict=True)
+        for a, b in zip(ba, bb, strict=True)
+    )
 
 
 @pytest.mark.parametrize("width", [1280, 1600, 1920])
@@ -89,17 +97,21 @@ def test_depth_image_does_not_move_over_live_updates(browser: Any, server: str, 
         frames = pg.evaluate("window.fringescope.framesShown") - frames0
         assert frames >= 2, f"only {frames} depth images in {WATCH_S} s: not a live page"
         assert len(texts) >= 3, "the status texts did not change: nothing was updated"
-        assert worst <= TOLERANCE_PX, f"at {width} px the layout moved by {worst:.1f} px during live updates"
+        assert worst <= TOLERANCE_PX, (
+            f"at {width} px the layout moved by {worst:.1f} px during live updates"
+        )
 
         # every status field at its narrowest and its widest, a warning, a fault: still put
         for value, state in (("0", "stopped"), ("88888.8", "calibrating"), ("–", "fault")):
             pg.evaluate(
                 """([value, state]) => {
-                  for (const id of ["m-camera", "m-depth", "m-latency", "m-dropped", "m-incomplete"])
+                  for (const id of ["m-camera", "m-depth", "m-latency", "m-dropped",
+                                    "m-incomplete"])
                     document.getElementById(id).textContent = value;
                   document.getElementById("m-mode").textContent = value === "0" ? "set" : "rolling";
                   document.getElementById("m-sensor").textContent =
-                    value === "0" ? "8-bit" : "16-bit · heterodyne [1, 4.25, 12.5, 36.75]×12 horizontal";
+                    value === "0" ? "8-bit"
+                                  : "16-bit · heterodyne [1, 4.25, 12.5, 36.75]×12 horizontal";
                   document.getElementById("state").textContent = state;
                   const w = document.getElementById("warnings");
                   w.hidden = value === "0";
@@ -112,14 +124,21 @@ def test_depth_image_does_not_move_over_live_updates(browser: Any, server: str, 
                 [value, state],
             )
             worst = moved(first, boxes(pg))
-            assert worst <= TOLERANCE_PX, f"at {width} px status texts {value!r}/{state!r} moved the layout {worst:.1f} px"
+            assert worst <= TOLERANCE_PX, (
+                f"at {width} px status texts {value!r}/{state!r} moved the layout {worst:.1f} px"
+            )
         assert errors == []
     finally:
         pg.close()
 
 
 def tick_values(pg: Any) -> list[float]:
-    return [float(t) for t in pg.evaluate("[...document.querySelectorAll('#bar-ticks .tick')].map(t => t.textContent)")]
+    return [
+        float(t)
+        for t in pg.evaluate(
+            "[...document.querySelectorAll('#bar-ticks .tick')].map(t => t.textContent)"
+        )
+    ]
 
 
 def test_sigma_mode_shows_a_sigma_colour_bar_in_mm(browser: Any, server: str) -> None:
@@ -146,7 +165,9 @@ def test_sigma_mode_shows_a_sigma_colour_bar_in_mm(browser: Any, server: str) ->
         assert pg.evaluate("window.fringescope.streamKind") == "poll"
         assert moved(first, boxes(pg)) <= TOLERANCE_PX
         # a σ range typed in is the one asked for and shown
-        with pg.expect_response(lambda r: "field=sigma" in r.url and "max_mm=0.05" in r.url, timeout=30_000):
+        with pg.expect_response(
+            lambda r: "field=sigma" in r.url and "max_mm=0.05" in r.url, timeout=30_000
+        ):
             pg.fill("#range-max", "0.05")
             pg.dispatch_event("#range-max", "change")
         assert tick_values(pg)[-1] == pytest.approx(0.05)
@@ -158,7 +179,10 @@ def test_sigma_mode_shows_a_sigma_colour_bar_in_mm(browser: Any, server: str) ->
         assert f"max_mm={hi:g}" in back.value.url, back.value.url
         assert pg.text_content("#bar-title") == "height, mm"
         assert tick_values(pg) == height_ticks
-        assert [float(pg.input_value("#range-min")), float(pg.input_value("#range-max"))] == [lo, hi]
+        assert [float(pg.input_value("#range-min")), float(pg.input_value("#range-max"))] == [
+            lo,
+            hi,
+        ]
         assert moved(first, boxes(pg)) <= TOLERANCE_PX
     finally:
         pg.close()

@@ -15,7 +15,8 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 def test_click_two_points_reads_the_length(page: tuple[Any, list[str]], server: str) -> None:  # noqa: F811
     pg, errors = page
-    assert httpx.post(f"{server}/api/acquisition/stop").status_code == 200  # hold the depth map still
+    # hold the depth map still
+    assert httpx.post(f"{server}/api/acquisition/stop").status_code == 200
     try:
         pg.wait_for_timeout(1500)
         pg.evaluate("window.scrollTo(0, 0)")
@@ -23,18 +24,25 @@ def test_click_two_points_reads_the_length(page: tuple[Any, list[str]], server: 
         box = pg.locator("#roi").bounding_box()
         assert box is not None
         sw, sh = pg.evaluate("window.fringescope.sensor")
-        with pg.expect_response(lambda r: r.url.endswith("/api/measure") and r.request.method == "POST") as resp:
+        with pg.expect_response(
+            lambda r: r.url.endswith("/api/measure") and r.request.method == "POST"
+        ) as resp:
             pg.mouse.click(box["x"] + 0.35 * box["width"], box["y"] + 0.40 * box["height"])
             pg.mouse.click(box["x"] + 0.60 * box["width"], box["y"] + 0.55 * box["height"])
         assert resp.value.status == 200, resp.value.text()
-        pg.wait_for_function("document.querySelector('#measure-result').dataset.value !== undefined", timeout=30_000)
+        pg.wait_for_function(
+            "document.querySelector('#measure-result').dataset.value !== undefined", timeout=30_000
+        )
         shown = pg.text_content("#measure-value") or ""
         value = float(pg.get_attribute("#measure-result", "data-value") or "nan")
         sigma = float(pg.get_attribute("#measure-result", "data-sigma") or "nan")
         assert shown == f"{value:.3f} ± {sigma:.3f} mm", shown
         points = pg.evaluate("window.fringescope.measure.points")
         # display position → sensor pixels
-        assert abs(points[0][0] - 0.35 * sw) <= 0.01 * sw + 2 and abs(points[1][1] - 0.55 * sh) <= 0.01 * sh + 2
+        assert (
+            abs(points[0][0] - 0.35 * sw) <= 0.01 * sw + 2
+            and abs(points[1][1] - 0.55 * sh) <= 0.01 * sh + 2
+        )
         r = httpx.post(f"{server}/api/measure", json={"kind": "length", "points": points})
         assert r.status_code == 200, r.text
         assert r.json()["value_mm"] == pytest.approx(value, rel=1e-9)
@@ -48,7 +56,9 @@ def test_click_two_points_reads_the_length(page: tuple[Any, list[str]], server: 
         assert drawn > 200
         pg.click("#measure-clear")
         pg.select_option("#measure-kind", "")
-        assert wait_for(lambda: httpx.get(f"{server}/api/measure/tool").json()["measurements"] == [], 10, 0.1)
+        assert wait_for(
+            lambda: httpx.get(f"{server}/api/measure/tool").json()["measurements"] == [], 10, 0.1
+        )
         assert errors == []
     finally:
         httpx.post(f"{server}/api/acquisition/start")

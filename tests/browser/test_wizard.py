@@ -95,8 +95,9 @@ def test_session_survives_a_reload_and_cancel_frees_the_schedule(page: tuple[Any
 
     # the twin puts its board (the session's spec) where the wizard suggests: found
     pg.click("#btn-suggest")
-    pg.wait_for_function("document.querySelector('#pose-line').textContent.includes('Capture pose')",
-                         timeout=60_000)
+    pg.wait_for_function(
+        "document.querySelector('#pose-line').textContent.includes('Capture pose')", timeout=60_000
+    )
     assert "pose 0 of 8" in (pg.text_content("#pose-line") or "")
     pg.wait_for_timeout(2000)  # frames in flight may predate the move
     pg.click("#btn-capture")

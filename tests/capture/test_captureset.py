@@ -65,7 +65,10 @@ def test_mismatched_shapes_and_dtypes(tmp_path):
 def test_frame_count_and_format_checked(tmp_path):
     with pytest.raises(ValueError, match="^frames"):
         CaptureSet(_frames(np.uint8, f=15))
-    assert CaptureSet(_frames(np.uint8, f=12), PatternSchedule(frequencies=(1, 4, 16))).frames.shape[0] == 12
+    assert (
+        CaptureSet(_frames(np.uint8, f=12), PatternSchedule(frequencies=(1, 4, 16))).frames.shape[0]
+        == 12
+    )
     write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8)))
     meta_path = tmp_path / "s" / "capture.json"
     meta = json.loads(meta_path.read_text())
@@ -129,8 +132,14 @@ def test_colour_frames_decode_one_channel(tmp_path, led, channel, plane):
 
 
 def test_heterodyne_and_horizontal_pattern_keys(tmp_path):
-    sched = PatternSchedule(frequencies=(1920 / 48, 1920 / 45, 1920 / 42), steps=3, width=1920, height=1080,
-                            orientation="horizontal", unwrap="heterodyne")
+    sched = PatternSchedule(
+        frequencies=(1920 / 48, 1920 / 45, 1920 / 42),
+        steps=3,
+        width=1920,
+        height=1080,
+        orientation="horizontal",
+        unwrap="heterodyne",
+    )
     assert sched.axis_length == 1080
     write_capture_set(tmp_path / "s", CaptureSet(_frames(np.uint8, 9), schedule=sched))
     back = read_capture_set(tmp_path / "s")

@@ -1,4 +1,5 @@
-"""Frame sizes from PNG, TIFF and .npy.zst headers, checked against limits before anything is decoded."""
+"""Frame sizes from PNG, TIFF and .npy.zst headers, checked against limits before anything is
+decoded."""
 
 from __future__ import annotations
 

@@ -27,7 +27,10 @@ def test_round_trip_valid_points_only(tmp_path):
     head = path.read_bytes()[:200].decode("ascii", "replace")
     assert head.startswith("ply\nformat binary_little_endian 1.0\n")
     assert f"element vertex {valid.sum()}\n" in head
-    assert "property float x\nproperty float y\nproperty float z\nproperty uchar intensity\nend_header\n" in head
+    assert (
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar intensity\nend_header\n" in head
+    )
     assert len(path.read_bytes()) == head.index("end_header\n") + 11 + 13 * valid.sum()
 
 
@@ -45,8 +48,12 @@ def test_float_intensity_scaled_and_nan_points_skipped():
 def read_ply_bytes(data: bytes):
     end = data.index(b"end_header\n") + 11
     n = int(data.split(b"element vertex ")[1].split(b"\n")[0])
-    return np.frombuffer(data, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")]),
-                         count=n, offset=end)
+    return np.frombuffer(
+        data,
+        np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1")]),
+        count=n,
+        offset=end,
+    )
 
 
 def test_empty_cloud():

@@ -45,7 +45,9 @@ def make_set(seed: int, dtype: type = np.uint8) -> tuple[CaptureSet, np.ndarray]
 def test_round_trip_sets_and_depth(tmp_path: Path) -> None:
     rec = Recording(tmp_path, "session-1", settings={"exposure_ms": 25.0})
     written = [make_set(i, np.uint8 if i % 2 else np.uint16) for i in range(3)]
-    folders = [rec.add_set(c, depth_mm=d, timestamp=1_700_000_000 + i) for i, (c, d) in enumerate(written)]
+    folders = [
+        rec.add_set(c, depth_mm=d, timestamp=1_700_000_000 + i) for i, (c, d) in enumerate(written)
+    ]
     assert folders == ["set_0000", "set_0001", "set_0002"]
     summary = rec.close()
     assert summary["stopped"] is not None and len(summary["sets"]) == 3
@@ -64,13 +66,29 @@ def test_round_trip_sets_and_depth(tmp_path: Path) -> None:
 
     (listed,) = list_recordings(tmp_path)
     assert listed["name"] == "session-1" and listed["n_sets"] == 3
-    assert listed["bytes"] == sum(f.stat().st_size for f in (tmp_path / "session-1").rglob("*") if f.is_file())
+    assert listed["bytes"] == sum(
+        f.stat().st_size for f in (tmp_path / "session-1").rglob("*") if f.is_file()
+    )
     with pytest.raises(ValueError, match="closed"):
         rec.add_set(written[0][0])
 
 
 def test_names_cannot_escape(tmp_path: Path) -> None:
-    for bad in ["", "../x", "..", ".hidden", "a/b", "a\\b", "x" * 65, "a b", "ü", "a\n", None, 5, "-x"]:
+    for bad in [
+        "",
+        "../x",
+        "..",
+        ".hidden",
+        "a/b",
+        "a\\b",
+        "x" * 65,
+        "a b",
+        "ü",
+        "a\n",
+        None,
+        5,
+        "-x",
+    ]:
         with pytest.raises(ValueError, match="recording name"):
             validate_name(bad, "recording name")
         with pytest.raises(ValueError):
@@ -120,14 +138,18 @@ def test_depth_exports() -> None:
     back = tifffile.imread(io.BytesIO(depth_tiff_bytes(depth)))
     assert back.dtype == np.float32 and back.shape == (2, 2)
     np.testing.assert_array_equal(back, depth.astype(np.float32))
-    np.testing.assert_array_equal(np.load(io.BytesIO(depth_npy_bytes(depth))), depth.astype(np.float32))
+    np.testing.assert_array_equal(
+        np.load(io.BytesIO(depth_npy_bytes(depth))), depth.astype(np.float32)
+    )
     with pytest.raises(ValueError, match="depth_mm"):
         depth_tiff_bytes(np.zeros(3))
     with pytest.raises(ValueError, match="depth_mm"):
         depth_npy_bytes(np.zeros((2, 2), dtype=np.uint8))
 
 
-def test_exception_mid_write_keeps_earlier_sets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_exception_mid_write_keeps_earlier_sets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     rec = Recording(tmp_path, "r")
     cap0, depth0 = make_set(0)
     rec.add_set(cap0, depth_mm=depth0)
@@ -146,7 +168,11 @@ def test_exception_mid_write_keeps_earlier_sets(tmp_path: Path, monkeypatch: pyt
         rec.add_set(make_set(2)[0])
     monkeypatch.undo()
     assert read_session(tmp_path, "r")["n_sets"] == 2
-    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["session.json", "set_0000", "set_0001"]
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
+        "session.json",
+        "set_0000",
+        "set_0001",
+    ]
     # the session goes on: the next set takes the free slot
     assert rec.add_set(make_set(3)[0]) == "set_0002"
     assert read_session(tmp_path, "r")["n_sets"] == 3

@@ -35,10 +35,14 @@ RUN = [*PODMAN, "run", "--runtime", "runc", "--network", "host",
 TOKEN = "container-test-token-7f3a"
 
 
-def podman(*args: str, timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess[str]:
+def podman(
+    *args: str, timeout: float = 300, check: bool = True
+) -> subprocess.CompletedProcess[str]:
     proc = subprocess.run([*PODMAN, *args], capture_output=True, text=True, timeout=timeout)
     if check and proc.returncode != 0:
-        raise AssertionError(f"podman {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+        raise AssertionError(
+            f"podman {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}"
+        )
     return proc
 
 
@@ -49,17 +53,38 @@ def image_id(name: str) -> str | None:
 
 def ensure_base_image() -> None:
     if shutil.which("podman") is None:
-        pytest.skip("podman is not installed (make test installs it: scripts/install-system-deps.sh)")
+        pytest.skip(
+            "podman is not installed (make test installs it: scripts/install-system-deps.sh)"
+        )
     if podman("image", "exists", BASE_IMAGE, check=False).returncode != 0:
         if not BASE_SCRIPT.is_file():
             pytest.skip(f"no {BASE_IMAGE} image and no {BASE_SCRIPT} to make a local stand-in")
-        proc = subprocess.run(["bash", str(BASE_SCRIPT)], capture_output=True, text=True, timeout=1200)
+        proc = subprocess.run(
+            ["bash", str(BASE_SCRIPT)], capture_output=True, text=True, timeout=1200
+        )
         assert proc.returncode == 0, f"{BASE_SCRIPT} failed:\n{proc.stderr[-3000:]}"
     # The stand-in is imported from a mktemp -d folder, so its "/" may be mode 0700, which
     # no non-root user can traverse (the official image has 0755). Re-import it with 0755.
-    probe = podman("run", "--rm", "--runtime", "runc", "--network", "host", "--ulimit", "nofile=1024:1024",
-                   "--ulimit", "nproc=1024:1024", "--user", "root", BASE_IMAGE, "stat", "-c", "%a", "/",
-                   check=False)
+    probe = podman(
+        "run",
+        "--rm",
+        "--runtime",
+        "runc",
+        "--network",
+        "host",
+        "--ulimit",
+        "nofile=1024:1024",
+        "--ulimit",
+        "nproc=1024:1024",
+        "--user",
+        "root",
+        BASE_IMAGE,
+        "stat",
+        "-c",
+        "%a",
+        "/",
+        check=False,
+    )
     if probe.stdout.strip() == "700":
         with tempfile.TemporaryDirectory(prefix="fs-base-") as root:
             Path(root).chmod(0o755)
@@ -67,7 +92,9 @@ def ensure_base_image() -> None:
             podman("create", "--name", name, BASE_IMAGE, "/bin/true")
             try:
                 export = subprocess.Popen([*PODMAN, "export", name], stdout=subprocess.PIPE)
-                subprocess.run(["tar", "-C", root, "-x"], stdin=export.stdout, check=True, timeout=600)
+                subprocess.run(
+                    ["tar", "-C", root, "-x"], stdin=export.stdout, check=True, timeout=600
+                )
                 assert export.wait(60) == 0
             finally:
                 podman("rm", "-f", name, check=False)
@@ -144,9 +171,13 @@ def test_image_serves_dashboard_viewer_and_api(built_image: str, tmp_path: Path)
             except OSError:
                 pass
             running = podman("inspect", "--format", "{{.State.Running}}", name, check=False)
-            assert running.stdout.strip() == "true", podman("logs", name, check=False).stderr[-3000:]
+            assert running.stdout.strip() == "true", podman("logs", name, check=False).stderr[
+                -3000:
+            ]
             time.sleep(2)
-        assert status, f"no /api/status within 300 s:\n{podman('logs', name, check=False).stderr[-3000:]}"
+        assert status, (
+            f"no /api/status within 300 s:\n{podman('logs', name, check=False).stderr[-3000:]}"
+        )
         assert status["state"] in ("starting", "calibrating", "running", "stalled", "fault")
         assert any(d["kind"] == "camera" and d["name"].startswith("sim") for d in status["devices"])  # type: ignore[attr-defined]
 
@@ -169,7 +200,9 @@ def test_image_serves_dashboard_viewer_and_api(built_image: str, tmp_path: Path)
         assert http("PUT", f"{base}/api/exposure", token=TOKEN, body={"exposure_ms": 12})[0] == 200
 
         # a recording lands in the volume, owned by the container's non-root user
-        code, _, body = http("POST", f"{base}/api/recording/start", token=TOKEN, body={"name": "vol"})
+        code, _, body = http(
+            "POST", f"{base}/api/recording/start", token=TOKEN, body={"name": "vol"}
+        )
         assert code == 200, body
         session = data / "recordings" / "vol" / "session.json"
         assert session.is_file()

@@ -17,7 +17,9 @@ def test_round_trip_writes_design_keys(board_type):
 
 
 def test_legacy_grid_key_and_extra_keys_are_read():
-    spec = BoardSpec.from_dict({"type": "circles", "grid": [6, 4], "spacing_mm": 2.0, "circle_diameter_mm": 1.0})
+    spec = BoardSpec.from_dict(
+        {"type": "circles", "grid": [6, 4], "spacing_mm": 2.0, "circle_diameter_mm": 1.0}
+    )
     assert spec == BoardSpec("circles", 6, 4, 2.0)
 
 

@@ -4,7 +4,6 @@ equal-phase intersections, the fit, serialisation and the supported region."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -12,9 +11,7 @@ from scipy.optimize import brentq
 
 from app.calib.calibration import load_calibration, save_calibration
 from app.calib.model import undistort_points
-from app.core.calibration import Calibration
 from app.core.depth_model import (
-    BoardSamples,
     ReferencePlane,
     SupportedRegion,
 )
@@ -25,43 +22,36 @@ from app.core.reasons import Reason
 from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 from app.recon.model import calibration_model_tables, evaluate_height
-
-
-def _geometric_of(rig: Rig, k1: float = 0.0) -> GeometricModel:
-    return rig.geometric_model(k1)
-
-
-def _calibration(rig: Rig, model, dist=None, height_range_mm=(0.0, 30.0)) -> Calibration:
-    return Calibration(rig.K, np.zeros(5) if dist is None else dist, (rig.width, rig.height), rig.n,
-                       rig.plane_offset_mm, model=model, pattern=rig.schedule, height_range_mm=height_range_mm)
+from tests.helpers.analytic_models import (
+    band_samples,
+    board_samples,
+    geometric_of,
+    projector_phase,
+    rig_calibration,
+)
 
 
 def test_geometric_model_matches_the_closed_form_pinhole_rig():
     rig = Rig()
-    cal = _calibration(rig, _geometric_of(rig))
+    cal = rig_calibration(rig, geometric_of(rig))
     tables = calibration_model_tables(cal)
-    for h in (bump_surface(rig), np.zeros((rig.height, rig.width)), np.full((rig.height, rig.width), 30.0)):
+    for h in (
+        bump_surface(rig),
+        np.zeros((rig.height, rig.width)),
+        np.full((rig.height, rig.width), 30.0),
+    ):
         height, singular = evaluate_height(tables, rig.finest_phase(h))
         assert not singular.any()
         assert np.max(np.abs(height - h)) < 1e-6  # mm
-
-
-def _projector_phase(model: GeometricModel, x: np.ndarray) -> np.ndarray:
-    """Forward model: camera-frame points (n, 3) → finest phase, through the distortion."""
-    r = model.rotation
-    xn = (x @ r[0] + model.t_mm[0]) / (x @ r[2] + model.t_mm[2])
-    xd = np.array([brentq(lambda d, target=t: d * (1 + model.k1 * d * d) - target, -1.0, 1.0) for t in xn])
-    xp = model.focal_px * xd + model.principal_px
-    return 2 * math.pi * model.fringes * xp / model.projector_width_px
 
 
 def test_equal_phase_intersection_against_brute_force():
     """Camera with barrel distortion, projector with k1: the closed form equals a root search
     along each undistorted ray for the point whose projector phase is φ."""
     rig = Rig()
-    model = _geometric_of(rig, k1=-0.08)
+    model = geometric_of(rig, k1=-0.08)
     dist = np.array([-0.25, 0.05, 0.0, 0.0, 0.0])
-    cal = _calibration(rig, model, dist)
+    cal = rig_calibration(rig, model, dist)
     plane = cal.reference_plane
     rng = np.random.default_rng(1)
     u, v = rng.uniform(0, rig.width - 1, 300), rng.uniform(0, rig.height - 1, 300)
@@ -69,13 +59,17 @@ def test_equal_phase_intersection_against_brute_force():
     rays = undistort_points(np.stack([u, v], 1), rig.K, dist)
     r3 = np.concatenate([rays, np.ones((300, 1))], axis=1)
     x = r3 * ((h_true - plane.offset_mm) / (r3 @ plane.normal))[:, None]
-    phi = _projector_phase(model, x)
+    phi = projector_phase(model, x)
     # brute force: for the measured φ find s on the ray with phase(s·r) = φ
     brute = []
     for ri, pi, xi in zip(r3, phi, x, strict=True):
         s0 = xi[2]
-        s = brentq(lambda s, ri=ri, pi=pi: _projector_phase(model, (s * ri)[None])[0] - pi, 0.5 * s0, 1.5 * s0,
-                   xtol=1e-13)
+        s = brentq(
+            lambda s, ri=ri, pi=pi: projector_phase(model, (s * ri)[None])[0] - pi,
+            0.5 * s0,
+            1.5 * s0,
+            xtol=1e-13,
+        )
         brute.append((s * ri) @ plane.normal + plane.offset_mm)
     closed = model.height_at(u, v, rays, phi, plane)
     np.testing.assert_allclose(closed, brute, atol=1e-6)
@@ -89,28 +83,17 @@ def test_equal_phase_intersection_against_brute_force():
     phi_i = np.full((rig.height, rig.width), np.nan)
     phi_i[vi, ui] = phi
     h_tab, _ = evaluate_height(tables, phi_i)
-    np.testing.assert_allclose(h_tab[vi, ui], model.height_at(ui, vi, rays_i, phi, plane), atol=1e-6)
-
-
-def _samples(rig: Rig, model: GeometricModel, dist: np.ndarray, plane: ReferencePlane, n: int = 3000,
-             seed: int = 2) -> BoardSamples:
-    rng = np.random.default_rng(seed)
-    u, v = rng.uniform(0, rig.width - 1, n), rng.uniform(0, rig.height - 1, n)
-    z = rng.uniform(0.0, 30.0, n)
-    rays = undistort_points(np.stack([u, v], 1), rig.K, dist)
-    r3 = np.concatenate([rays, np.ones((n, 1))], axis=1)
-    x = r3 * ((z - plane.offset_mm) / (r3 @ plane.normal))[:, None]
-    phi = _projector_phase(model, x)
-    return BoardSamples(u, v, rays, phi, z, (np.arange(n) % 6).astype(np.int64), (rig.width, rig.height),
-                        rig.schedule.frequencies[-1], rig.schedule.width)
+    np.testing.assert_allclose(
+        h_tab[vi, ui], model.height_at(ui, vi, rays_i, phi, plane), atol=1e-6
+    )
 
 
 def test_geometric_fit_recovers_the_projector():
     rig = Rig()
-    truth = _geometric_of(rig, k1=-0.05)
+    truth = geometric_of(rig, k1=-0.05)
     dist = np.array([-0.2, 0.0, 0.0, 0.0, 0.0])
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    samples = _samples(rig, truth, dist, plane)
+    samples = board_samples(rig, truth, dist, plane)
     fitted = GeometricModel.fit(samples, plane)
     assert fitted.focal_px == pytest.approx(truth.focal_px, rel=1e-6)
     assert fitted.principal_px == pytest.approx(truth.principal_px, abs=1e-4)
@@ -124,19 +107,19 @@ def test_geometric_fit_recovers_the_projector():
 def test_geometric_fit_refuses_too_few_points():
     rig = Rig()
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    s = _samples(rig, _geometric_of(rig), np.zeros(5), plane, n=10)
+    s = board_samples(rig, geometric_of(rig), np.zeros(5), plane, n=10)
     with pytest.raises(ValueError, match="at least 20 control points"):
         GeometricModel.fit(s, plane)
 
 
 def test_models_serialise_and_v2_file_round_trips(tmp_path):
     rig = Rig()
-    geo = _geometric_of(rig, k1=-0.01)
+    geo = geometric_of(rig, k1=-0.01)
     geo.region = SupportedRegion(phase_rad=(10.0, 200.0))
     back = depth_model_from_dict(json.loads(json.dumps(geo.to_dict())))
     assert isinstance(back, GeometricModel) and back.region.phase_rad == (10.0, 200.0)
     np.testing.assert_array_equal(back.rvec, geo.rvec)
-    cal = _calibration(rig, geo)
+    cal = rig_calibration(rig, geo)
     cal.held_out = {"eq5": {"rms_mm": 0.01}, "geometric": {"rms_mm": 0.005}}
     path = save_calibration(cal, tmp_path / "c.json")
     data = json.loads(path.read_text())
@@ -154,7 +137,9 @@ def test_version_1_file_loads(tmp_path):
     cal = rig.calibration()
     data = cal.to_dict()
     data["format"] = "fringescope.calibration/1"
-    data["model"] = {k: v for k, v in data["model"].items() if k not in ("name", "supported_region")}
+    data["model"] = {
+        k: v for k, v in data["model"].items() if k not in ("name", "supported_region")
+    }
     del data["held_out"]
     (tmp_path / "v1.json").write_text(json.dumps(data))
     back = load_calibration(tmp_path / "v1.json")
@@ -187,10 +172,11 @@ def test_supported_region_mask_on_a_constructed_case(fast):
 @pytest.mark.parametrize("fast", [False, True])
 def test_geometric_model_reconstructs_in_both_paths(fast):
     rig = Rig()
-    cal = _calibration(rig, _geometric_of(rig))
+    cal = rig_calibration(rig, geometric_of(rig))
     h = bump_surface(rig)
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     assert res.valid.mean() > 0.99
     err = np.abs(res.depth - h)[res.valid]
     assert np.percentile(err, 99) < 0.01
@@ -205,8 +191,9 @@ def test_projector_field_bounds_the_geometric_model(fast):
     phi = rig.finest_phase(h)
     cut = float(np.median(phi))
     cal.model.region = SupportedRegion(phase_rad=(-1.0, cut))
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     clear = np.abs(phi - cut) > 1e-3
     out = res.reason == Reason.OUTSIDE_FIELD
     assert np.array_equal(out[clear], (phi > cut)[clear])
@@ -232,7 +219,7 @@ def test_field_ellipse_column_bounds_and_outside_on_a_constructed_case():
 
 def test_field_ellipse_round_trips_and_old_version_2_files_load(tmp_path):
     rig = Rig()
-    cal = _calibration(rig, _geometric_of(rig))
+    cal = rig_calibration(rig, geometric_of(rig))
     cal.model.region = SupportedRegion(phase_rad=(1.0, 2.0), field_px=(320.0, 240.0, 200.5, 150.25))
     back = load_calibration(save_calibration(cal, tmp_path / "c.json"))
     assert back.model.region.field_px == (320.0, 240.0, 200.5, 150.25)
@@ -255,8 +242,9 @@ def test_field_ellipse_refuses_depth_beyond_it_in_both_paths(fast):
     field = (rig.width * 0.45, rig.height * 0.55, rig.width * 0.3, rig.height * 0.35)
     cal.model.region = SupportedRegion(field_px=field)
     h = bump_surface(rig)
-    res = Reconstructor(cal, fast=fast).run(rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256,
-                                                       amplitude=90 * 256))
+    res = Reconstructor(cal, fast=fast).run(
+        rig.render(h, noise=0.0, dtype=np.uint16, background=110 * 256, amplitude=90 * 256)
+    )
     vv, uu = np.mgrid[0:rig.height, 0:rig.width]
     e = ((uu - field[0]) / field[2]) ** 2 + ((vv - field[1]) / field[3]) ** 2
     clear = np.abs(e - 1.0) > 1e-3
@@ -269,43 +257,33 @@ def test_geometric_fit_keeps_a_pinhole_projector_when_k1_does_not_predict_held_o
     the inner ones) worse than a pinhole, so it is fixed at 0; the field is the data's phase
     range extended by the verified extrapolation, a sixth of the range each side."""
     rig = Rig()
-    truth = _geometric_of(rig, k1=0.0)
+    truth = geometric_of(rig, k1=0.0)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    samples = _samples(rig, truth, np.zeros(5), plane)
+    samples = board_samples(rig, truth, np.zeros(5), plane)
     samples.phi = samples.phi + np.random.default_rng(5).normal(0.0, 0.02, samples.phi.shape)
     fitted = GeometricModel.fit(samples, plane)
     assert fitted.k1 == 0.0
     lo, hi = fitted.region.phase_rad
     span = samples.phi.max() - samples.phi.min()
-    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(samples.phi.max() + span / 6.0)
-
-
-def _band_samples(rig: Rig, model: GeometricModel, plane: ReferencePlane, z_mm: tuple[float, float],
-                  noise_rad: float, seed: int, n: int = 3000) -> BoardSamples:
-    """Samples over the whole image but only within the height band ``z_mm``, phase noise added."""
-    s = _samples(rig, model, np.zeros(5), plane, n=n, seed=seed)
-    rng = np.random.default_rng(seed + 1000)
-    z = rng.uniform(z_mm[0], z_mm[1], n)
-    r3 = np.concatenate([s.ray_xy, np.ones((n, 1))], axis=1)
-    x = r3 * ((z - plane.offset_mm) / (r3 @ plane.normal))[:, None]
-    phi = _projector_phase(model, x) + rng.normal(0.0, noise_rad, n)
-    return BoardSamples(s.u, s.v, s.ray_xy, phi, z, s.pose, s.image_size, s.fringes, s.projector_width_px)
+    assert lo == pytest.approx(samples.phi.min() - span / 6.0) and hi == pytest.approx(
+        samples.phi.max() + span / 6.0
+    )
 
 
 def test_phase_of_points_inverts_the_equal_phase_surfaces():
     rig = Rig()
-    model = _geometric_of(rig, k1=-0.08)
+    model = geometric_of(rig, k1=-0.08)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    s = _samples(rig, model, np.zeros(5), plane, n=200)
+    s = board_samples(rig, model, np.zeros(5), plane, n=200)
     np.testing.assert_allclose(model.phase_of_points(s.points_mm(plane)), s.phi, atol=1e-9)
 
 
 def test_geometric_fit_keeps_a_real_projector_distortion():
     """k1 = −0.05 under phase noise: far beyond its jackknife standard error, so it is kept."""
     rig = Rig()
-    truth = _geometric_of(rig, k1=-0.05)
+    truth = geometric_of(rig, k1=-0.05)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    s = _band_samples(rig, truth, plane, (0.0, 30.0), 0.02, seed=3)
+    s = band_samples(rig, truth, plane, (0.0, 30.0), 0.02, seed=3)
     fitted = GeometricModel.fit(s, plane)
     assert fitted.k1 == pytest.approx(-0.05, abs=0.005)
     assert len(fitted.jackknife) == 6
@@ -319,11 +297,11 @@ def test_geometric_fit_drops_an_insignificant_k1():
     import app.core.geometric as geometric
 
     rig = Rig()
-    truth = _geometric_of(rig, k1=0.0)
+    truth = geometric_of(rig, k1=0.0)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
     kept = kept_held_out_only = 0
     for seed in range(10, 26):
-        s = _band_samples(rig, truth, plane, (0.0, 30.0), 0.05, seed=seed)
+        s = band_samples(rig, truth, plane, (0.0, 30.0), 0.05, seed=seed)
         kept += GeometricModel.fit(s, plane).k1 != 0.0
         confidence = geometric.K1_CONFIDENCE
         try:
@@ -338,20 +316,22 @@ def test_height_sigma_matches_the_monte_carlo_scatter_of_the_fit():
     """The jackknife σ of the fitted model's height, inside the boards' heights and beyond them,
     against the scatter of fits to independent noise draws."""
     rig = Rig()
-    truth = _geometric_of(rig, k1=0.0)
+    truth = geometric_of(rig, k1=0.0)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
     u = np.array([20.0, rig.width / 2, rig.width - 20.0])
     v = np.array([20.0, rig.height / 2, rig.height - 20.0])
     rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
     heights, sig, fitted = (5.0, 15.0, 30.0), [], []
     for seed in range(24):
-        m = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane)
+        m = GeometricModel.fit(
+            band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane
+        )
         assert m.k1 == 0.0
         row_s, row_h = [], []
         for h in heights:
             r3 = np.concatenate([rays, np.ones((3, 1))], axis=1)
             x = r3 * ((h - plane.offset_mm) / (r3 @ plane.normal))[:, None]
-            row_h.append(m.height_at(u, v, rays, _projector_phase(truth, x), plane))
+            row_h.append(m.height_at(u, v, rays, projector_phase(truth, x), plane))
             row_s.append(m.height_sigma(u, v, rays, np.full(3, h), plane))
         sig.append(row_s)
         fitted.append(row_h)
@@ -368,26 +348,36 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
     heights where the model's σ meets the tolerance at its pixels, and no farther (an end
     there is where σ crosses the tolerance); noise-free boards verify the whole margin."""
     rig = Rig()
-    truth = _geometric_of(rig, k1=0.0)
+    truth = geometric_of(rig, k1=0.0)
     plane = ReferencePlane(rig.n, rig.plane_offset_mm)
 
     def rays(uv: np.ndarray) -> np.ndarray:
         return undistort_points(uv, rig.K, np.zeros(5))
 
-    exact = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.0, seed=1), plane)
-    region = exact.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0)
+    exact = GeometricModel.fit(band_samples(rig, truth, plane, (8.0, 22.0), 0.0, seed=1), plane)
+    region = exact.verified_region(
+        (rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0
+    )
     g = region.height_grid_mm
     assert g.shape == (3, 4, 2) and region.cell_px == (rig.width / 4, rig.height / 3)
     assert np.all(g[..., 0] == 0.0) and np.all(g[..., 1] == 30.0)
     assert region.height_allowance_mm == 0.25  # one step for the measured height's noise
     assert region.phase_rad == exact.region.phase_rad
 
-    noisy = GeometricModel.fit(_band_samples(rig, truth, plane, (8.0, 22.0), 0.03, seed=1), plane)
+    noisy = GeometricModel.fit(band_samples(rig, truth, plane, (8.0, 22.0), 0.03, seed=1), plane)
     tol = 0.004
-    region = noisy.verified_region((rig.width, rig.height), plane, rays, (8.0, 22.0), cells=(4, 3), margin_mm=8.0,
-                                   tolerance_mm=tol)
+    region = noisy.verified_region(
+        (rig.width, rig.height),
+        plane,
+        rays,
+        (8.0, 22.0),
+        cells=(4, 3),
+        margin_mm=8.0,
+        tolerance_mm=tol,
+    )
     g = region.height_grid_mm
-    assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)  # the middle of the boards kept …
+    # the middle of the boards kept …
+    assert np.all(g[..., 0] <= 15.0) and np.all(g[..., 1] >= 15.0)
     assert np.sum(g[..., 0] > 0.0) + np.sum(g[..., 1] < 30.0) >= 6  # … the uncertain margin cut
     cw, ch = region.cell_px
     for i in range(3):
@@ -407,8 +397,12 @@ def test_verified_region_keeps_the_heights_where_the_model_is_certain():
 def test_height_allowance_widens_the_bounds_for_measured_heights_only(tmp_path):
     """The grid bounds hold for true heights; a measured one may pass them by the allowance
     (both reconstruction paths), and the allowance round-trips through the file."""
-    region = SupportedRegion(phase_rad=(0.0, 10.0), height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
-                             cell_px=(2.0, 2.0), height_allowance_mm=0.25)
+    region = SupportedRegion(
+        phase_rad=(0.0, 10.0),
+        height_grid_mm=np.array([[[1.0, 2.0], [1.0, -1.0]]]),
+        cell_px=(2.0, 2.0),
+        height_allowance_mm=0.25,
+    )
     h = np.array([[0.8, 2.2, 1.5, 1.5]])
     p = np.full((1, 4), 5.0)
     np.testing.assert_array_equal(region.outside(h, p), [[True, True, True, True]])

@@ -51,4 +51,9 @@ def test_calibration_does_not_carry_over_when_the_finest_phase_changes_meaning(o
 
 def test_calibration_carries_over_across_steps_coarse_frequencies_and_unwrapping():
     assert calibration_mismatch(PatternSchedule(), PatternSchedule((1, 6, 36), 3)) is None
-    assert calibration_mismatch(PatternSchedule(), PatternSchedule((30, 35, 36), 5, unwrap="heterodyne")) is None
+    assert (
+        calibration_mismatch(
+            PatternSchedule(), PatternSchedule((30, 35, 36), 5, unwrap="heterodyne")
+        )
+        is None
+    )

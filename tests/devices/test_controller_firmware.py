@@ -1,5 +1,6 @@
 """The REAL firmware source (hardware/firmware/…/fringescope_controller.ino), built for the host
-with a small Arduino shim, on a pty: same replies as the Python emulator, and the driver works with it."""
+with a small Arduino shim, on a pty: same replies as the Python emulator, and the driver works with
+it."""
 
 from __future__ import annotations
 
@@ -30,7 +31,9 @@ pytestmark = pytest.mark.skipif(shutil.which("g++") is None or shutil.which("mak
 @pytest.fixture(scope="module")
 def firmware_binary(tmp_path_factory) -> Path:
     build = tmp_path_factory.mktemp("fw")
-    subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "host", f"BUILD={build}"], check=True, timeout=120)
+    subprocess.run(
+        ["make", "-s", "-C", str(FIRMWARE_DIR), "host", f"BUILD={build}"], check=True, timeout=120
+    )
     return build / "fringescope_controller_host"
 
 
@@ -53,7 +56,9 @@ class FirmwareOnPty:
         deadline = time.monotonic() + timeout_s
         while b"ready" not in seen:
             if time.monotonic() > deadline:
-                raise TimeoutError(f"firmware printed no boot banner in {timeout_s} s (got {seen!r})")
+                raise TimeoutError(
+                    f"firmware printed no boot banner in {timeout_s} s (got {seen!r})"
+                )
             readable, _, _ = select.select([self._slave], [], [], 0.1)
             if readable:
                 seen += os.read(self._slave, 256)
@@ -103,7 +108,8 @@ def test_firmware_and_emulator_reply_identically(firmware):
             got = port.readline().decode().strip()
             want = proto.handle_line(line)
             if line == "*IDN?":
-                got, want = got.rsplit(",", 1)[0], want.rsplit(",", 1)[0]  # firmware versions differ
+                # firmware versions differ
+                got, want = got.rsplit(",", 1)[0], want.rsplit(",", 1)[0]
             if line == "STAT?":  # pulse count depends on timing; TMODE PASS gets none
                 got, want = got.rsplit(" pulses=", 1)[0], want.rsplit(" pulses=", 1)[0]
             if want.startswith("ERR"):  # messages are for humans: compare the codes
@@ -137,7 +143,12 @@ def test_driver_runs_the_real_firmware_and_its_safety(firmware, tmp_path):
         ctl.arm()
         time.sleep(1.0)  # > 3 watchdog periods: the heartbeat thread keeps it alive
         st = ctl.status()
-        assert st["led"] == "B" and st["cur"] == "0/500/300" and st["armed"] == "1" and st["wdt"] == "ok"
+        assert (
+            st["led"] == "B"
+            and st["cur"] == "0/500/300"
+            and st["armed"] == "1"
+            and st["wdt"] == "ok"
+        )
         (tmp_path / "interlock_open").touch()
         time.sleep(0.05)
         st = ctl.status()

@@ -24,13 +24,21 @@ from tests.helpers.recordings import make_recording
 
 def test_real_backends_are_built_unopened(tmp_path):
     rec = make_recording(tmp_path / "rec", n_sets=1)
-    devs = create_devices(DeviceSpecs(CameraSpec("replay", str(rec)), ProjectorSpec("lightcrafter", "10.0.0.7", 2000),
-                                      ControllerSpec("serial", "usb:2341:0043:FS0001")))
+    devs = create_devices(
+        DeviceSpecs(
+            CameraSpec("replay", str(rec)),
+            ProjectorSpec("lightcrafter", "10.0.0.7", 2000),
+            ControllerSpec("serial", "usb:2341:0043:FS0001"),
+        )
+    )
     assert isinstance(devs, Devices)
     assert isinstance(devs.camera, ReplayCamera) and devs.camera.folder == rec
     assert isinstance(devs.projector, LightCrafterProjector)
     assert (devs.projector.host, devs.projector.port) == ("10.0.0.7", 2000)
-    assert isinstance(devs.controller, SerialController) and devs.controller.port == "usb:2341:0043:FS0001"
+    assert (
+        isinstance(devs.controller, SerialController)
+        and devs.controller.port == "usb:2341:0043:FS0001"
+    )
     assert devs.world is None
     assert all(d.state is DeviceState.CLOSED for d in devs[:3])
     # the replay camera really works from these settings
@@ -68,9 +76,15 @@ def test_missing_or_bad_specs_name_the_field(camera, controller, field):
 
 
 def test_sim_backends_come_from_the_simulator():
-    specs = DeviceSpecs(CameraSpec("sim"), ProjectorSpec("sim"), ControllerSpec("none"), SimSpec(seed=1))
+    specs = DeviceSpecs(
+        CameraSpec("sim"), ProjectorSpec("sim"), ControllerSpec("none"), SimSpec(seed=1)
+    )
     assert not specs.all_sim
     devs = create_devices(specs)
-    assert devs.camera.kind == "camera" and devs.projector is not None and devs.projector.kind == "projector"
+    assert (
+        devs.camera.kind == "camera"
+        and devs.projector is not None
+        and devs.projector.kind == "projector"
+    )
     assert devs.controller is None and devs.world is not None
     assert all(d.state is DeviceState.CLOSED for d in devs[:3] if d is not None)

@@ -34,7 +34,11 @@ def test_simulated_camera_reports_its_bit_depth():
         cam.open()
         cam.start()
         frame = cam.grab(5.0)
-        assert frame.bit_depth == 12 and frame.data.dtype == np.uint16 and int(frame.data.max()) <= 4095
+        assert (
+            frame.bit_depth == 12
+            and frame.data.dtype == np.uint16
+            and int(frame.data.max()) <= 4095
+        )
     finally:
         cam.close()
 

@@ -1,4 +1,5 @@
-"""GenICam camera through harvesters and the simulated GenTL producer shipped in the ``genicam`` wheel."""
+"""GenICam camera through harvesters and the simulated GenTL producer shipped in the ``genicam``
+wheel."""
 
 from __future__ import annotations
 
@@ -14,7 +15,10 @@ genicam = pytest.importorskip("genicam", reason="optional GenICam extra (genicam
 pytest.importorskip("harvesters", reason="optional GenICam extra (harvesters) not installed")
 VIKY = Path(genicam.__file__).parent / "viky.cti"
 if not VIKY.is_file():
-    pytest.skip(f"simulated GenTL producer {VIKY} not shipped by this genicam build", allow_module_level=True)
+    pytest.skip(
+        f"simulated GenTL producer {VIKY} not shipped by this genicam build",
+        allow_module_level=True,
+    )
 
 
 def test_frames_from_the_simulated_producer():

@@ -106,7 +106,9 @@ def _viky() -> Path | None:
     return path if path.is_file() else None
 
 
-@pytest.mark.skipif(_viky() is None, reason="no simulated GenTL producer (genicam's viky.cti) installed")
+@pytest.mark.skipif(
+    _viky() is None, reason="no simulated GenTL producer (genicam's viky.cti) installed"
+)
 class TestGenICamCameraContract(CameraContract):
     @pytest.fixture
     def device(self):

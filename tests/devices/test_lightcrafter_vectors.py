@@ -197,7 +197,9 @@ def test_emulator_refuses_with_the_guide_error_codes(emu, packet, reply):
 def test_old_led_current_packet_is_refused():
     """LED current sent as 0x0103 (one-byte test pattern) with 6 bytes: payload size error."""
     with LightCrafterEmulator() as emu:
-        assert raw_exchange(emu, H("02 0103 00 0600 0000 0002 0000 0E")) == H("01 0103 00 0100 09 0F")
+        assert raw_exchange(emu, H("02 0103 00 0600 0000 0002 0000 0E")) == H(
+            "01 0103 00 0100 09 0F"
+        )
         assert emu.state.led_current == (274, 274, 274)
 
 

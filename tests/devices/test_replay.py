@@ -26,7 +26,11 @@ def test_frames_in_recorded_order_with_pattern_indices_and_loop(tmp_path):
     assert [f.index for f in frames] == list(range(2 * N + 2))
     ts = [f.timestamp for f in frames]
     assert all(b > a for a, b in zip(ts, ts[1:], strict=False))
-    assert frames[0].meta["set"] == "set_0000" and frames[0].exposure_ms == 20.0 and frames[0].led == "green"
+    assert (
+        frames[0].meta["set"] == "set_0000"
+        and frames[0].exposure_ms == 20.0
+        and frames[0].led == "green"
+    )
 
 
 def test_single_capture_set_folder_replays(tmp_path):
@@ -52,7 +56,8 @@ def test_paced_by_recorded_timestamps_and_speed(tmp_path):
             cam.grab(1.0)
         elapsed = time.monotonic() - t0
         cam.close()
-        assert expected_s - 0.005 < elapsed < expected_s + 0.2, (speed, elapsed)  # loaded CI sleeps late
+        # loaded CI sleeps late
+        assert expected_s - 0.005 < elapsed < expected_s + 0.2, (speed, elapsed)
 
 
 def test_paced_by_exposure_without_timestamps_and_timeout(tmp_path):

@@ -1,4 +1,5 @@
-"""Serial LED/trigger controller: protocol document ↔ emulator ↔ firmware, and the driver over a real pty."""
+"""Serial LED/trigger controller: protocol document ↔ emulator ↔ firmware, and the driver over a
+real pty."""
 
 from __future__ import annotations
 
@@ -50,7 +51,9 @@ def test_every_documented_command_example_is_accepted_by_the_emulator():
         assert out.startswith("OK"), f"{line!r} -> {out!r}"
         documented = reply.split("`")[1]
         if cmd == "`STAT?`":  # same fields in the same order
-            assert [f.split("=")[0] for f in out.split()] == [f.split("=")[0] for f in documented.split()]
+            assert [f.split("=")[0] for f in out.split()] == [
+                f.split("=")[0] for f in documented.split()
+            ]
         elif "<" not in documented:
             assert out == documented, f"{line!r} -> {out!r}, documented {documented!r}"
 
@@ -325,8 +328,12 @@ def test_resolve_port_spellings():
 
 def test_cli_emulate_controller_prints_a_working_device(tmp_path):
     link = tmp_path / "ttyCLI"
-    proc = subprocess.Popen([sys.executable, "-m", "app", "emulate", "controller", "--link", str(link)],
-                            stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app", "emulate", "controller", "--link", str(link)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         assert proc.stdout is not None
         path = proc.stdout.readline().strip()

@@ -37,7 +37,8 @@ class TestSimulatedProjector(_SimUnplug, ProjectorContract):
         self.devs.camera.close()
 
     def check_loaded(self, device, schedule):
-        """The twin's camera then sees the new schedule's patterns, one cycle per its frame count."""
+        """The twin's camera then sees the new schedule's patterns, one cycle per its frame
+        count."""
         assert self.devs.world.schedule == schedule
         if device.state is not DeviceState.RUNNING:
             return

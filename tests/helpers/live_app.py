@@ -7,6 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from app.config import Settings
@@ -51,3 +52,29 @@ def wait_result(client: TestClient, predicate: Callable[[dict[str, Any]], bool],
                 return meta
         time.sleep(0.1)
     raise AssertionError(f"timed out waiting for {what}; last result: {meta}")
+
+
+def capture_after_change(client: TestClient) -> dict[str, Any]:
+    """Let two whole sets pass (frames in flight may predate the change), then capture a
+    calibration pose through the session API."""
+    done = client.get("/api/status").json()["sets_completed"]
+    wait_for(client, lambda s: s["sets_completed"] >= done + 2, 60, "two sets after the change")
+    r = client.post("/api/calibration/session/poses")
+    assert r.status_code == 200, r.text
+    result: dict[str, Any] = r.json()
+    return result
+
+
+def app_on_virtual_clock(settings: Settings, scene: str, seed: int = 1) -> FastAPI:
+    """The real app whose simulated devices run on a virtual clock (``realtime=False``): a
+    scene that renders slower than real time on a loaded machine still gives whole sets,
+    where a real-time camera would drop frames until no set is whole."""
+    from app.devices.sim.devices import create_sim_devices
+    from app.main import create_app
+    from app.service.devices import DeviceBundle
+
+    app = create_app(settings)
+    sim = create_sim_devices(scene=scene, seed=seed, realtime=False)
+    app.state.instrument.pipeline.devices = DeviceBundle(sim.camera, sim.projector,
+                                                         sim.controller, sim.world)
+    return app

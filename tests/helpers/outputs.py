@@ -20,6 +20,7 @@ from fastapi import FastAPI
 
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
+from tests.helpers.served import free_port
 
 FOCAL_PX = 800.0
 PLANE_Z_MM = 60.0  # reference plane (height 0) distance from the camera
@@ -88,12 +89,6 @@ class SurfaceSource:
                 "depth_fps": 2.0, "camera_fps": 32.0, "latency_ms": 5.0}
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def port_is_free(port: int) -> bool:
     """Nothing listens on ``port`` and a new server could bind it.
 
@@ -123,10 +118,12 @@ def wait_for(predicate: Any, timeout_s: float = 10.0, interval_s: float = 0.02) 
 
 
 @contextmanager
-def serve(app: FastAPI) -> Iterator[str]:
-    """Run ``app`` with a real uvicorn on a free loopback port; yields the base URL."""
+def serve(app: FastAPI, **options: Any) -> Iterator[str]:
+    """Run ``app`` with a real uvicorn on a free loopback port; yields ``host:port``.
+    ``options``: more ``uvicorn.Config`` arguments (e.g. the proxy headers)."""
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", **options)
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="test-uvicorn", daemon=True)
     thread.start()
     try:

@@ -69,7 +69,8 @@ def test_one_module_per_panel_and_imports_resolve() -> None:
         text = path.read_text(encoding="utf-8")
         for ref in re.findall(r'^import .*? from "([^"]+)";', text, flags=re.M):
             assert ref.startswith("./") and (path.parent / ref).is_file(), f"{path.name}: {ref}"
-        assert "window.fringescope" not in text or path.stem == "state"  # one shared object, one place
+        # one shared object, one place
+        assert "window.fringescope" not in text or path.stem == "state"
 
 
 def test_every_element_the_script_uses_exists() -> None:
@@ -107,7 +108,12 @@ def test_requests_go_through_the_token_helper() -> None:
     assert len(re.findall(r"(?<![\w.])fetch\(", everything)) == 1  # only inside api()
     assert len(re.findall(r"(?<![\w.])fetch\(", _code(client))) == 1
     assert "XMLHttpRequest" not in everything
-    assert 'localStorage.getItem(TOKEN_KEY)' in client and 'const TOKEN_KEY = "fringescope_token"' in client
+    assert (
+        "localStorage.getItem(TOKEN_KEY)" in client
+        and 'const TOKEN_KEY = "fringescope_token"' in client
+    )
     assert '"Authorization"] = "Bearer " + token' in client
     # WebSocket and iframe cannot send headers: they carry the token in the query.
-    assert "new WebSocket(withToken(" in _script("depth.js") and 'withToken("/viser/")' in _script("view3d.js")
+    assert "new WebSocket(withToken(" in _script("depth.js") and 'withToken("/viser/")' in _script(
+        "view3d.js"
+    )

@@ -1,4 +1,5 @@
-"""OpenIGTLink server (issue 16) with pyigtl's own client: decoding, REST equality, clients, memory."""
+"""OpenIGTLink server (issue 16) with pyigtl's own client: decoding, REST equality, clients,
+memory."""
 
 from __future__ import annotations
 
@@ -36,7 +37,6 @@ from app.outputs.igtl import (
 )
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
-from tests.api.conftest import sim_calibration_file  # noqa: F401
 from tests.helpers.live_app import live_settings, wait_for
 
 register_codecs()  # pyigtl 0.3.4 cannot unpack POLYDATA itself
@@ -157,10 +157,22 @@ def make_result(h: int = 120, w: int = 160, seed: int = 0) -> LiveResult:
     points = np.stack([uu * 0.1, vv * 0.1, 90.0 - depth], axis=-1).astype(np.float32)
     points[~valid] = np.nan
     return LiveResult(
-        depth=depth, points=points, valid=valid, reason=np.zeros((h, w), np.uint8),
-        texture=rng.uniform(0, 255, (h, w)).astype(np.float32), modulation=np.ones((h, w), np.float32),
-        motion=None, mode="set", frame_indices=list(range(16)), timestamps=[0.0] * 16,
-        exposure_ms=30.0, led="green", full_scale=255.0, received_s=0.0, published_s=0.0, recon_ms=1.0,
+        depth=depth,
+        points=points,
+        valid=valid,
+        reason=np.zeros((h, w), np.uint8),
+        texture=rng.uniform(0, 255, (h, w)).astype(np.float32),
+        modulation=np.ones((h, w), np.float32),
+        motion=None,
+        mode="set",
+        frame_indices=list(range(16)),
+        timestamps=[0.0] * 16,
+        exposure_ms=30.0,
+        led="green",
+        full_scale=255.0,
+        received_s=0.0,
+        published_s=0.0,
+        recon_ms=1.0,
     )
 
 
@@ -197,11 +209,14 @@ def test_slot_messages_decode_two_clients_and_reconnect(slot_server: Any) -> Non
         for client in (a, b):
             depth = client.wait_for_message(DEPTH_DEVICE, timeout=10)
             assert depth is not None and depth.image.shape == (1, 120, 160)
-            np.testing.assert_array_equal(depth.image[0], res.depth)  # NaN where invalid, bit for bit
+            # NaN where invalid, bit for bit
+            np.testing.assert_array_equal(depth.image[0], res.depth)
             tex = client.wait_for_message(TEXTURE_DEVICE, timeout=10)
             assert tex.image.dtype == np.uint8 and tex.image.shape == (1, 120, 160)
             cloud = client.wait_for_message(CLOUD_DEVICE, timeout=10)
-            np.testing.assert_array_equal(cloud.points, decimate_points(res.points, res.valid, 5000))
+            np.testing.assert_array_equal(
+                cloud.points, decimate_points(res.points, res.valid, 5000)
+            )
             assert cloud.vertices[0] == len(cloud.points)
             st = json.loads(client.wait_for_message(STATUS_DEVICE, timeout=10).string)
             assert st == {"state": "running", "seq": 1}
@@ -313,7 +328,9 @@ def test_client_that_never_reads_does_not_grow_the_server(slot_server: Any) -> N
         # per client: at most the newest message of each device plus one being written
         assert peak_pending <= 2 * (one_set + max(_packed_sizes(server, big[0])))
         assert server.pending_messages() <= 2 * 5
-        assert grown < 3 * one_set, f"RSS grew by {grown / 1e6:.1f} MB (one set {one_set / 1e6:.1f} MB)"
+        assert grown < 3 * one_set, (
+            f"RSS grew by {grown / 1e6:.1f} MB (one set {one_set / 1e6:.1f} MB)"
+        )
         got = reader.wait_for_message(DEPTH_DEVICE, timeout=10)  # the reader is not held up
         assert got is not None
     finally:
@@ -327,7 +344,9 @@ def _packed_sizes(server: IgtlServer, res: LiveResult) -> list[int]:
 
 # -- the live app: IMAGE equals REST ----------------------------------------------------------
 @pytest.fixture(scope="module")
-def live_igtl(tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path) -> Iterator[TestClient]:  # noqa: F811
+def live_igtl(
+    tmp_path_factory: pytest.TempPathFactory, sim_calibration_file: Path
+) -> Iterator[TestClient]:
     settings = live_settings(tmp_path_factory.mktemp("igtl"), sim_calibration_file, igtl_port=0,
                              igtl_max_points=20_000)
     with TestClient(create_app(settings)) as client:
@@ -349,11 +368,14 @@ def test_live_image_equals_rest_depth_bit_for_bit(live_igtl: TestClient) -> None
             assert msg is not None and time.monotonic() - t0 < 5
             rest = np.load(io.BytesIO(live_igtl.get("/api/depth/latest?format=npy").content))
             assert msg.image.dtype == np.float32 and msg.image.shape == (1, *rest.shape)
-            assert msg.image[0].tobytes() == rest.astype("<f4").tobytes()  # bit for bit, NaN included
+            # bit for bit, NaN included
+            assert msg.image[0].tobytes() == rest.astype("<f4").tobytes()
             cal = live_igtl.app.state.instrument.calibration  # type: ignore[attr-defined]
             np.testing.assert_allclose(
                 msg.ijk_to_world_matrix[:3, :2],
-                image_placement(cal.camera_matrix, cal.plane_normal, cal.plane_offset_mm)[:3, :2], rtol=1e-6)
+                image_placement(cal.camera_matrix, cal.plane_normal, cal.plane_offset_mm)[:3, :2],
+                rtol=1e-6,
+            )
             cloud = client.wait_for_message(CLOUD_DEVICE, timeout=10)
             res = live_igtl.app.state.instrument.latest_result()  # type: ignore[attr-defined]
             want = decimate_points(res.points, res.valid, 20_000)

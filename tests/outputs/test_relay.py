@@ -30,7 +30,9 @@ def rig() -> Iterator[tuple[SurfaceSource, Viewer, FastAPI, str]]:
 
     @app.get("/_relay_tasks")
     async def relay_tasks() -> list[str]:  # test-only: relay tasks alive in the server loop
-        return sorted(t.get_name() for t in asyncio.all_tasks() if t.get_name().startswith("viser-relay"))
+        return sorted(
+            t.get_name() for t in asyncio.all_tasks() if t.get_name().startswith("viser-relay")
+        )
 
     viewer.start()
     try:
@@ -92,7 +94,9 @@ def test_relay_websocket_both_ways(rig: tuple[SurfaceSource, Viewer, FastAPI, st
             # Browser → server: what the viser client sends when the slider is dragged.
             update = _messages.GuiUpdateMessage(uuid, {"value": 42.0})
             await ws.send(msgspec.msgpack.encode(update.as_serializable_dict()))
-            ok = await asyncio.to_thread(wait_for, lambda: ("set_exposure", 42.0) in source.calls, 5.0)
+            ok = await asyncio.to_thread(
+                wait_for, lambda: ("set_exposure", 42.0) in source.calls, 5.0
+            )
             assert ok, source.calls
         return received
 
@@ -103,7 +107,9 @@ def test_relay_websocket_both_ways(rig: tuple[SurfaceSource, Viewer, FastAPI, st
     assert wait_for(lambda: _clients(viewer) == 0, 5)
 
 
-def test_relay_passes_the_version_check_through(rig: tuple[SurfaceSource, Viewer, FastAPI, str]) -> None:
+def test_relay_passes_the_version_check_through(
+    rig: tuple[SurfaceSource, Viewer, FastAPI, str],
+) -> None:
     _, viewer, _, host = rig
 
     async def session() -> tuple[int | None, str]:
@@ -117,7 +123,9 @@ def test_relay_passes_the_version_check_through(rig: tuple[SurfaceSource, Viewer
     assert code == 1002 and "Version mismatch" in reason
 
 
-def test_relay_cleans_up_after_abrupt_disconnects(rig: tuple[SurfaceSource, Viewer, FastAPI, str]) -> None:
+def test_relay_cleans_up_after_abrupt_disconnects(
+    rig: tuple[SurfaceSource, Viewer, FastAPI, str],
+) -> None:
     source, viewer, _, host = rig
     source.publish(surface_result(60, 80))
 

@@ -163,9 +163,12 @@ def test_initial_view_tilts_up_about_the_cloud_centre() -> None:
     position, look_at, fov = initial_view(xyz, tilt_deg=30.0)
     np.testing.assert_allclose(look_at, [0, 0, 60], atol=0.5)
     # Same distance as the scope's camera centre, 30° upward (−y is up in the camera frame).
-    np.testing.assert_allclose(np.linalg.norm(position - look_at), np.linalg.norm(look_at), rtol=1e-6)
-    np.testing.assert_allclose(position, look_at + [0, -60 * np.sin(np.pi / 6), -60 * np.cos(np.pi / 6)],
-                               atol=0.5)
+    np.testing.assert_allclose(
+        np.linalg.norm(position - look_at), np.linalg.norm(look_at), rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        position, look_at + [0, -60 * np.sin(np.pi / 6), -60 * np.cos(np.pi / 6)], atol=0.5
+    )
     # Half extent 9.6 mm at 60 mm: 2.4·atan(9.6/60) ≈ 21.8°.
     assert np.deg2rad(20) <= fov <= np.deg2rad(25)
     with pytest.raises(ValueError, match="^xyz"):

@@ -49,8 +49,11 @@ def test_viewer_draws_the_measurements() -> None:
         source.publish(surface_result(120, 160))
         assert wait_for(lambda: viewer.updates >= 1, 10)
         lines, label = viewer._measure_nodes
-        np.testing.assert_allclose(np.asarray(lines.points)[0], surface_result(120, 160).points[[30, 90], [20, 140]],
-                                   rtol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(lines.points)[0],
+            surface_result(120, 160).points[[30, 90], [20, 140]],
+            rtol=1e-6,
+        )
         assert label.text.endswith(" mm")
         specs = []  # cleared on the dashboard: gone with the next result
         source.publish(surface_result(120, 160, shift_px=5.0))

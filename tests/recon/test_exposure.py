@@ -73,10 +73,16 @@ def test_bracket_adds_two_stops_capped_at_the_longest_exposure():
     assert bracket_exposures(10.0, max_exposure_ms=30.0) == (10.0, 30.0)
 
 
-@pytest.mark.parametrize(("kw", "name"), [
-    ({"base_ms": 0.0}, "base_ms"), ({"base_ms": 150.0}, "base_ms"), ({"base_ms": float("nan")}, "base_ms"),
-    ({"base_ms": 10.0, "stops": 0.0}, "stops"), ({"base_ms": 10.0, "max_exposure_ms": -1.0}, "max_exposure_ms"),
-])
+@pytest.mark.parametrize(
+    ("kw", "name"),
+    [
+        ({"base_ms": 0.0}, "base_ms"),
+        ({"base_ms": 150.0}, "base_ms"),
+        ({"base_ms": float("nan")}, "base_ms"),
+        ({"base_ms": 10.0, "stops": 0.0}, "stops"),
+        ({"base_ms": 10.0, "max_exposure_ms": -1.0}, "max_exposure_ms"),
+    ],
+)
 def test_bracket_rejects_bad_input(kw, name):
     with pytest.raises(ValueError, match=name):
         bracket_exposures(**kw)
@@ -114,8 +120,13 @@ def test_low_signal_names_the_share_and_the_exposure_only_when_most_of_the_roi_i
     reason[:, 80:110] = Reason.UNCERTAIN  # 60 of the ROI's 100 columns
     dark = low_signal(reason, area, peak, mod, 20.0, 255.0)
     assert dark is not None and dark.share == pytest.approx(0.6)
-    assert dark.suggested_exposure_ms == 100.0  # 20 DN at 20 ms: the longest exposure stays unsaturated
-    assert dark.message() == "60% of the ROI is invalid for low signal at 20 ms: the auto-exposure would choose 100 ms"
+    # 20 DN at 20 ms: the longest exposure stays unsaturated
+    assert dark.suggested_exposure_ms == 100.0
+    assert (
+        dark.message()
+        == "60% of the ROI is invalid for low signal at 20 ms: "
+        "the auto-exposure would choose 100 ms"
+    )
     with pytest.raises(ValueError, match="area"):
         low_signal(reason, area[:10], peak, mod, 20.0, 255.0)
     with pytest.raises(ValueError, match="exposure_ms"):

@@ -20,11 +20,18 @@ def _result(depth, sigma, reason, modulation, *, phase=True):
     shape = depth.shape
     return ReconResult(
         depth=np.where(valid, depth, np.nan).astype(np.float32),
-        points=np.where(valid[..., None], np.stack([depth] * 3, axis=-1), np.nan).astype(np.float32),
-        valid=valid, reason=reason, modulation=np.asarray(modulation, np.float32),
-        texture=np.asarray(modulation, np.float32) * 2, phase=np.where(valid, depth, np.nan).astype(np.float32)
-        if phase else None, elapsed_ms=1.0, sigma=np.where(valid, sigma, np.nan).astype(np.float32),
-        recovered=1 if shape else 0)
+        points=np.where(valid[..., None], np.stack([depth] * 3, axis=-1), np.nan).astype(
+            np.float32
+        ),
+        valid=valid,
+        reason=reason,
+        modulation=np.asarray(modulation, np.float32),
+        texture=np.asarray(modulation, np.float32) * 2,
+        phase=np.where(valid, depth, np.nan).astype(np.float32) if phase else None,
+        elapsed_ms=1.0,
+        sigma=np.where(valid, sigma, np.nan).astype(np.float32),
+        recovered=1 if shape else 0,
+    )
 
 
 OK, LOW, SAT, UNC = Reason.OK, Reason.LOW_MODULATION, Reason.SATURATED, Reason.UNCERTAIN
@@ -49,7 +56,9 @@ def test_each_pixel_comes_from_the_valid_member_with_the_smallest_sigma():
     np.testing.assert_allclose(r.texture[0, :4], [80, 20, 100, 2])
     assert np.isnan(r.depth[0, 4]) and np.isnan(r.sigma[0, 4])
     assert r.elapsed_ms == 2.0 and r.recovered == 2
-    assert fused.valid_from(0) == 2 and fused.valid_from(1) == 2 and fused.exposures_ms == (10.0, 40.0)
+    assert (
+        fused.valid_from(0) == 2 and fused.valid_from(1) == 2 and fused.exposures_ms == (10.0, 40.0)
+    )
 
 
 def test_a_pixel_no_member_validates_keeps_the_reason_of_the_member_that_saw_it_best():
@@ -58,7 +67,8 @@ def test_a_pixel_no_member_validates_keeps_the_reason_of_the_member_that_saw_it_
     short = _result([[0, 0]], [[0, 0]], [[LOW, LOW]], [[2, 3]])
     long = _result([[0, 0]], [[0, 0]], [[UNC, SAT]], [[16, 0]])
     r = fuse_exposures([short, long], [10.0, 40.0]).result
-    np.testing.assert_array_equal(r.reason, [[UNC, LOW]])  # a clipped member never wins by modulation
+    # a clipped member never wins by modulation
+    np.testing.assert_array_equal(r.reason, [[UNC, LOW]])
     np.testing.assert_allclose(r.modulation, [[4, 3]])
     assert not r.valid.any()
 
@@ -70,15 +80,30 @@ def test_one_member_is_itself():
     np.testing.assert_array_equal(r.reason, a.reason)
 
 
-@pytest.mark.parametrize(("results", "exposures", "name"), [
-    ([], [], "results"),
-    ([_result([[1]], [[0.1]], [[OK]], [[9]])], [10.0, 20.0], "exposures_ms"),
-    ([_result([[1]], [[0.1]], [[OK]], [[9]])], [0.0], "exposures_ms"),
-    ([_result([[1]], [[0.1]], [[OK]], [[9]]), _result([[1, 2]], [[0.1, 0.1]], [[OK, OK]], [[9, 9]])],
-     [10.0, 20.0], "image sizes"),
-    ([_result([[1]], [[0.1]], [[OK]], [[9]]), _result([[1]], [[0.1]], [[OK]], [[9]], phase=False)],
-     [10.0, 20.0], "phase"),
-])
+@pytest.mark.parametrize(
+    ("results", "exposures", "name"),
+    [
+        ([], [], "results"),
+        ([_result([[1]], [[0.1]], [[OK]], [[9]])], [10.0, 20.0], "exposures_ms"),
+        ([_result([[1]], [[0.1]], [[OK]], [[9]])], [0.0], "exposures_ms"),
+        (
+            [
+                _result([[1]], [[0.1]], [[OK]], [[9]]),
+                _result([[1, 2]], [[0.1, 0.1]], [[OK, OK]], [[9, 9]]),
+            ],
+            [10.0, 20.0],
+            "image sizes",
+        ),
+        (
+            [
+                _result([[1]], [[0.1]], [[OK]], [[9]]),
+                _result([[1]], [[0.1]], [[OK]], [[9]], phase=False),
+            ],
+            [10.0, 20.0],
+            "phase",
+        ),
+    ],
+)
 def test_bad_input_names_the_argument(results, exposures, name):
     with pytest.raises(ValueError, match=name):
         fuse_exposures(results, exposures)
@@ -92,13 +117,20 @@ def test_a_scene_beyond_one_exposure_is_measured_by_the_bracket():
     h = bump_surface(rig)
     # 1/40: at 40 ms the dim half stands above the rule with the set's own noise (0.68 DN here;
     # at 1/50 only 97 % did, the nominal model's 0.51 DN had made it look measurable)
-    albedo = np.where(np.arange(rig.width) < rig.width // 2, 1.0, 0.025)[None, :] * np.ones((rig.height, 1))
+    albedo = np.where(np.arange(rig.width) < rig.width // 2, 1.0, 0.025)[None, :] * np.ones(
+        (rig.height, 1)
+    )
     rec = Reconstructor(rig.calibration(), with_phase=True)
     results, bright = [], albedo > 0.5
     for exposure_ms, seed in ((10.0, 1), (40.0, 2)):
         gain = exposure_ms / 10.0
-        frames = rig.render(h, background=110.0 * gain * albedo, amplitude=90.0 * gain * albedo, noise=0.6,
-                            rng=np.random.default_rng(seed))
+        frames = rig.render(
+            h,
+            background=110.0 * gain * albedo,
+            amplitude=90.0 * gain * albedo,
+            noise=0.6,
+            rng=np.random.default_rng(seed),
+        )
         results.append(rec.run(frames))
     short, long = results
     assert short.valid[bright].mean() > 0.99 and short.valid[~bright].mean() < 0.05
@@ -107,7 +139,9 @@ def test_a_scene_beyond_one_exposure_is_measured_by_the_bracket():
     fused = fuse_exposures(results, [10.0, 40.0])
     r = fused.result
     assert r.valid.mean() > 0.99
-    assert (fused.member[bright & r.valid] == 0).all() and (fused.member[~bright & r.valid] == 1).all()
+    assert (fused.member[bright & r.valid] == 0).all() and (
+        fused.member[~bright & r.valid] == 1
+    ).all()
     err = (r.depth - h)[r.valid]
     assert np.abs(err).max() < 0.5  # no gross error, and each pixel's σ describes its error
     assert 0.8 < np.sqrt(np.mean((err / r.sigma[r.valid]) ** 2)) < 1.25

@@ -28,7 +28,9 @@ def test_lut_learned_on_one_phase_map_removes_the_gamma_error_of_another():
     before = np.angle(np.exp(1j * (w_test - test)))
     # N = 4 under gamma: the error is periodic in φ with period π/2 (harmonics 3 and 5 alias onto 1)
     assert 0.05 < np.sqrt(np.mean(before**2)) < 0.3
-    spectrum = np.abs(np.fft.rfft(np.histogram(w_test[0].ravel(), 64, (0, TWO_PI), weights=before[0].ravel())[0]))
+    spectrum = np.abs(
+        np.fft.rfft(np.histogram(w_test[0].ravel(), 64, (0, TWO_PI), weights=before[0].ravel())[0])
+    )
     assert np.argmax(spectrum[1:]) + 1 == 4
     lut = PhaseErrorLUT.fit(w_train, np.mod(train, TWO_PI), bins=256)
     after = np.angle(np.exp(1j * (lut.apply(w_test) - test)))
@@ -36,11 +38,21 @@ def test_lut_learned_on_one_phase_map_removes_the_gamma_error_of_another():
     assert lut.apply(w_test).min() >= 0 and lut.apply(w_test).max() < TWO_PI
 
 
-@pytest.mark.parametrize(("kwargs", "name"), [
-    (dict(wrapped=np.zeros((1, 4, 4)), reference=np.zeros((2, 4, 4))), "reference"),
-    (dict(wrapped=np.zeros((1, 4, 4)), reference=np.zeros((1, 4, 4)), bins=4), "bins"),
-    (dict(wrapped=np.zeros((1, 4, 4)), reference=np.zeros((1, 4, 4)), mask=np.ones((3, 3), bool)), "mask"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        (dict(wrapped=np.zeros((1, 4, 4)), reference=np.zeros((2, 4, 4))), "reference"),
+        (dict(wrapped=np.zeros((1, 4, 4)), reference=np.zeros((1, 4, 4)), bins=4), "bins"),
+        (
+            dict(
+                wrapped=np.zeros((1, 4, 4)),
+                reference=np.zeros((1, 4, 4)),
+                mask=np.ones((3, 3), bool),
+            ),
+            "mask",
+        ),
+    ],
+)
 def test_bad_input_names_argument(kwargs, name):
     with pytest.raises(ValueError, match=f"^{name}"):
         PhaseErrorLUT.fit(**kwargs)
@@ -72,14 +84,27 @@ def test_table_round_trips_and_refuses_another_schedule():
         back.check_schedule(4, (1.0, 4.0))
 
 
-@pytest.mark.parametrize(("data", "name"), [
-    ({"format": "other"}, "format"),
-    ({"format": "fringescope-phase-error", "version": 9}, "version"),
-    ({"format": "fringescope-phase-error", "version": 1, "error_rad": [[0.0] * 4]}, "error_rad"),
-    ({"format": "fringescope-phase-error", "version": 1, "error_rad": "x"}, "error_rad"),
-    ({"format": "fringescope-phase-error", "version": 1, "error_rad": [[0.0] * 8], "frequencies": [1, 2]},
-     "frequencies"),
-])
+@pytest.mark.parametrize(
+    ("data", "name"),
+    [
+        ({"format": "other"}, "format"),
+        ({"format": "fringescope-phase-error", "version": 9}, "version"),
+        (
+            {"format": "fringescope-phase-error", "version": 1, "error_rad": [[0.0] * 4]},
+            "error_rad",
+        ),
+        ({"format": "fringescope-phase-error", "version": 1, "error_rad": "x"}, "error_rad"),
+        (
+            {
+                "format": "fringescope-phase-error",
+                "version": 1,
+                "error_rad": [[0.0] * 8],
+                "frequencies": [1, 2],
+            },
+            "frequencies",
+        ),
+    ],
+)
 def test_malformed_table_names_the_key(data, name):
     with pytest.raises(ValueError, match=f"^{name}"):
         PhaseErrorLUT.from_dict(data)

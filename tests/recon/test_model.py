@@ -19,7 +19,11 @@ def test_closed_form_rig_depth_is_exact():
     rig = Rig()
     cal = rig.calibration()
     tables = calibration_model_tables(cal)
-    for h in (bump_surface(rig), np.zeros((rig.height, rig.width)), np.full((rig.height, rig.width), 30.0)):
+    for h in (
+        bump_surface(rig),
+        np.zeros((rig.height, rig.width)),
+        np.full((rig.height, rig.width), 30.0),
+    ):
         height, singular = evaluate_height(tables, rig.finest_phase(h))
         assert not singular.any()
         assert np.max(np.abs(height - h)) < 1e-9  # mm, ≪ 1e-3
@@ -60,7 +64,15 @@ def test_singular_denominator_flagged():
 
 def test_outside_volume_with_margin_and_nan():
     h = np.array([-2.5, -1.5, 0.0, 31.9, 32.1, np.nan, np.inf])
-    assert outside_volume(h, (0.0, 30.0), 2.0).tolist() == [True, False, False, False, True, True, True]
+    assert outside_volume(h, (0.0, 30.0), 2.0).tolist() == [
+        True,
+        False,
+        False,
+        False,
+        True,
+        True,
+        True,
+    ]
 
 
 def test_row_coefficients_reproduce_the_tables():
@@ -69,7 +81,11 @@ def test_row_coefficients_reproduce_the_tables():
     norm = {"u": (10.0, 7.0), "v": (5.0, 4.0), "phi": (100.0, 50.0)}
     t = model_tables(c, d, norm, (21, 11))
     rows = row_coefficients(c, d, norm, (21, 11))
-    assert rows.u_norm.shape == (21,) and rows.coefs.shape == (11, 12) and rows.coefs.dtype == np.float32
+    assert (
+        rows.u_norm.shape == (21,)
+        and rows.coefs.shape == (11, 12)
+        and rows.coefs.dtype == np.float32
+    )
     x = rows.u_norm.astype(np.float64)
     k = rows.coefs.astype(np.float64)
     for i, table in enumerate((t.a0, t.a1, t.b0, t.b1)):

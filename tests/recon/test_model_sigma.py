@@ -12,15 +12,14 @@ from app.batch.setjob import ReconOptions, SetReconstruction, output_files
 from app.calib.model import undistort_points
 from app.capture.ply import read_ply
 from app.core.calibration import Calibration
-from app.core.depth_model import ReferencePlane
 from app.core.eq5 import Eq5Model
-from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
+from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM
 from app.core.reasons import Reason
 from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor
 from app.recon.reconstructor import SensorNoise
 from app.recon.validity import max_depth_sigma_mm
-from tests.core.test_depth_models import _band_samples, _calibration, _geometric_of
+from tests.helpers.analytic_models import band_fitted_calibration
 
 NOISE = SensorNoise(0.5, 4.0)
 
@@ -28,13 +27,9 @@ NOISE = SensorNoise(0.5, 4.0)
 @pytest.fixture(scope="module")
 def fitted() -> tuple[Rig, Calibration]:
     """A geometric model fitted to noisy board samples in a band of heights: a real jackknife."""
-    rig = Rig()
-    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
-    model = GeometricModel.fit(
-        _band_samples(rig, _geometric_of(rig), plane, (8.0, 22.0), 0.05, seed=7), plane
-    )
-    assert len(model.jackknife) >= 3 and model.alternative is not None
-    return rig, _calibration(rig, model)
+    rig, cal = band_fitted_calibration(seed=7)
+    assert len(cal.model.jackknife) >= 3 and cal.model.alternative is not None
+    return rig, cal
 
 
 def _direct_sigma(cal: Calibration, u: np.ndarray, v: np.ndarray, h: np.ndarray) -> np.ndarray:

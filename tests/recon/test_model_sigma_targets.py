@@ -13,11 +13,11 @@ import math
 import numpy as np
 import pytest
 
-from app.analysis import measure as M
 from app.calib import calibrate_folder
 from app.core.reasons import Reason
 from app.devices.sim import SimulatedWorld, render_capture_set, simulate_calibration_folder
 from app.recon import Reconstructor
+from tests.helpers.calibrated_lengths import calibrated_length
 
 pytestmark = pytest.mark.slow
 
@@ -107,14 +107,7 @@ def test_forty_random_lengths_have_an_honest_sigma(plane):
     for _ in range(40):
         a, b = rng.choice(len(vv), 2, replace=False)
         pa, pb = (int(uu[a]), int(vv[a])), (int(uu[b]), int(vv[b]))
-        m = M.length(
-            res.points,
-            res.valid,
-            res.sigma_noise,
-            [pa, pb],
-            plane_normal=cal.plane_normal,
-            calibration=cal,
-        )
+        m = calibrated_length(res, cal, [pa, pb])
         true = float(np.linalg.norm(points[pb[1], pb[0]].astype(np.float64) - points[pa[1], pa[0]]))
         z.append((m.value_mm - true) / m.sigma_mm)
     rms = math.sqrt(float(np.mean(np.square(z))))

@@ -15,13 +15,17 @@ from app.recon.patterns import PatternSchedule
 @pytest.mark.parametrize("steps", [4, 6, 12])
 def test_estimate_recovers_shot_and_read_noise(steps):
     rig = Rig(width=320, height=240, focal_px=400.0, schedule=PatternSchedule(steps=steps))
-    clean = rig.render(bump_surface(rig), background=600.0, amplitude=300.0, dtype=np.uint16).astype(np.float64)
+    clean = rig.render(
+        bump_surface(rig), background=600.0, amplitude=300.0, dtype=np.uint16
+    ).astype(np.float64)
     # albedo varies across the image so intensities span a wide range
     albedo = np.linspace(0.2, 1.0, rig.width)[None, None, :]
     mean = clean * albedo
     gain, read = 0.5, 4.0
     rng = np.random.default_rng(3)
-    frames = np.rint(mean + rng.normal(size=mean.shape) * np.sqrt(read**2 + gain * mean)).astype(np.uint16)
+    frames = np.rint(mean + rng.normal(size=mean.shape) * np.sqrt(read**2 + gain * mean)).astype(
+        np.uint16
+    )
     est = estimate_sensor_noise(frames, rig.schedule)
     assert est.gain_dn_per_e == pytest.approx(gain, rel=0.05)
     assert est.read_noise_dn == pytest.approx(math.sqrt(read**2 + 1 / 12), rel=0.15)
@@ -50,10 +54,13 @@ def test_estimate_needs_more_than_three_steps():
 
 
 def test_projector_gamma_harmonics_are_not_noise():
-    """A gamma-distorted fringe (10–90 % of the projector range, γ = 2.2): with N = 12 the estimate still
-    finds the sensor's noise."""
+    """A gamma-distorted fringe (10–90 % of the projector range, γ = 2.2): with N = 12 the estimate
+    still finds the sensor's noise."""
     rig = Rig(width=320, height=240, focal_px=400.0, schedule=PatternSchedule(steps=12))
-    lin = rig.render(bump_surface(rig), background=30000.0, amplitude=24000.0, dtype=np.uint16) / 60000.0
+    lin = (
+        rig.render(bump_surface(rig), background=30000.0, amplitude=24000.0, dtype=np.uint16)
+        / 60000.0
+    )
     mean = 2000.0 * lin**2.2 * np.linspace(0.3, 1.0, rig.width)[None, None, :]
     gain, read = 0.5, 4.0
     rng = np.random.default_rng(4)

@@ -95,7 +95,10 @@ def test_default_levels():
         (dict(frames=np.zeros((6, 2, 2), np.uint8), steps=4), "frames"),
         (dict(frames=np.zeros((4, 2, 2), np.uint8), steps=2), "steps"),
         (dict(frames=np.zeros((4, 2, 2), np.uint8), steps=4, max_code=300), "max_code"),
-        (dict(frames=[np.zeros((2, 2), np.uint8)] * 3 + [np.zeros((2, 2), np.uint16)], steps=4), "frames"),
+        (
+            dict(frames=[np.zeros((2, 2), np.uint8)] * 3 + [np.zeros((2, 2), np.uint16)], steps=4),
+            "frames",
+        ),
     ],
 )
 def test_bad_input_names_argument(kwargs, name):

@@ -23,8 +23,10 @@ from app.recon.gamma import PhaseErrorLUT
 from app.recon.phase import wrapped_phase
 from tests.helpers.cfpe import BOTTLE, BUST, CFPE, CLOTH, FREQS, PLATE, frames, schedule, usable
 
-pytestmark = pytest.mark.skipif(not (CFPE / "recordings").is_dir(),
-                                reason=f"CFPE real captures not found at {CFPE} (set FRINGESCOPE_CFPE_DIR)")
+pytestmark = pytest.mark.skipif(
+    not (CFPE / "recordings").is_dir(),
+    reason=f"CFPE real captures not found at {CFPE} (set FRINGESCOPE_CFPE_DIR)",
+)
 
 TWO_PI = 2 * math.pi
 
@@ -41,7 +43,11 @@ def textbook_phase(f: npt.NDArray[np.uint8], steps: int) -> npt.NDArray[np.float
     phi = []
     for i in range(3):
         stack = f[i * steps:(i + 1) * steps].astype(np.float64)
-        phi.append(np.arctan2(-np.einsum("n,nhw->hw", np.sin(d), stack), np.einsum("n,nhw->hw", np.cos(d), stack)))
+        phi.append(
+            np.arctan2(
+                -np.einsum("n,nhw->hw", np.sin(d), stack), np.einsum("n,nhw->hw", np.cos(d), stack)
+            )
+        )
     p1, p2, p3 = phi  # 1920/48, 1920/45, 1920/42 fringes
     k1, k2, k3 = FREQS
     p21 = np.mod(p2 - p1, TWO_PI)  # k2 − k1 fringes
@@ -61,13 +67,18 @@ def test_12_step_phase_matches_a_textbook_decoder(scene):
     ok = (ours.reason == 0) & usable(scene)
     diff = ours.phase[ok] - ref[ok]
     rms = float(np.sqrt(np.mean(diff**2)))
-    print(f"\ncfpe scene {scene:02d}: 12-step vs textbook decoder RMS {rms:.4f} rad over {ok.sum()} px, "
-          f"valid {100 * (ours.reason == 0)[usable(scene)].mean():.2f} % of usable")
+    print(
+        f"\ncfpe scene {scene:02d}: 12-step vs textbook decoder RMS {rms:.4f} rad "
+        f"over {ok.sum()} px, "
+        f"valid {100 * (ours.reason == 0)[usable(scene)].mean():.2f} % of usable"
+    )
     assert rms <= 0.03
     assert (ours.reason == 0)[usable(scene)].mean() >= 0.98
 
 
-def _four_vs_twelve(scene: int, lut: PhaseErrorLUT | None = None) -> tuple[float, float, float, int]:
+def _four_vs_twelve(
+    scene: int, lut: PhaseErrorLUT | None = None
+) -> tuple[float, float, float, int]:
     four = compute_phase(frames(scene, 4), schedule(4), phase_error=lut)
     twelve = decoded(scene, 12)
     use = usable(scene)
@@ -83,16 +94,24 @@ def _lut(scene: int) -> PhaseErrorLUT:
     """The 4-step error table learned against the 12-step phase of ``scene``."""
     four = wrapped_phase(frames(scene, 4), 4)
     twelve = wrapped_phase(frames(scene, 12), 12)
-    return PhaseErrorLUT.fit(four.phase, twelve.phase, usable(scene) & (decoded(scene, 12).reason == 0))
+    return PhaseErrorLUT.fit(
+        four.phase, twelve.phase, usable(scene) & (decoded(scene, 12).reason == 0)
+    )
 
 
 @pytest.mark.parametrize(("scene", "other"), [(PLATE, BUST), (BUST, PLATE)])
 def test_4_step_heterodyne_against_12_step(scene, other):
     raw = _four_vs_twelve(scene)
     corrected = _four_vs_twelve(scene, _lut(other))
-    for name, (valid, orders, rms, n) in (("raw", raw), (f"gamma LUT from scene {other:02d}", corrected)):
-        print(f"\ncfpe scene {scene:02d} 4-step heterodyne ({name}): valid {100 * valid:.2f} % of usable px, "
-              f"order errors {100 * orders:.4f} %, RMS {rms:.4f} rad vs 12-step over {n} px")
+    for name, (valid, orders, rms, n) in (
+        ("raw", raw),
+        (f"gamma LUT from scene {other:02d}", corrected),
+    ):
+        print(
+            f"\ncfpe scene {scene:02d} 4-step heterodyne ({name}): "
+            f"valid {100 * valid:.2f} % of usable px, "
+            f"order errors {100 * orders:.4f} %, RMS {rms:.4f} rad vs 12-step over {n} px"
+        )
     for _valid, orders, rms, _ in (raw, corrected):
         assert orders < 1e-3
         assert rms <= 0.08
@@ -101,7 +120,8 @@ def test_4_step_heterodyne_against_12_step(scene, other):
 
 
 def test_gamma_correction_learned_on_one_scene_reduces_the_error_on_others():
-    """Zhang & Huang's phase-error LUT learned on the bust (12-step reference), applied elsewhere."""
+    """Zhang & Huang's phase-error LUT learned on the bust (12-step reference), applied
+    elsewhere."""
     lut = _lut(BUST)
     # the table is the N = 4 gamma signature: mostly the 4th harmonic of the phase, a few 0.01 rad
     grid = (np.arange(lut.error_rad.shape[1]) + 0.5) * TWO_PI / lut.error_rad.shape[1]
@@ -112,8 +132,11 @@ def test_gamma_correction_learned_on_one_scene_reduces_the_error_on_others():
         before = _four_vs_twelve(scene)[2]
         after = _four_vs_twelve(scene, lut)[2]
         errors[scene] = (before, after)
-        print(f"\ncfpe scene {scene:02d}: 4-step RMS vs 12-step {before:.4f} rad before, {after:.4f} rad after "
-              f"the gamma LUT learned on scene {BUST:02d}")
+        print(
+            f"\ncfpe scene {scene:02d}: 4-step RMS vs 12-step {before:.4f} rad before, "
+            f"{after:.4f} rad after "
+            f"the gamma LUT learned on scene {BUST:02d}"
+        )
     assert errors[PLATE][1] < 0.9 * errors[PLATE][0]
     assert all(after < before for before, after in errors.values())
 
@@ -124,11 +147,16 @@ def test_real_shadows_and_highlights_are_invalid_not_wrong():
         twelve = decoded(scene, 12)
         f4 = frames(scene, 4)
         dark = wrapped_phase(f4, 4).modulation.min(axis=0) < 5.1
-        assert (four.reason[dark] == Reason.LOW_MODULATION).all()  # shadows and the black background
+        # shadows and the black background
+        assert (four.reason[dark] == Reason.LOW_MODULATION).all()
         both = (four.reason == 0) & (twelve.reason == 0)
         wrong = np.abs(four.phase[both] - twelve.phase[both]) > math.pi
-        print(f"\ncfpe scene {scene:02d} 4-step: reasons {np.bincount(four.reason.ravel(), minlength=4).tolist()}, "
-              f"recovered {four.recovered} px with a clipped shift, order errors {wrong.sum()} of {both.sum()}")
+        print(
+            f"\ncfpe scene {scene:02d} 4-step: "
+            f"reasons {np.bincount(four.reason.ravel(), minlength=4).tolist()}, "
+            f"recovered {four.recovered} px with a clipped shift, "
+            f"order errors {wrong.sum()} of {both.sum()}"
+        )
         assert wrong.mean() < 1e-3
     # the bottle's highlight clips some shifts: those pixels are refitted from the others
     four = compute_phase(frames(BOTTLE, 4), schedule(4))
@@ -156,10 +184,15 @@ def test_fused_kernel_agrees_with_numpy_on_real_frames(scene):
     # the placeholder model's depth σ means nothing: no depth-σ part of the validity rule; the
     # nominal noise given, as the rule's part the paths share (the set's own 4-step estimate
     # carries this projector's gamma harmonic: 8-18 DN, which would leave no pixel to compare)
-    rec = Reconstructor(rig.calibration(height_range_mm=(-1e4, 1e4)), with_phase=True, gross_error_mm=None,
-                        noise=SensorNoise.typical(255))
+    rec = Reconstructor(
+        rig.calibration(height_range_mm=(-1e4, 1e4)),
+        with_phase=True,
+        gross_error_mm=None,
+        noise=SensorNoise.typical(255),
+    )
     a = rec.run(frames(scene, 4), fast=False)
-    a_reason, a_phase = a.reason.copy(), a.phase.copy()  # the fast run may reuse the oracle's arrays
+    # the fast run may reuse the oracle's arrays
+    a_reason, a_phase = a.reason.copy(), a.phase.copy()
     b = rec.run(frames(scene, 4), fast=True)
     differ = a_reason != b.reason
     # float32 against float64: only pixels whose residual sits on the π/2 threshold may flip

@@ -54,11 +54,29 @@ def test_model_singular_column(rig, fast):
 
 
 def test_precedence_all_combinations():
-    names = ["saturated", "low_modulation", "inconsistent", "singular", "outside", "outside_field", "uncertain",
-             "motion"]
-    codes = [Reason.SATURATED, Reason.LOW_MODULATION, Reason.UNWRAP_INCONSISTENT,
-             Reason.MODEL_SINGULAR, Reason.OUTSIDE_VOLUME, Reason.OUTSIDE_FIELD, Reason.UNCERTAIN, Reason.MOTION]
+    names = [
+        "saturated",
+        "low_modulation",
+        "inconsistent",
+        "singular",
+        "outside",
+        "outside_field",
+        "uncertain",
+        "motion",
+    ]
+    codes = [
+        Reason.SATURATED,
+        Reason.LOW_MODULATION,
+        Reason.UNWRAP_INCONSISTENT,
+        Reason.MODEL_SINGULAR,
+        Reason.OUTSIDE_VOLUME,
+        Reason.OUTSIDE_FIELD,
+        Reason.UNCERTAIN,
+        Reason.MOTION,
+    ]
     for flags in itertools.product([False, True], repeat=8):
         out = assign_reasons((1,), **{n: np.array([f]) for n, f in zip(names, flags, strict=True)})
-        expected = next((c for c in PRECEDENCE if c == Reason.OK or flags[codes.index(c)]), Reason.OK)
+        expected = next(
+            (c for c in PRECEDENCE if c == Reason.OK or flags[codes.index(c)]), Reason.OK
+        )
         assert out[0] == expected, flags

@@ -87,7 +87,9 @@ def test_combined_weights_follow_modulation():
     biased[0] += 0.1  # error on k = 1 only
     mod = np.ones_like(exact)
     mod[0] = 0.0  # ... which has no modulation, hence no weight
-    assert combine_frequencies(biased, mod, FREQS, 4)[0, 0] == pytest.approx(exact[-1, 0, 0], abs=1e-12)
+    assert combine_frequencies(biased, mod, FREQS, 4)[0, 0] == pytest.approx(
+        exact[-1, 0, 0], abs=1e-12
+    )
     mod[0] = 1.0
     k = np.array(FREQS, float)
     expected = exact[-1, 0, 0] + 0.1 * 36 * 1 / np.sum(k**2)
@@ -101,7 +103,9 @@ def test_heterodyne_chain_of_three_periods():
     coefs, steps = unwrap_chain(HET, "heterodyne")
     # φ_a − 2φ_b + φ_c spans 0.381 fringe (absolute), φ_c − φ_b 3.05 fringes, then φ_c
     assert coefs.tolist() == [[1, -2, 1], [0, -1, 1], [0, 0, 1]]
-    assert np.allclose(steps, [1920 / 42 - 2 * 1920 / 45 + 1920 / 48, 1920 / 42 - 1920 / 45, 1920 / 42])
+    assert np.allclose(
+        steps, [1920 / 42 - 2 * 1920 / 45 + 1920 / 48, 1920 / 42 - 1920 / 45, 1920 / 42]
+    )
     assert unwrap_chain(FREQS)[0].tolist() == np.eye(4).tolist()
 
 
@@ -109,7 +113,9 @@ def test_heterodyne_chain_of_three_periods():
 def test_heterodyne_exact_orders(noise_rad):
     x = np.linspace(0.0, 1919.0, 40000).reshape(200, 200)
     rng = np.random.default_rng(4)
-    wrapped = np.stack([np.mod(TWO_PI * k * x / 1920 + rng.normal(0, noise_rad, x.shape), TWO_PI) for k in HET])
+    wrapped = np.stack(
+        [np.mod(TWO_PI * k * x / 1920 + rng.normal(0, noise_rad, x.shape), TWO_PI) for k in HET]
+    )
     unwrapped, ok = unwrap_phases(wrapped, HET, "heterodyne")
     assert ok.all()
     for i, k in enumerate(HET):
@@ -125,7 +131,11 @@ def test_heterodyne_flags_inconsistent_pixels():
 
 @pytest.mark.parametrize(
     ("freqs", "message"),
-    [((40.0, 42.0), "at least 3"), ((40.0, 42.0, 44.0), "zero beat"), ((10.0, 13.0, 19.0), "not <= 1")],
+    [
+        ((40.0, 42.0), "at least 3"),
+        ((40.0, 42.0, 44.0), "zero beat"),
+        ((10.0, 13.0, 19.0), "not <= 1"),
+    ],
 )
 def test_heterodyne_bad_schedules(freqs, message):
     with pytest.raises(ValueError, match=f"^frequencies: .*{message}"):
@@ -143,10 +153,12 @@ def _het9_wrapped(x, w=608.0):
 def test_slip_front_of_30_35_36_is_the_analytic_one():
     from app.recon.unwrap import order_slip_front, order_slip_margin
 
-    # m = ±6: φ_30 unmoved, φ_35 by 2π·6/36; m = ±1: φ_30 by 2π/6, φ_35 by 2π/36 (grid 0.005 rad, rounded down)
+    # m = ±6: φ_30 unmoved, φ_35 by 2π·6/36; m = ±1: φ_30 by 2π/6, φ_35 by 2π/36 (grid 0.005 rad,
+    # rounded down)
     front = order_slip_front(HET9)
     np.testing.assert_allclose(front, [[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]], atol=0.005)
-    assert (front <= np.array([[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]]) + 1e-12).all()  # never looser
+    # never looser
+    assert (front <= np.array([[0.0, TWO_PI / 6], [TWO_PI / 6, TWO_PI / 36]]) + 1e-12).all()
     assert order_slip_margin(HET9) == pytest.approx(TWO_PI / 6)
     # motion between the groups can cancel part of a slip: the margin shrinks as the bound grows
     margins = [order_slip_margin(HET9, r) for r in (0.0, 0.1, 0.3, 0.6, 1.2)]
@@ -190,15 +202,22 @@ def test_order_test_refuses_pixels_too_noisy_to_show_a_slip():
 def test_order_test_false_alarm_rate_on_a_still_noisy_scene(monkeypatch):
     import app.recon.unwrap as unwrap
 
-    monkeypatch.setattr(unwrap, "PHASE_FLOOR_RAD", 0.0)  # pure Gaussian noise: the stated rate holds
+    # pure Gaussian noise: the stated rate holds
+    monkeypatch.setattr(unwrap, "PHASE_FLOOR_RAD", 0.0)
     rng = np.random.default_rng(12)
     x = rng.uniform(20.0, 588.0, (500, 1000))  # away from the ends, where the 1-fringe beat wraps
     sigma = 0.02
     wrapped = np.mod(_het9_wrapped(x) + rng.normal(0.0, sigma, (3, *x.shape)), TWO_PI)
     alpha = 1e-2
-    unwrapped, ok = unwrap_phases(wrapped, HET9, "heterodyne", phase_var=np.full(wrapped.shape, sigma**2),
-                                  false_alarm_rate=alpha)
-    assert np.all(np.abs(unwrapped[-1] - TWO_PI * 36 * x / 608.0) < 1.0)  # no order errors at this noise
+    unwrapped, ok = unwrap_phases(
+        wrapped,
+        HET9,
+        "heterodyne",
+        phase_var=np.full(wrapped.shape, sigma**2),
+        false_alarm_rate=alpha,
+    )
+    # no order errors at this noise
+    assert np.all(np.abs(unwrapped[-1] - TWO_PI * 36 * x / 608.0) < 1.0)
     rate = 1.0 - ok.mean()
     assert 0.6 * alpha < rate < 1.05 * alpha  # Bonferroni over 2 correlated tests: a little below α
 
@@ -208,16 +227,20 @@ def test_motion_between_groups_slips_the_chain_and_the_order_test_catches_it():
     change, the chain picks a wrong order at some pixels and still passes its π/2 step test."""
     from app.recon.unwrap import LIVE_MAX_MOTION_RAD
 
-    x = np.linspace(20.0, 588.0, 200_000).reshape(400, 500)  # the 1-fringe beat wraps at the field ends
+    # the 1-fringe beat wraps at the field ends
+    x = np.linspace(20.0, 588.0, 200_000).reshape(400, 500)
     rng = np.random.default_rng(3)
     rho = rng.uniform(-0.3, 0.3, x.shape)  # finest-phase change per group interval, rad
-    wrapped = np.stack([np.mod(TWO_PI * k * x / 608.0 + (k / 36) * rho * (g - 2), TWO_PI)  # groups 30, 35, 36
+    # groups 30, 35, 36
+    wrapped = np.stack([np.mod(TWO_PI * k * x / 608.0 + (k / 36) * rho * (g - 2), TWO_PI)
                         for g, k in enumerate(HET9)])
     truth = TWO_PI * 36 * x / 608.0
     chain, chain_ok = unwrap_phases(wrapped, HET9, "heterodyne")
     slipped = chain_ok & (np.abs(chain[-1] - truth) > math.pi)
     assert slipped.sum() > 100
     var = np.full(wrapped.shape, 0.01**2)
-    tested, ok = unwrap_phases(wrapped, HET9, "heterodyne", phase_var=var, max_motion_rad=LIVE_MAX_MOTION_RAD)
+    tested, ok = unwrap_phases(
+        wrapped, HET9, "heterodyne", phase_var=var, max_motion_rad=LIVE_MAX_MOTION_RAD
+    )
     assert not (ok & (np.abs(tested[-1] - truth) > math.pi)).any()
     assert not ok[slipped].any()

@@ -44,9 +44,12 @@ def test_step_gains_of_both_chains():
     assert np.allclose(step_gains((30, 35, 36), "heterodyne"), [[1, -6, 5], [-7.2, 7.2, -1]])
 
 
-def _monte_carlo(schedule: PatternSchedule, snr: float, n_px: int, seed: int) -> tuple[float, float]:
-    """(undetected order-error rate, inconsistent rate) of ``schedule``'s real decoder (N-step phase,
-    then :func:`unwrap_phases`) on uint16 pixels at phasor SNR ``snr`` in every frequency."""
+def _monte_carlo(
+    schedule: PatternSchedule, snr: float, n_px: int, seed: int
+) -> tuple[float, float]:
+    """(undetected order-error rate, inconsistent rate) of ``schedule``'s real decoder (N-step
+    phase, then :func:`unwrap_phases`) on uint16 pixels at phasor SNR ``snr`` in every
+    frequency."""
     rng = np.random.default_rng(seed)
     n = schedule.steps
     sigma_i = 40.0  # codes: quantisation is negligible
@@ -68,7 +71,9 @@ def test_rate_is_the_phase_domain_monte_carlo():
     rng = np.random.default_rng(5)
     freqs = (1, 6, 36)
     snr = 4.5
-    theta = [np.angle(snr + rng.normal(size=2_000_000) + 1j * rng.normal(size=2_000_000)) for _ in freqs]
+    theta = [
+        np.angle(snr + rng.normal(size=2_000_000) + 1j * rng.normal(size=2_000_000)) for _ in freqs
+    ]
     got = 0.0
     for g in step_gains(freqs):
         d = sum(gk * t for gk, t in zip(g, theta, strict=True))
@@ -77,12 +82,21 @@ def test_rate_is_the_phase_domain_monte_carlo():
     assert undetected_order_error_rate(freqs, snr=snr) == pytest.approx(got, rel=0.05)
 
 
-@pytest.mark.parametrize("schedule", [PatternSchedule((1, 6), 4), PatternSchedule((1, 4, 12, 36), 4),
-                                      PatternSchedule((1, 6, 36), 3)], ids=["one-step", "paper-16", "geometric-9"])
+@pytest.mark.parametrize(
+    "schedule",
+    [
+        PatternSchedule((1, 6), 4),
+        PatternSchedule((1, 4, 12, 36), 4),
+        PatternSchedule((1, 6, 36), 3),
+    ],
+    ids=["one-step", "paper-16", "geometric-9"],
+)
 def test_order_error_rate_at_the_threshold_is_the_bound_hierarchical(schedule):
     rate = 3e-3  # large enough to count: ~1200 events in 4e5 pixels (±3 %)
     snr = min_phasor_snr(schedule.frequencies, schedule.unwrap, rate=rate)
-    assert undetected_order_error_rate(schedule.frequencies, snr=snr) == pytest.approx(rate, rel=1e-3)
+    assert undetected_order_error_rate(schedule.frequencies, snr=snr) == pytest.approx(
+        rate, rel=1e-3
+    )
     got, inconsistent = _monte_carlo(schedule, snr, 400_000, seed=2)
     # the sum over the steps is an upper bound: an error of one step passes unnoticed only if the
     # other steps pass the test too (at this high rate 30-40 % of pixels fail it; at 1e-6, ~none)
@@ -105,7 +119,9 @@ def test_order_error_rate_at_the_threshold_is_bounded_heterodyne():
 
 def test_threshold_follows_the_noise_and_has_a_floor():
     snr = min_phasor_snr((1, 4, 12, 36))
-    t = modulation_threshold(np.array([0.0, 100.0, 10_000.0]), 4, snr, read_var_dn2=4.0, gain_dn_per_e=0.5)
+    t = modulation_threshold(
+        np.array([0.0, 100.0, 10_000.0]), 4, snr, read_var_dn2=4.0, gain_dn_per_e=0.5
+    )
     expected = snr * np.sqrt(0.5 * (4.0 + 0.5 * np.array([0.0, 100.0, 10_000.0])))
     assert np.allclose(t, np.maximum(MODULATION_FLOOR_DN, expected))
     quiet = modulation_threshold(np.array([10.0]), 4, snr, read_var_dn2=0.0, gain_dn_per_e=0.0)
@@ -134,7 +150,8 @@ def _dim_frames(rig: Rig, seed: int = 0) -> np.ndarray:
 def test_rule_in_both_paths_and_explicit_threshold_wins(dim_rig):
     frames = _dim_frames(dim_rig)
     noise = SensorNoise.typical(255)
-    rec = Reconstructor(dim_rig.calibration(), noise=noise, gross_error_mm=None)  # the modulation part alone
+    # the modulation part alone
+    rec = Reconstructor(dim_rig.calibration(), noise=noise, gross_error_mm=None)
     a = rec.run(frames, fast=False)
     a_reason, a_mod = a.reason.copy(), a.modulation.copy()
     b = rec.run(frames, fast=True)
@@ -142,11 +159,18 @@ def test_rule_in_both_paths_and_explicit_threshold_wins(dim_rig):
     # residual sits on the π/2 consistency test (integer lattice points of very dim pixels)
     assert np.array_equal(a_reason == Reason.LOW_MODULATION, b.reason == Reason.LOW_MODULATION)
     differ = a_reason != b.reason
-    assert differ.sum() <= 10 and set(a_reason[differ].tolist()) | set(b.reason[differ].tolist()) <= {0, 3, 7}
+    assert differ.sum() <= 10 and set(a_reason[differ].tolist()) | set(
+        b.reason[differ].tolist()
+    ) <= {0, 3, 7}
     # the oracle's LOW_MODULATION is exactly the rule on its own B (all frequencies) and A
     wp = wrapped_phase(frames, 4)
-    thr = modulation_threshold(wp.background, 4, min_phasor_snr((1, 4, 12, 36)), noise.read_noise_dn**2,
-                               noise.gain_dn_per_e)
+    thr = modulation_threshold(
+        wp.background,
+        4,
+        min_phasor_snr((1, 4, 12, 36)),
+        noise.read_noise_dn**2,
+        noise.gain_dn_per_e,
+    )
     low = wp.modulation.min(axis=0) < thr
     assert np.array_equal(a_reason == Reason.LOW_MODULATION, low)
     # dim pixels pass: B of 3 codes is far below the former 2 % of full scale (5.1)
@@ -172,7 +196,9 @@ def test_compute_phase_uses_the_rule_and_its_noise(dim_rig):
     n_quiet = (quiet.reason == Reason.LOW_MODULATION).sum()
     n_loud = (loud.reason == Reason.LOW_MODULATION).sum()
     assert n_loud > n_quiet  # a noisier camera needs more modulation
-    explicit = compute_phase(frames, dim_rig.schedule, min_modulation=1.0, noise=SensorNoise(0.0, 3.0))
+    explicit = compute_phase(
+        frames, dim_rig.schedule, min_modulation=1.0, noise=SensorNoise(0.0, 3.0)
+    )
     assert (explicit.reason == Reason.LOW_MODULATION).sum() < n_quiet
     with pytest.raises(ValueError, match="^noise"):
         compute_phase(frames, dim_rig.schedule, noise=3.0)  # type: ignore[arg-type]
@@ -192,7 +218,9 @@ def test_depth_sigma_part_of_the_rule(dim_rig):
         noisy = ok & (free_sigma > limit * 1.001)
         quiet = ok & (free_sigma < limit * 0.999)
         assert noisy.sum() > 100 and quiet.sum() > 100
-        assert (res.reason[noisy] == Reason.UNCERTAIN).all() and (res.reason[quiet] == Reason.OK).all()
+        assert (res.reason[noisy] == Reason.UNCERTAIN).all() and (
+            res.reason[quiet] == Reason.OK
+        ).all()
     # an explicit max_sigma_mm or min_modulation replaces it
     res = Reconstructor(dim_rig.calibration(), max_sigma_mm=10.0).run(frames)
     assert not (res.reason == Reason.UNCERTAIN).any()

@@ -19,13 +19,15 @@ SUTURE_MM = 0.72  # the anastomosis scene's thread height
 
 @pytest.fixture(scope="module")
 def suture() -> tuple[LiveResult, tuple[int, int, int, int], np.ndarray]:
-    """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as published."""
+    """A dark 0.72 mm suture on tissue (undistorted default rig, its exact calibration), as
+    published."""
     rig = default_rig(distortion=False)
     cal = ideal_calibration(rig)
     # centred on a breathing extremum so that the tissue is nearly still during the set
     t0 = 1.0 - 7.5 * max(30.0, READOUT_MS) / 1000.0 - 0.015
-    cs, _, points = render_capture_set("anastomosis", exposure_ms=30.0, current=1.0, seed=7, t0_s=t0,
-                                       distortion=False)
+    cs, _, points = render_capture_set(
+        "anastomosis", exposure_ms=30.0, current=1.0, seed=7, t0_s=t0, distortion=False
+    )
     res = Reconstructor(cal).run(cs.frames)
     origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
     st = (points.astype(np.float64) - origin) @ axes

@@ -41,9 +41,17 @@ def good() -> dict[str, Any]:
 def geometric(good: dict[str, Any]) -> dict[str, Any]:
     """The same with the geometric model (projector as an inverse camera; the simulator's fit)."""
     data = copy.deepcopy(good)
-    data["model"] = {"name": "geometric", "rvec": [0.0, 0.2096, 0.0], "t_mm": [-5.87, 0.0, 1.25],
-                     "focal_px": 499.96, "principal_px": 303.4, "k1": 0.0, "projector_width_px": 608,
-                     "fringes": 36, "supported_region": good["model"]["supported_region"]}
+    data["model"] = {
+        "name": "geometric",
+        "rvec": [0.0, 0.2096, 0.0],
+        "t_mm": [-5.87, 0.0, 1.25],
+        "focal_px": 499.96,
+        "principal_px": 303.4,
+        "k1": 0.0,
+        "projector_width_px": 608,
+        "fringes": 36,
+        "supported_region": good["model"]["supported_region"],
+    }
     data["held_out"] = {"geometric": good["held_out"][good["model"]["name"]]}
     return data
 
@@ -67,22 +75,40 @@ def test_the_simulated_rig_passes(good: dict[str, Any]) -> None:
     check_physical(Calibration.from_dict(good), PatternSchedule())
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: d["camera_matrix"][0].__setitem__(0, 0.0), "camera_matrix: focal lengths must be positive"),
-    (lambda d: d["camera_matrix"][1].__setitem__(1, -1650.0), "fy=-1650"),
-    (lambda d: d["camera_matrix"][0].__setitem__(2, 5000.0), "principal point (5000"),
-    (lambda d: d["camera_matrix"][2].__setitem__(2, 2.0), "camera_matrix: must be"),
-    (_set("reference_plane.offset_mm", -5.0), "reference_plane.offset_mm"),
-    (_set("model.supported_region.phase_rad", [float("nan"), float("nan")]),
-     "model.supported_region.phase_rad: need finite lo < hi"),
-    (_set("model.supported_region.phase_rad", [3.0, 3.0]), "model.supported_region.phase_rad"),
-    (lambda d: d["held_out"][d["model"]["name"]].__setitem__("systematic_mm", 1e6),
-     "systematic_mm: must be finite and within 0-"),
-    (lambda d: d["held_out"][d["model"]["name"]].__setitem__("rms_mm", -0.1), "rms_mm"),
-    (lambda d: d["held_out"][d["model"]["name"]].__setitem__("correlation_mm", 1e9), "correlation_mm"),
-    (lambda d: d["pose_residuals"][0].__setitem__("reprojection_px", 1e4), "pose_residuals[0].reprojection_px"),
-])
-def test_corruptions_are_refused_naming_the_field(good: dict[str, Any], change: Any, message: str) -> None:
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            lambda d: d["camera_matrix"][0].__setitem__(0, 0.0),
+            "camera_matrix: focal lengths must be positive",
+        ),
+        (lambda d: d["camera_matrix"][1].__setitem__(1, -1650.0), "fy=-1650"),
+        (lambda d: d["camera_matrix"][0].__setitem__(2, 5000.0), "principal point (5000"),
+        (lambda d: d["camera_matrix"][2].__setitem__(2, 2.0), "camera_matrix: must be"),
+        (_set("reference_plane.offset_mm", -5.0), "reference_plane.offset_mm"),
+        (
+            _set("model.supported_region.phase_rad", [float("nan"), float("nan")]),
+            "model.supported_region.phase_rad: need finite lo < hi",
+        ),
+        (_set("model.supported_region.phase_rad", [3.0, 3.0]), "model.supported_region.phase_rad"),
+        (
+            lambda d: d["held_out"][d["model"]["name"]].__setitem__("systematic_mm", 1e6),
+            "systematic_mm: must be finite and within 0-",
+        ),
+        (lambda d: d["held_out"][d["model"]["name"]].__setitem__("rms_mm", -0.1), "rms_mm"),
+        (
+            lambda d: d["held_out"][d["model"]["name"]].__setitem__("correlation_mm", 1e9),
+            "correlation_mm",
+        ),
+        (
+            lambda d: d["pose_residuals"][0].__setitem__("reprojection_px", 1e4),
+            "pose_residuals[0].reprojection_px",
+        ),
+    ],
+)
+def test_corruptions_are_refused_naming_the_field(
+    good: dict[str, Any], change: Any, message: str
+) -> None:
     cal = _changed(good, change)
     with pytest.raises(ValueError) as err:
         check_physical(cal, PatternSchedule())
@@ -129,8 +155,13 @@ def test_dry_run_rule() -> None:
     assert dry_run_problem(0.55, 0.6, "sim") is None
     assert dry_run_problem(0.31, 0.6, "sim") is None  # above half
     reason = dry_run_problem(0.0, 0.6, "sim")
-    assert reason is not None and "0.0% of pixels valid against 60.0%" in reason and "force=true" in reason
-    assert dry_run_problem(0.0, MIN_REFERENCE_FRACTION / 2, "sim") is None  # nothing to compare with
+    assert (
+        reason is not None
+        and "0.0% of pixels valid against 60.0%" in reason
+        and "force=true" in reason
+    )
+    # nothing to compare with
+    assert dry_run_problem(0.0, MIN_REFERENCE_FRACTION / 2, "sim") is None
     with pytest.raises(ValueError, match="candidate_fraction"):
         dry_run_problem(1.5, 0.5, "sim")
 
@@ -147,7 +178,10 @@ def test_valid_fraction_watch() -> None:
     assert watch.warning() is None
     watch.observe(5, 0.04)
     warning = watch.warning()
-    assert warning is not None and "collapsed from 60.0% to 4.5% after activating calibration 'x'" in warning
+    assert (
+        warning is not None
+        and "collapsed from 60.0% to 4.5% after activating calibration 'x'" in warning
+    )
     for seq in (6, 7, 8):
         watch.observe(seq, 0.58)
     assert watch.warning() is None  # recovered
@@ -155,12 +189,20 @@ def test_valid_fraction_watch() -> None:
         ValidFractionWatch(ratio=1.5)
 
 
-def test_a_corrupted_active_calibration_is_refused_at_start(tmp_path: Path, good: dict[str, Any]) -> None:
+def test_a_corrupted_active_calibration_is_refused_at_start(
+    tmp_path: Path, good: dict[str, Any]
+) -> None:
     folder = tmp_path / "calibrations"
     folder.mkdir()
-    save_calibration(_changed(good, lambda d: d["camera_matrix"][0].__setitem__(0, 0.0)), folder / "active.json")
-    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
-    mgr = CalibrationManager(Settings(data_dir=tmp_path, camera="opencv"), LivePipeline(config, PatternSchedule(), None))
+    save_calibration(
+        _changed(good, lambda d: d["camera_matrix"][0].__setitem__(0, 0.0)), folder / "active.json"
+    )
+    config = PipelineConfig(
+        exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False
+    )
+    mgr = CalibrationManager(
+        Settings(data_dir=tmp_path, camera="opencv"), LivePipeline(config, PatternSchedule(), None)
+    )
     mgr.load_initial(is_sim=False)
     assert mgr.calibration is None and not mgr.pipeline.has_engine
     assert mgr.last_error is not None and "focal lengths must be positive" in mgr.last_error

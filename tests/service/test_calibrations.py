@@ -21,8 +21,12 @@ def calibration():
 
 
 def _manager(tmp_path) -> CalibrationManager:
-    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
-    return CalibrationManager(Settings(data_dir=tmp_path), LivePipeline(config, PatternSchedule(), None))
+    config = PipelineConfig(
+        exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False
+    )
+    return CalibrationManager(
+        Settings(data_dir=tmp_path), LivePipeline(config, PatternSchedule(), None)
+    )
 
 
 def test_activation_installs_the_engine_and_summarises(tmp_path, calibration):
@@ -33,7 +37,11 @@ def test_activation_installs_the_engine_and_summarises(tmp_path, calibration):
     mgr.activate(calibration, name="bench", persist=True)
     assert mgr.pipeline.has_engine and mgr.calibration is calibration
     s = mgr.summary()
-    assert s is not None and (s.name, s.image_size, s.poses) == ("bench", tuple(calibration.image_size), 0)
+    assert s is not None and (s.name, s.image_size, s.poses) == (
+        "bench",
+        tuple(calibration.image_size),
+        0,
+    )
     assert s.to_dict()["height_range_mm"] == list(calibration.height_range_mm)
     assert (tmp_path / "calibrations" / "active.json").is_file()
     assert (tmp_path / "calibrations" / "bench.json").is_file()
@@ -61,21 +69,32 @@ def test_conflict_without_calibration_or_session(tmp_path):
 
 @pytest.mark.parametrize("max_sigma_mm, gross_error_mm, expected", [
     (None, 0.0, None), (0.05, 0.0, 0.05), (0.05, 0.5, 0.05), (None, 0.5, 0.5 / 4.891638),
-    (None, 1.0, 1.0 / 4.891638), (1.0, 0.5, 1.0)])  # the explicit setting replaces the tolerance's bound
-def test_the_live_engine_carries_the_max_sigma_setting(tmp_path, calibration, max_sigma_mm, gross_error_mm, expected):
-    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
-    mgr = CalibrationManager(Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm, gross_error_mm=gross_error_mm),
-                             LivePipeline(config, PatternSchedule(), None))
+    # the explicit setting replaces the tolerance's bound
+    (None, 1.0, 1.0 / 4.891638), (1.0, 0.5, 1.0)])
+def test_the_live_engine_carries_the_max_sigma_setting(
+    tmp_path, calibration, max_sigma_mm, gross_error_mm, expected
+):
+    config = PipelineConfig(
+        exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False
+    )
+    mgr = CalibrationManager(
+        Settings(data_dir=tmp_path, max_sigma_mm=max_sigma_mm, gross_error_mm=gross_error_mm),
+        LivePipeline(config, PatternSchedule(), None),
+    )
     assert mgr.engine_for(PatternSchedule()) == (None, None)  # nothing active yet
     mgr.activate(calibration, name="s", persist=False)
     engine, why = mgr.engine_for(PatternSchedule())
     assert why is None and engine is not None
-    assert engine.sigma_limit_mm == (None if expected is None else pytest.approx(expected, rel=1e-6))
+    assert engine.sigma_limit_mm == (
+        None if expected is None else pytest.approx(expected, rel=1e-6)
+    )
 
 
 @pytest.mark.parametrize("min_modulation", [None, 5.1])
 def test_the_live_engine_carries_the_min_modulation_setting(tmp_path, calibration, min_modulation):
-    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False)
+    config = PipelineConfig(
+        exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False
+    )
     mgr = CalibrationManager(Settings(data_dir=tmp_path, min_modulation=min_modulation),
                              LivePipeline(config, PatternSchedule(), None))
     mgr.activate(calibration, name="s", persist=False)

@@ -43,7 +43,8 @@ def test_starting_mid_sequence_waits_for_pattern_zero():
         ([p for p in range(N) if p != 7], [i for i in range(N) if i != 7]),  # dropped frame
         (list(range(8)) + [7] + list(range(8, N)), list(range(N + 1))),  # duplicated pattern
         (list(range(5)) + [6, 5] + list(range(7, N)), list(range(N))),  # out of order
-        (list(range(N)), list(range(8)) + [9] + list(range(10, N + 2))[: N - 9]),  # counter gap only
+        # counter gap only
+        (list(range(N)), list(range(8)) + [9] + list(range(10, N + 2))[: N - 9]),
     ],
 )
 def test_a_broken_sequence_is_never_reconstructed_and_is_counted(patterns, indices):
@@ -114,7 +115,9 @@ def test_ten_percent_random_drops_keep_most_of_the_depth_rate():
 
 def test_settings_change_inside_a_set_discards_it():
     asm = SetAssembler(N)
-    fs = frames(range(8), range(8), exposure_ms=20.0) + frames(range(8, 16), range(8, 16), exposure_ms=30.0)
+    fs = frames(range(8), range(8), exposure_ms=20.0) + frames(
+        range(8, 16), range(8, 16), exposure_ms=30.0
+    )
     fs += frames(range(16, 32), range(16), exposure_ms=30.0)
     out = feed_all(asm, fs)
     assert asm.mixed == 1 and asm.incomplete == 0

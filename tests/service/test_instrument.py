@@ -12,16 +12,19 @@ import pytest
 from app.config import Settings
 from app.core.errors import Conflict, InvalidRequest
 from app.service.instrument import Instrument
-from tests.api.conftest import sim_calibration_file  # noqa: F401 - the shared session fixture
 
 
 @pytest.fixture
-def instrument(tmp_path: Path, sim_calibration_file: Path) -> Iterator[Instrument]:  # noqa: F811
+def instrument(tmp_path: Path, sim_calibration_file: Path) -> Iterator[Instrument]:
     # The simulator's calibration sits in the data folder, as a first start leaves it.
     cal_dir = tmp_path / "calibrations"
     cal_dir.mkdir()
     shutil.copy(sim_calibration_file, cal_dir / "sim.json")
-    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, sim_seed=2, exposure_ms=30.0, sim_scene="dof_target"))
+    inst = Instrument(
+        Settings(
+            data_dir=tmp_path, viewer=False, sim_seed=2, exposure_ms=30.0, sim_scene="dof_target"
+        )
+    )
     inst.start()
     try:
         yield inst
@@ -79,9 +82,15 @@ def test_controls_validate_and_status_explains(instrument: Instrument) -> None:
         instrument.pipeline.next_capture(1.0)
 
 
-def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_file: Path) -> None:  # noqa: F811
-    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, calibration_file=sim_calibration_file,
-                                sim_scene="dof_target"))
+def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_file: Path) -> None:
+    inst = Instrument(
+        Settings(
+            data_dir=tmp_path,
+            viewer=False,
+            calibration_file=sim_calibration_file,
+            sim_scene="dof_target",
+        )
+    )
     inst.start()
     wait_until(lambda: inst.acquisition.frames_received > 0, 120, "frames")
     threads = inst.threads()

@@ -26,8 +26,21 @@ def still_set() -> tuple[np.ndarray, Reconstructor]:
 
 
 def frame_set(frames: np.ndarray, indices: list[int], mode: str) -> FrameSet:
-    return FrameSet(tuple(Frame(frames[p], index=i, timestamp=0.03 * i, pattern_index=p, exposure_ms=20.0, led="green")
-                          for p, i in enumerate(indices)), 0.0, mode)
+    return FrameSet(
+        tuple(
+            Frame(
+                frames[p],
+                index=i,
+                timestamp=0.03 * i,
+                pattern_index=p,
+                exposure_ms=20.0,
+                led="green",
+            )
+            for p, i in enumerate(indices)
+        ),
+        0.0,
+        mode,
+    )
 
 
 @pytest.mark.parametrize("mode", ["set", "rolling"])
@@ -39,11 +52,15 @@ def test_a_patch_that_changed_in_one_group_is_motion_and_the_rest_is_untouched(s
     assert still.valid.mean() > 0.5
     # a still map has any flagged pixel with probability <= α = 1e-4 (over the image)
     assert still.moved_pixels == 0 and not still.motion.any()
-    assert not still.scene_moved and still.uncertain_moving_pixels == 0  # still: only the engine's σ limit
+    # still: only the engine's σ limit
+    assert not still.scene_moved and still.uncertain_moving_pixels == 0
     moved = frames.copy()
     patch = (slice(400, 460), slice(600, 700))
-    moved[4:8][(slice(None), *patch)] = np.clip(moved[4:8][(slice(None), *patch)].astype(int) + 40, 0, 255)
-    # rolling: the set after group 1 completes (frames 16..19 hold group 0, 20..23 group 1, then 8..15)
+    moved[4:8][(slice(None), *patch)] = np.clip(
+        moved[4:8][(slice(None), *patch)].astype(int) + 40, 0, 255
+    )
+    # rolling: the set after group 1 completes (frames 16..19 hold group 0, 20..23 group 1, then
+    # 8..15)
     idx = list(range(16)) if mode == "set" else list(range(16, 24)) + list(range(8, 16))
     res = rec.process(engine, frame_set(moved, idx, mode))
     inner = (slice(402, 458), slice(602, 698))
@@ -88,7 +105,9 @@ def test_the_measured_noise_is_passed_to_the_engine_not_installed_in_it(still_se
 
 def test_with_measuring_off_the_live_thread_keeps_the_nominal_noise(still_set):
     frames, engine = still_set
-    rec = Reconstruction(NewestQueue(1), lambda: engine, motion=MotionTest(), noise_estimate_interval_s=0.0)
+    rec = Reconstruction(
+        NewestQueue(1), lambda: engine, motion=MotionTest(), noise_estimate_interval_s=0.0
+    )
     res = rec.process(engine, frame_set(frames, list(range(16)), "set"))
     assert res.noise == SensorNoise.typical(255)
 
@@ -97,12 +116,31 @@ def test_the_pipeline_hands_its_motion_settings_to_the_thread_as_one_test():
     from app.core.schedule import SCHEDULES
     from app.service.pipeline import LivePipeline, PipelineConfig
 
-    config = PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False, autostart=False,
-                            motion_false_alarm_rate=1e-3, motion_grow_px=3, motion_window_px=7,
-                            gross_error_mm=0.4)
+    config = PipelineConfig(
+        exposure_ms=20.0,
+        led="green",
+        bit_depth=8,
+        rolling=False,
+        autostart=False,
+        motion_false_alarm_rate=1e-3,
+        motion_grow_px=3,
+        motion_window_px=7,
+        gross_error_mm=0.4,
+    )
     pipeline = LivePipeline(config, SCHEDULES["paper-16"], None)
-    assert pipeline.reconstruction.motion == MotionTest(false_alarm_rate=1e-3, window_px=7, grow_px=3,
-                                                        gross_error_mm=0.4)
+    assert pipeline.reconstruction.motion == MotionTest(
+        false_alarm_rate=1e-3, window_px=7, grow_px=3, gross_error_mm=0.4
+    )
     with pytest.raises(ValueError, match="window_px"):
-        LivePipeline(PipelineConfig(exposure_ms=20.0, led="green", bit_depth=8, rolling=False,
-                                    autostart=False, motion_window_px=4), SCHEDULES["paper-16"], None)
+        LivePipeline(
+            PipelineConfig(
+                exposure_ms=20.0,
+                led="green",
+                bit_depth=8,
+                rolling=False,
+                autostart=False,
+                motion_window_px=4,
+            ),
+            SCHEDULES["paper-16"],
+            None,
+        )

@@ -23,26 +23,41 @@ def _fringe_set(noise: SensorNoise, rng: np.random.Generator, *, moving_dn: floa
     frames = []
     for k in SCHEDULE.frequencies:
         for n in range(SCHEDULE.steps):
-            mean = a + n * moving_dn + b * np.cos(2 * np.pi * k * u / w + 2 * np.pi * n / SCHEDULE.steps)
-            frames.append(mean + rng.normal(0.0, 1.0, mean.shape) * np.sqrt(noise.variance_dn2(mean)))
+            mean = (
+                a
+                + n * moving_dn
+                + b * np.cos(2 * np.pi * k * u / w + 2 * np.pi * n / SCHEDULE.steps)
+            )
+            frames.append(
+                mean + rng.normal(0.0, 1.0, mean.shape) * np.sqrt(noise.variance_dn2(mean))
+            )
     return np.clip(np.rint(frames), 0, 255).astype(np.uint8)
 
 
 def test_the_estimate_is_the_cameras_and_motion_never_makes_it_quieter():
     rng = np.random.default_rng(0)
-    camera = SensorNoise(gain_dn_per_e=0.03, read_noise_dn=1.2)  # noisier than SensorNoise.typical(255)
+    # noisier than SensorNoise.typical(255)
+    camera = SensorNoise(gain_dn_per_e=0.03, read_noise_dn=1.2)
     live = LiveNoise(interval_s=10.0)
     assert live.current is None and live.describe()["source"] == "nominal"
-    assert live.due(0.0, SCHEDULE) and not live.due(0.0, PatternSchedule(frequencies=(1, 6, 36), steps=3))
+    assert live.due(0.0, SCHEDULE) and not live.due(
+        0.0, PatternSchedule(frequencies=(1, 6, 36), steps=3)
+    )
     moving = live.update(_fringe_set(camera, rng, moving_dn=3.0), SCHEDULE, 255, now_s=0.0)
     assert moving is not None and not live.due(5.0, SCHEDULE) and live.due(10.0, SCHEDULE)
     still = live.update(_fringe_set(camera, rng), SCHEDULE, 255, now_s=10.0)
     assert still is not None and still.variance_dn2(64.0) < moving.variance_dn2(64.0)
     for mean in (30.0, 100.0, 180.0):  # the camera's own noise, not the guess
-        assert np.sqrt(still.variance_dn2(mean)) == pytest.approx(np.sqrt(camera.variance_dn2(mean)), rel=0.1)
+        assert np.sqrt(still.variance_dn2(mean)) == pytest.approx(
+            np.sqrt(camera.variance_dn2(mean)), rel=0.1
+        )
     assert live.update(_fringe_set(camera, rng, moving_dn=3.0), SCHEDULE, 255, now_s=20.0) is still
     d = live.describe()
-    assert d["source"] == "measured" and d["estimates"] == 3 and d["read_noise_dn"] == pytest.approx(1.2, rel=0.2)
+    assert (
+        d["source"] == "measured"
+        and d["estimates"] == 3
+        and d["read_noise_dn"] == pytest.approx(1.2, rel=0.2)
+    )
 
 
 def test_measuring_off_and_bad_interval():

@@ -1,4 +1,5 @@
-"""Calibration folders: board.json, pose capture sets, boards that OpenCV finds sub-pixel exactly."""
+"""Calibration folders: board.json, pose capture sets, boards that OpenCV finds sub-pixel
+exactly."""
 
 from __future__ import annotations
 
@@ -32,7 +33,11 @@ def test_checkerboard_folder_detected_subpixel(tmp_path):
     out = simulate_calibration_folder(tmp_path / "cal", board="checkerboard", poses=3, seed=1)
     board = json.loads((out / "board.json").read_text())
     spec, rig = sim_board(), default_rig()
-    assert board == {"type": "checkerboard", "inner_corners": [spec.cols, spec.rows], "square_mm": spec.pitch_mm}
+    assert board == {
+        "type": "checkerboard",
+        "inner_corners": [spec.cols, spec.rows],
+        "square_mm": spec.pitch_mm,
+    }
     assert BoardSpec.from_dict(board) == spec
     for k in range(3):
         cs = read_capture_set(out / f"pose_{k:02d}")
@@ -57,7 +62,9 @@ def test_circle_grid_folder_detected(tmp_path):
     spec, rig = sim_board("circles"), default_rig()
     for k in range(2):
         cs = read_capture_set(out / f"pose_{k:02d}")
-        ok, centres = cv2.findCirclesGrid(_texture(cs), spec.pattern_size, flags=cv2.CALIB_CB_SYMMETRIC_GRID)
+        ok, centres = cv2.findCirclesGrid(
+            _texture(cs), spec.pattern_size, flags=cv2.CALIB_CB_SYMMETRIC_GRID
+        )
         assert ok, f"pose {k}"
         truth = _truth_corners(cs, spec, rig)
         d = np.linalg.norm(centres.reshape(-1, 2)[:, None, :] - truth[None], axis=2).min(axis=1)

@@ -33,8 +33,26 @@ def test_errors_are_one_line_exit_2(tmp_path, capsys):
 def test_writes_sets_with_truth(tmp_path, plane_world):
     out = tmp_path / "sets"
     # 12-bit, 2 sets: 16 frames at 40 ms → 0.64 s a set
-    assert main(["simulate", "plane", "-o", str(out), "--bits", "12", "--seed", "3", "--exposure-ms", "40",
-                 "--duration-s", "1.3", "--no-distortion"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "plane",
+                "-o",
+                str(out),
+                "--bits",
+                "12",
+                "--seed",
+                "3",
+                "--exposure-ms",
+                "40",
+                "--duration-s",
+                "1.3",
+                "--no-distortion",
+            ]
+        )
+        == 0
+    )
     sets = sorted(p.name for p in out.iterdir())
     assert sets == ["set_0000", "set_0001"]
     cs = read_capture_set(out / "set_0001")

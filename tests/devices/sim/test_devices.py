@@ -13,7 +13,9 @@ from app.devices.sim import create_sim_devices
 
 
 def _running(**kw):
-    dev = create_sim_devices(scene="plane", seed=kw.pop("seed", 0), realtime=kw.pop("realtime", False), **kw)
+    dev = create_sim_devices(
+        scene="plane", seed=kw.pop("seed", 0), realtime=kw.pop("realtime", False), **kw
+    )
     dev.camera.open()
     dev.projector.open()
     dev.projector.load_schedule(PatternSchedule(), exposure_ms=20.0)
@@ -52,7 +54,9 @@ def test_frame_period_is_max_of_exposure_and_readout():
     # Timestamps sit on the frame clock; a consumer that fell behind the ring buffer sees
     # index gaps, never a distorted clock.
     idx = np.array([f.index for f in frames])
-    np.testing.assert_allclose(np.diff([f.timestamp for f in frames]), 0.040 * np.diff(idx), atol=1e-9)
+    np.testing.assert_allclose(
+        np.diff([f.timestamp for f in frames]), 0.040 * np.diff(idx), atol=1e-9
+    )
     assert elapsed >= 5 * 0.040 - 0.005
     dev.camera.configure(exposure_ms=5.0)  # readout-limited: 45 frames/s
     dev.camera.grab(timeout_s=30.0)

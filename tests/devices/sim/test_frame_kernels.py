@@ -41,15 +41,20 @@ def _scene_reference(r: Renderer, pattern: int, t_s: float, scale: float, amb: f
     with np.errstate(divide="ignore", invalid="ignore"):
         xp = (nd[0][sv, su] + alpha @ delta) / (nd[1][sv, su] + gam @ delta)
     lit = (b > 0) & (xp >= -0.5) & (xp <= r.schedule.width - 0.5)
-    f = np.where(lit, xp, 0.0) * r.schedule.frequencies[fi] / r.schedule.width + n / r.schedule.steps + 1.0
+    f = (
+        np.where(lit, xp, 0.0) * r.schedule.frequencies[fi] / r.schedule.width
+        + n / r.schedule.steps
+        + 1.0
+    )
     f -= np.floor(f)
     q = r.qtab[np.minimum((f * len(r.qtab)).astype(int), len(r.qtab) - 1)]
     m = scale * (b * r.qbar + fringe[fi][sv, su] * (q - r.qbar)) + amb
     return np.where(lit, m, amb)
 
 
-def _capsule_reference(rays: np.ndarray, p0: np.ndarray, a_hat: np.ndarray, length: float, radius: float
-                       ) -> np.ndarray:
+def _capsule_reference(
+    rays: np.ndarray, p0: np.ndarray, a_hat: np.ndarray, length: float, radius: float
+) -> np.ndarray:
     """Ray parameter t (N,) of the first hit of rays (N, 3) from the camera with a capsule (inf:
     miss), tested against its cylinder and both end spheres."""
     da, oa = rays @ a_hat, -p0 @ a_hat
@@ -61,7 +66,11 @@ def _capsule_reference(rays: np.ndarray, p0: np.ndarray, a_hat: np.ndarray, leng
     best = np.where((t > 0) & (ax >= 0) & (ax <= length), t, np.inf)
     for e in (0.0, length):
         centre = p0 + e * a_hat
-        aa, bb, cc = np.einsum("ij,ij->i", rays, rays), -2 * rays @ centre, centre @ centre - radius**2
+        aa, bb, cc = (
+            np.einsum("ij,ij->i", rays, rays),
+            -2 * rays @ centre,
+            centre @ centre - radius**2,
+        )
         with np.errstate(invalid="ignore"):
             ts = (-bb - np.sqrt(bb * bb - 4 * aa * cc)) / (2 * aa)
         best = np.where((ts > 0) & (ts < best), ts, best)
@@ -78,20 +87,24 @@ def test_moving_scene_with_tool_matches_reference(anastomosis: Renderer):
     p0, p1 = (np.asarray(p, np.float64) for p in r.scene.tool.path(t_s))
     length = float(np.linalg.norm(p1 - p0))
     h, w = r.shape
-    t_hit = _capsule_reference(r.rays, p0, (p1 - p0) / length, length, r.scene.tool.radius_mm).reshape(h, w)
+    t_hit = _capsule_reference(
+        r.rays, p0, (p1 - p0) / length, length, r.scene.tool.radius_mm
+    ).reshape(h, w)
     zs = r.points[..., 2] + r.scene.offset(t_s)[2]
     on_tool = np.isfinite(t_hit) & ~(t_hit * r.rays[:, 2].reshape(h, w) >= zs)
     assert 0.02 < on_tool.mean() < 0.3  # the forceps are in view at this instant
     np.testing.assert_allclose(mean[~on_tool], ref[~on_tool], rtol=1e-5, atol=0.02)
     # the tool covers the scene there (metal: bright, or dark where the light grazes it)
     assert np.mean(np.abs(mean[on_tool] - ref[on_tool]) > 1.0) > 0.5
-    edge = on_tool ^ np.roll(on_tool, 1, axis=1)  # silhouette pixels: allow rounding at grazing hits
+    # silhouette pixels: allow rounding at grazing hits
+    edge = on_tool ^ np.roll(on_tool, 1, axis=1)
     assert np.mean(mean[on_tool & ~edge] != ref[on_tool & ~edge]) > 0.5
 
 
 @pytest.mark.parametrize("bits", [8, 12])
 def test_noisy_frame_is_mean_plus_raster_noise(anastomosis: Renderer, bits: int):
-    """The fused frame equals the stored-mean path: the mean frame, then add_noise in raster order."""
+    """The fused frame equals the stored-mean path: the mean frame, then add_noise in raster
+    order."""
     r = anastomosis
     t_s, pattern = 0.7, 3
     state = np.array([987654321], np.uint64)
@@ -99,9 +112,12 @@ def test_noisy_frame_is_mean_plus_raster_noise(anastomosis: Renderer, bits: int)
     _, _, g, read2, maxv = r.scales(exposure_ms=20.0, gain=1.0, led="green", current=0.5, bits=bits)
     mean = r.mean_frame(pattern, t_s, exposure_ms=20.0, bits=bits)
     ref = np.empty_like(frame)
-    kernels.add_noise(ref.reshape(-1), mean.reshape(-1), g, read2, maxv, gaussian_quantile_table(), state.copy())
+    kernels.add_noise(
+        ref.reshape(-1), mean.reshape(-1), g, read2, maxv, gaussian_quantile_table(), state.copy()
+    )
     diff = np.abs(frame.astype(int) - ref.astype(int))
-    assert diff.max() <= 1 and np.mean(diff > 0) < 1e-4  # rounding of a few vectorised pixels at most
+    # rounding of a few vectorised pixels at most
+    assert diff.max() <= 1 and np.mean(diff > 0) < 1e-4
     assert frame.std() > 5 and math.isfinite(float(frame.mean()))
 
 

@@ -35,7 +35,8 @@ def test_breathing_and_tool_scenes_exist_and_move():
     tool = build_scene("tool", rig)
     assert tool.motion is None and tool.tool is not None
     tips = np.array([tool.tool.path(t)[0] for t in (0.0, 2.5)])
-    assert np.linalg.norm(tips[1] - tips[0]) == pytest.approx(10.0, abs=1e-6)  # quarter period of ±10 mm
+    # quarter period of ±10 mm
+    assert np.linalg.norm(tips[1] - tips[0]) == pytest.approx(10.0, abs=1e-6)
 
 
 def test_truth_heaves_with_the_scene(breathing):

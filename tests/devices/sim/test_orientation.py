@@ -1,4 +1,5 @@
-"""Horizontal fringes in the simulator: the decoded phase follows the projector row, not the column."""
+"""Horizontal fringes in the simulator: the decoded phase follows the projector row, not the
+column."""
 
 from __future__ import annotations
 
@@ -26,7 +27,10 @@ def test_horizontal_fringes_encode_the_projector_row():
     expected_row = 2 * math.pi * k * row / sched.height
     expected_col = 2 * math.pi * k * col / sched.width
     err = res.phase[ok] - expected_row[ok]
-    print(f"\nhorizontal fringes: median |phase - 2 pi k y_p / h| = {np.median(np.abs(err)):.3f} rad over {ok.sum()} px")
+    print(
+        f"\nhorizontal fringes: median |phase - 2 pi k y_p / h| = "
+        f"{np.median(np.abs(err)):.3f} rad over {ok.sum()} px"
+    )
     assert np.median(np.abs(err)) < 0.1
     assert np.median(np.abs(res.phase[ok] - expected_col[ok])) > 10  # not the column
     # and the ideal calibration of that geometry reads the phase along the same axis

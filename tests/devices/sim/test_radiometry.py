@@ -21,7 +21,10 @@ def test_signal_monotonic_and_linear_in_exposure(plane_world):
 def test_led_colours_follow_flux_qe_and_reflectance(plane_world):
     r = plane_world.renderer
     sens = r.sensor
-    amb = {led: r.scales(exposure_ms=20.0, gain=1.0, led=led, current=0.5, bits=8)[1] for led in LED_FLUX}
+    amb = {
+        led: r.scales(exposure_ms=20.0, gain=1.0, led=led, current=0.5, bits=8)[1]
+        for led in LED_FLUX
+    }
     sig = {led: r.mean_frame(2, 0.0, exposure_ms=20.0, led=led) - amb[led] for led in LED_FLUX}
     lit = sig["green"] > 5.0
     for led in ("red", "blue"):

@@ -1,4 +1,5 @@
-"""Rig presets of the twin: the endoscope rig's sensor, lens distortion, 12-bit frames, partial boards."""
+"""Rig presets of the twin: the endoscope rig's sensor, lens distortion, 12-bit frames, partial
+boards."""
 
 from __future__ import annotations
 
@@ -30,7 +31,10 @@ from app.devices.sim.scenes.base import frame_from_normal
 def _triangulation_deg(rig) -> float:
     """Angle between the camera ray and the projector ray at the reference point."""
     p = rig.reference_point_mm
-    a, b = p / np.linalg.norm(p), (p - rig.projector.centre) / np.linalg.norm(p - rig.projector.centre)
+    a, b = (
+        p / np.linalg.norm(p),
+        (p - rig.projector.centre) / np.linalg.norm(p - rig.projector.centre),
+    )
     return math.degrees(math.acos(float(a @ b)))
 
 
@@ -51,7 +55,10 @@ def test_endoscope_distortion_is_monotonic_to_the_corners():
     """Barrel distortion must stay invertible over the whole image (else rays fold over)."""
     cam = rig_by_name("endoscope").camera
     w, h = cam.image_size
-    r_d = math.hypot(max(cam.K[0, 2], w - 1 - cam.K[0, 2]), max(cam.K[1, 2], h - 1 - cam.K[1, 2])) / cam.K[0, 0]
+    r_d = (
+        math.hypot(max(cam.K[0, 2], w - 1 - cam.K[0, 2]), max(cam.K[1, 2], h - 1 - cam.K[1, 2]))
+        / cam.K[0, 0]
+    )
     k1 = cam.dist[0]
     r_fold = math.sqrt(-1 / (3 * k1))  # d/dr [r (1 + k1 r²)] = 0
     assert r_d < 0.95 * r_fold * (1 + k1 * r_fold**2)
@@ -70,7 +77,8 @@ def test_rendered_straight_line_is_the_curve_cv2_projects(endo_plane):
     rig = endo_plane.rig
     hf = endo_plane.scene.surface
     _, points = endo_plane.truth(0.0)
-    s = hf.local(points.astype(np.float64))[..., 0]  # (H, W) in-plane coordinate of each pixel's hit
+    # (H, W) in-plane coordinate of each pixel's hit
+    s = hf.local(points.astype(np.float64))[..., 0]
     s_line = 15.0  # off centre: radial lines stay straight under radial distortion
     rows, cols = [], []
     for v in range(40, rig.image_size[1] - 40, 16):
@@ -105,7 +113,11 @@ def test_endoscope_frames_are_12_bit(endo_plane):
 
 def test_default_rig_capture_meta_unchanged(plane_world):
     cs, _, _ = render_capture_set("plane", world=plane_world, seed=1)
-    assert cs.frames.dtype == np.uint8 and "bit_depth" not in cs.extra and "rig" not in cs.extra["simulated"]
+    assert (
+        cs.frames.dtype == np.uint8
+        and "bit_depth" not in cs.extra
+        and "rig" not in cs.extra["simulated"]
+    )
 
 
 @pytest.mark.parametrize("name", RIG_NAMES)
@@ -128,7 +140,9 @@ def test_cli_rig_option(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def endo_calibration(tmp_path_factory):
-    return simulate_calibration_folder(tmp_path_factory.mktemp("endo") / "cal", poses=6, seed=2, rig="endoscope")
+    return simulate_calibration_folder(
+        tmp_path_factory.mktemp("endo") / "cal", poses=6, seed=2, rig="endoscope"
+    )
 
 
 @pytest.mark.slow
@@ -147,12 +161,15 @@ def test_partial_boards_detected_in_the_central_half(endo_calibration):
         det = detect_board(texture_to_u8(mean), cal_board)
         assert det.found
         uv = det.image_points.reshape(-1, 2)
-        assert np.all(np.abs(uv[:, 0] - (w - 1) / 2) <= w / 4) and np.all(np.abs(uv[:, 1] - (h - 1) / 2) <= h / 4)
+        assert np.all(np.abs(uv[:, 0] - (w - 1) / 2) <= w / 4) and np.all(
+            np.abs(uv[:, 1] - (h - 1) / 2) <= h / 4
+        )
         sim = cs.extra["simulated"]
         assert sim["partial_board"] is True
         truth = rig.camera.project(np.array(sim["board_origin_mm"]) + board_points_mm(spec)
                                    @ np.array(sim["board_axes"]).T)
-        nearest = np.linalg.norm(uv[:, None] - truth[None], axis=2).min(axis=1)  # detection order is free
+        # detection order is free
+        nearest = np.linalg.norm(uv[:, None] - truth[None], axis=2).min(axis=1)
         assert np.max(nearest) < 0.3
 
 
@@ -163,7 +180,9 @@ def test_endoscope_rig_calibrates_end_to_end(endo_calibration):
     cal = rep.calibration
     rig = rig_by_name("endoscope")
     assert cal.image_size == rig.image_size
-    assert np.allclose(cal.camera_matrix[[0, 1, 0, 1], [0, 1, 2, 2]], rig.K[[0, 1, 0, 1], [0, 1, 2, 2]], atol=3.0)
+    assert np.allclose(
+        cal.camera_matrix[[0, 1, 0, 1], [0, 1, 2, 2]], rig.K[[0, 1, 0, 1], [0, 1, 2, 2]], atol=3.0
+    )
     assert cal.dist_coeffs[0] == pytest.approx(-0.25, abs=0.02)
     assert rep.reprojection_px < 0.15
     assert rep.rms_mm < 0.05
@@ -175,8 +194,8 @@ def test_endoscope_rig_calibrates_end_to_end(endo_calibration):
 
 
 def test_rig_selected_by_settings_everywhere_the_simulator_is_built(tmp_path):
-    """FRINGESCOPE_SIM_RIG reaches the devices of the factory and of the service, and the simulator's
-    own calibration file is per rig (nothing is rendered here)."""
+    """FRINGESCOPE_SIM_RIG reaches the devices of the factory and of the service, and the
+    simulator's own calibration file is per rig (nothing is rendered here)."""
     from app.config import Settings
     from app.devices.factory import create_devices as factory_devices
     from app.service.calibration_store import sim_file_name
@@ -202,7 +221,9 @@ def test_calibration_reads_the_capture_bit_depth():
 
     frames = np.zeros((16, 4, 4), np.uint16)
     sched = PatternSchedule()
-    assert capture_max_code(CaptureSet(frames=frames, schedule=sched, extra={"bit_depth": 12})) == 4095
+    assert (
+        capture_max_code(CaptureSet(frames=frames, schedule=sched, extra={"bit_depth": 12})) == 4095
+    )
     assert capture_max_code(CaptureSet(frames=frames, schedule=sched)) is None
     with pytest.raises(ValueError, match="bit_depth"):
         capture_max_code(CaptureSet(frames=frames, schedule=sched, extra={"bit_depth": 20}))

@@ -1,4 +1,5 @@
-"""Scenes: names, reference-plane alignment, metrology shapes, motion amplitudes (sparse rays, cheap)."""
+"""Scenes: names, reference-plane alignment, metrology shapes, motion amplitudes (sparse rays,
+cheap)."""
 
 from __future__ import annotations
 
@@ -60,7 +61,9 @@ def test_flaps_stand_on_the_target(rig):
 def test_motion_amplitudes(rig):
     pile = build_scene("intestine_pile", rig)
     xs = np.array([pile.offset(t) for t in np.linspace(0, 8, 161)])
-    assert np.ptp(np.linalg.norm(xs, axis=1) * np.sign(xs @ pile.surface.axes[:, 0])) == pytest.approx(6.0, abs=0.01)
+    assert np.ptp(
+        np.linalg.norm(xs, axis=1) * np.sign(xs @ pile.surface.axes[:, 0])
+    ) == pytest.approx(6.0, abs=0.01)
     ana = build_scene("anastomosis", rig)
     br = np.array([ana.offset(t) @ rig.reference.normal for t in np.linspace(0, 4, 401)])
     assert np.ptp(br) == pytest.approx(1.5, abs=0.01)  # breathing 0.25 Hz, 1.5 mm peak-to-peak
@@ -96,4 +99,8 @@ def test_bright_suture_variant_differs_only_in_the_thread(rig):
     np.testing.assert_array_equal(thread, bright.surface.material == material_id("suture_bright"))
     np.testing.assert_array_equal(dark.surface.material[~thread], bright.surface.material[~thread])
     # in the green light used for measurement the violet thread is darker, the undyed one brighter
-    assert REFLECTANCE["suture"]["green"] < REFLECTANCE["intestine"]["green"] < REFLECTANCE["suture_bright"]["green"]
+    assert (
+        REFLECTANCE["suture"]["green"]
+        < REFLECTANCE["intestine"]["green"]
+        < REFLECTANCE["suture_bright"]["green"]
+    )

@@ -23,7 +23,9 @@ def test_truth_matches_phase_of_rendered_frames(dof_world):
     sched = dof_world.schedule
     exposure = auto_exposure_ms(dof_world, bits=12, target=0.9)
     dof_world.reseed(11)
-    cap, depth, points = render_capture_set(dof_world.scene, exposure_ms=exposure, bit_depth=12, world=dof_world)
+    cap, depth, points = render_capture_set(
+        dof_world.scene, exposure_ms=exposure, bit_depth=12, world=dof_world
+    )
     frames = cap.frames.astype(np.float64)
     n = sched.steps
     phases, mods = [], []
@@ -34,7 +36,9 @@ def test_truth_matches_phase_of_rendered_frames(dof_world):
     unwrapped = np.mod(phases[0], 2 * np.pi)  # k = 1 is absolute
     for fi in range(1, len(sched.frequencies)):
         ratio = sched.frequencies[fi] / sched.frequencies[fi - 1]
-        unwrapped = phases[fi] + 2 * np.pi * np.round((ratio * unwrapped - phases[fi]) / (2 * np.pi))
+        unwrapped = phases[fi] + 2 * np.pi * np.round(
+            (ratio * unwrapped - phases[fi]) / (2 * np.pi)
+        )
     xp_true = dof_world.rig.projector.column(points.astype(np.float64))
     phi_true = 2 * math.pi * sched.frequencies[-1] * xp_true / sched.width
     good = np.isfinite(depth) & (mods[-1] > 60) & (cap.frames.max(0) < 4095)
@@ -56,7 +60,9 @@ def test_same_seed_same_frames_different_seed_differs(plane_world):
 
     def frames(seed):
         plane_world.reseed(seed)
-        return np.stack([plane_world.render(i, 0.0, exposure_ms=20.0, gain=1.0, bits=8) for i in (0, 17)])
+        return np.stack(
+            [plane_world.render(i, 0.0, exposure_ms=20.0, gain=1.0, bits=8) for i in (0, 17)]
+        )
 
     a, b, c = frames(5), frames(5), frames(6)
     assert np.array_equal(a, b)
