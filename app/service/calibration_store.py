@@ -52,6 +52,10 @@ def save_active(settings: Settings, cal: Calibration, name: str) -> Path:
     return save_calibration(cal, folder(settings) / "active.json")
 
 
+#: prefix of the simulator calibration's temporary work folder inside the calibration folder
+WORK_FOLDER_PREFIX = ".sim-calib-"
+
+
 def sim_file_name(settings: Settings) -> str:
     """The simulator's own calibration file: ``sim.json`` for the default rig, ``sim-<rig>.json`` else."""
     return "sim.json" if settings.sim_rig == "default" else f"sim-{settings.sim_rig}.json"
@@ -64,7 +68,7 @@ def create_sim_calibration(settings: Settings) -> Calibration:
 
     out = folder(settings)
     out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".sim-calib-", dir=out))
+    work = Path(tempfile.mkdtemp(prefix=WORK_FOLDER_PREFIX, dir=out))
     try:
         log.info("creating the simulator's calibration in %s", work)
         simulate_calibration_folder(work / "poses", seed=settings.sim_seed, rig=settings.sim_rig)

@@ -28,6 +28,7 @@ from app.service.calibration_checks import ValidFractionWatch, check_physical, d
 from app.service.calibration_session import CalibrationSession
 from app.service.pipeline import LivePipeline
 from app.service.schedules import calibration_for_schedule
+from app.service.sim_calibration_job import SimCalibrationJob
 
 log = logging.getLogger("fringescope.service")
 
@@ -49,7 +50,7 @@ class CalibrationManager:
         self._lock = threading.Lock()
         self._activate_lock = threading.Lock()  # one activation at a time: its dry run compares
         self.watch = ValidFractionWatch()
-        self._creating: threading.Thread | None = None
+        self._creating: SimCalibrationJob | None = None
 
     @property
     def schedule(self) -> PatternSchedule:
@@ -75,31 +76,30 @@ class CalibrationManager:
                 if s.calibration_file is not None:
                     return
         if is_sim:
-            self._creating = threading.Thread(target=self._create_sim, name="fringescope-calibrate", daemon=True)
+            self._creating = SimCalibrationJob(self.settings, self._sim_created, self._error)
             self._creating.start()
         else:
             self.warnings.append("no calibration: load one (PUT /api/calibration/file) or calibrate")
 
-    def _create_sim(self) -> None:
-        try:
-            cal = calibration_store.create_sim_calibration(self.settings)
-        except Exception as exc:
-            log.exception("simulator calibration failed")
-            self._error(f"simulator calibration failed: {exc}")
+    def _sim_created(self, cal: Calibration) -> None:
+        if self.pipeline.closed:
             return
-        if not self.pipeline.closed:
+        try:
             self.activate(cal, name="sim", persist=False)
+        except ValueError as exc:
+            self._error(f"simulator calibration refused: {exc}")
 
     @property
     def creating(self) -> bool:
-        return self._creating is not None and self._creating.is_alive()
+        return self._creating is not None and self._creating.thread.is_alive()
 
     def thread(self) -> threading.Thread | None:
-        return self._creating
+        return None if self._creating is None else self._creating.thread
 
     def join(self, timeout_s: float) -> None:
-        if self._creating is not None and self._creating.is_alive():
-            self._creating.join(max(timeout_s, 120.0))  # a fit cannot be interrupted
+        """Stop a simulator calibration still being made (its process is terminated)."""
+        if self._creating is not None:
+            self._creating.cancel(timeout_s)
 
     # -- activation --------------------------------------------------------------------------
     def activate(self, cal: Calibration, *, name: str, persist: bool = True, force: bool = False) -> None:

@@ -98,3 +98,26 @@ def test_close_joins_threads_and_is_idempotent(tmp_path: Path, sim_calibration_f
     inst.close()
     assert not any(t.is_alive() for t in threads)
     assert inst.state() == "stopped"
+
+
+def test_closing_during_the_first_calibration_stops_it(tmp_path: Path) -> None:
+    # A first start on an empty data folder makes the simulator's calibration in a child
+    # process; closing the instrument meanwhile terminates it instead of waiting for the fit,
+    # and leaves neither a calibration file nor the child's work folder.
+    inst = Instrument(Settings(data_dir=tmp_path, viewer=False, autostart=False, sim_seed=0))
+    inst.start()
+    try:
+        assert inst.calibrations.creating
+        job = inst.calibrations._creating
+        assert job is not None
+        wait_until(
+            lambda: any((tmp_path / "calibrations").glob(".sim-calib-*")), 60,
+            "the child's work folder",
+        )
+    finally:
+        inst.close()
+    assert not job._process.is_alive() and job._process.exitcode is not None
+    assert not inst.calibrations.creating and inst.calibration is None
+    assert not any((tmp_path / "calibrations").glob(".sim-calib-*"))
+    assert not (tmp_path / "calibrations" / "sim.json").exists()
+    assert not any(t.is_alive() for t in inst.threads())
