@@ -237,6 +237,8 @@ def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tup
     moved = flat[keep].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
     front = moved[:, 2] > 0
     keep, moved = keep[front], moved[front]
+    if len(keep) == 0:  # nothing in front of the camera (cv2 returns None for no points)
+        return _Pairs(keep, keep, moved)
     uv, _ = cv2.projectPoints(moved, np.zeros(3), np.zeros(3), camera_matrix, dist_coeffs)
     uv = np.rint(uv.reshape(-1, 2)).astype(np.int64)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)

@@ -129,3 +129,14 @@ def test_normals_point_to_the_camera(reference):
     np.testing.assert_allclose(np.linalg.norm(n[ok], axis=1), 1, atol=1e-5)
     with pytest.raises(ValueError, match="step_px"):
         surface_normals(ref_pts, 0)
+
+
+def test_a_cloud_with_no_point_in_front_of_the_camera_is_no_crash(reference):
+    """Every current point at the camera's centre (z = 0): none projects into the image. The
+    comparison answers (no change shown) instead of raising from the projection."""
+    ref_pts, ref_sig = reference
+    at_centre = np.zeros_like(ref_pts)
+    res = compare(ref_pts[..., 2] + 5.0, ref_sig, at_centre, ref_pts[..., 2].copy(), ref_sig,
+                  ref_pts, camera_matrix=K, dist_coeffs=DIST, register="always")
+    assert res.mode in ("failed", "registered")
+    assert not res.cmap.changed.any()
