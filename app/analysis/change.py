@@ -147,6 +147,10 @@ def register_rigid(points: F32, ref_points: F32, *, voxel_mm: float = DEFAULT_VO
     source, source_tree = small_gicp.preprocess_points(src, downsampling_resolution=voxel_mm,
                                                        num_neighbors=20)
     del source_tree
+    if target.size() < 100 or source.size() < 100:  # e.g. a cloud collapsed to a point
+        return Registration(False, ident, math.nan, 0.0, 0, _ms(t0),
+                            f"too few distinct points to register ({source.size()} voxels "
+                            f"now, {target.size()} in the reference)")
     transform = ident
     iterations = 0
     converged = False

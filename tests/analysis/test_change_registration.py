@@ -131,12 +131,17 @@ def test_normals_point_to_the_camera(reference):
         surface_normals(ref_pts, 0)
 
 
-def test_a_cloud_with_no_point_in_front_of_the_camera_is_no_crash(reference):
-    """Every current point at the camera's centre (z = 0): none projects into the image. The
-    comparison answers (no change shown) instead of raising from the projection."""
-    ref_pts, ref_sig = reference
-    at_centre = np.zeros_like(ref_pts)
-    res = compare(ref_pts[..., 2] + 5.0, ref_sig, at_centre, ref_pts[..., 2].copy(), ref_sig,
-                  ref_pts, camera_matrix=K, dist_coeffs=DIST, register="always")
-    assert res.mode in ("failed", "registered")
+
+def test_a_collapsed_cloud_is_not_registered_and_is_no_crash():
+    """Both clouds collapsed to the camera's centre (every point (0, 0, 0)): a handful of
+    voxels, no point in front of the camera. The registration says so (failed) instead of
+    passing a degenerate ICP on to a projection of no points."""
+    h, w = 48, 64
+    k = np.array([[200.0, 0, 32], [0, 200.0, 24], [0, 0, 1]])
+    zero = np.zeros((h, w, 3), np.float32)
+    sig = np.full((h, w), 0.05, np.float32)
+    res = compare(np.ones((h, w), np.float32), sig, zero, np.zeros((h, w), np.float32), sig,
+                  zero, camera_matrix=k, dist_coeffs=DIST)
+    assert res.mode == "failed" and res.registration is not None
+    assert "too few" in res.registration.note
     assert not res.cmap.changed.any()
