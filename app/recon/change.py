@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit, prange
+from numba import njit
 
-from app.recon.fast import FASTMATH, KERNEL_LOCK
-from app.recon.motion import pooled_window_mask, window_thresholds
+from app.recon.fast import FASTMATH
+from app.recon.motion import window_thresholds
 
 F32 = npt.NDArray[np.float32]
 
@@ -109,89 +109,138 @@ class ChangeMap:
         return self.changed_pixels / self.compared if self.compared else 0.0
 
 
-_ROWS = 16  # rows per parallel chunk
+#: rows after which the decide pass's sliding column sums are summed afresh
+_RESTART_ROWS = 16
+#: s² is capped here in the window sums (far above any window threshold, so no decision
+#: changes) so that a huge s² leaves no float rounding behind once it slides out of a window
+_Q_CAP = np.float32(1e4)
 
 
-@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True, inline="always")
-def _pixels(cur, cur_sigma, ref, ref_sigma, q_pixel,  # type: ignore[no-untyped-def]
-            delta, sig_out, q, m, hot):  # pragma: no cover - compiled
-    """One row: Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails),
-    q = s² (0 where not compared), m = compared, hot = s² > q_pixel. Branch-free: vectorises."""
-    nan = np.float32(np.nan)
-    for u in range(cur.size):
-        d = cur[u] - ref[u]
-        var = cur_sigma[u] * cur_sigma[u] + ref_sigma[u] * ref_sigma[u]
-        qq = d * d / var
-        ok = qq < np.float32(np.inf)
-        delta[u] = d if ok else nan
-        sig_out[u] = np.sqrt(var) if ok else nan
-        qq = qq if ok else np.float32(0.0)
-        q[u] = qq
-        m[u] = ok
-        hot[u] = qq > q_pixel
-
-
-@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True, inline="always")
-def _window_row(q, m, radius, out_q, out_m):  # type: ignore[no-untyped-def] # pragma: no cover
-    """out_q[u] = Σ q over u − r … u + r, out_m[u] = Σ m there (running sums)."""
-    w = q.size
-    s = np.float32(0.0)
-    c = 0
-    for u in range(min(radius, w)):
-        s += q[u]
-        c += m[u]
-    for u in range(w):
-        if u + radius < w:
-            s += q[u + radius]
-            c += m[u + radius]
-        if u - radius - 1 >= 0:
-            s -= q[u - radius - 1]
-            c -= m[u - radius - 1]
-        out_q[u] = s
-        out_m[u] = c
+# Three passes, each its own compiled function called from Python: compiled into one
+# function (by hand or by LLVM's inliner) their loops stopped vectorising (11 ms against 2).
 
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _row_kernel(cur, cur_sigma, ref, ref_sigma, radius, q_pixel,  # type: ignore[no-untyped-def]
-                delta, sig_out, qh, mh, hot):  # pragma: no cover - compiled
-    """Every row through :func:`_pixels` and :func:`_window_row`. Serial on purpose: on this
-    machine's two shared cores the parallel form of this memory-light pass measured slower
-    (4–10 ms against 2.2 ms for 1384 × 1032)."""
+def _pixels_pass(cur, cur_sigma, ref, ref_sigma,  # type: ignore[no-untyped-def]
+                 delta, sig_out, q, m):  # pragma: no cover - compiled
+    """Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails), q = s² (0 where
+    not compared; at most :data:`_Q_CAP`), m = compared (0/1). Branch-free: rows vectorise."""
+    nan = np.float32(np.nan)
     h, w = cur.shape
-    q = np.empty(w, np.float32)
-    m = np.empty(w, np.uint8)
     for v in range(h):
-        _pixels(cur[v], cur_sigma[v], ref[v], ref_sigma[v], q_pixel, delta[v], sig_out[v], q, m,
-                hot[v])
-        _window_row(q, m, radius, qh[v], mh[v])
+        c, cs, r, rs = cur[v], cur_sigma[v], ref[v], ref_sigma[v]
+        d_out, s_out, q_out, m_out = delta[v], sig_out[v], q[v], m[v]
+        for u in range(w):
+            d = c[u] - r[u]
+            var = cs[u] * cs[u] + rs[u] * rs[u]
+            qq = d * d / var
+            ok = qq < np.float32(np.inf)
+            d_out[u] = d if ok else nan
+            s_out[u] = np.sqrt(var) if ok else nan
+            q_out[u] = min(qq, _Q_CAP) if ok else np.float32(0.0)
+            m_out[u] = ok
 
 
-@njit(parallel=True, nogil=True, fastmath=False, cache=True)
-def _finish_kernel(delta, changed):  # type: ignore[no-untyped-def] # pragma: no cover
-    """A window centre without its own Δ (an invalid pixel beside a change) is not changed;
-    returns the compared pixels (finite Δ). No fastmath: it would drop the NaN test."""
-    h, w = delta.shape
-    counts = np.zeros(h, np.int64)
-    for v in prange(h):
+@njit(nogil=True, cache=True)
+def _border_columns(w, radius):  # type: ignore[no-untyped-def] # pragma: no cover
+    """The columns within ``radius`` of either end of a row of ``w`` (each once)."""
+    left = min(radius, w)
+    right = max(w - radius, left)
+    return np.concatenate((np.arange(0, left), np.arange(right, w)))
+
+
+@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _row_sums_pass(q, m, radius, out_q, out_m):  # type: ignore[no-untyped-def] # pragma: no cover
+    """out_q[v, u] = Σ q[v] over u − r … u + r (clipped to the row), out_m the same of m.
+    Direct sums of shifted views (the shift in the view's start, not in the index: with a
+    shifted index, or a running sum, the loops did not vectorise: 3–4 ms against 0.7), and no
+    float drift after a huge q."""
+    h, w = q.shape
+    n = w - 2 * radius
+    for v in range(h):
+        src_q, src_m, dst_q, dst_m = q[v], m[v], out_q[v], out_m[v]
+        if n > 0:
+            inner_q = dst_q[radius:w - radius]
+            inner_m = dst_m[radius:w - radius]
+            for u in range(n):
+                inner_q[u] = np.float32(0.0)
+            for j in range(2 * radius + 1):
+                a = src_q[j:j + n]
+                for u in range(n):
+                    inner_q[u] += a[u]
+            for u in range(n):
+                inner_m[u] = 0
+            for j in range(2 * radius + 1):
+                b = src_m[j:j + n]
+                for u in range(n):
+                    inner_m[u] += b[u]
+        for u in _border_columns(w, radius):  # the windows the row's ends cut
+            sq = np.float32(0.0)
+            sm = 0
+            for x in range(max(0, u - radius), min(w, u + radius + 1)):
+                sq += src_q[x]
+                sm += src_m[x]
+            dst_q[u] = sq
+            dst_m[u] = sm
+
+
+@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _add_row(col, cnt, src_q, src_m, sign):  # type: ignore[no-untyped-def] # pragma: no cover
+    """col += sign·src_q, cnt += sign·src_m (row vectors)."""
+    s = np.float32(sign)
+    for u in range(col.size):
+        col[u] += s * src_q[u]
+    for u in range(cnt.size):
+        cnt[u] += sign * np.int32(src_m[u])
+
+
+@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
+def _decide_pass(q, m, hq, hm, radius, thresholds,  # type: ignore[no-untyped-def]
+                 q_pixel, changed):  # pragma: no cover - compiled
+    """changed[v, u] = pixel compared and (the k × k window sum of q passes the threshold of
+    its compared pixels, or its own q passes ``q_pixel``); returns the compared pixels. The
+    window's column sums slide down the rows, summed afresh every :data:`_RESTART_ROWS`."""
+    h, w = q.shape
+    col = np.empty(w, np.float32)
+    cnt = np.empty(w, np.int32)
+    thr = np.empty(w, np.float32)
+    compared = 0
+    for v in range(h):
+        if v % _RESTART_ROWS == 0:  # afresh: the float sums' drift stays within a few rows
+            for u in range(w):
+                col[u] = np.float32(0.0)
+            for u in range(w):
+                cnt[u] = 0
+            for y in range(max(v - radius, 0), min(v + radius + 1, h)):
+                _add_row(col, cnt, hq[y], hm[y], 1)
+        else:  # slide the window one row down
+            if v + radius < h:
+                _add_row(col, cnt, hq[v + radius], hm[v + radius], 1)
+            if v - radius - 1 >= 0:
+                _add_row(col, cnt, hq[v - radius - 1], hm[v - radius - 1], -1)
+        own_q, own_m, row = q[v], m[v], changed[v]
+        for u in range(w):  # the gather of each window's threshold apart: the rest vectorises
+            thr[u] = thresholds[cnt[u]]
+        for u in range(w):
+            row[u] = (own_m[u] != 0) & ((col[u] > thr[u]) | (own_q[u] > q_pixel))
         c = 0
         for u in range(w):
-            ok = not np.isnan(delta[v, u])
-            changed[v, u] = changed[v, u] and ok
-            c += ok
-        counts[v] = c
-    return counts.sum()
+            c += own_m[u]
+        compared += c
+    return compared
 
 
 _SCRATCH = threading.local()
 
 
-def _scratch(shape: tuple[int, int]) -> tuple[F32, npt.NDArray[np.uint8], npt.NDArray[np.bool_]]:
-    """The window sums' scratch arrays, kept per thread and shape: fresh ones cost a page fault
-    per 4 kB, about a millisecond for a 1.4 Mpx map."""
+def _scratch(shape: tuple[int, int]) -> tuple[F32, npt.NDArray[np.uint8], F32,
+                                              npt.NDArray[np.uint8]]:
+    """q, m and their row window sums, kept per thread and shape: fresh arrays cost a page
+    fault per 4 kB, about a millisecond for a 1.4 Mpx map."""
     have = getattr(_SCRATCH, "arrays", None)
     if have is None or have[0].shape != shape:
         have = (np.empty(shape, np.float32), np.empty(shape, np.uint8),
-                np.empty(shape, np.bool_))
+                np.empty(shape, np.float32), np.empty(shape, np.uint8))
         _SCRATCH.arrays = have
     return have
 
@@ -233,15 +282,17 @@ def change_map(depth: F32, sigma: F32, ref_depth: F32, ref_sigma: F32, *,
     ref = _check_pair("ref_depth", ref_depth, shape)
     ref_s = _check_pair("ref_sigma", ref_sigma, shape)
     thr, q_pixel = test.thresholds()
-    h, w = shape
+    # a capped s² must still pass every threshold it passed uncapped
+    assert float(thr[1:].max()) < _Q_CAP and (q_pixel == np.inf or q_pixel < _Q_CAP)
     delta = np.empty(shape, np.float32)
     sig = np.empty(shape, np.float32)
-    qh, mh, hot = _scratch(shape)
-    # serial kernel: no parallel launch, so not under KERNEL_LOCK
-    _row_kernel(cur, cur_s, ref, ref_s, test.window_px // 2, q_pixel, delta, sig, qh, mh, hot)
-    changed, _ = pooled_window_mask(qh, mh, hot, test.window_px, thr)
-    with KERNEL_LOCK:
-        compared = int(_finish_kernel(delta, changed))
+    changed = np.empty(shape, np.bool_)
+    q, m, hq, hm = _scratch(shape)
+    radius = test.window_px // 2
+    # serial kernels: no parallel launch, so not under KERNEL_LOCK
+    _pixels_pass(cur, cur_s, ref, ref_s, delta, sig, q, m)
+    _row_sums_pass(q, m, radius, hq, hm)
+    compared = int(_decide_pass(q, m, hq, hm, radius, thr, q_pixel, changed))
     return ChangeMap(delta, sig, changed, compared, test,
                      1000.0 * (time.perf_counter() - t0))
 

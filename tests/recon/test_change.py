@@ -174,3 +174,47 @@ def test_bad_arrays_are_named(kwargs, name):
 def test_bad_settings_are_named(kwargs, name):
     with pytest.raises(ValueError, match=name):
         ChangeTest(**kwargs)
+
+
+def _reference_mask(cur, s, ref, s_ref, test):
+    """The changed test in float64 numpy: window sums by a 2-D cumulative sum."""
+    d = cur.astype(np.float64) - ref
+    var = s.astype(np.float64) ** 2 + s_ref.astype(np.float64) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = d * d / var
+    ok = np.isfinite(q)
+    q = np.where(ok, q, 0.0)
+    r = test.window_px // 2
+
+    def box(a):
+        p = np.pad(a, r + 1)[: a.shape[0] + 2 * r + 1, : a.shape[1] + 2 * r + 1]
+        c = p.cumsum(0).cumsum(1)
+        k = 2 * r + 1
+        return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
+
+    qs, ms = box(q), box(ok.astype(np.float64)).round().astype(int)
+    thr, q1 = test.thresholds()
+    t = thr.astype(np.float64)[ms]
+    return ok & ((qs > t) | (q > q1)), qs, t
+
+
+@pytest.mark.parametrize("window_px", [1, 3, 5, 9])
+def test_the_fused_kernel_is_the_test_computed_plainly(window_px):
+    """The one-pass kernel against float64 numpy on maps with invalid pixels (alone and in
+    blocks), a change region and a few huge changes (their s² is capped in the sums)."""
+    rng = np.random.default_rng(7)
+    shape = (203, 317)
+    s, s_ref = _sigma_field(rng, shape), _sigma_field(rng, shape)
+    ref = rng.uniform(0, 20, shape).astype(np.float32)
+    cur = ref + (s * rng.standard_normal(shape)).astype(np.float32)
+    cur[50:90, 100:160] += 0.12  # about 1.5 σ_Δ: found by the windows, not by single pixels
+    cur[rng.random(shape) < 0.1] = np.nan
+    ref[120:140, 10:60] = np.nan
+    cur[rng.integers(0, shape[0], 30), rng.integers(0, shape[1], 30)] += 1e4  # a tool, 10 m
+    test = ChangeTest(1e-2, window_px)
+    cm = change_map(cur, s, ref, s_ref, test=test)
+    want, qs, t = _reference_mask(cur, s, ref, s_ref, test)
+    near = np.abs(qs - t) <= 1e-4 * t  # float32 against float64 at the threshold
+    assert cm.compared == int(np.isfinite(cur - ref).sum())
+    assert np.array_equal(cm.changed[~near], want[~near])
+    assert want.sum() > 100  # the comparison is not an empty one
