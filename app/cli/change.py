@@ -47,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("-c", "--calibration", required=True, help="calibration.json")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
     p.add_argument("--false-alarm-rate", type=_rate, default=1e-4, metavar="ALPHA",
-                   help="per-pixel false-alarm rate of the changed mask (default 1e-4)")
+                   help="false-alarm rate of the changed mask per map: the probability that "
+                   "an unchanged surface shows any changed pixel (default 1e-4)")
     p.add_argument("--register", choices=("auto", "never", "always"), default="auto",
                    help="register the clouds rigidly first: auto (when most of the scene "
                         "changed, default), never (fixed scope) or always")

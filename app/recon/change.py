@@ -7,20 +7,24 @@ Per pixel, with the depths and 1-σ noises of the current map (z, σ) and the re
 
 (NaN where either map is invalid). On an unchanged surface the two maps' sensor noises are
 independent, so ``s²`` is chi-square with one degree of freedom, independently from pixel to
-pixel. A pixel is **changed** by the pooled test of :mod:`app.recon.motion` with Q = s²: the
-sum of s² over the k × k window around it (``window_px``; m compared pixels, chi-square(m) when
-nothing changed) passes that distribution's upper α/2 quantile, or its own s² passes the
-chi-square(1) upper α/2 quantile. α (``false_alarm_rate``, default 1e-4) is thus a **per-pixel**
-rate: an unchanged pixel is flagged with probability ≤ α (union bound), so a still scene shows
-at most that share of changed pixels, and a change spread over a window (a bump, a dent) is
-found at a much smaller Δ per pixel than a single-pixel test at that rate needs (k = 5: every
-pixel of the window at 1.4 σ_Δ is flagged with probability 1/2, a pixel alone needs 4.1 σ_Δ).
+pixel. A pixel is **changed** by the motion test's pooled statistic and its treatment of the
+whole image (:mod:`app.recon.motion`) with Q = s²: the sum of s² over the k × k window around
+it (``window_px``; m compared pixels, chi-square(m) when nothing changed) passes that
+distribution's upper ``α / (2·H·W)`` quantile, or its own s² passes the chi-square(1) upper
+``α / (2·H·W)`` quantile. With these 2·H·W tests the union bound makes α
+(``false_alarm_rate``, default 1e-4) a rate **per map**: a still map shows ANY changed pixel
+with probability ≤ α, so a still scene shows no speckle (noise alone flags a pixel with
+probability ≤ α / (H·W), 7e-11 for 1384 × 1032). A per-pixel rate of 1e-4 instead flags about
+that share of a still map, 140 pixels of 1.4 Mpx in flickering clusters, which is the speckle
+the pooling is there to remove. A change spread over a window (a bump, a dent) is still found
+at a small Δ per pixel (k = 5, 1384 × 1032: every pixel of the window at 1.76 σ_Δ is flagged
+with probability 1/2; a pixel alone needs 6.6 σ_Δ).
 
 The calibration's systematic error is common to both maps of a fixed scope and cancels in Δ,
 so σ here is the sensor-noise σ a :class:`~app.recon.reconstructor.ReconResult` carries.
 
-The fixed-scope map is one parallel numba pass over the rows (Δ, σ_Δ, s² and its horizontal
-window sums) and the motion test's vertical window pass.
+The fixed-scope map is three serial numba passes: Δ, σ_Δ and s²; the row window sums; the
+column window sums and the test.
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ from app.recon.motion import window_thresholds
 
 F32 = npt.NDArray[np.float32]
 
-#: default per-pixel false-alarm rate of the changed mask
+#: default false-alarm rate of the changed mask per map: the probability that a still map shows
+#: any changed pixel
 DEFAULT_CHANGE_FALSE_ALARM_RATE = 1e-4
 #: default side of the pooling window, px (odd)
 DEFAULT_CHANGE_WINDOW_PX = 5
@@ -50,7 +55,8 @@ class ChangeTest:
     """Settings of the changed-pixel test.
 
     Attributes:
-        false_alarm_rate: α, the probability that an unchanged pixel is flagged, in (0, 0.5).
+        false_alarm_rate: α per map, the probability that a map of an unchanged surface shows
+            any changed pixel, in (0, 0.5).
         window_px: side of the pooling window, px, odd in 1..15 (1: each pixel alone).
     """
 
@@ -64,13 +70,21 @@ class ChangeTest:
         if int(k) != k or not 1 <= k <= 15 or k % 2 == 0:
             raise ValueError(f"window_px: must be an odd integer in 1..15, got {k}")
 
-    def thresholds(self) -> tuple[F32, np.float32]:
-        """(window thresholds indexed by compared pixels m, the single-pixel threshold) on s²."""
-        # two tests per pixel (its window, itself), each at α/2
-        thr = window_thresholds(2, self.window_px, self.false_alarm_rate, 2)
+    def tests(self, n_pixels: int) -> int:
+        """The tests made on a map of ``n_pixels``: its window and (windows of more than one
+        pixel) the pixel alone, at every pixel."""
+        if int(n_pixels) != n_pixels or n_pixels < 1:
+            raise ValueError(f"n_pixels: need an integer >= 1, got {n_pixels}")
+        return int(n_pixels) * (1 if self.window_px == 1 else 2)
+
+    def thresholds(self, n_pixels: int) -> tuple[F32, np.float32]:
+        """(window thresholds on the sum of s² indexed by compared pixels m, the single-pixel
+        threshold on s²) for a map of ``n_pixels``: each test at α / :meth:`tests`."""
+        n = self.tests(n_pixels)
+        thr = window_thresholds(2, self.window_px, self.false_alarm_rate, n)
         if self.window_px == 1:
             return thr, np.float32(np.inf)
-        return thr, window_thresholds(2, 1, self.false_alarm_rate, 2)[1]
+        return thr, window_thresholds(2, 1, self.false_alarm_rate, n)[1]
 
 
 @dataclass(frozen=True)
@@ -80,7 +94,7 @@ class ChangeMap:
     Attributes:
         delta: float32 Δ, mm, positive toward the scope (a rise), NaN where not compared.
         sigma: float32 σ_Δ, mm, NaN where not compared.
-        changed: bool, significant change at ``test``'s per-pixel rate.
+        changed: bool, significant change at ``test``'s rate per map.
         compared: pixels with a Δ.
         test: the test's settings.
         elapsed_ms: wall time of the map, ms.
@@ -281,7 +295,7 @@ def change_map(depth: F32, sigma: F32, ref_depth: F32, ref_sigma: F32, *,
     cur_s = _check_pair("sigma", sigma, shape)
     ref = _check_pair("ref_depth", ref_depth, shape)
     ref_s = _check_pair("ref_sigma", ref_sigma, shape)
-    thr, q_pixel = test.thresholds()
+    thr, q_pixel = test.thresholds(shape[0] * shape[1])
     # a capped s² must still pass every threshold it passed uncapped
     assert float(thr[1:].max()) < _Q_CAP and (q_pixel == np.inf or q_pixel < _Q_CAP)
     delta = np.empty(shape, np.float32)

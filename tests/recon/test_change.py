@@ -57,28 +57,54 @@ def test_delta_and_sigma_are_exact_and_nan_where_either_map_is_invalid():
     assert not cm.changed[~ok].any()
 
 
-def test_a_still_scene_flags_at_most_the_stated_share_and_no_more():
+def test_a_still_scene_shows_no_changed_pixel_at_the_default_rate():
+    """α = 1e-4 per map: five full-size still maps show no changed pixel at all (that any of
+    them shows one has a probability of at most 5e-4)."""
     rng = np.random.default_rng(2)
-    shares = []
     for _ in range(5):
         truth = rng.uniform(0, 20, (H, W)).astype(np.float32)
         s, s_ref = _sigma_field(rng), _sigma_field(rng)
         cur = truth + s * rng.standard_normal((H, W)).astype(np.float32)
         ref = truth + s_ref * rng.standard_normal((H, W)).astype(np.float32)
-        shares.append(change_map(cur, s, ref, s_ref).changed_share)
-    assert np.median(shares) <= 1e-4  # the default per-pixel rate
-    # the statistic is calibrated: at α = 1e-2 the share is near, never far above, α
-    cm = change_map(cur, s, ref, s_ref, test=ChangeTest(false_alarm_rate=1e-2))
-    assert 3e-3 < cm.changed_share <= 1.1e-2
+        cm = change_map(cur, s, ref, s_ref)
+        assert cm.changed_pixels == 0 and cm.compared == H * W
 
 
-def test_the_thresholds_are_the_chi_square_quantiles_at_half_the_rate():
-    thr, q1 = ChangeTest(1e-4, 5).thresholds()
-    assert q1 == pytest.approx(chi2_isf(5e-5, 1), rel=1e-6)
-    assert thr[25] == pytest.approx(chi2_isf(5e-5, 25), rel=1e-6)
+def test_the_stated_rate_per_map_is_what_still_maps_deliver():
+    """The known answer on null maps: with n pixels the single-pixel tests alone flag a map
+    with probability 1 − (1 − α/(2n))ⁿ ≈ α/2 (they are independent), and the union bound caps
+    all 2n tests at α. At α = 0.2, 600 still 48 × 64 maps: the share of maps with any changed
+    pixel lies between (binomial 3.5 σ bands)."""
+    rng = np.random.default_rng(12)
+    alpha, n_maps, shape = 0.2, 600, (48, 64)
+    test = ChangeTest(false_alarm_rate=alpha)
+    n = shape[0] * shape[1]
+    _, q1 = test.thresholds(n)
+    any_flag = lone = 0
+    for _ in range(n_maps):
+        s, s_ref = _sigma_field(rng, shape), _sigma_field(rng, shape)
+        ref = rng.uniform(0, 20, shape).astype(np.float32)
+        cur = ref + (np.hypot(s, s_ref) * rng.standard_normal(shape)).astype(np.float32)
+        cm = change_map(cur, s, ref, s_ref, test=test)
+        any_flag += cm.changed.any()
+        lone += bool((cm.significance ** 2 > q1).any())
+    low = 1 - (1 - alpha / (2 * n)) ** n  # the single-pixel tests' exact share
+    band = 3.5 * math.sqrt(alpha * (1 - alpha) / n_maps)
+    assert abs(lone / n_maps - low) <= 3.5 * math.sqrt(low * (1 - low) / n_maps)
+    assert low - band <= any_flag / n_maps <= alpha + band
+    assert any_flag >= lone
+
+
+def test_the_thresholds_are_the_chi_square_quantiles_at_the_rate_over_the_tests():
+    n = H * W
+    thr, q1 = ChangeTest(1e-4, 5).thresholds(n)
+    assert q1 == pytest.approx(chi2_isf(1e-4 / (2 * n), 1), rel=1e-6)
+    assert thr[25] == pytest.approx(chi2_isf(1e-4 / (2 * n), 25), rel=1e-6)
     assert thr[0] == np.inf
-    thr1, q_none = ChangeTest(1e-4, 1).thresholds()
-    assert q_none == np.inf and thr1[1] == pytest.approx(chi2_isf(5e-5, 1), rel=1e-6)
+    thr1, q_none = ChangeTest(1e-4, 1).thresholds(n)  # one test per pixel
+    assert q_none == np.inf and thr1[1] == pytest.approx(chi2_isf(1e-4 / n, 1), rel=1e-6)
+    with pytest.raises(ValueError, match="n_pixels"):
+        ChangeTest().thresholds(0)
 
 
 def test_a_small_bump_is_found_where_its_change_exceeds_half_its_height():
@@ -193,7 +219,7 @@ def _reference_mask(cur, s, ref, s_ref, test):
         return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
 
     qs, ms = box(q), box(ok.astype(np.float64)).round().astype(int)
-    thr, q1 = test.thresholds()
+    thr, q1 = test.thresholds(cur.size)
     t = thr.astype(np.float64)[ms]
     return ok & ((qs > t) | (q > q1)), qs, t
 
@@ -207,11 +233,11 @@ def test_the_fused_kernel_is_the_test_computed_plainly(window_px):
     s, s_ref = _sigma_field(rng, shape), _sigma_field(rng, shape)
     ref = rng.uniform(0, 20, shape).astype(np.float32)
     cur = ref + (s * rng.standard_normal(shape)).astype(np.float32)
-    cur[50:90, 100:160] += 0.12  # about 1.5 σ_Δ: found by the windows, not by single pixels
+    cur[50:90, 100:160] += 0.25  # about 3 σ_Δ: found by the windows, some by single pixels
     cur[rng.random(shape) < 0.1] = np.nan
     ref[120:140, 10:60] = np.nan
     cur[rng.integers(0, shape[0], 30), rng.integers(0, shape[1], 30)] += 1e4  # a tool, 10 m
-    test = ChangeTest(1e-2, window_px)
+    test = ChangeTest(0.4, window_px)
     cm = change_map(cur, s, ref, s_ref, test=test)
     want, qs, t = _reference_mask(cur, s, ref, s_ref, test)
     near = np.abs(qs - t) <= 1e-4 * t  # float32 against float64 at the threshold
