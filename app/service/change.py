@@ -2,9 +2,10 @@
 
 The reference (depth, σ, points and where it came from) is written atomically to
 ``<data_dir>/reference/reference.npz`` (``reference.json`` beside it: the description, for
-people) and read back at start, so it survives a restart. While one is set, every published depth map is handed to a thread of
-its own (newest wins: the reconstruction thread never waits for it) that compares it
-(:func:`app.analysis.change.compare`) and publishes a :class:`LiveChange` in its slot.
+people) and read back at start, so it survives a restart. While one is set, every published
+depth map is handed to a thread of its own (newest wins: the reconstruction thread never waits
+for it) that compares it (:func:`app.analysis.change.compare`) and publishes a
+:class:`LiveChange` in its slot.
 """
 
 from __future__ import annotations
@@ -316,8 +317,8 @@ class ChangeService:
                                source: dict[str, Any]) -> Reference:
         """Reconstruct a capture set with the active calibration and keep it as the reference."""
         res = reconstruct(capture)
-        return self.set_reference(res.depth, res.sigma_noise if res.sigma.size else None, res.points,
-                                  source)
+        sigma = res.sigma_noise if res.sigma.size else None
+        return self.set_reference(res.depth, sigma, res.points, source)
 
     def reference_from_recording(self, recordings: Path, name: str, index: int,
                                  reconstruct: Callable[[CaptureSet], ReconResult]) -> Reference:
