@@ -23,7 +23,7 @@ with probability 1/2; a pixel alone needs 6.6 σ_Δ).
 The calibration's systematic error is common to both maps of a fixed scope and cancels in Δ,
 so σ here is the sensor-noise σ a :class:`~app.recon.reconstructor.ReconResult` carries.
 
-The fixed-scope map is three serial numba passes: Δ, σ_Δ and s²; the row window sums; the
+The fixed-scope map is two serial numba passes: Δ, σ_Δ, s² and the row window sums; the
 column window sums and the test.
 """
 
@@ -130,29 +130,9 @@ _RESTART_ROWS = 16
 _Q_CAP = np.float32(1e4)
 
 
-# Three passes, each its own compiled function called from Python: compiled into one
-# function (by hand or by LLVM's inliner) their loops stopped vectorising (11 ms against 2).
-
-
-@njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _pixels_pass(cur, cur_sigma, ref, ref_sigma,  # type: ignore[no-untyped-def]
-                 delta, sig_out, q, m):  # pragma: no cover - compiled
-    """Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails), q = s² (0 where
-    not compared; at most :data:`_Q_CAP`), m = compared (0/1). Branch-free: rows vectorise."""
-    nan = np.float32(np.nan)
-    h, w = cur.shape
-    for v in range(h):
-        c, cs, r, rs = cur[v], cur_sigma[v], ref[v], ref_sigma[v]
-        d_out, s_out, q_out, m_out = delta[v], sig_out[v], q[v], m[v]
-        for u in range(w):
-            d = c[u] - r[u]
-            var = cs[u] * cs[u] + rs[u] * rs[u]
-            qq = d * d / var
-            ok = qq < np.float32(np.inf)
-            d_out[u] = d if ok else nan
-            s_out[u] = np.sqrt(var) if ok else nan
-            q_out[u] = min(qq, _Q_CAP) if ok else np.float32(0.0)
-            m_out[u] = ok
+# Two passes, each its own compiled function called from Python: compiled into one function
+# (by hand or by LLVM's inliner) with the sliding column sums their loops stopped vectorising
+# (11 ms against 2).
 
 
 @njit(nogil=True, cache=True)
@@ -164,15 +144,31 @@ def _border_columns(w, radius):  # type: ignore[no-untyped-def] # pragma: no cov
 
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _row_sums_pass(q, m, radius, out_q, out_m):  # type: ignore[no-untyped-def] # pragma: no cover
-    """out_q[v, u] = Σ q[v] over u − r … u + r (clipped to the row), out_m the same of m.
-    Direct sums of shifted views (the shift in the view's start, not in the index: with a
-    shifted index, or a running sum, the loops did not vectorise: 3–4 ms against 0.7), and no
-    float drift after a huge q."""
-    h, w = q.shape
+def _pixels_pass(cur, cur_sigma, ref, ref_sigma, radius,  # type: ignore[no-untyped-def]
+                 delta, sig_out, q, m, out_q, out_m):  # pragma: no cover - compiled
+    """Per row: Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails),
+    q = s² (0 where not compared; at most :data:`_Q_CAP`), m = compared (0/1), then while the
+    row is in cache out_q[v, u] = Σ q over u − r … u + r (clipped to the row), out_m the same
+    of m. The sums are direct sums of shifted views (the shift in the view's start, not in the
+    index: with a shifted index, or a running sum, the loops did not vectorise: 3–4 ms
+    against 0.7), with no float drift after a huge q."""
+    nan = np.float32(np.nan)
+    h, w = cur.shape
     n = w - 2 * radius
+    border = _border_columns(w, radius)
     for v in range(h):
-        src_q, src_m, dst_q, dst_m = q[v], m[v], out_q[v], out_m[v]
+        c, cs, r, rs = cur[v], cur_sigma[v], ref[v], ref_sigma[v]
+        d_out, s_out, src_q, src_m = delta[v], sig_out[v], q[v], m[v]
+        for u in range(w):
+            d = c[u] - r[u]
+            var = cs[u] * cs[u] + rs[u] * rs[u]
+            qq = d * d / var
+            ok = qq < np.float32(np.inf)
+            d_out[u] = d if ok else nan
+            s_out[u] = np.sqrt(var) if ok else nan
+            src_q[u] = min(qq, _Q_CAP) if ok else np.float32(0.0)
+            src_m[u] = ok
+        dst_q, dst_m = out_q[v], out_m[v]
         if n > 0:
             inner_q = dst_q[radius:w - radius]
             inner_m = dst_m[radius:w - radius]
@@ -188,7 +184,7 @@ def _row_sums_pass(q, m, radius, out_q, out_m):  # type: ignore[no-untyped-def] 
                 b = src_m[j:j + n]
                 for u in range(n):
                     inner_m[u] += b[u]
-        for u in _border_columns(w, radius):  # the windows the row's ends cut
+        for u in border:  # the windows the row's ends cut
             sq = np.float32(0.0)
             sm = 0
             for x in range(max(0, u - radius), min(w, u + radius + 1)):
@@ -304,8 +300,7 @@ def change_map(depth: F32, sigma: F32, ref_depth: F32, ref_sigma: F32, *,
     q, m, hq, hm = _scratch(shape)
     radius = test.window_px // 2
     # serial kernels: no parallel launch, so not under KERNEL_LOCK
-    _pixels_pass(cur, cur_s, ref, ref_s, delta, sig, q, m)
-    _row_sums_pass(q, m, radius, hq, hm)
+    _pixels_pass(cur, cur_s, ref, ref_s, radius, delta, sig, q, m, hq, hm)
     compared = int(_decide_pass(q, m, hq, hm, radius, thr, q_pixel, changed))
     return ChangeMap(delta, sig, changed, compared, test,
                      1000.0 * (time.perf_counter() - t0))
