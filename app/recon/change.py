@@ -145,20 +145,21 @@ def _border_columns(w, radius):  # type: ignore[no-untyped-def] # pragma: no cov
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def _pixels_pass(cur, cur_sigma, ref, ref_sigma, radius,  # type: ignore[no-untyped-def]
-                 delta, sig_out, q, m, out_q, out_m):  # pragma: no cover - compiled
+                 q_pixel, delta, sig_out, hot, m, out_q, out_m):  # pragma: no cover
     """Per row: Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails),
-    q = s² (0 where not compared; at most :data:`_Q_CAP`), m = compared (0/1), then while the
-    row is in cache out_q[v, u] = Σ q over u − r … u + r (clipped to the row), out_m the same
-    of m. The sums are direct sums of shifted views (the shift in the view's start, not in the
+    m = compared (0/1), hot = s² > ``q_pixel``, then from the row's q = s² (0 where not
+    compared; at most :data:`_Q_CAP`; kept for the row only: the decision needs just ``hot``)
+    out_q[v, u] = Σ q over u − r … u + r (clipped to the row), out_m the same of m. The sums are direct sums of shifted views (the shift in the view's start, not in the
     index: with a shifted index, or a running sum, the loops did not vectorise: 3–4 ms
     against 0.7), with no float drift after a huge q."""
     nan = np.float32(np.nan)
     h, w = cur.shape
     n = w - 2 * radius
     border = _border_columns(w, radius)
+    src_q = np.empty(w, np.float32)
     for v in range(h):
         c, cs, r, rs = cur[v], cur_sigma[v], ref[v], ref_sigma[v]
-        d_out, s_out, src_q, src_m = delta[v], sig_out[v], q[v], m[v]
+        d_out, s_out, hot_out, src_m = delta[v], sig_out[v], hot[v], m[v]
         for u in range(w):
             d = c[u] - r[u]
             var = cs[u] * cs[u] + rs[u] * rs[u]
@@ -168,6 +169,7 @@ def _pixels_pass(cur, cur_sigma, ref, ref_sigma, radius,  # type: ignore[no-unty
             s_out[u] = np.sqrt(var) if ok else nan
             src_q[u] = min(qq, _Q_CAP) if ok else np.float32(0.0)
             src_m[u] = ok
+            hot_out[u] = ok & (qq > q_pixel)
         dst_q, dst_m = out_q[v], out_m[v]
         if n > 0:
             inner_q = dst_q[radius:w - radius]
@@ -205,12 +207,12 @@ def _add_row(col, cnt, src_q, src_m, sign):  # type: ignore[no-untyped-def] # pr
 
 
 @njit(nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
-def _decide_pass(q, m, hq, hm, radius, thresholds,  # type: ignore[no-untyped-def]
-                 q_pixel, changed):  # pragma: no cover - compiled
+def _decide_pass(hot, m, hq, hm, radius, thresholds,  # type: ignore[no-untyped-def]
+                 changed):  # pragma: no cover - compiled
     """changed[v, u] = pixel compared and (the k × k window sum of q passes the threshold of
-    its compared pixels, or its own q passes ``q_pixel``); returns the compared pixels. The
+    its compared pixels, or ``hot``: its own q passed); returns the compared pixels. The
     window's column sums slide down the rows, summed afresh every :data:`_RESTART_ROWS`."""
-    h, w = q.shape
+    h, w = hot.shape
     col = np.empty(w, np.float32)
     cnt = np.empty(w, np.int32)
     thr = np.empty(w, np.float32)
@@ -228,11 +230,11 @@ def _decide_pass(q, m, hq, hm, radius, thresholds,  # type: ignore[no-untyped-de
                 _add_row(col, cnt, hq[v + radius], hm[v + radius], 1)
             if v - radius - 1 >= 0:
                 _add_row(col, cnt, hq[v - radius - 1], hm[v - radius - 1], -1)
-        own_q, own_m, row = q[v], m[v], changed[v]
+        own_hot, own_m, row = hot[v], m[v], changed[v]
         for u in range(w):  # the gather of each window's threshold apart: the rest vectorises
             thr[u] = thresholds[cnt[u]]
         for u in range(w):
-            row[u] = (own_m[u] != 0) & ((col[u] > thr[u]) | (own_q[u] > q_pixel))
+            row[u] = ((own_m[u] != 0) & (col[u] > thr[u])) | own_hot[u]
         c = 0
         for u in range(w):
             c += own_m[u]
@@ -243,13 +245,13 @@ def _decide_pass(q, m, hq, hm, radius, thresholds,  # type: ignore[no-untyped-de
 _SCRATCH = threading.local()
 
 
-def _scratch(shape: tuple[int, int]) -> tuple[F32, npt.NDArray[np.uint8], F32,
+def _scratch(shape: tuple[int, int]) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.uint8], F32,
                                               npt.NDArray[np.uint8]]:
-    """q, m and their row window sums, kept per thread and shape: fresh arrays cost a page
-    fault per 4 kB, about a millisecond for a 1.4 Mpx map."""
+    """hot, m and the row window sums of q and m, kept per thread and shape: fresh arrays cost
+    a page fault per 4 kB, about a millisecond for a 1.4 Mpx map."""
     have = getattr(_SCRATCH, "arrays", None)
     if have is None or have[0].shape != shape:
-        have = (np.empty(shape, np.float32), np.empty(shape, np.uint8),
+        have = (np.empty(shape, np.bool_), np.empty(shape, np.uint8),
                 np.empty(shape, np.float32), np.empty(shape, np.uint8))
         _SCRATCH.arrays = have
     return have
@@ -297,11 +299,11 @@ def change_map(depth: F32, sigma: F32, ref_depth: F32, ref_sigma: F32, *,
     delta = np.empty(shape, np.float32)
     sig = np.empty(shape, np.float32)
     changed = np.empty(shape, np.bool_)
-    q, m, hq, hm = _scratch(shape)
+    hot, m, hq, hm = _scratch(shape)
     radius = test.window_px // 2
     # serial kernels: no parallel launch, so not under KERNEL_LOCK
-    _pixels_pass(cur, cur_s, ref, ref_s, radius, delta, sig, q, m, hq, hm)
-    compared = int(_decide_pass(q, m, hq, hm, radius, thr, q_pixel, changed))
+    _pixels_pass(cur, cur_s, ref, ref_s, radius, q_pixel, delta, sig, hot, m, hq, hm)
+    compared = int(_decide_pass(hot, m, hq, hm, radius, thr, changed))
     return ChangeMap(delta, sig, changed, compared, test,
                      1000.0 * (time.perf_counter() - t0))
 
