@@ -244,3 +244,62 @@ def test_the_fused_kernel_is_the_test_computed_plainly(window_px):
     assert cm.compared == int(np.isfinite(cur - ref).sum())
     assert np.array_equal(cm.changed[~near], want[~near])
     assert want.sum() > 100  # the comparison is not an empty one
+
+
+def _smooth_field(rng: np.random.Generator, shape: tuple[int, int], std_mm: float,
+                  scale_px: float) -> np.ndarray:
+    """A smooth random error field of 1-σ ``std_mm`` varying over ``scale_px``."""
+    import cv2
+
+    f = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), scale_px)
+    return (f * (std_mm / f.std())).astype(np.float32)
+
+
+def test_a_shared_error_is_no_change_where_it_is_stated_and_a_bump_is_still_found():
+    """Δ = a smooth error (1-σ g = 0.15 mm, three times the noise, over ~60 px: the two
+    calibrations' after a scope motion) + noise. Stated as independent noise the window test
+    flags much of it; stated as shared, nothing; a 0.3 mm bump on a small one is found."""
+    from app.recon.change import change_with_shared_error
+
+    rng = np.random.default_rng(21)
+    shape = (400, 500)
+    sig = np.full(shape, 0.05, np.float32)
+    g = np.full(shape, 0.15, np.float32)
+    still_shared, still_independent = [], []
+    for _ in range(4):
+        d = _smooth_field(rng, shape, 0.15, 20.0) + sig * rng.standard_normal(shape).astype(
+            np.float32)
+        still_shared.append(change_with_shared_error(d, sig, g).changed_share)
+        still_independent.append(change_from_delta(d, np.hypot(sig, g)).changed_share)
+    print(f"\nshared error stated: {max(still_shared):.2e} changed; as independent noise: "
+          f"{min(still_independent):.2e}")
+    assert max(still_shared) == 0.0
+    assert min(still_independent) > 1e-3  # the reason for the shared form
+    bump = _bump((400, 500), (200, 250), 50, 0.3).astype(np.float32)
+    # a shared error of 0.01 mm leaves it found; one of 0.05 mm would hide it (a smooth error
+    # that size makes a 0.15 mm offset a 3 σ event over a window: measured 0.3 % found)
+    d = (_smooth_field(rng, shape, 0.01, 20.0) + bump
+         + sig * rng.standard_normal(shape).astype(np.float32))
+    cm = change_with_shared_error(d, sig, np.full(shape, 0.01, np.float32))
+    np.testing.assert_allclose(cm.sigma, np.hypot(0.05, 0.01), rtol=1e-6)
+    assert cm.changed[bump > 0.15].mean() >= 0.9
+
+
+def test_without_a_shared_error_it_is_the_fixed_scope_test():
+    from app.recon.change import change_with_shared_error
+
+    rng = np.random.default_rng(22)
+    shape = (203, 317)
+    d = (0.05 * rng.standard_normal(shape)).astype(np.float32)
+    d[50:90, 100:160] += 0.2
+    d[rng.random(shape) < 0.05] = np.nan
+    s = _sigma_field(rng, shape)
+    test = ChangeTest(0.4, 5)
+    a = change_with_shared_error(d, s, np.zeros(shape, np.float32), test=test)
+    b = change_from_delta(d, s, test=test)
+    _, qs, t = _reference_mask(d, s, np.zeros_like(d), np.zeros_like(d), test)
+    near = np.abs(qs - t) <= 1e-4 * t
+    assert np.array_equal(a.changed[~near], b.changed[~near]) and a.compared == b.compared
+    assert b.changed.sum() > 100
+    with pytest.raises(ValueError, match="shared"):
+        change_with_shared_error(d, s, -np.ones(shape, np.float32))
