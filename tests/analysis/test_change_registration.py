@@ -145,3 +145,42 @@ def test_a_collapsed_cloud_is_not_registered_and_is_no_crash():
     assert res.mode == "failed" and res.registration is not None
     assert "too few" in res.registration.note
     assert not res.cmap.changed.any()
+
+
+def _calibration_error(amplitude_mm: float) -> np.ndarray:
+    """(H, W) a smooth depth error that depends on the pixel (one calibration's): the same in
+    every map, so a still scope's Δ cancels it and a moved one's does not."""
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    e = np.sin(uu / 9.0 + 0.4) * np.cos(vv / 11.0) + 0.5 * np.sin((uu + vv) / 7.0)
+    return (amplitude_mm * e / e.std()).astype(np.float32)
+
+
+def test_a_calibration_error_stated_as_sigma_model_is_no_change_after_a_scope_motion():
+    """Both maps carry the same pixel-bound calibration error (1-σ 0.04 mm, twice the noise).
+    Registered, its difference reads as change unless each map's σ_model states it: then it
+    is an error shared by neighbours and nothing is flagged."""
+    err = _calibration_error(0.04)
+
+    def view(transform: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        pts, sig = _view(transform, 0.0, seed)
+        # the error along each pixel's ray (z grows by err): where this pixel looks
+        return (pts * (1 + err / pts[..., 2])[..., None]).astype(np.float32), sig
+
+    ref_pts, ref_sig = view(np.eye(4), 11)
+    pts, sig = view(_moved(2.0, (0.6, -0.5, 0.6)), 12)
+    sm = np.full((H, W), 0.04, np.float32)
+    args = (pts[..., 2].copy(), sig, pts, ref_pts[..., 2].copy(), ref_sig, ref_pts)
+    plain = compare(*args, camera_matrix=K, dist_coeffs=DIST)
+    stated = compare(*args, camera_matrix=K, dist_coeffs=DIST, sigma_model=sm,
+                     ref_sigma_model=sm)
+    print(f"\ncalibration error 0.04 mm: registered changed {100 * plain.cmap.changed_share:.3f}%"
+          f" without sigma_model, {100 * stated.cmap.changed_share:.4f}% with it")
+    assert plain.mode == stated.mode == "registered"
+    assert plain.cmap.changed_share > 1e-3  # what it does unstated
+    assert stated.cmap.changed_share <= 1e-4
+    ok = np.isfinite(stated.cmap.sigma)
+    assert (stated.cmap.sigma[ok] >= np.hypot(plain.cmap.sigma[ok], 0.04 * math.sqrt(2)) - 1e-6
+            ).all()
+    still = compare(*args[:2], ref_pts, *args[3:], camera_matrix=K, dist_coeffs=DIST,
+                    register="never")  # a fixed scope: the same error cancels, nothing to add
+    assert still.mode == "fixed"
