@@ -9,9 +9,12 @@ coarse to fine, and the change is measured along the reference surface's normal:
     ``Δ = (R·p + t − p_ref) · n_ref``  (mm, positive toward the scope)
 
 for each reference pixel and the current point that projects into it (the nearest to the
-camera where several do). ``σ_Δ = √(σ² + σ_ref²)`` with each map's depth σ, and the changed
-test is the fixed scope's. A registration whose matched share or residual fails its bounds says
-so (``mode == "failed"``) and shows no change rather than change everywhere.
+camera where several do). ``σ_Δ = √(σ² + σ_ref²)`` with each map's sensor-noise σ, and the
+changed test is the fixed scope's; with the maps' calibration 1-σ (σ_model) given, the paired
+pixels' calibration errors, which no longer cancel, enter as an error shared by neighbouring
+pixels (:func:`app.recon.change.change_with_shared_error`). A registration whose matched share
+or residual fails its bounds says so (``mode == "failed"``) and shows no change rather than
+change everywhere.
 """
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ async def set_reference(request: Request,
         return ref.describe()
     res = inst.latest_result()
     ref = inst.change.set_reference(res.depth, res.sigma_noise, res.points,
-                                    {"kind": "live", "seq": res.seq})
+                                    {"kind": "live", "seq": res.seq}, res.sigma_model)
     return ref.describe()
 
 

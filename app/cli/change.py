@@ -115,9 +115,10 @@ def run(args: argparse.Namespace) -> int:
     test = ChangeTest(false_alarm_rate=args.false_alarm_rate)
     # the sensor noise only: one pixel's calibration error is the same in both maps and
     # cancels in their difference
-    result = compare(cur.depth, cur.sigma_noise, cur.points, ref.depth, ref.sigma_noise, ref.points,
-                     camera_matrix=calibration.camera_matrix,
-                     dist_coeffs=calibration.dist_coeffs, test=test, register=args.register)
+    result = compare(cur.depth, cur.sigma_noise, cur.points, ref.depth, ref.sigma_noise,
+                     ref.points, camera_matrix=calibration.camera_matrix,
+                     dist_coeffs=calibration.dist_coeffs, test=test, register=args.register,
+                     sigma_model=cur.sigma_model, ref_sigma_model=ref.sigma_model)
     if result.mode == "failed":
         raise ValueError(f"{dirs[1]}: the scene moved and {result.notes[0]}: no change shown")
     cm = result.cmap
