@@ -149,9 +149,10 @@ def _pixels_pass(cur, cur_sigma, ref, ref_sigma, radius,  # type: ignore[no-unty
     """Per row: Δ, σ_Δ (NaN unless s² is finite: NaN in any input, or σ_Δ = 0, fails),
     m = compared (0/1), hot = s² > ``q_pixel``, then from the row's q = s² (0 where not
     compared; at most :data:`_Q_CAP`; kept for the row only: the decision needs just ``hot``)
-    out_q[v, u] = Σ q over u − r … u + r (clipped to the row), out_m the same of m. The sums are direct sums of shifted views (the shift in the view's start, not in the
-    index: with a shifted index, or a running sum, the loops did not vectorise: 3–4 ms
-    against 0.7), with no float drift after a huge q."""
+    out_q[v, u] = Σ q over u − r … u + r (clipped to the row), out_m the same of m. The sums
+    are direct sums of shifted views (the shift in the view's start, not in the index: with a
+    shifted index, or a running sum, the loops did not vectorise: 3–4 ms against 0.7), with
+    no float drift after a huge q."""
     nan = np.float32(np.nan)
     h, w = cur.shape
     n = w - 2 * radius
