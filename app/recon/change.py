@@ -435,38 +435,69 @@ class ChangeSummary:
     sink_px: tuple[int, int] | None
 
 
+@njit(nogil=True, cache=True)
+def _summary_pass(changed, delta, sigma, area):  # type: ignore[no-untyped-def] # pragma: no cover
+    """One pass over the changed pixels: (Σ of their finite areas, how many have none, flat
+    index of the largest Δ > 0 among those whose own |Δ| ≥ 2 σ_Δ, the same of the most
+    negative Δ; -1: none). The first of equal extremes wins (as numpy's argmax). No fastmath:
+    the comparisons must see NaN."""
+    h, w = changed.shape
+    total = 0.0
+    missing = 0
+    rise, sink = -1, -1
+    best_rise, best_sink = np.float32(0.0), np.float32(0.0)
+    for v in range(h):
+        for u in range(w):
+            if not changed[v, u]:
+                continue
+            a = area[v, u]
+            if np.isfinite(a):
+                total += a
+            else:
+                missing += 1
+            d = delta[v, u]
+            if not abs(d) >= 2.0 * sigma[v, u]:
+                continue
+            if d > best_rise:
+                best_rise, rise = d, v * w + u
+            if d < best_sink:
+                best_sink, sink = d, v * w + u
+    return total, missing, rise, sink
+
+
 def summarize(cmap: ChangeMap, area_mm2: F32 | None) -> ChangeSummary:
-    """Changed area and the largest significant rise and sink of ``cmap``.
+    """Changed area and the largest significant rise and sink of ``cmap`` (one compiled pass
+    over the changed pixels: numpy's whole-map form took 15 ms a map, five times the map).
 
     Args:
         cmap: the map.
-        area_mm2: (H, W) pixel areas (:func:`pixel_area_mm2`), or None (area reported 0).
+        area_mm2: (H, W) pixel areas (:func:`pixel_area_mm2`), or None (area reported 0);
+            changed pixels without one count at the median pixel area.
     """
     ch = cmap.changed
-    area = 0.0
-    if area_mm2 is not None and ch.any():
-        if area_mm2.shape != ch.shape:
-            raise ValueError(f"area_mm2: shape {area_mm2.shape} differs from {ch.shape}")
-        a = area_mm2[ch]
-        fill = float(np.nanmedian(area_mm2)) if np.isfinite(area_mm2).any() else 0.0
-        area = float(np.where(np.isfinite(a), a, fill).sum())
+    if area_mm2 is not None and area_mm2.shape != ch.shape:
+        raise ValueError(f"area_mm2: shape {area_mm2.shape} differs from {ch.shape}")
+    area = np.full(ch.shape, np.nan, np.float32) if area_mm2 is None else area_mm2
     # a window centre beside a change is flagged with its own Δ near 0: a rise or sink is
     # named only where the pixel's own Δ is at least 2 σ_Δ
-    with np.errstate(invalid="ignore"):
-        own = ch & (np.abs(cmap.delta) >= 2.0 * cmap.sigma)
-    d = np.where(own, cmap.delta, np.nan)
-    rise = sink = None
-    if own.any() and np.nanmax(d) > 0:
-        i = np.unravel_index(int(np.nanargmax(d)), d.shape)
-        rise = (int(i[0]), int(i[1]))
-    if own.any() and np.nanmin(d) < 0:
-        i = np.unravel_index(int(np.nanargmin(d)), d.shape)
-        sink = (int(i[0]), int(i[1]))
+    total, missing, rise_i, sink_i = _summary_pass(
+        ch, cmap.delta, cmap.sigma, np.ascontiguousarray(area, np.float32))
+    changed_area = 0.0
+    if area_mm2 is not None:
+        changed_area = float(total)
+        if missing:  # rare: only then the median over the map
+            fill = float(np.nanmedian(area_mm2)) if np.isfinite(area_mm2).any() else 0.0
+            changed_area += missing * fill
+    w = ch.shape[1]
 
-    def at(arr: F32, px: tuple[int, int] | None) -> float | None:
-        return None if px is None else float(arr[px])
+    def px(i: int) -> tuple[int, int] | None:
+        return None if i < 0 else (int(i) // w, int(i) % w)
 
-    return ChangeSummary(area, at(cmap.delta, rise), at(cmap.sigma, rise), rise,
+    def at(arr: F32, p: tuple[int, int] | None) -> float | None:
+        return None if p is None else float(arr[p])
+
+    rise, sink = px(int(rise_i)), px(int(sink_i))
+    return ChangeSummary(changed_area, at(cmap.delta, rise), at(cmap.sigma, rise), rise,
                          at(cmap.delta, sink), at(cmap.sigma, sink), sink)
 
 

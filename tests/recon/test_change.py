@@ -303,3 +303,40 @@ def test_without_a_shared_error_it_is_the_fixed_scope_test():
     assert b.changed.sum() > 100
     with pytest.raises(ValueError, match="shared"):
         change_with_shared_error(d, s, -np.ones(shape, np.float32))
+
+
+def _summary_plainly(cm, area):
+    """The summary in numpy over the whole map (the form the compiled pass replaced)."""
+    ch = cm.changed
+    a = area[ch]
+    fill = float(np.nanmedian(area))
+    total = float(np.where(np.isfinite(a), a, fill).sum())
+    with np.errstate(invalid="ignore"):
+        own = ch & (np.abs(cm.delta) >= 2.0 * cm.sigma)
+    d = np.where(own, cm.delta, np.nan)
+    rise = sink = None
+    if own.any() and np.nanmax(d) > 0:
+        rise = tuple(int(x) for x in np.unravel_index(int(np.nanargmax(d)), d.shape))
+    if own.any() and np.nanmin(d) < 0:
+        sink = tuple(int(x) for x in np.unravel_index(int(np.nanargmin(d)), d.shape))
+    return total, rise, sink
+
+
+def test_the_summary_is_the_plain_numpy_one():
+    rng = np.random.default_rng(31)
+    shape = (300, 400)
+    s = _sigma_field(rng, shape)
+    ref = rng.uniform(0, 20, shape).astype(np.float32)
+    cur = ref + (s * rng.standard_normal(shape)).astype(np.float32)
+    cur[50:80, 60:120] += 0.4
+    cur[200:230, 300:340] -= 0.5
+    cur[rng.random(shape) < 0.05] = np.nan
+    cm = change_map(cur, s, ref, s, test=ChangeTest(0.3))
+    area = rng.uniform(0.01, 0.02, shape).astype(np.float32)
+    area[55:60, 70:90] = np.nan  # changed pixels without an area: the median's
+    sm = summarize(cm, area)
+    total, rise, sink = _summary_plainly(cm, area)
+    assert sm.changed_area_mm2 == pytest.approx(total, rel=1e-5)
+    assert sm.rise_px == rise and sm.sink_px == sink and rise is not None and sink is not None
+    assert sm.rise_mm == pytest.approx(float(cm.delta[rise]))
+    assert summarize(cm, None).changed_area_mm2 == 0.0
