@@ -184,3 +184,15 @@ def test_a_calibration_error_stated_as_sigma_model_is_no_change_after_a_scope_mo
     still = compare(*args[:2], ref_pts, *args[3:], camera_matrix=K, dist_coeffs=DIST,
                     register="never")  # a fixed scope: the same error cancels, nothing to add
     assert still.mode == "fixed"
+
+
+def test_a_transform_that_puts_every_point_behind_the_camera_compares_nothing(reference):
+    """No moved point projects into the image: an empty change map, not an error from the
+    projection of no points."""
+    from app.analysis.change import change_along_normal
+
+    ref_pts, ref_sig = reference
+    behind = np.eye(4)
+    behind[2, 3] = -1000.0  # 1 m back: every point at z < 0
+    cm = change_along_normal(ref_pts, ref_sig, ref_pts, ref_sig, behind, K, DIST)
+    assert cm.compared == 0 and not cm.changed.any() and np.isnan(cm.delta).all()
