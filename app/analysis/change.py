@@ -9,9 +9,12 @@ coarse to fine, and the change is measured along the reference surface's normal:
     ``Δ = (R·p + t − p_ref) · n_ref``  (mm, positive toward the scope)
 
 for each reference pixel and the current point that projects into it (the nearest to the
-camera where several do). ``σ_Δ = √(σ² + σ_ref²)`` with each map's depth σ, and the changed
-test is the fixed scope's. A registration whose matched share or residual fails its bounds says
-so (``mode == "failed"``) and shows no change rather than change everywhere.
+camera where several do). ``σ_Δ = √(σ² + σ_ref²)`` with each map's sensor-noise σ, and the
+changed test is the fixed scope's; with the maps' calibration 1-σ (σ_model) given, the paired
+pixels' calibration errors, which no longer cancel, enter as an error shared by neighbouring
+pixels (:func:`app.recon.change.change_with_shared_error`). A registration whose matched share
+or residual fails its bounds says so (``mode == "failed"``) and shows no change rather than
+change everywhere.
 """
 
 from __future__ import annotations
@@ -25,7 +28,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.change import ChangeMap, ChangeTest, change_from_delta, change_map
+from app.recon.change import (
+    ChangeMap,
+    ChangeTest,
+    change_from_delta,
+    change_map,
+    change_with_shared_error,
+)
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -147,6 +156,10 @@ def register_rigid(points: F32, ref_points: F32, *, voxel_mm: float = DEFAULT_VO
     source, source_tree = small_gicp.preprocess_points(src, downsampling_resolution=voxel_mm,
                                                        num_neighbors=20)
     del source_tree
+    if target.size() < 100 or source.size() < 100:  # e.g. a cloud collapsed to a point
+        return Registration(False, ident, math.nan, 0.0, 0, _ms(t0),
+                            f"too few distinct points to register ({source.size()} voxels "
+                            f"now, {target.size()} in the reference)")
     transform = ident
     iterations = 0
     converged = False
@@ -237,6 +250,8 @@ def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tup
     moved = flat[keep].astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
     front = moved[:, 2] > 0
     keep, moved = keep[front], moved[front]
+    if len(keep) == 0:  # nothing in front of the camera (cv2 returns None for no points)
+        return _Pairs(keep, keep, moved)
     uv, _ = cv2.projectPoints(moved, np.zeros(3), np.zeros(3), camera_matrix, dist_coeffs)
     uv = np.rint(uv.reshape(-1, 2)).astype(np.int64)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
@@ -301,7 +316,8 @@ def refine_on_pixels(points: F32, sigma: F32, ref_points: F32, ref_sigma: F32,
 
 def change_along_normal(points: F32, sigma: F32, ref_points: F32, ref_sigma: F32,
                         transform: F64, camera_matrix: F64, dist_coeffs: F64, *,
-                        test: ChangeTest | None = None) -> ChangeMap:
+                        test: ChangeTest | None = None, sigma_model: F32 | None = None,
+                        ref_sigma_model: F32 | None = None) -> ChangeMap:
     """The change map on the reference's pixel grid after moving the current cloud.
 
     Args:
@@ -310,10 +326,15 @@ def change_along_normal(points: F32, sigma: F32, ref_points: F32, ref_sigma: F32
         transform: (4, 4) current → reference camera frame (:class:`Registration`).
         camera_matrix, dist_coeffs: the camera's intrinsics (the calibration's).
         test: the changed-pixel test.
+        sigma_model, ref_sigma_model: (H, W) the calibration's own 1-σ of each map (σ_model),
+            mm, or None (0). The paired pixels see the surface through other parts of the
+            calibration, so its errors no longer cancel: their difference, 1-σ
+            ``√(σ_model² + σ_model,ref²)``, enters as an error shared by neighbouring pixels
+            (:func:`~app.recon.change.change_with_shared_error`), not as independent noise.
 
     Returns:
         a :class:`~app.recon.change.ChangeMap` with Δ along the reference normal and σ_Δ
-        including :func:`registered_extra_sigma_mm`.
+        including :func:`registered_extra_sigma_mm` (and the calibrations' part).
     """
     t0 = time.perf_counter()
     h, w = ref_points.shape[:2]
@@ -330,7 +351,20 @@ def change_along_normal(points: F32, sigma: F32, ref_points: F32, ref_sigma: F32
     extra = registered_extra_sigma_mm(delta.reshape(h, w))
     if extra > 0:
         sig[pr.hit] = np.hypot(sig[pr.hit], np.float32(extra))
-    cm = change_from_delta(delta.reshape(h, w), sig.reshape(h, w), test=test)
+    if sigma_model is None and ref_sigma_model is None:
+        cm = change_from_delta(delta.reshape(h, w), sig.reshape(h, w), test=test)
+    else:
+        shared = np.zeros(h * w, np.float32)
+        for name, arr, idx in (("sigma_model", sigma_model, pr.src),
+                               ("ref_sigma_model", ref_sigma_model, pr.hit)):
+            if arr is None:
+                continue
+            if arr.shape != (h, w):
+                raise ValueError(f"{name}: shape {arr.shape} differs from {(h, w)}")
+            part = np.nan_to_num(arr.reshape(-1)[idx].astype(np.float32), nan=0.0)
+            shared[pr.hit] = np.hypot(shared[pr.hit], part)
+        cm = change_with_shared_error(delta.reshape(h, w), sig.reshape(h, w),
+                                      shared.reshape(h, w), test=test)
     return ChangeMap(cm.delta, cm.sigma, cm.changed, cm.compared, cm.test, _ms(t0))
 
 
@@ -371,7 +405,8 @@ def _failed_map(shape: tuple[int, int], test: ChangeTest) -> ChangeMap:
 def compare(depth: F32, sigma: F32, points: F32, ref_depth: F32, ref_sigma: F32,
             ref_points: F32, *, camera_matrix: F64, dist_coeffs: F64,
             test: ChangeTest | None = None, register: RegisterPolicy = "auto",
-            moved_share: float = DEFAULT_MOVED_SHARE) -> ChangeResult:
+            moved_share: float = DEFAULT_MOVED_SHARE, sigma_model: F32 | None = None,
+            ref_sigma_model: F32 | None = None) -> ChangeResult:
     """The change of the current map against the reference, registering when the scope moved.
 
     Args:
@@ -382,6 +417,8 @@ def compare(depth: F32, sigma: F32, points: F32, ref_depth: F32, ref_sigma: F32,
         register: ``"auto"`` (register when more than ``moved_share`` of the compared pixels
             changed), ``"never"`` (fixed scope) or ``"always"``.
         moved_share: see ``register``, in (0, 1].
+        sigma_model, ref_sigma_model: each map's calibration 1-σ (σ_model), mm, or None: used
+            once registered (:func:`change_along_normal`); a fixed scope's cancel.
 
     Returns:
         a :class:`ChangeResult`.
@@ -403,7 +440,8 @@ def compare(depth: F32, sigma: F32, points: F32, ref_depth: F32, ref_sigma: F32,
     fine = refine_on_pixels(points, sigma, ref_points, ref_sigma, reg.transform,
                             camera_matrix, dist_coeffs)
     cm = change_along_normal(points, sigma, ref_points, ref_sigma, fine,
-                             camera_matrix, dist_coeffs, test=test)
+                             camera_matrix, dist_coeffs, test=test, sigma_model=sigma_model,
+                             ref_sigma_model=ref_sigma_model)
     # the residual of the final transform: the unchanged surface's RMS Δ along the normal
     still = ~cm.changed & np.isfinite(cm.delta)
     residual = float(np.sqrt(np.mean(np.square(cm.delta[still], dtype=np.float64))))

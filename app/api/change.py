@@ -57,7 +57,8 @@ class ChangeSummary(BaseModel):
     sink_mm: float | None
     sink_sigma_mm: float | None
     sink_px: list[int] | None
-    false_alarm_rate: float = Field(description="per-pixel false-alarm rate of the mask")
+    false_alarm_rate: float = Field(description="false-alarm rate of the mask per map: the "
+                                    "probability that a still map shows any changed pixel")
     registration: dict[str, Any] | None = Field(
         description="ok, note, residual_mm, overlap, rotation_deg, translation_mm, transform "
                     "(4×4, current → reference camera frame), elapsed_ms; null: fixed scope")
@@ -112,7 +113,7 @@ async def set_reference(request: Request,
         return ref.describe()
     res = inst.latest_result()
     ref = inst.change.set_reference(res.depth, res.sigma_noise, res.points,
-                                    {"kind": "live", "seq": res.seq})
+                                    {"kind": "live", "seq": res.seq}, res.sigma_model)
     return ref.describe()
 
 

@@ -47,7 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("-c", "--calibration", required=True, help="calibration.json")
     p.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder")
     p.add_argument("--false-alarm-rate", type=_rate, default=1e-4, metavar="ALPHA",
-                   help="per-pixel false-alarm rate of the changed mask (default 1e-4)")
+                   help="false-alarm rate of the changed mask per map: the probability that "
+                   "an unchanged surface shows any changed pixel (default 1e-4)")
     p.add_argument("--register", choices=("auto", "never", "always"), default="auto",
                    help="register the clouds rigidly first: auto (when most of the scene "
                         "changed, default), never (fixed scope) or always")
@@ -114,9 +115,10 @@ def run(args: argparse.Namespace) -> int:
     test = ChangeTest(false_alarm_rate=args.false_alarm_rate)
     # the sensor noise only: one pixel's calibration error is the same in both maps and
     # cancels in their difference
-    result = compare(cur.depth, cur.sigma_noise, cur.points, ref.depth, ref.sigma_noise, ref.points,
-                     camera_matrix=calibration.camera_matrix,
-                     dist_coeffs=calibration.dist_coeffs, test=test, register=args.register)
+    result = compare(cur.depth, cur.sigma_noise, cur.points, ref.depth, ref.sigma_noise,
+                     ref.points, camera_matrix=calibration.camera_matrix,
+                     dist_coeffs=calibration.dist_coeffs, test=test, register=args.register,
+                     sigma_model=cur.sigma_model, ref_sigma_model=ref.sigma_model)
     if result.mode == "failed":
         raise ValueError(f"{dirs[1]}: the scene moved and {result.notes[0]}: no change shown")
     cm = result.cmap

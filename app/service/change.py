@@ -2,9 +2,10 @@
 
 The reference (depth, σ, points and where it came from) is written atomically to
 ``<data_dir>/reference/reference.npz`` (``reference.json`` beside it: the description, for
-people) and read back at start, so it survives a restart. While one is set, every published depth map is handed to a thread of
-its own (newest wins: the reconstruction thread never waits for it) that compares it
-(:func:`app.analysis.change.compare`) and publishes a :class:`LiveChange` in its slot.
+people) and read back at start, so it survives a restart. While one is set, every published
+depth map is handed to a thread of its own (newest wins: the reconstruction thread never waits
+for it) that compares it (:func:`app.analysis.change.compare`) and publishes a
+:class:`LiveChange` in its slot.
 """
 
 from __future__ import annotations
@@ -47,7 +48,9 @@ class Reference:
     """A reference depth map.
 
     Attributes:
-        depth, sigma: (H, W) float32 mm, NaN invalid; points: (H, W, 3) float32 mm.
+        depth, sigma: (H, W) float32 mm, NaN invalid (σ the sensor noise's); points: (H, W, 3)
+            float32 mm; sigma_model: (H, W) the calibration's own 1-σ there, mm, or None (a
+            reference kept before it was stored: taken as 0).
         created: ISO time it was taken; source: where it came from (``{"kind": "live",
             "seq": n}``, ``{"kind": "recording", "recording": NAME, "index": i}`` or
         ``{"kind": "upload"}``); calibration: the calibration's creation time (its identity).
@@ -59,6 +62,7 @@ class Reference:
     created: str
     source: dict[str, Any]
     calibration: str
+    sigma_model: F32 | None = None
 
     @property
     def valid_share(self) -> float:
@@ -133,12 +137,13 @@ class ReferenceStore:
         try:
             with np.load(data_path) as z:
                 arrays = {k: np.asarray(z[k], np.float32) for k in ("depth", "sigma", "points")}
+                model = np.asarray(z["sigma_model"], np.float32) if "sigma_model" in z else None
                 meta = json.loads(str(z["meta"]))
             if meta.get("format") != REFERENCE_FORMAT:
                 raise ValueError(f"format {meta.get('format')!r}")
             self._ref = Reference(arrays["depth"], arrays["sigma"], arrays["points"],
                                   str(meta["created"]), dict(meta["source"]),
-                                  str(meta["calibration"]))
+                                  str(meta["calibration"]), model)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("reference in %s not loaded: %s", self.folder, exc)
 
@@ -147,7 +152,12 @@ class ReferenceStore:
                            "source": ref.source, "calibration": ref.calibration})
         buf = io.BytesIO()
         # one file holds the arrays and what they are: replaced atomically as a whole
-        np.savez(buf, depth=ref.depth, sigma=ref.sigma, points=ref.points, meta=np.array(meta))
+        if ref.sigma_model is None:
+            np.savez(buf, depth=ref.depth, sigma=ref.sigma, points=ref.points,
+                     meta=np.array(meta))
+        else:
+            np.savez(buf, depth=ref.depth, sigma=ref.sigma, points=ref.points,
+                     meta=np.array(meta), sigma_model=ref.sigma_model)
         self.folder.mkdir(parents=True, exist_ok=True)
         with self._lock:
             atomic_write_bytes(self.folder / "reference.npz", buf.getvalue())
@@ -219,7 +229,8 @@ class ChangeService:
             try:
                 # the sensor noise only: one pixel's calibration error is the same in both maps and
                 # cancels in their difference
-                change = self.compute(result.depth, result.sigma_noise, result.points, seq)
+                change = self.compute(result.depth, result.sigma_noise, result.points, seq,
+                                      getattr(result, "sigma_model", None))
             except (ValueError, Conflict) as exc:
                 self.last_error = str(exc)
                 continue
@@ -250,8 +261,10 @@ class ChangeService:
             return self._recent[seq]
 
     # -- the comparison ---------------------------------------------------------------------
-    def compute(self, depth: F32, sigma: F32, points: F32, seq: int = 0) -> LiveChange | None:
-        """The change of one map against the reference (None when no reference is set)."""
+    def compute(self, depth: F32, sigma: F32, points: F32, seq: int = 0,
+                sigma_model: F32 | None = None) -> LiveChange | None:
+        """The change of one map against the reference (None when no reference is set);
+        ``sigma_model`` the map's calibration 1-σ (used once registered)."""
         ref = self.store.reference
         if ref is None:
             return None
@@ -260,7 +273,8 @@ class ChangeService:
         assert cal is not None  # check_comparable refused the map without one
         result = compare(depth, sigma, points, ref.depth, ref.sigma, ref.points,
                          camera_matrix=cal.camera_matrix, dist_coeffs=cal.dist_coeffs,
-                         test=self.test)
+                         test=self.test, sigma_model=sigma_model,
+                         ref_sigma_model=ref.sigma_model)
         if result.mode != "failed" and result.cmap.compared == 0:
             raise ReferenceMismatch("no pixel is valid in both the map and the reference: "
                                     "nothing to compare")
@@ -290,9 +304,9 @@ class ChangeService:
 
     # -- the reference -----------------------------------------------------------------------
     def set_reference(self, depth: F32, sigma: F32 | None, points: F32,
-                      source: dict[str, Any]) -> Reference:
+                      source: dict[str, Any], sigma_model: F32 | None = None) -> Reference:
         """Keep a map as the reference (422 without σ or valid pixels, 409 without a
-        calibration)."""
+        calibration); ``sigma`` its sensor-noise σ, ``sigma_model`` its calibration σ."""
         cal = self._calibration()
         if cal is None:
             raise Conflict("no calibration is active: a reference needs one")
@@ -304,7 +318,9 @@ class ChangeService:
                         np.ascontiguousarray(sigma, np.float32),
                         np.ascontiguousarray(points, np.float32),
                         datetime.now(UTC).isoformat(timespec="milliseconds"), source,
-                        cal.created)
+                        cal.created,
+                        None if sigma_model is None
+                        else np.ascontiguousarray(sigma_model, np.float32))
         self.store.set(ref)
         self.slot.clear()
         with self._recent_lock:
@@ -316,8 +332,9 @@ class ChangeService:
                                source: dict[str, Any]) -> Reference:
         """Reconstruct a capture set with the active calibration and keep it as the reference."""
         res = reconstruct(capture)
-        return self.set_reference(res.depth, res.sigma_noise if res.sigma.size else None, res.points,
-                                  source)
+        sigma = res.sigma_noise if res.sigma.size else None
+        model = res.sigma_model if res.sigma.size else None
+        return self.set_reference(res.depth, sigma, res.points, source, model)
 
     def reference_from_recording(self, recordings: Path, name: str, index: int,
                                  reconstruct: Callable[[CaptureSet], ReconResult]) -> Reference:

@@ -95,7 +95,7 @@ class Instrument:
         # the status shows the recording and a schedule change waits for its end
         self.recorder = Recorder(self, min_free_mb=settings.recording_min_free_mb,
                                  pose_source=None if poses is None else poses.latest,
-                                 alarms=self.alarms)
+                                 alarms=self.alarms, changes=self.change)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property

@@ -80,22 +80,55 @@ class LiveResult:
     model_sigma: ModelSigmaTable | None = None
     _cache: dict[Any, bytes] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    # (the objects they were computed from, {"model"/"noise": the part}): see _sigma_part
+    _sigma_cache: tuple[tuple[Any, ...], dict[str, npt.NDArray[np.float32] | None]] | None = (
+        field(default=None, repr=False))
+    _sigma_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
     def sigma_model(self) -> npt.NDArray[np.float32] | None:
-        """The calibration's part of ``sigma``, mm, NaN invalid (0 where it carries none)."""
-        if self.sigma is None:
-            return None
-        if self.model_sigma is None:
-            zero = np.where(np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan))
-            return zero.astype(np.float32)
-        return self.model_sigma.sigma_mm(self.depth)
+        """The calibration's part of ``sigma``, mm, NaN invalid (0 where it carries none);
+        read-only, computed once per result (see :meth:`_sigma_part`)."""
+        return self._sigma_part("model")
 
     @property
     def sigma_noise(self) -> npt.NDArray[np.float32] | None:
-        """The sensor-noise part of ``sigma``, mm, NaN invalid."""
-        model = self.sigma_model
-        return None if self.sigma is None or model is None else split_noise(self.sigma, model)
+        """The sensor-noise part of ``sigma``, mm, NaN invalid; read-only, computed once."""
+        return self._sigma_part("noise")
+
+    def _sigma_part(self, part: str) -> npt.NDArray[np.float32] | None:
+        """σ_model (``part`` "model") or σ_noise ("noise"), evaluated on the first access and
+        kept: the change thread, the recorder and REST each ask for them per map. The cache is
+        keyed on the very objects ``depth``, ``sigma`` and ``model_sigma`` it was computed
+        from, so a result whose field is replaced afterwards (a fused or edited result) is
+        evaluated afresh; the parts are read-only, so no reader changes what the next gets.
+        Without a σ table σ_noise is ``sigma`` itself (a read-only view: nothing to split)."""
+        key = (self.depth, self.sigma, self.model_sigma)
+        with self._sigma_lock:
+            got = self._sigma_cache
+            if got is None or not all(a is b for a, b in zip(got[0], key, strict=True)):
+                got = self._sigma_cache = (key, {})
+            parts = got[1]
+            if part in parts:
+                return parts[part]
+            out: npt.NDArray[np.float32] | None = None
+            table = self.model_sigma
+            if self.sigma is not None:
+                if table is None:
+                    out = self.sigma.view() if part == "noise" else np.where(
+                        np.isfinite(self.sigma), np.float32(0.0), np.float32(np.nan)
+                    ).astype(np.float32)
+                elif part == "noise":
+                    model = parts.get("model")
+                    if model is None:
+                        model = parts["model"] = table.sigma_mm(self.depth)
+                        model.setflags(write=False)
+                    out = split_noise(self.sigma, model)
+                else:
+                    out = table.sigma_mm(self.depth)
+                out.setflags(write=False)
+            parts[part] = out
+            return out
 
     @property
     def latency_ms(self) -> float:

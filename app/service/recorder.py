@@ -51,6 +51,7 @@ from app.core.limits import DEFAULT_LED
 from app.core.schedule import PatternSchedule
 from app.service.acquisition import Acquisition
 from app.service.alarms import AlarmBoard
+from app.service.change import ChangeService
 from app.service.framesets import FrameSet
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
@@ -91,13 +92,16 @@ class Recorder:
         pose_source: returns the newest received OpenIGTLink TRANSFORMs by device, stored
             with each recorded set (None: no tracker).
         alarms: where a recording that stops on its own is raised as an alarm (None: nowhere).
+        changes: the live change service; while it has a reference each set with a depth map
+            is stored with its change map Δ (``change.npy``) (None: never).
     """
 
     def __init__(self, instrument: RecordedInstrument, *, min_free_mb: float = 200.0,
                  depth_wait_s: float = 3.0, codec: str = "zstd", queue_sets: int = 16,
                  encode_workers: int = 2,
                  pose_source: Callable[[], dict[str, Any]] | None = None,
-                 alarms: AlarmBoard | None = None) -> None:
+                 alarms: AlarmBoard | None = None,
+                 changes: ChangeService | None = None) -> None:
         if codec not in FRAME_CODECS:
             raise ValueError(f"codec: must be one of {FRAME_CODECS}, got {codec!r}")
         if queue_sets < 1:
@@ -105,6 +109,7 @@ class Recorder:
         if encode_workers < 1:
             raise ValueError(f"encode_workers: must be at least 1, got {encode_workers}")
         self.instrument = instrument
+        self.changes = changes
         self.root = recordings_root(instrument.settings.data_dir)
         self.min_free_mb = float(min_free_mb)
         self.depth_wait_s = float(depth_wait_s)
@@ -460,7 +465,7 @@ class Recorder:
         if self.encode_workers > 1:
             self.write_cpu_s += sum(pool_cpu)
         change_mm = None
-        changes = getattr(self.instrument, "change", None)
+        changes = self.changes
         if res is not None and changes is not None and changes.store.reference is not None:
             live = changes.change_for(res.seq, CHANGE_WAIT_S)  # its own thread made it
             info["change"] = "none" if live is None else live.result.mode

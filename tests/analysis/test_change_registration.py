@@ -129,3 +129,70 @@ def test_normals_point_to_the_camera(reference):
     np.testing.assert_allclose(np.linalg.norm(n[ok], axis=1), 1, atol=1e-5)
     with pytest.raises(ValueError, match="step_px"):
         surface_normals(ref_pts, 0)
+
+
+
+def test_a_collapsed_cloud_is_not_registered_and_is_no_crash():
+    """Both clouds collapsed to the camera's centre (every point (0, 0, 0)): a handful of
+    voxels, no point in front of the camera. The registration says so (failed) instead of
+    passing a degenerate ICP on to a projection of no points."""
+    h, w = 48, 64
+    k = np.array([[200.0, 0, 32], [0, 200.0, 24], [0, 0, 1]])
+    zero = np.zeros((h, w, 3), np.float32)
+    sig = np.full((h, w), 0.05, np.float32)
+    res = compare(np.ones((h, w), np.float32), sig, zero, np.zeros((h, w), np.float32), sig,
+                  zero, camera_matrix=k, dist_coeffs=DIST)
+    assert res.mode == "failed" and res.registration is not None
+    assert "too few" in res.registration.note
+    assert not res.cmap.changed.any()
+
+
+def _calibration_error(amplitude_mm: float) -> np.ndarray:
+    """(H, W) a smooth depth error that depends on the pixel (one calibration's): the same in
+    every map, so a still scope's Δ cancels it and a moved one's does not."""
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    e = np.sin(uu / 9.0 + 0.4) * np.cos(vv / 11.0) + 0.5 * np.sin((uu + vv) / 7.0)
+    return (amplitude_mm * e / e.std()).astype(np.float32)
+
+
+def test_a_calibration_error_stated_as_sigma_model_is_no_change_after_a_scope_motion():
+    """Both maps carry the same pixel-bound calibration error (1-σ 0.04 mm, twice the noise).
+    Registered, its difference reads as change unless each map's σ_model states it: then it
+    is an error shared by neighbours and nothing is flagged."""
+    err = _calibration_error(0.04)
+
+    def view(transform: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        pts, sig = _view(transform, 0.0, seed)
+        # the error along each pixel's ray (z grows by err): where this pixel looks
+        return (pts * (1 + err / pts[..., 2])[..., None]).astype(np.float32), sig
+
+    ref_pts, ref_sig = view(np.eye(4), 11)
+    pts, sig = view(_moved(2.0, (0.6, -0.5, 0.6)), 12)
+    sm = np.full((H, W), 0.04, np.float32)
+    args = (pts[..., 2].copy(), sig, pts, ref_pts[..., 2].copy(), ref_sig, ref_pts)
+    plain = compare(*args, camera_matrix=K, dist_coeffs=DIST)
+    stated = compare(*args, camera_matrix=K, dist_coeffs=DIST, sigma_model=sm,
+                     ref_sigma_model=sm)
+    print(f"\ncalibration error 0.04 mm: registered changed {100 * plain.cmap.changed_share:.3f}%"
+          f" without sigma_model, {100 * stated.cmap.changed_share:.4f}% with it")
+    assert plain.mode == stated.mode == "registered"
+    assert plain.cmap.changed_share > 1e-3  # what it does unstated
+    assert stated.cmap.changed_share <= 1e-4
+    ok = np.isfinite(stated.cmap.sigma)
+    assert (stated.cmap.sigma[ok] >= np.hypot(plain.cmap.sigma[ok], 0.04 * math.sqrt(2)) - 1e-6
+            ).all()
+    still = compare(*args[:2], ref_pts, *args[3:], camera_matrix=K, dist_coeffs=DIST,
+                    register="never")  # a fixed scope: the same error cancels, nothing to add
+    assert still.mode == "fixed"
+
+
+def test_a_transform_that_puts_every_point_behind_the_camera_compares_nothing(reference):
+    """No moved point projects into the image: an empty change map, not an error from the
+    projection of no points."""
+    from app.analysis.change import change_along_normal
+
+    ref_pts, ref_sig = reference
+    behind = np.eye(4)
+    behind[2, 3] = -1000.0  # 1 m back: every point at z < 0
+    cm = change_along_normal(ref_pts, ref_sig, ref_pts, ref_sig, behind, K, DIST)
+    assert cm.compared == 0 and not cm.changed.any() and np.isnan(cm.delta).all()

@@ -36,6 +36,16 @@ def _npy(resp) -> np.ndarray:
     return np.load(io.BytesIO(resp.content))
 
 
+def _one_map(client, fields: tuple[str, ...]) -> list[np.ndarray]:
+    """The fields of one change map: a new map may be published between the requests (its
+    seq is in each response), so ask again until all came from the same one."""
+    for _ in range(20):
+        resps = [client.get(f"/api/change/latest?format=npy&field={f}") for f in fields]
+        if len({r.headers["X-Fringescope-Seq"] for r in resps}) == 1:
+            return [_npy(r) for r in resps]
+    raise AssertionError("no two requests in a row answered from the same change map")
+
+
 def _wait_change(client: TestClient, after_seq: int, timeout_s: float = 120) -> dict:
     deadline = time.monotonic() + timeout_s
     last = None
@@ -65,10 +75,8 @@ def test_reference_and_change_map_live_and_across_a_restart(tmp_path, twin_calib
         assert summary["mode"] == "fixed" and summary["registration"] is None
         assert summary["changed_share"] <= 1e-3
         assert summary["compared_pixels"] > 0.5 * 1384 * 1032
-        delta = _npy(client.get("/api/change/latest?format=npy&field=delta"))
-        sigma = _npy(client.get("/api/change/latest?field=sigma"))
-        sig = _npy(client.get("/api/change/latest?field=significance"))
-        changed = _npy(client.get("/api/change/latest?field=changed"))
+        delta, sigma, sig, changed = _one_map(client, ("delta", "sigma", "significance",
+                                                       "changed"))
         assert delta.shape == (1032, 1384) and delta.dtype == np.float32
         assert changed.dtype == bool and sigma.dtype == sig.dtype == np.float32
         ok = np.isfinite(delta)

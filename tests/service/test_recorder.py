@@ -140,3 +140,49 @@ def test_start_up_marks_open_recordings_interrupted_and_removes_partials(tmp_pat
     assert not (root / "left-open" / ".set_0001.abc.partial").exists()
     (summary,) = list_recordings(root)
     assert summary["interrupted"] is True and summary["n_sets"] == 1
+
+
+def test_the_change_service_given_to_the_recorder_stores_each_sets_change(
+        tmp_path: Path) -> None:
+    """The recorder gets the change service as a constructor argument: with a reference set,
+    every set with a depth map is stored with the change map the service made of it."""
+    from app.devices.sim.analytic_rig import Rig
+    from app.service.change import ChangeService
+
+    cal = Rig(width=W, height=H).calibration()
+    changes = ChangeService(tmp_path / "reference", lambda: cal)
+    schedule = schedule_by_name("geometric-9")
+    inst = _Instrument(tmp_path, schedule)
+    inst.results.subscribe(changes.on_map)
+    changes.start()
+    flat = np.zeros((H, W), np.float32)
+    changes.set_reference(flat, np.full((H, W), 0.05, np.float32),
+                          np.zeros((H, W, 3), np.float32), {"kind": "upload"})
+    rec = Recorder(inst, min_free_mb=0, depth_wait_s=0.5,  # type: ignore[arg-type]
+                   changes=changes)
+    rng = np.random.default_rng(0)
+    rec.start("withchange")
+    for k in range(4):
+        fs = _frame_set(k, schedule.n_frames, rng)
+        inst.acquisition.sets.publish(fs)
+        res = _result(fs, k)
+        res.depth = flat + 0.05 * rng.standard_normal((H, W)).astype(np.float32)
+        res.depth[10:20, 20:30] += 1.0 + k  # a local rise: a fixed-scope change map
+        res.sigma = np.full((H, W), 0.05, np.float32)
+        res.seq = inst.results.publish(res)  # as the reconstruction thread numbers it
+        time.sleep(0.3)
+    deadline = time.monotonic() + 30
+    while rec.status()["sets"] < 4 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    session = rec.stop()
+    changes.close(5.0)
+    assert session is not None and len(session["sets"]) == 4
+    root = recordings_root(tmp_path) / "withchange"
+    stored = [e for e in session["sets"] if (root / e["folder"] / "change.npy").is_file()]
+    assert stored, "no set was stored with its change map"
+    for entry in stored:
+        depth = np.load(root / entry["folder"] / "depth.npy")
+        delta = np.load(root / entry["folder"] / "change.npy")
+        assert delta.dtype == np.float32 and entry["change"] == "fixed"
+        np.testing.assert_allclose(delta, depth - flat)
+        assert delta[10:20, 20:30].min() > 0.5
