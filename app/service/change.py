@@ -31,6 +31,7 @@ from app.core.calibration import Calibration
 from app.core.errors import Conflict, InvalidRequest, NotFound
 from app.recon.change import ChangeTest, pixel_area_mm2, summarize
 from app.recon.reconstructor import ReconResult
+from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot, NewestQueue
 
 log = logging.getLogger("fringescope.service.change")
@@ -191,7 +192,7 @@ class ChangeService:
         self.slot: LatestSlot[LiveChange] = LatestSlot()
         self.test = test or ChangeTest()
         self._calibration = calibration
-        self._queue: NewestQueue[tuple[int, Any]] = NewestQueue(1)
+        self._queue: NewestQueue[tuple[int, LiveResult]] = NewestQueue(1)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._area: tuple[int, F32] | None = None  # (id of the reference points, pixel areas)
@@ -215,9 +216,9 @@ class ChangeService:
         return [self._thread] if self._thread is not None else []
 
     # -- the hook ------------------------------------------------------------------------
-    def on_map(self, seq: int, result: Any) -> None:
+    def on_map(self, seq: int, result: LiveResult) -> None:
         """A new depth map was published (reconstruction thread): queue it, never wait."""
-        if self.store.reference is not None and getattr(result, "sigma", None) is not None:
+        if self.store.reference is not None and result.sigma is not None:
             self._queue.put((seq, result))
 
     def _run(self) -> None:
@@ -226,13 +227,20 @@ class ChangeService:
             if item is None:
                 continue
             seq, result = item
+            sigma_noise = result.sigma_noise
+            if sigma_noise is None:
+                continue
             try:
                 # the sensor noise only: one pixel's calibration error is the same in both maps and
                 # cancels in their difference
-                change = self.compute(result.depth, result.sigma_noise, result.points, seq,
-                                      getattr(result, "sigma_model", None))
+                change = self.compute(result.depth, sigma_noise, result.points, seq,
+                                      result.sigma_model)
             except (ValueError, Conflict) as exc:
                 self.last_error = str(exc)
+                continue
+            except Exception as exc:  # a fault in one comparison must not end the live change map
+                log.exception("change map of result %d failed", seq)
+                self.last_error = f"change map failed: {type(exc).__name__}: {exc}"
                 continue
             if change is not None:
                 with self._recent_lock:
