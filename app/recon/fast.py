@@ -49,6 +49,7 @@ from app.core.reasons import Reason
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
+PAPER_SPAN = 64  # pixels: the 4 × 4 schedule's closed-form refit skips spans without clipping
 REFIT_SPAN = 512  # pixels: the saturation refit skips spans of a row without a clipped sample
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
@@ -272,6 +273,136 @@ def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignor
         m2[u] = q
         top = max(max(mx, m1), max(m2_, m3))
         code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, tot)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px4_fit(frames, b, v, u, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """N = 4 at pixel (v, u) from frame b on, fitted to its unclipped samples (I < ``top_code``):
+    (y, x, x² + y², clipped samples). With δ = 0, π/2, π, 3π/2 every sinusoid has I0 + I2 =
+    I1 + I3 (= 2A), so one clipped sample is its prediction from the other three, which is the
+    least-squares fit of A + a cos δ + b sin δ to them (three samples, three unknowns): with
+    r = (I0 + I2) − (I1 + I3), I0 → I0 − r, I1 → I1 + r, I2 → I2 − r, I3 → I3 + r. Closed form
+    and branch-free; with two or more clipped the result is meaningless (not taken)."""
+    i0 = np.float32(frames[b, v, u])
+    i1 = np.float32(frames[b + 1, v, u])
+    i2 = np.float32(frames[b + 2, v, u])
+    i3 = np.float32(frames[b + 3, v, u])
+    c0 = _F1 if i0 >= top_code else _F0
+    c1 = _F1 if i1 >= top_code else _F0
+    c2 = _F1 if i2 >= top_code else _F0
+    c3 = _F1 if i3 >= top_code else _F0
+    r = (i0 + i2) - (i1 + i3)
+    yy = (i3 - i1) + r * (c3 - c1)
+    xx = (i0 - i2) - r * (c0 - c2)
+    return yy, xx, xx * xx + yy * yy, (c0 + c1) + (c2 + c3)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_fit_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                   total, m2, prev, code):  # pragma: no cover - compiled
+    """:func:`_paper_row` and its saturation refit in one pass, for rows where clipping is
+    widespread: every pixel's phase from :func:`_px4_fit` (on an unclipped pixel the same
+    arithmetic and result as :func:`_px4`), SATURATED only where a frequency has two clipped
+    samples; returns the pixels with a clipped sample that were refitted (float32)."""
+    n_refit = _F0
+    for u in range(frames.shape[2]):
+        yy, xx, q, n0 = _px4_fit(frames, 0, v, u, top_code)
+        qmin = q
+        p = atan2_coarse(yy, xx)
+        yy, xx, q, n1 = _px4_fit(frames, 4, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d1 = _order_step(p, atan2_coarse(yy, xx), r1)
+        yy, xx, q, n2 = _px4_fit(frames, 8, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d2 = _order_step(p, atan2_coarse(yy, xx), r2)
+        yy, xx, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
+        tot = (_px4_total(frames, 0, v, u) + _px4_total(frames, 4, v, u)) + (
+            _px4_total(frames, 8, v, u) + _px4_total(frames, 12, v, u))
+        total[u] = tot
+        prev[u] = p
+        m2[u] = q
+        n_max = max(max(n0, n1), max(n2, n3))
+        top = top_code if n_max > _F1 else _F0
+        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, tot)
+        n_refit += _F1 if (n_max > _F0) & (n_max <= _F1) else _F0
+    return n_refit
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px4_total(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Σ I of the 4 frames from b on at (v, u), summed as :func:`_px4` sums them."""
+    return (np.float32(frames[b, v, u]) + np.float32(frames[b + 1, v, u])) + (
+        np.float32(frames[b + 2, v, u]) + np.float32(frames[b + 3, v, u]))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_refit_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                     total, m2, prev, code, rscratch):  # pragma: no cover - compiled
+    """:func:`_paper_row`'s saturation refit (4 frequencies × 4 steps): the SATURATED pixels of
+    row ``v`` with at most one clipped sample per frequency take the phase of :func:`_px4_fit`
+    (finest m2, phase-stage code judged as unclipped); their count. Spans of PAPER_SPAN pixels
+    without a SATURATED code are skipped (clipping is local: highlights), the others refitted
+    branch-free into ``rscratch`` (≥ 2, ≥ PAPER_SPAN float32) with :func:`_paper_row`'s
+    arithmetic (``total`` keeps the frames' sums), then taken."""
+    width = frames.shape[2]
+    n_taken = 0
+    r_code = np.empty(PAPER_SPAN, np.uint8)
+    for u0 in range(0, width, PAPER_SPAN):
+        u1 = min(width, u0 + PAPER_SPAN)
+        n_sat = _count_saturated(code[u0:u1])
+        if n_sat > 0:  # a refitted code is never SATURATED: the count that drops was taken
+            m = u1 - u0
+            r_prev, r_m2, rc = rscratch[0, :m], rscratch[1, :m], r_code[:m]
+            _paper_refit_span(frames, v, u0, u1, r1, r2, r3, cons_rad, m2_min, top_code, total[u0:u1], r_m2,
+                              r_prev, rc)
+            _take_paper_refit(m2[u0:u1], prev[u0:u1], code[u0:u1], r_m2, r_prev, rc)
+            n_taken += n_sat - _count_saturated(code[u0:u1])
+    return n_taken
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_refit_span(frames, v, u0, u1, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                      total, m2, prev, code):  # pragma: no cover - compiled
+    """:func:`_paper_row` with :func:`_px4_fit` over the pixels u0..u1 − 1 of row ``v`` into the
+    span's ``m2``, ``prev``, ``code`` (SATURATED where a frequency has two clipped samples;
+    ``total`` the span's frame sums). The row's codes are not read here: a byte test beside the
+    float ones kept LLVM from vectorising."""
+    for u in range(u0, u1):
+        yy, xx, q, n0 = _px4_fit(frames, 0, v, u, top_code)
+        qmin = q
+        p = atan2_coarse(yy, xx)
+        yy, xx, q, n1 = _px4_fit(frames, 4, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d1 = _order_step(p, atan2_coarse(yy, xx), r1)
+        yy, xx, q, n2 = _px4_fit(frames, 8, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d2 = _order_step(p, atan2_coarse(yy, xx), r2)
+        yy, xx, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+        qmin = min(qmin, q)
+        p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
+        i = u - u0
+        prev[i] = p
+        m2[i] = q
+        # two clipped samples in a frequency: top = top_code, so SATURATED (not taken)
+        top = top_code if max(max(n0, n1), max(n2, n3)) > _F1 else _F0
+        code[i] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, total[i])
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _take_paper_refit(m2, prev, code, r_m2, r_prev, r_code):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """Where ``code`` is SATURATED and the refit's ``r_code`` is not: the refit's values. Two
+    branch-free passes, bytes then floats (so that each vectorises); ``r_code`` ends as the mask."""
+    for i in range(code.shape[0]):
+        t = (code[i] == _SATURATED) & (r_code[i] != _SATURATED)
+        code[i] = r_code[i] if t else code[i]
+        r_code[i] = np.uint8(t)
+    for i in range(code.shape[0]):
+        t = r_code[i] != 0
+        prev[i] = r_prev[i] if t else prev[i]
+        m2[i] = r_m2[i] if t else m2[i]
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
@@ -854,21 +985,32 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
         rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
+        # clipping is spatially coherent: where the row above had much of it, one pass that phases
+        # and refits every pixel is cheaper than refitting many spans after the plain pass
+        wide_clip = False
         for r in range(n_rows):
             v = v0 + r
-            if paper:
+            n_refit = 0
+            if paper and wide_clip:  # phased and refitted in one pass
+                n_refit = np.int32(_paper_fit_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r],
+                                                  m2[r], prev[r], code[r]))
+            elif paper:
                 _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
+                if _count_saturated(code[r]) > 0:  # a vectorised byte count; spans refitted only where needed
+                    n_refit = _paper_refit_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r],
+                                               m2[r], prev[r], code[r], rscratch)
             else:
                 _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
                              ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order)
-            n_refit = 0
-            # a vectorised byte count; the refit scan only where needed. With N = 3 a clipped sample leaves 2
-            # in its frequency, fewer than a fit needs: nothing to refit (the scan cost 2-3× the whole kernel)
-            if n_steps > 3 and _count_saturated(code[r]) > 0:
-                n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
-                                              m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], rscratch, sums, total[r], order)
+                # With N = 3 a clipped sample leaves 2 in its frequency, fewer than a fit needs: nothing
+                # to refit (the scan cost 2-3× the whole kernel)
+                if n_steps > 3 and _count_saturated(code[r]) > 0:
+                    n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
+                                         m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
+                                         code[r], rscratch, sums, total[r], order)
             recovered[v] = n_refit
+            if paper:
+                wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
         for r in range(n_rows):
             v = v0 + r
