@@ -40,6 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--numpy", action="store_true", help="use the numpy reference path instead of numba")
     p.add_argument("--min-modulation", type=float, default=None, metavar="CODES",
                    help="explicit modulation threshold B in sensor codes, replacing the default noise-aware rule (the schedule's order-error bound under the camera noise, and its depth-σ bound)")
+    p.add_argument("--phase-error", metavar="FILE", default=None,
+                   help="projector-gamma table from `fringescope gamma`, subtracted from every wrapped "
+                        "phase before unwrapping")
     p.set_defaults(func=run)
 
 
@@ -54,11 +57,13 @@ def run(args: argparse.Namespace) -> int:
     )
     from app.calib import load_calibration
     from app.capture import read_capture_set
+    from app.cli.gamma import read_phase_error
 
     dirs = [Path(d) for d in args.set_dirs]
     for d in dirs:
         if not d.is_dir():
             raise ValueError(f"{d}: capture-set folder not found")
+    lut = read_phase_error(args.phase_error) if args.phase_error else None
     captures = [read_capture_set(d) for d in dirs]
     calibration = load_calibration(args.calibration)
     from app.service.schedules import calibration_for_schedule
@@ -69,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{dirs[0]}: {exc}") from None
     check_bracket(captures, [str(d) for d in dirs])
     options = ReconOptions(max_code=args.max_code, numpy=args.numpy, min_modulation=args.min_modulation,
-                           range_mm=args.range)
+                           range_mm=args.range, phase_error=lut)
     recon = reconstruct_captures(captures, calibration, options)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,8 @@ Here the table is learned per frequency against a reference phase of many more s
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,7 +27,7 @@ F64 = npt.NDArray[np.float64]
 LUT_FORMAT = "fringescope-phase-error"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PhaseErrorLUT:
     """Mean wrapped-phase error per frequency as a function of the wrapped phase.
 
@@ -151,6 +153,24 @@ class PhaseErrorLUT:
         if freqs and len(freqs) != table.shape[0]:
             raise ValueError(f"frequencies: {len(freqs)} listed for a table of {table.shape[0]} rows")
         return cls(table, steps, freqs)
+
+    def kernel_table(self) -> npt.NDArray[np.float32]:
+        """(K, bins + 2) float32 the table for the fused kernel: entry j of a row is the error at
+        bin centre j − 1 taken circularly, so that :meth:`apply`'s interpolation between bins
+        ``i`` and ``i + 1`` (i = −1 … bins − 1) needs no modulo."""
+        e = self.error_rad
+        return np.ascontiguousarray(np.concatenate([e[:, -1:], e, e[:, :1]], axis=1), np.float32)
+
+    def digest(self) -> str:
+        """sha256 of :meth:`to_dict`'s canonical JSON: names the table in options hashes."""
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    def __eq__(self, other: object) -> bool:  # by content (an array field has no plain ==)
+        return isinstance(other, PhaseErrorLUT) and self.digest() == other.digest()
+
+    def __hash__(self) -> int:
+        return hash(self.digest())
 
     def apply(self, wrapped: npt.ArrayLike) -> F64:
         """Corrected wrapped phases: ``wrapped − error(wrapped)`` (linear interpolation, circular), in [0, 2π).

@@ -180,7 +180,8 @@ def split_noise(sigma: F32, sigma_model: F32) -> F32:
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool, phase_error: Any = None, noise: SensorNoise | None = None,
+    consistency_rad: float, combine: bool, phase_error: PhaseErrorLUT | None = None,
+    noise: SensorNoise | None = None,
     snr_min: float | None = None,
     false_alarm_rate: float | None = DEFAULT_FALSE_ALARM_RATE, max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
@@ -326,6 +327,10 @@ class Reconstructor:
         order_max_motion_rad: the change of the finest phase between consecutive frequency
             groups against which that test still guarantees to see a wrong order, rad (0: a
             still scene; the live instrument uses ``unwrap.LIVE_MAX_MOTION_RAD``).
+        phase_error: a learned projector-gamma :class:`~app.recon.gamma.PhaseErrorLUT`
+            (``fringescope gamma``) subtracted from every wrapped phase before unwrapping, on
+            both paths; None: none. ``ValueError`` unless it was learned for the calibration's
+            schedule.
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -348,9 +353,15 @@ class Reconstructor:
         gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
         order_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
         order_max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+        phase_error: PhaseErrorLUT | None = None,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
+        if phase_error is not None:
+            if not isinstance(phase_error, PhaseErrorLUT):
+                raise ValueError("phase_error: expected a PhaseErrorLUT")
+            sched = calibration.pattern
+            phase_error.check_schedule(sched.steps, tuple(float(k) for k in sched.frequencies))
         if noise is not None and not isinstance(noise, SensorNoise):
             raise ValueError("noise: expected a SensorNoise")
         if max_sigma_mm is not None and not (math.isfinite(max_sigma_mm) and max_sigma_mm > 0.0):
@@ -364,6 +375,7 @@ class Reconstructor:
         if not (math.isfinite(order_error_rate) and 0.0 < order_error_rate <= 0.1):
             raise ValueError(f"order_error_rate: must be in (0, 0.1], got {order_error_rate}")
         self.calibration = calibration
+        self.phase_error = phase_error
         self.order_error_rate = float(order_error_rate)
         self.max_code = max_code
         self.min_modulation = min_modulation
@@ -437,6 +449,16 @@ class Reconstructor:
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
                 np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32),
                 np.float32(z * z), np.ascontiguousarray(front**2, np.float32))
+
+    @cached_property
+    def _fast_lut(self) -> tuple[F32, np.float32, bool]:
+        """The kernel's phase-error table (K, bins + 2) float32, bins/2π and whether to apply it
+        (a (K, 2) zero table when there is none)."""
+        k = len(self.calibration.pattern.frequencies)
+        if self.phase_error is None:
+            return np.zeros((k, 2), np.float32), np.float32(1.0), False
+        bins = self.phase_error.error_rad.shape[1]
+        return self.phase_error.kernel_table(), np.float32(bins / (2.0 * np.pi)), True
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -534,7 +556,8 @@ class Reconstructor:
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
-            noise=camera, snr_min=None if self.min_modulation is not None else self._snr_min,
+            phase_error=self.phase_error, noise=camera,
+            snr_min=None if self.min_modulation is not None else self._snr_min,
             false_alarm_rate=self.order_false_alarm_rate, max_motion_rad=self.order_max_motion_rad,
         )
         height, singular, slope = evaluate_height_slope(model, phi)
@@ -607,7 +630,7 @@ class Reconstructor:
         ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
                              chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
                              f32(0.0 if self.min_modulation is not None else self._snr_min ** 2),
-                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2))
+                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2), *self._fast_lut)
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
