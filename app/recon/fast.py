@@ -18,7 +18,8 @@ streams few arrays at a time:
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
    terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
    the supported region and the final reason code.
-2. Outputs: reason/valid, depth, σ, modulation/texture, optional phase and the points.
+2. Outputs: reason/valid, depth, σ, modulation/texture and the optional phase (the points are
+   written by the height stage, whose loop already holds the ray quotients).
 
 The kernel takes named tuples (:class:`PhaseArgs`, :class:`HeightArgs`, :class:`Outputs`);
 reason codes are used by name.
@@ -718,8 +719,9 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
     t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
-    h = (a0 + a1 * t) / dd
-    slope = (a1 * b0 - a0 * b1) / (dd * dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
+    inv_dd = _F1 / dd  # one division for the height and its slope
+    h = (a0 + a1 * t) * inv_dd
+    slope = (a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
     x = (h - sm_mid) * sm_inv_half
     sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
     sig = np.sqrt(slope * slope * ((read_var + gain * tot) * vf) + sm2)
@@ -734,8 +736,10 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Height stage of row ``v`` (both paths): height, σ and the final reason code.
+def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Height stage of row ``v`` (both paths): the final reason code and the row's outputs ``depth``,
+    ``sigma`` and ``pts`` (the points' (W·3,) flat view), NaN where invalid, written here while
+    the ray quotients are at hand (a separate pass read the (H, W, 3) table a second time).
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -756,11 +760,10 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
     max_sigma2 = max_sigma * max_sigma
-    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat, as in _points_row
-    if not m.combine:
-        half_steps = m.half_steps
-        for u in range(prev.shape[0]):
-            vfac[u] = half_steps / m2[u]  # var(φ)/σ_I² = N / (2·m2)
+    offset = m.offset
+    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat (x, y, 1)/(n·r): a point is (h − offset)·q
+    # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
+    combine, half_steps = m.combine, m.half_steps
     if m.use_rays:
         for u in range(prev.shape[0]):
             q0, q1, q2 = q[3 * u], q[3 * u + 1], q[3 * u + 2]
@@ -773,13 +776,19 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 += (k5 * x + k4) * x + k3
             b0 += (k8 * x + k7) * x + k6
             b1 += (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+            vf = vfac[u] if combine else half_steps / m2[u]
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
-            hbuf[u] = h
-            sbuf[u] = sig
+            ok = c == _OK
+            depth[u] = h if ok else _NAN
+            sigma[u] = sig if ok else _NAN
             code[u] = c
+            t = h - offset if ok else _NAN
+            pts[3 * u] = t * q0
+            pts[3 * u + 1] = t * q1
+            pts[3 * u + 2] = t * q2
     else:
         for u in range(prev.shape[0]):
             x = un[u]
@@ -787,13 +796,19 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 = (k5 * x + k4) * x + k3
             b0 = (k8 * x + k7) * x + k6
             b1 = (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+            vf = vfac[u] if combine else half_steps / m2[u]
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
-            hbuf[u] = h
-            sbuf[u] = sig
+            ok = c == _OK
+            depth[u] = h if ok else _NAN
+            sigma[u] = sig if ok else _NAN
             code[u] = c
+            t = h - offset if ok else _NAN
+            pts[3 * u] = t * q[3 * u]
+            pts[3 * u + 1] = t * q[3 * u + 1]
+            pts[3 * u + 2] = t * q[3 * u + 2]
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -1064,16 +1079,6 @@ def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # type: 
         texture[u] = total[u] * inv_frames + b
 
 
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _points_row(pts, hbuf, code, q, offset):  # type: ignore[no-untyped-def]  # pragma: no cover
-    # pts, q: the row's (W·3,) flat views; q = (x, y, 1)/(n·r), so a point is (h − offset)·q
-    for u in range(hbuf.shape[0]):
-        t = hbuf[u] - offset if code[u] == 0 else _NAN
-        pts[3 * u] = t * q[3 * u]
-        pts[3 * u + 1] = t * q[3 * u + 1]
-        pts[3 * u + 2] = t * q[3 * u + 2]
-
-
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
     """Raw frames → all per-pixel outputs (see the module docstring). Writes into ``out``.
@@ -1104,8 +1109,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
-        buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
-        total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
+        buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
+        total, m2, prev, vfac = buf[0], buf[1], buf[2], buf[3]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
         rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
@@ -1136,16 +1141,14 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             recovered[v] = n_refit
             if paper:
                 wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
-            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
+            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v], out.sigma[v],
+                        out.points[v].reshape(3 * width))
         for r in range(n_rows):
             v = v0 + r
             _reason_row(out.reason[v], out.valid[v], code[r])
-            _select_row(out.depth[v], hbuf[r], code[r])
-            _select_row(out.sigma[v], sbuf[r], code[r])
             if want_phase:
                 _select_row(out.phase[v], prev[r], code[r])
             _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
-            _points_row(out.points[v].reshape(3 * width), hbuf[r], code[r], m.ray_q[v].reshape(3 * width), m.offset)
 
 
 _warm: set[str] = set()
