@@ -273,33 +273,43 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               total, m2, prev, code):  # pragma: no cover - compiled
+               total, m2, prev, code, lut_rows):  # pragma: no cover - compiled
     """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`):
     coarse atan2 for the levels that only pick orders, the precise one for the finest. ``chain`` =
     (r1, r2, r3: the fringe-count ratios, the (4, bins + 2) phase-error table, bins/2π, whether
-    to apply it to every wrapped phase: :func:`_lut_correct`)."""
+    to apply it to every wrapped phase: :func:`_lut_correct`; ``lut_rows`` (6, ≥ W) float32
+    scratch for that case)."""
     r1, r2, r3, lut, scale, use_lut = chain
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_lut:
+    if use_lut:  # three passes: the table's look-ups do not vectorise (no gathers), the rest does
+        w = lut_rows
         for u in range(frames.shape[2]):
             y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
             y1, x1, q1, t1, m1 = _px4(frames, 4, v, u)
             y2, x2, q2, t2, m2_ = _px4(frames, 8, v, u)
             y3, x3, q, t3, m3 = _px4(frames, 12, v, u)
-            qmin = min(min(q0, q1), min(q2, q))
-            p = _lut_correct(atan2_coarse(y0, x0), l0, scale)
-            p, d1 = _order_step(p, _lut_correct(atan2_coarse(y1, x1), l1, scale), r1)
-            p, d2 = _order_step(p, _lut_correct(atan2_coarse(y2, x2), l2, scale), r2)
-            p, d3 = _order_step(p, _lut_correct(atan2_0_2pi(y3, x3), l3, scale), r3)
-            dev = max(max(d1, d2), d3)
-            tot = (tt + t1) + (t2 + t3)
-            total[u] = tot
-            prev[u] = p
+            w[0, u] = atan2_coarse(y0, x0)
+            w[1, u] = atan2_coarse(y1, x1)
+            w[2, u] = atan2_coarse(y2, x2)
+            w[3, u] = atan2_0_2pi(y3, x3)
+            w[4, u] = min(min(q0, q1), min(q2, q))
+            w[5, u] = max(max(mx, m1), max(m2_, m3))
+            total[u] = (tt + t1) + (t2 + t3)
             m2[u] = q
-            top = max(max(mx, m1), max(m2_, m3))
-            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+        for u in range(frames.shape[2]):
+            w[0, u] = _lut_correct(w[0, u], l0, scale)
+            w[1, u] = _lut_correct(w[1, u], l1, scale)
+            w[2, u] = _lut_correct(w[2, u], l2, scale)
+            w[3, u] = _lut_correct(w[3, u], l3, scale)
+        for u in range(frames.shape[2]):
+            p, d1 = _order_step(w[0, u], w[1, u], r1)
+            p, d2 = _order_step(p, w[2, u], r2)
+            p, d3 = _order_step(p, w[3, u], r3)
+            prev[u] = p
+            code[u] = _mask(_OK, max(max(d1, d2), d3), w[4, u], w[5, u], cons_rad, m2_min, top_code,
+                            total[u])
     else:
         for u in range(frames.shape[2]):
             y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
@@ -1113,6 +1123,7 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         total, m2, prev, vfac = buf[0], buf[1], buf[2], buf[3]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
+        lut_rows = np.empty((6 if paper and ph.use_lut else 0, width), np.float32)
         rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
         # clipping is spatially coherent: where the row above had much of it, one pass that phases
@@ -1125,7 +1136,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
                 n_refit = int(_paper_fit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
                                                   m2[r], prev[r], code[r]))
             elif paper:
-                _paper_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
+                _paper_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r],
+                           lut_rows)
                 if _count_saturated(code[r]) > 0:  # a vectorised byte count; spans refitted only where needed
                     n_refit = _paper_refit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
                                                m2[r], prev[r], code[r], rscratch)
