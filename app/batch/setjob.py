@@ -10,7 +10,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import PurePath
 from typing import BinaryIO
 
@@ -22,6 +22,7 @@ from app.core.calibration import Calibration
 from app.core.limits import DEFAULT_DEPTH_RANGE_MM
 from app.recon import ReconResult, Reconstructor, SensorNoise
 from app.recon.fusion import FusedExposures
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.sensor import NoiseSource
 
 #: every file a set's reconstruction can write, in writing order
@@ -38,17 +39,21 @@ class ReconOptions:
         numpy: the numpy reference path instead of the fused numba kernel.
         min_modulation: explicit modulation threshold B, codes (None: the noise-aware rule).
         range_mm: (min, max) of the depth colormap in ``depth.png``, mm.
+        phase_error: a projector-gamma table (``fringescope gamma``) subtracted from every
+            wrapped phase (None: none); hashed by its content in :meth:`to_dict`.
     """
 
     max_code: int | None = None
     numpy: bool = False
     min_modulation: float | None = None
     range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM
+    phase_error: PhaseErrorLUT | None = None
 
     def to_dict(self) -> dict[str, object]:
         """JSON-able form (for the resumption hash and the output metadata)."""
-        out = asdict(self)
+        out = asdict(replace(self, phase_error=None))
         out["range_mm"] = list(self.range_mm)
+        out["phase_error"] = None if self.phase_error is None else self.phase_error.digest()
         return out
 
 
@@ -96,7 +101,8 @@ def new_reconstructor(calibration: Calibration, options: ReconOptions,
                       noise: SensorNoise | None = None) -> Reconstructor:
     """The :class:`~app.recon.Reconstructor` the options ask for (its per-pixel tables built)."""
     return Reconstructor(calibration, max_code=options.max_code, fast=not options.numpy,
-                         noise=noise, min_modulation=options.min_modulation)
+                         noise=noise, min_modulation=options.min_modulation,
+                         phase_error=options.phase_error)
 
 
 def reconstruct_captures(

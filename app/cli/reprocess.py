@@ -47,6 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--min-modulation", type=float, default=None, metavar="CODES",
                    help="explicit modulation threshold B in sensor codes, replacing the "
                         "noise-aware rule")
+    p.add_argument("--phase-error", metavar="FILE", default=None,
+                   help="projector-gamma table from `fringescope gamma`, subtracted from every "
+                        "wrapped phase before unwrapping (part of the options hash)")
     p.add_argument("--timeout", type=float, default=10.0, metavar="S",
                    help="seconds to wait for the scheduler and its first worker (default 10)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -57,14 +60,20 @@ def run(args: argparse.Namespace) -> int:
     from app.batch.engine import reprocess, stderr_or_none
     from app.batch.setjob import ALL_FILES, ReconOptions
     from app.calib import load_calibration
+    from app.cli.gamma import read_phase_error
 
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers: must be >= 1, got {args.workers}")
     if args.timeout <= 0:
         raise ValueError(f"--timeout: must be > 0, got {args.timeout}")
     calibration = load_calibration(args.calibration)
+    lut = read_phase_error(args.phase_error) if args.phase_error else None
+    if lut is not None:  # refused before any work when learned for another schedule
+        sched = calibration.pattern
+        lut.check_schedule(sched.steps, tuple(float(k) for k in sched.frequencies))
     options = ReconOptions(max_code=args.max_code, numpy=args.numpy,
-                           min_modulation=args.min_modulation, range_mm=args.range)
+                           min_modulation=args.min_modulation, range_mm=args.range,
+                           phase_error=lut)
     wanted = {"depth.npy", "sigma.npy", "reason.png"} | ({"points.ply"} if args.ply else set()) \
         | ({"depth.png"} if args.depth_png else set())
     files = tuple(f for f in ALL_FILES if f in wanted)

@@ -18,7 +18,8 @@ streams few arrays at a time:
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
    terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
    the supported region and the final reason code.
-2. Outputs: reason/valid, depth, σ, modulation/texture, optional phase and the points.
+2. Outputs: reason/valid, depth, σ, modulation/texture and the optional phase (the points are
+   written by the height stage, whose loop already holds the ray quotients).
 
 The kernel takes named tuples (:class:`PhaseArgs`, :class:`HeightArgs`, :class:`Outputs`);
 reason codes are used by name.
@@ -49,6 +50,7 @@ from app.core.reasons import Reason
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 ROWS_PER_BLOCK = 8
+PAPER_SPAN = 64  # pixels: the 4 × 4 schedule's closed-form refit skips spans without clipping
 REFIT_SPAN = 512  # pixels: the saturation refit skips spans of a row without a clipped sample
 # numba's workqueue threading layer aborts the process when two threads launch parallel
 # kernels at once: every launch holds this lock (the kernel itself releases the GIL).
@@ -65,7 +67,9 @@ class PhaseArgs(NamedTuple):
     heterodyne chain's order test (:func:`app.recon.unwrap.order_residuals_consistent`):
     ``order_z2`` z² of its bound and ``order_front2`` (P, K − 1) the squared
     :func:`~app.recon.unwrap.order_slip_front`, ``order_floor2`` the unmodelled phase variance of
-    every wrapped phase (``unwrap.PHASE_FLOOR_RAD``²), rad²."""
+    every wrapped phase (``unwrap.PHASE_FLOOR_RAD``²), rad². ``lut`` (K, bins + 2) float32 the
+    projector-gamma phase-error table (:meth:`app.recon.gamma.PhaseErrorLUT.kernel_table`)
+    subtracted from every wrapped phase when ``use_lut``, ``lut_scale`` its bins/2π."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -80,6 +84,9 @@ class PhaseArgs(NamedTuple):
     order_z2: np.float32
     order_front2: npt.NDArray[np.float32]
     order_floor2: np.float32
+    lut: npt.NDArray[np.float32]
+    lut_scale: np.float32
+    use_lut: bool
 
 
 class HeightArgs(NamedTuple):
@@ -225,6 +232,21 @@ def _order_step(prev, phw, ratio):  # type: ignore[no-untyped-def]  # pragma: no
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _lut_correct(w, row, scale):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The wrapped phase ``w`` in [0, 2π) less the phase-error table's error at ``w``, in [0, 2π):
+    :meth:`app.recon.gamma.PhaseErrorLUT.apply` in float32. ``row`` (bins + 2,) is one frequency's
+    :meth:`~app.recon.gamma.PhaseErrorLUT.kernel_table` (padded circularly: no modulo), ``scale``
+    bins/2π; x = w·scale + 1/2 ∈ [1/2, bins + 1/2) so its truncation is the floor."""
+    x = w * scale + np.float32(0.5)
+    j = np.int32(x)
+    t = x - np.float32(j)
+    e0 = row[j]
+    r = w - (e0 + t * (row[j + 1] - e0))
+    r = r + _TWO_PI if r < _F0 else r
+    return r - _TWO_PI if r >= _TWO_PI else r
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code, tot):  # type: ignore[no-untyped-def]  # pragma: no cover
     # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT (> the height stage's)
     # m2_min = (floor, k0, k1): LOW_MODULATION below max(floor, k0 + k1·Σ I) (PhaseArgs.snr_min2)
@@ -250,28 +272,242 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _paper_row(frames, v, r1, r2, r3, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               total, m2, prev, code):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`)."""
-    for u in range(frames.shape[2]):
-        yy, xx, q, tt, mx = _px4(frames, 0, v, u)
-        qmin = q
-        p = atan2_coarse(yy, xx)
-        yy, xx, q, t1, m1 = _px4(frames, 4, v, u)
-        qmin = min(qmin, q)
-        p, d1 = _order_step(p, atan2_coarse(yy, xx), r1)
-        yy, xx, q, t2, m2_ = _px4(frames, 8, v, u)
-        qmin = min(qmin, q)
-        p, d2 = _order_step(p, atan2_coarse(yy, xx), r2)
-        yy, xx, q, t3, m3 = _px4(frames, 12, v, u)
-        qmin = min(qmin, q)
-        p, d3 = _order_step(p, atan2_0_2pi(yy, xx), r3)
-        tot = (tt + t1) + (t2 + t3)
-        total[u] = tot
-        prev[u] = p
-        m2[u] = q
-        top = max(max(mx, m1), max(m2_, m3))
-        code[u] = _mask(_OK, max(max(d1, d2), d3), qmin, top, cons_rad, m2_min, top_code, tot)
+def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+               total, m2, prev, code, lut_rows):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`):
+    coarse atan2 for the levels that only pick orders, the precise one for the finest. ``chain`` =
+    (r1, r2, r3: the fringe-count ratios, the (4, bins + 2) phase-error table, bins/2π, whether
+    to apply it to every wrapped phase: :func:`_lut_correct`; ``lut_rows`` (6, ≥ W) float32
+    scratch for that case)."""
+    r1, r2, r3, lut, scale, use_lut = chain
+    l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
+    # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
+    # inline, in the pixel loop kept LLVM from vectorising it
+    if use_lut:  # three passes: the table's look-ups do not vectorise (no gathers), the rest does
+        w = lut_rows
+        for u in range(frames.shape[2]):
+            y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
+            y1, x1, q1, t1, m1 = _px4(frames, 4, v, u)
+            y2, x2, q2, t2, m2_ = _px4(frames, 8, v, u)
+            y3, x3, q, t3, m3 = _px4(frames, 12, v, u)
+            w[0, u] = atan2_coarse(y0, x0)
+            w[1, u] = atan2_coarse(y1, x1)
+            w[2, u] = atan2_coarse(y2, x2)
+            w[3, u] = atan2_0_2pi(y3, x3)
+            w[4, u] = min(min(q0, q1), min(q2, q))
+            w[5, u] = max(max(mx, m1), max(m2_, m3))
+            total[u] = (tt + t1) + (t2 + t3)
+            m2[u] = q
+        for u in range(frames.shape[2]):
+            w[0, u] = _lut_correct(w[0, u], l0, scale)
+            w[1, u] = _lut_correct(w[1, u], l1, scale)
+            w[2, u] = _lut_correct(w[2, u], l2, scale)
+            w[3, u] = _lut_correct(w[3, u], l3, scale)
+        for u in range(frames.shape[2]):
+            p, d1 = _order_step(w[0, u], w[1, u], r1)
+            p, d2 = _order_step(p, w[2, u], r2)
+            p, d3 = _order_step(p, w[3, u], r3)
+            prev[u] = p
+            code[u] = _mask(_OK, max(max(d1, d2), d3), w[4, u], w[5, u], cons_rad, m2_min, top_code,
+                            total[u])
+    else:
+        for u in range(frames.shape[2]):
+            y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
+            y1, x1, q1, t1, m1 = _px4(frames, 4, v, u)
+            y2, x2, q2, t2, m2_ = _px4(frames, 8, v, u)
+            y3, x3, q, t3, m3 = _px4(frames, 12, v, u)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = atan2_coarse(y0, x0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3), r3)
+            dev = max(max(d1, d2), d3)
+            tot = (tt + t1) + (t2 + t3)
+            total[u] = tot
+            prev[u] = p
+            m2[u] = q
+            top = max(max(mx, m1), max(m2_, m3))
+            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px4_fit(frames, b, v, u, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """N = 4 at pixel (v, u) from frame b on, fitted to its unclipped samples (I < ``top_code``):
+    (y, x, x² + y², clipped samples). With δ = 0, π/2, π, 3π/2 every sinusoid has I0 + I2 =
+    I1 + I3 (= 2A), so one clipped sample is its prediction from the other three, which is the
+    least-squares fit of A + a cos δ + b sin δ to them (three samples, three unknowns): with
+    r = (I0 + I2) − (I1 + I3), I0 → I0 − r, I1 → I1 + r, I2 → I2 − r, I3 → I3 + r. Closed form
+    and branch-free; with two or more clipped the result is meaningless (not taken)."""
+    i0 = np.float32(frames[b, v, u])
+    i1 = np.float32(frames[b + 1, v, u])
+    i2 = np.float32(frames[b + 2, v, u])
+    i3 = np.float32(frames[b + 3, v, u])
+    c0 = _F1 if i0 >= top_code else _F0
+    c1 = _F1 if i1 >= top_code else _F0
+    c2 = _F1 if i2 >= top_code else _F0
+    c3 = _F1 if i3 >= top_code else _F0
+    r = (i0 + i2) - (i1 + i3)
+    yy = (i3 - i1) + r * (c3 - c1)
+    xx = (i0 - i2) - r * (c0 - c2)
+    return yy, xx, xx * xx + yy * yy, (c0 + c1) + (c2 + c3)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_fit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                   total, m2, prev, code):  # pragma: no cover - compiled
+    """:func:`_paper_row` and its saturation refit in one pass, for rows where clipping is
+    widespread: every pixel's phase from :func:`_px4_fit` (on an unclipped pixel the same
+    arithmetic and result as :func:`_px4`), SATURATED only where a frequency has two clipped
+    samples; returns the pixels with a clipped sample that were refitted (float32)."""
+    r1, r2, r3, lut, scale, use_lut = chain
+    l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
+    n_refit = _F0
+    # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
+    # inline, in the pixel loop kept LLVM from vectorising it
+    if use_lut:
+        for u in range(frames.shape[2]):
+            tot = _px16_total(frames, v, u)
+            total[u] = tot
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = _lut_correct(atan2_coarse(y0, x0), l0, scale)
+            p, d1 = _order_step(p, _lut_correct(atan2_coarse(y1, x1), l1, scale), r1)
+            p, d2 = _order_step(p, _lut_correct(atan2_coarse(y2, x2), l2, scale), r2)
+            p, d3 = _order_step(p, _lut_correct(atan2_0_2pi(y3, x3), l3, scale), r3)
+            dev = max(max(d1, d2), d3)
+            prev[u] = p
+            m2[u] = q
+            n_max = max(max(n0, n1), max(n2, n3))
+            top = top_code if n_max > _F1 else _F0
+            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+            n_refit += _F1 if (n_max > _F0) & (n_max <= _F1) else _F0
+    else:
+        for u in range(frames.shape[2]):
+            tot = _px16_total(frames, v, u)
+            total[u] = tot
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = atan2_coarse(y0, x0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3), r3)
+            dev = max(max(d1, d2), d3)
+            prev[u] = p
+            m2[u] = q
+            n_max = max(max(n0, n1), max(n2, n3))
+            top = top_code if n_max > _F1 else _F0
+            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+            n_refit += _F1 if (n_max > _F0) & (n_max <= _F1) else _F0
+    return n_refit
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px16_total(frames, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Σ I of the 16 frames at (v, u), summed as :func:`_paper_row` sums them."""
+    return (_px4_total(frames, 0, v, u) + _px4_total(frames, 4, v, u)) + (
+        _px4_total(frames, 8, v, u) + _px4_total(frames, 12, v, u))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _px4_total(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Σ I of the 4 frames from b on at (v, u), summed as :func:`_px4` sums them."""
+    return (np.float32(frames[b, v, u]) + np.float32(frames[b + 1, v, u])) + (
+        np.float32(frames[b + 2, v, u]) + np.float32(frames[b + 3, v, u]))
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_refit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                     total, m2, prev, code, rscratch):  # pragma: no cover - compiled
+    """:func:`_paper_row`'s saturation refit (4 frequencies × 4 steps): the SATURATED pixels of
+    row ``v`` with at most one clipped sample per frequency take the phase of :func:`_px4_fit`
+    (finest m2, phase-stage code judged as unclipped); their count. Spans of PAPER_SPAN pixels
+    without a SATURATED code are skipped (clipping is local: highlights), the others refitted
+    branch-free into ``rscratch`` (≥ 2, ≥ PAPER_SPAN float32) with :func:`_paper_row`'s
+    arithmetic (``total`` keeps the frames' sums), then taken."""
+    width = frames.shape[2]
+    n_taken = 0
+    r_code = np.empty(PAPER_SPAN, np.uint8)
+    for u0 in range(0, width, PAPER_SPAN):
+        u1 = min(width, u0 + PAPER_SPAN)
+        n_sat = _count_saturated(code[u0:u1])
+        if n_sat > 0:  # a refitted code is never SATURATED: the count that drops was taken
+            m = u1 - u0
+            r_prev, r_m2, rc = rscratch[0, :m], rscratch[1, :m], r_code[:m]
+            _paper_refit_span(frames, v, u0, u1, chain, cons_rad, m2_min, top_code, total[u0:u1], r_m2,
+                              r_prev, rc)
+            _take_paper_refit(m2[u0:u1], prev[u0:u1], code[u0:u1], r_m2, r_prev, rc)
+            n_taken += n_sat - _count_saturated(code[u0:u1])
+    return n_taken
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _paper_refit_span(frames, v, u0, u1, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+                      total, m2, prev, code):  # pragma: no cover - compiled
+    """:func:`_paper_row` with :func:`_px4_fit` over the pixels u0..u1 − 1 of row ``v`` into the
+    span's ``m2``, ``prev``, ``code`` (SATURATED where a frequency has two clipped samples;
+    ``total`` the span's frame sums). The row's codes are not read here: a byte test beside the
+    float ones kept LLVM from vectorising."""
+    r1, r2, r3, lut, scale, use_lut = chain
+    l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
+    # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
+    # inline, in the pixel loop kept LLVM from vectorising it
+    if use_lut:
+        for u in range(u0, u1):
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = _lut_correct(atan2_coarse(y0, x0), l0, scale)
+            p, d1 = _order_step(p, _lut_correct(atan2_coarse(y1, x1), l1, scale), r1)
+            p, d2 = _order_step(p, _lut_correct(atan2_coarse(y2, x2), l2, scale), r2)
+            p, d3 = _order_step(p, _lut_correct(atan2_0_2pi(y3, x3), l3, scale), r3)
+            dev = max(max(d1, d2), d3)
+            i = u - u0
+            prev[i] = p
+            m2[i] = q
+            # two clipped samples in a frequency: top = top_code, so SATURATED (not taken)
+            top = top_code if max(max(n0, n1), max(n2, n3)) > _F1 else _F0
+            code[i] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, total[i])
+    else:
+        for u in range(u0, u1):
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = atan2_coarse(y0, x0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3), r3)
+            dev = max(max(d1, d2), d3)
+            i = u - u0
+            prev[i] = p
+            m2[i] = q
+            # two clipped samples in a frequency: top = top_code, so SATURATED (not taken)
+            top = top_code if max(max(n0, n1), max(n2, n3)) > _F1 else _F0
+            code[i] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, total[i])
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _take_paper_refit(m2, prev, code, r_m2, r_prev, r_code):  # type: ignore[no-untyped-def]
+    # pragma: no cover - compiled
+    """Where ``code`` is SATURATED and the refit's ``r_code`` is not: the refit's values. Two
+    branch-free passes, bytes then floats (so that each vectorises); ``r_code`` ends as the mask."""
+    for i in range(code.shape[0]):
+        t = (code[i] == _SATURATED) & (r_code[i] != _SATURATED)
+        code[i] = r_code[i] if t else code[i]
+        r_code[i] = np.uint8(t)
+    for i in range(code.shape[0]):
+        t = r_code[i] != 0
+        prev[i] = r_prev[i] if t else prev[i]
+        m2[i] = r_m2[i] if t else m2[i]
 
 
 # The general path, row by row through buffers: any N, any number of frequencies, and
@@ -295,20 +531,36 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # type: ignore[n
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first):  # type: ignore[no-untyped-def]  # pragma: no cover
-    for u in range(s_acc.shape[0]):
-        yy = -s_acc[u]
-        xx = c_acc[u]
-        q = xx * xx + yy * yy
-        m2[u] = q
-        m2min[u] = min(m2min[u], q)
-        phw = atan2_0_2pi(yy, xx)
-        if first:
-            prev[u] = phw
-        else:
-            p, d = _order_step(prev[u], phw, ratio)
-            prev[u] = p
-            dev[u] = max(dev[u], d)
+def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first, lrow, scale, use_lut):  # type: ignore[no-untyped-def]  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
+    if use_lut:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            phw = _lut_correct(atan2_0_2pi(yy, xx), lrow, scale)
+            if first:
+                prev[u] = phw
+            else:
+                p, d = _order_step(prev[u], phw, ratio)
+                prev[u] = p
+                dev[u] = max(dev[u], d)
+    else:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            phw = atan2_0_2pi(yy, xx)
+            if first:
+                prev[u] = phw
+            else:
+                p, d = _order_step(prev[u], phw, ratio)
+                prev[u] = p
+                dev[u] = max(dev[u], d)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -325,14 +577,24 @@ def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - com
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _wrapped_row(s_acc, c_acc, wph, m2, m2min):  # type: ignore[no-untyped-def]  # pragma: no cover
-    for u in range(s_acc.shape[0]):
-        yy = -s_acc[u]
-        xx = c_acc[u]
-        q = xx * xx + yy * yy
-        m2[u] = q
-        m2min[u] = min(m2min[u], q)
-        wph[u] = atan2_0_2pi(yy, xx)
+def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale, use_lut):  # type: ignore[no-untyped-def]  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
+    if use_lut:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            wph[u] = _lut_correct(atan2_0_2pi(yy, xx), lrow, scale)
+    else:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            wph[u] = atan2_0_2pi(yy, xx)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -467,8 +729,9 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
     t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
-    h = (a0 + a1 * t) / dd
-    slope = (a1 * b0 - a0 * b1) / (dd * dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
+    inv_dd = _F1 / dd  # one division for the height and its slope
+    h = (a0 + a1 * t) * inv_dd
+    slope = (a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
     x = (h - sm_mid) * sm_inv_half
     sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
     sig = np.sqrt(slope * slope * ((read_var + gain * tot) * vf) + sm2)
@@ -483,8 +746,10 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Height stage of row ``v`` (both paths): height, σ and the final reason code.
+def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Height stage of row ``v`` (both paths): the final reason code and the row's outputs ``depth``,
+    ``sigma`` and ``pts`` (the points' (W·3,) flat view), NaN where invalid, written here while
+    the ray quotients are at hand (a separate pass read the (H, W, 3) table a second time).
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -505,11 +770,10 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
     max_sigma2 = max_sigma * max_sigma
-    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat, as in _points_row
-    if not m.combine:
-        half_steps = m.half_steps
-        for u in range(prev.shape[0]):
-            vfac[u] = half_steps / m2[u]  # var(φ)/σ_I² = N / (2·m2)
+    offset = m.offset
+    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat (x, y, 1)/(n·r): a point is (h − offset)·q
+    # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
+    combine, half_steps = m.combine, m.half_steps
     if m.use_rays:
         for u in range(prev.shape[0]):
             q0, q1, q2 = q[3 * u], q[3 * u + 1], q[3 * u + 2]
@@ -522,13 +786,19 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 += (k5 * x + k4) * x + k3
             b0 += (k8 * x + k7) * x + k6
             b1 += (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+            vf = vfac[u] if combine else half_steps / m2[u]
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
-            hbuf[u] = h
-            sbuf[u] = sig
+            ok = c == _OK
+            depth[u] = h if ok else _NAN
+            sigma[u] = sig if ok else _NAN
             code[u] = c
+            t = h - offset if ok else _NAN
+            pts[3 * u] = t * q0
+            pts[3 * u + 1] = t * q1
+            pts[3 * u + 2] = t * q2
     else:
         for u in range(prev.shape[0]):
             x = un[u]
@@ -536,18 +806,24 @@ def _height_row(v, prev, m2, total, vfac, code, m, hbuf, sbuf):  # type: ignore[
             a1 = (k5 * x + k4) * x + k3
             b0 = (k8 * x + k7) * x + k6
             b1 = (k11 * x + k10) * x + k9
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vfac[u],
+            vf = vfac[u] if combine else half_steps / m2[u]
+            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
                                    r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
                                    read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
-            hbuf[u] = h
-            sbuf[u] = sig
+            ok = c == _OK
+            depth[u] = h if ok else _NAN
+            sigma[u] = sig if ok else _NAN
             code[u] = c
+            t = h - offset if ok else _NAN
+            pts[3 * u] = t * q[3 * u]
+            pts[3 * u + 1] = t * q[3 * u + 1]
+            pts[3 * u + 2] = t * q[3 * u + 2]
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,  # type: ignore[no-untyped-def]
-                    prev):
+                    prev, gl):
     # pragma: no cover - compiled
     """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
     n_steps = cos_t.shape[0]
@@ -559,7 +835,7 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
     for ki in range(n_freq):
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
-        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
     _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi,
                      total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
@@ -592,8 +868,9 @@ def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, comb
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,  # type: ignore[no-untyped-def]
-                 m2_min, top_code, scratch, total, m2, prev, vfac, code, order):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping)."""
+                 m2_min, top_code, scratch, total, m2, prev, vfac, code, order, gl):  # pragma: no cover - compiled
+    """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping); ``gl`` = (the
+    (K, bins + 2) phase-error table, bins/2π, whether to apply it) for each wrapped phase."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -607,12 +884,13 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
     wphi[:] = _F0
     if heterodyne:
         _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,
-                        prev)
+                        prev, gl)
     else:
         for ki in range(n_freq):
             for n in range(n_steps):
                 _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
-            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0,
+                       gl[0][ki], gl[1], gl[2])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -728,7 +1006,7 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
-                top_code, m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
+                top_code, m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover - compiled
     """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
     ``code``, ``total``: the span's views) that keep three unclipped samples per frequency (phase stage:
     phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
@@ -755,9 +1033,10 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
     for ki in range(n_freq):
         _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin)
         if heterodyne:
-            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min)
+            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
         else:
-            _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0)
+            _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0,
+                       gl[0][ki], gl[1], gl[2])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -772,7 +1051,7 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums, total, order):  # pragma: no cover - compiled
+               m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover - compiled
     """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
     Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
     the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 3K, REFIT_SPAN)
@@ -784,7 +1063,7 @@ def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, com
         if _count_saturated(code[u0:u1]) > 0:
             n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
                              m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums,
-                             total[u0:u1], order)
+                             total[u0:u1], order, gl)
     return n
 
 
@@ -810,16 +1089,6 @@ def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # type: 
         texture[u] = total[u] * inv_frames + b
 
 
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _points_row(pts, hbuf, code, q, offset):  # type: ignore[no-untyped-def]  # pragma: no cover
-    # pts, q: the row's (W·3,) flat views; q = (x, y, 1)/(n·r), so a point is (h − offset)·q
-    for u in range(hbuf.shape[0]):
-        t = hbuf[u] - offset if code[u] == 0 else _NAN
-        pts[3 * u] = t * q[3 * u]
-        pts[3 * u + 1] = t * q[3 * u + 1]
-        pts[3 * u + 2] = t * q[3 * u + 2]
-
-
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
 def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
     """Raw frames → all per-pixel outputs (see the module docstring). Writes into ``out``.
@@ -842,43 +1111,56 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
+    gl = (ph.lut, ph.lut_scale, ph.use_lut)  # the phase-error table (PhaseArgs)
+    chain = (r1, r2, r3, ph.lut, ph.lut_scale, ph.use_lut)
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
     order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
-        buf = np.empty((6, ROWS_PER_BLOCK, width), np.float32)
-        total, m2, prev, hbuf, sbuf, vfac = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
+        buf = np.empty((4, ROWS_PER_BLOCK, width), np.float32)
+        total, m2, prev, vfac = buf[0], buf[1], buf[2], buf[3]
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
+        lut_rows = np.empty((6 if paper and ph.use_lut else 0, width), np.float32)
         rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
         sums = np.empty((9, REFIT_SPAN), np.float32)
+        # clipping is spatially coherent: where the row above had much of it, one pass that phases
+        # and refits every pixel is cheaper than refitting many spans after the plain pass
+        wide_clip = False
         for r in range(n_rows):
             v = v0 + r
-            if paper:
-                _paper_row(frames, v, r1, r2, r3, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r])
+            n_refit = 0
+            if paper and wide_clip:  # phased and refitted in one pass
+                n_refit = int(_paper_fit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
+                                                  m2[r], prev[r], code[r]))
+            elif paper:
+                _paper_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r],
+                           lut_rows)
+                if _count_saturated(code[r]) > 0:  # a vectorised byte count; spans refitted only where needed
+                    n_refit = _paper_refit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
+                                               m2[r], prev[r], code[r], rscratch)
             else:
                 _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
-                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order)
-            n_refit = 0
-            # a vectorised byte count; the refit scan only where needed. With N = 3 a clipped sample leaves 2
-            # in its frequency, fewer than a fit needs: nothing to refit (the scan cost 2-3× the whole kernel)
-            if n_steps > 3 and _count_saturated(code[r]) > 0:
-                n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
-                                              m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                              code[r], rscratch, sums, total[r], order)
+                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order, gl)
+                # With N = 3 a clipped sample leaves 2 in its frequency, fewer than a fit needs: nothing
+                # to refit (the scan cost 2-3× the whole kernel)
+                if n_steps > 3 and _count_saturated(code[r]) > 0:
+                    n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
+                                         m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
+                                         code[r], rscratch, sums, total[r], order, gl)
             recovered[v] = n_refit
-            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, hbuf[r], sbuf[r])
+            if paper:
+                wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
+            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v], out.sigma[v],
+                        out.points[v].reshape(3 * width))
         for r in range(n_rows):
             v = v0 + r
             _reason_row(out.reason[v], out.valid[v], code[r])
-            _select_row(out.depth[v], hbuf[r], code[r])
-            _select_row(out.sigma[v], sbuf[r], code[r])
             if want_phase:
                 _select_row(out.phase[v], prev[r], code[r])
             _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
-            _points_row(out.points[v].reshape(3 * width), hbuf[r], code[r], m.ray_q[v].reshape(3 * width), m.offset)
 
 
 _warm: set[str] = set()
@@ -901,7 +1183,8 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
                    np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0), np.float32(np.inf),
-                   np.zeros((1, 1), np.float32), np.float32(0))
+                   np.zeros((1, 1), np.float32), np.float32(0), np.zeros((1, 2), np.float32), np.float32(1),
+                   False)
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

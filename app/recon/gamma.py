@@ -1,4 +1,5 @@
-"""Phase-error lookup table: the projector-gamma (harmonic) error of few-step phase, learned from data.
+"""Phase-error lookup table: the projector-gamma (harmonic) error of few-step phase, learned from
+data.
 
 A projector with gamma ≠ 1 adds harmonics to the fringes; an N-step decoder aliases
 harmonics N ± 1 onto the fundamental, so its wrapped phase carries a periodic error of
@@ -12,6 +13,8 @@ Here the table is learned per frequency against a reference phase of many more s
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,7 +28,7 @@ F64 = npt.NDArray[np.float64]
 LUT_FORMAT = "fringescope-phase-error"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PhaseErrorLUT:
     """Mean wrapped-phase error per frequency as a function of the wrapped phase.
 
@@ -40,8 +43,8 @@ class PhaseErrorLUT:
     frequencies: tuple[float, ...] = field(default=())
 
     @classmethod
-    def fit(cls, wrapped: npt.ArrayLike, reference: npt.ArrayLike, mask: npt.ArrayLike | None = None,
-            *, bins: int = 128) -> PhaseErrorLUT:
+    def fit(cls, wrapped: npt.ArrayLike, reference: npt.ArrayLike,
+            mask: npt.ArrayLike | None = None, *, bins: int = 128) -> PhaseErrorLUT:
         """Learn the table from a few-step phase and a reference phase of the same scene.
 
         Args:
@@ -56,7 +59,8 @@ class PhaseErrorLUT:
         w = np.asarray(wrapped, dtype=np.float64)
         ref = np.asarray(reference, dtype=np.float64)
         if w.ndim != 3 or ref.shape != w.shape:
-            raise ValueError(f"reference: shape {ref.shape} must equal wrapped shape {w.shape} (K, H, W)")
+            raise ValueError(f"reference: shape {ref.shape} must equal wrapped shape {w.shape} "
+                             "(K, H, W)")
         if int(bins) != bins or bins < 8:
             raise ValueError(f"bins: need an integer >= 8, got {bins}")
         m = np.ones(w.shape[1:], bool) if mask is None else np.asarray(mask, dtype=bool)
@@ -95,15 +99,19 @@ class PhaseErrorLUT:
         a = np.asarray(frames)
         if int(steps) != steps or steps < 3:
             raise ValueError(f"steps: need an integer N >= 3, got {steps}")
-        if int(reference_steps) != reference_steps or reference_steps % steps or reference_steps <= steps:
-            raise ValueError(f"reference_steps: {reference_steps} must be a larger multiple of steps={steps}")
+        if (int(reference_steps) != reference_steps or reference_steps % steps
+                or reference_steps <= steps):
+            raise ValueError(f"reference_steps: {reference_steps} must be a larger multiple of "
+                             f"steps={steps}")
         if a.ndim != 3 or a.shape[0] % reference_steps:
             raise ValueError(f"frames: expected (K·{reference_steps}, H, W), got shape {a.shape}")
         k_n = a.shape[0] // reference_steps
         if frequencies and len(frequencies) != k_n:
-            raise ValueError(f"frequencies: {len(frequencies)} given for {k_n} frequencies in frames")
+            raise ValueError(f"frequencies: {len(frequencies)} given for {k_n} frequencies in "
+                             "frames")
         stride = reference_steps // steps
-        subset = a.reshape(k_n, reference_steps, *a.shape[1:])[:, ::stride].reshape(k_n * steps, *a.shape[1:])
+        per_freq = a.reshape(k_n, reference_steps, *a.shape[1:])
+        subset = per_freq[:, ::stride].reshape(k_n * steps, *a.shape[1:])
         ref = wrapped_phase(a, reference_steps, max_code=max_code)
         few = wrapped_phase(subset, steps, max_code=max_code)
         clipped = ref.saturated if ref.recovered is None else ref.saturated | ref.recovered
@@ -117,11 +125,13 @@ class PhaseErrorLUT:
     def check_schedule(self, steps: int, frequencies: tuple[float, ...]) -> None:
         """Raise ``ValueError`` (naming the key) unless the table fits a schedule."""
         if self.steps and steps != self.steps:
-            raise ValueError(f"steps: the phase-error table corrects {self.steps}-step phase, the set has {steps}")
+            raise ValueError(f"steps: the phase-error table corrects {self.steps}-step phase, "
+                             f"the set has {steps}")
         if len(frequencies) != self.error_rad.shape[0] or (
                 self.frequencies and not np.allclose(self.frequencies, frequencies, rtol=1e-9)):
             want = list(self.frequencies) or f"{self.error_rad.shape[0]} frequencies"
-            raise ValueError(f"frequencies: the phase-error table was learned at {want}, the set has "
+            raise ValueError(f"frequencies: the phase-error table was learned at {want}, "
+                             "the set has "
                              f"{list(frequencies)}")
 
     def amplitude_rad(self) -> F64:
@@ -139,7 +149,8 @@ class PhaseErrorLUT:
         if not isinstance(data, dict) or data.get("format") != LUT_FORMAT:
             raise ValueError(f"format: not a phase-error table (expected \"{LUT_FORMAT}\")")
         if data.get("version") != 1:
-            raise ValueError(f"version: unsupported phase-error table version {data.get('version')!r}")
+            raise ValueError("version: unsupported phase-error table version "
+                             f"{data.get('version')!r}")
         try:
             table = np.asarray(data["error_rad"], np.float64)
             steps = int(data.get("steps", 0))
@@ -147,13 +158,34 @@ class PhaseErrorLUT:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"error_rad: malformed phase-error table ({exc})") from None
         if table.ndim != 2 or table.shape[1] < 8 or not np.isfinite(table).all():
-            raise ValueError(f"error_rad: expected a finite (K, bins >= 8) table, got shape {table.shape}")
+            raise ValueError("error_rad: expected a finite (K, bins >= 8) table, got shape "
+                             f"{table.shape}")
         if freqs and len(freqs) != table.shape[0]:
-            raise ValueError(f"frequencies: {len(freqs)} listed for a table of {table.shape[0]} rows")
+            raise ValueError(f"frequencies: {len(freqs)} listed for a table of "
+                             f"{table.shape[0]} rows")
         return cls(table, steps, freqs)
 
+    def kernel_table(self) -> npt.NDArray[np.float32]:
+        """(K, bins + 2) float32 the table for the fused kernel: entry j of a row is the error at
+        bin centre j − 1 taken circularly, so that :meth:`apply`'s interpolation between bins
+        ``i`` and ``i + 1`` (i = −1 … bins − 1) needs no modulo."""
+        e = self.error_rad
+        return np.ascontiguousarray(np.concatenate([e[:, -1:], e, e[:, :1]], axis=1), np.float32)
+
+    def digest(self) -> str:
+        """sha256 of :meth:`to_dict`'s canonical JSON: names the table in options hashes."""
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    def __eq__(self, other: object) -> bool:  # by content (an array field has no plain ==)
+        return isinstance(other, PhaseErrorLUT) and self.digest() == other.digest()
+
+    def __hash__(self) -> int:
+        return hash(self.digest())
+
     def apply(self, wrapped: npt.ArrayLike) -> F64:
-        """Corrected wrapped phases: ``wrapped − error(wrapped)`` (linear interpolation, circular), in [0, 2π).
+        """Corrected wrapped phases: ``wrapped − error(wrapped)`` (linear interpolation,
+        circular), in [0, 2π).
 
         Args:
             wrapped: (K, H, W) wrapped phases, radians, K = the table's frequencies.

@@ -180,9 +180,11 @@ def split_noise(sigma: F32, sigma_model: F32) -> F32:
 
 def _phase_numpy(
     frames: npt.NDArray[Any], schedule: PatternSchedule, max_code: int, min_modulation: float,
-    consistency_rad: float, combine: bool, phase_error: Any = None, noise: SensorNoise | None = None,
+    consistency_rad: float, combine: bool, phase_error: PhaseErrorLUT | None = None,
+    noise: SensorNoise | None = None,
     snr_min: float | None = None,
-    false_alarm_rate: float | None = DEFAULT_FALSE_ALARM_RATE, max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+    false_alarm_rate: float | None = DEFAULT_FALSE_ALARM_RATE,
+    max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
 ) -> tuple[npt.NDArray[np.float64], Any, npt.NDArray[np.uint8]]:
     """Oracle phase chain: (finest phase f64, WrappedPhase, phase-stage reason).
 
@@ -200,7 +202,8 @@ def _phase_numpy(
     if schedule.unwrap == "heterodyne" and false_alarm_rate is not None:
         var_i = camera.variance_dn2(wp.background)
         with np.errstate(divide="ignore", invalid="ignore"):
-            phase_var = var_i * phase_variance_factor((wp.modulation * (schedule.steps / 2.0)) ** 2, schedule.steps)
+            m2 = (wp.modulation * (schedule.steps / 2.0)) ** 2
+            phase_var = var_i * phase_variance_factor(m2, schedule.steps)
     unwrapped, consistent = unwrap_phases(
         wp.phase, schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad,
         phase_var=phase_var, false_alarm_rate=false_alarm_rate or DEFAULT_FALSE_ALARM_RATE,
@@ -213,8 +216,9 @@ def _phase_numpy(
     if snr_min is None:
         threshold: Any = min_modulation
     else:
-        threshold = modulation_threshold(wp.background, schedule.steps, snr_min, camera.read_noise_dn**2,
-                                         camera.gain_dn_per_e, min_modulation)
+        threshold = modulation_threshold(wp.background, schedule.steps, snr_min,
+                                         camera.read_noise_dn**2, camera.gain_dn_per_e,
+                                         min_modulation)
     reason = assign_reasons(
         phi.shape,
         saturated=wp.saturated,
@@ -268,17 +272,19 @@ def compute_phase(
     if not isinstance(schedule, PatternSchedule):
         raise ValueError("schedule: expected a PatternSchedule")
     if frames.shape[0] != schedule.n_frames:
-        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, got {frames.shape[0]}")
+        raise ValueError(f"frames: schedule needs {schedule.n_frames} frames, "
+                         f"got {frames.shape[0]}")
     if noise is not None and not isinstance(noise, SensorNoise):
         raise ValueError("noise: expected a SensorNoise")
     explicit = min_modulation is not None
     max_code, min_modulation = resolve_levels(frames.dtype, max_code, min_modulation)
     consistency_rad = check_consistency_rad(consistency_rad)
-    snr_min = None if explicit else min_phasor_snr(schedule.frequencies, schedule.unwrap,
-                                                   consistency_rad=consistency_rad, rate=order_error_rate)
+    snr_min = None if explicit else min_phasor_snr(
+        schedule.frequencies, schedule.unwrap, consistency_rad=consistency_rad,
+        rate=order_error_rate)
     phi, wp, reason = _phase_numpy(
-        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies, phase_error, noise,
-        snr_min, false_alarm_rate, max_motion_rad,
+        frames, schedule, max_code, min_modulation, consistency_rad, combine_frequencies,
+        phase_error, noise, snr_min, false_alarm_rate, max_motion_rad,
     )
     mod = wp.modulation[-1]
     return PhaseResult(
@@ -326,6 +332,10 @@ class Reconstructor:
         order_max_motion_rad: the change of the finest phase between consecutive frequency
             groups against which that test still guarantees to see a wrong order, rad (0: a
             still scene; the live instrument uses ``unwrap.LIVE_MAX_MOTION_RAD``).
+        phase_error: a learned projector-gamma :class:`~app.recon.gamma.PhaseErrorLUT`
+            (``fringescope gamma``) subtracted from every wrapped phase before unwrapping, on
+            both paths; None: none. ``ValueError`` unless it was learned for the calibration's
+            schedule.
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -348,22 +358,30 @@ class Reconstructor:
         gross_error_mm: float | None = DEFAULT_GROSS_ERROR_MM,
         order_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
         order_max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+        phase_error: PhaseErrorLUT | None = None,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
+        if phase_error is not None:
+            if not isinstance(phase_error, PhaseErrorLUT):
+                raise ValueError("phase_error: expected a PhaseErrorLUT")
+            sched = calibration.pattern
+            phase_error.check_schedule(sched.steps, tuple(float(k) for k in sched.frequencies))
         if noise is not None and not isinstance(noise, SensorNoise):
             raise ValueError("noise: expected a SensorNoise")
         if max_sigma_mm is not None and not (math.isfinite(max_sigma_mm) and max_sigma_mm > 0.0):
             raise ValueError(f"max_sigma_mm: must be finite and > 0, got {max_sigma_mm}")
         if not (math.isfinite(height_margin_mm) and height_margin_mm >= 0.0):
             raise ValueError(f"height_margin_mm: must be finite and >= 0, got {height_margin_mm}")
-        if min_modulation is not None and not (math.isfinite(min_modulation) and min_modulation >= 0):
+        if min_modulation is not None and not (math.isfinite(min_modulation)
+                                               and min_modulation >= 0):
             raise ValueError(f"min_modulation: must be finite and >= 0, got {min_modulation}")
         if max_code is not None and (int(max_code) != max_code or not 1 <= max_code <= 65535):
             raise ValueError(f"max_code: must be an integer in 1..65535, got {max_code}")
         if not (math.isfinite(order_error_rate) and 0.0 < order_error_rate <= 0.1):
             raise ValueError(f"order_error_rate: must be in (0, 0.1], got {order_error_rate}")
         self.calibration = calibration
+        self.phase_error = phase_error
         self.order_error_rate = float(order_error_rate)
         self.max_code = max_code
         self.min_modulation = min_modulation
@@ -420,7 +438,8 @@ class Reconstructor:
     def _fast_tables(self) -> tuple[HeightTables, npt.NDArray[np.float32]]:
         t = self._height_tables
         f32 = HeightTables(
-            np.ascontiguousarray(t.u_norm, np.float32), np.ascontiguousarray(t.row_coefs, np.float32),
+            np.ascontiguousarray(t.u_norm, np.float32),
+            np.ascontiguousarray(t.row_coefs, np.float32),
             np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
         )
         return f32, ray_quotients(self._rays)
@@ -435,8 +454,19 @@ class Reconstructor:
         z = order_test_bound(len(sched.frequencies), self.order_false_alarm_rate)
         front = order_slip_front(sched.frequencies, self.order_max_motion_rad)
         return (np.cos(delta).astype(np.float32), np.sin(delta).astype(np.float32),
-                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32), steps.astype(np.float32),
-                np.float32(z * z), np.ascontiguousarray(front**2, np.float32))
+                np.asarray(sched.frequencies, np.float32), coefs.astype(np.float32),
+                steps.astype(np.float32), np.float32(z * z),
+                np.ascontiguousarray(front**2, np.float32))
+
+    @cached_property
+    def _fast_lut(self) -> tuple[F32, np.float32, bool]:
+        """The kernel's phase-error table (K, bins + 2) float32, bins/2π and whether to apply it
+        (a (K, 2) zero table when there is none)."""
+        k = len(self.calibration.pattern.frequencies)
+        if self.phase_error is None:
+            return np.zeros((k, 2), np.float32), np.float32(1.0), False
+        bins = self.phase_error.error_rad.shape[1]
+        return self.phase_error.kernel_table(), np.float32(bins / (2.0 * np.pi)), True
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -456,8 +486,8 @@ class Reconstructor:
         rows = np.minimum((np.arange(h) * inv_h).astype(np.int64), grid.shape[0] - 1)
         per_col = grid[:, cols, :]
         u_lo, u_hi = region.column_bounds(h, w)
-        return (np.ascontiguousarray(per_col[..., 0], np.float32), np.ascontiguousarray(per_col[..., 1], np.float32),
-                rows, p_lo, p_hi, u_lo, u_hi)
+        return (np.ascontiguousarray(per_col[..., 0], np.float32),
+                np.ascontiguousarray(per_col[..., 1], np.float32), rows, p_lo, p_hi, u_lo, u_hi)
 
     @cached_property
     def _snr_min(self) -> float:
@@ -497,8 +527,8 @@ class Reconstructor:
                 raise ValueError("motion: expected a MotionTest")
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
-        max_code, min_mod = resolve_levels(frames.dtype, self.max_code if max_code is None else max_code,
-                                           self.min_modulation)
+        max_code, min_mod = resolve_levels(
+            frames.dtype, self.max_code if max_code is None else max_code, self.min_modulation)
         source: NoiseSource = "given"
         note = ""
         if noise is not None:
@@ -534,7 +564,8 @@ class Reconstructor:
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
-            noise=camera, snr_min=None if self.min_modulation is not None else self._snr_min,
+            phase_error=self.phase_error, noise=camera,
+            snr_min=None if self.min_modulation is not None else self._snr_min,
             false_alarm_rate=self.order_false_alarm_rate, max_motion_rad=self.order_max_motion_rad,
         )
         height, singular, slope = evaluate_height_slope(model, phi)
@@ -604,13 +635,15 @@ class Reconstructor:
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
         f32 = np.float32
-        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod), f32(self.consistency_rad),
+        ph = _fast.PhaseArgs(cos_d, sin_d, freqs, np.int32(max_code), f32(min_mod),
+                             f32(self.consistency_rad),
                              chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
                              f32(0.0 if self.min_modulation is not None else self._snr_min ** 2),
-                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2))
+                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2), *self._fast_lut)
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
-            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi), f32(SINGULAR_RTOL),
+            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi),
+            f32(SINGULAR_RTOL),
             ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
@@ -648,7 +681,8 @@ class _OutputPool:
         with self._lock:
             # indexed, not iterated: a loop variable would itself count as a reference
             for i in range(len(self._recent)):
-                if (_reference_counts(self._recent[i]) == _UNREFERENCED and self._recent[i].depth.shape == (h, w)
+                if (_reference_counts(self._recent[i]) == _UNREFERENCED
+                        and self._recent[i].depth.shape == (h, w)
                         and (self._recent[i].phase is not None) == with_phase):
                     res = self._recent.pop(i)
                     break
@@ -674,8 +708,8 @@ def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
 
 def _reference_counts(res: ReconResult) -> tuple[int, int]:
     """(references to ``res``, most references to any of its arrays)."""
-    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation, res.texture, res.phase,
-                          res.sigma) if a is not None]
+    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation,
+                          res.texture, res.phase, res.sigma) if a is not None]
     return sys.getrefcount(res), max(sys.getrefcount(a) for a in arrays)
 
 
