@@ -559,9 +559,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None,
             snap_px: float = 3.0, plane_normal: npt.ArrayLike | None = None,
-            reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
-           calibration: Calibration | None = None,
+            reason: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+            calibration_length_mm: float = 0.0, calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
@@ -973,9 +972,8 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
             reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None,
             snap_px: float = 3.0, plane_normal: npt.ArrayLike | None = None,
-            reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
-           calibration: Calibration | None = None,
+            reason: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+            calibration_length_mm: float = 0.0, calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``.
 
