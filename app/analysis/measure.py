@@ -208,8 +208,8 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
         raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
     ok = np.asarray(valid)
     if ok.shape != pts.shape[:2] or ok.dtype != np.bool_:
-        raise ValueError(f"valid: need a bool array of shape {pts.shape[:2]}, got {ok.dtype} "
-                         f"{ok.shape}")
+        raise ValueError(f"valid: need a bool array of shape {pts.shape[:2]}, "
+                         f"got {ok.dtype} {ok.shape}")
     sig = None if sigma is None else np.asarray(sigma)
     if sig is not None and sig.shape != ok.shape:
         raise ValueError(f"sigma: shape {sig.shape} does not match points {pts.shape[:2]}")
@@ -508,9 +508,9 @@ def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
     cosines = [-(edges[i - 1] @ edges[i]) / (lengths[i - 1] * lengths[i]) for i in range(3)]
     angles = [math.degrees(math.acos(float(np.clip(c, -1.0, 1.0)))) for c in cosines]
     if min(angles) < MIN_PLANE_ANGLE_DEG:
-        raise ValueError(f"points {names}: collinear or coincident (the triangle's smallest angle "
-                         f"is {min(angles):.1f}° < {MIN_PLANE_ANGLE_DEG:g}°); they do not define a "
-                         "plane well")
+        raise ValueError(f"points {names}: collinear or coincident (the triangle's smallest "
+                         f"angle is {min(angles):.1f}° < {MIN_PLANE_ANGLE_DEG:g}°); "
+                         "they do not define a plane well")
 
 
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,

@@ -99,8 +99,8 @@ def image_placement(camera_matrix: npt.ArrayLike, plane_normal: npt.ArrayLike,
     k = np.asarray(camera_matrix, np.float64)
     n = np.asarray(plane_normal, np.float64).ravel()
     if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-        raise ValueError("camera_matrix: need finite (3, 3) intrinsics with fx, fy "
-                         f"> 0, got {k.tolist()}")
+        raise ValueError("camera_matrix: need finite (3, 3) intrinsics with fx, fy > 0, "
+                         f"got {k.tolist()}")
     if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(n[2]) < 1e-9:
         raise ValueError(f"plane_normal: need 3 finite values with a z component, got {n.tolist()}")
     z_ref = -float(plane_offset_mm) / n[2]

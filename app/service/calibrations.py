@@ -82,8 +82,8 @@ class CalibrationManager:
                                               daemon=True)
             self._creating.start()
         else:
-            self.warnings.append("no calibration: load one (PUT "
-                                 "/api/calibration/file) or calibrate")
+            self.warnings.append("no calibration: "
+                                 "load one (PUT /api/calibration/file) or calibrate")
 
     def _create_sim(self) -> None:
         try:

@@ -134,8 +134,8 @@ class SimulatedProjector(Projector):
         self.link.check()
         w, h = self.world.rig.projector.size
         if (schedule.width, schedule.height) != (w, h):
-            raise ValueError(f"schedule: pattern size {schedule.width}x{schedule.height} != DMD "
-                             f"{w}x{h}")
+            raise ValueError(f"schedule: pattern size {schedule.width}x{schedule.height} != "
+                             f"DMD {w}x{h}")
         self.world.set_schedule(schedule)
 
     def _do_set_exposure(self, exposure_ms: float) -> None:

@@ -167,8 +167,8 @@ def partial_board_spec(rig: SimRig, spec: BoardSpec, poses: list[tuple[F64, F64]
         if reach <= fraction:
             return BoardSpec(spec.type, spec.cols, spec.rows, pitch)
         pitch = math.floor(1000.0 * pitch * min(0.999, 0.995 * fraction / reach)) / 1000.0
-    raise ValueError(f"fraction: the board cannot be made to fit the central {fraction:.2f} of the "
-                     "field")
+    raise ValueError(f"fraction: the board cannot be made to fit the central {fraction:.2f} "
+                     "of the field")
 
 
 def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str = "checkerboard",

@@ -152,8 +152,8 @@ def anastomosis_scene(rig: SimRig, seed: int = 7, suture: str = "suture") -> Sce
     name = "anastomosis" if suture == "suture" else "anastomosis_bright"
     return Scene(name, hf, tool=Tool(forceps, 1.3),
                  motion=lambda t: 0.75 * math.sin(2 * math.pi * 0.25 * t) * n,
-                 description="end-to-end anastomosis with stay sutures, running stitches and "
-                             "forceps")
+                 description="end-to-end anastomosis with stay sutures, "
+                             "running stitches and forceps")
 
 
 #: breathing: heave of the tissue along the reference normal (mm, amplitude) and its rate (Hz)
