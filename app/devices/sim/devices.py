@@ -229,8 +229,8 @@ def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None,
                              link=Link("sim-camera", disconnect_every_s=disconnect_every_s,
                                        reconnect_delay_s=reconnect_delay_s))
     camera.configure(bit_depth=bit_depth)
-    projector = SimulatedProjector(world,
-                                   link=Link("sim-projector", disconnect_every_s=disconnect_every_s,
+    projector = SimulatedProjector(world, link=Link("sim-projector",
+                                                    disconnect_every_s=disconnect_every_s,
                                                     reconnect_delay_s=reconnect_delay_s))
     controller = SimulatedController(world, link=Link("sim-controller",
                                                       disconnect_every_s=disconnect_every_s,
