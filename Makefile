@@ -31,7 +31,7 @@ system-deps:
 	@bash scripts/install-system-deps.sh
 
 test: $(VENV)/.installed-dev system-deps
-	$(BIN)/ruff check app tests benchmarks
+	$(BIN)/ruff check app tests benchmarks scripts
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 

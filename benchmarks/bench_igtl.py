@@ -72,19 +72,22 @@ class Arrivals(dict):  # type: ignore[type-arg]
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--data-dir", default="data")
-    ap.add_argument("--calibration", default=None, help="calibration file (default: the data dir's)")
+    ap.add_argument("--calibration", default=None,
+                    help="calibration file (default: the data dir's)")
     ap.add_argument("--scene", default="intestine_flap")
     ap.add_argument("--max-points", type=int, default=100_000)
     args = ap.parse_args()
     register_codecs()
 
     settings = Settings(port=free_port(), igtl_port=free_port(), data_dir=Path(args.data_dir),
-                        calibration_file=args.calibration, exposure_ms=args.exposure_ms, viewer=False,
-                        sim_seed=1, sim_scene=args.scene, igtl_max_points=args.max_points)
+                        calibration_file=args.calibration, exposure_ms=args.exposure_ms,
+                        viewer=False, sim_seed=1, sim_scene=args.scene,
+                        igtl_max_points=args.max_points)
     server, thread = start_server(settings)
     base = f"http://127.0.0.1:{settings.port}"
     try:
@@ -96,7 +99,8 @@ def main() -> int:
         lazy.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
 
         t_connect = time.monotonic()
-        client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=settings.igtl_port, start_now=False)
+        client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=settings.igtl_port,
+                                          start_now=False)
         arrivals = Arrivals()
         client.incoming_messages = arrivals
         client.start()
@@ -133,16 +137,18 @@ def main() -> int:
     half = len(rss) // 2
     print(f"window {span:.1f} s, depth maps published {n_results}, depth rate {depth_rate:.3f} /s")
     print(f"results {q0 + 1}..{q1}: of each, was an IMAGE / a POLYDATA message received?")
-    print(f"IMAGE    {n_img} received, {img_rate:.3f} /s, ratio to depth rate {n_img / max(n_results, 1):.3f} "
-          f"(target >= 0.97)")
-    print(f"POLYDATA {n_cloud} received, {cloud_rate:.3f} /s, ratio to depth rate {n_cloud / max(n_results, 1):.3f} "
-          f"(target >= 0.97)")
+    print(f"IMAGE    {n_img} received, {img_rate:.3f} /s, ratio to depth rate "
+          f"{n_img / max(n_results, 1):.3f} (target >= 0.97)")
+    print(f"POLYDATA {n_cloud} received, {cloud_rate:.3f} /s, ratio to depth rate "
+          f"{n_cloud / max(n_results, 1):.3f} (target >= 0.97)")
     print(f"first IMAGE {first_s:.3f} s after connecting (target <= 1 s)")
     print(f"server queued bytes with a never-reading client: max {max(pending) / 1e6:.2f} MB, "
-          f"first half max {max(pending[:half]) / 1e6:.2f} MB, second half max {max(pending[half:]) / 1e6:.2f} MB")
+          f"first half max {max(pending[:half]) / 1e6:.2f} MB, second half max "
+          f"{max(pending[half:]) / 1e6:.2f} MB")
     print(f"process RSS: start {rss[0]:.1f} MB, first-half mean {sum(rss[:half]) / half:.1f} MB, "
           f"second-half mean {sum(rss[half:]) / (len(rss) - half):.1f} MB, end {rss[-1]:.1f} MB "
-          f"(ratio second/first half {sum(rss[half:]) / (len(rss) - half) / (sum(rss[:half]) / half):.3f})")
+          "(ratio second/first half "
+          f"{sum(rss[half:]) / (len(rss) - half) / (sum(rss[:half]) / half):.3f})")
     ok = (n_img >= 0.97 * n_results and n_cloud >= 0.97 * n_results and first_s <= 1.0)
     print("PASS" if ok else "FAIL")
     return 0 if ok else 1

@@ -8,7 +8,8 @@ stream client receives compared with the depth rate (target ≥ 0.97). Then, per
 (camera fps / frames per map) and the latency of every result (median, p95; target median
 ≤ 20 ms in every mode).
 
-    python benchmarks/bench_live.py [--seconds 20] [--mode-seconds 10] [--exposure-ms 30] [--data-dir data]
+    python benchmarks/bench_live.py [--seconds 20] [--mode-seconds 10] [--exposure-ms 30]
+        [--data-dir data]
 
 The first run creates the simulator's calibration in DATA_DIR (a minute or two).
 """
@@ -42,8 +43,8 @@ def free_port() -> int:
 
 
 def start_server(settings: Settings) -> tuple[uvicorn.Server, threading.Thread]:
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=settings.port,
-                                           log_level="warning"))
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1",
+                                           port=settings.port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="bench-uvicorn", daemon=True)
     thread.start()
     while not server.started:
@@ -61,7 +62,8 @@ def wait_running(base: str, timeout_s: float) -> dict:
         if st["state"] == "running" and st["results_published"] >= 2:
             return st
         time.sleep(0.5)
-    raise SystemExit(f"instrument not running after {timeout_s:.0f} s: {st.get('state')} {st.get('last_error')}")
+    raise SystemExit(f"instrument not running after {timeout_s:.0f} s: {st.get('state')} "
+                     f"{st.get('last_error')}")
 
 
 def stream_client(url: str, stop: threading.Event, arrivals: list[float], sizes: list[int]) -> None:
@@ -75,7 +77,8 @@ def stream_client(url: str, stop: threading.Event, arrivals: list[float], sizes:
             sizes.append(len(msg))
 
 
-def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list[float], list[float]]]:
+def measure_modes(base: str,
+                  seconds: float) -> list[tuple[str, float, int, list[float], list[float]]]:
     """Per mode: depth rate (/s), frames per map, the latency of every result seen and of it
     the motion test's time (ms)."""
     out = []
@@ -103,28 +106,32 @@ def measure_modes(base: str, seconds: float) -> list[tuple[str, float, int, list
             span = time.monotonic() - t0
             s1 = http.get("/api/status").json()
             rate = (s1["results_published"] - s0["results_published"]) / span
-            out.append((mode, rate, steps if mode == "rolling" else n_freq * steps, list(lat.values()),
-                        list(mot.values())))
+            out.append((mode, rate, steps if mode == "rolling" else n_freq * steps,
+                        list(lat.values()), list(mot.values())))
         http.put("/api/mode", json={"rolling": start_mode == "rolling"})
     return out
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--exposure-ms", type=float, default=30.0)
     ap.add_argument("--clients", type=int, default=4)
-    ap.add_argument("--mode-seconds", type=float, default=10.0, help="per-mode latency measurement, s (0: skip)")
+    ap.add_argument("--mode-seconds", type=float, default=10.0,
+                    help="per-mode latency measurement, s (0: skip)")
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--scene", default="intestine_flap", help="simulator scene (the serve default)")
     ap.add_argument("--viewer", action="store_true", help="also run the viser 3-D viewer")
     ap.add_argument("--rig", choices=("default", "endoscope"), default="default",
                     help="simulator rig preset (endoscope: 12-bit sensor)")
-    ap.add_argument("--schedule", default=None, help="pattern schedule by name (app/core/schedule.py; default the paper's)")
+    ap.add_argument("--schedule", default=None,
+                    help="pattern schedule by name (app/core/schedule.py; default the paper's)")
     args = ap.parse_args()
 
-    settings = Settings(port=free_port(), data_dir=Path(args.data_dir), exposure_ms=args.exposure_ms,
-                        viewer=args.viewer, sim_seed=1, sim_scene=args.scene, sim_rig=args.rig,
+    settings = Settings(port=free_port(), data_dir=Path(args.data_dir),
+                        exposure_ms=args.exposure_ms, viewer=args.viewer, sim_seed=1,
+                        sim_scene=args.scene, sim_rig=args.rig,
                         bit_depth=12 if args.rig == "endoscope" else 8,
                         **({"schedule": args.schedule} if args.schedule else {}))
     base = f"http://127.0.0.1:{settings.port}"
@@ -136,7 +143,8 @@ def main() -> int:
         arrivals: list[list[float]] = [[] for _ in range(args.clients)]
         sizes: list[int] = []
         ws_url = f"ws://127.0.0.1:{settings.port}/api/stream/depth"
-        clients = [threading.Thread(target=stream_client, args=(ws_url, stop, arrivals[i], sizes), daemon=True)
+        clients = [threading.Thread(target=stream_client, args=(ws_url, stop, arrivals[i], sizes),
+                                    daemon=True)
                    for i in range(args.clients)]
         for c in clients:
             c.start()
@@ -170,34 +178,38 @@ def main() -> int:
     ratio = depth_fps / ideal if ideal else 0.0
     latency = s1["latency_ms"]
     p50, p99 = np.percentile(status_ms, [50, 99])
-    stream_rates = [sum(1 for x in a[n0:] if t0 <= x <= t1) / span for a, n0 in zip(arrivals, arr_start, strict=True)]
+    stream_rates = [sum(1 for x in a[n0:] if t0 <= x <= t1) / span
+                    for a, n0 in zip(arrivals, arr_start, strict=True)]
     stream_ratio = min(stream_rates) / depth_fps if depth_fps else 0.0
 
     def verdict(ok: bool) -> str:
         return "ok" if ok else "MISSED"
 
-    print(f"bench_live: {span:.1f} s, scene {args.scene}, {args.exposure_ms:g} ms exposure, {args.clients} WebSocket clients"
-          f"{' + viewer' if args.viewer else ''}")
+    print(f"bench_live: {span:.1f} s, scene {args.scene}, {args.exposure_ms:g} ms exposure, "
+          f"{args.clients} WebSocket clients{' + viewer' if args.viewer else ''}")
     print(f"  camera fps            {camera_fps:8.2f}")
-    print(f"  depth rate            {depth_fps:8.3f} /s   ideal camera/{frames_per_map} = {ideal:.3f} /s   "
-          f"ratio {ratio:.3f} (target >= 0.97: {verdict(ratio >= 0.97)})")
-    print(f"  latency median        {latency if latency is not None else float('nan'):8.2f} ms  (last frame -> result; target <= 20: "
-          f"{verdict(latency is not None and latency <= 20)}; of it reconstruction {s1['recon_ms']} ms)")
+    print(f"  depth rate            {depth_fps:8.3f} /s   ideal camera/{frames_per_map} = "
+          f"{ideal:.3f} /s   ratio {ratio:.3f} (target >= 0.97: {verdict(ratio >= 0.97)})")
+    print(f"  latency median        {latency if latency is not None else float('nan'):8.2f} ms  "
+          f"(last frame -> result; target <= 20: {verdict(latency is not None and latency <= 20)}; "
+          f"of it reconstruction {s1['recon_ms']} ms)")
     print(f"  GET /api/status       p50 {p50:.2f} ms  p99 {p99:.2f} ms  n={len(status_ms)} "
           f"(target p99 < 50: {verdict(p99 < 50)})")
     print(f"  stream rate / client  {', '.join(f'{r:.3f}' for r in stream_rates)} /s   "
           f"min/depth ratio {stream_ratio:.3f} (target >= 0.97: {verdict(stream_ratio >= 0.97)})  "
           f"mean JPEG {np.mean(sizes) / 1024 if sizes else 0:.0f} KiB")
-    print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the machine skews every figure)")
+    print(f"  load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the "
+          "machine skews every figure)")
     for mode, rate, per_map, lat, mot in per_mode:
         ideal_m = camera_fps / per_map if per_map else 0.0
         med, p95 = (np.percentile(lat, [50, 95]) if lat else (float("nan"), float("nan")))
-        print(f"  mode {mode:<8} depth rate {rate:7.3f} /s  ideal camera/{per_map} = {ideal_m:.3f} /s  "
-              f"ratio {rate / ideal_m if ideal_m else 0.0:.3f};  latency median {med:6.2f} ms  p95 {p95:6.2f} ms  "
-              f"(motion test {np.median(mot) if mot else float('nan'):.2f}) n={len(lat)} "
-              f"(target median <= 20: {verdict(bool(lat) and med <= 20)})")
+        print(f"  mode {mode:<8} depth rate {rate:7.3f} /s  ideal camera/{per_map} = {ideal_m:.3f} "
+              f"/s  ratio {rate / ideal_m if ideal_m else 0.0:.3f};  latency median {med:6.2f} ms  "
+              f"p95 {p95:6.2f} ms  (motion test {np.median(mot) if mot else float('nan'):.2f}) "
+              f"n={len(lat)} (target median <= 20: {verdict(bool(lat) and med <= 20)})")
     print(f"  sets dropped (newest wins) {s1['dropped_sets'] - s0['dropped_sets']}, incomplete "
-          f"{s1['incomplete_sets'] - s0['incomplete_sets']}, frames dropped {s1['frames_dropped'] - s0['frames_dropped']}")
+          f"{s1['incomplete_sets'] - s0['incomplete_sets']}, frames dropped "
+          f"{s1['frames_dropped'] - s0['frames_dropped']}")
     return 0
 
 

@@ -8,8 +8,9 @@ realisation and compared with the same measurement on the simulator's true point
 Figures per rig and kind:
 - ``|Δ|≤3σ``: fraction of measurements with |measured − true| ≤ 3 σ (target ≥ 99 %), σ as the
   API reports it: the pixels' noise and, in quadrature, the calibration's systematic error
-  (correlated between points by distance; :func:`app.service.measure.calibration_terms`) (``--noise-only``: without); ``(noise)``: the same with the noise's σ alone. The truth
-  is the simulator's, so calibration bias counts as error.
+  (correlated between points by distance; :func:`app.service.measure.calibration_terms`)
+  (``--noise-only``: without); ``(noise)``: the same with the noise's σ alone. The truth is the
+  simulator's, so calibration bias counts as error.
 - ``scatter/σn``: observed noise scatter over the noise's σ, √mean(s²/σ²) with s² the variance
   over the noise realisations of one measurement (each measurement weighs the same; target
   1/1.3 … 1.3), over the measurements that picked the same pixels in every realisation;
@@ -17,8 +18,8 @@ Figures per rig and kind:
   between realisations: a different measurement), ``(all)``: the ratio over all of them.
 - ``rms(z)``: RMS of (measured − true)/σ, bias included (1 if σ told the whole error; target
   1/1.3 … 1.3: the reported σ, calibration term included, neither under- nor overstates the error).
-- ``bias/σn``: RMS over measurements of the mean error over realisations, in σ of the noise (the part of
-  the error σ does not describe: calibration and model bias).
+- ``bias/σn``: RMS over measurements of the mean error over realisations, in σ of the noise
+  (the part of the error σ does not describe: calibration and model bias).
 ``profile`` checks one sample's height (a random position along the profile, the same pixel
 in every realisation); ``profile_peak`` (reported, no target) checks the profile's reported
 value, the sample farthest from the reference, re-chosen in every realisation — a maximum
@@ -57,7 +58,8 @@ from app.service.measure import calibration_terms  # noqa: E402
 LENGTH_MM = 10.0
 
 
-def random_spec(kind: str, ok: np.ndarray, rng: np.random.Generator, margin: int = 30) -> list[list[int]]:
+def random_spec(kind: str, ok: np.ndarray, rng: np.random.Generator,
+                margin: int = 30) -> list[list[int]]:
     """Pixels for one random measurement of ``kind`` on valid surface."""
     h, w = ok.shape
     vv, uu = np.nonzero(ok[margin:h - margin, margin:w - margin])
@@ -77,12 +79,15 @@ def random_spec(kind: str, ok: np.ndarray, rng: np.random.Generator, margin: int
     r = rng.uniform(15, 60)  # area: a star-shaped 4–6-gon around (u, v)
     angs = np.sort(rng.uniform(0, 2 * math.pi, int(rng.integers(4, 7))))
     rad = r * rng.uniform(0.6, 1.0, len(angs))
-    return [[int(np.clip(round(u + a * math.cos(t)), 0, w - 1)), int(np.clip(round(v + a * math.sin(t)), 0, h - 1))]
+    return [[int(np.clip(round(u + a * math.cos(t)), 0, w - 1)),
+             int(np.clip(round(v + a * math.sin(t)), 0, h - 1))]
             for a, t in zip(rad, angs, strict=True)]
 
 
-def length_spec(truth_pts: np.ndarray, ok: np.ndarray, rng: np.random.Generator) -> list[list[int]] | None:
-    """Two valid pixels whose true points are ≈ 10 mm apart (walk from a random pixel in a random direction)."""
+def length_spec(truth_pts: np.ndarray, ok: np.ndarray,
+                rng: np.random.Generator) -> list[list[int]] | None:
+    """Two valid pixels whose true points are ≈ 10 mm apart (walk from a random pixel
+    in a random direction)."""
     h, w = ok.shape
     vv, uu = np.nonzero(ok)
     i = int(rng.integers(len(uu)))
@@ -98,8 +103,9 @@ def length_spec(truth_pts: np.ndarray, ok: np.ndarray, rng: np.random.Generator)
     return None
 
 
-def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarray, normal: np.ndarray,
-            cal_sigma: float, sample: float | None = None, cal_length: float = 0.0
+def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarray,
+            normal: np.ndarray, cal_sigma: float, sample: float | None = None,
+            cal_length: float = 0.0
             ) -> tuple[list[float], list[float], list[float], list[float], bool] | None:
     """(measured, true, σ, σ of the noise alone) over the noise realisations and whether every
     realisation picked the same pixels (an invalid click snaps to a pixel that may differ), or
@@ -111,10 +117,12 @@ def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarr
     finite = np.all(np.isfinite(truth), -1)
     meas, true, sig, sig_noise, picked = [], [], [], [], set()
     for res in results:
-        tok = finite & res.valid  # the truth on the same pixels (an area's box means see the same holes)
+        # the truth on the same pixels (an area's box means see the same holes)
+        tok = finite & res.valid
         try:
-            m = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal, reason=res.reason,
-                        calibration_sigma_mm=cal_sigma, calibration_length_mm=cal_length)
+            m = measure(kind, res.points, res.valid, res.sigma, pix, plane_normal=normal,
+                        reason=res.reason, calibration_sigma_mm=cal_sigma,
+                        calibration_length_mm=cal_length)
         except ValueError:
             return None
         used = [list(p.pixel) for p in m.points]
@@ -130,8 +138,9 @@ def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarr
             else:
                 k = int(round(sample * (len(m.profile.pixels) - 1)))
             assert m.profile.sigma_noise_mm is not None
-            tv, mv, sv, nv = (float(x[k]) for x in (t.profile.height_mm, m.profile.height_mm, m.profile.sigma_mm,
-                                                     m.profile.sigma_noise_mm))
+            series = (t.profile.height_mm, m.profile.height_mm, m.profile.sigma_mm,
+                      m.profile.sigma_noise_mm)
+            tv, mv, sv, nv = (float(x[k]) for x in series)
             if not (math.isfinite(tv) and math.isfinite(mv)):
                 return None
             meas.append(mv), true.append(tv), sig.append(sv), sig_noise.append(nv)
@@ -145,26 +154,30 @@ def compare(kind: str, pix: list[list[int]], results: list[Any], truth: np.ndarr
 def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, Any]:
     rig = rig_by_name(rig_name)
     bits = rig.bit_depth
-    print(f"\n=== rig {rig_name}: {rig.image_size[0]}x{rig.image_size[1]}, {bits}-bit ===", flush=True)
+    print(f"\n=== rig {rig_name}: {rig.image_size[0]}x{rig.image_size[1]}, {bits}-bit ===",
+          flush=True)
     t0 = time.perf_counter()
-    folder = simulate_calibration_folder(base / f"calib_{rig_name}", poses=args.poses, seed=1, overwrite=True,
-                                         rig=rig_name, partial_boards=rig.partial_boards)
+    folder = simulate_calibration_folder(base / f"calib_{rig_name}", poses=args.poses, seed=1,
+                                         overwrite=True, rig=rig_name,
+                                         partial_boards=rig.partial_boards)
     cal = calibrate_folder(folder).calibration
     cal_path = save_calibration(cal, base / f"calibration_{rig_name}.json")
     normal, cal_sigma, cal_length = calibration_terms(cal)
     if args.noise_only:
         cal_sigma = 0.0
     held = cal.held_out.get(cal.model.name, {})
-    print(f"calibrated in {time.perf_counter() - t0:.0f} s; held-out ({cal.model.name}) RMS {held.get('rms_mm')} mm = "
-          f"noise {held.get('noise_mm')} (+) systematic {held.get('systematic_mm')} mm, correlation length "
-          f"{held.get('correlation_mm')} mm; calibration term {cal_sigma:.4f} mm per point, correlation "
-          f"{cal_length:.3g} mm", flush=True)
+    print(f"calibrated in {time.perf_counter() - t0:.0f} s; held-out ({cal.model.name}) "
+          f"RMS {held.get('rms_mm')} mm = noise {held.get('noise_mm')} (+) systematic "
+          f"{held.get('systematic_mm')} mm, correlation length "
+          f"{held.get('correlation_mm')} mm; calibration term {cal_sigma:.4f} mm per "
+          f"point, correlation {cal_length:.3g} mm", flush=True)
     rec = Reconstructor(cal, max_code=2**bits - 1)
     world = SimulatedWorld(args.scene, seed=3, rig=rig_name)
     results, truth = [], None
     for k in range(args.noise):
         world.reseed(100 + k)  # same surface, new sensor noise
-        cs, _, pts = render_capture_set(world.scene, world=world, exposure_ms=args.exposure_ms, t0_s=0.0)
+        cs, _, pts = render_capture_set(world.scene, world=world, exposure_ms=args.exposure_ms,
+                                        t0_s=0.0)
         results.append(rec.run(cs.frames))
         truth = pts.astype(np.float64) if truth is None else truth
     assert truth is not None
@@ -173,8 +186,8 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
           f"{np.nanmedian(results[0].sigma):.4f} mm", flush=True)
     rng = np.random.default_rng(17)
     rows: dict[str, Any] = {}
-    head = (f"{'kind':<14}{'n':>5}{'refused':>8}{'|Δ|≤3σ':>9}{'(noise)':>8}{'scatter/σn':>11}{'moved':>6}{'(all)':>7}"
-            f"{'rms(z)':>8}{'bias/σn':>8}{'med σ':>9}  result")
+    head = (f"{'kind':<14}{'n':>5}{'refused':>8}{'|Δ|≤3σ':>9}{'(noise)':>8}{'scatter/σn':>11}"
+            f"{'moved':>6}{'(all)':>7}{'rms(z)':>8}{'bias/σn':>8}{'med σ':>9}  result")
     print(head)
     print("-" * len(head))
     for kind in (*KINDS, "profile_peak"):
@@ -184,9 +197,11 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
             tries += 1
             if kind.startswith("profile"):
                 at = None if kind == "profile_peak" else float(rng.uniform(0.05, 0.95))
-                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal, cal_sigma, at, cal_length)
+                got = compare("profile", random_spec("profile", ok, rng), results, truth, normal,
+                              cal_sigma, at, cal_length)
             else:
-                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal, cal_sigma, cal_length=cal_length)
+                got = compare(kind, random_spec(kind, ok, rng), results, truth, normal, cal_sigma,
+                              cal_length=cal_length)
             if got is None:
                 refused += 1
                 continue
@@ -197,7 +212,8 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
             err = meas - true
             z.extend(err / sig)
             z_noise.extend(err / sig_n)
-            ratio.append(np.var(meas, ddof=1) / np.mean(sig_n**2))  # the scatter is the noise's alone
+            # the scatter is the noise's alone
+            ratio.append(np.var(meas, ddof=1) / np.mean(sig_n**2))
             same.append(got[4])
             bias_z.append(np.mean(err) / np.sqrt(np.mean(sig_n**2)))
             sigmas.append(float(np.median(sig)))
@@ -209,18 +225,21 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
         scatter_all = math.sqrt(float(np.mean(ra)))
         rms_z = float(np.sqrt(np.mean(za**2)))
         bias = float(np.sqrt(np.mean(np.square(bias_z))))
-        ok_frac, ok_ratio, ok_total = frac >= 0.99, 1 / 1.3 <= scatter <= 1.3, 1 / 1.3 <= rms_z <= 1.3
+        ok_frac = frac >= 0.99
+        ok_ratio, ok_total = 1 / 1.3 <= scatter <= 1.3, 1 / 1.3 <= rms_z <= 1.3
+        checks = (("3σ", ok_frac), ("σ-ratio", ok_ratio), ("rms(z)", ok_total))
         verdict = "PASS" if ok_frac and ok_ratio and ok_total else "MISS " + ",".join(
-            n for n, good in (("3σ", ok_frac), ("σ-ratio", ok_ratio), ("rms(z)", ok_total)) if not good)
+            n for n, good in checks if not good)
         if kind == "profile_peak":
             verdict = "(no target: a maximum over noisy samples)"
-        print(f"{kind:<14}{len(sigmas):>5}{refused:>8}{100 * frac:>8.1f}%{100 * frac_noise:>7.1f}%{scatter:>11.3f}"
-              f"{int((~sa).sum()):>6}{scatter_all:>7.2f}{rms_z:>8.2f}{bias:>8.2f}"
+        print(f"{kind:<14}{len(sigmas):>5}{refused:>8}{100 * frac:>8.1f}%{100 * frac_noise:>7.1f}%"
+              f"{scatter:>11.3f}{int((~sa).sum()):>6}{scatter_all:>7.2f}{rms_z:>8.2f}{bias:>8.2f}"
               f"{np.median(sigmas):>9.4f}  {verdict}", flush=True)
         rows[kind] = {"n": len(sigmas), "within_3sigma": frac, "within_3sigma_noise": frac_noise,
                       "scatter_ratio": scatter,
                       "scatter_ratio_all": scatter_all, "moved": int((~sa).sum()), "rms_z": rms_z,
-                      "bias_z": bias, "pass": (ok_frac and ok_ratio and ok_total) or kind == "profile_peak"}
+                      "bias_z": bias,
+                      "pass": (ok_frac and ok_ratio and ok_total) or kind == "profile_peak"}
     # 10 mm lengths on tissue
     errs, sig10 = [], []
     tries = 0
@@ -237,8 +256,9 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
         sig10.append(float(np.median(sig)))
     e = np.asarray(errs)
     rms10 = float(np.sqrt(np.mean(e**2)))
-    print(f"\n10 mm lengths on tissue: {len(sig10)} segments x {args.noise} realisations: RMS error {rms10:.4f} mm "
-          f"(target <= 0.05), mean {e.mean():+.4f} mm, median σ {np.median(sig10):.4f} mm  "
+    print(f"\n10 mm lengths on tissue: {len(sig10)} segments x {args.noise} realisations: "
+          f"RMS error {rms10:.4f} mm (target <= 0.05), mean {e.mean():+.4f} mm, "
+          f"median σ {np.median(sig10):.4f} mm  "
           f"{'PASS' if rms10 <= 0.05 else 'MISS'}", flush=True)
     rows["length_10mm"] = {"rms_mm": rms10, "mean_mm": float(e.mean()), "pass": rms10 <= 0.05}
     rows["calibration"] = str(cal_path)
@@ -246,15 +266,16 @@ def run_rig(rig_name: str, args: argparse.Namespace, base: Path) -> dict[str, An
 
 
 def live_latency(cal_path: str, n: int) -> bool:
-    """POST /api/measure on a running app (its lifespan, the simulator streaming): latency per kind."""
+    """POST /api/measure on a running app (its lifespan, the simulator
+    streaming): latency per kind."""
     from fastapi.testclient import TestClient
 
     from app.config import Settings
     from app.main import create_app
 
     with tempfile.TemporaryDirectory(prefix="bench_measure_live_") as tmp:
-        settings = Settings(data_dir=Path(tmp), calibration_file=Path(cal_path), viewer=False, sim_seed=1,
-                            exposure_ms=30.0)
+        settings = Settings(data_dir=Path(tmp), calibration_file=Path(cal_path), viewer=False,
+                            sim_seed=1, exposure_ms=30.0)
         with TestClient(create_app(settings)) as client:
             deadline = time.monotonic() + 300
             while client.get("/api/status").json()["results_published"] < 2:
@@ -263,8 +284,10 @@ def live_latency(cal_path: str, n: int) -> bool:
                 time.sleep(0.2)
             res = client.app.state.instrument.latest_result()  # type: ignore[attr-defined]
             rng = np.random.default_rng(5)
-            print(f"\nPOST /api/measure on the live service (default rig, streaming), {n} requests per kind:")
-            print(f"{'kind':<14}{'median ms':>10}{'p95 ms':>8}{'max ms':>8}{'compute ms':>11}  result")
+            print("\nPOST /api/measure on the live service (default rig, streaming), "
+                  f"{n} requests per kind:")
+            print(f"{'kind':<14}{'median ms':>10}{'p95 ms':>8}{'max ms':>8}{'compute ms':>11}  "
+                  "result")
             all_ok = True
             for kind in KINDS:
                 times, compute = [], []
@@ -281,7 +304,8 @@ def live_latency(cal_path: str, n: int) -> bool:
                 good = float(np.percentile(t, 95)) <= 100.0
                 all_ok &= good
                 print(f"{kind:<14}{np.median(t):>10.1f}{np.percentile(t, 95):>8.1f}{t.max():>8.1f}"
-                      f"{np.median(compute):>11.1f}  {'PASS' if good else 'MISS'} (p95 <= 100 ms)", flush=True)
+                      f"{np.median(compute):>11.1f}  {'PASS' if good else 'MISS'} (p95 <= 100 ms)",
+                      flush=True)
     return all_ok
 
 

@@ -1,4 +1,5 @@
-"""Every registered fringe schedule on the simulator: still-scene accuracy and the live depth rate (issue 15).
+"""Every registered fringe schedule on the simulator: still-scene accuracy and the
+live depth rate (issue 15).
 
 Still scenes (offline renders, one calibration made with the paper's schedule and carried
 over to the others by the finest-pattern rule): per schedule and scene
@@ -17,7 +18,8 @@ Live (the instrument behind uvicorn on the twin, as benchmarks/bench_live.py; PU
 (target ≤ 20 ms).
 
     python benchmarks/bench_schedules.py [--seconds 15] [--exposure-ms 30] [--calibration FILE]
-                                         [--scenes dof_target intestine_flap] [--no-live] [--no-still]
+                                         [--scenes dof_target intestine_flap] [--no-live]
+                                         [--no-still]
 """
 
 from __future__ import annotations
@@ -53,10 +55,12 @@ GROSS_MM = 0.5
 
 
 def still(cal, scene: str, seeds: tuple[int, int]) -> dict[str, dict]:  # noqa: ANN001
-    """Per schedule: two renders of ``scene`` (same scene, other noise) reconstructed with ``cal`` carried over."""
+    """Per schedule: two renders of ``scene`` (same scene, other noise) reconstructed
+    with ``cal`` carried over."""
     out: dict[str, dict] = {}
     for name, s in SCHEDULES.items():
-        # as the live engine (service.calibrations): heterodyne orders guarded against motion between groups
+        # as the live engine (service.calibrations): heterodyne orders guarded
+        # against motion between groups
         rec = Reconstructor(calibration_for_schedule(cal, s), with_phase=True, max_code=255,
                             order_max_motion_rad=LIVE_MAX_MOTION_RAD)
         runs = []
@@ -97,14 +101,15 @@ def still_table(scene: str, data: dict[str, dict]) -> list[tuple]:
         pred = d["slope"] * d["sig_phi"]
         predicted = float(np.sqrt(np.nanmean(pred[common] ** 2)))
         p_order = float(np.nanmean(order_error_probability(s, d["sig_phi"][valid])))
-        rows.append((scene, name, s.n_frames, rms, None if floor is None else rms / floor, order, gross,
-                     float(valid.mean()), predicted, measured, p_order, int(valid.sum())))
+        rows.append((scene, name, s.n_frames, rms, None if floor is None else rms / floor, order,
+                     gross, float(valid.mean()), predicted, measured, p_order, int(valid.sum())))
     return rows
 
 
 def live(args: argparse.Namespace, cal_file: Path, data_dir: Path) -> list[tuple]:
-    settings = Settings(port=free_port(), data_dir=data_dir, exposure_ms=args.exposure_ms, viewer=False, sim_seed=1,
-                        sim_scene=args.live_scene, calibration_file=cal_file)
+    settings = Settings(port=free_port(), data_dir=data_dir, exposure_ms=args.exposure_ms,
+                        viewer=False, sim_seed=1, sim_scene=args.live_scene,
+                        calibration_file=cal_file)
     base = f"http://127.0.0.1:{settings.port}"
     server, thread = start_server(settings)
     rows = []
@@ -115,7 +120,8 @@ def live(args: argparse.Namespace, cal_file: Path, data_dir: Path) -> list[tuple
                 r = http.put("/api/schedule", json={"name": name})
                 r.raise_for_status()
                 deadline = time.monotonic() + 60
-                while time.monotonic() < deadline:  # warm-up: first maps of the new schedule (JIT for new N)
+                # warm-up: first maps of the new schedule (JIT for new N)
+                while time.monotonic() < deadline:
                     m = http.get("/api/result/latest")
                     if m.status_code == 200 and len(m.json()["frame_indices"]) == s.n_frames:
                         break
@@ -138,7 +144,8 @@ def live(args: argparse.Namespace, cal_file: Path, data_dir: Path) -> list[tuple
                 depth = (s1["results_published"] - s0["results_published"]) / span
                 ideal = camera / s.n_frames
                 lat = float(np.median(list(latencies.values()))) if latencies else float("nan")
-                rows.append((name, s.n_frames, camera, depth, ideal, depth / ideal if ideal else 0.0, lat,
+                rows.append((name, s.n_frames, camera, depth, ideal,
+                             depth / ideal if ideal else 0.0, lat,
                              s1["dropped_sets"] - s0["dropped_sets"], s1["schedule"]["name"]))
             http.put("/api/schedule", json={"name": DEFAULT_SCHEDULE})
     finally:
@@ -148,28 +155,32 @@ def live(args: argparse.Namespace, cal_file: Path, data_dir: Path) -> list[tuple
 
 
 def print_still(rows: list[tuple]) -> None:
-    print("\nstill scenes: RMS over pixels valid in every schedule; floor = the 16-frame RMS; order = |err| > "
-          "half a fringe period; gross = |err| > 0.5 mm")
-    head = (f"{'scene':<15}{'schedule':<14}{'frames':>6}{'RMS mm':>9}{'/floor':>8}{'order':>6}{'gross':>6}"
-            f"{'valid':>7}{'pred σ':>9}{'meas σ':>9}{'pred/meas':>10}{'P(order)':>10}")
+    print("\nstill scenes: RMS over pixels valid in every schedule; floor = the 16-frame RMS; "
+          "order = |err| > half a fringe period; gross = |err| > 0.5 mm")
+    head = (f"{'scene':<15}{'schedule':<14}{'frames':>6}{'RMS mm':>9}{'/floor':>8}{'order':>6}"
+            f"{'gross':>6}{'valid':>7}{'pred σ':>9}{'meas σ':>9}{'pred/meas':>10}{'P(order)':>10}")
     print(head)
     print("-" * len(head))
     for scene, name, n, rms, ratio, order, gross, vf, pred, meas, p, _ in rows:
-        print(f"{scene:<15}{name:<14}{n:>6}{rms:>9.4f}{(ratio if ratio is not None else float('nan')):>8.3f}"
-              f"{order:>6}{gross:>6}{vf:>7.3f}{pred:>9.4f}{meas:>9.4f}{pred / meas:>10.3f}{p:>10.2g}")
+        shown_ratio = ratio if ratio is not None else float("nan")
+        print(f"{scene:<15}{name:<14}{n:>6}{rms:>9.4f}{shown_ratio:>8.3f}{order:>6}{gross:>6}"
+              f"{vf:>7.3f}{pred:>9.4f}{meas:>9.4f}{pred / meas:>10.3f}{p:>10.2g}")
 
     small = [r for r in rows if r[2] <= 9]
     ok9 = {name: all(r[4] is not None and r[4] <= 1.3 and r[5] == 0 for r in small if r[1] == name)
            for name in {r[1] for r in small}}
     for name, ok in sorted(ok9.items()):
-        print(f"target (<= 9 frames, RMS <= 1.3 x floor, 0 order errors), {name}: {'ok' if ok else 'MISSED'}")
+        print(f"target (<= 9 frames, RMS <= 1.3 x floor, 0 order errors), {name}: "
+              f"{'ok' if ok else 'MISSED'}")
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=15.0, help="live measuring time per schedule")
     ap.add_argument("--exposure-ms", type=float, default=30.0)
-    ap.add_argument("--calibration", help="a calibration file made with the paper's schedule (default: make one)")
+    ap.add_argument("--calibration",
+                    help="a calibration file made with the paper's schedule (default: make one)")
     ap.add_argument("--save-calibration", help="write the calibration made here to this file")
     ap.add_argument("--scenes", nargs="+", default=["dof_target", "intestine_flap"])
     ap.add_argument("--live-scene", default="intestine_flap")
@@ -183,12 +194,13 @@ def main() -> int:
         cal = load_calibration(cal_file)
     else:
         t = time.perf_counter()
-        folder = simulate_calibration_folder(Path(tmp.name) / "calib", poses=8, seed=1, overwrite=True)
+        folder = simulate_calibration_folder(Path(tmp.name) / "calib", poses=8, seed=1,
+                                             overwrite=True)
         cal = calibrate_folder(folder).calibration
         cal_file = Path(args.save_calibration or Path(tmp.name) / "calibration.json")
         save_calibration(cal, cal_file)
-        print(f"calibrated on 8 simulated poses ({list(cal.pattern.frequencies)} x {cal.pattern.steps}) "
-              f"in {time.perf_counter() - t:.0f} s")
+        print(f"calibrated on 8 simulated poses ({list(cal.pattern.frequencies)} x "
+              f"{cal.pattern.steps}) in {time.perf_counter() - t:.0f} s")
 
     rows = []
     for i, scene in enumerate([] if args.no_still else args.scenes):
@@ -197,17 +209,19 @@ def main() -> int:
         print_still(rows)
     if not args.no_live:
         lrows = live(args, cal_file, Path(tmp.name) / "data")
-        print(f"\nlive on the twin ({args.live_scene}, {args.exposure_ms:g} ms exposure, {args.seconds:g} s each)")
-        head = (f"{'schedule':<14}{'frames':>6}{'camera fps':>11}{'depth /s':>9}{'ideal':>8}{'ratio':>7}"
-                f"{'latency ms':>11}{'dropped':>8}")
+        print(f"\nlive on the twin ({args.live_scene}, {args.exposure_ms:g} ms exposure, "
+              f"{args.seconds:g} s each)")
+        head = (f"{'schedule':<14}{'frames':>6}{'camera fps':>11}{'depth /s':>9}{'ideal':>8}"
+                f"{'ratio':>7}{'latency ms':>11}{'dropped':>8}")
         print(head)
         print("-" * len(head))
         for name, n, cam, dep, ideal, ratio, lat, dropped, shown in lrows:
             flag = "" if shown == name else f"  (status shows {shown})"
-            print(f"{name:<14}{n:>6}{cam:>11.2f}{dep:>9.3f}{ideal:>8.3f}{ratio:>7.3f}{lat:>11.2f}{dropped:>8}{flag}"
-                  f"   rate {'ok' if ratio >= 0.97 else 'MISSED'}, latency {'ok' if lat <= 20 else 'MISSED'}")
-        print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the machine skews "
-              "the live figures)")
+            print(f"{name:<14}{n:>6}{cam:>11.2f}{dep:>9.3f}{ideal:>8.3f}{ratio:>7.3f}{lat:>11.2f}"
+                  f"{dropped:>8}{flag}   rate {'ok' if ratio >= 0.97 else 'MISSED'}, latency "
+                  f"{'ok' if lat <= 20 else 'MISSED'}")
+        print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (other work on the "
+              "machine skews the live figures)")
     tmp.cleanup()
     return 0
 

@@ -55,7 +55,8 @@ def percentile(values: list[float], q: float) -> float:
 
 
 async def _request(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, path: str,
-                   headers: dict[str, str], method: str = "GET") -> tuple[int, dict[str, str], bytes]:
+                   headers: dict[str, str],
+                   method: str = "GET") -> tuple[int, dict[str, str], bytes]:
     """One HTTP/1.1 request on a kept-alive connection: (status, headers, body)."""
     lines = [f"{method} {path} HTTP/1.1", "Host: 127.0.0.1", "Content-Length: 0",
              *(f"{k}: {v}" for k, v in headers.items())]
@@ -170,7 +171,8 @@ async def measure(port: int, token: str, args: argparse.Namespace) -> dict[str, 
     load = Load(port, token)
     await load.login()
     record = asyncio.Event()
-    tasks = [asyncio.create_task(load.poller(args.poll_ms / 1000.0, record)) for _ in range(args.pollers)]
+    tasks = [asyncio.create_task(load.poller(args.poll_ms / 1000.0, record))
+             for _ in range(args.pollers)]
     await asyncio.sleep(1.0)
     base0 = (await load.status())["results_published"]
     tb = time.monotonic()
@@ -214,7 +216,8 @@ async def measure(port: int, token: str, args: argparse.Namespace) -> dict[str, 
                      "p99_ms": percentile(base, 0.99), "depth_fps": base_status["depth_fps"],
                      "results_per_s": base_rate},
         "load": {"n": len(load.latencies_ms), "failures": load.failures,
-                 "p50_ms": percentile(load.latencies_ms, 0.5), "p99_ms": percentile(load.latencies_ms, 0.99),
+                 "p50_ms": percentile(load.latencies_ms, 0.5),
+                 "p99_ms": percentile(load.latencies_ms, 0.99),
                  "depth_fps": load_status["depth_fps"],
                  "results_per_s": (load_status["results_published"] - results0) / elapsed},
         "mjpeg_images_min": min(load.mjpeg_images, default=0),
@@ -250,13 +253,17 @@ def stream_readers(port: int, cookie: dict[str, str], n_mjpeg: int, n_ws: int, l
     out.put(asyncio.run(run()))
 
 
-def start_server(calibration: Path, data_dir: Path, port: int, token: str, streams: int) -> subprocess.Popen[str]:
-    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration), FRINGESCOPE_VIEWER="false",
-               FRINGESCOPE_API_TOKEN=token, FRINGESCOPE_SIM_SCENE="dof_target", FRINGESCOPE_EXPOSURE_MS="30",
+def start_server(calibration: Path, data_dir: Path, port: int, token: str,
+                 streams: int) -> subprocess.Popen[str]:
+    env = dict(os.environ, FRINGESCOPE_CALIBRATION_FILE=str(calibration),
+               FRINGESCOPE_VIEWER="false", FRINGESCOPE_API_TOKEN=token,
+               FRINGESCOPE_SIM_SCENE="dof_target", FRINGESCOPE_EXPOSURE_MS="30",
                FRINGESCOPE_SIM_SEED="1", FRINGESCOPE_MAX_STREAMS_PER_CLIENT=str(streams),
                NUMBA_THREADING_LAYER="workqueue")
-    return subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(port), "--data-dir", str(data_dir)],
-                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(port),
+                             "--data-dir", str(data_dir)],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
 
 
 def wait_ready(port: int, token: str, proc: subprocess.Popen[str], timeout_s: float) -> None:
@@ -280,7 +287,8 @@ def wait_ready(port: int, token: str, proc: subprocess.Popen[str], timeout_s: fl
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--calibration", type=Path, default=None, help="calibration file (default: create the sim's)")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="calibration file (default: create the sim's)")
     p.add_argument("--pollers", type=int, default=20)
     p.add_argument("--mjpeg", type=int, default=45)
     p.add_argument("--ws", type=int, default=5, help="WebSocket readers, the first never reading")
@@ -298,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
             from app.service.calibration_store import create_sim_calibration
 
             calibration = Path(tmp) / "sim.json"
-            save_calibration(create_sim_calibration(Settings(data_dir=Path(tmp) / "cal", sim_seed=0)), calibration)
+            sim_settings = Settings(data_dir=Path(tmp) / "cal", sim_seed=0)
+            save_calibration(create_sim_calibration(sim_settings), calibration)
         port = free_port()
         proc = start_server(calibration, Path(tmp) / "data", port, token, args.mjpeg + args.ws + 2)
         try:
@@ -312,13 +321,14 @@ def main(argv: list[str] | None = None) -> int:
                 proc.kill()
     b, lo = fig["baseline"], fig["load"]
     print(f"/api/status, {args.pollers} pollers every {args.poll_ms:.0f} ms")
-    print(f"  baseline:   p50 {b['p50_ms']:7.1f} ms  p99 {b['p99_ms']:7.1f} ms  ({b['n']} requests, "
-          f"{b['failures']} failed)  depth maps {b['results_per_s']:.2f}/s")
+    print(f"  baseline:   p50 {b['p50_ms']:7.1f} ms  p99 {b['p99_ms']:7.1f} ms  "
+          f"({b['n']} requests, {b['failures']} failed)  depth maps {b['results_per_s']:.2f}/s")
     print(f"  + {args.mjpeg} MJPEG, {args.ws} WebSocket (1 never reading):")
-    print(f"              p50 {lo['p50_ms']:7.1f} ms  p99 {lo['p99_ms']:7.1f} ms  ({lo['n']} requests, "
-          f"{lo['failures']} failed)  depth maps {lo['results_per_s']:.2f}/s")
-    print(f"  ratio load/baseline: p50 {lo['p50_ms'] / b['p50_ms']:.2f}  p99 {lo['p99_ms'] / b['p99_ms']:.2f}  "
-          f"depth rate {lo['results_per_s'] / b['results_per_s']:.2f}" if b["results_per_s"] else "")
+    print(f"              p50 {lo['p50_ms']:7.1f} ms  p99 {lo['p99_ms']:7.1f} ms  ({lo['n']} "
+          f"requests, {lo['failures']} failed)  depth maps {lo['results_per_s']:.2f}/s")
+    print(f"  ratio load/baseline: p50 {lo['p50_ms'] / b['p50_ms']:.2f}  p99 "
+          f"{lo['p99_ms'] / b['p99_ms']:.2f}  depth rate "
+          f"{lo['results_per_s'] / b['results_per_s']:.2f}" if b["results_per_s"] else "")
     print(f"  images per MJPEG reader in {fig['load_s']:.1f} s: min {fig['mjpeg_images_min']}, "
           f"median {fig['mjpeg_images_median']}; per reading WebSocket: min {fig['ws_images_min']}")
     print(f"  target p99 <= 50 ms under load: {'met' if lo['p99_ms'] <= 50.0 else 'NOT met'}")

@@ -15,7 +15,8 @@ the server process. Prints the figures and exits 1 unless:
 - every client keeps receiving depth maps after the last recovery.
 
     python scripts/soak.py                       # 10 minutes, 4 clients, 5 %, unplug every 60 s
-    python scripts/soak.py --minutes 1 --disconnect-every-s 15 --calibration data/calibrations/sim.json
+    python scripts/soak.py --minutes 1 --disconnect-every-s 15 \\
+        --calibration data/calibrations/sim.json
 """
 
 from __future__ import annotations
@@ -41,19 +42,27 @@ REPO = Path(__file__).resolve().parents[1]
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--minutes", type=float, default=10.0, help="soak duration after start-up (default 10)")
+    p.add_argument("--minutes", type=float, default=10.0,
+                   help="soak duration after start-up (default 10)")
     p.add_argument("--clients", type=int, default=4, help="WebSocket clients (default 4)")
-    p.add_argument("--drop-rate", type=float, default=0.05, help="fraction of frames the camera drops")
-    p.add_argument("--disconnect-every-s", type=float, default=60.0, help="simulated unplug period, s")
+    p.add_argument("--drop-rate", type=float, default=0.05,
+                   help="fraction of frames the camera drops")
+    p.add_argument("--disconnect-every-s", type=float, default=60.0,
+                   help="simulated unplug period, s")
     p.add_argument("--exposure-ms", type=float, default=40.0,
-                   help="camera exposure, ms (default 40, the paper's upper end: see the report on 20 ms)")
+                   help="camera exposure, ms (default 40, the paper's upper end: see "
+                        "the report on 20 ms)")
     p.add_argument("--calibration", type=Path, default=None,
-                   help="calibration file (default: the server makes the simulator's, which takes minutes)")
+                   help="calibration file (default: the server makes the simulator's, "
+                        "which takes minutes)")
     p.add_argument("--viewer", action="store_true", help="also run the 3-D viewer")
-    p.add_argument("--max-growth-mb", type=float, default=50.0, help="allowed RSS growth after warm-up, MB")
+    p.add_argument("--max-growth-mb", type=float, default=50.0,
+                   help="allowed RSS growth after warm-up, MB")
     p.add_argument("--thread-slack", type=int, default=4, help="allowed extra threads at the end")
-    p.add_argument("--startup-timeout-s", type=float, default=1200.0, help="wait for the first result, s")
-    p.add_argument("--recovery-timeout-s", type=float, default=60.0, help="a fault must recover within, s")
+    p.add_argument("--startup-timeout-s", type=float, default=1200.0,
+                   help="wait for the first result, s")
+    p.add_argument("--recovery-timeout-s", type=float, default=60.0,
+                   help="a fault must recover within, s")
     args = p.parse_args(argv)
     if args.minutes <= 0 or args.clients < 1 or not 0 <= args.drop_rate < 1:
         p.error("--minutes must be > 0, --clients >= 1, --drop-rate in [0, 1)")
@@ -149,8 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     env.pop("FRINGESCOPE_API_TOKEN", None)
     if args.calibration is not None:
         env["FRINGESCOPE_CALIBRATION_FILE"] = str(args.calibration.resolve())
-    print(f"soak: {args.minutes:g} min, {args.clients} WebSocket clients, {args.drop_rate:.0%} dropped frames, "
-          f"unplug every {args.disconnect_every_s:g} s; server {base}, log {log_path}", flush=True)
+    print(f"soak: {args.minutes:g} min, {args.clients} WebSocket clients, "
+          f"{args.drop_rate:.0%} dropped frames, unplug every {args.disconnect_every_s:g} s; "
+          f"server {base}, log {log_path}", flush=True)
     with open(log_path, "wb") as log:
         server = subprocess.Popen(
             [sys.executable, "-m", "app", "serve", "--host", "127.0.0.1", "--port", str(port),
@@ -175,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     code = server.returncode
     log_text = log_path.read_text(encoding="utf-8", errors="replace")
     clean = "Application shutdown complete" in log_text
-    print(f"  server exit             code {code}, lifespan shutdown {'complete' if clean else 'MISSING'}")
+    print(f"  server exit             code {code}, lifespan shutdown "
+          f"{'complete' if clean else 'MISSING'}")
     # uvicorn re-raises the SIGINT it handled, so the CLI ends with 130 after a clean shutdown
     if code not in (0, 130) or not clean:
         failures.append(f"server did not shut down cleanly (exit code {code})")
@@ -188,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], clients: list[Client]) -> list[str]:
+def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes],
+         clients: list[Client]) -> list[str]:
     failures: list[str] = []
     t0 = time.monotonic()
     st = None
@@ -201,7 +213,8 @@ def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], c
         time.sleep(1.0)
     else:
         return [f"no depth result within {args.startup_timeout_s:.0f} s (last status {st})"]
-    print(f"  start-up                {time.monotonic() - t0:.1f} s to the first depth map", flush=True)
+    print(f"  start-up                {time.monotonic() - t0:.1f} s to the first depth map",
+          flush=True)
 
     ws_url = base.replace("http://", "ws://") + "/api/stream/depth"
     for _ in range(args.clients):
@@ -230,7 +243,8 @@ def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], c
             last = st
             rss, threads = proc_figures(server.pid)
             samples.append((t, rss, threads))
-            if st["faults"] > faults_seen and (not episodes or episodes[-1].recovered_s is not None):
+            if st["faults"] > faults_seen and (not episodes
+                                               or episodes[-1].recovered_s is not None):
                 episodes.append(Episode(t, st["results_published"]))
             faults_seen = st["faults"]
             ep = episodes[-1] if episodes else None
@@ -250,14 +264,17 @@ def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], c
     rss0, rss1 = statistics.median(s[1] for s in base_win), statistics.median(s[1] for s in end_win)
     th0, th1 = max(s[2] for s in base_win), max(s[2] for s in end_win)
     growth = rss1 - rss0
-    print(f"  duration                {run_s:.0f} s ({len(samples)} status samples, {status_errors} failed)")
-    print(f"  results published       {last['results_published'] - first.get('results_published', 0)} "
+    print(f"  duration                {run_s:.0f} s ({len(samples)} status samples, "
+          f"{status_errors} failed)")
+    print("  results published       "
+          f"{last['results_published'] - first.get('results_published', 0)} "
           f"({last['depth_fps']:.2f}/s now), camera {last['camera_fps']:.1f} fps")
     published = last["results_published"] - first.get("results_published", 0)
     if published < max(3.0, run_s / 10):
         failures.append(f"only {published} depth maps in {run_s:.0f} s")
     print(f"  memory (RSS)            {rss0:.1f} MB after warm-up -> {rss1:.1f} MB at the end "
-          f"(growth {growth:+.1f} MB, limit {args.max_growth_mb:g}); peak {max(s[1] for s in samples):.1f} MB")
+          f"(growth {growth:+.1f} MB, limit {args.max_growth_mb:g}); peak "
+          f"{max(s[1] for s in samples):.1f} MB")
     print(f"  threads                 {th0} after warm-up -> {th1} at the end "
           f"(peak {max(s[2] for s in samples)})")
     if growth >= args.max_growth_mb:
@@ -288,7 +305,8 @@ def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], c
     print(f"  frames dropped          {dropped} of {dropped + received} ({frac:.1%}; injected "
           f"{args.drop_rate:.0%}), incomplete sets discarded {incomplete}")
     if args.drop_rate > 0 and received > 500 and frac < 0.5 * args.drop_rate:
-        failures.append(f"only {frac:.1%} of frames counted as dropped ({args.drop_rate:.0%} injected)")
+        failures.append(f"only {frac:.1%} of frames counted as dropped "
+                        f"({args.drop_rate:.0%} injected)")
     if args.drop_rate > 0 and received > 500 and incomplete == 0:
         failures.append("no incomplete set counted despite dropped frames")
     last_recovery = max((e.recovered_s for e in recovered), default=0.0) + start  # type: ignore[type-var]
@@ -300,7 +318,8 @@ def soak(args: argparse.Namespace, base: str, server: subprocess.Popen[bytes], c
         if c.messages == 0:
             failures.append(f"client {i} received nothing")
         elif c.last_message_s < min(last_recovery, end_s - 30):
-            failures.append(f"client {i} stopped receiving {end_s - c.last_message_s:.0f} s before the end")
+            failures.append(f"client {i} stopped receiving "
+                            f"{end_s - c.last_message_s:.0f} s before the end")
         if c.reconnects:
             failures.append(f"client {i} was disconnected {c.reconnects} time(s): {c.errors[:2]}")
     return failures

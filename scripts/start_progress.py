@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     if reasons:
         say("first start: " + "; ".join(reasons) + ".")
     say(f"first depth expected in about {estimate_s(cpu_s):.0f} s ({load}; "
-        f"about {cpu_s:.0f} s on an idle machine)" + (", later starts about 10 s" if reasons else ""))
+        f"about {cpu_s:.0f} s on an idle machine)"
+        + (", later starts about 10 s" if reasons else ""))
     parent = os.getppid()
     t0 = time.monotonic()
     last_state, last_note = "", t0

@@ -28,8 +28,15 @@ def background_codes(result: Any) -> npt.NDArray[np.float64]:
     return np.asarray(result.texture, np.float64) - np.asarray(result.modulation, np.float64)
 
 
-def noise_floor_mm(calibration: Calibration, result: Any, sigma_i_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
-    """Per-pixel predicted height noise σ_z (mm) of a reconstruction for intensity noise σ_I (codes)."""
+def _valid_share(result: Any, mask: npt.NDArray[np.bool_]) -> float:
+    """Share of the ``mask`` pixels that ``result`` marks valid (NaN for an empty mask)."""
+    return float(np.asarray(result.valid, bool)[mask].mean()) if mask.any() else math.nan
+
+
+def noise_floor_mm(calibration: Calibration, result: Any,
+                   sigma_i_dn: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Per-pixel predicted height noise σ_z (mm) of a reconstruction for
+    intensity noise σ_I (codes)."""
     if result.phase is None:
         raise ValueError("result: has no phase; make the Reconstructor with with_phase=True")
     return height_noise_mm(calibration, result.phase, sigma_i_dn, result.modulation)
@@ -73,7 +80,7 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
     floor = float(np.sqrt(np.nanmean(sp[valid_in] ** 2)))
     depth_floor = float(np.sqrt(np.nanmean(sz[valid_in] ** 2)))
     return {
-        "valid_fraction": float(np.asarray(result.valid, bool)[keep].mean()) if keep.any() else math.nan,
+        "valid_fraction": _valid_share(result, keep),
         "valid_fraction_all": errs.valid_fraction,
         "inside_pixels": errs.inside_pixels,
         "mean_error_mm": errs.mean_error_mm,
@@ -94,8 +101,9 @@ def plane_target_report(calibration: Calibration, result: Any, truth_depth: npt.
 
 
 def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt.ArrayLike,
-                         truth_points: npt.ArrayLike, centres: list[npt.ArrayLike], radius_mm: float,
-                         *, surface_tol_mm: float = 0.02, projector_centre_mm: npt.ArrayLike | None = None,
+                         truth_points: npt.ArrayLike, centres: list[npt.ArrayLike],
+                         radius_mm: float, *, surface_tol_mm: float = 0.02,
+                         projector_centre_mm: npt.ArrayLike | None = None,
                          incidence_limits_deg: tuple[float, ...] = (80.0, 87.0),
                          supported: npt.ArrayLike | None = None) -> dict[str, Any]:
     """Figures of sphere targets: validity and error on sphere pixels, then PS/PF per sphere.
@@ -136,8 +144,8 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
     for m in masks:
         sel = m & np.asarray(result.valid, bool)
         f = sphere_figures(result.points, 2 * radius_mm, sel, segment=False)
-        spheres.append({"diameter_mm": f.diameter_mm, "ps_mm": f.ps_mm, "pf_mm": f.pf_mm, "rms_mm": f.rms_mm,
-                        "n_points": f.n_points})
+        spheres.append({"diameter_mm": f.diameter_mm, "ps_mm": f.ps_mm, "pf_mm": f.pf_mm,
+                        "rms_mm": f.rms_mm, "n_points": f.n_points})
     lo, hi = calibration.height_range_mm
     t = np.asarray(truth_depth, np.float64)
     with np.errstate(invalid="ignore"):
@@ -146,8 +154,8 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
     bad = inside & ~np.asarray(result.valid, bool)
     codes, counts = np.unique(np.asarray(result.reason)[bad], return_counts=True)
     report: dict[str, Any] = {
-        "valid_fraction": (float(np.asarray(result.valid, bool)[inside].mean()) if inside.any() else math.nan)
-        if supported is not None else errs.valid_fraction,
+        "valid_fraction": (_valid_share(result, inside) if supported is not None
+                           else errs.valid_fraction),
         "invalid_reasons": {int(c): int(n) for c, n in zip(codes, counts, strict=True)},
         "inside_pixels": errs.inside_pixels,
         "mean_error_mm": errs.mean_error_mm,
@@ -158,16 +166,16 @@ def sphere_target_report(calibration: Calibration, result: Any, truth_depth: npt
     }
     if projector_centre_mm is not None:
         cos_inc = projector_incidence_cos(tp, normals, projector_centre_mm)
-        report["unlit_fraction"] = float((cos_inc[inside] <= 0.0).mean()) if inside.any() else math.nan
+        report["unlit_fraction"] = (float((cos_inc[inside] <= 0.0).mean()) if inside.any()
+                                    else math.nan)
         lit_unsat = inside & (cos_inc > 0.0) & (np.asarray(result.reason) != Reason.SATURATED)
-        report["lit_valid_fraction"] = (float(np.asarray(result.valid, bool)[lit_unsat].mean()) if lit_unsat.any()
-                                        else math.nan)
+        report["lit_valid_fraction"] = _valid_share(result, lit_unsat)
         report["incidence"] = {}
         for deg in incidence_limits_deg:
             lit = inside & (cos_inc >= math.cos(math.radians(deg)))
             report["incidence"][float(deg)] = {
                 "pixels_fraction": float(lit.sum() / max(1, inside.sum())),
-                "valid_fraction": float(np.asarray(result.valid, bool)[lit].mean()) if lit.any() else math.nan,
+                "valid_fraction": _valid_share(result, lit),
             }
     return report
 
@@ -196,7 +204,8 @@ def projector_incidence_cos(points: npt.ArrayLike, normals: npt.ArrayLike,
         return np.asarray((n * to_projector).sum(-1) / dist, np.float64)
 
 
-def true_phase_rad(fringe_coordinate_px: npt.ArrayLike, schedule: PatternSchedule) -> npt.NDArray[np.float64]:
+def true_phase_rad(fringe_coordinate_px: npt.ArrayLike,
+                   schedule: PatternSchedule) -> npt.NDArray[np.float64]:
     """The finest frequency's unwrapped phase (rad) a projector coordinate carries.
 
     Args:
@@ -208,12 +217,14 @@ def true_phase_rad(fringe_coordinate_px: npt.ArrayLike, schedule: PatternSchedul
         (...) float64 ``2π·K·x / L`` (the pattern of DESIGN.md: ``cos(2π k x / w + δ)``).
     """
     x = np.asarray(fringe_coordinate_px, np.float64)
-    return np.asarray(2.0 * math.pi * float(schedule.frequencies[-1]) / float(schedule.axis_length) * x, np.float64)
+    k_last, axis_length = float(schedule.frequencies[-1]), float(schedule.axis_length)
+    return np.asarray(2.0 * math.pi * k_last / axis_length * x, np.float64)
 
 
 def supported_mask(region: SupportedRegion, truth_depth: npt.ArrayLike,
                    phase_rad: npt.ArrayLike) -> npt.NDArray[np.bool_]:
-    """(H, W) True where the true (height, phase) of a pixel lies inside a calibration's supported region.
+    """(H, W) True where the true (height, phase) of a pixel lies inside a
+    calibration's supported region.
 
     Args:
         region: the depth model's :class:`~app.core.depth_model.SupportedRegion`.
@@ -228,9 +239,11 @@ def supported_mask(region: SupportedRegion, truth_depth: npt.ArrayLike,
 
 
 def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tuple[float, float],
-                  sigma_mm: npt.ArrayLike, *, lit: npt.ArrayLike | None = None, gross_mm: float = 0.5,
-                  grid: tuple[int, int] = (3, 3), supported: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
-    """Acceptance figures in each cell of a ``grid`` (rows, cols) split of the image — every ninth by default.
+                  sigma_mm: npt.ArrayLike, *, lit: npt.ArrayLike | None = None,
+                  gross_mm: float = 0.5, grid: tuple[int, int] = (3, 3),
+                  supported: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
+    """Acceptance figures in each cell of a ``grid`` (rows, cols) split of the image
+    — every ninth by default.
 
     Args:
         result: a ``ReconResult`` (``depth`` (H, W) mm NaN invalid, ``valid`` (H, W) bool,
@@ -247,8 +260,8 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
     Returns:
         One dict per cell, row-major: ``row``, ``col``; inside (in the volume and the supported
         region): ``pixels`` (lit, unsaturated),
-        ``valid_fraction``, ``mean_error_mm``, ``rms_mm``, ``floor_mm`` (RMS of ``sigma_mm`` over the
-        same valid pixels), ``rms_ratio`` (rms / floor), ``std_ratio`` (std / floor), ``gross``
+        ``valid_fraction``, ``mean_error_mm``, ``rms_mm``, ``floor_mm`` (RMS of ``sigma_mm`` over
+        the same valid pixels), ``rms_ratio`` (rms / floor), ``std_ratio`` (std / floor), ``gross``
         (valid pixels with |error| > gross_mm), ``max_abs_error_mm``; outside the volume:
         ``outside_pixels``, ``outside_valid``, ``outside_gross``, ``outside_max_abs_error_mm``;
         in the volume but outside the supported region (lit): ``off_region_pixels``,

@@ -6,8 +6,10 @@ import numpy as np
 import numpy.typing as npt
 
 
-def roi_mask(shape: tuple[int, int], roi: tuple[int, int, int, int] | None) -> npt.NDArray[np.bool_]:
-    """(H, W) bool mask of the pixel box ``roi = (x0, y0, x1, y1)`` (x1, y1 exclusive); all if None."""
+def roi_mask(shape: tuple[int, int],
+             roi: tuple[int, int, int, int] | None) -> npt.NDArray[np.bool_]:
+    """(H, W) bool mask of the pixel box ``roi = (x0, y0, x1, y1)`` (x1, y1
+    exclusive); all if None."""
     h, w = shape
     mask = np.zeros((h, w), bool)
     if roi is None:
@@ -36,7 +38,8 @@ def parse_roi(text: str) -> tuple[int, int, int, int]:
 
 def select_points(points: npt.ArrayLike, valid: npt.ArrayLike | None,
                   roi: tuple[int, int, int, int] | None) -> npt.NDArray[np.float64]:
-    """Finite (n, 3) float64 points from a (H, W, 3) map or (n, 3) array, masked by valid and ROI."""
+    """Finite (n, 3) float64 points from a (H, W, 3) map or (n, 3) array,
+    masked by valid and ROI."""
     pts = np.asarray(points, np.float64)
     if pts.ndim == 3 and pts.shape[2] == 3:
         mask = roi_mask(pts.shape[:2], roi)

@@ -81,8 +81,8 @@ class _Section:
     h: F64  # their heights over the flank line, mm
 
 
-def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.ArrayLike | None = None, *,
-                   roi: tuple[int, int, int, int] | None = None, threshold: float | None = None,
+def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.ArrayLike | None = None,
+                   *, roi: tuple[int, int, int, int] | None = None, threshold: float | None = None,
                    polarity: str | None = None, height_threshold_mm: float | None = None,
                    ring_px: tuple[int, int] = (8, 24), min_area_px: int = 30,
                    min_section_px: int = 3, slab_px: float = 3.0, block_sections: int = 10,
@@ -150,7 +150,8 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
         raise ValueError(f"depth: only {int(ok.sum())} valid pixels in the ROI")
     if threshold is None:
         threshold = _otsu(tex[ok])
-    first, _ = _fit_baseline(z, ok, coords)  # robust quadratic over the ROI: the surface the feature lies on
+    # robust quadratic over the ROI: the surface the feature lies on
+    first, _ = _fit_baseline(z, ok, coords)
     if polarity is None:
         polarity = _find_polarity(z - first, tex, ok, threshold)
     mask = area & ((tex > threshold) if polarity == "bright" else (tex < threshold))
@@ -180,8 +181,8 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     blur = edge.sigma
     sections: list[_Section] = []
     for i, c in enumerate(comps):
-        sections += _sections(resid, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
-                              flank_degree, 2.0 * blur)
+        sections += _sections(resid, coords, (labels == c) & ok, rings[i], min_section_px, slab_px,
+                              i, flank_degree, 2.0 * blur)
     if not sections:
         raise ValueError("depth: no cross-section of the feature has enough valid pixels")
     height, k, per_section, _, se, offsets = _joint_profile(sections, int(block_sections))
@@ -201,8 +202,8 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     for m, phi in enumerate(basis):
         moved: list[_Section] = []
         for i, c in enumerate(comps):
-            moved += _sections(phi, coords, (labels == c) & ok, rings[i], min_section_px, slab_px, i,
-                               flank_degree, 2.0 * blur)
+            moved += _sections(phi, coords, (labels == c) & ok, rings[i], min_section_px, slab_px,
+                               i, flank_degree, 2.0 * blur)
         hm = np.concatenate([sec.h for sec in moved])
         effect[m] = -float(hm.mean())
     se = float(math.sqrt(se**2 + max(float(effect @ cov @ effect), 0.0) + drop_se**2)) \
@@ -221,9 +222,10 @@ def feature_height(depth: npt.ArrayLike, texture: npt.ArrayLike, valid: npt.Arra
     )
 
 
-def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64, ok: npt.NDArray[np.bool_],
-                    reach_px: int) -> npt.NDArray[np.int32]:
-    """Each segment widened, within ``reach_px``, to the pixels standing above half its median height.
+def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
+                    ok: npt.NDArray[np.bool_], reach_px: int) -> npt.NDArray[np.int32]:
+    """Each segment widened, within ``reach_px``, to the pixels standing
+    above half its median height.
 
     An intensity threshold can miss a round thread's flanks (a bright thread's sides are
     lit obliquely and darker than its top); left out, they would fall into the baseline ring
@@ -251,8 +253,9 @@ def _grow_by_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
     return out
 
 
-def _trim_to_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64, ok: npt.NDArray[np.bool_],
-                    min_area: int) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.bool_]]:
+def _trim_to_height(labels: npt.NDArray[np.int32], comps: list[int], resid: F64,
+                    ok: npt.NDArray[np.bool_], min_area: int
+                    ) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.bool_]]:
     """Each segment cut to its pixels standing above half its median height (a dark thread's
     rim of shading on the tissue beside it is dark but not raised), unless that leaves fewer
     than ``min_area`` pixels; also the (H, W) mask of all raised pixels (ground for no ring)."""
@@ -287,8 +290,9 @@ def _local_mean(resid: F64, ok: npt.NDArray[np.bool_], box: int = 5) -> F64:
 
 
 def _find_polarity(resid: F64, tex: F64, ok: npt.NDArray[np.bool_], threshold: float) -> str:
-    """``"bright"`` if the pixels above the threshold stand higher (median) over the ROI baseline than
-    those below it, else ``"dark"``: the raised feature is the side of the threshold that stands up."""
+    """``"bright"`` if the pixels above the threshold stand higher (median) over the ROI
+    baseline than those below it, else ``"dark"``: the raised feature is the side of the
+    threshold that stands up."""
     bright = ok & (tex > threshold)
     dark = ok & (tex < threshold)
     if not bright.any() or not dark.any():
@@ -333,8 +337,9 @@ def _pixel_coordinates(shape: tuple[int, ...], coords_mm: npt.ArrayLike | None) 
     return c
 
 
-def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_], min_px: int,
-              slab_px: float, comp: int, flank_degree: int = 1, edge_margin: float = 0.0
+def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDArray[np.bool_],
+              min_px: int, slab_px: float, comp: int, flank_degree: int = 1,
+              edge_margin: float = 0.0
               ) -> list[_Section]:
     """Cross-sections (one pixel pitch along the segment's long axis) levelled through both flanks.
 
@@ -350,8 +355,10 @@ def _sections(resid: F64, coords: F64, seg: npt.NDArray[np.bool_], ring: npt.NDA
     if len(xs) < min_px:
         return []
     xy = coords[ys, xs]
-    # one section per pixel pitch (1 in pixel coordinates; the median neighbour spacing in metric ones)
-    step = float(np.nanmedian(np.linalg.norm(coords[ys, np.minimum(xs + 1, coords.shape[1] - 1)] - xy, axis=1)))
+    # one section per pixel pitch (1 in pixel coordinates; the median
+    # neighbour spacing in metric ones)
+    right = coords[ys, np.minimum(xs + 1, coords.shape[1] - 1)]
+    step = float(np.nanmedian(np.linalg.norm(right - xy, axis=1)))
     if not step > 0:
         step = 1.0
     slab = slab_px * step
@@ -640,8 +647,8 @@ def _quadratic_basis(coords: F64, sel: npt.NDArray[np.bool_]) -> F64:
 def _fit_baseline(z: F64, sel: npt.NDArray[np.bool_], coords: F64) -> tuple[F64, float]:
     """Quadratic surface in the section coordinates fitted to ``sel`` pixels with 3σ clipping;
     (H, W) and RMS. In the same coordinates as the sections: an image-space surface subtracted
-    under metric sections would bring back the crest's parallax (its pixel is not above its
-    base point)."""
+    under metric sections would bring back the crest's parallax (its pixel is not
+    above its base point)."""
     if int(sel.sum()) < 6:
         raise ValueError("depth: too few pixels for a baseline surface")
     basis = _quadratic_basis(coords, sel)
@@ -667,33 +674,38 @@ def _baseline_covariance(z: F64, sel: npt.NDArray[np.bool_], baseline: F64, rms:
     with np.errstate(invalid="ignore"):
         kept = sel & (np.abs(z - baseline) <= 3.0 * max(rms, 1e-12))
     a = basis[:, kept].T
-    cov = rms**2 * _correlation_factor(np.where(kept, z - baseline, 0.0), kept) * np.linalg.pinv(a.T @ a)
+    factor = _correlation_factor(np.where(kept, z - baseline, 0.0), kept)
+    cov = rms**2 * factor * np.linalg.pinv(a.T @ a)
     return basis, np.asarray(cov, np.float64)
 
 
 def _correlation_factor(resid: F64, sel: npt.NDArray[np.bool_], box: int = 5) -> float:
-    """How much spatial correlation inflates the variance of a mean over many pixels: the variance of
-    ``box``×``box`` means over boxes wholly in ``sel``, times box², over the pixel variance (1 for
-    independent pixels; clipped to 1 … box²)."""
+    """How much spatial correlation inflates the variance of a mean over many pixels: the variance
+    of ``box``×``box`` means over boxes wholly in ``sel``, times box², over the pixel variance (1
+    for independent pixels; clipped to 1 … box²)."""
     m = sel.astype(np.float64)
-    full = cv2.boxFilter(m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT) > 1 - 1e-9
+    full = cv2.boxFilter(m, -1, (box, box), normalize=True,
+                         borderType=cv2.BORDER_CONSTANT) > 1 - 1e-9
     if full.sum() < 10 or sel.sum() < 10:
         return 1.0
-    means = cv2.boxFilter(resid * m, -1, (box, box), normalize=True, borderType=cv2.BORDER_CONSTANT)[full]
+    means = cv2.boxFilter(resid * m, -1, (box, box), normalize=True,
+                          borderType=cv2.BORDER_CONSTANT)[full]
     var = float(np.var(resid[sel]))
     if not var > 0:
         return 1.0
     return float(np.clip(np.var(means) * box * box / var, 1.0, box * box))
 
 
-def _components(mask: npt.NDArray[np.bool_], min_area: int) -> tuple[npt.NDArray[np.int32], list[int]]:
+def _components(mask: npt.NDArray[np.bool_],
+                min_area: int) -> tuple[npt.NDArray[np.int32], list[int]]:
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_area]
     return np.asarray(labels, np.int32), keep
 
 
 def _disk(r: int) -> npt.NDArray[np.uint8]:
-    return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)), np.uint8)
+    return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
+                      np.uint8)
 
 
 def _otsu(values: F64) -> float:

@@ -37,8 +37,8 @@ class DepthErrors:
     within_bin_std_mm: float
 
 
-def depth_errors(depth: npt.ArrayLike, truth: npt.ArrayLike, height_range_mm: tuple[float, float], *,
-                 mask: npt.ArrayLike | None = None) -> DepthErrors:
+def depth_errors(depth: npt.ArrayLike, truth: npt.ArrayLike, height_range_mm: tuple[float, float],
+                 *, mask: npt.ArrayLike | None = None) -> DepthErrors:
     """Compare a depth map with the true depth.
 
     Args:
@@ -94,8 +94,8 @@ def _pooled_std(key: F64, values: F64) -> float:
     return float(math.sqrt(max(0.0, ss.sum()) / dof)) if dof > 0 else math.nan
 
 
-def perpendicular_noise_mm(height_noise_mm: npt.ArrayLike, points: npt.ArrayLike, plane_normal: npt.ArrayLike,
-                           reference_normal: npt.ArrayLike) -> F64:
+def perpendicular_noise_mm(height_noise_mm: npt.ArrayLike, points: npt.ArrayLike,
+                           plane_normal: npt.ArrayLike, reference_normal: npt.ArrayLike) -> F64:
     """Height noise (mm) converted to noise of the distance to a plane of ``plane_normal``.
 
     A height change dh moves a point along its camera ray by X/(n_ref·X)·dh, so the

@@ -98,7 +98,8 @@ class ProfileSamples:
         pixels: (n, 2) int (u, v).
         distance_mm: (n,) position along the reference (chord direction, or the 3-D path
             length for a plane reference), mm; NaN where the pixel is invalid.
-        height_mm: (n,) signed height over the reference, positive toward the scope, mm; NaN invalid.
+        height_mm: (n,) signed height over the reference, positive toward
+        the scope, mm; NaN invalid.
         sigma_mm: (n,) 1-σ of each height, mm (including the reference points' noise and the
             calibration term).
         sigma_noise_mm: (n,) the part of ``sigma_mm`` from the pixels' noise alone.
@@ -112,7 +113,8 @@ class ProfileSamples:
 
     def to_dict(self) -> dict[str, Any]:
         return {"pixels": self.pixels.tolist(), "distance_mm": [_j(x) for x in self.distance_mm],
-                "height_mm": [_j(x) for x in self.height_mm], "sigma_mm": [_j(x) for x in self.sigma_mm]}
+                "height_mm": [_j(x) for x in self.height_mm],
+                "sigma_mm": [_j(x) for x in self.sigma_mm]}
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,8 @@ class Measurement:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"kind": self.kind, "value_mm": _j(self.value_mm), "sigma_mm": _j(self.sigma_mm),
+        out: dict[str, Any] = {"kind": self.kind, "value_mm": _j(self.value_mm),
+                               "sigma_mm": _j(self.sigma_mm),
                                "unit": "mm2" if self.kind == "area" else "mm",
                                "points": [p.to_dict() for p in self.points],
                                "snapped": any(p.snapped for p in self.points), "extra": self.extra}
@@ -183,7 +186,8 @@ class _Surface:
 
     def ok(self, rows: Any, cols: Any) -> npt.NDArray[np.bool_]:
         """Valid with a finite point, at ``[rows, cols]`` (indices or slices)."""
-        return np.asarray(self.valid[rows, cols] & np.all(np.isfinite(self.points[rows, cols]), axis=-1))
+        finite = np.all(np.isfinite(self.points[rows, cols]), axis=-1)
+        return np.asarray(self.valid[rows, cols] & finite)
 
     def pts(self, rows: Any, cols: Any) -> F64:
         return np.asarray(self.points[rows, cols], np.float64)
@@ -196,18 +200,21 @@ class _Surface:
 
 
 def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
-             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None, cal_sigma: float = 0.0,
-             cal_length: float = 0.0, calibration: Calibration | None = None) -> _Surface:
+             plane_normal: npt.ArrayLike | None, reason: npt.ArrayLike | None,
+             cal_sigma: float = 0.0, cal_length: float = 0.0,
+             calibration: Calibration | None = None) -> _Surface:
     pts = np.asarray(points)
     if pts.ndim != 3 or pts.shape[2] != 3 or not np.issubdtype(pts.dtype, np.floating):
         raise ValueError(f"points: expected a float (H, W, 3) array, got {pts.dtype} {pts.shape}")
     ok = np.asarray(valid)
     if ok.shape != pts.shape[:2] or ok.dtype != np.bool_:
-        raise ValueError(f"valid: need a bool array of shape {pts.shape[:2]}, got {ok.dtype} {ok.shape}")
+        raise ValueError(f"valid: need a bool array of shape {pts.shape[:2]}, "
+                         f"got {ok.dtype} {ok.shape}")
     sig = None if sigma is None else np.asarray(sigma)
     if sig is not None and sig.shape != ok.shape:
         raise ValueError(f"sigma: shape {sig.shape} does not match points {pts.shape[:2]}")
-    n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64).ravel()
+    n = (np.array([0.0, 0.0, 1.0]) if plane_normal is None
+         else np.asarray(plane_normal, np.float64).ravel())
     if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) == 0:
         raise ValueError(f"plane_normal: need 3 finite values, not all zero, got {n!r}")
     r = None if reason is None else np.asarray(reason)
@@ -228,7 +235,8 @@ def _surface(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike |
 def _pixels(pixels: Sequence[Sequence[float]] | npt.ArrayLike, what: str = "points") -> F64:
     px = np.asarray(pixels, np.float64)
     if px.ndim != 2 or px.shape[1] != 2:
-        raise ValueError(f"{what}: expected a list of (u, v) pixel coordinates, got shape {px.shape}")
+        raise ValueError(f"{what}: expected a list of (u, v) pixel coordinates, got shape "
+                         f"{px.shape}")
     for i, (u, v) in enumerate(px):
         if not (math.isfinite(u) and math.isfinite(v)):
             raise ValueError(f"{what}: point {i + 1} ({u}, {v}) is not finite")
@@ -270,8 +278,8 @@ def pick(surf: _Surface, u: float, v: float, snap_px: float, label: str,
         if (r < 1 or not np.any(near)) and fill:
             return _filled_pick(surf, u, v, iu, iv, label)
         if r < 1 or not np.any(near):
-            raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} and no valid pixel within "
-                             f"{snap_px:g} px")
+            raise ValueError(f"{label} ({u:g}, {v:g}): {_why(surf, iu, iv)} and no valid pixel "
+                             f"within {snap_px:g} px")
         k = int(np.flatnonzero(near)[np.argmin(d2[near])])
         pu, pv, dist = int(uu[k] + u0), int(vv[k] + v0), float(math.sqrt(d2[k]))
     x = surf.pts(pv, pu)
@@ -305,8 +313,10 @@ def _direction(surf: _Surface, x: F64) -> F64:
         return np.asarray(x / (x @ surf.normal)[..., None], np.float64)
 
 
-def _propagate(f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Sequence[Any]) -> float:
-    """1-σ of f(points) for independent height noise per distinct pixel id (first order, central differences)."""
+def _propagate(f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64,
+               ids: Sequence[Any]) -> float:
+    """1-σ of f(points) for independent height noise per distinct pixel id (first
+    order, central differences)."""
     grads: dict[Any, float] = {}
     scale = max(1e-6, float(np.max(np.abs(pts))) * 1e-7)
     for i in range(len(pts)):
@@ -355,15 +365,18 @@ def _coverage_error(what: str, covered: float) -> ValueError:
                       f"measurement needs at least {100 * MIN_COVERAGE:.0f} %")
 
 
-def _arrays(surf: _Surface, picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
+def _arrays(surf: _Surface,
+            picks: list[PickedPoint]) -> tuple[F64, F64, F64, list[tuple[int, int]]]:
     pts = np.array([p.point_mm for p in picks], np.float64)
     sig = np.array([p.sigma_mm for p in picks], np.float64)
     return pts, _direction(surf, pts), sig, [p.pixel for p in picks]
 
 
 def _correlation(surf: _Surface, a: F64, b: F64) -> F64:
-    """Correlation (n, m) of the calibration error between 3-D points ``a`` (n, 3) and ``b`` (m, 3), mm."""
-    d = np.linalg.norm(np.asarray(a, np.float64)[:, None, :] - np.asarray(b, np.float64)[None, :, :], axis=-1)
+    """Correlation (n, m) of the calibration error between 3-D points ``a`` (n,
+    3) and ``b`` (m, 3), mm."""
+    a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    d = np.linalg.norm(a64[:, None, :] - b64[None, :, :], axis=-1)
     if surf.cal_length <= 0:
         return np.asarray(d == 0, np.float64)
     return np.asarray(np.exp(-d / surf.cal_length), np.float64)
@@ -382,8 +395,8 @@ def _cal_sigma(surf: _Surface, coef: F64, x: F64, chunk: int = 1024) -> float:
     return surf.cal_sigma * math.sqrt(max(0.0, var))
 
 
-def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64, ids: Sequence[Any],
-                       picks: list[PickedPoint], surf: _Surface) -> Measurement:
+def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64,
+                       ids: Sequence[Any], picks: list[PickedPoint], surf: _Surface) -> Measurement:
     """The value, its σ from the pixels' noise and, in quadrature, from the calibration term."""
     noise = _propagate(f, pts, dirs, sig, ids)
     cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts) \
@@ -432,13 +445,14 @@ def length(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | N
     Returns:
         :class:`Measurement`, value and σ in mm.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
-                    calibration)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm,
+                    calibration_length_mm, calibration)
     px = _pixels(pixels)
     _count("length", px)
     picks = _picks(surf, px, snap_px, fill=fill_holes)
     if picks[0].pixel == picks[1].pixel:
-        raise ValueError(f"point 2 {picks[1].pixel}: same pixel as point 1; a length needs two distinct points")
+        raise ValueError(f"point 2 {picks[1].pixel}: same pixel as point 1; a length needs two "
+                         "distinct points")
     pts, dirs, sig, ids = _arrays(surf, picks)
 
     def f(p: F64) -> float:
@@ -456,14 +470,15 @@ def point_to_line(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayL
 
     Arguments as :func:`length`, with three pixels: the point, then two on the line.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
-                    calibration)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm,
+                    calibration_length_mm, calibration)
     px = _pixels(pixels)
     _count("point_to_line", px)
     picks = _picks(surf, px, snap_px)
     pts, dirs, sig, ids = _arrays(surf, picks)
     if np.linalg.norm(pts[2] - pts[1]) < 1e-6:
-        raise ValueError(f"points 2 and 3 {picks[1].pixel}, {picks[2].pixel}: coincide; they do not define a line")
+        raise ValueError(f"points 2 and 3 {picks[1].pixel}, {picks[2].pixel}: coincide; "
+                         "they do not define a line")
 
     def f(p: F64) -> float:
         d = p[2] - p[1]
@@ -479,8 +494,8 @@ def _plane_normal(p1: F64, p2: F64, p3: F64) -> F64:
     return -n if float(n @ p1) > 0 else n
 
 
-#: a reference triangle with a smaller angle leaves its plane ill-defined: its tilt follows the noise,
-#: far beyond what a first-order σ describes (seen on the twin at 1°)
+#: a reference triangle with a smaller angle leaves its plane ill-defined: its tilt follows the
+#: noise, far beyond what a first-order σ describes (seen on the twin at 1°)
 MIN_PLANE_ANGLE_DEG = 5.0
 
 
@@ -490,11 +505,12 @@ def _check_plane(pts: F64, picks: list[PickedPoint], first: int) -> None:
     lengths = [float(np.linalg.norm(e)) for e in edges]
     if min(lengths) < 1e-9:
         raise ValueError(f"points {names}: collinear or coincident; they do not define a plane")
-    angles = [math.degrees(math.acos(float(np.clip(-(edges[i - 1] @ edges[i]) / (lengths[i - 1] * lengths[i]),
-                                                   -1.0, 1.0)))) for i in range(3)]
+    cosines = [-(edges[i - 1] @ edges[i]) / (lengths[i - 1] * lengths[i]) for i in range(3)]
+    angles = [math.degrees(math.acos(float(np.clip(c, -1.0, 1.0)))) for c in cosines]
     if min(angles) < MIN_PLANE_ANGLE_DEG:
-        raise ValueError(f"points {names}: collinear or coincident (the triangle's smallest angle is "
-                         f"{min(angles):.1f}° < {MIN_PLANE_ANGLE_DEG:g}°); they do not define a plane well")
+        raise ValueError(f"points {names}: collinear or coincident (the triangle's smallest "
+                         f"angle is {min(angles):.1f}° < {MIN_PLANE_ANGLE_DEG:g}°); "
+                         "they do not define a plane well")
 
 
 def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
@@ -507,8 +523,8 @@ def depth(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | No
     Positive toward the scope (above the reference, as heights in the depth map); a pit
     below the plane reads negative. Arguments as :func:`length`, with four pixels.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
-                    calibration)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm,
+                    calibration_length_mm, calibration)
     px = _pixels(pixels)
     _count("depth", px)
     picks = _picks(surf, px, snap_px)
@@ -526,7 +542,8 @@ MAX_PROFILE_SAMPLES = 20_000
 
 
 def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
-    """Every pixel along a polyline (u, v): one sample per pixel step along each segment, no repeats."""
+    """Every pixel along a polyline (u, v): one sample per pixel step along
+    each segment, no repeats."""
     parts = []
     for (u0, v0), (u1, v1) in zip(vertices[:-1], vertices[1:], strict=True):
         n = max(1, int(math.ceil(max(abs(u1 - u0), abs(v1 - v0)))))
@@ -540,10 +557,10 @@ def polyline_pixels(vertices: F64) -> npt.NDArray[np.int64]:
 
 def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
-            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
-            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
-           calibration: Calibration | None = None,
+            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None,
+            snap_px: float = 3.0, plane_normal: npt.ArrayLike | None = None,
+            reason: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+            calibration_length_mm: float = 0.0, calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """Heights along a polyline, every pixel, against its chord or a 3-point reference plane.
 
@@ -566,8 +583,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         reference: None, or three (u, v) pixels spanning the reference plane.
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
-                    calibration)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm,
+                    calibration_length_mm, calibration)
     px = _pixels(pixels)
     _count("profile", px)
     ref_picks: list[PickedPoint] = []
@@ -623,7 +640,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         if len(good) > 1:
             step[good[1:]] = np.linalg.norm(np.diff(sp[good], axis=0), axis=1)
         dist = np.cumsum(step)
-    # first-order σ per sample: its own pixel plus the reference points (merged where they are the same pixel)
+    # first-order σ per sample: its own pixel plus the reference points (merged
+    # where they are the same pixel)
     eps = max(1e-6, float(np.nanmax(np.abs(sp[ok]))) * 1e-6) if ok.any() else 1e-6
     g_self = (heights(sp + eps * sdir, rpts)[0] - heights(sp - eps * sdir, rpts)[0]) / (2 * eps)
     g_ref = []
@@ -649,11 +667,13 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
         comb = g_self[None, :] * surf.cal_rows(np.where(ok[:, None], sp, np.nan)) \
             + np.einsum("rs,kr->ks", np.array(g_ref), surf.cal_rows(rpts))
         var_cal = np.sum(np.where(ok[None, :], comb, 0.0) ** 2, axis=0)
-    elif surf.cal_sigma > 0:  # Σ over the sample and the reference points of g_a g_b ρ(a, b), times s²
+    # Σ over the sample and the reference points of g_a g_b ρ(a, b), times s²
+    elif surf.cal_sigma > 0:
         gr = np.array(g_ref)  # (R, S)
         rho_sr = _correlation(surf, np.where(ok[:, None], sp, 0.0), rpts)  # (S, R)
+        rho_rr = _correlation(surf, rpts, rpts)  # (R, R)
         var_cal = (g_self**2 + 2.0 * g_self * np.einsum("rs,sr->s", gr, rho_sr)
-                   + np.einsum("rs,rq,qs->s", gr, _correlation(surf, rpts, rpts), gr)) * surf.cal_sigma**2
+                   + np.einsum("rs,rq,qs->s", gr, rho_rr, gr)) * surf.cal_sigma**2
         var_cal = np.maximum(var_cal, 0.0)
     s = np.where(ok, np.sqrt(var_noise + var_cal), np.nan)
     s_noise = np.where(ok, np.sqrt(var_noise), np.nan)
@@ -668,7 +688,8 @@ def profile(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | 
     extra = {"reference": "chord" if reference is None else "plane", "samples": int(len(samples)),
              "valid_samples": int(ok.sum()), "coverage": round(float(ok.mean()), 4),
              "at_pixel": [int(su[k]), int(sv[k])],
-             "sigma_noise_mm": float(s_noise[k]), "sigma_calibration_mm": float(np.sqrt(var_cal[k]))}
+             "sigma_noise_mm": float(s_noise[k]),
+             "sigma_calibration_mm": float(np.sqrt(var_cal[k]))}
     return Measurement("profile", float(h[k]), float(s[k]), picks + ref_picks, samples_out, extra)
 
 
@@ -704,8 +725,9 @@ def _segments_cross(a: F64, b: F64, c: F64, d: F64) -> bool:
 
 
 def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
-         pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5, snap_px: float = 3.0,
-         plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
+         pixels: Sequence[Sequence[float]] | npt.ArrayLike, *, window_px: int = 5,
+         snap_px: float = 3.0, plane_normal: npt.ArrayLike | None = None,
+         reason: npt.ArrayLike | None = None,
            calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
            calibration: Calibration | None = None) -> Measurement:
     """Area (mm²) of a polygon drawn on the image, measured on the surface (not its projection).
@@ -731,8 +753,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         window_px: smoothing box and sampling step, px (odd, ≥ 1).
         others: as :func:`length`.
     """
-    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm, calibration_length_mm,
-                    calibration)
+    surf = _surface(points, valid, sigma, plane_normal, reason, calibration_sigma_mm,
+                    calibration_length_mm, calibration)
     px = _pixels(pixels)
     _count("area", px)
     if not (isinstance(window_px, int | np.integer) and window_px >= 1 and window_px % 2 == 1):
@@ -746,15 +768,18 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
             if j == i + 1 or (i == 0 and j == m - 1):
                 continue
             if _segments_cross(poly[i], poly[(i + 1) % m], poly[j], poly[(j + 1) % m]):
-                raise ValueError(f"points: the polygon's edges {i + 1}-{(i + 1) % m + 1} and {j + 1}-{(j + 1) % m + 1} "
-                                 "cross")
-    signed = 0.5 * float(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
+                raise ValueError(f"points: the polygon's edges {i + 1}-{(i + 1) % m + 1} and "
+                                 f"{j + 1}-{(j + 1) % m + 1} cross")
+    signed = 0.5 * float(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1)
+                                - np.roll(poly[:, 0], -1) * poly[:, 1]))
     if abs(signed) < 1.0:
-        raise ValueError("points: the polygon encloses less than one pixel (collinear or coincident vertices)")
+        raise ValueError("points: the polygon encloses less than one pixel (collinear or "
+                         "coincident vertices)")
     h, w = surf.shape
     half = window_px // 2
     u_lo, v_lo = int(poly[:, 0].min()) - half - 1, int(poly[:, 1].min()) - half - 1
-    u_hi, v_hi = int(math.ceil(poly[:, 0].max())) + half + 2, int(math.ceil(poly[:, 1].max())) + half + 2
+    u_hi = int(math.ceil(poly[:, 0].max())) + half + 2
+    v_hi = int(math.ceil(poly[:, 1].max())) + half + 2
     bu0, bv0, bu1, bv1 = max(0, u_lo), max(0, v_lo), min(w, u_hi), min(h, v_hi)
     # box means over the bounding box (+ margin): sums via an integral image
     okb = surf.ok(slice(bv0, bv1), slice(bu0, bu1))
@@ -769,7 +794,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
     cnt = _box_sum(okb.astype(np.float64), half)
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = _box_sum(pb, half) / cnt[..., None]
-    # samples: interior grid + edges, at most ~4000 inside (a large polygon is sampled more coarsely)
+    # samples: interior grid + edges, at most ~4000 inside (a large polygon
+    # is sampled more coarsely)
     step = max(float(window_px), math.sqrt(abs(signed) / 4000.0))
     gu = np.arange(math.ceil(poly[:, 0].min() / step) * step, poly[:, 0].max() + 1e-9, step)
     gv = np.arange(math.ceil(poly[:, 1].min() / step) * step, poly[:, 1].max() + 1e-9, step)
@@ -783,7 +809,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         for t in np.arange(n) / n:
             edge.append((float(a[0] + t * (b[0] - a[0])), float(a[1] + t * (b[1] - a[1]))))
     e = np.array(edge)
-    # interior samples too close to the edge make slivers: drop those within step/2 of an edge sample
+    # interior samples too close to the edge make slivers: drop those
+    # within step/2 of an edge sample
     su, sv = uu[keep], vv[keep]
     far = _edge_distance(poly, su, sv) > 0.5 * step
     su, sv = su[far], sv[far]
@@ -809,7 +836,8 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         except ValueError:
             raise ValueError(f"points: no valid pixels around ({su[hole]:.0f}, {sv[hole]:.0f}) to "
                              f"fill the polygon's hole (coverage {100 * coverage:.0f} %)") from None
-    corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)]
+    corners = [(0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv),
+               (1, 1, fu * fv)]
     corners = [(du, dv, np.where(usable, wgt, 0.0)) for du, dv, wgt in corners]
     X = np.zeros((len(su), 3))
     for du, dv, wgt in corners:
@@ -857,10 +885,11 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         np.add.at(cimg, (rows, cols), coef[i] * w_fit)
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
-    # the calibration term: systematic and smooth, so not reduced by the box means; correlated between
-    # samples by their distance (a height error shared by the whole polygon scales its area)
+    # the calibration term: systematic and smooth, so not reduced by the box means; correlated
+    # between samples by their distance (a height error shared by the whole polygon scales its area)
     sigma_cal = _cal_sigma(surf, coef, X)
-    # variance of each sample's height noise (box mean, bilinear mix; neighbours' overlap ignored here)
+    # variance of each sample's height noise (box mean, bilinear mix;
+    # neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2
     var_s = np.zeros(len(su))
     for du, dv, wgt in corners:
@@ -869,11 +898,16 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         var_s[i] = float(np.sum((w_fit * sig_b[rows, cols]) ** 2))
     # roughness inflation: E[ΔA_t] = A_t · E|∇h_n|² / 2, h_n the noise's normal component
     a_vec, b_vec = b_ - a_, c_ - a_
-    gmat = np.stack([np.stack([np.einsum("ij,ij->i", a_vec, a_vec), np.einsum("ij,ij->i", a_vec, b_vec)], -1),
-                     np.stack([np.einsum("ij,ij->i", a_vec, b_vec), np.einsum("ij,ij->i", b_vec, b_vec)], -1)], -2)
-    vn = var_s[simp] * np.einsum("tkj,tj->tk", dirs[simp], nh) ** 2  # (T, 3) normal-component variances
-    cov = np.stack([np.stack([vn[:, 1] + vn[:, 0], vn[:, 0]], -1), np.stack([vn[:, 0], vn[:, 2] + vn[:, 0]], -1)], -2)
-    good = norm > 1e-6 * float(np.median(norm))  # slivers of collinear edge samples: no area, no roughness
+    gmat = np.stack([np.stack([np.einsum("ij,ij->i", a_vec, a_vec),
+                               np.einsum("ij,ij->i", a_vec, b_vec)], -1),
+                     np.stack([np.einsum("ij,ij->i", a_vec, b_vec),
+                               np.einsum("ij,ij->i", b_vec, b_vec)], -1)], -2)
+    # (T, 3) normal-component variances
+    vn = var_s[simp] * np.einsum("tkj,tj->tk", dirs[simp], nh) ** 2
+    cov = np.stack([np.stack([vn[:, 1] + vn[:, 0], vn[:, 0]], -1),
+                    np.stack([vn[:, 0], vn[:, 2] + vn[:, 0]], -1)], -2)
+    # slivers of collinear edge samples: no area, no roughness
+    good = norm > 1e-6 * float(np.median(norm))
     corr = 0.0
     if np.any(good):
         tr = np.einsum("tij,tji->t", np.linalg.inv(gmat[good]), cov[good])
@@ -926,8 +960,8 @@ def _linear_fill(ok: npt.NDArray[np.bool_], u: float, v: float, window_px: int,
 def _box_sum(a: F64, half: int) -> F64:
     """Sum over the (2·half+1)² box around each pixel (zero outside the array)."""
     k = 2 * half + 1
-    return np.asarray(cv2.boxFilter(np.ascontiguousarray(a, np.float64), -1, (k, k), normalize=False,
-                                    borderType=cv2.BORDER_CONSTANT), np.float64)
+    return np.asarray(cv2.boxFilter(np.ascontiguousarray(a, np.float64), -1, (k, k),
+                                    normalize=False, borderType=cv2.BORDER_CONSTANT), np.float64)
 
 
 # -- dispatch --------------------------------------------------------------------------------------
@@ -936,10 +970,10 @@ Kind = Literal["length", "point_to_line", "depth", "profile", "area"]
 
 def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | None,
             pixels: Sequence[Sequence[float]] | npt.ArrayLike, *,
-            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None, snap_px: float = 3.0,
-            plane_normal: npt.ArrayLike | None = None, reason: npt.ArrayLike | None = None,
-           calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
-           calibration: Calibration | None = None,
+            reference: Sequence[Sequence[float]] | npt.ArrayLike | None = None,
+            snap_px: float = 3.0, plane_normal: npt.ArrayLike | None = None,
+            reason: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+            calibration_length_mm: float = 0.0, calibration: Calibration | None = None,
             fill_holes: bool = False) -> Measurement:
     """One measurement of ``kind`` (see :data:`KINDS`); ``reference`` only for ``profile``.
 
@@ -953,7 +987,8 @@ def measure(kind: str, points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.A
     if reference is not None and kind != "profile":
         raise ValueError(f"reference: only a profile takes reference points, not {kind}")
     kw: dict[str, Any] = {"snap_px": snap_px, "plane_normal": plane_normal, "reason": reason,
-                          "calibration_sigma_mm": calibration_sigma_mm, "calibration_length_mm": calibration_length_mm,
+                          "calibration_sigma_mm": calibration_sigma_mm,
+                          "calibration_length_mm": calibration_length_mm,
                           "calibration": calibration}
     if kind == "profile":
         return profile(points, valid, sigma, pixels, reference=reference, fill_holes=fill_holes,

@@ -70,7 +70,8 @@ class PlaneAccuracy:
 
 
 def fit_plane_lsq(points: npt.ArrayLike) -> tuple[F64, float]:
-    """Total least-squares plane of (n, 3) points: (unit normal, offset mm), normal·X + offset = 0."""
+    """Total least-squares plane of (n, 3) points: (unit normal, offset mm),
+    normal·X + offset = 0."""
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 3:
         raise ValueError(f"points: expected (n >= 3, 3), got {pts.shape}")
@@ -107,7 +108,8 @@ def fit_plane_mlesac(points: npt.ArrayLike, *, inlier_mm: float = 0.005, max_ang
         raise ValueError(f"iterations: must be >= 1, got {iterations}")
     rng = np.random.default_rng(seed)
     pca_normal, _ = fit_plane_lsq(pts)
-    score_pts = pts if len(pts) <= sample_size else pts[rng.choice(len(pts), sample_size, replace=False)]
+    score_pts = (pts if len(pts) <= sample_size
+                 else pts[rng.choice(len(pts), sample_size, replace=False)])
     sigma = inlier_mm / 1.96
     cos_max = math.cos(math.radians(max_angle_deg))
     idx = rng.integers(0, len(pts), size=(iterations, 3))
@@ -146,7 +148,8 @@ def fit_plane_mlesac(points: npt.ArrayLike, *, inlier_mm: float = 0.005, max_ang
 
 
 def _mlesac_cost(e: F64, sigma: float) -> F64:
-    """Negative log-likelihood per hypothesis (columns of (m, k) residuals e), Gaussian/uniform mixture, γ by EM."""
+    """Negative log-likelihood per hypothesis (columns of (m, k) residuals e),
+    Gaussian/uniform mixture, γ by EM."""
     nu = np.maximum(np.ptp(e, axis=0), 6 * sigma)
     p_in = np.exp(-0.5 * (e / sigma) ** 2) / (math.sqrt(2 * math.pi) * sigma)
     p_out = 1.0 / nu

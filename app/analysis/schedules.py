@@ -112,7 +112,8 @@ class SchedulePrediction:
 
 def predict_schedule(schedule: PatternSchedule, sigma_i: npt.ArrayLike, modulation: npt.ArrayLike,
                      dz_dphi_mm_per_rad: npt.ArrayLike) -> SchedulePrediction:
-    """Depth σ and order-error rate of ``schedule`` over pixels with the given noise, contrast and slope.
+    """Depth σ and order-error rate of ``schedule`` over pixels with the given
+    noise, contrast and slope.
 
     Args:
         schedule: the pattern schedule.

@@ -93,7 +93,8 @@ def _algebraic_sphere(pts: F64) -> tuple[F64, float]:
 
 def sphere_figures(points: npt.ArrayLike, diameter_mm: float, valid: npt.ArrayLike | None = None, *,
                    roi: tuple[int, int, int, int] | None = None, exclude_fraction: float = 0.003,
-                   segment: bool = True, band_mm: float | None = None, seed: int = 0) -> SphereFigures:
+                   segment: bool = True, band_mm: float | None = None,
+                   seed: int = 0) -> SphereFigures:
     """PF and PS of a measured sphere of calibrated ``diameter_mm``.
 
     Args:
@@ -116,7 +117,8 @@ def sphere_figures(points: npt.ArrayLike, diameter_mm: float, valid: npt.ArrayLi
         raise ValueError(f"points: need at least 10 valid points, got {len(pts)}")
     inliers = np.ones(len(pts), bool)
     if segment:
-        inliers = _ransac_sphere(pts, diameter_mm / 2, band_mm or min(0.1, 0.02 * diameter_mm), seed)
+        inliers = _ransac_sphere(pts, diameter_mm / 2, band_mm or min(0.1, 0.02 * diameter_mm),
+                                 seed)
     fit = fit_sphere(pts[inliers])
     if segment:  # refit once with the points near the least-squares sphere
         d = np.abs(np.linalg.norm(pts - fit.center, axis=1) - fit.radius_mm)

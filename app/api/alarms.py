@@ -22,6 +22,7 @@ def list_alarms(alarms: AlarmsDep, include_acknowledged: bool = False) -> list[d
 
 
 @router.post("/{alarm_id}/ack", response_model=AlarmOut, responses={**R404, **R422, **COMMON})
-def acknowledge(alarm_id: Annotated[int, Path(ge=1, le=2**31)], alarms: AlarmsDep) -> dict[str, Any]:
+def acknowledge(alarm_id: Annotated[int, Path(ge=1, le=2**31)],
+                alarms: AlarmsDep) -> dict[str, Any]:
     """Acknowledge an alarm: the dashboard stops showing it (acknowledging twice is harmless)."""
     return alarms.acknowledge(alarm_id).to_dict()

@@ -24,7 +24,8 @@ async def plane(body: RoiIn, inst: InstrumentDep) -> Any:
 @router.post("/feature", response_model=FeatureOut, responses={**R409, **R400, **R422, **COMMON})
 async def feature(body: FeatureIn, inst: InstrumentDep,
                   calibrations: CalibrationsDep) -> Any:
-    """Height of a feature (e.g. a suture, bright or dark) above its surrounding baseline in the ROI."""
+    """Height of a feature (e.g. a suture, bright or dark) above its
+    surrounding baseline in the ROI."""
     cal = calibrations.calibration
     return await run_in_threadpool(analysis.feature, inst.latest_result(), body.box, body.polarity,
                                    None if cal is None else cal.plane_normal)

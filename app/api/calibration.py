@@ -31,8 +31,9 @@ from app.core.errors import InvalidRequest, NotFound
 router = APIRouter(prefix="/api/calibration", tags=["calibration"])
 
 #: skip the dry run on the newest frames (never the physical checks)
-Force = Annotated[bool, Query(description="activate even if the dry run on the newest frames "
-                                          "leaves far fewer valid pixels than the active calibration")]
+Force = Annotated[bool, Query(description="activate even if the dry run on the newest "
+                                          "frames leaves far fewer valid pixels than "
+                                          "the active calibration")]
 JSON_TYPES = ("application/json",)
 
 # OpenAPI links (followed by clients and by the stateful schemathesis run)
@@ -60,13 +61,15 @@ def active(calibrations: CalibrationsDep) -> Any:
     return summary.to_dict()
 
 
-@router.post("/session", response_model=SessionOut, responses={**SESSION_LINKS, **R400, **R422, **COMMON})
+@router.post("/session", response_model=SessionOut,
+             responses={**SESSION_LINKS, **R400, **R422, **COMMON})
 def new_session(board: BoardIn, calibrations: CalibrationsDep) -> Any:
     """Start a session with a board spec (``board.json`` format); replaces any previous one."""
     return calibrations.start_session(board.model_dump()).describe()
 
 
-@router.get("/session", response_model=SessionOut, operation_id="get_session", responses={**R409, **COMMON})
+@router.get("/session", response_model=SessionOut, operation_id="get_session",
+            responses={**R409, **COMMON})
 def get_session(calibrations: CalibrationsDep) -> Any:
     """The open session: its board, poses and whether it is solved (409 if none is open)."""
     return calibrations.require_session().describe()
@@ -105,14 +108,16 @@ def cancel_session(inst: InstrumentDep) -> SessionCancelOut:
     return SessionCancelOut(cancelled=session is not None, poses=poses)
 
 
-@router.post("/session/poses", operation_id="capture_pose", responses={**POSE_LINKS, **R409, **COMMON})
+@router.post("/session/poses", operation_id="capture_pose",
+             responses={**POSE_LINKS, **R409, **COMMON})
 def capture_pose(calibrations: CalibrationsDep) -> dict[str, Any]:
     """Capture the current view as a pose: {index, found, corners, preview_url, corner_points,
     coverage} (coverage: the cells covered so far, sigma_model per cell, the next pose)."""
     return calibrations.capture_pose(15.0)
 
 
-@router.get("/session/poses", response_model=list[PoseOut], operation_id="list_poses", responses={**R409, **COMMON})
+@router.get("/session/poses", response_model=list[PoseOut], operation_id="list_poses",
+            responses={**R409, **COMMON})
 def list_poses(calibrations: CalibrationsDep) -> Any:
     return calibrations.require_session().summaries()
 
@@ -121,7 +126,8 @@ def list_poses(calibrations: CalibrationsDep) -> Any:
             responses={200: {"content": {"image/png": {}}}, **R404, **R409, **R422, **COMMON})
 def pose_preview(index: int, calibrations: CalibrationsDep) -> Response:
     """The pose's texture with the detected board points drawn."""
-    return binary(calibrations.require_session().pose(index).preview_png, "image/png", None, f"pose_{index:02d}.png")
+    return binary(calibrations.require_session().pose(index).preview_png, "image/png", None,
+                  f"pose_{index:02d}.png")
 
 
 @router.delete("/session/poses/{index}", response_model=list[PoseOut], operation_id="delete_pose",
@@ -133,7 +139,8 @@ def delete_pose(index: int, calibrations: CalibrationsDep) -> Any:
     return session.summaries()
 
 
-@router.post("/session/solve", response_model=SolveOut, responses={**R409, **R400, **R422, **COMMON})
+@router.post("/session/solve", response_model=SolveOut,
+             responses={**R409, **R400, **R422, **COMMON})
 def solve(
     calibrations: CalibrationsDep,
     body: SolveIn = Body(default_factory=SolveIn),
@@ -142,9 +149,9 @@ def solve(
     report = calibrations.solve_session(robust=body.robust)
     return {
         "poses": [
-            {"pose": p.pose, "name": p.name, "corners": p.corners, "reprojection_px": _num(p.reprojection_px),
-             "rms_mm": _num(p.rms_mm), "points": p.points, "dropped": p.dropped,
-             "height_mm": [_num(h) for h in p.height_mm]}
+            {"pose": p.pose, "name": p.name, "corners": p.corners,
+             "reprojection_px": _num(p.reprojection_px), "rms_mm": _num(p.rms_mm),
+             "points": p.points, "dropped": p.dropped, "height_mm": [_num(h) for h in p.height_mm]}
             for p in report.poses
         ],
         "rms_mm": _num(report.rms_mm),
@@ -157,7 +164,8 @@ def solve(
     }
 
 
-@router.post("/session/activate", response_model=CalibrationSummary, responses={**R409, **R400, **R422, **COMMON})
+@router.post("/session/activate", response_model=CalibrationSummary,
+             responses={**R409, **R400, **R422, **COMMON})
 def activate(
     inst: InstrumentDep,
     body: ActivateIn = Body(default_factory=ActivateIn),
@@ -196,7 +204,8 @@ async def upload(request: Request, calibrations: CalibrationsDep, settings: Sett
 
     media = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media not in JSON_TYPES and not media.endswith("+json"):
-        raise InvalidRequest(f"calibration: Content-Type must be application/json, got {media or 'none'!r}")
+        raise InvalidRequest("calibration: Content-Type must be application/json, "
+                             f"got {media or 'none'!r}")
     body = await read_body(request, int(settings.max_upload_mb * 1024 * 1024))
     try:
         data = json.loads(body)
@@ -206,7 +215,8 @@ async def upload(request: Request, calibrations: CalibrationsDep, settings: Sett
         raise InvalidRequest("calibration: expected a JSON object")
     try:  # the file is the user's input: whatever does not fit it is their error
         cal = Calibration.from_dict(data)
-        await run_in_threadpool(calibrations.activate, cal, name="uploaded", persist=True, force=force)
+        await run_in_threadpool(calibrations.activate, cal, name="uploaded", persist=True,
+                                force=force)
     except (ValueError, KeyError, TypeError) as exc:
         raise InvalidRequest(f"calibration: {exc}") from None
     summary = calibrations.summary()

@@ -42,7 +42,8 @@ def put_exposure(body: ExposureIn, inst: InstrumentDep) -> ExposureOut:
     return ExposureOut(exposure_ms=inst.set_exposure(body.exposure_ms))
 
 
-@router.post("/exposure/auto", response_model=AutoExposureOut, responses={**R409, **R400, **R422, **COMMON})
+@router.post("/exposure/auto", response_model=AutoExposureOut,
+             responses={**R409, **R400, **R422, **COMMON})
 def auto_exposure(
     pipeline: PipelineDep,
     body: AutoExposureIn = Body(default_factory=AutoExposureIn),
@@ -50,7 +51,8 @@ def auto_exposure(
     """Longest exposure whose sets keep saturation under the limit (grabs a few real sets); then
     exposure bracketing on if more than 10 % of the lit, unsaturated pixels stay invalid for low
     signal at it (the scene spans more than one exposure), off otherwise."""
-    res = pipeline.auto_exposure(saturation_limit=body.saturation_limit, max_exposure_ms=body.max_exposure_ms)
+    res = pipeline.auto_exposure(saturation_limit=body.saturation_limit,
+                                 max_exposure_ms=body.max_exposure_ms)
     return {**asdict(res), "bracket": pipeline.bracketing,
             "low_signal_share": pipeline.bracket_dim_share}
 

@@ -104,8 +104,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     async def internal(request: Request, exc: Exception) -> JSONResponse:
         log.error("%s %s failed", request.method, request.url.path, exc_info=exc)
-        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); see the server log"},
-                            status_code=500)
+        detail = f"internal error ({type(exc).__name__}); see the server log"
+        return JSONResponse({"detail": detail}, status_code=500)
 
     app.add_exception_handler(RequestValidationError, invalid)
     app.add_exception_handler(DomainError, domain)
@@ -150,7 +150,8 @@ def install_api_fallback(app: FastAPI) -> None:
 
 # -- OpenAPI: the answers a route can give besides its 200 -----------------------------------------
 _DETAIL: dict[str, Any] = {"type": "string", "description": "what is wrong, one line"}
-_VALIDATION_ITEM: dict[str, Any] = {"type": "object", "required": ["loc", "msg", "type"], "properties": {
+_VALIDATION_ITEM: dict[str, Any] = {"type": "object", "required": ["loc", "msg", "type"],
+                                    "properties": {
     "loc": {"type": "array", "items": {"anyOf": [{"type": "string"}, {"type": "integer"}]}},
     "msg": {"type": "string"}, "type": {"type": "string"}}}
 

@@ -17,7 +17,8 @@ router = APIRouter(prefix="/api", tags=["control"])
 
 @router.get("/limits", response_model=LimitsOut, responses=COMMON)
 def limits(pipeline: PipelineDep) -> LimitsOut:
-    """LED names, the exposure range (ms), the camera's bit depths and the default depth colour range (mm)."""
+    """LED names, the exposure range (ms), the camera's bit depths and the default
+    depth colour range (mm)."""
     bit_depths = list(pipeline.camera_bit_depths() or LIVE_BIT_DEPTHS)
     return LimitsOut(leds=list(LEDS), exposure_ms=list(EXPOSURE_RANGE_MS), bit_depths=bit_depths,
                      depth_range_mm=list(DEFAULT_DEPTH_RANGE_MM))

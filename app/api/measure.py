@@ -1,4 +1,5 @@
-"""3-D measurements where the user clicks (issue 17): length, point-to-line, depth, profile, area."""
+"""3-D measurements where the user clicks (issue 17): length,
+point-to-line, depth, profile, area."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def _measure(inst: Instrument, recorder: Recorder, body: MeasureIn) -> dict[str,
     return out
 
 
-@router.post("/measure", response_model=MeasureOut, responses={**R400, **R404, **R409, **R422, **COMMON})
+@router.post("/measure", response_model=MeasureOut,
+             responses={**R400, **R404, **R409, **R422, **COMMON})
 async def measure(body: MeasureIn, inst: InstrumentDep, recorder: RecorderDep) -> Any:
     """Measure in 3-D between clicked pixels, with the 1-σ uncertainty from the per-pixel σ.
 

@@ -79,14 +79,15 @@ def recording_zip(recorder: RecorderDep, name: str = Name) -> StreamingResponse:
         "Content-Disposition": f'attachment; filename="{name}.zip"', "Cache-Control": "no-store"})
 
 
-@router.get("/recordings/{name:recording}", operation_id="recording_meta", responses={**R404, **R422, **COMMON})
+@router.get("/recordings/{name:recording}", operation_id="recording_meta",
+            responses={**R404, **R422, **COMMON})
 def recording_meta(recorder: RecorderDep, name: str = Name) -> dict[str, Any]:
     """``session.json`` of a recording (start, stop, settings, sets with time stamps)."""
     return recorder.session(name)
 
 
-@router.delete("/recordings/{name:recording}", response_model=RecordingDeletedOut, operation_id="recording_delete",
-               responses={**R404, **R409, **R422, **COMMON})
+@router.delete("/recordings/{name:recording}", response_model=RecordingDeletedOut,
+               operation_id="recording_delete", responses={**R404, **R409, **R422, **COMMON})
 def recording_delete(recorder: RecorderDep, name: str = Name) -> RecordingDeletedOut:
     """Delete a recording (not the one being written)."""
     recorder.delete(name)

@@ -45,7 +45,8 @@ def latest_meta(inst: Instrument = Depends(get_instrument)) -> dict[str, Any]:
 
 @router.get(
     "/depth/latest",
-    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}, "image/tiff": {}}},
+    responses={200: {"content": {"application/octet-stream": {}, "image/png": {},
+                                 "image/tiff": {}}},
                **R409, **R422, **COMMON},
 )
 def depth_latest(
@@ -56,7 +57,8 @@ def depth_latest(
     field: SigmaField = Query("depth", description=FIELD_HELP),
     inst: Instrument = Depends(get_instrument),
 ) -> Response:
-    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid), ``color`` turbo + bar.
+    """Depth, mm: ``npy`` float32 (NaN invalid), ``png`` 16-bit µm (0 invalid),
+    ``color`` turbo + bar.
 
     ``field=sigma`` gives the per-pixel total 1-σ depth uncertainty (mm; sensor noise ⊕
     calibration), ``sigma_noise`` and ``sigma_model`` its two parts, in the same encodings
@@ -81,7 +83,8 @@ def depth_latest(
 
             data = res.cached(f"{field}-tiff", lambda: depth_tiff_bytes(sig()))
             return binary(data, "image/tiff", headers, name)
-        srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm, 0.1 if max_mm is None else max_mm)
+        srng = encoding.check_range_mm(0.0 if min_mm is None else min_mm,
+                                       0.1 if max_mm is None else max_mm)
         data = res.cached((f"{field}-color", srng), lambda: encoding.depth_color_png(sig(), srng))
         return binary(data, "image/png", headers, name)
     if format == "npy":
@@ -100,7 +103,8 @@ def depth_latest(
     return binary(data, "image/png", headers, "depth_color.png")
 
 
-@router.get("/texture/latest.png", responses={200: {"content": {"image/png": {}}}, **R409, **COMMON})
+@router.get("/texture/latest.png",
+            responses={200: {"content": {"image/png": {}}}, **R409, **COMMON})
 def texture_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Texture A + B, 8-bit, scaled by the sensor's full scale."""
     res = inst.latest_result()
@@ -110,7 +114,8 @@ def texture_latest(inst: Instrument = Depends(get_instrument)) -> Response:
 
 @router.get("/reason/latest.png", responses={200: {"content": {"image/png": {}}}, **R409, **COMMON})
 def reason_latest(inst: Instrument = Depends(get_instrument)) -> Response:
-    """Why pixels are invalid, one colour per reason (legend in the X-Fringescope-Reasons header)."""
+    """Why pixels are invalid, one colour per reason (legend in the
+    X-Fringescope-Reasons header)."""
     res = inst.latest_result()
     data = res.cached("reason", lambda: encoding.reason_png(res.reason))
     headers = {**result_headers(res.metadata()), "X-Fringescope-Reasons": encoding.legend_header()}
@@ -122,7 +127,8 @@ def reason_legend() -> dict[str, Any]:
     return encoding.reason_legend()
 
 
-@router.get("/pointcloud/latest.ply", responses={200: {"content": {"application/octet-stream": {}}}, **R409, **COMMON})
+@router.get("/pointcloud/latest.ply",
+            responses={200: {"content": {"application/octet-stream": {}}}, **R409, **COMMON})
 def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
     """Valid points (camera frame, mm) with texture intensity and σ (total, noise and
     calibration), binary PLY."""
@@ -135,7 +141,8 @@ def pointcloud_latest(inst: Instrument = Depends(get_instrument)) -> Response:
 @router.post(
     "/reconstruct",
     response_model=ReconstructSummary,
-    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R409, **R413, **R415, **R422, **COMMON},
+    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R409, **R413, **R415,
+               **R422, **COMMON},
     openapi_extra=CAPTURE_UPLOAD,
 )
 async def reconstruct(
@@ -181,13 +188,16 @@ def _median(values: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_]) -> fl
 @router.post(
     "/phase",
     response_model=PhaseSummary,
-    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R413, **R415, **R422, **COMMON},
+    responses={200: {"content": {"application/octet-stream": {}}}, **R400, **R413, **R415, **R422,
+               **COMMON},
     openapi_extra=CAPTURE_UPLOAD,
 )
 async def phase(
-    request: Request, format: Literal["json", "npy"] = "json", inst: Instrument = Depends(get_instrument)
+    request: Request, format: Literal["json", "npy"] = "json",
+    inst: Instrument = Depends(get_instrument)
 ) -> Any:
-    """Unwrapped phase of an uploaded capture set, no calibration needed (``format=npy``: phase.npy)."""
+    """Unwrapped phase of an uploaded capture set, no calibration needed
+    (``format=npy``: phase.npy)."""
     capture = await capture_from_request(request, int(inst.settings.max_upload_mb * 1024 * 1024))
     res = await run_in_threadpool(decode_capture, capture)
     if format == "npy":

@@ -1,4 +1,5 @@
-"""Fringe pattern schedules: the registered ones with their predicted figures, and the one in use."""
+"""Fringe pattern schedules: the registered ones with their predicted
+figures, and the one in use."""
 
 from __future__ import annotations
 
@@ -24,12 +25,15 @@ class ScheduleOut(BaseModel):
     unwrap: str
     frames_per_depth: int
     predicted_sigma_mm: float | None = Field(
-        description="median predicted 1-σ depth noise over the newest map's valid pixels, mm (null: no map yet)")
+        description="median predicted 1-σ depth noise over the newest map's valid pixels, "
+                    "mm (null: no map yet)")
     predicted_sigma_phi_rad: float = Field(description="median σ of the finest wrapped phase, rad")
-    predicted_order_error_rate: float = Field(description="mean probability of a wrong fringe order per pixel")
+    predicted_order_error_rate: float = Field(description="mean probability of a wrong "
+                                                          "fringe order per pixel")
     prediction_source: Literal["live", "nominal"]
-    calibration_applies: bool | None = Field(description="the active calibration maps this schedule's phase "
-                                                         "(same finest pattern); null: no calibration")
+    calibration_applies: bool | None = Field(description="the active calibration maps this "
+                                                         "schedule's phase (same finest pattern); "
+                                                         "null: no calibration")
     calibration_note: str | None
     active: bool
 
@@ -46,7 +50,8 @@ class ScheduleSet(BaseModel):
 
 @router.get("/schedules", response_model=list[ScheduleOut], responses=COMMON)
 def get_schedules(inst: InstrumentDep) -> list[dict[str, Any]]:
-    """Every registered schedule with its predicted depth σ and order-error rate at the rig's noise."""
+    """Every registered schedule with its predicted depth σ and order-error
+    rate at the rig's noise."""
     return inst.schedules()
 
 

@@ -41,7 +41,8 @@ from app.recon.exposure import DEFAULT_SATURATION_LIMIT
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
-EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS  # checked here (the API boundary) and by the devices
+# checked here (the API boundary) and by the devices
+EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS
 
 
 class Strict(BaseModel):
@@ -50,7 +51,8 @@ class Strict(BaseModel):
 
 class ExposureIn(Strict):
     exposure_ms: float = Field(..., ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS,
-                               description=f"camera exposure, {EXPOSURE_MIN_MS:g}–{EXPOSURE_MAX_MS:g} ms")
+                               description="camera exposure, "
+                                           f"{EXPOSURE_MIN_MS:g}–{EXPOSURE_MAX_MS:g} ms")
 
 
 class ExposureOut(BaseModel):
@@ -59,7 +61,8 @@ class ExposureOut(BaseModel):
 
 
 class AutoExposureIn(Strict):
-    saturation_limit: float = Field(DEFAULT_SATURATION_LIMIT, ge=0.0, lt=1.0, description="allowed saturated fraction")
+    saturation_limit: float = Field(DEFAULT_SATURATION_LIMIT, ge=0.0, lt=1.0,
+                                    description="allowed saturated fraction")
     max_exposure_ms: float = Field(EXPOSURE_MAX_MS, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS)
 
 
@@ -186,13 +189,17 @@ class ResultMeta(BaseModel):
     bracket_exposures_ms: list[float] | None = Field(
         None, description="exposure bracketing: the two sets' exposures this map fuses "
                           "(null: one set)")
-    map_time: float | None = Field(None, description="the instant the depth stands for (frame timestamp clock, s): "
-                                   "its finest frequency group's mid-exposure")
-    moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' backgrounds disagree)")
+    map_time: float | None = Field(None, description="the instant the depth stands for (frame "
+                                                     "timestamp clock, s): its finest frequency "
+                                                     "group's mid-exposure")
+    moved_pixels: int = Field(0, description="pixels invalid for motion (frequency groups' "
+                                             "backgrounds disagree)")
     motion_ms: float = Field(0.0, description="of recon_ms, the motion test")
-    scene_moved: bool = Field(False, description="the set's raw motion flags exceed a still scene's: valid pixels "
-                              "then need σ ≤ gross_error_mm / (z + k)")
-    uncertain_moving_pixels: int = Field(0, description="valid pixels made UNCERTAIN by that moving-scene σ bound")
+    scene_moved: bool = Field(False, description="the set's raw motion flags exceed a still "
+                                                 "scene's: valid pixels then need σ ≤ "
+                                                 "gross_error_mm / (z + k)")
+    uncertain_moving_pixels: int = Field(0, description="valid pixels made UNCERTAIN by that "
+                                                        "moving-scene σ bound")
 
 
 class PhaseSummary(BaseModel):
@@ -201,7 +208,8 @@ class PhaseSummary(BaseModel):
     valid_fraction: float
     phase_min_rad: float | None
     phase_max_rad: float | None
-    recovered_pixels: int = Field(description="pixels with clipped samples fitted from the unclipped ones")
+    recovered_pixels: int = Field(description="pixels with clipped samples fitted "
+                                              "from the unclipped ones")
     bit_depth: int
     schedule: dict[str, Any]
     shape: list[int]
@@ -346,7 +354,8 @@ class SolveOut(BaseModel):
     table: str
     model: str = Field("eq5", description="the depth model the fit keeps: eq5 | geometric")
     held_out: dict[str, dict[str, float | int | str | None]] = Field(
-        default_factory=dict, description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
+        default_factory=dict,
+        description="per model, leave-one-pose-out height errors (rms_mm, max_mm, points)")
     refinement: RefinementOut | None = Field(
         None, description="the joint (corners + phase) refinement's verdict; null when not tried")
 
@@ -356,7 +365,8 @@ class ActivateIn(Strict):
 
 
 class RoiIn(Strict):
-    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]], Field(min_length=4, max_length=4)] = Field(
+    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]],
+                   Field(min_length=4, max_length=4)] = Field(
         ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
                          "x0 < x1 and y0 < y1, and the box inside the depth map")
 
@@ -399,7 +409,8 @@ RECORDING_NAME_REGEX = NAME_PATTERN.pattern
 
 class RecordingStartIn(Strict):
     name: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
-                             description="folder name under data/recordings (default: rec_<UTC time>)")
+                             description="folder name under data/recordings "
+                                         "(default: rec_<UTC time>)")
 
 
 class RecorderStatus(BaseModel):
@@ -428,7 +439,8 @@ class RecordingSummary(BaseModel):
 
 class RecordingStopOut(BaseModel):
     recording: None = None
-    stopped: dict[str, Any] | None = Field(None, description="session.json of the recording just stopped")
+    stopped: dict[str, Any] | None = Field(None,
+                                           description="session.json of the recording just stopped")
 
 
 class RecordingDeletedOut(BaseModel):
@@ -440,28 +452,34 @@ class LimitsOut(BaseModel):
     """The instrument's fixed ranges, for clients (the dashboard reads them from here)."""
 
     leds: list[str]
-    exposure_ms: list[float] = Field(..., min_length=2, max_length=2, description="[min, max] camera exposure, ms")
+    exposure_ms: list[float] = Field(..., min_length=2, max_length=2,
+                                     description="[min, max] camera exposure, ms")
     bit_depths: list[int] = Field(..., description="sensor bit depths the camera offers")
-    depth_range_mm: list[float] = Field(..., min_length=2, max_length=2, description="default colormap [min, max], mm")
+    depth_range_mm: list[float] = Field(..., min_length=2, max_length=2,
+                                        description="default colormap [min, max], mm")
 
 
 # -- measure --------------------------------------------------------------------------------------
-Pixel = Annotated[list[Annotated[float, Field(strict=True, ge=-1e6, le=1e6)]], Field(min_length=2, max_length=2)]
+Pixel = Annotated[list[Annotated[float, Field(strict=True, ge=-1e6, le=1e6)]],
+                  Field(min_length=2, max_length=2)]
 MEASURE_KINDS = Literal["length", "point_to_line", "depth", "profile", "area"]
 
 
 class MeasureSpec(Strict):
     kind: MEASURE_KINDS = Field(..., description=(
-        "length: 2 points; point_to_line: the point, then 2 on the line; depth: the point, then 3 spanning "
-        "the plane (signed, + toward the scope); profile: a polyline of ≥ 2 points (heights against its chord, "
-        "or against `reference`); area: a polygon of ≥ 3 points, on the surface (mm²)"))
+        "length: 2 points; point_to_line: the point, then 2 on the line; depth: the point, "
+        "then 3 spanning the plane (signed, + toward the scope); profile: a polyline of ≥ 2 "
+        "points (heights against its chord, or against `reference`); area: a polygon of ≥ 3 "
+        "points, on the surface (mm²)"))
     points: list[Pixel] = Field(..., min_length=2, max_length=256, description=(
         "[[u, v], …] image pixels (column, row). Rule (422 otherwise): as many as `kind` "
         "needs — length 2, point_to_line 3, depth 4, profile ≥ 2, area ≥ 3 — not collinear "
         "or coincident where a line or plane is spanned"))
-    reference: list[Pixel] | None = Field(None, max_length=3, description="profile only: 3 pixels of a "
-                                                                          "reference plane (default: the chord)")
-    snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0, description="an invalid click snaps to the nearest valid pixel "
+    reference: list[Pixel] | None = Field(None, max_length=3,
+                                          description="profile only: 3 pixels of a reference plane "
+                                                      "(default: the chord)")
+    snap_px: float = Field(3.0, strict=True, ge=0.0, le=20.0,
+                           description="an invalid click snaps to the nearest valid pixel "
                                                              "within this radius, px")
 
     @model_validator(mode="before")
@@ -480,13 +498,16 @@ class MeasureSpec(Strict):
 
 class MeasureIn(MeasureSpec):
     recording: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
-                                  description="measure on this recording's set (default: the latest live result)")
-    index: int | None = Field(None, strict=True, ge=0, le=999_999, description="the recording's set index (with `recording`)")
+                                  description="measure on this recording's set (default: "
+                                              "the latest live result)")
+    index: int | None = Field(None, strict=True, ge=0, le=999_999,
+                              description="the recording's set index (with `recording`)")
 
     @model_validator(mode="after")
     def _both(self) -> MeasureIn:
         if (self.recording is None) != (self.index is None):
-            raise ValueError("recording and index: give both (a recorded set) or neither (the live result)")
+            raise ValueError("recording and index: give both (a recorded set) or "
+                             "neither (the live result)")
         return self
 
 
@@ -528,7 +549,8 @@ class MeasureOut(BaseModel):
 
 class MeasureToolIn(Strict):
     measurements: list[MeasureSpec] = Field(..., max_length=32,
-                                            description="kept and re-measured on every recorded depth map")
+                                            description="kept and re-measured on "
+                                                        "every recorded depth map")
 
 
 class MeasureToolOut(BaseModel):

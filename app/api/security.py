@@ -380,7 +380,8 @@ class SecurityMiddleware:
                     headers.append((b"content-security-policy", DASHBOARD_CSP.encode()))
                 token = guard.token
                 if set_cookie and token:
-                    value = session_cookie(guard.sessions.open(token), secure=guard.over_https(scope))
+                    value = session_cookie(guard.sessions.open(token),
+                                           secure=guard.over_https(scope))
                     headers.append((b"set-cookie", value.encode("latin-1")))
                 message = {**message, "headers": headers}
             await send(message)

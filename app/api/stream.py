@@ -71,7 +71,8 @@ class ResultFeed:
         self._encoded: dict[tuple[int, Range], asyncio.Future[bytes]] = {}
         self._pool = ThreadPoolExecutor(ENCODE_THREADS, thread_name_prefix="fringescope-encode")
         self._ended = False
-        self._thread = threading.Thread(target=self._run, name="fringescope-stream-feed", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="fringescope-stream-feed",
+                                        daemon=True)
         self._thread.start()
 
     @property
@@ -238,7 +239,8 @@ async def depth_ws(
     if not cap.acquire(client):
         if "websocket.http.response" in websocket.scope.get("extensions", {}):
             await websocket.send_denial_response(JSONResponse(
-                {"detail": cap.refusal()}, status_code=429, headers={"Retry-After": str(RETRY_AFTER_S)}))
+                {"detail": cap.refusal()}, status_code=429,
+                headers={"Retry-After": str(RETRY_AFTER_S)}))
         else:
             await websocket.close(code=1013, reason=cap.refusal()[:120])
         return
@@ -267,7 +269,8 @@ async def _pump(websocket: WebSocket, feed: ResultFeed, rng: Range) -> None:
     try:
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
-            if not task.cancelled() and isinstance(task.exception(), (WebSocketDisconnect, RuntimeError)):
+            if not task.cancelled() and isinstance(task.exception(),
+                                                   (WebSocketDisconnect, RuntimeError)):
                 return  # the client went away
             task.result()
     finally:
@@ -276,13 +279,15 @@ async def _pump(websocket: WebSocket, feed: ResultFeed, rng: Range) -> None:
 
 
 @router.get("/depth.mjpeg",
-            responses={200: {"content": {"multipart/x-mixed-replace": {}}}, **R429, **R422, **COMMON})
+            responses={200: {"content": {"multipart/x-mixed-replace": {}}}, **R429, **R422,
+                       **COMMON})
 async def depth_mjpeg(
     request: Request,
     inst: Annotated[Instrument, Depends(stream_instrument)],
     min_mm: float | None = Query(None, allow_inf_nan=False),
     max_mm: float | None = Query(None, allow_inf_nan=False),
-    frames: int | None = Query(None, ge=1, description="end after this many images (default: never)"),
+    frames: int | None = Query(None, ge=1,
+                               description="end after this many images (default: never)"),
 ) -> StreamingResponse:
     """The same images as a ``multipart/x-mixed-replace`` MJPEG stream (an <img> can show it)."""
     rng = encoding.check_range_mm(min_mm, max_mm)
@@ -304,7 +309,8 @@ async def depth_mjpeg(
                 break
         yield b"--frame--\r\n"
 
-    return _CappedStream(body(), cap, client, media_type="multipart/x-mixed-replace; boundary=frame",
+    return _CappedStream(body(), cap, client,
+                         media_type="multipart/x-mixed-replace; boundary=frame",
                          headers={"Cache-Control": "no-store"})
 
 

@@ -36,7 +36,8 @@ async def read_body(request: Request, limit_bytes: int) -> bytes:
     """The whole request body, refusing (413) more than ``limit_bytes``."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit_bytes:
-        raise HTTPException(413, f"upload: {int(declared)} bytes exceeds the limit of {limit_bytes} bytes")
+        raise HTTPException(413, f"upload: {int(declared)} bytes exceeds the limit "
+                                 f"of {limit_bytes} bytes")
     chunks, size = [], 0
     async for chunk in request.stream():
         size += len(chunk)
@@ -67,21 +68,25 @@ def _member_path(name: str) -> PurePosixPath:
 
 
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, budget: int) -> bytes:
-    """A member's bytes, never more than it declares nor than ``budget`` (zip bombs, lying headers)."""
+    """A member's bytes, never more than it declares nor than ``budget`` (zip
+    bombs, lying headers)."""
     if info.flag_bits & 0x1:
         raise InvalidRequest(f"upload: zip member {info.filename!r} is encrypted")
     if info.compress_type not in SUPPORTED_COMPRESSION:
         raise InvalidRequest(f"upload: zip member {info.filename!r} uses compression method "
                              f"{info.compress_type}; use stored or deflated")
-    if info.file_size > MAX_RATIO * max(info.compress_size, 1) and info.file_size > RATIO_FLOOR_BYTES:
-        raise InvalidRequest(f"upload: zip member {info.filename!r} expands {info.file_size} bytes from "
-                             f"{info.compress_size} (more than {MAX_RATIO}x): refused as a zip bomb")
+    expands = info.file_size > MAX_RATIO * max(info.compress_size, 1)
+    if expands and info.file_size > RATIO_FLOOR_BYTES:
+        raise InvalidRequest(f"upload: zip member {info.filename!r} expands {info.file_size} "
+                             f"bytes from {info.compress_size} (more than {MAX_RATIO}x): "
+                             "refused as a zip bomb")
     if info.file_size > budget:
         raise HTTPException(413, f"upload: unpacked zip exceeds the limit of {budget} bytes")
     with zf.open(info) as f:
         data = f.read(info.file_size + 1)
     if len(data) != info.file_size:
-        raise InvalidRequest(f"upload: zip member {info.filename!r} does not hold its declared size")
+        raise InvalidRequest(f"upload: zip member {info.filename!r} does not "
+                             "hold its declared size")
     return data
 
 
@@ -98,13 +103,16 @@ def _extract_zip(data: bytes, dest: Path, limit_bytes: int) -> Path:
     with zf:
         infos = [i for i in zf.infolist() if not i.is_dir()]
         if len(infos) > MAX_FILES:
-            raise InvalidRequest(f"upload: zip holds {len(infos)} files, at most {MAX_FILES} allowed")
+            raise InvalidRequest(f"upload: zip holds {len(infos)} files, at "
+                                 f"most {MAX_FILES} allowed")
         paths = [_member_path(i.filename) for i in infos]
         if sum(i.file_size for i in infos) > limit_bytes:
-            raise HTTPException(413, f"upload: unpacked zip exceeds the limit of {limit_bytes} bytes")
+            raise HTTPException(413,
+                                f"upload: unpacked zip exceeds the limit of {limit_bytes} bytes")
         metas = [p for p in paths if p.name == "capture.json"]
         if len(metas) != 1:
-            raise InvalidRequest(f"upload: the zip must hold exactly one capture.json, found {len(metas)}")
+            raise InvalidRequest("upload: the zip must hold exactly one "
+                                 f"capture.json, found {len(metas)}")
         folder = metas[0].parent
         budget = limit_bytes
         for info, p in zip(infos, paths, strict=True):
@@ -114,7 +122,8 @@ def _extract_zip(data: bytes, dest: Path, limit_bytes: int) -> Path:
                 content = _read_member(zf, info, budget)
             except (zipfile.BadZipFile, EOFError, zlib.error, struct.error, OSError, ValueError,
                     NotImplementedError, RuntimeError) as exc:
-                raise InvalidRequest(f"upload: zip member {info.filename!r} is corrupt ({exc})") from None
+                raise InvalidRequest(f"upload: zip member {info.filename!r} is corrupt "
+                                     f"({exc})") from None
             budget -= len(content)
             (dest / _safe_name(p.name)).write_bytes(content)
     return dest
@@ -151,16 +160,19 @@ async def capture_from_request(request: Request, limit_bytes: int, *,
     with tempfile.TemporaryDirectory(prefix="fringescope-upload-") as tmp:
         dest = Path(tmp)
         if ctype.startswith("multipart/form-data"):
-            form = await request.form(max_files=MAX_FILES, max_fields=MAX_FILES, max_part_size=limit_bytes)
+            form = await request.form(max_files=MAX_FILES, max_fields=MAX_FILES,
+                                      max_part_size=limit_bytes)
             files = [v for _, v in form.multi_items() if isinstance(v, UploadFile)]
             if not files:
-                raise InvalidRequest("upload: no files in the form (send capture.json + frames, or a .zip)")
+                raise InvalidRequest("upload: no files in the form (send capture.json "
+                                     "+ frames, or a .zip)")
             if len(files) == 1 and (files[0].filename or "").lower().endswith(".zip"):
                 await run_in_threadpool(_extract_zip, await files[0].read(), dest, limit_bytes)
             else:
                 for f in files:
                     (dest / _safe_name(f.filename or "")).write_bytes(await f.read())
-        elif ctype.startswith(("application/zip", "application/x-zip-compressed", "application/octet-stream")):
+        elif ctype.startswith(("application/zip", "application/x-zip-compressed",
+                               "application/octet-stream")):
             await run_in_threadpool(_extract_zip, body, dest, limit_bytes)
         else:
             raise HTTPException(415, "upload: send multipart/form-data or application/zip")

@@ -14,16 +14,19 @@ def register(subparsers: Any) -> None:
         description=(
             "Calibrate from a folder with board.json and capture sets pose_00/, pose_01/, ... "
             "(pose_00 is the reference plane). Fits both depth models (Eq. (5) and the geometric "
-            "projector model), prints per-pose corners, reprojection error and fit residual and both "
-            "models' held-out-pose errors, keeps the better model (or --model), then writes the "
-            "calibration file atomically."
+            "projector model), prints per-pose corners, reprojection error and fit residual and "
+            "both models' held-out-pose errors, keeps the better model (or --model), then writes "
+            "the calibration file atomically."
         ),
     )
     p.add_argument("calib_dir", metavar="CALIB_DIR", help="calibration folder")
-    p.add_argument("-o", "--output", required=True, metavar="FILE", help="calibration JSON to write")
-    p.add_argument("--robust", action="store_true", help="drop outlier points and poses, and report them")
+    p.add_argument("-o", "--output", required=True, metavar="FILE",
+                   help="calibration JSON to write")
+    p.add_argument("--robust", action="store_true",
+                   help="drop outlier points and poses, and report them")
     p.add_argument("--corners-only", action="store_true",
-                   help="fit Eq. (5) on the board corners only, as the paper (default: a dense grid over each board)")
+                   help="fit Eq. (5) on the board corners only, as the paper (default: a dense "
+                        "grid over each board)")
     p.add_argument("--model", choices=("eq5", "geometric"), default=None,
                    help="force the depth model (default: the one with the smaller held-out error)")
     p.set_defaults(func=run)
@@ -32,7 +35,8 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from app.calib import calibrate_folder, save_calibration
 
-    report = calibrate_folder(args.calib_dir, robust=args.robust, dense=not args.corners_only, model=args.model)
+    report = calibrate_folder(args.calib_dir, robust=args.robust, dense=not args.corners_only,
+                              model=args.model)
     print(report.table())
     dropped = [p.name for p in report.poses if p.dropped]
     if dropped:

@@ -140,5 +140,6 @@ def initial_view(
     distance = float(np.linalg.norm(back)) or 1.0
     lo, hi = np.percentile(xyz, [2.0, 98.0], axis=0)
     half_extent = 0.5 * float(max(hi[0] - lo[0], hi[1] - lo[1]))
-    fov_rad = float(np.clip(2.4 * np.arctan2(half_extent, distance), np.deg2rad(20), np.deg2rad(90)))
+    fov_rad = float(np.clip(2.4 * np.arctan2(half_extent, distance), np.deg2rad(20),
+                            np.deg2rad(90)))
     return position, centre, fov_rad

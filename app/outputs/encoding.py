@@ -23,12 +23,14 @@ def reason_colors() -> dict[int, tuple[str, tuple[int, int, int]]]:
     """reason code → (name, RGB), every :class:`~app.core.reasons.Reason` (MOTION included)."""
     from app.recon.colormap import REASON_COLORS
 
-    out = {int(code): (code.name.lower(), tuple(int(c) for c in rgb)) for code, rgb in REASON_COLORS.items()}
+    out = {int(code): (code.name.lower(), tuple(int(c) for c in rgb))
+           for code, rgb in REASON_COLORS.items()}
     return out  # type: ignore[return-value]
 
 
 def reason_legend() -> dict[str, Any]:
-    return {str(code): {"name": name, "rgb": list(rgb)} for code, (name, rgb) in reason_colors().items()}
+    return {str(code): {"name": name, "rgb": list(rgb)}
+            for code, (name, rgb) in reason_colors().items()}
 
 
 def depth_png_um(depth_mm: npt.NDArray[np.float32]) -> bytes:
@@ -63,7 +65,8 @@ def depth_color_png(depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, fl
 
 
 def depth_color_jpeg(
-    depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, float], *, max_width: int = 960, quality: int = 80
+    depth_mm: npt.NDArray[np.float32], range_mm: tuple[float, float], *, max_width: int = 960,
+    quality: int = 80
 ) -> bytes:
     """Turbo colormap of the depth, down-scaled to ``max_width`` pixels, JPEG (no colour bar:
     the page draws its own). Scaled before colouring, nearest-neighbour, so invalid stays black."""

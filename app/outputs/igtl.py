@@ -99,12 +99,14 @@ def image_placement(camera_matrix: npt.ArrayLike, plane_normal: npt.ArrayLike,
     k = np.asarray(camera_matrix, np.float64)
     n = np.asarray(plane_normal, np.float64).ravel()
     if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-        raise ValueError(f"camera_matrix: need finite (3, 3) intrinsics with fx, fy > 0, got {k.tolist()}")
+        raise ValueError("camera_matrix: need finite (3, 3) intrinsics with fx, fy > 0, "
+                         f"got {k.tolist()}")
     if n.shape != (3,) or not np.all(np.isfinite(n)) or abs(n[2]) < 1e-9:
         raise ValueError(f"plane_normal: need 3 finite values with a z component, got {n.tolist()}")
     z_ref = -float(plane_offset_mm) / n[2]
     if not np.isfinite(z_ref) or z_ref <= 0:
-        raise ValueError(f"plane_offset_mm: the reference plane must lie in front of the camera, got z = {z_ref}")
+        raise ValueError("plane_offset_mm: the reference plane must lie in front of the "
+                         f"camera, got z = {z_ref}")
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
     m = np.eye(4)
     m[0, 0], m[1, 1] = z_ref / fx, z_ref / fy
@@ -114,7 +116,8 @@ def image_placement(camera_matrix: npt.ArrayLike, plane_normal: npt.ArrayLike,
 
 def decimate_points(points: npt.NDArray[np.float32], valid: npt.NDArray[np.bool_],
                     max_points: int) -> npt.NDArray[np.float32]:
-    """(n, 3) float32: the valid, finite points (raster order), every k-th if more than ``max_points``.
+    """(n, 3) float32: the valid, finite points (raster order), every k-th if
+    more than ``max_points``.
 
     Args:
         points: (H, W, 3) camera-frame points, mm.
@@ -316,7 +319,8 @@ class _Handler(socketserver.BaseRequestHandler):
         sock: socket.socket = self.request
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         client = _Client(sock, self.client_address)
-        sender = threading.Thread(target=client.send_loop, name="fringescope-igtl-send", daemon=True)
+        sender = threading.Thread(target=client.send_loop, name="fringescope-igtl-send",
+                                  daemon=True)
         sender.start()
         owner._add(client)
         try:
@@ -564,7 +568,8 @@ class IgtlServer:
             pyigtl.ImageMessage(tex8, ijk_to_world_matrix=matrix, world_coordinate_system="ras",
                                 timestamp=ts, device_name=TEXTURE_DEVICE),
             CloudMessage(points=pts, vertices=verts, timestamp=ts, device_name=CLOUD_DEVICE),
-            pyigtl.StringMessage(json.dumps(status, default=str), timestamp=ts, device_name=STATUS_DEVICE),
+            pyigtl.StringMessage(json.dumps(status, default=str), timestamp=ts,
+                                 device_name=STATUS_DEVICE),
         ]
         return [(m.device_name, m.pack()) for m in msgs]
 

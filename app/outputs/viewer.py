@@ -359,13 +359,14 @@ class Viewer:
             return
         from app.service.measure import calibration_terms, measurement_segments
 
-        segs, labels = measurement_segments(result, specs, *calibration_terms(getattr(self._instrument, "calibration",
-                                                                                       None)))
+        terms = calibration_terms(getattr(self._instrument, "calibration", None))
+        segs, labels = measurement_segments(result, specs, *terms)
         if len(segs):
             self._measure_nodes.append(server.scene.add_line_segments(
                 "/measure/lines", segs, (255, 255, 255), thickness=3.0, thickness_units="screen"))
         for i, (pos, text) in enumerate(labels):
-            self._measure_nodes.append(server.scene.add_label(f"/measure/label_{i}", text, position=pos))
+            self._measure_nodes.append(server.scene.add_label(f"/measure/label_{i}", text,
+                                                              position=pos))
 
     def _place_camera(self, server: viser.ViserServer, xyz: npt.NDArray[np.float32]) -> None:
         """Start every browser near the scope's own viewpoint, tilted to show the relief."""

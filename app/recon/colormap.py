@@ -40,7 +40,8 @@ def _check_range(range_mm: Any) -> tuple[float, float]:
     return lo, hi
 
 
-def depth_colormap(depth: npt.ArrayLike, range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM) -> U8:
+def depth_colormap(depth: npt.ArrayLike,
+                   range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM) -> U8:
     """Turbo-coloured depth.
 
     Args:
@@ -72,8 +73,10 @@ def _nice_step(span: float, max_ticks: int) -> float:
     return 10.0 * mag
 
 
-def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM, *, unit: str = "mm") -> bytes:
-    """PNG of :func:`depth_colormap` with a vertical colour bar and tick labels in ``unit`` at the right."""
+def render_depth_png(depth: npt.ArrayLike, range_mm: tuple[float, float] = DEFAULT_DEPTH_RANGE_MM,
+                     *, unit: str = "mm") -> bytes:
+    """PNG of :func:`depth_colormap` with a vertical colour bar and tick labels in
+    ``unit`` at the right."""
     img = depth_colormap(depth, range_mm)
     lo, hi = _check_range(range_mm)
     h = max(img.shape[0], 120)
@@ -125,6 +128,6 @@ def reason_png(reason: npt.ArrayLike) -> bytes:
         cv2.rectangle(canvas, (4, y + 3), (16, y + 14), bgr, -1)
         cv2.rectangle(canvas, (4, y + 3), (16, y + 14), (0, 0, 0), 1)
         frac = 100.0 * float(counts[int(code)]) / total
-        cv2.putText(canvas, f"{int(code)} {code.name.lower()} {frac:.1f}%", (22, y + 13), _FONT, 0.4,
-                    (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(canvas, f"{int(code)} {code.name.lower()} {frac:.1f}%", (22, y + 13), _FONT,
+                    0.4, (0, 0, 0), 1, cv2.LINE_AA)
     return png_bytes(canvas, filter_none=True)

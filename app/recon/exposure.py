@@ -44,7 +44,8 @@ class AutoExposureResult:
 
 
 def set_statistics(
-    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], schedule: PatternSchedule, full_scale: int
+    frames: npt.NDArray[np.uint8] | npt.NDArray[np.uint16], schedule: PatternSchedule,
+    full_scale: int
 ) -> tuple[float, float]:
     """(saturated fraction, median modulation) of one fringe set.
 
@@ -92,7 +93,8 @@ def choose_exposure(
         raise ValueError(f"saturation_limit: must be within [0, 1), got {saturation_limit}")
     if not (math.isfinite(min_exposure_ms) and math.isfinite(max_exposure_ms)
             and 0 < min_exposure_ms <= max_exposure_ms):
-        raise ValueError(f"max_exposure_ms: need 0 < min <= max, got {min_exposure_ms}, {max_exposure_ms}")
+        raise ValueError("max_exposure_ms: need 0 < min <= max, got "
+                         f"{min_exposure_ms}, {max_exposure_ms}")
     ladder = [e for e in ladder_ms if min_exposure_ms <= e <= max_exposure_ms]
     if not ladder or ladder[-1] != max_exposure_ms:
         ladder.append(max_exposure_ms)

@@ -81,14 +81,16 @@ def fuse_exposures(results: Sequence[ReconResult], exposures_ms: Sequence[float]
 
     # modulation and texture in the first member's codes
     scale = [times[0] / t for t in times]
-    modulation = [(r.modulation * s).astype(np.float32) for r, s in zip(members, scale, strict=True)]
+    modulation = [(r.modulation * s).astype(np.float32)
+                  for r, s in zip(members, scale, strict=True)]
     sigma = np.stack([np.where(r.valid, r.sigma, np.inf) for r in members])
     best = np.argmin(sigma, axis=0)
     # invalid everywhere: the member that saw the pixel best keeps its reason
     unsat_mod = np.stack([np.where(r.reason == Reason.SATURATED, -np.inf, m)
                           for r, m in zip(members, modulation, strict=True)])
     seen = np.argmax(unsat_mod, axis=0)
-    any_valid: npt.NDArray[np.bool_] = np.asarray(np.stack([r.valid for r in members]).any(axis=0), np.bool_)
+    any_valid: npt.NDArray[np.bool_] = np.asarray(np.stack([r.valid for r in members]).any(axis=0),
+                                                  np.bool_)
     pick = np.where(any_valid, best, seen)[None]
 
     def take(arrays: list[npt.NDArray[_T]]) -> npt.NDArray[_T]:
@@ -103,8 +105,10 @@ def fuse_exposures(results: Sequence[ReconResult], exposures_ms: Sequence[float]
         valid=any_valid,
         reason=take([r.reason for r in members]),
         modulation=take(modulation),
-        texture=take([(r.texture * s).astype(np.float32) for r, s in zip(members, scale, strict=True)]),
-        phase=None if members[0].phase is None else take([r.phase for r in members if r.phase is not None]),
+        texture=take([(r.texture * s).astype(np.float32)
+                      for r, s in zip(members, scale, strict=True)]),
+        phase=(None if members[0].phase is None
+               else take([r.phase for r in members if r.phase is not None])),
         elapsed_ms=float(sum(r.elapsed_ms for r in members)),
         sigma=take([r.sigma for r in members]),
         model_sigma=members[0].model_sigma,  # one calibration: σ_model follows the fused depth

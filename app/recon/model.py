@@ -75,7 +75,8 @@ def model_tables(
     Returns:
         :class:`ModelTables` with (height, width) arrays.
     """
-    polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator, normalization, image_size)
+    polys, (u0, su), (v0, sv), (p0, sp), (w, h) = _checked_model(numerator, denominator,
+                                                                 normalization, image_size)
     up, vp = np.meshgrid((np.arange(w) - u0) / su, (np.arange(h) - v0) / sv)
     # basis terms shared by all four polynomials: 1, u', v', u'², v'², u'v'
     basis = (np.ones((h, w)), up, vp, up**2, vp**2, up * vp)
@@ -101,7 +102,8 @@ def calibration_height_tables(calibration: Calibration) -> HeightTables:
     return calibration.model.height_tables(calibration.image_size, calibration.reference_plane)
 
 
-def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *, dtype: Any = np.float64) -> ModelTables:
+def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *,
+                 dtype: Any = np.float64) -> ModelTables:
     """Per-pixel a0, a1, b0, b1 from row and ray coefficients.
 
     Args:
@@ -113,7 +115,8 @@ def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *, dtype: Any = np.
     k = np.asarray(tables.row_coefs, np.float64)
     g = np.asarray(tables.ray_coefs, np.float64).reshape(4, 3)
     if q.shape != (k.shape[0], x.shape[1], 3):
-        raise ValueError(f"ray_q: shape {q.shape} does not match the tables' {(k.shape[0], x.shape[1], 3)}")
+        raise ValueError(f"ray_q: shape {q.shape} does not match the tables' "
+                         f"{(k.shape[0], x.shape[1], 3)}")
     out = []
     for i in range(4):
         row = (k[:, 3 * i + 2, None] * x + k[:, 3 * i + 1, None]) * x + k[:, 3 * i, None]
@@ -127,7 +130,8 @@ def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *, dtype: Any = np.
 def _checked_model(
     numerator: npt.ArrayLike, denominator: npt.ArrayLike,
     normalization: dict[str, tuple[float, float]], image_size: tuple[int, int],
-) -> tuple[list[tuple[float, ...]], tuple[float, float], tuple[float, float], tuple[float, float], tuple[int, int]]:
+) -> tuple[list[tuple[float, ...]], tuple[float, float], tuple[float, float], tuple[float, float],
+           tuple[int, int]]:
     """Validated Eq. (5) parts: the coefficients of a0, a1, b0, b1 on the basis
     (1, u', v', u'², v'², u'v'), the u, v and φ normalisations and (width, height)."""
     c = np.asarray(numerator, dtype=np.float64).ravel()

@@ -31,7 +31,8 @@ MAX_PIXELS = 100_000  # a regular subsample is plenty for two parameters
 MAX_FIT_PIXELS = 50_000  # of which the trimmed fit takes at most these
 
 
-def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: int | None = None) -> SensorNoise:
+def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *,
+                          max_code: int | None = None) -> SensorNoise:
     """Shot + read noise of the camera from the N-step fit residual of one fringe set.
 
     Args:
@@ -59,7 +60,8 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
     sub = stack[:, ::step, ::step].astype(np.float64)
     delta = 2.0 * np.pi * np.arange(n) / n
     harmonics = max(1, (n - 4) // 2)
-    basis = np.stack([np.ones(n)] + [f(h * delta) for h in range(1, harmonics + 1) for f in (np.cos, np.sin)], 1)
+    cos_sin = [f(h * delta) for h in range(1, harmonics + 1) for f in (np.cos, np.sin)]
+    basis = np.stack([np.ones(n)] + cos_sin, 1)
     residual = np.eye(n) - basis @ np.linalg.pinv(basis)  # (N, N) projector onto the unfitted part
     dof = n - basis.shape[1]
     var_sum = np.zeros(sub.shape[1:])
@@ -71,7 +73,8 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *, max_code: i
     intensity = sub.mean(axis=0)
     usable = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
     if usable.sum() < 100:
-        raise ValueError("frames: fewer than 100 unsaturated, non-black pixels to estimate the noise from")
+        raise ValueError("frames: fewer than 100 unsaturated, non-black pixels to "
+                         "estimate the noise from")
     fit = max(1, int(usable.sum()) // MAX_FIT_PIXELS)  # a regular share of the usable pixels
     read_var, gain = _trimmed_fit(intensity[usable][::fit], var[usable][::fit], dof * k)
     # a fit can reach 0 read noise (motion in the set inflates the shot-noise slope); no sensor
@@ -135,7 +138,8 @@ def _trimmed_fit(intensity: npt.NDArray[np.float64], var: npt.NDArray[np.float64
     limit = float(chi2.ppf(OUTLIER_QUANTILE, dof)) / dof
     design = np.stack([np.ones(intensity.size), intensity], axis=1)
     # start from the median of each equal-count intensity bin (χ²_ν/ν's median divided out)
-    bins = np.array_split(np.argsort(intensity, kind="stable"), max(2, min(32, intensity.size // 50)))
+    bins = np.array_split(np.argsort(intensity, kind="stable"),
+                          max(2, min(32, intensity.size // 50)))
     med = np.array([np.median(var[b]) for b in bins]) / (float(chi2.median(dof)) / dof)
     start = np.stack([np.ones(len(bins)), [intensity[b].mean() for b in bins]], axis=1)
     coef, *_ = np.linalg.lstsq(start, med, rcond=None)

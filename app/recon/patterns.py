@@ -13,7 +13,8 @@ __all__ = ["ORIENTATIONS", "PatternSchedule", "fringe_profile", "generate_patter
 
 
 def fringe_profile(
-    schedule: PatternSchedule, freq_index: int, shift_index: int, *, columns: npt.ArrayLike | None = None
+    schedule: PatternSchedule, freq_index: int, shift_index: int, *,
+    columns: npt.ArrayLike | None = None
 ) -> npt.NDArray[np.float64]:
     """Relative intensity 0.5 + 0.5 cos(2π k x / L + 2π n / N) along the fringe axis.
 

@@ -50,7 +50,8 @@ def default_max_code(dtype: Any) -> int:
     raise ValueError(f"frames: dtype must be uint8 or uint16, got {dt}")
 
 
-def resolve_levels(dtype: Any, max_code: int | None, min_modulation: float | None) -> tuple[int, float]:
+def resolve_levels(dtype: Any, max_code: int | None,
+                   min_modulation: float | None) -> tuple[int, float]:
     """Validated ``(max_code, min_modulation)`` for frames of ``dtype``.
 
     ``max_code`` None → :func:`default_max_code`; ``min_modulation`` None →
@@ -62,7 +63,8 @@ def resolve_levels(dtype: Any, max_code: int | None, min_modulation: float | Non
     if max_code is None:
         max_code = top
     if int(max_code) != max_code or not 1 <= max_code <= top:
-        raise ValueError(f"max_code: must be an integer in 1..{top} for {np.dtype(dtype)} frames, got {max_code}")
+        raise ValueError(f"max_code: must be an integer in 1..{top} for {np.dtype(dtype)} "
+                         f"frames, got {max_code}")
     if min_modulation is None:
         min_modulation = MODULATION_FLOOR_DN
     if not (math.isfinite(min_modulation) and min_modulation >= 0.0):
@@ -116,7 +118,8 @@ class WrappedPhase:
     recovered: npt.NDArray[np.bool_] | None = None
 
 
-def fit_unclipped(samples: npt.ArrayLike, ok: npt.ArrayLike, delta: npt.ArrayLike) -> tuple[F64, F64]:
+def fit_unclipped(samples: npt.ArrayLike, ok: npt.ArrayLike,
+                  delta: npt.ArrayLike) -> tuple[F64, F64]:
     """Least-squares ``I_n = A + a cos δ_n + b sin δ_n`` over the samples with ``ok``.
 
     Args:

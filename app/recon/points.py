@@ -90,9 +90,11 @@ def calibration_ray_tables(calibration: Calibration, *, dtype: Any = np.float64)
 
 
 def ray_quotients(rays: RayTables, *, dtype: Any = np.float32) -> npt.NDArray[Any]:
-    """(H, W, 3) ``(x, y, 1)/(n·r)`` per pixel (float32 by default): a point is ``(h − offset)`` times it."""
+    """(H, W, 3) ``(x, y, 1)/(n·r)`` per pixel (float32 by default): a point is
+    ``(h − offset)`` times it."""
     inv_m = np.asarray(rays.inv_m, np.float64)
-    q = np.stack([np.asarray(rays.rx, np.float64) * inv_m, np.asarray(rays.ry, np.float64) * inv_m, inv_m], axis=-1)
+    q = np.stack([np.asarray(rays.rx, np.float64) * inv_m, np.asarray(rays.ry, np.float64) * inv_m,
+                  inv_m], axis=-1)
     return np.ascontiguousarray(q, dtype=dtype)
 
 
@@ -111,6 +113,7 @@ def points_from_height(
     """
     h = np.asarray(height_mm, dtype=np.float64)
     if h.shape != rays.rx.shape:
-        raise ValueError(f"height_mm: shape {h.shape} does not match the ray tables' {rays.rx.shape}")
+        raise ValueError(f"height_mm: shape {h.shape} does not match the ray "
+                         f"tables' {rays.rx.shape}")
     t = (h - plane_offset_mm) * rays.inv_m
     return np.stack([t * rays.rx, t * rays.ry, t], axis=-1)

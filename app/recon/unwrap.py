@@ -45,21 +45,23 @@ from app.core.schedule import DEFAULT_UNWRAP
 
 TWO_PI = 2.0 * math.pi
 DEFAULT_CONSISTENCY_RAD = 0.5 * math.pi
-#: per-pixel false-alarm rate of the heterodyne order test on a still scene (the motion test's default)
+#: per-pixel false-alarm rate of the heterodyne order test on a still scene
+#: (the motion test's default)
 DEFAULT_FALSE_ALARM_RATE = 1e-4
 #: the heterodyne order test's guard against slips hidden by motion between the frequency groups:
 #: none by default (a still capture set); the live instrument guards against a change of the finest
 #: phase by up to LIVE_MAX_MOTION_RAD between consecutive groups (1/21 fringe). For [30, 35, 36] the
-#: margin is then 0.464 rad (0.276 from 0.47 rad up): wrong orders stay visible for σ(r) ≤ 0.057 rad,
-#: which keeps 84-87 % of the twin's breathing tissue at rest valid (0.29 at 0.9 rad, 0.94 at 0.2 rad,
-#: where slips in dark pixels passed during the breathing benchmark; see order_slip_margin)
+#: margin is then 0.464 rad (0.276 from 0.47 rad up): wrong orders stay visible for σ(r) ≤ 0.057
+#: rad, which keeps 84-87 % of the twin's breathing tissue at rest valid (0.29 at 0.9 rad, 0.94 at
+#: 0.2 rad, where slips in dark pixels passed during the breathing benchmark; see order_slip_margin)
 DEFAULT_MAX_MOTION_RAD = 0.0
 LIVE_MAX_MOTION_RAD = 0.3
 #: phase error of every wrapped phase that the sensor noise model does not hold (projector gamma,
 #: defocus, mixed pixels), rad, added in quadrature in the heterodyne order test. On the CFPE rig's
 #: real captures (12 steps) the residuals' median is 0.01 rad at a predicted σ of 0.0075; the valid
-#: share of usable pixels is 98.3 / 99.1 / 99.3 / 99.3 / 99.2 % for 0.01 / 0.015 / 0.02 / 0.025 / 0.03
-#: rad (chain alone 99.4 %), at 4 steps with the gamma table 89.6 / 92.7 / 94.0 / 94.6 / 94.7 % (95.8 %):
+#: share of usable pixels is 98.3 / 99.1 / 99.3 / 99.3 / 99.2 % for
+#: 0.01 / 0.015 / 0.02 / 0.025 / 0.03 rad (chain alone 99.4 %), at 4 steps with the gamma table
+#: 89.6 / 92.7 / 94.0 / 94.6 / 94.7 % (95.8 %):
 #: larger floors use up the margin a wrong order needs to show.
 PHASE_FLOOR_RAD = 0.025
 
@@ -73,7 +75,8 @@ def check_consistency_rad(consistency_rad: float) -> float:
     return float(consistency_rad)
 
 
-def _check_frequencies(frequencies: Sequence[float], n: int, *, first_one: bool = True) -> list[float]:
+def _check_frequencies(frequencies: Sequence[float], n: int, *,
+                       first_one: bool = True) -> list[float]:
     freqs = [float(k) for k in frequencies]
     if len(freqs) != n:
         raise ValueError(f"frequencies: {len(freqs)} given for {n} phase maps")
@@ -110,7 +113,8 @@ def unwrap_chain(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP) -> 
     tops = [level[-1]]
     while level[0][0] > 1.0 + 1e-9:
         if len(level) < 2:
-            raise ValueError(f"frequencies: {freqs} beat down to {level[0][0]:.4g} fringes, not <= 1 (not absolute)")
+            raise ValueError(f"frequencies: {freqs} beat down to {level[0][0]:.4g} fringes, "
+                             "not <= 1 (not absolute)")
         beats = []
         for (fa, ca), (fb, cb) in zip(level, level[1:], strict=False):
             beats.append((fb - fa, cb - ca) if fb >= fa else (fa - fb, ca - cb))
@@ -173,8 +177,8 @@ def unwrap_phases(
         prev = phw + TWO_PI * order
     freqs = np.asarray(frequencies, dtype=np.float64)
     if phase_var is not None:
-        consistent &= order_residuals_consistent(wrapped, prev, phase_var, frequencies, false_alarm_rate,
-                                                 max_motion_rad)
+        consistent &= order_residuals_consistent(wrapped, prev, phase_var, frequencies,
+                                                 false_alarm_rate, max_motion_rad)
     out = np.empty_like(wrapped)
     for i in range(len(freqs) - 1):
         e = (freqs[i] / freqs[-1]) * prev - wrapped[i]
@@ -183,7 +187,8 @@ def unwrap_phases(
     return out, consistent
 
 
-def order_test_bound(n_frequencies: int, false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
+def order_test_bound(n_frequencies: int,
+                     false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE) -> float:
     """z of the order test: ``Φ⁻¹(1 − α / (2(K − 1)))`` (two-sided, Bonferroni over K − 1 tests)."""
     if int(n_frequencies) != n_frequencies or n_frequencies < 2:
         raise ValueError(f"n_frequencies: need an integer >= 2, got {n_frequencies}")
@@ -194,7 +199,8 @@ def order_test_bound(n_frequencies: int, false_alarm_rate: float = DEFAULT_FALSE
 
 def _slip_points(freqs: list[float], max_motion_rad: float) -> F64:
     """|residual displacement| of every slip m, motion direction and sampled ρ (see
-    :func:`order_slip_front`), (N, K − 1), less the sampling step's bound (never above the truth)."""
+    :func:`order_slip_front`), (N, K − 1), less the sampling step's bound
+    (never above the truth)."""
     if not (math.isfinite(max_motion_rad) and max_motion_rad >= 0.0):
         raise ValueError(f"max_motion_rad: must be finite and >= 0, got {max_motion_rad}")
     k = np.asarray(freqs, dtype=np.float64)
@@ -212,13 +218,15 @@ def _slip_points(freqs: list[float], max_motion_rad: float) -> F64:
         place = {(newest + 1 + i) % n: i for i in range(n)}  # group -> its place, oldest first
         mu = np.array([k[g] / k[-1] * (place[g] - place[n - 1]) for g in range(n - 1)])
         x = d + rho * mu[None, None, :]
-        r = np.abs(x - TWO_PI * np.floor(x / TWO_PI + 0.5)) - 0.5 * np.abs(mu) * (2.0 * max_motion_rad / (n_rho - 1))
+        step_rad = 2.0 * max_motion_rad / (n_rho - 1)
+        r = np.abs(x - TWO_PI * np.floor(x / TWO_PI + 0.5)) - 0.5 * np.abs(mu) * step_rad
         out.append(np.maximum(r, 0.0).reshape(-1, n - 1))
     return np.concatenate(out)
 
 
 def order_slip_front(
-    frequencies: Sequence[float], max_motion_rad: float = DEFAULT_MAX_MOTION_RAD, max_points: int = 8
+    frequencies: Sequence[float], max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
+    max_points: int = 8
 ) -> F64:
     """The smallest residual displacements a wrong fringe order can leave, per coarser frequency.
 
@@ -253,7 +261,8 @@ def order_slip_front(
     pts = np.floor(_slip_points(freqs, max_motion_rad) / grid + 1e-6) * grid
     if pts.shape[1] == 1:
         front = pts[[np.argmin(pts[:, 0])]]
-    elif pts.shape[1] == 2:  # a staircase: by the first coordinate, keep each new minimum of the second
+    # a staircase: by the first coordinate, keep each new minimum of the second
+    elif pts.shape[1] == 2:
         order = np.lexsort((pts[:, 1], pts[:, 0]))
         p = pts[order]
         run_min = np.minimum.accumulate(p[:, 1])
@@ -262,14 +271,16 @@ def order_slip_front(
     else:  # more dimensions: the Chebyshev margin on every axis (stricter than the front)
         front = np.full((1, pts.shape[1]), pts.max(axis=1).min())
     rows = [tuple(r) for r in front]
-    while len(rows) > max_points:  # merge the neighbours (by the first coordinate) that lose the least
+    # merge the neighbours (by the first coordinate) that lose the least
+    while len(rows) > max_points:
         cost = [np.prod(np.abs(np.subtract(rows[i + 1], rows[i]))) for i in range(len(rows) - 1)]
         i = int(np.argmin(cost))
         rows[i:i + 2] = [tuple(np.minimum(rows[i], rows[i + 1]))]
     return np.asarray(rows, dtype=np.float64)
 
 
-def order_slip_margin(frequencies: Sequence[float], max_motion_rad: float = DEFAULT_MAX_MOTION_RAD) -> float:
+def order_slip_margin(frequencies: Sequence[float],
+                      max_motion_rad: float = DEFAULT_MAX_MOTION_RAD) -> float:
     """How close to 0 a wrong order can bring the residuals (Chebyshev norm, all frequencies), rad:
     the smallest ``max_k |wrap(d_k(m) + ρ·μ_k)|`` of :func:`order_slip_front`'s vectors.
 

@@ -105,12 +105,13 @@ def step_gains(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP) -> F6
     """The chain's error gains ``g_s`` (module docstring, step 2): (S − 1, K) float64, one row
     per rounding step (the first, absolute step rounds nothing)."""
     coefs, freqs = unwrap_chain(frequencies, method)
-    return np.asarray([(freqs[s] / freqs[s - 1]) * coefs[s - 1] - coefs[s] for s in range(1, len(freqs))],
-                      np.float64).reshape(-1, coefs.shape[1])
+    rows = [(freqs[s] / freqs[s - 1]) * coefs[s - 1] - coefs[s] for s in range(1, len(freqs))]
+    return np.asarray(rows, np.float64).reshape(-1, coefs.shape[1])
 
 
 def undetected_order_error_rate(frequencies: Sequence[float], method: str = DEFAULT_UNWRAP, *,
-                                consistency_rad: float = DEFAULT_CONSISTENCY_RAD, snr: float) -> float:
+                                consistency_rad: float = DEFAULT_CONSISTENCY_RAD,
+                                snr: float) -> float:
     """Σ over the unwrapping steps of P(order wrong and the consistency test passed), with every
     wrapped phase at phasor SNR ``snr`` (module docstring, steps 1–3)."""
     c = check_consistency_rad(consistency_rad)
@@ -137,13 +138,16 @@ def undetected_order_error_rate(frequencies: Sequence[float], method: str = DEFA
 
 
 @lru_cache(maxsize=64)
-def _min_snr(frequencies: tuple[float, ...], method: str, consistency_rad: float, rate: float) -> float:
+def _min_snr(frequencies: tuple[float, ...], method: str, consistency_rad: float,
+             rate: float) -> float:
     lo, hi = 0.5, 200.0
-    if undetected_order_error_rate(frequencies, method, consistency_rad=consistency_rad, snr=hi) > rate:
+    if undetected_order_error_rate(frequencies, method, consistency_rad=consistency_rad,
+                                   snr=hi) > rate:
         return hi
     for _ in range(40):  # bisection in log a: 40 halvings of a factor 400 → 1e-10 relative
         mid = math.sqrt(lo * hi)
-        if undetected_order_error_rate(frequencies, method, consistency_rad=consistency_rad, snr=mid) > rate:
+        if undetected_order_error_rate(frequencies, method, consistency_rad=consistency_rad,
+                                       snr=mid) > rate:
             lo = mid
         else:
             hi = mid
@@ -190,7 +194,8 @@ def modulation_threshold(background_dn: npt.ArrayLike, steps: int, snr: float, r
     return np.maximum(floor_dn, snr * np.sqrt(2.0 / steps * var))
 
 
-def max_depth_sigma_mm(gross_error_mm: float = DEFAULT_GROSS_ERROR_MM, rate: float = DEFAULT_ORDER_ERROR_RATE) -> float:
+def max_depth_sigma_mm(gross_error_mm: float = DEFAULT_GROSS_ERROR_MM,
+                       rate: float = DEFAULT_ORDER_ERROR_RATE) -> float:
     """The largest depth σ (mm) at which a Gaussian depth error exceeds ``gross_error_mm`` with
     probability ≤ ``rate``: ``g / (√2·erfc⁻¹(rate))`` (module docstring, step 5).
 
@@ -202,4 +207,5 @@ def max_depth_sigma_mm(gross_error_mm: float = DEFAULT_GROSS_ERROR_MM, rate: flo
         raise ValueError(f"gross_error_mm: must be finite and > 0, got {gross_error_mm}")
     if not (math.isfinite(rate) and 0.0 < rate <= 0.1):
         raise ValueError(f"rate: must be in (0, 0.1], got {rate}")
-    return gross_error_mm / NormalDist().inv_cdf(1.0 - rate / 2.0)  # √2·erfc⁻¹(rate) = Φ⁻¹(1 − rate/2)
+    # √2·erfc⁻¹(rate) = Φ⁻¹(1 − rate/2)
+    return gross_error_mm / NormalDist().inv_cdf(1.0 - rate / 2.0)

@@ -85,12 +85,14 @@ class Acquisition:
         self._last_timestamp = 0.0
         self._last_index: int | None = None
         self._pending: dict[str, object] = {}
-        self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None], threading.Event] | None = None
+        self._pending_schedule: tuple[PatternSchedule, Callable[[PatternSchedule], None],
+                                      threading.Event] | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._want_running = threading.Event()
         self._started = False
-        self._thread = threading.Thread(target=self._run, name="fringescope-acquisition", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="fringescope-acquisition",
+                                        daemon=True)
 
     # -- control (any thread) ------------------------------------------------------
     def start_thread(self, *, acquire: bool = True) -> None:
@@ -130,7 +132,8 @@ class Acquisition:
                 self.led = led
                 self._pending["led"] = led
 
-    def request_schedule(self, schedule: PatternSchedule, on_swap: Callable[[PatternSchedule], None],
+    def request_schedule(self, schedule: PatternSchedule,
+                         on_swap: Callable[[PatternSchedule], None],
                          timeout_s: float = 10.0) -> bool:
         """Switch to ``schedule`` at the next set boundary and wait for it (True: switched).
 
@@ -245,7 +248,8 @@ class Acquisition:
         with self._lock:
             exposure_ms, led = self.exposure_ms, self.led
             self._pending.clear()
-        start_devices(self.devices, self.schedule, exposure_ms=exposure_ms, led=led, bit_depth=self.bit_depth)
+        start_devices(self.devices, self.schedule, exposure_ms=exposure_ms, led=led,
+                      bit_depth=self.bit_depth)
         self._started = True
         self._last_index = None
         self._reset_sets()
@@ -280,8 +284,8 @@ class Acquisition:
     @property
     def frame_period_s(self) -> float:
         """The camera's frame period, s: the median timestamp interval of consecutive frames
-        (before any, the exposure). Intervals across a gap are not counted, so a stall does
-        not stretch it."""
+        (before any, the exposure). Intervals across a gap are not counted, so a
+        stall does not stretch it."""
         median = self._intervals.median()
         return median if median is not None else max(self.exposure_ms, 1.0) / 1000.0
 

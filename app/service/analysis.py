@@ -23,8 +23,8 @@ def low_signal_note(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[
     from app.analysis import roi_mask
     from app.recon.exposure import low_signal
 
-    dark = low_signal(result.reason, roi_mask(result.reason.shape, roi), result.texture, result.modulation,
-                      result.exposure_ms, result.full_scale)
+    dark = low_signal(result.reason, roi_mask(result.reason.shape, roi), result.texture,
+                      result.modulation, result.exposure_ms, result.full_scale)
     if dark is None:
         return {}
     return {"low_signal_fraction": dark.share, "suggested_exposure_ms": dark.suggested_exposure_ms,
@@ -50,7 +50,8 @@ def plane(result: LiveResult, roi: tuple[int, int, int, int]) -> dict[str, Any]:
 
 def feature(result: LiveResult, roi: tuple[int, int, int, int], polarity: str = "bright",
             plane_normal: npt.NDArray[np.float64] | None = None) -> dict[str, Any]:
-    """Height of a raised feature (e.g. a suture, segmented by intensity) over its baseline in ``roi``.
+    """Height of a raised feature (e.g. a suture, segmented by intensity)
+    over its baseline in ``roi``.
 
     With the calibration's reference-plane ``plane_normal`` the cross-sections are taken in the
     plane's millimetres, free of the raised crest's parallax (:func:`plane_coordinates`)."""

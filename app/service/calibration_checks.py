@@ -103,7 +103,8 @@ def _check_model(cal: Calibration) -> None:
         if np.isnan(grid).any():
             raise ValueError("model.supported_region.height_grid_mm: contains NaN")
         if not (grid[..., 0] <= grid[..., 1]).any():
-            raise ValueError("model.supported_region.height_grid_mm: no cell has data (empty region)")
+            raise ValueError("model.supported_region.height_grid_mm: no cell "
+                             "has data (empty region)")
     if not all(math.isfinite(x) for x in region.cell_px):
         raise ValueError("model.supported_region.cell_px: must be finite")
     if isinstance(model, GeometricModel) and model.focal_px <= 0.0:

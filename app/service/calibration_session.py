@@ -220,7 +220,8 @@ class CalibrationSession:
         if not used:
             raise ValueError("poses: no pose with the board detected")
         names = [f"pose_{i:02d}" for i, _ in used]
-        report = calibrate_sets(self.board, [p.capture for _, p in used], robust=robust, names=names)
+        report = calibrate_sets(self.board, [p.capture for _, p in used], robust=robust,
+                                names=names)
         with self.lock:
             self.report = report
         return report

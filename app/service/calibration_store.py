@@ -32,7 +32,8 @@ def initial_path(settings: Settings) -> Path | None:
         if not path.is_file():
             raise ValueError(f"{path}: calibration file not found")
         return path
-    for name in ("active.json", sim_file_name(settings)) if settings.camera == "sim" else ("active.json",):
+    sim = settings.camera == "sim"
+    for name in ("active.json", sim_file_name(settings)) if sim else ("active.json",):
         path = folder(settings) / name
         if path.is_file():
             return path
@@ -57,12 +58,14 @@ WORK_FOLDER_PREFIX = ".sim-calib-"
 
 
 def sim_file_name(settings: Settings) -> str:
-    """The simulator's own calibration file: ``sim.json`` for the default rig, ``sim-<rig>.json`` else."""
+    """The simulator's own calibration file: ``sim.json`` for the default rig,
+    ``sim-<rig>.json`` else."""
     return "sim.json" if settings.sim_rig == "default" else f"sim-{settings.sim_rig}.json"
 
 
 def create_sim_calibration(settings: Settings) -> Calibration:
-    """Simulate board poses of the configured rig, calibrate from them and store them (minutes at most)."""
+    """Simulate board poses of the configured rig, calibrate from them and store
+    them (minutes at most)."""
     from app.calib.fitting import calibrate_folder
     from app.devices.sim import simulate_calibration_folder
 

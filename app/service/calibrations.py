@@ -1,4 +1,5 @@
-"""The calibration manager: the store, creation (the simulator's), activation, the REST wizard's session.
+"""The calibration manager: the store, creation (the simulator's), activation,
+the REST wizard's session.
 
 Activating a calibration installs a fresh reconstruction engine in the live pipeline;
 uploaded sets are reconstructed with an engine of their own.
@@ -59,7 +60,8 @@ class CalibrationManager:
 
     # -- loading and creation ----------------------------------------------------------------
     def load_initial(self, *, is_sim: bool) -> None:
-        """Load the configured / active / simulator calibration, or begin creating the simulator's."""
+        """Load the configured / active / simulator calibration, or begin
+        creating the simulator's."""
         s = self.settings
         try:
             path = calibration_store.initial_path(s)
@@ -69,7 +71,8 @@ class CalibrationManager:
         if path is not None:
             try:
                 cal = calibration_store.load(path)
-                self.activate(cal, name=str(cal.extra.get(calibration_store.NAME_KEY, path.stem)), persist=False)
+                self.activate(cal, name=str(cal.extra.get(calibration_store.NAME_KEY, path.stem)),
+                              persist=False)
                 return
             except ValueError as exc:
                 self._error(str(exc))
@@ -79,7 +82,8 @@ class CalibrationManager:
             self._creating = SimCalibrationJob(self.settings, self._sim_created, self._error)
             self._creating.start()
         else:
-            self.warnings.append("no calibration: load one (PUT /api/calibration/file) or calibrate")
+            self.warnings.append("no calibration: "
+                                 "load one (PUT /api/calibration/file) or calibrate")
 
     def _sim_created(self, cal: Calibration) -> None:
         if self.pipeline.closed:
@@ -102,7 +106,8 @@ class CalibrationManager:
             self._creating.cancel(timeout_s)
 
     # -- activation --------------------------------------------------------------------------
-    def activate(self, cal: Calibration, *, name: str, persist: bool = True, force: bool = False) -> None:
+    def activate(self, cal: Calibration, *, name: str, persist: bool = True,
+                 force: bool = False) -> None:
         """Check ``cal``, then make it active for live and uploaded sets.
 
         The physical checks (:func:`check_physical`) always apply; then, unless ``force``, a
@@ -116,8 +121,8 @@ class CalibrationManager:
             size = self.pipeline.image_size()
             if size is not None and tuple(cal.image_size) != size:
                 raise ValueError(
-                    f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not match "
-                    f"the camera's {size[0]}x{size[1]}"
+                    f"calibration: image size {cal.image_size[0]}x{cal.image_size[1]} does not "
+                    f"match the camera's {size[0]}x{size[1]}"
                 )
             check_physical(cal, self.schedule)
             engine = self._engine(cal, self.schedule)
@@ -170,13 +175,15 @@ class CalibrationManager:
         bits = self.settings.bit_depth
         # live scenes move: heterodyne orders are guarded against motion between the groups
         return Reconstructor(calibration_for_schedule(cal, schedule), fast=True,
-                             max_code=None if bits == 8 else full_scale(bits), max_sigma_mm=self.settings.max_sigma_mm,
+                             max_code=None if bits == 8 else full_scale(bits),
+                             max_sigma_mm=self.settings.max_sigma_mm,
                              min_modulation=self.settings.min_modulation,
                              gross_error_mm=self.settings.gross_error_mm or None,
                              order_max_motion_rad=LIVE_MAX_MOTION_RAD)
 
     def engine_for(self, schedule: PatternSchedule) -> tuple[Reconstructor | None, str | None]:
-        """The live engine for ``schedule`` with the active calibration, or None and why it does not apply."""
+        """The live engine for ``schedule`` with the active calibration, or None and
+        why it does not apply."""
         cal, name = self.calibration, self.name
         if cal is None:
             return None, None
@@ -192,9 +199,9 @@ class CalibrationManager:
         w, h = cal.image_size
         lo, hi = cal.height_range_mm
         return CalibrationSummary(
-            name=self.name, created=cal.created, height_range_mm=(float(lo), float(hi)), image_size=(int(w), int(h)),
-            software_version=cal.software_version, poses=len(cal.pose_residuals),
-            model=cal.model.name, held_out=cal.held_out,
+            name=self.name, created=cal.created, height_range_mm=(float(lo), float(hi)),
+            image_size=(int(w), int(h)), software_version=cal.software_version,
+            poses=len(cal.pose_residuals), model=cal.model.name, held_out=cal.held_out,
         )
 
     # -- uploaded sets -----------------------------------------------------------------------
@@ -210,7 +217,8 @@ class CalibrationManager:
             raise InvalidRequest(str(exc)) from None
         with self._upload_lock:
             engine = self._upload_engine
-            if engine is None or self._upload_engine_cal is not active or engine.calibration.pattern != cal.pattern:
+            if (engine is None or self._upload_engine_cal is not active
+                    or engine.calibration.pattern != cal.pattern):
                 engine = self._upload_engine = Reconstructor(cal, fast=True)
                 self._upload_engine_cal = active
             return engine.run(capture.frames, max_code=capture.max_code)
@@ -253,7 +261,8 @@ class CalibrationManager:
     def activate_session(self, name: str, *, force: bool = False) -> CalibrationSummary:
         session = self.require_session()
         if session.report is None:
-            raise Conflict("calibration session not solved: POST /api/calibration/session/solve first")
+            raise Conflict("calibration session not solved: POST "
+                           "/api/calibration/session/solve first")
         try:
             self.activate(session.report.calibration, name=name, persist=True, force=force)
         except ValueError as exc:

@@ -54,7 +54,8 @@ def device_specs(settings: Settings) -> DeviceSpecs:
     """The typed backend specs the device factory takes, from ``settings``."""
     return DeviceSpecs(
         camera=CameraSpec(settings.camera, settings.camera_source),
-        projector=ProjectorSpec(settings.projector, settings.lightcrafter_host, settings.lightcrafter_port),
+        projector=ProjectorSpec(settings.projector, settings.lightcrafter_host,
+                                settings.lightcrafter_port),
         controller=ControllerSpec(settings.controller, settings.serial_port),
         sim=SimSpec(
             scene=settings.sim_scene, seed=settings.sim_seed, bit_depth=settings.bit_depth,
@@ -74,10 +75,12 @@ def cache_dir(settings: Settings) -> str:
 
 
 def create_devices(settings: Settings) -> DeviceBundle:
-    """Devices named by ``settings``; the simulator's world is kept when every device is simulated."""
+    """Devices named by ``settings``; the simulator's world is kept when
+    every device is simulated."""
     specs = device_specs(settings)
     devs = factory_devices(specs)
-    return DeviceBundle(devs.camera, devs.projector, devs.controller, devs.world if specs.all_sim else None)
+    return DeviceBundle(devs.camera, devs.projector, devs.controller,
+                        devs.world if specs.all_sim else None)
 
 
 def start_devices(

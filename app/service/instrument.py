@@ -4,9 +4,9 @@ The schedule-change rules (no change while recording or calibrating), the change
 valid-fraction watch must know of, the state and the status record live here; routers use
 the parts themselves for the rest (``app.api.deps``). The live pipeline
 (:mod:`app.service.pipeline`) owns the devices, the acquisition and reconstruction threads
-and the latest result; the calibration manager (:mod:`app.service.calibrations`) owns the active calibration, its
-store, its creation and the REST wizard's session. Threads stop on events and are joined
-in :meth:`Instrument.close`.
+and the latest result; the calibration manager (:mod:`app.service.calibrations`) owns the active
+calibration, its store, its creation and the REST wizard's session. Threads stop on events and are
+joined in :meth:`Instrument.close`.
 """
 
 from __future__ import annotations
@@ -69,8 +69,9 @@ class Instrument:
     def __init__(self, settings: Settings, *, devices: DeviceBundle | None = None,
                  poses: TrackerPoses | None = None) -> None:
         self.settings = settings
-        config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led, bit_depth=settings.bit_depth,
-                                rolling=settings.rolling, autostart=settings.autostart,
+        config = PipelineConfig(exposure_ms=settings.exposure_ms, led=settings.led,
+                                bit_depth=settings.bit_depth, rolling=settings.rolling,
+                                autostart=settings.autostart,
                                 motion_false_alarm_rate=settings.motion_false_alarm_rate,
                                 motion_grow_px=settings.motion_grow_px,
                                 gross_error_mm=settings.gross_error_mm or None,
@@ -250,7 +251,8 @@ class Instrument:
 
         Raises:
             InvalidRequest: no schedule of that name.
-            Conflict: a recording runs or a calibration is being made (their sets must share one schedule).
+            Conflict: a recording runs or a calibration is being made (their sets
+            must share one schedule).
         """
         try:
             schedule = schedule_by_name(name)
@@ -258,7 +260,8 @@ class Instrument:
             raise InvalidRequest(str(exc)) from None
         with self._schedule_lock:
             if self.recorder.active_name is not None:
-                raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; stop it first")
+                raise Conflict(f"schedule: recording {self.recorder.active_name!r} runs; "
+                               "stop it first")
             if self.calibrations.creating:
                 raise Conflict("schedule: the simulator's calibration is being made with the "
                                "current schedule; wait until it is active")
@@ -271,7 +274,8 @@ class Instrument:
         return name
 
     def schedules(self) -> list[dict[str, Any]]:
-        """Every registered schedule with its predicted depth σ and order-error rate at the rig's noise."""
+        """Every registered schedule with its predicted depth σ and order-error
+        rate at the rig's noise."""
         schedule = self.schedule
         top = full_scale(self.settings.bit_depth)
         _, res = self.results.latest()
@@ -380,10 +384,10 @@ class Instrument:
             return "stalled", rec.last_error
         recon_ms = rec.recon_times.median()
         if recon_ms is not None and recon_ms / 1000.0 > period:
-            return "stalled", (f"depth maps are late: reconstruction takes {recon_ms:.0f} ms a set, "
-                               "longer than the camera takes for one")
-        return "stalled", (f"waiting for a complete fringe set: {acq.frames_since_set} frames since "
-                           f"the last, {acq.dropped_since_set} of them dropped")
+            return "stalled", (f"depth maps are late: reconstruction takes {recon_ms:.0f} ms a "
+                               "set, longer than the camera takes for one")
+        return "stalled", (f"waiting for a complete fringe set: {acq.frames_since_set} frames "
+                           f"since the last, {acq.dropped_since_set} of them dropped")
 
     def _startup_phase(self) -> str | None:
         """Before the first depth map: what the instrument is waiting for."""
@@ -442,12 +446,12 @@ class Instrument:
             # no depth rather than depth from frames that are not gap-free groups: say why
             g = len(self.schedule.frequencies)
             warnings.append(
-                f"no complete fringe set in the last {acq.frames_since_set} frames: the camera dropped "
-                f"{acq.dropped_since_set} of them and each of the {g} frequency groups needs "
-                f"{self.schedule.steps} consecutive frames (within 3 projector cycles)"
+                f"no complete fringe set in the last {acq.frames_since_set} frames: the camera "
+                f"dropped {acq.dropped_since_set} of them and each of the {g} frequency groups "
+                f"needs {self.schedule.steps} consecutive frames (within 3 projector cycles)"
                 if acq.dropped_since_set else
-                f"no complete fringe set in the last {acq.frames_since_set} frames (pattern indices missing "
-                "or out of order, or the exposure/LED changing)")
+                f"no complete fringe set in the last {acq.frames_since_set} frames (pattern "
+                "indices missing or out of order, or the exposure/LED changing)")
         if self.pipeline.engine_note:
             warnings.append(self.pipeline.engine_note)
         if (collapse := self.calibrations.collapse_warning()) is not None:
@@ -490,7 +494,8 @@ class Instrument:
             bit_depth=s.bit_depth,
             schedule={"name": schedule_name_of(self.schedule), **self.schedule.to_dict(),
                       "frames_per_depth": self.schedule.n_frames,
-                      "calibration_applies": None if self.calibration is None else self.pipeline.engine_note is None},
+                      "calibration_applies": (None if self.calibration is None
+                                              else self.pipeline.engine_note is None)},
             warnings=tuple(warnings),
             sensor_noise=rec.noise.describe(),
             state_reason=reason,

@@ -66,8 +66,9 @@ def calibration_terms(cal: Any) -> tuple[npt.NDArray[np.float64] | None, float, 
     return normal, _nonneg(held.get("rms_mm")) or 0.0, 0.0
 
 
-def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal: npt.ArrayLike | None = None,
-                   calibration_sigma_mm: float = 0.0, calibration_length_mm: float = 0.0,
+def measure_result(result: MeasurableResult, spec: dict[str, Any],
+                   plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
+                   calibration_length_mm: float = 0.0,
                    calibration: Calibration | None = None) -> dict[str, Any]:
     """One measurement (``spec``: kind, points, optional reference and snap_px) as a JSON-able dict.
 
@@ -81,11 +82,13 @@ def measure_result(result: MeasurableResult, spec: dict[str, Any], plane_normal:
     try:
         m = measure(spec["kind"], result.points, result.valid, sigma, spec["points"],
                     reference=spec.get("reference"), snap_px=float(spec.get("snap_px", 3.0)),
-                    plane_normal=plane_normal, reason=result.reason, calibration_sigma_mm=calibration_sigma_mm,
+                    plane_normal=plane_normal, reason=result.reason,
+                    calibration_sigma_mm=calibration_sigma_mm,
                     calibration_length_mm=calibration_length_mm, calibration=calibration,
                     fill_holes=True)
     except ValueError as exc:  # the clicks (the only user input) do not fit this result
-        raise InvalidRequest(f"{spec['kind']}: {exc}" if not str(exc).startswith(spec["kind"]) else str(exc)) from None
+        raise InvalidRequest(f"{spec['kind']}: {exc}"
+                             if not str(exc).startswith(spec["kind"]) else str(exc)) from None
     out = m.to_dict()
     out["coverage"] = m.extra.get("coverage", 1.0)
     out["min_coverage"] = MIN_COVERAGE
@@ -112,14 +115,19 @@ def measure_specs(result: MeasurableResult, specs: list[dict[str, Any]],
             out.append(summary(measure_result(result, spec, plane_normal, calibration_sigma_mm,
                                                   calibration_length_mm)))
         except InvalidRequest as exc:
-            out.append({"kind": spec.get("kind"), "pixels": spec.get("points"), "error": exc.detail})
+            out.append({"kind": spec.get("kind"), "pixels": spec.get("points"),
+                        "error": exc.detail})
     return out
 
 
 def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
-                         plane_normal: npt.ArrayLike | None = None, calibration_sigma_mm: float = 0.0,
-                         calibration_length_mm: float = 0.0) -> tuple[npt.NDArray[np.float32], list[tuple[npt.NDArray[np.float32], str]]]:
-    """What the 3-D view draws for ``specs`` on ``result``: line segments and labels, camera frame, mm.
+                         plane_normal: npt.ArrayLike | None = None,
+                         calibration_sigma_mm: float = 0.0,
+                         calibration_length_mm: float = 0.0
+                         ) -> tuple[npt.NDArray[np.float32],
+                                    list[tuple[npt.NDArray[np.float32], str]]]:
+    """What the 3-D view draws for ``specs`` on ``result``: line segments and
+    labels, camera frame, mm.
 
     Returns (segments (N, 2, 3) float32, [(label position (3,), "value ± σ unit"), …]); a
     spec that does not fit the result draws nothing.
@@ -148,7 +156,8 @@ def measurement_segments(result: MeasurableResult, specs: list[dict[str, Any]],
         elif kind == "depth":
             n = np.cross(p[2] - p[1], p[3] - p[1])
             n /= np.linalg.norm(n)
-            segs += [(p[1], p[2]), (p[2], p[3]), (p[3], p[1]), (p[0], p[0] - ((p[0] - p[1]) @ n) * n)]
+            segs += [(p[1], p[2]), (p[2], p[3]), (p[3], p[1]),
+                     (p[0], p[0] - ((p[0] - p[1]) @ n) * n)]
         elif kind == "area":  # a vertex in a hole has no point: its two edges are not drawn
             segs += [(p[i], p[(i + 1) % len(p)]) for i in range(len(p))
                      if np.isfinite(p[i]).all() and np.isfinite(p[(i + 1) % len(p)]).all()]

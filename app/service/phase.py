@@ -21,7 +21,7 @@ def decode_capture(capture: CaptureSet, phase_error: PhaseErrorLUT | None = None
     try:
         if phase_error is not None:
             phase_error.check_schedule(capture.schedule.steps, capture.schedule.frequencies)
-        return compute_phase(capture.frames, capture.schedule, max_code=capture.max_code, phase_error=phase_error,
-                             min_modulation=min_modulation)
+        return compute_phase(capture.frames, capture.schedule, max_code=capture.max_code,
+                             phase_error=phase_error, min_modulation=min_modulation)
     except ValueError as exc:
         raise InvalidRequest(str(exc)) from None

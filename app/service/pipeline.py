@@ -64,7 +64,8 @@ class PipelineConfig:
 class LivePipeline:
     """Devices, the acquisition and reconstruction threads, the latest result."""
 
-    def __init__(self, config: PipelineConfig, schedule: PatternSchedule, devices: DeviceBundle | None) -> None:
+    def __init__(self, config: PipelineConfig, schedule: PatternSchedule,
+                 devices: DeviceBundle | None) -> None:
         self.config = config
         self.schedule = schedule
         self.devices = devices
@@ -79,7 +80,8 @@ class LivePipeline:
         )
         self.results: LatestSlot[LiveResult] = self.reconstruction.results
         self._engine: Reconstructor | None = None
-        self.engine_note: str | None = None  # why there is no engine although a calibration is loaded
+        # why there is no engine although a calibration is loaded
+        self.engine_note: str | None = None
         self.closed = False
         self.bracket_auto = False  # bracketing was switched on by the auto-exposure
         self.bracket_dim_share: float | None = None  # the auto-exposure's last judgement
@@ -113,14 +115,18 @@ class LivePipeline:
 
     # -- the engine ------------------------------------------------------------------------
     def use_engine(self, engine: Reconstructor | None, note: str | None = None) -> None:
-        """Reconstruct from now on with ``engine`` (None: not at all, because of ``note``); older results are dropped."""
+        """Reconstruct from now on with ``engine`` (None: not at all, because of ``note``);
+        older results are dropped."""
         self._engine = engine
         self.engine_note = note if engine is None else None
         self.results.clear()
 
-    def set_schedule(self, schedule: PatternSchedule, engine_for: Callable[[PatternSchedule], tuple[Reconstructor | None,
-                     str | None]], timeout_s: float = 10.0) -> None:
-        """Run ``schedule`` from the next set boundary, reconstructing with ``engine_for(schedule)``.
+    def set_schedule(self, schedule: PatternSchedule,
+                     engine_for: Callable[[PatternSchedule],
+                                          tuple[Reconstructor | None, str | None]],
+                     timeout_s: float = 10.0) -> None:
+        """Run ``schedule`` from the next set boundary, reconstructing with
+        ``engine_for(schedule)``.
 
         The engine is built first (it takes a moment); the acquisition then swaps the schedule
         between two sets, installs the engine, and reloads the devices' patterns.
@@ -143,7 +149,8 @@ class LivePipeline:
         if self.acquisition is None:
             swap(schedule)
         elif not self.acquisition.request_schedule(schedule, swap, timeout_s):
-            raise DeviceUnavailable(f"schedule: the acquisition reached no set boundary within {timeout_s:.0f} s")
+            raise DeviceUnavailable("schedule: the acquisition reached no set boundary "
+                                    f"within {timeout_s:.0f} s")
 
     @property
     def has_engine(self) -> bool:
@@ -167,7 +174,8 @@ class LivePipeline:
 
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
-        """Request ``exposure_ms`` from the next whole set (checked at the API boundary and by the devices)."""
+        """Request ``exposure_ms`` from the next whole set (checked at the API
+        boundary and by the devices)."""
         self._acq().request(exposure_ms=float(exposure_ms))
         return float(exposure_ms)
 
@@ -222,7 +230,8 @@ class LivePipeline:
 
     # -- results ---------------------------------------------------------------------------
     def why_no_result(self) -> Conflict | DeviceUnavailable | None:
-        """Why no result can come now: a state the client can change (409) or a fault (503); None: one is on its way."""
+        """Why no result can come now: a state the client can change (409) or a fault (503);
+        None: one is on its way."""
         if not self.has_engine:
             return Conflict(f"no depth result: {self.engine_note or 'no calibration is active'}")
         if self.acquisition is None or not self.acquisition.acquiring:
@@ -231,7 +240,8 @@ class LivePipeline:
             return DeviceUnavailable(f"no depth result: device fault ({self.acquisition.fault})")
         return None
 
-    def next_capture(self, timeout_s: float = 10.0, *, exposure_ms: float | None = None) -> CaptureSet:
+    def next_capture(self, timeout_s: float = 10.0, *,
+                     exposure_ms: float | None = None) -> CaptureSet:
         """The next whole fringe set grabbed after this call (optionally at one exposure)."""
         acq = self._acq()
         if not acq.acquiring:
@@ -242,9 +252,11 @@ class LivePipeline:
             seq, fs = acq.sets.wait_newer(seq, left)
             if fs is None:
                 break
-            if exposure_ms is None or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3:
-                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms), fs.led or DEFAULT_LED,
-                                  bit_depth=self.config.bit_depth, extra={"frame_indices": fs.frame_indices})
+            if (exposure_ms is None
+                    or abs(fs.exposure_ms - exposure_ms) <= 1e-3 * exposure_ms + 1e-3):
+                return CaptureSet(fs.stack(), self.schedule, float(fs.exposure_ms),
+                                  fs.led or DEFAULT_LED, bit_depth=self.config.bit_depth,
+                                  extra={"frame_indices": fs.frame_indices})
         raise DeviceUnavailable(f"no complete fringe set within {timeout_s:.0f} s")
 
     def auto_exposure(self, *, saturation_limit: float = DEFAULT_SATURATION_LIMIT,
@@ -266,7 +278,8 @@ class LivePipeline:
         if was_bracketing:  # the search grabs sets at its own exposures
             self.set_bracket(False)
         try:
-            result = choose_exposure(measure, saturation_limit=saturation_limit, max_exposure_ms=max_exposure_ms)
+            result = choose_exposure(measure, saturation_limit=saturation_limit,
+                                     max_exposure_ms=max_exposure_ms)
         except Exception:
             self.set_exposure(before)
             if was_bracketing:

@@ -65,7 +65,8 @@ class LiveResult:
     received_s: float
     published_s: float
     recon_ms: float
-    created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
+    created: str = field(
+        default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
     seq: int = 0
     sigma: npt.NDArray[np.float32] | None = None
     map_time_s: float = float("nan")
@@ -154,8 +155,10 @@ class LiveResult:
             "frame_indices": self.frame_indices, "timestamps": self.timestamps,
             "latency_ms": round(self.latency_ms, 3), "recon_ms": round(self.recon_ms, 3),
             "valid_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
-            "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None, "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
-            "scene_moved": self.scene_moved, "uncertain_moving_pixels": self.uncertain_moving_pixels,
+            "map_time": self.map_time_s if np.isfinite(self.map_time_s) else None,
+            "moved_pixels": self.moved_pixels, "motion_ms": round(self.motion_ms, 3),
+            "scene_moved": self.scene_moved,
+            "uncertain_moving_pixels": self.uncertain_moving_pixels,
             "shape": list(self.shape),
             "bracket_exposures_ms": None if self.bracket_exposures_ms is None
             else list(self.bracket_exposures_ms),
@@ -200,7 +203,8 @@ class Reconstruction:
         self.bracket = False
         self._bracket_first: tuple[FrameSet, ReconResult, float] | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="fringescope-reconstruction", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="fringescope-reconstruction",
+                                        daemon=True)
 
     def start_thread(self) -> None:
         self._thread.start()

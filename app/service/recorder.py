@@ -62,7 +62,8 @@ SECRET_SETTINGS = frozenset({"api_token"})  # never written to disk
 
 
 class RecordedInstrument(Protocol):
-    """What the recorder reads of the instrument: settings, schedule, whole raw sets, published results."""
+    """What the recorder reads of the instrument: settings, schedule, whole raw
+    sets, published results."""
 
     @property
     def settings(self) -> Settings: ...
@@ -162,9 +163,11 @@ class Recorder:
             if self._recording is not None:
                 raise Conflict(f"already recording {self._recording.name!r}: stop it first")
             self._check_disk()
-            settings = self.instrument.settings.model_dump(mode="json", exclude=set(SECRET_SETTINGS))
+            settings = self.instrument.settings.model_dump(mode="json",
+                                                           exclude=set(SECRET_SETTINGS))
             try:
-                self._recording = Recording(self.root, name or self._fresh_name(), settings=settings)
+                self._recording = Recording(self.root, name or self._fresh_name(),
+                                            settings=settings)
             except FileExistsError as exc:
                 raise Conflict(str(exc)) from None
             except ValueError as exc:
@@ -236,7 +239,8 @@ class Recorder:
         self.root.mkdir(parents=True, exist_ok=True)
         free_mb = shutil.disk_usage(self.root).free / 1e6
         if free_mb < self.min_free_mb:
-            raise InsufficientDisk(f"only {free_mb:.0f} MB free in {self.root} (need {self.min_free_mb:.0f} MB)")
+            raise InsufficientDisk(f"only {free_mb:.0f} MB free in {self.root} (need "
+                                   f"{self.min_free_mb:.0f} MB)")
 
     # -- the recordings on disk (NotFound for a name that is not one) -------------------------
     def recordings(self) -> list[dict[str, Any]]:
@@ -345,7 +349,8 @@ class Recorder:
                     except queue.Empty:
                         item = None
                 now = time.monotonic()
-                while pending and (stopping or now - next(iter(pending.values()))[1] > self.depth_wait_s):
+                while pending and (stopping
+                                   or now - next(iter(pending.values()))[1] > self.depth_wait_s):
                     _, (fs, _) = pending.popitem(last=False)
                     hand_over(fs, None)
                 if len(pending) > _MAX_PENDING:  # depth maps stopped coming: the oldest goes raw
@@ -433,8 +438,9 @@ class Recorder:
             self._check_disk()
             now_wall, now_mono = time.time(), time.monotonic()
             capture = CaptureSet(
-                frames=fs.stack(), schedule=self.instrument.schedule, exposure_ms=float(fs.exposure_ms),
-                led=fs.led or DEFAULT_LED, extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
+                frames=fs.stack(), schedule=self.instrument.schedule,
+                exposure_ms=float(fs.exposure_ms), led=fs.led or DEFAULT_LED,
+                extra={"frame_indices": fs.frame_indices, "mode": fs.mode},
                 bit_depth=self.instrument.settings.bit_depth,
             )
             info: dict[str, Any] = {"frame_indices": fs.frame_indices, "depth": res is not None}
@@ -449,7 +455,8 @@ class Recorder:
                 if specs:  # the dashboard's measurements on this set's depth map
                     from app.service.measure import calibration_terms, measure_specs
 
-                    normal, cal_sigma, cal_length = calibration_terms(getattr(self.instrument, "calibration", None))
+                    calibration = getattr(self.instrument, "calibration", None)
+                    normal, cal_sigma, cal_length = calibration_terms(calibration)
                     try:
                         measured = measure_specs(res, specs, normal, cal_sigma, cal_length)
                     except Exception:  # a measurement fault must not stop the recording

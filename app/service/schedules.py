@@ -1,4 +1,5 @@
-"""The schedule table of ``GET /api/schedules``: each registered schedule's predicted figures at the rig's noise.
+"""The schedule table of ``GET /api/schedules``: each registered schedule's predicted
+figures at the rig's noise.
 
 The rig's noise comes from the instrument itself: the camera's σ_I model (fitted to the
 N-step residual of the newest whole raw set when N > 3, else the generic sensor model the
@@ -34,7 +35,8 @@ def calibration_for_schedule(cal: Calibration, schedule: PatternSchedule) -> Cal
     """``cal`` re-stated for ``schedule`` (same depth model, other pattern): the carry-over rule.
 
     Raises:
-        ValueError: the calibration does not apply (:func:`~app.core.schedule.calibration_mismatch`).
+        ValueError: the calibration does not apply
+        (:func:`~app.core.schedule.calibration_mismatch`).
     """
     reason = calibration_mismatch(cal.pattern, schedule)
     if reason is not None:
@@ -78,13 +80,15 @@ def rig_pixels(result: Any, schedule: PatternSchedule, full_scale: float,
     idx = idx[:: max(1, idx.size // MAX_PIXELS)]
     b = result.modulation.ravel()[idx].astype(np.float64)
     a = result.texture.ravel()[idx].astype(np.float64) - b
-    engine_sig_phi = wrapped_phase_sigma_rad(np.sqrt(engine_noise.variance_dn2(a)), b, schedule.steps)
+    engine_sig_phi = wrapped_phase_sigma_rad(np.sqrt(engine_noise.variance_dn2(a)), b,
+                                             schedule.steps)
     slope = result.sigma.ravel()[idx].astype(np.float64) / engine_sig_phi
     return RigPixels(np.sqrt(model.variance_dn2(a)), b, slope, "live")
 
 
 def sensor_noise_of(frames: Any, schedule: PatternSchedule, max_code: int) -> SensorNoise | None:
-    """The camera's noise fitted to one whole raw set (None when N = 3 or the set does not allow it)."""
+    """The camera's noise fitted to one whole raw set (None when N = 3 or the
+    set does not allow it)."""
     if schedule.steps <= 3:
         return None
     try:
@@ -94,7 +98,8 @@ def sensor_noise_of(frames: Any, schedule: PatternSchedule, max_code: int) -> Se
         return None
 
 
-def schedule_table(pixels: RigPixels, active: PatternSchedule, calibration: Calibration | None) -> list[dict[str, Any]]:
+def schedule_table(pixels: RigPixels, active: PatternSchedule,
+                   calibration: Calibration | None) -> list[dict[str, Any]]:
     """One row per registered schedule for ``GET /api/schedules``."""
     rows = []
     for name, s in SCHEDULES.items():
@@ -107,7 +112,8 @@ def schedule_table(pixels: RigPixels, active: PatternSchedule, calibration: Cali
             "steps": s.steps,
             "unwrap": s.unwrap,
             "frames_per_depth": s.n_frames,
-            "predicted_sigma_mm": None if pixels.slope_mm_per_rad is None else round(pred.sigma_mm, 6),
+            "predicted_sigma_mm": (None if pixels.slope_mm_per_rad is None
+                                   else round(pred.sigma_mm, 6)),
             "predicted_sigma_phi_rad": round(pred.sigma_phi_rad, 6),
             "predicted_order_error_rate": float(f"{pred.order_error_rate:.3g}"),
             "prediction_source": pixels.source,

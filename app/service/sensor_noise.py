@@ -62,7 +62,8 @@ class LiveNoise:
         """Whether a set taken now with ``schedule`` should be measured (N = 3 has no residual)."""
         return self.interval_s > 0.0 and schedule.steps > 3 and now_s >= self._next_s
 
-    def update(self, frames: object, schedule: PatternSchedule, max_code: int, now_s: float) -> SensorNoise | None:
+    def update(self, frames: object, schedule: PatternSchedule, max_code: int,
+               now_s: float) -> SensorNoise | None:
         """Fit one set's residual; keep it if it is quieter than the model so far (or the sensor
         range changed). Returns the model in use afterwards."""
         self._next_s = now_s + self.interval_s

@@ -58,7 +58,8 @@ class SimCalibrationJob:
             target=_create_in_child, args=(settings, self._errors),
             name="fringescope-calibrate", daemon=True,
         )
-        self._thread = threading.Thread(target=self._watch, name="fringescope-calibrate", daemon=True)
+        self._thread = threading.Thread(target=self._watch, name="fringescope-calibrate",
+                                        daemon=True)
         self._started_at = 0.0
 
     def start(self) -> None:
@@ -80,7 +81,8 @@ class SimCalibrationJob:
             )
             self._on_error(f"simulator calibration failed: {why}")
             return
-        path = calibration_store.folder(self.settings) / calibration_store.sim_file_name(self.settings)
+        folder = calibration_store.folder(self.settings)
+        path = folder / calibration_store.sim_file_name(self.settings)
         try:
             cal = calibration_store.load(path)
         except ValueError as exc:

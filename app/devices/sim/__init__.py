@@ -11,7 +11,8 @@ Public API (other modules code against these names)::
                        realtime, distortion) -> SimDevices(camera, projector, controller, world)
     render_capture_set(scene, ..., rig="default") -> (CaptureSet, truth_depth, truth_points)
     instrument_exposure(scene, *, seed, rig, ...) -> the instrument's auto-exposure choice
-    simulate_calibration_folder(out_dir, *, board, poses, seed, bit_depth, rig, partial_boards) -> Path
+    simulate_calibration_folder(out_dir, *, board, poses, seed, bit_depth, rig,
+                                partial_boards) -> Path
 """
 
 from app.devices.sim.devices import (

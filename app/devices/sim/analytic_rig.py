@@ -56,7 +56,8 @@ class Rig:
         n = np.asarray(self.plane_normal, np.float64)
         self.n = n / np.linalg.norm(n)
         f = self.focal_px
-        self.K = np.array([[f, 0.0, (self.width - 1) / 2], [0.0, f, (self.height - 1) / 2], [0, 0, 1.0]])
+        self.K = np.array([[f, 0.0, (self.width - 1) / 2], [0.0, f, (self.height - 1) / 2],
+                           [0, 0, 1.0]])
         w, h = self.schedule.width, self.schedule.height
         fp = self.projector_focal_px
         kp = np.array([[fp, 0.0, w / 2], [0.0, fp, h / 2], [0, 0, 1.0]])
@@ -67,7 +68,8 @@ class Rig:
     # --- geometry -----------------------------------------------------------------
     def rays(self) -> F64:
         """(H, W, 3) camera rays K⁻¹(u, v, 1) (z component 1)."""
-        uu, vv = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        uu, vv = np.meshgrid(np.arange(self.width, dtype=np.float64),
+                             np.arange(self.height, dtype=np.float64))
         f, cx, cy = self.K[0, 0], self.K[0, 2], self.K[1, 2]
         return np.stack([(uu - cx) / f, (vv - cy) / f, np.ones_like(uu)], axis=-1)
 
@@ -165,10 +167,12 @@ class Rig:
         return GeometricModel(rvec, t, fp, w / 2, k1, w,
                               self.schedule.frequencies[-1])  # type: ignore[arg-type]
 
-    def geometric_calibration(self, height_range_mm: tuple[float, float] = (0.0, 30.0)) -> Calibration:
+    def geometric_calibration(self,
+                              height_range_mm: tuple[float, float] = (0.0, 30.0)) -> Calibration:
         """:meth:`calibration` with the geometric model instead of Eq. (5)."""
-        return Calibration(self.K, np.zeros(5), (self.width, self.height), self.n, self.plane_offset_mm,
-                           model=self.geometric_model(), pattern=self.schedule, height_range_mm=height_range_mm)
+        return Calibration(self.K, np.zeros(5), (self.width, self.height), self.n,
+                           self.plane_offset_mm, model=self.geometric_model(),
+                           pattern=self.schedule, height_range_mm=height_range_mm)
 
     # --- images ---------------------------------------------------------------------
     def render(
@@ -182,7 +186,8 @@ class Rig:
         rng: np.random.Generator | None = None,
         max_code: int | None = None,
     ) -> npt.NDArray[np.generic]:
-        """(F, H, W) fringe frames ``A + B cos(2π k x_p / w + δ_n)`` + N(0, noise²), rounded, clipped."""
+        """(F, H, W) fringe frames ``A + B cos(2π k x_p / w + δ_n)`` + N(0,
+        noise²), rounded, clipped."""
         s = self.schedule
         xp = self.projector_column(height_mm)
         top = max_code if max_code is not None else np.iinfo(dtype).max
@@ -190,16 +195,19 @@ class Rig:
         rng = rng or np.random.default_rng(0)
         for fi, k in enumerate(s.frequencies):
             for n in range(s.steps):
-                img = background + amplitude * np.cos(2 * math.pi * k * xp / s.width + 2 * math.pi * n / s.steps)
+                img = background + amplitude * np.cos(2 * math.pi * k * xp / s.width
+                                                      + 2 * math.pi * n / s.steps)
                 if noise:
                     img = img + rng.normal(0.0, noise, img.shape)
                 out[s.frame_index(fi, n)] = np.clip(np.rint(img), 0, top).astype(dtype)
         return out
 
 
-def bump_surface(rig: Rig, base_mm: float = 6.0, peak_mm: float = 18.0, tilt_mm: float = 4.0) -> F64:
+def bump_surface(rig: Rig, base_mm: float = 6.0, peak_mm: float = 18.0,
+                 tilt_mm: float = 4.0) -> F64:
     """A smooth (H, W) height map: a Gaussian bump on a tilted plane, mm."""
-    uu, vv = np.meshgrid(np.arange(rig.width, dtype=np.float64), np.arange(rig.height, dtype=np.float64))
+    uu, vv = np.meshgrid(np.arange(rig.width, dtype=np.float64),
+                         np.arange(rig.height, dtype=np.float64))
     r2 = ((uu - rig.width * 0.55) ** 2 + (vv - rig.height * 0.45) ** 2) / (0.25 * rig.width) ** 2
     return base_mm + tilt_mm * uu / rig.width + peak_mm * np.exp(-r2)
 
@@ -229,7 +237,8 @@ def reason_scene(
     # all but two shifts of the second frequency clipped: fewer than three left to fit
     n = rig.schedule.steps
     frames[n + 1 : 2 * n - 1, patches["SATURATED"][0], patches["SATURATED"][1]] = top
-    flat = np.clip(np.rint(100 * scale + rng.normal(0, noise * scale, (rig.schedule.n_frames, 20, 25))), 0, top)
+    flat = np.clip(np.rint(100 * scale
+                           + rng.normal(0, noise * scale, (rig.schedule.n_frames, 20, 25))), 0, top)
     frames[:, patches["LOW_MODULATION"][0], patches["LOW_MODULATION"][1]] = flat.astype(dtype)
     # shift the k = 4 fringes by π (N = 4: frame n ↔ n + 2): the 1 → 4 residual becomes ≈ π
     rows, cols = patches["UNWRAP_INCONSISTENT"]

@@ -31,8 +31,9 @@ class SimulatedCamera(Camera):
     clock is virtual: grab returns at once and time advances one period per frame.
     """
 
-    def __init__(self, world: SimulatedWorld, *, realtime: bool = True, faults: FrameFaults | None = None,
-                 link: Link | None = None, name: str = "sim-camera") -> None:
+    def __init__(self, world: SimulatedWorld, *, realtime: bool = True,
+                 faults: FrameFaults | None = None, link: Link | None = None,
+                 name: str = "sim-camera") -> None:
         super().__init__(name=name)
         self.world = world
         self.realtime = realtime
@@ -103,18 +104,20 @@ class SimulatedCamera(Camera):
                     time.sleep(max(deadline - time.monotonic(), 0.0))
                 raise DeviceTimeout(f"{self.name}: frame {index} timed out (simulated)")
             mid = start + s.exposure_ms / 2000.0
-            data = self.world.render(pattern, mid - self.world.epoch, exposure_ms=s.exposure_ms, gain=s.gain,
-                                     bits=s.bit_depth)
-            return Frame(data=data, index=index, timestamp=mid, pattern_index=pattern, exposure_ms=s.exposure_ms,
-                         gain=s.gain, led=self.world.led if pattern >= 0 else "",
-                         meta={"scene_time_s": mid - self.world.epoch, "current": self.world.current},
-                         bit_depth=s.bit_depth)
+            data = self.world.render(pattern, mid - self.world.epoch, exposure_ms=s.exposure_ms,
+                                     gain=s.gain, bits=s.bit_depth)
+            return Frame(data=data, index=index, timestamp=mid, pattern_index=pattern,
+                         exposure_ms=s.exposure_ms, gain=s.gain,
+                         led=self.world.led if pattern >= 0 else "",
+                         meta={"scene_time_s": mid - self.world.epoch,
+                               "current": self.world.current}, bit_depth=s.bit_depth)
 
 
 class SimulatedProjector(Projector):
     """A DLP3000 whose LED and pattern position drive what the simulated camera sees."""
 
-    def __init__(self, world: SimulatedWorld, *, link: Link | None = None, name: str = "sim-projector") -> None:
+    def __init__(self, world: SimulatedWorld, *, link: Link | None = None,
+                 name: str = "sim-projector") -> None:
         super().__init__(name=name)
         self.world = world
         self.link = link or Link(name)
@@ -131,7 +134,8 @@ class SimulatedProjector(Projector):
         self.link.check()
         w, h = self.world.rig.projector.size
         if (schedule.width, schedule.height) != (w, h):
-            raise ValueError(f"schedule: pattern size {schedule.width}x{schedule.height} != DMD {w}x{h}")
+            raise ValueError(f"schedule: pattern size {schedule.width}x{schedule.height} != "
+                             f"DMD {w}x{h}")
         self.world.set_schedule(schedule)
 
     def _do_set_exposure(self, exposure_ms: float) -> None:
@@ -164,7 +168,8 @@ class SimulatedController(Controller):
 
     @property
     def watchdog_expired(self) -> bool:
-        """True if armed and no heartbeat came within ``watchdog_s`` (the real box would cut the LED)."""
+        """True if armed and no heartbeat came within ``watchdog_s`` (the real
+        box would cut the LED)."""
         return self.armed and time.monotonic() - self.last_heartbeat > self.watchdog_s
 
     def _do_open(self) -> None:
@@ -201,10 +206,12 @@ class SimDevices:
     world: SimulatedWorld
 
 
-def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, bit_depth: int | None = None,
-                       drop_rate: float = 0.0, timeout_rate: float = 0.0, disconnect_every_s: float = 0.0,
-                       realtime: bool = True, distortion: bool = True, reconnect_delay_s: float = 0.5,
-                       rig: str = "default", cache_dir: Path | None = None) -> SimDevices:
+def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None,
+                       bit_depth: int | None = None, drop_rate: float = 0.0,
+                       timeout_rate: float = 0.0, disconnect_every_s: float = 0.0,
+                       realtime: bool = True, distortion: bool = True,
+                       reconnect_delay_s: float = 0.5, rig: str = "default",
+                       cache_dir: Path | None = None) -> SimDevices:
     """Camera, projector and controller sharing one simulated world (nothing opened yet).
 
     ``rig``: the rig preset (optics.RIG_NAMES); ``bit_depth`` None: the rig sensor's native depth;
@@ -217,12 +224,15 @@ def create_sim_devices(*, scene: str = "anastomosis", seed: int | None = None, b
         raise ValueError(f"bit_depth: must be one of {LIVE_BIT_DEPTHS}, got {bit_depth}")
     fault_seed = world.seed_seq.spawn(1)[0]
     camera = SimulatedCamera(world, realtime=realtime,
-                             faults=FrameFaults(drop_rate=drop_rate, timeout_rate=timeout_rate, seed=fault_seed),
+                             faults=FrameFaults(drop_rate=drop_rate, timeout_rate=timeout_rate,
+                                                seed=fault_seed),
                              link=Link("sim-camera", disconnect_every_s=disconnect_every_s,
                                        reconnect_delay_s=reconnect_delay_s))
     camera.configure(bit_depth=bit_depth)
-    projector = SimulatedProjector(world, link=Link("sim-projector", disconnect_every_s=disconnect_every_s,
+    projector = SimulatedProjector(world, link=Link("sim-projector",
+                                                    disconnect_every_s=disconnect_every_s,
                                                     reconnect_delay_s=reconnect_delay_s))
-    controller = SimulatedController(world, link=Link("sim-controller", disconnect_every_s=disconnect_every_s,
+    controller = SimulatedController(world, link=Link("sim-controller",
+                                                      disconnect_every_s=disconnect_every_s,
                                                       reconnect_delay_s=reconnect_delay_s))
     return SimDevices(camera, projector, controller, world)

@@ -16,7 +16,8 @@ class Link:
     :meth:`replug` is called): hooks raise DeviceDisconnected, ``open()`` DeviceNotFound.
     """
 
-    def __init__(self, name: str, *, disconnect_every_s: float = 0.0, reconnect_delay_s: float = 0.5) -> None:
+    def __init__(self, name: str, *, disconnect_every_s: float = 0.0,
+                 reconnect_delay_s: float = 0.5) -> None:
         if disconnect_every_s < 0:
             raise ValueError(f"disconnect_every_s: must be >= 0, got {disconnect_every_s}")
         self.name = name

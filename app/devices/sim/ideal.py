@@ -57,7 +57,8 @@ def ideal_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
     phis = []
     for hh in height_range_mm:
         t = (hh - off) / (n @ centre_ray)
-        phis.append(phi_per_col * float(proj.fringe_coordinate(t * centre_ray, schedule.orientation)))
+        phis.append(phi_per_col * float(proj.fringe_coordinate(t * centre_ray,
+                                                               schedule.orientation)))
     phi0, sphi = 0.5 * (phis[0] + phis[1]), 0.5 * abs(phis[1] - phis[0])
     norm = {"u": (w / 2.0, w / 2.0), "v": (h / 2.0, h / 2.0), "phi": (phi0, sphi)}
 
@@ -81,15 +82,17 @@ def ideal_calibration(rig: SimRig, schedule: PatternSchedule | None = None,
     denominator[:6] = cd / scale  # d0..d5
     return Calibration(
         camera_matrix=K.copy(), dist_coeffs=cam.dist.copy(), image_size=(w, h),
-        plane_normal=n.copy(), plane_offset_mm=float(off), numerator=numerator, denominator=denominator,
-        normalization=norm, pattern=schedule, height_range_mm=height_range_mm,
+        plane_normal=n.copy(), plane_offset_mm=float(off), numerator=numerator,
+        denominator=denominator, normalization=norm, pattern=schedule,
+        height_range_mm=height_range_mm,
         extra={"source": "fringescope simulator ideal_calibration (oracle)"},
     )
 
 
 def eq5_height(cal: Calibration, phi: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Evaluate Eq. (5) of ``cal`` (float64) — a reference evaluator for the simulator's tests."""
-    (u0, su), (v0, sv), (p0, sp) = cal.normalization["u"], cal.normalization["v"], cal.normalization["phi"]
+    norm = cal.normalization
+    (u0, su), (v0, sv), (p0, sp) = norm["u"], norm["v"], norm["phi"]
     up, vp, pp = (u - u0) / su, (v - v0) / sv, (phi - p0) / sp
     c, d = cal.numerator, cal.denominator
     mon = [up, vp, up * up, vp * vp, up * vp]

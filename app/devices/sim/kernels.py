@@ -45,7 +45,8 @@ def add_noise(out, mean, g, read2, maxv, table, state):
         for j in range(4):
             if i >= n:
                 break
-            out[i] = _adc(mean[i], g, read2, maxv, table[(r >> np.uint64(16 * j)) & np.uint64(0xFFFF)])
+            out[i] = _adc(mean[i], g, read2, maxv,
+                          table[(r >> np.uint64(16 * j)) & np.uint64(0xFFFF)])
             i += 1
 
 
@@ -70,24 +71,27 @@ def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac, width_p,
-               nq):
-    """kk[u0 .. u1 − 1] = table indices of the contiguous rest-pose samples s0 .. s0 + u1 − u0 − 1."""
+def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac,
+               width_p, nq):
+    """kk[u0 .. u1 − 1] = table indices of the contiguous rest-pose samples
+    s0 .. s0 + u1 − u0 − 1."""
     for i in range(u1 - u0):
-        kk[u0 + i] = _fringe_index(n0_row[s0 + i], d0_row[s0 + i], base_row[s0 + i], n_add, d_add, k_over_w,
-                                   shift_frac, width_p, nq)
+        kk[u0 + i] = _fringe_index(n0_row[s0 + i], d0_row[s0 + i], base_row[s0 + i], n_add, d_add,
+                                   k_over_w, shift_frac, width_p, nq)
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
 def _shade(q, b, fr, qbar, scale, amb):
-    """DN of a sample of base b and fringe part fr lit by projector output q (NaN: unlit → ambient)."""
+    """DN of a sample of base b and fringe part fr lit by projector output q
+    (NaN: unlit → ambient)."""
     m = scale * (b * qbar + fr * (q - qbar)) + amb
     return m if q == q else amb
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
 def _shade_run(row, qv, u0, u1, s0, base_row, fringe_row, qbar, scale, amb):
-    """row[u] = DN of the rest-pose sample s0 + u − u0 lit by projector output qv[u] (NaN: unlit)."""
+    """row[u] = DN of the rest-pose sample s0 + u − u0 lit by projector
+    output qv[u] (NaN: unlit)."""
     for i in range(u1 - u0):
         row[u0 + i] = _shade(qv[u0 + i], base_row[s0 + i], fringe_row[s0 + i], qbar, scale, amb)
 
@@ -108,8 +112,8 @@ def _flow_run(block_flow, by, bx, block, w):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac, width_p,
-               qtab, qbar, scale, amb):
+def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w,
+               shift_frac, width_p, qtab, qbar, scale, amb):
     """Noise-free row ``v`` (W,) float32 DN of the moved scene (see moving_frame) into ``row``.
 
     Neighbouring tiles mostly share their flow, so each run of equal flow reads a contiguous
@@ -125,11 +129,13 @@ def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add
         sv = min(max(v - fv, 0), h - 1)
         n0_row, d0_row, base_row = nd[0, sv], nd[1, sv], base[sv]
         for u in range(u0, a):
-            kk[u] = _fringe_index(n0_row[0], d0_row[0], base_row[0], n_add, d_add, k_over_w, shift_frac, width_p, nq)
-        _index_run(kk, a, b, a - fu, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac, width_p, nq)
+            kk[u] = _fringe_index(n0_row[0], d0_row[0], base_row[0], n_add, d_add, k_over_w,
+                                  shift_frac, width_p, nq)
+        _index_run(kk, a, b, a - fu, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac,
+                   width_p, nq)
         for u in range(b, u1):
-            kk[u] = _fringe_index(n0_row[w - 1], d0_row[w - 1], base_row[w - 1], n_add, d_add, k_over_w, shift_frac,
-                                  width_p, nq)
+            kk[u] = _fringe_index(n0_row[w - 1], d0_row[w - 1], base_row[w - 1], n_add, d_add,
+                                  k_over_w, shift_frac, width_p, nq)
         bx = bx2
     for u in range(w):
         qv[u] = qtab[kk[u]] if kk[u] >= 0 else np.nan
@@ -167,8 +173,9 @@ def _adc_run(out_row, row, z, u0, u1, g, read2, maxv):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
-                 width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state):
+def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add,
+                 k_over_w, shift_frac, width_p, qtab, qbar, scale, amb, g, read2, maxv, table,
+                 state):
     """A frame of a rigidly translated scene: the noise-free mean (``noisy`` False, ``out``
     float32) or the noisy, quantised frame (``noisy`` True, ``out`` uint8/uint16), in one pass.
 
@@ -177,8 +184,8 @@ def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, b
     projector column of each sample moved by δ is exact: x_p = (N0 + α·δ)/(D0 + γ·δ) with
     nd = (N0, D0) per pixel ((2, H, W) float32) and n_add = α·δ, d_add = γ·δ.
     base, fringe: (H, W) float32 (0 where unlit); qtab: projector output over one period.
-    band: (block, W) float32 scratch (one row of tiles); zbuf, qv: (W,) float32 and kk: (W,) int32 scratch.
-    The noise is drawn tile by tile (row-major within a tile, tiles row-major).
+    band: (block, W) float32 scratch (one row of tiles); zbuf, qv: (W,) float32 and kk: (W,) int32
+    scratch. The noise is drawn tile by tile (row-major within a tile, tiles row-major).
     """
     h, w = base.shape
     r = np.uint64(0)
@@ -186,8 +193,8 @@ def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, b
     for by in range(block_flow.shape[0]):
         rows = min(block, h - by * block)
         for i in range(rows):
-            _scene_row(band[i], kk, qv, by * block + i, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w,
-                       shift_frac, width_p, qtab, qbar, scale, amb)
+            _scene_row(band[i], kk, qv, by * block + i, nd, base, fringe, block_flow, block, n_add,
+                       d_add, k_over_w, shift_frac, width_p, qtab, qbar, scale, amb)
         if not noisy:
             for i in range(rows):
                 out[by * block + i, :] = band[i]

@@ -40,14 +40,16 @@ F64 = npt.NDArray[np.float64]
 
 def frame_times(n_frames: int, exposure_ms: float, t0_s: float = 0.0,
                 frame_period_ms: float | None = None) -> npt.NDArray[np.float64]:
-    """Exposure mid-points (s) of consecutive frames from ``t0_s``; period default max(exposure, readout)."""
+    """Exposure mid-points (s) of consecutive frames from ``t0_s``; period default
+    max(exposure, readout)."""
     period = (frame_period_ms or max(exposure_ms, READOUT_MS)) / 1000.0
     return t0_s + period * np.arange(n_frames, dtype=np.float64) + exposure_ms / 2000.0
 
 
-def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOSURE_MS, led: str = DEFAULT_LED,
-                       bit_depth: int | None = None, seed: int | None = None, t0_s: float = 0.0,
-                       distortion: bool = True, schedule: PatternSchedule | None = None, current: float = 0.5,
+def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOSURE_MS,
+                       led: str = DEFAULT_LED, bit_depth: int | None = None,
+                       seed: int | None = None, t0_s: float = 0.0, distortion: bool = True,
+                       schedule: PatternSchedule | None = None, current: float = 0.5,
                        world: SimulatedWorld | None = None, frame_period_ms: float | None = None,
                        rig: str | SimRig = "default") -> tuple[CaptureSet, F32, F32]:
     """One capture set of ``scene``, each frame rendered at its own time, plus ground truth.
@@ -72,12 +74,14 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOS
     world.led, world.current = led, current
     sched = world.schedule
     times = frame_times(sched.n_frames, exposure_ms, t0_s, frame_period_ms)
-    frames: npt.NDArray[Any] = np.stack([world.render(i, float(t), exposure_ms=exposure_ms, gain=1.0, bits=bit_depth)
+    frames: npt.NDArray[Any] = np.stack([world.render(i, float(t), exposure_ms=exposure_ms,
+                                                      gain=1.0, bits=bit_depth)
                        for i, t in enumerate(times)])
     t_truth = 0.5 * (times[0] + times[-1])
     depth, points = world.truth(float(t_truth))
     meta: dict[str, object] = {
-        "simulated": {"scene": world.scene.name, "seed": seed, "t0_s": t0_s, "truth_time_s": float(t_truth),
+        "simulated": {"scene": world.scene.name, "seed": seed, "t0_s": t0_s,
+                      "truth_time_s": float(t_truth),
                       "distortion": bool(np.any(world.rig.dist != 0)), "current": current}}
     sim_meta: dict[str, object] = meta["simulated"]  # type: ignore[assignment]
     if world.rig.name != "default":  # the default rig's capture.json stays as it was
@@ -87,7 +91,8 @@ def render_capture_set(scene: str | Scene, *, exposure_ms: float = DEFAULT_EXPOS
                        bit_depth=bit_depth), depth, points)
 
 
-def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str | SimRig = "default",
+def instrument_exposure(scene: str | Scene, *, seed: int | None = None,
+                        rig: str | SimRig = "default",
                         saturation_limit: float = DEFAULT_SATURATION_LIMIT, current: float = 0.5,
                         led: str = DEFAULT_LED, t0_s: float = 0.0) -> AutoExposureResult:
     """The exposure the instrument's own auto-exposure picks for ``scene``.
@@ -108,31 +113,36 @@ def instrument_exposure(scene: str | Scene, *, seed: int | None = None, rig: str
     world = SimulatedWorld(scene, seed=seed, rig=rig)
 
     def measure(exposure_ms: float) -> tuple[float, float]:
-        cs, _, _ = render_capture_set(world.scene, exposure_ms=exposure_ms, seed=seed, t0_s=t0_s, current=current,
-                                      led=led, world=world)
+        cs, _, _ = render_capture_set(world.scene, exposure_ms=exposure_ms, seed=seed, t0_s=t0_s,
+                                      current=current, led=led, world=world)
         return set_statistics(cs.frames, cs.schedule, cs.max_code)
 
     return choose_exposure(measure, saturation_limit=saturation_limit)
 
 
-def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 8, current: float = 0.5,
-                     led: str = DEFAULT_LED) -> float:
+def auto_exposure_ms(world: SimulatedWorld, *, target: float = 0.8, bits: int = 8,
+                     current: float = 0.5, led: str = DEFAULT_LED) -> float:
     """Exposure (ms, 1–100) putting the brightest lit pixels near ``target`` of full scale."""
     r = world.renderer
     world.led, world.current = led, current
-    peak = max(float(np.nanpercentile(r.mean_frame(i, 0.0, exposure_ms=10.0, led=led, current=current, bits=bits),
+    peak = max(float(np.nanpercentile(r.mean_frame(i, 0.0, exposure_ms=10.0, led=led,
+                                                   current=current, bits=bits),
                                       99.9)) for i in (0, world.schedule.steps // 2))
     return float(np.clip(10.0 * target * full_scale(bits) / max(peak, 1e-6), *EXPOSURE_RANGE_MS))
 
 
-def central_fraction(rig: SimRig, pitch_mm: float, spec: BoardSpec, poses: list[tuple[F64, F64]]) -> float:
-    """How far the printed grid of ``spec`` (at ``pitch_mm``) reaches from the image centre over ``poses``:
-    max over poses and grid corners of max(|u − cx|/(W/2), |v − cy|/(H/2)) (1 = the image edge)."""
+def central_fraction(rig: SimRig, pitch_mm: float, spec: BoardSpec,
+                     poses: list[tuple[F64, F64]]) -> float:
+    """How far the printed grid of ``spec`` (at ``pitch_mm``) reaches from the image centre
+    over ``poses``: max over poses and grid corners of max(|u − cx|/(W/2), |v −
+    cy|/(H/2)) (1 = the image edge)."""
     cols, rows = spec.cols, spec.rows
     hs, ht = (cols + 1) * pitch_mm / 2, (rows + 1) * pitch_mm / 2
     edge = np.linspace(-1.0, 1.0, 9)
-    outline = np.concatenate([np.stack([edge * hs, np.full(9, ht)], 1), np.stack([edge * hs, np.full(9, -ht)], 1),
-                              np.stack([np.full(9, hs), edge * ht], 1), np.stack([np.full(9, -hs), edge * ht], 1)])
+    outline = np.concatenate([np.stack([edge * hs, np.full(9, ht)], 1),
+                              np.stack([edge * hs, np.full(9, -ht)], 1),
+                              np.stack([np.full(9, hs), edge * ht], 1),
+                              np.stack([np.full(9, -hs), edge * ht], 1)])
     w, h = rig.image_size
     worst = 0.0
     for origin, axes in poses:
@@ -143,10 +153,12 @@ def central_fraction(rig: SimRig, pitch_mm: float, spec: BoardSpec, poses: list[
     return worst
 
 
-def partial_board_spec(rig: SimRig, spec: BoardSpec, poses: list[tuple[F64, F64]], fraction: float = 0.5
+def partial_board_spec(rig: SimRig, spec: BoardSpec, poses: list[tuple[F64, F64]],
+                       fraction: float = 0.5
                        ) -> BoardSpec:
-    """``spec`` with its pitch shrunk (to 0.001 mm) so that at every pose its printed grid stays in the
-    central ``fraction`` of the image width and height, as a bench board that covers only the centre."""
+    """``spec`` with its pitch shrunk (to 0.001 mm) so that at every pose its printed grid stays in
+    the central ``fraction`` of the image width and height, as a bench board that
+    covers only the centre."""
     if not 0.05 <= fraction <= 1.0:
         raise ValueError(f"fraction: must be within 0.05–1, got {fraction}")
     pitch = spec.pitch_mm
@@ -155,11 +167,13 @@ def partial_board_spec(rig: SimRig, spec: BoardSpec, poses: list[tuple[F64, F64]
         if reach <= fraction:
             return BoardSpec(spec.type, spec.cols, spec.rows, pitch)
         pitch = math.floor(1000.0 * pitch * min(0.999, 0.995 * fraction / reach)) / 1000.0
-    raise ValueError(f"fraction: the board cannot be made to fit the central {fraction:.2f} of the field")
+    raise ValueError(f"fraction: the board cannot be made to fit the central {fraction:.2f} "
+                     "of the field")
 
 
-def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str = "checkerboard", poses: int = 8,
-                                seed: int | None = None, bit_depth: int | None = None, distortion: bool = True,
+def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str = "checkerboard",
+                                poses: int = 8, seed: int | None = None,
+                                bit_depth: int | None = None, distortion: bool = True,
                                 overwrite: bool = False, rig: str = "default",
                                 partial_boards: bool | None = None) -> Path:
     """Write ``board.json`` and ``pose_00/`` … capture sets of a board at ``poses`` poses.
@@ -197,9 +211,11 @@ def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str =
         scene = board_scene(sim_rig, spec, pose, paper_half_mm=paper_half_mm)
         world = SimulatedWorld(scene, rig=sim_rig, seed=int(rng.integers(2**31)))
         exposure = round(auto_exposure_ms(world, bits=bit_depth), 2)
-        cap, depth, _ = render_capture_set(world.scene, exposure_ms=exposure, bit_depth=bit_depth, world=world)
+        cap, depth, _ = render_capture_set(world.scene, exposure_ms=exposure, bit_depth=bit_depth,
+                                           world=world)
         sim_meta = cap.extra["simulated"]
-        sim_meta.update({"board_origin_mm": pose[0].tolist(), "board_axes": pose[1].tolist(), "pose": k})
+        sim_meta.update({"board_origin_mm": pose[0].tolist(), "board_axes": pose[1].tolist(),
+                         "pose": k})
         if partial:
             sim_meta["partial_board"] = True
         write_capture_set(out / f"pose_{k:02d}", cap, overwrite=overwrite,

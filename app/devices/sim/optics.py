@@ -130,7 +130,8 @@ class CameraModel:
 
 @dataclass(frozen=True)
 class ProjectorModel:
-    """Pinhole projector: ``R`` maps projector-frame vectors to the camera frame, ``centre`` in mm."""
+    """Pinhole projector: ``R`` maps projector-frame vectors to the camera
+    frame, ``centre`` in mm."""
 
     K: F64
     R: F64
@@ -172,7 +173,8 @@ class ProjectorModel:
         return a, float(a @ self.centre), g, float(g @ self.centre)
 
     def fringe_coordinate(self, points: F64, orientation: str = "vertical") -> F64:
-        """Projector coordinate along which the fringe phase grows: column (vertical fringes) or row."""
+        """Projector coordinate along which the fringe phase grows: column
+        (vertical fringes) or row."""
         return self.column(points) if orientation == "vertical" else self.row(points)
 
     def fringe_coefficients(self, orientation: str = "vertical") -> tuple[F64, float, F64, float]:
@@ -186,7 +188,8 @@ class ProjectorModel:
 
 @dataclass(frozen=True)
 class Plane:
-    """``normal · X + offset_mm = height``; unit normal toward the scope (camera centre height = offset)."""
+    """``normal · X + offset_mm = height``; unit normal toward the scope (camera
+    centre height = offset)."""
 
     normal: F64
     offset_mm: float
@@ -210,7 +213,8 @@ class SimRig:
         projector: DLP3000 pinhole model and pose in the camera frame.
         reference: the reference plane (calibration pose 0) in the camera frame.
         reference_point_mm: where the camera axis meets the reference plane.
-        focus_mm, blur_per_inv_mm: thin-lens defocus, blur diameter (px) = blur_per_inv_mm·|1/z − 1/focus|.
+        focus_mm, blur_per_inv_mm: thin-lens defocus, blur diameter (px) = blur_per_inv_mm·|1/z −
+        1/focus|.
     """
 
     camera: CameraModel
@@ -223,9 +227,12 @@ class SimRig:
     projector_blur_per_inv_mm: float = 60.0
     extra: dict[str, float] = field(default_factory=dict)
     name: str = "default"
-    bit_depth: int = 8  # the sensor's native ADC depth: offline rendering uses it unless told otherwise
-    partial_boards: bool = False  # simulated calibration boards cover only the central half of the field
-    projector_gamma: float = 1.0  # DMD response exponent, uncorrected (1 = linear, the LightCrafter's)
+    # the sensor's native ADC depth: offline rendering uses it unless told otherwise
+    bit_depth: int = 8
+    # simulated calibration boards cover only the central half of the field
+    partial_boards: bool = False
+    # DMD response exponent, uncorrected (1 = linear, the LightCrafter's)
+    projector_gamma: float = 1.0
 
     @property
     def K(self) -> F64:
@@ -274,8 +281,9 @@ def endoscope_rig(*, distortion: bool = True) -> SimRig:
     projector = ProjectorModel(Kp, rotation_y(-16.0), np.array([10.0, 0.0, 0.0]))
     normal = rotation_x(-3.0) @ rotation_y(4.0) @ np.array([0.0, 0.0, -1.0])
     point = np.array([0.0, 0.0, 40.0])
-    return SimRig(camera, projector, plane_through(point, normal), point, focus_mm=30.0, blur_per_inv_mm=150.0,
-                  projector_focus_mm=32.0, name="endoscope", bit_depth=12, partial_boards=True)
+    return SimRig(camera, projector, plane_through(point, normal), point, focus_mm=30.0,
+                  blur_per_inv_mm=150.0, projector_focus_mm=32.0, name="endoscope", bit_depth=12,
+                  partial_boards=True)
 
 
 RIGS: dict[str, Callable[..., SimRig]] = {"default": default_rig, "endoscope": endoscope_rig}
@@ -308,12 +316,14 @@ def projector_defect_rig(base: SimRig, *, radial: tuple[float, float] = DEFECT_R
     if not all(math.isfinite(k) for k in radial):
         raise ValueError(f"radial: need finite (k1, k2), got {radial}")
     proj = replace(base.projector, radial=(float(radial[0]), float(radial[1])))
-    return replace(base, projector=proj, projector_gamma=float(gamma), name=base.name + DEFECT_SUFFIX)
+    return replace(base, projector=proj, projector_gamma=float(gamma),
+                   name=base.name + DEFECT_SUFFIX)
 
 
 def rig_by_name(name: str, *, distortion: bool = True) -> SimRig:
     """The rig preset ``name`` (one of :data:`RIG_NAMES`), or a preset's projector-defect variant
-    (``<preset>-projector-defect``, :func:`projector_defect_rig`); ValueError naming ``rig`` otherwise."""
+    (``<preset>-projector-defect``, :func:`projector_defect_rig`); ValueError
+    naming ``rig`` otherwise."""
     base = name[: -len(DEFECT_SUFFIX)] if name.endswith(DEFECT_SUFFIX) else name
     try:
         make = RIGS[base]

@@ -1,9 +1,9 @@
 """Radiometry and sensor noise of the simulated rig.
 
-Signal chain per pixel (electrons):
-``e = exposure_ms · current · LED_flux[led] · QE[led] · transmission · κ · (reflectance · pattern + …) / d_p²``
+Signal chain per pixel (electrons), T the transmission:
+``e = exposure_ms · current · LED_flux[led] · QE[led] · T · κ · (reflectance · pattern + …) / d_p²``
 — LED colour × camera spectral response × tissue reflectance per colour, the two scopes'
-transmission (≈ 7 %), inverse-square falloff from the projector pupil, exposure and LED
+transmission T (≈ 7 %), inverse-square falloff from the projector pupil, exposure and LED
 current. The sensor (Grasshopper3-like) adds photon shot noise (Poisson, Gaussian
 approximation), read noise, an analog gain, and an 8- or 12-bit ADC with saturation:
 ``DN = clip(round(g·(e + n)), 0, 2^bits − 1)`` with g = gain·(2^bits − 1)/full_well.
@@ -40,7 +40,8 @@ REFLECTANCE = {
     "metal": {"red": 0.35, "green": 0.35, "blue": 0.35},
     "background": {"red": 0.02, "green": 0.02, "blue": 0.02},
     # appended last so the other materials keep their ids
-    "suture_bright": {"red": 0.72, "green": 0.68, "blue": 0.62},  # undyed braided suture, brighter than tissue
+    # undyed braided suture, brighter than tissue
+    "suture_bright": {"red": 0.72, "green": 0.68, "blue": 0.62},
 }
 # Subsurface-scattering blur of the projected light (Gaussian σ, mm, per LED colour).
 SSS_MM = {
@@ -68,7 +69,8 @@ class SensorModel:
     full_well_e: float = 16000.0
     read_noise_e: float = 12.0
     ambient_e_per_ms: float = 3.0
-    # κ: electrons per ms for reflectance 1, pattern 1, unit LED/QE/transmission at 1 mm (d_p² scaled).
+    # κ: electrons per ms for reflectance 1, pattern 1, unit LED/QE/transmission at 1 mm (d_p²
+    # scaled).
     photons_scale: float = 3.7e7
 
     def dn_per_electron(self, bits: int, gain: float) -> float:
@@ -77,10 +79,13 @@ class SensorModel:
     def light_scale(self, *, exposure_ms: float, current: float, led: str) -> float:
         """Electrons per (reflectance · pattern / d_p²[mm²]) for these settings."""
         check_led(led)
-        return exposure_ms * current * LED_FLUX[led] * SENSOR_QE[led] * SCOPE_TRANSMISSION * self.photons_scale
+        return (exposure_ms * current * LED_FLUX[led] * SENSOR_QE[led] * SCOPE_TRANSMISSION
+                * self.photons_scale)
 
-    def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8, gain: float = 1.0) -> npt.NDArray[np.float64]:
-        """Temporal noise σ (DN) of a pixel whose noise-free mean is ``mean_dn`` (DN, before clipping).
+    def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8,
+                    gain: float = 1.0) -> npt.NDArray[np.float64]:
+        """Temporal noise σ (DN) of a pixel whose noise-free mean is ``mean_dn`` (DN, before
+        clipping).
 
         σ² = g·mean + (g·read)² + 1/12 (shot noise, read noise, ADC quantisation).
         """
@@ -106,7 +111,8 @@ def projector_response_lut(gamma: float = 1.0, black: float = 0.002) -> npt.NDAr
     return (black + (1.0 - black) * lv**gamma).astype(np.float32)
 
 
-def defocus_sigma_px(z_mm: npt.ArrayLike, focus_mm: float, blur_per_inv_mm: float) -> npt.NDArray[np.float64]:
+def defocus_sigma_px(z_mm: npt.ArrayLike, focus_mm: float,
+                     blur_per_inv_mm: float) -> npt.NDArray[np.float64]:
     """Gaussian σ (px) of a thin-lens blur disc of diameter blur_per_inv_mm·|1/z − 1/focus|."""
     z = np.asarray(z_mm, np.float64)
     return 0.5 * blur_per_inv_mm * np.abs(1.0 / z - 1.0 / focus_mm)

@@ -67,13 +67,15 @@ def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, h
             tt = ta + k * dtt
             f = ow + tt * dw - _bilinear(heights, s0, t0, ds, os_ + tt * ds_, ot + tt * dt)
             if f <= 0.0:  # below the surface (NaN off-grid never matches)
-                if k == 0 or not (prev_f > 0.0):  # starts under the surface or enters through a grid wall
+                # starts under the surface or enters through a grid wall
+                if k == 0 or not (prev_f > 0.0):
                     out[i] = tt
                     break
                 lo, hi = prev_t, tt
                 for _ in range(40):  # bisection-secant refinement to ~1e-9 mm
                     mid = 0.5 * (lo + hi)
-                    fm = ow + mid * dw - _bilinear(heights, s0, t0, ds, os_ + mid * ds_, ot + mid * dt)
+                    fm = ow + mid * dw - _bilinear(heights, s0, t0, ds, os_ + mid * ds_,
+                                                   ot + mid * dt)
                     if fm > 0.0:
                         lo = mid
                     else:
@@ -103,7 +105,8 @@ def raycast_sphere(origin: npt.NDArray[np.float64], dirs: npt.NDArray[np.float64
 def raycast_capsule(origin: npt.NDArray[np.float64], dirs: npt.NDArray[np.float64],
                     p0: npt.NDArray[np.float64], p1: npt.NDArray[np.float64], radius_mm: float
                     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Ray parameter and outward unit normal (N, 3) for a capsule (cylinder p0→p1 with round ends)."""
+    """Ray parameter and outward unit normal (N, 3) for a capsule (cylinder
+    p0→p1 with round ends)."""
     axis = p1 - p0
     length = float(np.linalg.norm(axis))
     a_hat = axis / length

@@ -34,7 +34,8 @@ _TABLE = gaussian_quantile_table()
 BLOCK = 8  # tile size (px) of the per-tile motion flow
 
 
-def blur_varying(img: F64, sigma_px: F64, levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
+def blur_varying(img: F64, sigma_px: F64,
+                 levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
     """Spatially varying Gaussian blur by interpolating between a few pre-blurred copies."""
     sig = np.clip(np.nan_to_num(sigma_px, nan=0.0), levels[0], levels[-1])
     stack = [img if s == 0 else gaussian_filter(img, s, mode="nearest") for s in levels]
@@ -74,7 +75,8 @@ class Renderer:
         self._material: npt.NDArray[np.uint8] = np.asarray(geo["material"], np.uint8)  # (H·W,)
         self.sigma_cam: F64 = np.asarray(geo["sigma_cam"], np.float64)  # (H, W) px
         self.albedo: F64 = np.asarray(geo["albedo"], np.float64)  # (H·W,)
-        # (H, W) continuous projector coordinate along the fringe axis (the column for vertical fringes)
+        # (H, W) continuous projector coordinate along the fringe axis (the column for vertical
+        # fringes)
         self.xp: F64 = np.asarray(geo["xp"], np.float64)
         self.grad_xp: F64 = np.asarray(geo["grad_xp"], np.float64)  # (H·W,)
         self.grad_median = float(geo["grad_median"])
@@ -157,11 +159,13 @@ class Renderer:
         g_s = np.where(lit, g_s, 0.0)
         z = points[:, 2]
         f_px = self.rig.camera.K[0, 0]
-        sig_p = defocus_sigma_px(d_p, self.rig.projector_focus_mm, self.rig.projector_blur_per_inv_mm)
+        sig_p = defocus_sigma_px(d_p, self.rig.projector_focus_mm,
+                                 self.rig.projector_blur_per_inv_mm)
         sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
         var_s = sigma_cam**2 + sig_p_cam**2
         var_d = var_s + (sss * f_px / z) ** 2
-        ang = (2 * math.pi * k[:, None] * grad_xp[None] / self.schedule.axis_length) ** 2 / 2.0  # σ² → attenuation exponent
+        # σ² → attenuation exponent
+        ang = (2 * math.pi * k[:, None] * grad_xp[None] / self.schedule.axis_length) ** 2 / 2.0
         fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
         base = g_d + g_s
         return np.nan_to_num(base), np.nan_to_num(fringe)
@@ -174,9 +178,10 @@ class Renderer:
         if led not in self._led_cache:
             pts = self.points.reshape(-1, 3)
             safe = np.where(np.isfinite(pts), pts, np.array([0.0, 0.0, 1e6]))
-            base, fringe = self.shade(safe, np.nan_to_num(self._normals), self._material, self.albedo,
-                                      self.sigma_cam.ravel(), self.grad_xp, led)
-            self._led_cache[led] = (base.astype(np.float32), fringe.astype(np.float32), None, None)  # type: ignore[assignment]
+            base, fringe = self.shade(safe, np.nan_to_num(self._normals), self._material,
+                                      self.albedo, self.sigma_cam.ravel(), self.grad_xp, led)
+            entry = (base.astype(np.float32), fringe.astype(np.float32), None, None)
+            self._led_cache[led] = entry  # type: ignore[assignment]
         b, f, _, _ = self._led_cache[led]
         return b, f
 
@@ -198,17 +203,21 @@ class Renderer:
         s = self.sensor
         g = s.dn_per_electron(bits, gain)
         return (g * s.light_scale(exposure_ms=exposure_ms, current=current, led=led),
-                g * s.ambient_e_per_ms * exposure_ms, g, (g * s.read_noise_e) ** 2, full_scale(bits))
+                g * s.ambient_e_per_ms * exposure_ms, g, (g * s.read_noise_e) ** 2,
+                full_scale(bits))
 
     def mean_frame(self, pattern_index: int, t_s: float, *, exposure_ms: float, gain: float = 1.0,
                    led: str = DEFAULT_LED, current: float = 0.5, bits: int = 8) -> F32:
-        """Noise-free expected frame (H, W) float32 DN, before clipping (projector dark if index < 0)."""
-        scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led, current=current, bits=bits)
+        """Noise-free expected frame (H, W) float32 DN, before clipping
+        (projector dark if index < 0)."""
+        scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led,
+                                          current=current, bits=bits)
         mean = np.empty(self.shape, np.float32)
         self._mean_into(mean, pattern_index, t_s, scale, amb, led)
         return mean
 
-    def _mean_into(self, mean: F32, pattern_index: int, t_s: float, scale: float, amb: float, led: str) -> None:
+    def _mean_into(self, mean: F32, pattern_index: int, t_s: float, scale: float, amb: float,
+                   led: str) -> None:
         if pattern_index < 0:
             mean.fill(amb)
             return
@@ -217,22 +226,27 @@ class Renderer:
         base, fringe = self._led_arrays(led)
         if self.scene.is_static:
             ck, sk = self._phase_tables()
-            kernels.mean_static(mean.reshape(-1), base, fringe[fi], ck[fi], sk[fi], math.cos(shift), math.sin(shift),
-                                self.lut, self.qbar, scale, amb)
+            kernels.mean_static(mean.reshape(-1), base, fringe[fi], ck[fi], sk[fi], math.cos(shift),
+                                math.sin(shift), self.lut, self.qbar, scale, amb)
             return
-        self._moving(mean, False, fi, shift, t_s, scale, amb, led, 0.0, 0.0, 0, np.zeros(1, np.uint64))
+        self._moving(mean, False, fi, shift, t_s, scale, amb, led, 0.0, 0.0, 0,
+                     np.zeros(1, np.uint64))
 
-    def _moving(self, out: np.ndarray, noisy: bool, fi: int, shift: float, t_s: float, scale: float, amb: float,
-                led: str, g: float, read2: float, maxv: int, state: npt.NDArray[np.uint64]) -> None:
-        """Mean (``noisy`` False, float32 ``out``) or noisy frame of the moving scene and its tool, one pass."""
+    def _moving(self, out: np.ndarray, noisy: bool, fi: int, shift: float, t_s: float, scale: float,
+                amb: float, led: str, g: float, read2: float, maxv: int,
+                state: npt.NDArray[np.uint64]) -> None:
+        """Mean (``noisy`` False, float32 ``out``) or noisy frame of the moving scene
+        and its tool, one pass."""
         h, w = self.shape
         base, fringe = self._led_arrays(led)
         alpha, _, gam, _ = self.rig.projector.fringe_coefficients(self.schedule.orientation)
         k = self.schedule.frequencies[fi]
         delta = self.scene.offset(t_s)
-        scene = (self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w), self._block_flow(delta), BLOCK,
-                 float(alpha @ delta), float(gam @ delta), k / self.schedule.axis_length, shift / (2 * math.pi),
-                 float(self.schedule.axis_length), self.qtab, self.qbar, scale, amb, g, read2, maxv, _TABLE, state)
+        scene = (self._nd_table(), base.reshape(h, w), fringe[fi].reshape(h, w),
+                 self._block_flow(delta), BLOCK, float(alpha @ delta), float(gam @ delta),
+                 k / self.schedule.axis_length, shift / (2 * math.pi),
+                 float(self.schedule.axis_length), self.qtab, self.qbar, scale, amb, g, read2, maxv,
+                 _TABLE, state)
         band, zbuf, kk, qv = self._scratch_rows()
         if self.scene.tool is None:
             kernels.moving_frame(out, noisy, band, zbuf, kk, qv, *scene)
@@ -240,11 +254,13 @@ class Renderer:
         # With a tool: raster order (the noise sequence of add_noise over the mean frame).
         v0, spans, tool = self._tool_frame(fi, shift, t_s, led, float(delta[2]))
         rays, zs = self._tool_planes()
-        tool_kernels.tool_frame(out, noisy, band[0], zbuf, kk, qv, *scene, rays, zs, v0, spans, tool, self.lut)
+        tool_kernels.tool_frame(out, noisy, band[0], zbuf, kk, qv, *scene, rays, zs, v0, spans,
+                                tool, self.lut)
 
     def _scratch_rows(self) -> tuple[F32, F32, npt.NDArray[np.int32], F32]:
-        """This thread's scratch for the frame kernels (allocated once): a (BLOCK, W) float32 band of
-        mean rows, (W,) float32 deviates, (W,) int32 projector-table indices, (W,) float32 table values."""
+        """This thread's scratch for the frame kernels (allocated once): a (BLOCK, W) float32 band
+        of mean rows, (W,) float32 deviates, (W,) int32 projector-table indices,
+        (W,) float32 table values."""
         rows = getattr(self._scratch, "rows", None)
         if rows is None:
             w = self.shape[1]
@@ -253,8 +269,9 @@ class Renderer:
         return rows
 
     def _tool_planes(self) -> tuple[F64, F64]:
-        """Unit pixel rays as (3, H, W) float64 planes and the rest-pose depth (H, W) float64 mm (NaN
-        off-object), for tool_kernels.tool_frame: contiguous rows let its loops vectorise (built once)."""
+        """Unit pixel rays as (3, H, W) float64 planes and the rest-pose depth (H, W) float64 mm
+        (NaN off-object), for tool_kernels.tool_frame: contiguous rows let its loops
+        vectorise (built once)."""
         with self._cache_lock:
             if self._planes is None:
                 h, w = self.shape
@@ -269,8 +286,10 @@ class Renderer:
     def _nd_table_locked(self) -> F32:
         if self._nd is None:
             alpha, a_c, gam, g_c = self.rig.projector.fringe_coefficients(self.schedule.orientation)
-            # (2, H, W): numerator and denominator planes, contiguous rows for the vectorised kernels
-            self._nd = np.stack([mat3(self.points, alpha) - a_c, mat3(self.points, gam) - g_c]).astype(np.float32)
+            # (2, H, W): numerator and denominator planes, contiguous rows for the vectorised
+            # kernels
+            self._nd = np.stack([mat3(self.points, alpha) - a_c,
+                                 mat3(self.points, gam) - g_c]).astype(np.float32)
         return self._nd
 
     def _tile_centres(self) -> tuple[F64, F64, F64]:
@@ -296,28 +315,32 @@ class Renderer:
             fv = fy * ((pad[..., 1] + delta[1]) / z1 - y0)
         flow: F64 = np.stack([fu, fv], -1)
         if np.isnan(flow).any():  # tiles with no surface at their centre take the mean flow
-            fill = np.nanmean(flow.reshape(-1, 2), axis=0) if np.isfinite(flow).any() else np.zeros(2)
+            fill = (np.nanmean(flow.reshape(-1, 2), axis=0) if np.isfinite(flow).any()
+                    else np.zeros(2))
             flow = np.where(np.isnan(flow), fill, flow)
         return np.rint(flow).astype(np.int64)
 
     def _tool_frame(self, fi: int, shift: float, t_s: float, led: str, dz: float
                     ) -> tuple[int, npt.NDArray[np.int64], tool_kernels.ToolFrame]:
-        """The tool at ``t_s`` for tool_kernels.tool_frame: (v0, spans, tool) with spans (n, 2) the first/last
-        column to ray-test in rows v0 .. v0 + n − 1 (its image; n = 0 when it is out of view)."""
+        """The tool at ``t_s`` for tool_kernels.tool_frame: (v0, spans, tool) with spans (n, 2) the
+        first/last column to ray-test in rows v0 .. v0 + n − 1 (its image; n = 0
+        when it is out of view)."""
         tool = self.scene.tool
         assert tool is not None
         p0, p1 = (np.asarray(p, np.float64) for p in tool.path(t_s))
         cam, proj = self.rig.camera, self.rig.projector
         ends = np.stack([p0, p1])
         ends = ends[ends[:, 2] > 1.0]
-        v0, spans = self._tool_spans(cam.project(ends), cam.K[0, 0] * tool.radius_mm / ends[:, 2].min() + 4
-                                     ) if len(ends) else (0, np.zeros((0, 2), np.int64))
+        v0, spans = (self._tool_spans(cam.project(ends),
+                                      cam.K[0, 0] * tool.radius_mm / ends[:, 2].min() + 4)
+                     if len(ends) else (0, np.zeros((0, 2), np.int64)))
         axis = p1 - p0
         length = float(np.linalg.norm(axis))
         alpha, a_c, gam, g_c = proj.fringe_coefficients(self.schedule.orientation)
         k = self.schedule.frequencies[fi]
         ks, shin = SPECULAR.get(tool.material, (0.0, 1.0))
-        assert shin == int(shin) and 0 <= shin < 1024, "tool_kernels._tool_dn_run takes a whole specular exponent"
+        assert shin == int(shin) and 0 <= shin < 1024, (
+            "tool_kernels._tool_dn_run takes a whole specular exponent")
         # Fringe attenuation on the tool from camera defocus at its mean depth.
         z_mid = float(np.clip(ends[:, 2].mean(), 5.0, 80.0)) if len(ends) else self.rig.focus_mm
         sig = float(defocus_sigma_px(z_mid, self.rig.focus_mm, self.rig.blur_per_inv_mm))
@@ -328,29 +351,34 @@ class Renderer:
         across = 1 if self.schedule.orientation == "vertical" else 0
         rows_lit = -0.5 <= proj.K[across, 2] <= float(proj.size[across])
         return v0, spans, tool_kernels.ToolFrame(
-            p0, axis / length, length, float(tool.radius_mm), float(REFLECTANCE[tool.material][led]), float(ks),
-            float(shin), np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(axis_px),
+            p0, axis / length, length, float(tool.radius_mm),
+            float(REFLECTANCE[tool.material][led]), float(ks), float(shin),
+            np.asarray(proj.centre, np.float64), alpha, a_c, gam, g_c, float(axis_px),
             bool(rows_lit), 2 * math.pi * k / axis_px, shift, atten, dz)
 
     def _tool_spans(self, uv: F64, rad_px: float) -> tuple[int, npt.NDArray[np.int64]]:
-        """Row spans (v0, (n, 2) first/last column) of the stadium of radius ``rad_px`` swept by a disc
-        along the image segment ``uv`` ((1 or 2, 2) px), clipped to the image (n = 0 if outside)."""
+        """Row spans (v0, (n, 2) first/last column) of the stadium of radius ``rad_px`` swept by a
+        disc along the image segment ``uv`` ((1 or 2, 2) px), clipped to the
+        image (n = 0 if outside)."""
         h, w = self.shape
         none = (0, np.zeros((0, 2), np.int64))
         samples = uv[0] + np.linspace(0, 1, 96)[:, None] * (uv[-1] - uv[0])
-        v0, v1 = int(max(samples[:, 1].min() - rad_px, 0)), int(min(samples[:, 1].max() + rad_px, h - 1))
+        v0 = int(max(samples[:, 1].min() - rad_px, 0))
+        v1 = int(min(samples[:, 1].max() + rad_px, h - 1))
         if v1 < v0 or samples[:, 0].max() + rad_px < 0 or samples[:, 0].min() - rad_px > w - 1:
             return none
         # per row: numba (the numpy (rows, samples) version cost 0.6 ms per frame)
-        return v0, tool_kernels.tool_spans(samples[:, 0].copy(), samples[:, 1].copy(), v0, v1, float(rad_px), w)
+        return v0, tool_kernels.tool_spans(samples[:, 0].copy(), samples[:, 1].copy(), v0, v1,
+                                           float(rad_px), w)
 
-    def _static_means(self, exposure_ms: float, gain: float, led: str, current: float, bits: int) -> F32:
+    def _static_means(self, exposure_ms: float, gain: float, led: str, current: float,
+                      bits: int) -> F32:
         """Noise-free frames of every pattern for these settings (static scenes; one cached set)."""
         key = (exposure_ms, gain, led, current, bits)
         with self._cache_lock:
             if self._means_key != key:
-                scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led, current=current,
-                                                  bits=bits)
+                scale, amb, _, _, _ = self.scales(exposure_ms=exposure_ms, gain=gain, led=led,
+                                                  current=current, bits=bits)
                 # a fresh array: a world sharing this renderer may still be reading the old one
                 means = np.empty((self.schedule.n_frames, *self.shape), np.float32)
                 for i in range(self.schedule.n_frames):
@@ -359,8 +387,9 @@ class Renderer:
             assert self._means is not None
             return self._means
 
-    def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *, exposure_ms: float,
-               gain: float = 1.0, led: str = DEFAULT_LED, current: float = 0.5, bits: int = 8
+    def render(self, pattern_index: int, t_s: float, state: npt.NDArray[np.uint64], *,
+               exposure_ms: float, gain: float = 1.0, led: str = DEFAULT_LED, current: float = 0.5,
+               bits: int = 8
                ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
         """One noisy frame (H, W), uint8 for 8 bits or uint16 0..4095 for 12 bits.
 
@@ -372,13 +401,13 @@ class Renderer:
         flat = out.reshape(-1)
         if self.scene.is_static and pattern_index >= 0:
             means = self._static_means(exposure_ms, gain, led, current, bits)
-            kernels.add_noise(flat, means[pattern_index % self.schedule.n_frames].reshape(-1), g, read2, maxv,
-                              _TABLE, state)
+            kernels.add_noise(flat, means[pattern_index % self.schedule.n_frames].reshape(-1), g,
+                              read2, maxv, _TABLE, state)
             return out
         if pattern_index >= 0:  # rigid motion (and the tool): one fused pass
             fi, n = divmod(pattern_index % self.schedule.n_frames, self.schedule.steps)
-            self._moving(out, True, fi, 2 * math.pi * n / self.schedule.steps, t_s, scale, amb, led, g, read2,
-                         maxv, state)
+            self._moving(out, True, fi, 2 * math.pi * n / self.schedule.steps, t_s, scale, amb, led,
+                         g, read2, maxv, state)
             return out
         buf = getattr(self._scratch, "mean", None)
         if buf is None:
@@ -424,7 +453,8 @@ class Renderer:
             tt = tt.reshape(h, w)
             with np.errstate(invalid="ignore"):
                 t_surface = points[..., 2] / dirs[..., 2]
-                closer = np.isfinite(tt) & ~(t_surface <= tt)  # in front of the surface, or over nothing
+                # in front of the surface, or over nothing
+                closer = np.isfinite(tt) & ~(t_surface <= tt)
             points[closer] = tt[closer, None] * dirs[closer]
         return self._truth_from(points)
 

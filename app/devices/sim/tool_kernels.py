@@ -113,7 +113,8 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
 def _pow(x, e):
-    """x**e for x ≥ 0; by repeated squaring for a small whole e (specular exponents: ~7× faster than pow)."""
+    """x**e for x ≥ 0; by repeated squaring for a small whole e (specular
+    exponents: ~7× faster than pow)."""
     if e == int(e) and 0 <= e < 1024:
         n = int(e)
         y = 1.0
@@ -141,7 +142,8 @@ def _cos(x):
     r = x - q * (math.pi / 2.0)
     z = r * r
     s = r + r * z * (_S[0] + z * (_S[1] + z * (_S[2] + z * (_S[3] + z * (_S[4] + z * _S[5])))))
-    c = 1.0 - 0.5 * z + z * z * (_C[0] + z * (_C[1] + z * (_C[2] + z * (_C[3] + z * (_C[4] + z * _C[5])))))
+    c_hi = _C[3] + z * (_C[4] + z * _C[5])
+    c = 1.0 - 0.5 * z + z * z * (_C[0] + z * (_C[1] + z * (_C[2] + z * c_hi)))
     n = int(q) & 3
     v = c if n & 1 == 0 else s
     return v if n == 0 or n == 3 else -v
@@ -187,7 +189,8 @@ def _cylinder(rx, ry, rz, p0, a_hat, radius):
     c = opx * opx + opy * opy + opz * opz - radius * radius
     disc = b * b - 4 * a * c
     t = (-b - math.sqrt(max(disc, 0.0))) / (2 * a)
-    return a, disc, t, oa + t * da, (opx + t * dpx) / radius, (opy + t * dpy) / radius, (opz + t * dpz) / radius
+    return (a, disc, t, oa + t * da, (opx + t * dpx) / radius, (opy + t * dpy) / radius,
+            (opz + t * dpz) / radius)
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
@@ -219,8 +222,8 @@ def _light(t, rx, ry, rz, p0, a_hat, radius, pc):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c, width_p, rows_lit,
-                    two_pi_k_over_w, shift, dz):
+def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c,
+                    width_p, rows_lit, two_pi_k_over_w, shift, dz):
     """kk[u] = projector response table index (as float) of the cylinder hit tt[u] (_cylinder_run)
     where it is in front of the rest-pose depth zrow[u] + dz and lit; −9 where in front but
     unlit, NaN where not in front."""
@@ -232,7 +235,8 @@ def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al,
         xp = (al[0] * X + al[1] * Y + al[2] * Z - a_c) / (ga[0] * X + ga[1] * Y + ga[2] * Z - g_c)
         # & and not, not `and`/`or`: short-circuits leave branches that block vectorising
         front = (t != math.inf) & (not ((zs == zs) & (zs <= Z)))
-        lit = front & (not (cos_i <= 0.0)) & (not (xp < -0.5)) & (not (xp > width_p - 0.5)) & rows_lit
+        lit = (front & (not (cos_i <= 0.0)) & (not (xp < -0.5)) & (not (xp > width_p - 0.5))
+               & rows_lit)
         p = 0.5 + 0.5 * _cos(two_pi_k_over_w * xp + shift)
         p = p if lit else 0.0  # a valid index where unlit (p may be NaN there)
         k = float(int(p * 255.0 + 0.5))
@@ -240,8 +244,8 @@ def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al,
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, n_shin, atten, qbar, scale,
-                 amb):
+def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, n_shin, atten,
+                 qbar, scale, amb):
     """out[u] = DN of the cylinder hit tt[u] given qq[u] = projector output − qbar (lit), −9
     (unlit: ambient) or NaN (not in front: NaN); n_shin: the whole specular exponent."""
     for u in range(u0, u1 + 1):
@@ -261,8 +265,8 @@ def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, k
 def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):
     """DN of the tool along ray (rx, ry, rz) in front of the scene at depth zs (NaN: none) by
     the full scalar capsule test (for the rays the vectorised cylinder passes leave out)."""
-    (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit, two_pi_k_over_w,
-     shift, atten, dz) = tool
+    (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit,
+     two_pi_k_over_w, shift, atten, dz) = tool
     t, nx, ny, nz = _capsule_t(rx, ry, rz, p0, a_hat, length, radius)
     zs = zs + dz
     if t == math.inf or (zs == zs and t * rz >= zs):
@@ -296,8 +300,8 @@ def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
     few rays the end spheres decide through the scalar _tool_pixel.
     """
     # Fields as locals: LLVM keeps them in registers (field access in the loop is 2× slower).
-    (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit, two_pi_k_over_w,
-     shift, atten, dz) = tool
+    (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit,
+     two_pi_k_over_w, shift, atten, dz) = tool
     rx, ry, rz, zrow = rays[0, v], rays[1, v], rays[2, v], zs[v]
     tt, kk, dn = sc
     # Vectors as tuples: loop-invariant values, not memory the loops' stores might alias (too
@@ -310,27 +314,28 @@ def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
                 m = _tool_pixel(rx[u], ry[u], rz[u], zrow[u], tool, lut, qbar, scale, amb)
                 row[u] = m if m == m else row[u]
                 tt[u] = math.inf
-    _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c, width_p, rows_lit,
-                    two_pi_k_over_w, shift, dz)
+    _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c,
+                    width_p, rows_lit, two_pi_k_over_w, shift, dz)
     for u in range(u0, u1 + 1):  # the table look-up: a gather, scalar
         if kk[u] >= 0.0:
             kk[u] = lut[int(kk[u])] - qbar
-    _tool_dn_run(dn, tt, kk, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, int(shin), atten, qbar, scale, amb)
+    _tool_dn_run(dn, tt, kk, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, int(shin), atten,
+                 qbar, scale, amb)
     for u in range(u0, u1 + 1):
         if dn[u] == dn[u]:
             row[u] = dn[u]
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def tool_frame(out, noisy, row, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
-               width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state, rays, zs, v0, spans, tool,
-               lut):
+def tool_frame(out, noisy, row, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add,
+               k_over_w, shift_frac, width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state,
+               rays, zs, v0, spans, tool, lut):
     """moving_frame with the capsule ``tool`` in front, row by row in raster order (the noise
     sequence of add_noise over the mean frame), so the mean frame is never stored.
 
     row: (W,) float32 scratch; rays: (3, H, W) float64 planes of the unit pixel rays; zs: (H, W)
-    float64 rest-pose scene depth (mm, NaN off-object); spans: (n, 2) int first/last column to test in rows
-    v0 .. v0 + n − 1 (the tool's image); tool: a ToolFrame; lut: projector response (256,).
+    float64 rest-pose scene depth (mm, NaN off-object); spans: (n, 2) int first/last column to test
+    in rows v0 .. v0 + n − 1 (the tool's image); tool: a ToolFrame; lut: projector response (256,).
     Other arguments as in moving_frame.
     """
     h, w = base.shape
@@ -338,10 +343,11 @@ def tool_frame(out, noisy, row, zbuf, kk, qv, nd, base, fringe, block_flow, bloc
     j = 4
     sc = (np.empty(w), np.empty(w), np.empty(w))  # _tool_span's scratch rows
     for v in range(h):
-        _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w, shift_frac,
-                   width_p, qtab, qbar, scale, amb)
+        _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w,
+                   shift_frac, width_p, qtab, qbar, scale, amb)
         if v0 <= v < v0 + spans.shape[0]:
-            _tool_span(row, sc, v, spans[v - v0, 0], spans[v - v0, 1], rays, zs, tool, lut, qbar, scale, amb)
+            _tool_span(row, sc, v, spans[v - v0, 0], spans[v - v0, 1], rays, zs, tool, lut, qbar,
+                       scale, amb)
         if noisy:
             r, j = _deviates(zbuf, 0, w, table, state, r, j)
             _adc_run(out[v], row, zbuf, 0, w, g, read2, maxv)

@@ -48,7 +48,8 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
     origin = -delta
     n = dirs.shape[0]
     hf = scene.surface
-    t_hit = raycast_heightfield(origin, dirs, hf.origin, hf.axes, hf.heights, hf.s0, hf.t0, hf.ds, hf.hmin, hf.hmax)
+    t_hit = raycast_heightfield(origin, dirs, hf.origin, hf.axes, hf.heights, hf.s0, hf.t0, hf.ds,
+                                hf.hmin, hf.hmax)
     points = origin + t_hit[:, None] * dirs
     loc = hf.local(points)
     s, t = loc[:, 0], loc[:, 1]
@@ -87,7 +88,8 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
     if with_tool and scene.tool is not None:
         p0, p1 = scene.tool.path(t_s)
         tt, nn = raycast_capsule(np.zeros(3), dirs, p0, p1, scene.tool.radius_mm)
-        # origin −δ plus δ back: a ray parameter is the same in the camera frame, so compare directly
+        # origin −δ plus δ back: a ray parameter is the same in the camera frame, so compare
+        # directly
         closer = np.isfinite(tt) & (tt < best)
         points[closer] = tt[closer, None] * dirs[closer] - delta
         normals[closer] = nn[closer]
@@ -100,8 +102,8 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
     return Hits(points + delta, normals, material, albedo, st)
 
 
-def integrate_print(hf: HeightField, st: F64, material: npt.NDArray[np.uint8], shape: tuple[int, int],
-                    oversample: int = 8) -> F64:
+def integrate_print(hf: HeightField, st: F64, material: npt.NDArray[np.uint8],
+                    shape: tuple[int, int], oversample: int = 8) -> F64:
     """Printed albedo averaged over each pixel's footprint, (H, W); 1 where nothing is printed.
 
     The footprint is the affine map of the pixel square through the local Jacobian of (s, t)

@@ -25,8 +25,8 @@ _RENDERERS_LOCK = threading.Lock()
 _MAX_RENDERERS = 3
 
 
-def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: SensorModel, gamma: float,
-                    distortion: bool, cache_dir: Path | None = None) -> Renderer:
+def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: SensorModel,
+                    gamma: float, distortion: bool, cache_dir: Path | None = None) -> Renderer:
     """The renderer of a named scene on a named rig, shared in memory and, with ``cache_dir``,
     its traced geometry kept on disk for the next start (:mod:`geometry_cache`)."""
     key = (name, rig.name, distortion, schedule, sensor, gamma)
@@ -65,11 +65,13 @@ class SimulatedWorld:
         self._named = scene if isinstance(scene, str) and self._rig_named else None
         self._distortion = distortion
         self._cache_dir = cache_dir
-        self.rig = rig if isinstance(rig, SimRig) else rig_by_name(rig or "default", distortion=distortion)
+        self.rig = rig if isinstance(rig, SimRig) else rig_by_name(rig or "default",
+                                                                   distortion=distortion)
         self.scene = build_scene(scene, self.rig) if isinstance(scene, str) else scene
         self.schedule = schedule or PatternSchedule()
         self.sensor = sensor or SensorModel()
-        self._projector_gamma = self.rig.projector_gamma if projector_gamma is None else projector_gamma
+        self._projector_gamma = (self.rig.projector_gamma if projector_gamma is None
+                                 else projector_gamma)
         self._renderer: Renderer | None = None
         self._lock = threading.Lock()
         self.seed_seq = np.random.SeedSequence(seed)
@@ -87,11 +89,12 @@ class SimulatedWorld:
         with self._lock:
             if self._renderer is None:
                 if self._named is not None:
-                    self._renderer = shared_renderer(self._named, self.rig, self.schedule, self.sensor,
-                                                     self._projector_gamma, self._distortion,
-                                                     self._cache_dir)
+                    self._renderer = shared_renderer(self._named, self.rig, self.schedule,
+                                                     self.sensor, self._projector_gamma,
+                                                     self._distortion, self._cache_dir)
                 else:
-                    self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule, sensor=self.sensor,
+                    self._renderer = Renderer(self.scene, self.rig, schedule=self.schedule,
+                                              sensor=self.sensor,
                                               projector_gamma=self._projector_gamma)
             return self._renderer
 
@@ -137,13 +140,14 @@ class SimulatedWorld:
 
     def render(self, pattern_index: int, t_s: float, *, exposure_ms: float, gain: float, bits: int
                ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
-        return self.renderer.render(pattern_index, t_s, self.rng_state, exposure_ms=exposure_ms, gain=gain,
-                                    led=self.led, current=self.current, bits=bits)
+        return self.renderer.render(pattern_index, t_s, self.rng_state, exposure_ms=exposure_ms,
+                                    gain=gain, led=self.led, current=self.current, bits=bits)
 
     def truth(self, t_s: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """True depth (H, W) and points (H, W, 3) at scene time ``t_s`` (see Renderer.truth)."""
         return self.renderer.truth(t_s)
 
-    def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8, gain: float = 1.0) -> npt.NDArray[np.float64]:
+    def noise_sigma(self, mean_dn: npt.ArrayLike, *, bits: int = 8,
+                    gain: float = 1.0) -> npt.NDArray[np.float64]:
         """Predicted temporal noise σ (DN) of a pixel with noise-free mean ``mean_dn`` (DN)."""
         return self.sensor.noise_sigma(mean_dn, bits=bits, gain=gain)

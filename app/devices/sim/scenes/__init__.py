@@ -57,5 +57,5 @@ def build_scene(name: str, rig: SimRig) -> Scene:
         raise ValueError(f"scene: unknown {name!r}; choose from {', '.join(SCENES)}") from None
 
 
-__all__ = ["HeightField", "SCENES", "Scene", "Sphere", "Tool", "board_points_mm", "board_poses", "board_scene",
-           "build_scene", "list_scenes", "sim_board"]
+__all__ = ["HeightField", "SCENES", "Scene", "Sphere", "Tool", "board_points_mm", "board_poses",
+           "board_scene", "build_scene", "list_scenes", "sim_board"]

@@ -98,7 +98,8 @@ class Scene:
         return np.zeros(3) if self.motion is None else np.asarray(self.motion(t_s), np.float64)
 
 
-def frame_from_normal(origin: F64, normal: F64, s_hint: F64 = np.array([1.0, 0.0, 0.0])) -> tuple[F64, F64]:
+def frame_from_normal(origin: F64, normal: F64,
+                      s_hint: F64 = np.array([1.0, 0.0, 0.0])) -> tuple[F64, F64]:
     """(origin, axes) of a plane frame with unit normal ``normal`` and e_s closest to ``s_hint``."""
     n = np.asarray(normal, np.float64)
     n = n / np.linalg.norm(n)
@@ -113,13 +114,14 @@ def flat_field(origin: F64, axes: F64, half_size_mm: float, material: str = "whi
     """A flat, bounded square (side 2·half_size_mm) — boards, targets, metrology planes."""
     n = int(round(2 * half_size_mm / ds)) + 1
     return HeightField(
-        origin=origin, axes=axes, heights=np.zeros((n, n)), s0=-half_size_mm, t0=-half_size_mm, ds=ds,
-        material=np.full((n, n), material_id(material), np.uint8), texture=np.ones((n, n), np.float32),
-        printed=printed,
+        origin=origin, axes=axes, heights=np.zeros((n, n)), s0=-half_size_mm, t0=-half_size_mm,
+        ds=ds, material=np.full((n, n), material_id(material), np.uint8),
+        texture=np.ones((n, n), np.float32), printed=printed,
     )
 
 
-def smooth_noise(shape: tuple[int, int], scale_px: float, rng: np.random.Generator) -> npt.NDArray[np.float64]:
+def smooth_noise(shape: tuple[int, int], scale_px: float,
+                 rng: np.random.Generator) -> npt.NDArray[np.float64]:
     """Zero-mean, unit-std band-limited noise (Gaussian-filtered white noise)."""
     from scipy.ndimage import gaussian_filter
 

@@ -1,4 +1,5 @@
-"""Printed and metrology scenes: calibration boards, the 45° depth-of-field target, plane, spheres."""
+"""Printed and metrology scenes: calibration boards, the 45° depth-of-field
+target, plane, spheres."""
 
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ SIM_BOARD_TYPES: dict[str, BoardType] = {"checkerboard": "checkerboard", "circle
 
 
 def sim_board(board_type: str = "checkerboard") -> BoardSpec:
-    """The simulator's board of ``board_type`` (``checkerboard`` or ``circles``, a symmetric grid of dark dots).
+    """The simulator's board of ``board_type`` (``checkerboard`` or ``circles``, a symmetric grid of
+    dark dots).
 
     108 corners over 15 × 11 mm: twice the corners of an 8 × 6 board of the same size
     halve the variance of each pose — and pose 0 *is* the reference plane.
@@ -35,7 +37,8 @@ def sim_board(board_type: str = "checkerboard") -> BoardSpec:
 
 
 def board_points_mm(spec: BoardSpec) -> F64:
-    """(cols·rows, 3) control points in the sim's board coordinates (s, t, 0), centred, row-major from the top-left."""
+    """(cols·rows, 3) control points in the sim's board coordinates (s, t, 0), centred,
+    row-major from the top-left."""
     s = (np.arange(spec.cols) - (spec.cols - 1) / 2) * spec.pitch_mm
     t = (np.arange(spec.rows) - (spec.rows - 1) / 2) * spec.pitch_mm
     ss, tt = np.meshgrid(s, t)
@@ -94,10 +97,12 @@ def board_poses(rig: SimRig, poses: int, seed: int | None = 0) -> list[tuple[F64
     return out
 
 
-def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64], *, paper_half_mm: float = 11.0) -> Scene:
+def board_scene(rig: SimRig, spec: BoardSpec, pose: tuple[F64, F64], *,
+                paper_half_mm: float = 11.0) -> Scene:
     """The board printed on white paper (a square of side 2·paper_half_mm) at ``pose``."""
     origin, axes = pose
-    return Scene(f"board_{spec.type}", flat_field(origin, axes, paper_half_mm, "white", board_printer(spec), ds=1.0),
+    return Scene(f"board_{spec.type}",
+                 flat_field(origin, axes, paper_half_mm, "white", board_printer(spec), ds=1.0),
                  description="calibration board")
 
 
@@ -118,7 +123,8 @@ def _tilted_plane(rig: SimRig, name: str, height_mm: float, tilt_deg: float, hal
     normal = rotation_x(tilt_deg) @ ref.normal
     z = (height_mm - ref.offset_mm) / ref.normal[2]
     origin, axes = frame_from_normal(np.array([0.0, 0.0, z]), normal)
-    return Scene(name, flat_field(origin, axes, half_size_mm, "grey", ds=1.0), description=description)
+    return Scene(name, flat_field(origin, axes, half_size_mm, "grey", ds=1.0),
+                 description=description)
 
 
 def ruler_printer() -> PrintFn:
@@ -154,7 +160,8 @@ def dof_target_surface(rig: SimRig, ds: float = 0.1) -> HeightField:
 
 
 def dof_target_scene(rig: SimRig) -> Scene:
-    return Scene("dof_target", dof_target_surface(rig, ds=1.0), description="45° depth-of-field target with ruler")
+    return Scene("dof_target", dof_target_surface(rig, ds=1.0),
+                 description="45° depth-of-field target with ruler")
 
 
 def sphere_scene(rig: SimRig) -> Scene:

@@ -53,8 +53,8 @@ def flap_scene(rig: SimRig, kind: str, seed: int = 3) -> Scene:
     mat = np.where(h > 0.05, material_id(kind), material_id("white")).astype(np.uint8)
     tex = np.where(h > 0.05, _vessels(ss.shape, rng, ds) if kind == "intestine"
                    else 1.0 + 0.06 * smooth_noise(ss.shape, 0.8 / ds, rng), 1.0)
-    hf = HeightField(origin, axes, h, float(ss[0, 0]), float(tt[0, 0]), ds, mat, tex.astype(np.float32),
-                     printed=ruler_printer())
+    hf = HeightField(origin, axes, h, float(ss[0, 0]), float(tt[0, 0]), ds, mat,
+                     tex.astype(np.float32), printed=ruler_printer())
     return Scene(f"{kind}_flap", hf, description=f"{kind} flap on the 45° target")
 
 
@@ -67,7 +67,8 @@ def _tube_heights(ss: F64, tt: F64, ds: float, curve: F64, radius: float, lift: 
     iy = np.clip(np.rint((curve[:, 1] - tt[0, 0]) / ds).astype(int), 0, ny - 1)
     mask[iy, ix] = False
     d = distance_transform_edt(mask) * ds
-    return np.where(d < radius, lift + radius + np.sqrt(np.clip(radius**2 - d**2, 0, None)), -np.inf)
+    return np.where(d < radius, lift + radius + np.sqrt(np.clip(radius**2 - d**2, 0, None)),
+                    -np.inf)
 
 
 def pile_scene(rig: SimRig, seed: int = 5) -> Scene:
@@ -85,7 +86,8 @@ def pile_scene(rig: SimRig, seed: int = 5) -> Scene:
         off = rng.uniform(-12, 12)
         amp, wl, ph = rng.uniform(2, 6), rng.uniform(12, 25), rng.uniform(0, 2 * math.pi)
         v = off + amp * np.sin(2 * math.pi * u / wl + ph)
-        curve = np.stack([u * math.cos(ang) - v * math.sin(ang), u * math.sin(ang) + v * math.cos(ang)], -1)
+        curve = np.stack([u * math.cos(ang) - v * math.sin(ang),
+                          u * math.sin(ang) + v * math.cos(ang)], -1)
         radius = rng.uniform(2.5, 4.0)
         lift = 0.0 if i < 3 else rng.uniform(1.5, 4.0)
         th = _tube_heights(ss, tt, ds, curve, radius, lift)
@@ -114,11 +116,13 @@ def anastomosis_scene(rig: SimRig, seed: int = 7, suture: str = "suture") -> Sce
     ss, tt = _grid(22.0, 17.0, ds)
     a, b = 7.0, 5.0
     diamond = np.abs(ss) / a + np.abs(tt) / b  # 1 on the lumen edge
-    wall = 6.0 + 0.8 * smooth_noise(ss.shape, 4.0 / ds, rng) + 0.15 * smooth_noise(ss.shape, 0.8 / ds, rng)
+    wall = (6.0 + 0.8 * smooth_noise(ss.shape, 4.0 / ds, rng)
+            + 0.15 * smooth_noise(ss.shape, 0.8 / ds, rng))
     cuff = 1.0 * np.exp(-(((diamond - 1.0) / 0.12) ** 2))
     depth = _smoothstep((diamond - 0.85) / 0.15)  # 0 inside the lumen, 1 on the wall
     h = 1.0 + depth * (wall - 1.0) + cuff * depth
-    mat = np.where(depth > 0.5, material_id("intestine"), material_id("intestine_dark")).astype(np.uint8)
+    mat = np.where(depth > 0.5, material_id("intestine"),
+                   material_id("intestine_dark")).astype(np.uint8)
     r = 0.36  # suture radius: a stitch stands 0.72 mm above the tissue
     stitches = []
     for k in range(6):  # running stitches across the upper-left edge of the diamond
@@ -148,7 +152,8 @@ def anastomosis_scene(rig: SimRig, seed: int = 7, suture: str = "suture") -> Sce
     name = "anastomosis" if suture == "suture" else "anastomosis_bright"
     return Scene(name, hf, tool=Tool(forceps, 1.3),
                  motion=lambda t: 0.75 * math.sin(2 * math.pi * 0.25 * t) * n,
-                 description="end-to-end anastomosis with stay sutures, running stitches and forceps")
+                 description="end-to-end anastomosis with stay sutures, "
+                             "running stitches and forceps")
 
 
 #: breathing: heave of the tissue along the reference normal (mm, amplitude) and its rate (Hz)
