@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from app.analysis.change import ChangeResult, compare, surface_normals
+from app.calib.calibration import load_calibration
 from app.core.calibration import Calibration
 from app.core.schedule import PatternSchedule
 from app.devices.sim import SimulatedWorld, default_rig
@@ -41,8 +43,12 @@ ROT_DEG, AXIS, SHIFT_MM = 2.0, (0.3, 1.0, 0.2), (0.6, -0.5, 0.6)  # |SHIFT| = 1.
 
 
 class Map:
-    def __init__(self, depth: Any, sigma: Any, points: Any, truth: Any) -> None:
+    """A reconstructed map: ``sigma`` its sensor-noise σ, ``sigma_model`` its calibration σ."""
+
+    def __init__(self, depth: Any, sigma: Any, points: Any, truth: Any,
+                 sigma_model: Any = None) -> None:
         self.depth, self.sigma, self.points, self.truth = depth, sigma, points, truth
+        self.sigma_model = sigma_model
 
 
 _FRAMES: dict[Any, tuple[Any, Any]] = {}  # (key, seed, t0) -> (frames, truth): rendered once
@@ -60,7 +66,8 @@ def _renderer(cal: Calibration, rig: Any) -> Callable[..., Map]:
         if (key, seed, t0_s) not in cache:
             frames, truth = _FRAMES[key, seed, t0_s]
             res = engine.run(frames)
-            cache[key, seed, t0_s] = Map(res.depth, res.sigma, res.points, truth)
+            cache[key, seed, t0_s] = Map(res.depth, res.sigma_noise, res.points, truth,
+                                         res.sigma_model)
         return cache[key, seed, t0_s]
 
     render.calibration = cal  # type: ignore[attr-defined]
@@ -72,6 +79,13 @@ def _renderer(cal: Calibration, rig: Any) -> Callable[..., Map]:
 def twin() -> Callable[..., Map]:
     rig = default_rig()
     return _renderer(ideal_calibration(rig, PatternSchedule()), rig)
+
+
+@pytest.fixture(scope="module")
+def fitted_twin(sim_calibration_file: Path) -> Callable[..., Map]:
+    """The same sets reconstructed with the calibration the simulator's service makes and
+    uses (board poses rendered by the twin, fitted, with its σ_model): what a user has."""
+    return _renderer(load_calibration(sim_calibration_file), default_rig())
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +114,8 @@ def _truth_along_normal(cal: Calibration, ref: Map, cur_truth: Any) -> Any:
 def _compare(twin: Any, cur: Map, ref: Map) -> ChangeResult:
     cal = twin.calibration
     return compare(cur.depth, cur.sigma, cur.points, ref.depth, ref.sigma, ref.points,
-                   camera_matrix=cal.camera_matrix, dist_coeffs=cal.dist_coeffs)
+                   camera_matrix=cal.camera_matrix, dist_coeffs=cal.dist_coeffs,
+                   sigma_model=cur.sigma_model, ref_sigma_model=ref.sigma_model)
 
 
 def _still_figures(res: ChangeResult, ref: Map) -> tuple[float, float, float]:
@@ -199,6 +214,13 @@ def test_with_the_twins_exact_geometry_a_scope_motion_meets_every_target(exact_t
     """The same sets with an exact calibration: what is left after the registration is the
     noise, and the registered map meets the fixed scope's targets."""
     share = _check_scope_motion(exact_twin, "exact geometry")
+    assert share <= 1e-4
+
+
+def test_with_the_services_fitted_calibration_a_scope_motion_meets_every_target(fitted_twin):
+    """The calibration the twin's service fits from rendered board poses (geometric, with its
+    σ_model) knows the twin's lens: the registered map meets the fixed scope's targets."""
+    share = _check_scope_motion(fitted_twin, "fitted calibration")
     assert share <= 1e-4
 
 
