@@ -18,7 +18,15 @@ import numpy as np
 import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
-from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
+from app.calib.camera import (
+    DISTORTION_MODELS,
+    DISTORTION_TERMS,
+    SPLIT,
+    CameraFit,
+    calibrate_camera,
+    calibrate_views,
+    field_shortfall,
+)
 from app.calib.model import undistort_points
 from app.calib.refine import RefinedPoses, RefinementCheck, check_refinement, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
@@ -32,7 +40,7 @@ from app.core.depth_model import (
 )
 from app.core.depth_model_registry import MODEL_NAMES
 from app.core.eq5 import Eq5Model, choose_normalization, evaluate, fit_eq5, normalize
-from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
+from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel, PipelineFit
 from app.core.limits import full_scale
 from app.core.schedule import PatternSchedule
 
@@ -423,7 +431,11 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     held_out: dict[str, dict[str, float | int | str | None]] = {}
     try:
         geo = GeometricModel.fit(samples, plane)
-        geo.region = geo.region.field_limited(field_px)
+        geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo)
+        # with the whole calibration's refits the lens model's extrapolation is in σ_model: the
+        # camera field is where the lens model is defined and σ decides; else the verified field
+        geo.region = geo.region.field_limited(
+            camfit.defined_field_px() if len(geo.pipeline) >= 3 else field_px)
         # where the model's own (jackknife) uncertainty passes the gross-error rule, and no farther
         geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
                                          (float(z[use].min()), float(z[use].max())))
@@ -708,6 +720,72 @@ def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[
             weights.append(b / max(float(np.nanmedian(b)), 1e-9))
     return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, pixels, proj_x,
                               weights if len(weights) == len(obs) else None, free_dist)
+
+
+def _board_pose(rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64]
+                ) -> tuple[npt.NDArray[np.float64], float]:
+    """A board pose's plane ``normal · X + offset = 0`` (camera frame, mm; normal toward the
+    camera centre)."""
+    normal = np.asarray(cv2.Rodrigues(np.asarray(rvec, np.float64))[0][:, 2], np.float64)
+    t = np.asarray(tvec, np.float64).ravel()
+    if float(normal @ t) > 0:
+        normal = -normal
+    return normal, -float(normal @ t)
+
+
+def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                        image_size: tuple[int, int], lens_model: str, samples: BoardSamples,
+                        geo: GeometricModel) -> list[PipelineFit]:
+    """The calibration refitted with each board pose left out: the camera (the same lens model)
+    from the other poses' corners, the reference plane through that camera (pose 0's corners,
+    solved for when pose 0 is the one left out), the samples' rays and heights through both,
+    and the projector (:meth:`GeometricModel.refit`) from the other poses' samples.
+
+    The camera is the corners-only fit (the phase refinement is not repeated per pose); the
+    refits' spread is the uncertainty of the camera, its lens model's extrapolation beyond the
+    boards, the reference plane and the projector together. Empty with fewer than 3 refits."""
+    poses = [int(k) for k in np.unique(samples.pose)]
+    if len(poses) < MIN_POSES:
+        return []
+    flags = DISTORTION_MODELS[lens_model]
+    uv = np.column_stack([samples.u, samples.v])
+    out: list[PipelineFit] = []
+    for left in poses:
+        keep = [k for k in range(len(obj)) if k != left]
+        try:
+            _, cam, dist, rvecs, tvecs = calibrate_views([obj[k] for k in keep],
+                                                         [img[k] for k in keep], image_size, flags)
+            pose_of = {k: (rvecs[i], tvecs[i]) for i, k in enumerate(keep)}
+            if 0 not in pose_of:
+                ok, r0, t0 = cv2.solvePnP(obj[0], img[0], cam, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+                if not ok:
+                    continue
+                pose_of[0] = (np.asarray(r0, np.float64), np.asarray(t0, np.float64))
+        except cv2.error:
+            continue
+        normal, offset = _board_pose(*pose_of[0])
+        plane = ReferencePlane(normal, offset)
+        rays = undistort_points(uv, cam, dist)
+        r3 = np.column_stack([rays, np.ones(len(rays))])
+        z = np.full(len(rays), np.nan)
+        for k in poses:
+            if k == left:
+                continue
+            sel = samples.pose == k
+            n_k, off_k = _board_pose(*pose_of[k])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pts = r3[sel] * (-off_k / (r3[sel] @ n_k))[:, None]
+            z[sel] = pts @ normal + offset
+        train = (samples.pose != left) & np.isfinite(z)
+        sub = BoardSamples(samples.u[train], samples.v[train], rays[train], samples.phi[train],
+                           z[train], samples.pose[train], samples.image_size, samples.fringes,
+                           samples.projector_width_px)
+        try:
+            projector = geo.refit(sub, plane)
+        except ValueError:
+            continue
+        out.append(PipelineFit(cam, dist[:5].copy(), plane, projector))
+    return out if len(out) >= MIN_POSES else []
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

@@ -98,6 +98,10 @@ class GeometricModel(DepthModel):
     alternative: GeometricModel | None = field(default=None, repr=False, compare=False)
     #: the boards' own phase range (no margin; set by :meth:`fit`, not serialised)
     data_phase_rad: tuple[float, float] | None = field(default=None, repr=False, compare=False)
+    #: the whole calibration refitted with one board pose left out each (camera and lens model,
+    #: reference plane, projector; set by the calibration, saved with the model): their spread is
+    #: the height's uncertainty from all of them (:meth:`total_height_deviations`)
+    pipeline: list[PipelineFit] = field(default_factory=list, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.rvec = _vec("rvec", self.rvec)
@@ -172,6 +176,66 @@ class GeometricModel(DepthModel):
         with np.errstate(divide="ignore", invalid="ignore"):
             pts = r * ((h - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64)))[:, None]
         return self.phase_of_points(pts)
+
+    def total_height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                                plane: ReferencePlane) -> F64:
+        """(K, n) height errors (mm) of the whole calibration whose Gram matrix is the covariance
+        of heights above the reference plane at n (pixel, height) places: the delete-one-pose
+        jackknife of :attr:`pipeline` (each refit's camera gives the pixel's ray, its plane the
+        height, its projector the phase → height map) and the :attr:`alternative`'s row;
+        :meth:`height_deviations` without a pipeline of at least 3 refits."""
+        g = len(self.pipeline)
+        if g < 3:
+            return self.height_deviations(u, v, ray_xy, height_mm, plane)
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        n = len(rxy)
+        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (n,))
+        uu = np.broadcast_to(np.asarray(u, np.float64).ravel(), (n,))
+        vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
+        phi = self.phase_at(uu, vv, rxy, h, plane)
+        uv = np.stack([uu, vv], axis=1)
+        hs = np.stack([p.height_at(uv, rxy, phi) for p in self.pipeline])
+        rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
+        if self.alternative is not None:
+            alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
+            rows = np.concatenate([rows, alt[None]])
+        return np.asarray(rows, np.float64)
+
+    def refit(self, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
+        """This model's form (k1 free or a pinhole, as this model) refitted to ``samples`` by
+        least squares from this model's parameters; no region, jackknife or alternative."""
+        from scipy.optimize import least_squares
+
+        ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
+        if int(ok.sum()) < MIN_SAMPLES:
+            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control "
+                             f"points, got {int(ok.sum())}")
+        x3 = samples.subset(ok).points_mm(plane)
+        xp = samples.phi[ok] * self.projector_width_px / (2.0 * math.pi * self.fringes)
+        with_k1 = self.k1 != 0.0
+        x0 = np.array([*self.rvec, self.t_mm[0], self.t_mm[2], self.focal_px, self.principal_px,
+                       self.k1])
+
+        def residuals(x: F64) -> F64:
+            k1 = x[7] if with_k1 else 0.0
+            r = _rotation(x[:3])
+            xn = (x3 @ r[0] + x[3]) / (x3 @ r[2] + x[4])
+            xd = (xp - x[6]) / x[5]
+            return np.asarray(x[5] * (xd * (1.0 + k1 * xd * xd) - xn), np.float64)
+
+        n_free = 8 if with_k1 else 7
+        sol = least_squares(lambda x: residuals(np.concatenate([x, [0.0]])[:8]), x0[:n_free],
+                            method="lm", x_scale="jac", max_nfev=5000)
+        x = np.concatenate([sol.x, [0.0]])[:8] if np.all(np.isfinite(sol.x)) else x0
+        return GeometricModel(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]),
+                              float(x[7]) if with_k1 else 0.0, self.projector_width_px,
+                              self.fringes)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = super().to_dict()
+        if self.pipeline:
+            out["pipeline_jackknife"] = [p.to_dict() for p in self.pipeline]
+        return out
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
                         rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
@@ -367,6 +431,100 @@ class GeometricModel(DepthModel):
         out.alternative = model(x_pin if use_k1 else x_k1, SupportedRegion())
         out.data_phase_rad = (lo, hi)
         return out
+
+
+@dataclass(frozen=True)
+class PipelineFit:
+    """One leave-one-pose-out refit of the whole calibration.
+
+    Attributes:
+        camera_matrix: (3, 3) camera intrinsics, px; dist_coeffs: (5,) OpenCV k1, k2, p1, p2, k3.
+        plane: the reference plane (pose 0's board plane through this refit's camera).
+        projector: the geometric model fitted to the board samples through this camera and plane.
+    """
+
+    camera_matrix: F64
+    dist_coeffs: F64
+    plane: ReferencePlane
+    projector: GeometricModel
+
+    def rays(self, uv: F64, start_xy: F64) -> F64:
+        """(n, 2) this camera's undistorted normalised rays of pixels ``uv`` (n, 2), by Newton's
+        method from ``start_xy`` (n, 2) (another camera's rays of the same pixels: close)."""
+        return undistort_newton(uv, self.camera_matrix, self.dist_coeffs, start_xy)
+
+    def height_at(self, uv: F64, start_xy: F64, phi: F64) -> F64:
+        """(n,) height (mm) above this refit's plane of phases ``phi`` (n,) at pixels ``uv``."""
+        rxy = self.rays(uv, start_xy)
+        return self.projector.height_at(uv[:, 0], uv[:, 1], rxy, phi, self.plane)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "camera_matrix": np.asarray(self.camera_matrix, np.float64).tolist(),
+            "dist_coeffs": np.asarray(self.dist_coeffs, np.float64).ravel().tolist(),
+            "plane_normal": np.asarray(self.plane.normal, np.float64).tolist(),
+            "plane_offset_mm": float(self.plane.offset_mm),
+            **self.projector.params(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> PipelineFit:
+        """Inverse of :meth:`to_dict`; ``ValueError`` naming what is wrong."""
+        if not isinstance(data, dict):
+            raise ValueError("pipeline_jackknife: expected a list of objects")
+        try:
+            k = np.asarray(data["camera_matrix"], np.float64)
+            d = np.asarray(data["dist_coeffs"], np.float64).ravel()
+            n = _vec("plane_normal", data["plane_normal"])
+            off = float(data["plane_offset_mm"])
+        except KeyError as exc:
+            raise ValueError(f"pipeline_jackknife: missing key {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"pipeline_jackknife: malformed value ({exc})") from None
+        if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] == 0 or k[1, 1] == 0:
+            raise ValueError("pipeline_jackknife: camera_matrix must be a finite 3x3 matrix")
+        if d.size > 5 or not np.all(np.isfinite(d)) or not math.isfinite(off):
+            raise ValueError("pipeline_jackknife: dist_coeffs (<= 5) and plane_offset_mm finite")
+        dist = np.zeros(5)
+        dist[: d.size] = d
+        return cls(k, dist, ReferencePlane(n, off),
+                   GeometricModel.from_params(data, SupportedRegion()))
+
+
+def undistort_newton(uv: F64, camera_matrix: F64, dist_coeffs: F64, start_xy: F64,
+                     iterations: int = 6) -> F64:
+    """(n, 2) undistorted normalised rays of pixels ``uv`` (n, 2) through the camera
+    ``camera_matrix`` (3, 3) with OpenCV's distortion ``dist_coeffs`` (k1, k2, p1, p2, k3), by
+    Newton's method from ``start_xy`` (n, 2); NaN where the distortion's Jacobian is singular."""
+    k = np.asarray(camera_matrix, np.float64)
+    d = np.zeros(5)
+    dc = np.asarray(dist_coeffs, np.float64).ravel()[:5]
+    d[: dc.size] = dc
+    k1, k2, p1, p2, k3 = d
+    target = np.asarray(uv, np.float64).reshape(-1, 2)
+    xy = np.array(start_xy, np.float64).reshape(-1, 2)
+    if xy.shape != target.shape:
+        raise ValueError(f"start_xy: expected shape {target.shape}, got {xy.shape}")
+    for _ in range(iterations):
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d rad / d r2
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        j00 = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j10 = j01
+        j11 = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        # pixel residual through the camera matrix (skew k[0, 1]), then the 2 × 2 solve
+        ru = k[0, 0] * xd + k[0, 1] * yd + k[0, 2] - target[:, 0]
+        rv = k[1, 1] * yd + k[1, 2] - target[:, 1]
+        a00, a01 = k[0, 0] * j00 + k[0, 1] * j10, k[0, 0] * j01 + k[0, 1] * j11
+        a10, a11 = k[1, 1] * j10, k[1, 1] * j11
+        with np.errstate(divide="ignore", invalid="ignore"):
+            det = a00 * a11 - a01 * a10
+            xy = xy - np.stack([(a11 * ru - a01 * rv) / det, (a00 * rv - a10 * ru) / det], axis=1)
+    return np.asarray(xy, np.float64)
 
 
 def _vec(name: str, value: Any) -> F64:
