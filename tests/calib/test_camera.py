@@ -9,7 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from app.calib.camera import CANDIDATE_MODELS, SPLIT, calibrate_camera, defined_radius, field_shortfall
+from app.calib.camera import (
+    CANDIDATE_MODELS,
+    SPLIT,
+    calibrate_camera,
+    defined_radius,
+    field_shortfall,
+)
 
 SIZE = (1280, 1024)
 K = np.array([[1200.0, 0.0, 641.0], [0.0, 1200.0, 510.0], [0.0, 0.0, 1.0]])

@@ -63,7 +63,8 @@ def test_every_pose_left_out_refits_camera_plane_and_projector():
     plane = cal.reference_plane
     for h in (0.0, 10.0, 20.0):
         total = model.height_sigma(u, v, rxy, np.full(3, h), plane)
-        projector = np.sqrt(np.sum(model.height_deviations(u, v, rxy, np.full(3, h), plane) ** 2, 0))
+        d = model.height_deviations(u, v, rxy, np.full(3, h), plane)
+        projector = np.sqrt(np.sum(d**2, axis=0))
         assert np.all(total >= 0.5 * projector) and np.all(np.isfinite(total))
     rays = calibration_ray_tables(cal)
     table = model_sigma_table(cal, rays, (-2.0, 22.0))
