@@ -6,14 +6,18 @@ terms than the data determine (k2, k3, tangential) the extrapolation diverges fa
 error at the image corners while the in-sample reprojection error stays at 0.06 px). So:
 
 1. Hold out by radius: the board corners beyond ``SPLIT·r_max`` (normalised, from the distortion
-   centre) are left out, every candidate model (:data:`DISTORTION_MODELS`, fewest terms first) is
-   fitted to the inner ones and judged by its reprojection error on the outer ones — the same
-   extrapolation, by the factor ``1/SPLIT``, the calibration will need beyond its data.
-2. The simplest model within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
-   refitted to all corners.
-3. The supported field is the ellipse of normalised radius ``r_max`` — extended by the factor the
-   held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed within
-   :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else ``r_max``.
+   centre) are left out, every candidate model (:data:`CANDIDATE_MODELS`, fewest terms first, and
+   :data:`REDUCED_MODEL`) is fitted to the inner ones and judged by its reprojection error on the
+   outer ones — the same extrapolation, by the factor ``1/SPLIT``, the calibration will need
+   beyond its data.
+2. The simplest candidate within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
+   refitted to all corners — k1 alone only when it beats them all by that margin: dropping a
+   real k2 biases every ray beyond the boards, while fitting a k2 that is 0 only widens the
+   uncertainty the calibration's leave-one-pose-out refits measure (σ_model).
+3. The corner-verified field is the ellipse of normalised radius ``r_max`` — extended by the
+   factor the held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed
+   within :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else
+   ``r_max``. The lens model is *defined* farther, to :func:`defined_radius`.
 """
 
 from __future__ import annotations
@@ -44,6 +48,9 @@ DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
 #: boards' reach still bends the rays beyond them; the calibration's leave-one-pose-out refits
 #: carry the uncertainty of the extrapolation into σ_model, a dropped term's bias they cannot)
 CANDIDATE_MODELS = ("k1,k2", "k1,k2,p1,p2", "k1,k2,k3,p1,p2")
+#: k1 alone only where the held-out corners show k2 hurting: its held-out error beats every
+#: candidate's by the tie margin (a k2 the data cannot tell from 0 is kept, not dropped)
+REDUCED_MODEL = "k1"
 #: the lens model is defined (rays do not fold over) while d r_d / d r >= this
 MIN_RADIAL_SLOPE = 0.2
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
@@ -178,7 +185,7 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     held: dict[str, float] = {}
     in_sample: dict[str, float] = {}
     has_outer = any(int((~inner[k]).sum()) > 0 for k in views)
-    for name in CANDIDATE_MODELS:
+    for name in (REDUCED_MODEL, *CANDIDATE_MODELS):
         flags = DISTORTION_MODELS[name]
         held[name] = math.nan
         if len(views) < 3 or not has_outer:
@@ -191,10 +198,14 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
         err = np.concatenate([_reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[i], tv[i], cam, dist)
                               for i, k in enumerate(views) if (~inner[k]).any()])
         held[name] = float(np.sqrt(np.mean(err**2))) if np.all(np.isfinite(err)) else math.nan
-    finite = {k: v for k, v in held.items() if math.isfinite(v)}
+    finite = {k: v for k, v in held.items() if math.isfinite(v) and k != REDUCED_MODEL}
     if finite:
         best = min(finite.values())
         chosen = next(k for k, v in finite.items() if v <= max(TIE * best, best + TIE_PX))
+        reduced = held[REDUCED_MODEL]
+        if math.isfinite(reduced) and max(TIE * reduced, reduced + TIE_PX) < best:
+            chosen = REDUCED_MODEL
+            finite[REDUCED_MODEL] = reduced
     else:
         chosen = "k1,k2,p1,p2"
     rms, cam, dist, rv, tv = _calibrate(obj, img, image_size, DISTORTION_MODELS[chosen])
