@@ -59,7 +59,8 @@ K1_CONFIDENCE = 0.95
 GROSS_ERROR_MM = 0.5
 GROSS_ERROR_RATE = 1e-6
 MODEL_SIGMA_TOLERANCE_MM = GROSS_ERROR_MM / NormalDist().inv_cdf(1.0 - GROSS_ERROR_RATE / 2.0)
-CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
+#: per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
+CELL_TEST_PIXELS = 3
 
 
 def _rotation(rvec: F64) -> F64:
@@ -239,13 +240,16 @@ class GeometricModel(DepthModel):
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
                         rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
-                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0, step_mm: float = 0.25,
+                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0,
+                        step_mm: float = 0.25,
                         tolerance_mm: float = MODEL_SIGMA_TOLERANCE_MM) -> SupportedRegion:
         """This model's region with each extrapolation verified to ``tolerance_mm``.
 
         Inside the boards' data — the calibrated height range and the boards' phase range
         (:attr:`data_phase_rad`) — the model is supported. Beyond it (other phases, heights up to
-        ``margin_mm`` past the calibrated range) only where the model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
+        ``margin_mm`` past the calibrated range) only where the model's own uncertainty
+        (:meth:`height_sigma`: the jackknife over poses — of the whole calibration where the
+        model carries it — and the
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
         (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
@@ -255,7 +259,8 @@ class GeometricModel(DepthModel):
         Args:
             image_size: (width, height) of the camera, px.
             plane: the reference plane.
-            rays: maps pixels (n, 2) (u, v) to undistorted normalised rays (n, 2) (the camera model).
+            rays: maps pixels (n, 2) (u, v) to undistorted normalised rays (n, 2) (the camera
+                model).
             height_range_mm: the calibrated (lo, hi) height range, mm.
 
         Returns:
@@ -272,7 +277,8 @@ class GeometricModel(DepthModel):
             raise ValueError(f"height_range_mm: need finite lo < hi, got {height_range_mm}")
         if len(self.jackknife) < 3:
             return self.region
-        p_lo, p_hi = self.data_phase_rad if self.data_phase_rad is not None else (math.inf, -math.inf)
+        no_data = (math.inf, -math.inf)
+        p_lo, p_hi = self.data_phase_rad if self.data_phase_rad is not None else no_data
         cw, ch = w / gw, h / gh
         hs = np.arange(lo - margin_mm, hi + margin_mm + 0.5 * step_mm, step_mm)
         in_range = (hs >= lo) & (hs <= hi)
@@ -310,7 +316,8 @@ class GeometricModel(DepthModel):
                 okc = ok[:, i, j]
                 seeds = np.flatnonzero(okc & in_data[:, i, j])
                 if seeds.size == 0:
-                    # no data in the cell: the verified heights nearest the calibrated range's middle
+                    # no data in the cell: the verified heights nearest the calibrated range's
+                    # middle
                     seeds = np.flatnonzero(okc)
                     if seeds.size == 0:
                         grid[i, j] = (1.0, -1.0)
@@ -358,8 +365,8 @@ class GeometricModel(DepthModel):
 
         ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
         if int(ok.sum()) < MIN_SAMPLES:
-            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control points, "
-                             f"got {int(ok.sum())}")
+            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control "
+                             f"points, got {int(ok.sum())}")
         x3 = samples.subset(ok).points_mm(plane)
         w, k = samples.projector_width_px, samples.fringes
         xp = samples.phi[ok] * w / (2.0 * math.pi * k)
@@ -380,13 +387,15 @@ class GeometricModel(DepthModel):
                 return residuals(np.concatenate([x, [0.0]]))[sel]
 
             if with_k1:
-                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac", max_nfev=5000)
+                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac",
+                                  max_nfev=5000)
                 return np.asarray(r.x if np.all(np.isfinite(r.x)) else x0, np.float64)
             r = least_squares(res_k, x0[:7], method="lm", x_scale="jac", max_nfev=5000)
             return np.concatenate([r.x if np.all(np.isfinite(r.x)) else x0[:7], [0.0]])
 
         # Projector distortion by held-out phase: the outer parts of the boards' phase range
-        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts worse.
+        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts
+        # worse.
         phi = samples.phi[ok]
         lo, hi = float(np.min(phi)), float(np.max(phi))
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
@@ -424,7 +433,8 @@ class GeometricModel(DepthModel):
         region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
 
         def model(xm: F64, reg: SupportedRegion) -> GeometricModel:
-            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]), float(xm[7]), w, k, reg)
+            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]),
+                       float(xm[7]), w, k, reg)
 
         out = model(x, region)
         out.jackknife = [model(xj, SupportedRegion()) for xj in jack.get(use_k1, [])]
@@ -539,14 +549,16 @@ def _vec(name: str, value: Any) -> F64:
 
 def _dlt_1d(x3: F64, xp: F64) -> F64:
     """(2, 4) projection rows [p0; p2] with ``xp = p0·X̃ / p2·X̃`` (normalised DLT)."""
-    mx, sx = x3.mean(axis=0), float(np.sqrt(np.mean(np.sum((x3 - x3.mean(axis=0)) ** 2, axis=1)))) or 1.0
+    mx = x3.mean(axis=0)
+    sx = float(np.sqrt(np.mean(np.sum((x3 - mx) ** 2, axis=1)))) or 1.0
     mp, sp = float(xp.mean()), float(xp.std()) or 1.0
     xh = np.concatenate([(x3 - mx) / sx, np.ones((len(x3), 1))], axis=1)
     xpn = (xp - mp) / sp
     a = np.concatenate([xh, -xpn[:, None] * xh], axis=1)
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
     if sv[-2] < 1e-9 * sv[0]:
-        raise ValueError("poses: degenerate — the board points do not determine the projector geometry; "
+        raise ValueError("poses: degenerate — the board points do not determine the projector "
+                         "geometry; "
                          "use more poses, tilted and spread through the volume")
     pn = vt[-1].reshape(2, 4)
     t = np.eye(4)
