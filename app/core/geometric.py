@@ -185,6 +185,12 @@ class GeometricModel(DepthModel):
         jackknife of :attr:`pipeline` (each refit's camera gives the pixel's ray, its plane the
         height, its projector the phase → height map) and the :attr:`alternative`'s row;
         :meth:`height_deviations` without a pipeline of at least 3 refits."""
+        return self._total_rows(u, v, ray_xy, height_mm, plane)
+
+    def _total_rows(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane,
+                    refit_rays: list[F64] | None = None) -> F64:
+        """:meth:`total_height_deviations`; ``refit_rays``: each refit's rays of the pixels
+        (:meth:`PipelineFit.rays`), when the caller reuses them over many heights."""
         g = len(self.pipeline)
         if g < 3:
             return self.height_deviations(u, v, ray_xy, height_mm, plane)
@@ -195,7 +201,10 @@ class GeometricModel(DepthModel):
         vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
         phi = self.phase_at(uu, vv, rxy, h, plane)
         uv = np.stack([uu, vv], axis=1)
-        hs = np.stack([p.height_at(uv, rxy, phi) for p in self.pipeline])
+        if refit_rays is None:
+            refit_rays = [p.rays(uv, rxy) for p in self.pipeline]
+        hs = np.stack([p.projector.height_at(uu, vv, r, phi, p.plane)
+                       for p, r in zip(self.pipeline, refit_rays, strict=True)])
         rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
         if self.alternative is not None:
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
@@ -292,6 +301,7 @@ class GeometricModel(DepthModel):
         rxy = np.asarray(rays(uv), np.float64).reshape(-1, 2)
         r3 = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
         nr = r3 @ np.asarray(plane.normal, np.float64)
+        refit_rays = [p.rays(uv, rxy) for p in self.pipeline] if len(self.pipeline) >= 3 else None
         ok = np.empty((len(hs), gh, gw), bool)
         in_data = np.empty((len(hs), gh, gw), bool)
         # the phases the model is verified at: the boards' (with the region's margin) and every
@@ -303,7 +313,10 @@ class GeometricModel(DepthModel):
                 pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
             phi = self.phase_of_points(pts)
             data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
-            sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
+            rows = self._total_rows(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane,
+                                    refit_rays)
+            sig = (np.sqrt(np.sum(rows * rows, axis=0)) if rows.shape[0]
+                   else np.full(len(uv), np.nan))
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
             if good.any():
                 ph_lo = min(ph_lo, float(np.min(phi[good])))
