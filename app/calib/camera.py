@@ -11,9 +11,9 @@ error at the image corners while the in-sample reprojection error stays at 0.06 
    outer ones — the same extrapolation, by the factor ``1/SPLIT``, the calibration will need
    beyond its data.
 2. The simplest candidate within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
-   refitted to all corners — k1 alone only when it beats them all by that margin: dropping a
-   real k2 biases every ray beyond the boards, while fitting a k2 that is 0 only widens the
-   uncertainty the calibration's leave-one-pose-out refits measure (σ_model).
+   refitted to all corners — k1 alone only when its held-out error is no larger than theirs:
+   dropping a real k2 (a near tie) biases every ray beyond the boards, while fitting a k2 that
+   is 0 only widens the uncertainty the calibration's leave-one-pose-out refits measure.
 3. The corner-verified field is the ellipse of normalised radius ``r_max`` — extended by the
    factor the held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed
    within :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else
@@ -48,8 +48,8 @@ DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
 #: boards' reach still bends the rays beyond them; the calibration's leave-one-pose-out refits
 #: carry the uncertainty of the extrapolation into σ_model, a dropped term's bias they cannot)
 CANDIDATE_MODELS = ("k1,k2", "k1,k2,p1,p2", "k1,k2,k3,p1,p2")
-#: k1 alone only where the held-out corners show k2 hurting: its held-out error beats every
-#: candidate's by the tie margin (a k2 the data cannot tell from 0 is kept, not dropped)
+#: k1 alone only where the held-out corners do not favour k2: its held-out error is no larger
+#: than every candidate's (no preference for the simpler model on a near tie)
 REDUCED_MODEL = "k1"
 #: the lens model is defined (rays do not fold over) while d r_d / d r >= this
 MIN_RADIAL_SLOPE = 0.2
@@ -203,7 +203,7 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
         best = min(finite.values())
         chosen = next(k for k, v in finite.items() if v <= max(TIE * best, best + TIE_PX))
         reduced = held[REDUCED_MODEL]
-        if math.isfinite(reduced) and max(TIE * reduced, reduced + TIE_PX) < best:
+        if math.isfinite(reduced) and reduced <= best:
             chosen = REDUCED_MODEL
             finite[REDUCED_MODEL] = reduced
     else:

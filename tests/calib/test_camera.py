@@ -48,11 +48,11 @@ def test_central_boards_bound_the_field_and_prefer_a_model_that_extrapolates():
     # the chosen model is the simplest within 10 % (or 0.005 px) of the best held-out error …
     best = min(fit.held_out_px[m] for m in CANDIDATE_MODELS)
     reduced = fit.held_out_px[REDUCED_MODEL]
-    if fit.model == REDUCED_MODEL:  # k1 alone only when it beats every candidate by the margin
-        assert max(1.10 * reduced, reduced + 0.005) < best
+    if fit.model == REDUCED_MODEL:  # k1 alone only when no candidate predicts better
+        assert reduced <= best
     else:
         assert fit.held_out_px[fit.model] <= max(1.10 * best, best + 0.005)
-        assert max(1.10 * reduced, reduced + 0.005) >= best
+        assert reduced > best
         simpler = list(CANDIDATE_MODELS)[:list(CANDIDATE_MODELS).index(fit.model)]
         assert all(fit.held_out_px[m] > max(1.10 * best, best + 0.005) for m in simpler)
     # … and its field: at most the verified extrapolation 1/SPLIT beyond the farthest corner
@@ -61,10 +61,8 @@ def test_central_boards_bound_the_field_and_prefer_a_model_that_extrapolates():
     assert rx / fit.camera_matrix[0, 0] == pytest.approx(fit.field_radius)
     # the image corners (r ≈ 0.68) are not supported
     assert math.hypot((0 - cx) / rx, (0 - cy) / ry) > 1.0
-    # where the boards reach the fitted lens agrees with the true one to < 0.1 px (beyond them
-    # k2, fitted always, extrapolates with an uncertainty the calibration's refits carry into
-    # σ_model: tests/calib/test_pipeline_jackknife.py)
-    r = np.linspace(0.0, fit.r_max, 50)
+    # where the field is valid the fitted lens agrees with the true one to < 0.1 px
+    r = np.linspace(0.0, fit.field_radius, 50)
     k1, k2, _, _, k3 = fit.dist_coeffs
     true = r * (1 - 0.25 * r**2)
     got = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
@@ -72,16 +70,16 @@ def test_central_boards_bound_the_field_and_prefer_a_model_that_extrapolates():
 
 
 def test_too_many_terms_are_refused_on_held_out_corners():
-    """With corners to r ≈ 0.2 only, k3 is not determined: its held-out error exceeds k1, k2's."""
+    """With corners to r ≈ 0.2 only, k3 is not determined: its held-out error exceeds k1's."""
     objs, imgs = _views([-0.25, 0.0, 0.0, 0.0, 0.0], noise_px=0.05, seed=3)
     fit = calibrate_camera(objs, imgs, SIZE)
-    assert fit.held_out_px["k1,k2,k3,p1,p2"] > fit.held_out_px["k1,k2"]
+    assert fit.held_out_px["k1,k2,k3,p1,p2"] > fit.held_out_px["k1"]
     assert fit.model != "k1,k2,k3,p1,p2"
 
 
 def test_noise_free_corners_choose_the_simplest_model():
     objs, imgs = _views([-0.25, 0.0, 0.0, 0.0, 0.0], noise_px=0.0)
-    assert calibrate_camera(objs, imgs, SIZE).model == "k1,k2"
+    assert calibrate_camera(objs, imgs, SIZE).model == "k1"
 
 
 def test_a_real_k2_is_kept_from_central_boards():
