@@ -44,9 +44,9 @@ DISTORTION_MODELS: dict[str, int] = {
 DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
     "k1": (0,), "k1,k2": (0, 1), "k1,p1,p2": (0, 2, 3), "k1,k2,p1,p2": (0, 1, 2, 3), "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
 }
-#: the models the hold-out chooses among: k1 and k2 always (a real k2 only 1–2 σ from 0 at the
+#: the models the tie rule chooses among, all with k2 (a real k2 only 1–2 σ from 0 at the
 #: boards' reach still bends the rays beyond them; the calibration's leave-one-pose-out refits
-#: carry the uncertainty of the extrapolation into σ_model, a dropped term's bias they cannot)
+#: carry a fitted term's uncertainty into σ_model, a dropped term's bias they cannot)
 CANDIDATE_MODELS = ("k1,k2", "k1,k2,p1,p2", "k1,k2,k3,p1,p2")
 #: k1 alone only where the held-out corners do not favour k2: its held-out error is no larger
 #: than every candidate's (no preference for the simpler model on a near tie)
