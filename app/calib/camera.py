@@ -6,14 +6,18 @@ terms than the data determine (k2, k3, tangential) the extrapolation diverges fa
 error at the image corners while the in-sample reprojection error stays at 0.06 px). So:
 
 1. Hold out by radius: the board corners beyond ``SPLIT·r_max`` (normalised, from the distortion
-   centre) are left out, every candidate model (:data:`DISTORTION_MODELS`, fewest terms first) is
-   fitted to the inner ones and judged by its reprojection error on the outer ones — the same
-   extrapolation, by the factor ``1/SPLIT``, the calibration will need beyond its data.
-2. The simplest model within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
-   refitted to all corners.
-3. The supported field is the ellipse of normalised radius ``r_max`` — extended by the factor the
-   held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed within
-   :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else ``r_max``.
+   centre) are left out, every candidate model (:data:`CANDIDATE_MODELS`, fewest terms first, and
+   :data:`REDUCED_MODEL`) is fitted to the inner ones and judged by its reprojection error on the
+   outer ones — the same extrapolation, by the factor ``1/SPLIT``, the calibration will need
+   beyond its data.
+2. The simplest candidate within :data:`TIE` (or :data:`TIE_PX`) of the best held-out error is
+   refitted to all corners — k1 alone only when its held-out error is no larger than theirs:
+   dropping a real k2 (a near tie) biases every ray beyond the boards, while fitting a k2 that
+   is 0 only widens the uncertainty the calibration's leave-one-pose-out refits measure.
+3. The corner-verified field is the ellipse of normalised radius ``r_max`` — extended by the
+   factor the held-out test verified (``1/SPLIT``) when the chosen model's held-out error stayed
+   within :data:`EXTRAPOLATION_TOLERANCE` of its in-sample error on the same points; else
+   ``r_max``. The lens model is *defined* farther, to :func:`defined_radius`.
 """
 
 from __future__ import annotations
@@ -40,6 +44,15 @@ DISTORTION_MODELS: dict[str, int] = {
 DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
     "k1": (0,), "k1,k2": (0, 1), "k1,p1,p2": (0, 2, 3), "k1,k2,p1,p2": (0, 1, 2, 3), "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
 }
+#: the models the tie rule chooses among, all with k2 (a real k2 only 1–2 σ from 0 at the
+#: boards' reach still bends the rays beyond them; the calibration's leave-one-pose-out refits
+#: carry a fitted term's uncertainty into σ_model, a dropped term's bias they cannot)
+CANDIDATE_MODELS = ("k1,k2", "k1,k2,p1,p2", "k1,k2,k3,p1,p2")
+#: k1 alone only where the held-out corners do not favour k2: its held-out error is no larger
+#: than every candidate's (no preference for the simpler model on a near tie)
+REDUCED_MODEL = "k1"
+#: the lens model is defined (rays do not fold over) while d r_d / d r >= this
+MIN_RADIAL_SLOPE = 0.2
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
 TIE = 1.10  # a simpler model within 10 % of the best held-out error is preferred …
 TIE_PX = 0.005  # … or within 0.005 px of it (differences below that are immaterial)
@@ -74,15 +87,47 @@ class CameraFit:
 
     def field_px(self) -> tuple[float, float, float, float] | None:
         """(cx, cy, rx, ry) of the supported field ellipse, px (None: unbounded)."""
-        if not math.isfinite(self.field_radius):
+        return self._ellipse(self.field_radius)
+
+    def defined_radius(self) -> float:
+        """The distorted normalised radius up to which the lens model is defined: its radial
+        polynomial still increases (:data:`MIN_RADIAL_SLOPE`); inf when it does to r = 3."""
+        return defined_radius(self.dist_coeffs)
+
+    def defined_field_px(self) -> tuple[float, float, float, float] | None:
+        """(cx, cy, rx, ry) of the ellipse where the lens model is defined, px (None: all)."""
+        return self._ellipse(self.defined_radius())
+
+    def _ellipse(self, radius: float) -> tuple[float, float, float, float] | None:
+        if not math.isfinite(radius):
             return None
         k = self.camera_matrix
-        return (float(k[0, 2]), float(k[1, 2]), self.field_radius * float(k[0, 0]), self.field_radius * float(k[1, 1]))
+        return (float(k[0, 2]), float(k[1, 2]), radius * float(k[0, 0]), radius * float(k[1, 1]))
 
     def summary(self) -> dict[str, object]:
         """JSON-able record for the calibration file."""
-        return {"distortion_model": self.model, "held_out_px": {k: _num(v) for k, v in self.held_out_px.items()},
-                "split": SPLIT, "r_max": _num(self.r_max), "field_radius": _num(self.field_radius)}
+        return {"distortion_model": self.model,
+                "held_out_px": {k: _num(v) for k, v in self.held_out_px.items()},
+                "split": SPLIT, "r_max": _num(self.r_max), "field_radius": _num(self.field_radius),
+                "defined_radius": _num(self.defined_radius())}
+
+
+def defined_radius(dist_coeffs: npt.ArrayLike) -> float:
+    """Distorted normalised radius where OpenCV's radial polynomial ``r·(1 + k1 r² + k2 r⁴ +
+    k3 r⁶)`` of ``dist_coeffs`` (k1, k2, p1, p2, k3) first has a slope below
+    :data:`MIN_RADIAL_SLOPE` (beyond it rays fold over); inf when not before r = 3."""
+    d = np.zeros(5)
+    dc = np.asarray(dist_coeffs, np.float64).ravel()[:5]
+    d[: dc.size] = dc
+    k1, k2, k3 = d[0], d[1], d[4]
+    r = np.linspace(0.0, 3.0, 3001)
+    r2 = r * r
+    slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * k3 * r2))
+    low = np.flatnonzero(slope < MIN_RADIAL_SLOPE)
+    if low.size == 0:
+        return math.inf
+    rf = r[low[0]]
+    return float(rf * (1 + k1 * rf**2 + k2 * rf**4 + k3 * rf**6))
 
 
 def _num(x: float) -> float | None:
@@ -95,6 +140,14 @@ def _calibrate(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.floa
                                                        criteria=_CRITERIA)
     return (float(rms), np.asarray(cam, np.float64), np.asarray(dist, np.float64).ravel()[:5],
             [np.asarray(r, np.float64) for r in rvecs], [np.asarray(t, np.float64) for t in tvecs])
+
+
+def calibrate_views(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                    image_size: tuple[int, int], flags: int
+                    ) -> tuple[float, F64, F64, list[F64], list[F64]]:
+    """OpenCV's camera calibration of board views with the distortion ``flags`` (one of
+    :data:`DISTORTION_MODELS`): (RMS px, camera matrix (3, 3), dist (5,), rvecs, tvecs)."""
+    return _calibrate(obj, img, image_size, flags)
 
 
 def _radii(img: list[npt.NDArray[np.float32]], cam: F64) -> list[F64]:
@@ -132,7 +185,8 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     held: dict[str, float] = {}
     in_sample: dict[str, float] = {}
     has_outer = any(int((~inner[k]).sum()) > 0 for k in views)
-    for name, flags in DISTORTION_MODELS.items():
+    for name in (REDUCED_MODEL, *CANDIDATE_MODELS):
+        flags = DISTORTION_MODELS[name]
         held[name] = math.nan
         if len(views) < 3 or not has_outer:
             continue
@@ -144,10 +198,14 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
         err = np.concatenate([_reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[i], tv[i], cam, dist)
                               for i, k in enumerate(views) if (~inner[k]).any()])
         held[name] = float(np.sqrt(np.mean(err**2))) if np.all(np.isfinite(err)) else math.nan
-    finite = {k: v for k, v in held.items() if math.isfinite(v)}
+    finite = {k: v for k, v in held.items() if math.isfinite(v) and k != REDUCED_MODEL}
     if finite:
         best = min(finite.values())
         chosen = next(k for k, v in finite.items() if v <= max(TIE * best, best + TIE_PX))
+        reduced = held[REDUCED_MODEL]
+        if math.isfinite(reduced) and reduced <= best:
+            chosen = REDUCED_MODEL
+            finite[REDUCED_MODEL] = reduced
     else:
         chosen = "k1,k2,p1,p2"
     rms, cam, dist, rv, tv = _calibrate(obj, img, image_size, DISTORTION_MODELS[chosen])

@@ -18,7 +18,15 @@ import numpy as np
 import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
-from app.calib.camera import DISTORTION_TERMS, SPLIT, CameraFit, calibrate_camera, field_shortfall
+from app.calib.camera import (
+    DISTORTION_MODELS,
+    DISTORTION_TERMS,
+    SPLIT,
+    CameraFit,
+    calibrate_camera,
+    calibrate_views,
+    field_shortfall,
+)
 from app.calib.model import undistort_points
 from app.calib.refine import RefinedPoses, RefinementCheck, check_refinement, refine_board_poses
 from app.capture.captureset import CaptureSet, read_capture_set
@@ -32,7 +40,7 @@ from app.core.depth_model import (
 )
 from app.core.depth_model_registry import MODEL_NAMES
 from app.core.eq5 import Eq5Model, choose_normalization, evaluate, fit_eq5, normalize
-from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel
+from app.core.geometric import MODEL_SIGMA_TOLERANCE_MM, GeometricModel, PipelineFit
 from app.core.limits import full_scale
 from app.core.schedule import PatternSchedule
 
@@ -423,6 +431,12 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     held_out: dict[str, dict[str, float | int | str | None]] = {}
     try:
         geo = GeometricModel.fit(samples, plane)
+        joint = None
+        if refined is not None:  # the refits repeat the joint fit the calibration kept
+            joint = _JointFit(obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs, tvecs)
+        geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
+        # the corner-verified camera field: opened to where the lens model is defined (σ_model
+        # deciding) the twin's preset gave 0.995 valid but σ_model 2-3x its error past the boards
         geo.region = geo.region.field_limited(field_px)
         # where the model's own (jackknife) uncertainty passes the gross-error rule, and no farther
         geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
@@ -695,19 +709,153 @@ def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[
                        free_dist: tuple[int, ...]) -> RefinedPoses | None:
     """Board poses refined jointly with the projector by the phase over each board
     (:mod:`app.calib.refine`); None leaves the corner poses."""
-    pixels, proj_x, weights = [], [], []
+    px = _phase_pixels(obs, cam, dist, rvecs, tvecs, schedule, REFINE_POINTS_PER_POSE)
+    weights = [w for _, _, w in px if w is not None]
+    return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, [p for p, _, _ in px],
+                              [x for _, x, _ in px],
+                              weights if len(weights) == len(obs) else None, free_dist)
+
+
+def _phase_pixels(obs: list[PoseObservation | None], cam: npt.NDArray[np.float64],
+                  dist: npt.NDArray[np.float64], rvecs: list[npt.NDArray[np.float64]],
+                  tvecs: list[npt.NDArray[np.float64]], schedule: PatternSchedule, target: int
+                  ) -> list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                  npt.NDArray[np.float64] | None]]:
+    """Per pose about ``target`` board pixels (m, 2), their projector coordinates (m,) (the
+    finest phase scaled to projector pixels) and phase weights (m,) (modulation over its
+    median; None without a modulation map): the phase data of the joint fit."""
+    out: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                    npt.NDArray[np.float64] | None]] = []
     scale = schedule.width / (2.0 * math.pi * float(schedule.frequencies[-1]))
     for k, o in enumerate(obs):
         assert o is not None
-        uv, _, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]), 0.0,
-                                      target=REFINE_POINTS_PER_POSE)
-        pixels.append(uv)
-        proj_x.append(phi_k * scale)
+        uv, _, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]),
+                                      0.0, target=target)
+        w = None
         if o.modulation is not None:
             b = o.modulation[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)].astype(np.float64)
-            weights.append(b / max(float(np.nanmedian(b)), 1e-9))
-    return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, pixels, proj_x,
-                              weights if len(weights) == len(obs) else None, free_dist)
+            w = b / max(float(np.nanmedian(b)), 1e-9)
+        out.append((uv, phi_k * scale, w))
+    return out
+
+
+def _board_pose(rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64]
+                ) -> tuple[npt.NDArray[np.float64], float]:
+    """A board pose's plane ``normal · X + offset = 0`` (camera frame, mm; normal toward the
+    camera centre)."""
+    normal = np.asarray(cv2.Rodrigues(np.asarray(rvec, np.float64))[0][:, 2], np.float64)
+    t = np.asarray(tvec, np.float64).ravel()
+    if float(normal @ t) > 0:
+        normal = -normal
+    return normal, -float(normal @ t)
+
+
+#: board pixels per pose whose phase refines each leave-one-pose-out refit: as many as the
+#: calibration's own (with a quarter, the refits' spread overstated σ_model 2-3x on the twin)
+JACKKNIFE_REFINE_POINTS_PER_POSE = REFINE_POINTS_PER_POSE
+
+
+@dataclass
+class _JointFit:
+    """The joint (corners + phase) fit the calibration kept, for its refits to repeat: the
+    poses' observations, the schedule, the free distortion terms and its solution."""
+
+    obs: list[PoseObservation | None]
+    schedule: PatternSchedule
+    free_dist: tuple[int, ...]
+    camera_matrix: npt.NDArray[np.float64]
+    dist_coeffs: npt.NDArray[np.float64]
+    rvecs: list[npt.NDArray[np.float64]]
+    tvecs: list[npt.NDArray[np.float64]]
+
+
+def _refit_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                  image_size: tuple[int, int], flags: int, left: int, joint: _JointFit | None,
+                  pixels: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                     npt.NDArray[np.float64] | None]]
+                  ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                             dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]]] | None:
+    """The camera and every board pose with pose ``left`` left out of the fit: the joint fit
+    repeated from its solution when the calibration kept one, else the corners-only fit; pose 0
+    (the reference plane) left out keeps the calibration's own pose and camera (its plane
+    is defined by that board alone). None when the fit fails."""
+    keep = [k for k in range(len(obj)) if k != left]
+    if joint is not None:
+        if left == 0:
+            return joint.camera_matrix, joint.dist_coeffs, dict(
+                enumerate(zip(joint.rvecs, joint.tvecs, strict=True)))
+        weights = [w for w in (pixels[k][2] for k in keep) if w is not None]
+        refined = refine_board_poses(
+            [obj[k] for k in keep], [img[k] for k in keep], joint.camera_matrix,
+            joint.dist_coeffs, [joint.rvecs[k] for k in keep], [joint.tvecs[k] for k in keep],
+            [pixels[k][0] for k in keep], [pixels[k][1] for k in keep],
+            weights if len(weights) == len(keep) else None,
+            joint.free_dist)
+        if refined is not None:
+            pose_of = {k: (refined.rvecs[i], refined.tvecs[i]) for i, k in enumerate(keep)}
+            return refined.camera_matrix, refined.dist_coeffs, pose_of
+    try:
+        _, cam, dist, rvecs, tvecs = calibrate_views([obj[k] for k in keep], [img[k] for k in keep],
+                                                     image_size, flags)
+        pose_of = {k: (rvecs[i], tvecs[i]) for i, k in enumerate(keep)}
+        if 0 not in pose_of:
+            ok, r0, t0 = cv2.solvePnP(obj[0], img[0], cam, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok:
+                return None
+            pose_of[0] = (np.asarray(r0, np.float64), np.asarray(t0, np.float64))
+    except cv2.error:
+        return None
+    return cam, dist, pose_of
+
+
+def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                        image_size: tuple[int, int], lens_model: str, samples: BoardSamples,
+                        geo: GeometricModel, joint: _JointFit | None = None) -> list[PipelineFit]:
+    """The calibration refitted with each board pose left out: the camera (the same lens model)
+    and board poses from the other poses (:func:`_refit_camera`: the joint corners + phase fit
+    when the calibration kept one), the reference plane (pose 0's board through that camera),
+    the samples' rays and heights through both, and the projector
+    (:meth:`GeometricModel.refit`) from the other poses' samples.
+
+    The refits' spread is the uncertainty of the camera, its lens model's extrapolation beyond
+    the boards, the reference plane and the projector together. Empty with fewer than 3."""
+    poses = [int(k) for k in np.unique(samples.pose)]
+    if len(poses) < MIN_POSES:
+        return []
+    flags = DISTORTION_MODELS[lens_model]
+    uv = np.column_stack([samples.u, samples.v])
+    pixels = [] if joint is None else _phase_pixels(
+        joint.obs, joint.camera_matrix, joint.dist_coeffs, joint.rvecs, joint.tvecs,
+        joint.schedule, JACKKNIFE_REFINE_POINTS_PER_POSE)
+    out: list[PipelineFit] = []
+    for left in poses:
+        fit = _refit_camera(obj, img, image_size, flags, left, joint, pixels)
+        if fit is None:
+            continue
+        cam, dist, pose_of = fit
+        normal, offset = _board_pose(*pose_of[0])
+        plane = ReferencePlane(normal, offset)
+        rays = undistort_points(uv, cam, dist)
+        r3 = np.column_stack([rays, np.ones(len(rays))])
+        z = np.full(len(rays), np.nan)
+        for k in poses:
+            if k == left:
+                continue
+            sel = samples.pose == k
+            n_k, off_k = _board_pose(*pose_of[k])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pts = r3[sel] * (-off_k / (r3[sel] @ n_k))[:, None]
+            z[sel] = pts @ normal + offset
+        train = (samples.pose != left) & np.isfinite(z)
+        sub = BoardSamples(samples.u[train], samples.v[train], rays[train], samples.phi[train],
+                           z[train], samples.pose[train], samples.image_size, samples.fringes,
+                           samples.projector_width_px)
+        try:
+            projector = geo.refit(sub, plane)
+        except ValueError:
+            continue
+        out.append(PipelineFit(cam, dist[:5].copy(), plane, projector))
+    return out if len(out) >= MIN_POSES else []
 
 
 def _check_span(z: npt.NDArray[np.float64]) -> None:

@@ -333,12 +333,20 @@ class DepthModel(ABC):
             rows = np.concatenate([rows, alt[None]])
         return np.asarray(rows, np.float64)
 
+    def total_height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                                plane: ReferencePlane) -> F64:
+        """(K, n) as :meth:`height_deviations`, but of the whole calibration where the model
+        carries it (the camera, its lens model and the reference plane refitted with each pose
+        left out, not only this model): the error of a height above the reference plane. A model
+        without such a jackknife gives :meth:`height_deviations`."""
+        return self.height_deviations(u, v, ray_xy, height_mm, plane)
+
     def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
                      plane: ReferencePlane) -> F64:
         """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy``
         (n, 2)) for a surface at ``height_mm``: the root sum of squares of
-        :meth:`height_deviations`; NaN without a jackknife."""
-        d = self.height_deviations(u, v, ray_xy, height_mm, plane)
+        :meth:`total_height_deviations`; NaN without a jackknife."""
+        d = self.total_height_deviations(u, v, ray_xy, height_mm, plane)
         if d.shape[0] == 0:
             return np.full(d.shape[1], np.nan)
         return np.asarray(np.sqrt(np.sum(d * d, axis=0)), np.float64)

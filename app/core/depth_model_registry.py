@@ -10,7 +10,7 @@ from typing import Any
 
 from app.core.depth_model import DepthModel, SupportedRegion
 from app.core.eq5 import Eq5Model
-from app.core.geometric import GeometricModel
+from app.core.geometric import GeometricModel, PipelineFit
 
 #: every depth model by the ``name`` it carries in a calibration file
 DEPTH_MODELS: dict[str, type[DepthModel]] = {
@@ -40,4 +40,14 @@ def depth_model_from_dict(data: Any) -> DepthModel:
         model.alternative = None if alt is None else kind.from_params(alt, SupportedRegion())
     except ValueError as exc:
         raise ValueError(f"model.jackknife: {exc}") from None
+    pipeline = data.get("pipeline_jackknife", [])
+    if not isinstance(pipeline, list):
+        raise ValueError("model.pipeline_jackknife: expected a list of objects")
+    if pipeline and not isinstance(model, GeometricModel):
+        raise ValueError("model.pipeline_jackknife: only the geometric model carries one")
+    if isinstance(model, GeometricModel):
+        try:
+            model.pipeline = [PipelineFit.from_dict(p) for p in pipeline]
+        except ValueError as exc:
+            raise ValueError(f"model.{exc}") from None
     return model

@@ -5,7 +5,8 @@ Eq. (5) is evaluated in normalised coordinates ``u' = (u - u0) / su``, ``v' = (v
 ``φ' = (φ - φ0) / sφ`` (``normalization``), with φ the unwrapped phase of the *finest*
 frequency in radians:
 
-    z = (1 + c1φ' + (c2 + c3φ')u' + (c4 + c5φ')v' + (c6 + c7φ')u'² + (c8 + c9φ')v'² + (c10 + c11φ')u'v')
+    z = (1 + c1φ' + (c2 + c3φ')u' + (c4 + c5φ')v' + (c6 + c7φ')u'² + (c8 + c9φ')v'²
+         + (c10 + c11φ')u'v')
         / (d0 + d1φ' + (d2 + d3φ')u' + ... + (d10 + d11φ')u'v')
 
 ``numerator`` holds c1..c11 (11 values), ``denominator`` d0..d11 (12 values): 23 in all.
@@ -101,7 +102,8 @@ def fit_eq5(u: npt.ArrayLike, v: npt.ArrayLike, phi: npt.ArrayLike, z_mm: npt.Ar
         raise ValueError(f"z_mm: {z.shape[0]} heights for {b.shape[0]} points")
     n_params = N_NUMERATOR + N_DENOMINATOR
     if z.shape[0] < 2 * n_params:
-        raise ValueError(f"points: need at least {2 * n_params} control points for 23 coefficients, got {z.shape[0]}")
+        raise ValueError(f"points: need at least {2 * n_params} control points for 23 "
+                         f"coefficients, got {z.shape[0]}")
     a = np.concatenate([z[:, None] * b, -b[:, 1:]], axis=1)
     col_scale = np.linalg.norm(a, axis=0)
     col_scale[col_scale == 0] = 1.0
@@ -136,7 +138,8 @@ def fit_eq5(u: npt.ArrayLike, v: npt.ArrayLike, phi: npt.ArrayLike, z_mm: npt.Ar
     )
 
 
-def choose_normalization(u: npt.ArrayLike, v: npt.ArrayLike, phi: npt.ArrayLike, z_mm: npt.ArrayLike,
+def choose_normalization(u: npt.ArrayLike, v: npt.ArrayLike, phi: npt.ArrayLike,
+                         z_mm: npt.ArrayLike,
                          image_size: tuple[int, int]) -> dict[str, tuple[float, float]]:
     """Normalisation for the fit: pixels to about [-1, 1]; φ scaled by its half range.
 
@@ -218,7 +221,8 @@ class Eq5Model(DepthModel):
 
     @classmethod
     def fit(cls, samples: BoardSamples, plane: ReferencePlane) -> Eq5Model:
-        norm = choose_normalization(samples.u, samples.v, samples.phi, samples.z_mm, samples.image_size)
+        norm = choose_normalization(samples.u, samples.v, samples.phi, samples.z_mm,
+                                    samples.image_size)
         un, vn, pn = normalize(norm, samples.u, samples.v, samples.phi)
         f = fit_eq5(un, vn, pn, samples.z_mm)
         return cls(f.numerator, f.denominator, norm, region_from_samples(samples))

@@ -59,7 +59,8 @@ K1_CONFIDENCE = 0.95
 GROSS_ERROR_MM = 0.5
 GROSS_ERROR_RATE = 1e-6
 MODEL_SIGMA_TOLERANCE_MM = GROSS_ERROR_MM / NormalDist().inv_cdf(1.0 - GROSS_ERROR_RATE / 2.0)
-CELL_TEST_PIXELS = 3  # per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
+#: per side: the pixels of a cell tested by :meth:`GeometricModel.verified_region`
+CELL_TEST_PIXELS = 3
 
 
 def _rotation(rvec: F64) -> F64:
@@ -98,6 +99,10 @@ class GeometricModel(DepthModel):
     alternative: GeometricModel | None = field(default=None, repr=False, compare=False)
     #: the boards' own phase range (no margin; set by :meth:`fit`, not serialised)
     data_phase_rad: tuple[float, float] | None = field(default=None, repr=False, compare=False)
+    #: the whole calibration refitted with one board pose left out each (camera and lens model,
+    #: reference plane, projector; set by the calibration, saved with the model): their spread is
+    #: the height's uncertainty from all of them (:meth:`total_height_deviations`)
+    pipeline: list[PipelineFit] = field(default_factory=list, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.rvec = _vec("rvec", self.rvec)
@@ -173,15 +178,87 @@ class GeometricModel(DepthModel):
             pts = r * ((h - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64)))[:, None]
         return self.phase_of_points(pts)
 
+    def total_height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                                plane: ReferencePlane) -> F64:
+        """(K, n) height errors (mm) of the whole calibration whose Gram matrix is the covariance
+        of heights above the reference plane at n (pixel, height) places: the delete-one-pose
+        jackknife of :attr:`pipeline` (each refit's camera gives the pixel's ray, its plane the
+        height, its projector the phase → height map) and the :attr:`alternative`'s row;
+        :meth:`height_deviations` without a pipeline of at least 3 refits."""
+        return self._total_rows(u, v, ray_xy, height_mm, plane)
+
+    def _total_rows(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane,
+                    refit_rays: list[F64] | None = None) -> F64:
+        """:meth:`total_height_deviations`; ``refit_rays``: each refit's rays of the pixels
+        (:meth:`PipelineFit.rays`), when the caller reuses them over many heights."""
+        g = len(self.pipeline)
+        if g < 3:
+            return self.height_deviations(u, v, ray_xy, height_mm, plane)
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        n = len(rxy)
+        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (n,))
+        uu = np.broadcast_to(np.asarray(u, np.float64).ravel(), (n,))
+        vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
+        phi = self.phase_at(uu, vv, rxy, h, plane)
+        uv = np.stack([uu, vv], axis=1)
+        if refit_rays is None:
+            refit_rays = [p.rays(uv, rxy) for p in self.pipeline]
+        hs = np.stack([p.projector.height_at(uu, vv, r, phi, p.plane)
+                       for p, r in zip(self.pipeline, refit_rays, strict=True)])
+        rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
+        if self.alternative is not None:
+            alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
+            rows = np.concatenate([rows, alt[None]])
+        return np.asarray(rows, np.float64)
+
+    def refit(self, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
+        """This model's form (k1 free or a pinhole, as this model) refitted to ``samples`` by
+        least squares from this model's parameters; no region, jackknife or alternative."""
+        from scipy.optimize import least_squares
+
+        ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
+        if int(ok.sum()) < MIN_SAMPLES:
+            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control "
+                             f"points, got {int(ok.sum())}")
+        x3 = samples.subset(ok).points_mm(plane)
+        xp = samples.phi[ok] * self.projector_width_px / (2.0 * math.pi * self.fringes)
+        with_k1 = self.k1 != 0.0
+        x0 = np.array([*self.rvec, self.t_mm[0], self.t_mm[2], self.focal_px, self.principal_px,
+                       self.k1])
+
+        def residuals(x: F64) -> F64:
+            k1 = x[7] if with_k1 else 0.0
+            r = _rotation(x[:3])
+            xn = (x3 @ r[0] + x[3]) / (x3 @ r[2] + x[4])
+            xd = (xp - x[6]) / x[5]
+            return np.asarray(x[5] * (xd * (1.0 + k1 * xd * xd) - xn), np.float64)
+
+        n_free = 8 if with_k1 else 7
+        sol = least_squares(lambda x: residuals(np.concatenate([x, [0.0]])[:8]), x0[:n_free],
+                            method="lm", x_scale="jac", max_nfev=5000)
+        x = np.concatenate([sol.x, [0.0]])[:8] if np.all(np.isfinite(sol.x)) else x0
+        return GeometricModel(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]),
+                              float(x[7]) if with_k1 else 0.0, self.projector_width_px,
+                              self.fringes)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = super().to_dict()
+        if self.pipeline:
+            out["pipeline_jackknife"] = [p.to_dict() for p in self.pipeline]
+        return out
+
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
                         rays: Callable[[F64], F64], height_range_mm: tuple[float, float], *,
-                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0, step_mm: float = 0.25,
+                        cells: tuple[int, int] = (32, 24), margin_mm: float = 2.0,
+                        step_mm: float = 0.25,
                         tolerance_mm: float = MODEL_SIGMA_TOLERANCE_MM) -> SupportedRegion:
         """This model's region with each extrapolation verified to ``tolerance_mm``.
 
         Inside the boards' data — the calibrated height range and the boards' phase range
         (:attr:`data_phase_rad`) — the model is supported. Beyond it (other phases, heights up to
-        ``margin_mm`` past the calibrated range) only where the model's own uncertainty (:meth:`height_sigma`: the jackknife over poses and the
+        ``margin_mm`` past the calibrated range) only where the model's own uncertainty
+        (:meth:`height_sigma`: the jackknife over poses — of the whole calibration where the
+        model carries it — and the
         pinhole/k1 disagreement) is within ``tolerance_mm``. Per image cell of ``cells``
         (columns, rows) a 3 × 3 set of pixels over the cell (its edges included) is tested at
         heights ``step_mm`` apart; the cell supports the contiguous run of heights, around the
@@ -191,7 +268,8 @@ class GeometricModel(DepthModel):
         Args:
             image_size: (width, height) of the camera, px.
             plane: the reference plane.
-            rays: maps pixels (n, 2) (u, v) to undistorted normalised rays (n, 2) (the camera model).
+            rays: maps pixels (n, 2) (u, v) to undistorted normalised rays (n, 2) (the camera
+                model).
             height_range_mm: the calibrated (lo, hi) height range, mm.
 
         Returns:
@@ -208,7 +286,8 @@ class GeometricModel(DepthModel):
             raise ValueError(f"height_range_mm: need finite lo < hi, got {height_range_mm}")
         if len(self.jackknife) < 3:
             return self.region
-        p_lo, p_hi = self.data_phase_rad if self.data_phase_rad is not None else (math.inf, -math.inf)
+        no_data = (math.inf, -math.inf)
+        p_lo, p_hi = self.data_phase_rad if self.data_phase_rad is not None else no_data
         cw, ch = w / gw, h / gh
         hs = np.arange(lo - margin_mm, hi + margin_mm + 0.5 * step_mm, step_mm)
         in_range = (hs >= lo) & (hs <= hi)
@@ -222,6 +301,7 @@ class GeometricModel(DepthModel):
         rxy = np.asarray(rays(uv), np.float64).reshape(-1, 2)
         r3 = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
         nr = r3 @ np.asarray(plane.normal, np.float64)
+        refit_rays = [p.rays(uv, rxy) for p in self.pipeline] if len(self.pipeline) >= 3 else None
         ok = np.empty((len(hs), gh, gw), bool)
         in_data = np.empty((len(hs), gh, gw), bool)
         # the phases the model is verified at: the boards' (with the region's margin) and every
@@ -233,7 +313,10 @@ class GeometricModel(DepthModel):
                 pts = r3 * ((hk - plane.offset_mm) / nr)[:, None]
             phi = self.phase_of_points(pts)
             data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
-            sig = self.height_sigma(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane)
+            rows = self._total_rows(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane,
+                                    refit_rays)
+            sig = (np.sqrt(np.sum(rows * rows, axis=0)) if rows.shape[0]
+                   else np.full(len(uv), np.nan))
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
             if good.any():
                 ph_lo = min(ph_lo, float(np.min(phi[good])))
@@ -246,7 +329,8 @@ class GeometricModel(DepthModel):
                 okc = ok[:, i, j]
                 seeds = np.flatnonzero(okc & in_data[:, i, j])
                 if seeds.size == 0:
-                    # no data in the cell: the verified heights nearest the calibrated range's middle
+                    # no data in the cell: the verified heights nearest the calibrated range's
+                    # middle
                     seeds = np.flatnonzero(okc)
                     if seeds.size == 0:
                         grid[i, j] = (1.0, -1.0)
@@ -294,8 +378,8 @@ class GeometricModel(DepthModel):
 
         ok = np.isfinite(samples.phi) & np.isfinite(samples.z_mm)
         if int(ok.sum()) < MIN_SAMPLES:
-            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control points, "
-                             f"got {int(ok.sum())}")
+            raise ValueError(f"points: the geometric model needs at least {MIN_SAMPLES} control "
+                             f"points, got {int(ok.sum())}")
         x3 = samples.subset(ok).points_mm(plane)
         w, k = samples.projector_width_px, samples.fringes
         xp = samples.phi[ok] * w / (2.0 * math.pi * k)
@@ -316,13 +400,15 @@ class GeometricModel(DepthModel):
                 return residuals(np.concatenate([x, [0.0]]))[sel]
 
             if with_k1:
-                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac", max_nfev=5000)
+                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac",
+                                  max_nfev=5000)
                 return np.asarray(r.x if np.all(np.isfinite(r.x)) else x0, np.float64)
             r = least_squares(res_k, x0[:7], method="lm", x_scale="jac", max_nfev=5000)
             return np.concatenate([r.x if np.all(np.isfinite(r.x)) else x0[:7], [0.0]])
 
         # Projector distortion by held-out phase: the outer parts of the boards' phase range
-        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts worse.
+        # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts
+        # worse.
         phi = samples.phi[ok]
         lo, hi = float(np.min(phi)), float(np.max(phi))
         mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
@@ -360,13 +446,108 @@ class GeometricModel(DepthModel):
         region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
 
         def model(xm: F64, reg: SupportedRegion) -> GeometricModel:
-            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]), float(xm[7]), w, k, reg)
+            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]),
+                       float(xm[7]), w, k, reg)
 
         out = model(x, region)
         out.jackknife = [model(xj, SupportedRegion()) for xj in jack.get(use_k1, [])]
         out.alternative = model(x_pin if use_k1 else x_k1, SupportedRegion())
         out.data_phase_rad = (lo, hi)
         return out
+
+
+@dataclass(frozen=True)
+class PipelineFit:
+    """One leave-one-pose-out refit of the whole calibration.
+
+    Attributes:
+        camera_matrix: (3, 3) camera intrinsics, px; dist_coeffs: (5,) OpenCV k1, k2, p1, p2, k3.
+        plane: the reference plane (pose 0's board plane through this refit's camera).
+        projector: the geometric model fitted to the board samples through this camera and plane.
+    """
+
+    camera_matrix: F64
+    dist_coeffs: F64
+    plane: ReferencePlane
+    projector: GeometricModel
+
+    def rays(self, uv: F64, start_xy: F64) -> F64:
+        """(n, 2) this camera's undistorted normalised rays of pixels ``uv`` (n, 2), by Newton's
+        method from ``start_xy`` (n, 2) (another camera's rays of the same pixels: close)."""
+        return undistort_newton(uv, self.camera_matrix, self.dist_coeffs, start_xy)
+
+    def height_at(self, uv: F64, start_xy: F64, phi: F64) -> F64:
+        """(n,) height (mm) above this refit's plane of phases ``phi`` (n,) at pixels ``uv``."""
+        rxy = self.rays(uv, start_xy)
+        return self.projector.height_at(uv[:, 0], uv[:, 1], rxy, phi, self.plane)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "camera_matrix": np.asarray(self.camera_matrix, np.float64).tolist(),
+            "dist_coeffs": np.asarray(self.dist_coeffs, np.float64).ravel().tolist(),
+            "plane_normal": np.asarray(self.plane.normal, np.float64).tolist(),
+            "plane_offset_mm": float(self.plane.offset_mm),
+            **self.projector.params(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> PipelineFit:
+        """Inverse of :meth:`to_dict`; ``ValueError`` naming what is wrong."""
+        if not isinstance(data, dict):
+            raise ValueError("pipeline_jackknife: expected a list of objects")
+        try:
+            k = np.asarray(data["camera_matrix"], np.float64)
+            d = np.asarray(data["dist_coeffs"], np.float64).ravel()
+            n = _vec("plane_normal", data["plane_normal"])
+            off = float(data["plane_offset_mm"])
+        except KeyError as exc:
+            raise ValueError(f"pipeline_jackknife: missing key {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"pipeline_jackknife: malformed value ({exc})") from None
+        if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] == 0 or k[1, 1] == 0:
+            raise ValueError("pipeline_jackknife: camera_matrix must be a finite 3x3 matrix")
+        if d.size > 5 or not np.all(np.isfinite(d)) or not math.isfinite(off):
+            raise ValueError("pipeline_jackknife: dist_coeffs (<= 5) and plane_offset_mm finite")
+        dist = np.zeros(5)
+        dist[: d.size] = d
+        return cls(k, dist, ReferencePlane(n, off),
+                   GeometricModel.from_params(data, SupportedRegion()))
+
+
+def undistort_newton(uv: F64, camera_matrix: F64, dist_coeffs: F64, start_xy: F64,
+                     iterations: int = 6) -> F64:
+    """(n, 2) undistorted normalised rays of pixels ``uv`` (n, 2) through the camera
+    ``camera_matrix`` (3, 3) with OpenCV's distortion ``dist_coeffs`` (k1, k2, p1, p2, k3), by
+    Newton's method from ``start_xy`` (n, 2); NaN where the distortion's Jacobian is singular."""
+    k = np.asarray(camera_matrix, np.float64)
+    d = np.zeros(5)
+    dc = np.asarray(dist_coeffs, np.float64).ravel()[:5]
+    d[: dc.size] = dc
+    k1, k2, p1, p2, k3 = d
+    target = np.asarray(uv, np.float64).reshape(-1, 2)
+    xy = np.array(start_xy, np.float64).reshape(-1, 2)
+    if xy.shape != target.shape:
+        raise ValueError(f"start_xy: expected shape {target.shape}, got {xy.shape}")
+    for _ in range(iterations):
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d rad / d r2
+        xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        j00 = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j10 = j01
+        j11 = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        # pixel residual through the camera matrix (skew k[0, 1]), then the 2 × 2 solve
+        ru = k[0, 0] * xd + k[0, 1] * yd + k[0, 2] - target[:, 0]
+        rv = k[1, 1] * yd + k[1, 2] - target[:, 1]
+        a00, a01 = k[0, 0] * j00 + k[0, 1] * j10, k[0, 0] * j01 + k[0, 1] * j11
+        a10, a11 = k[1, 1] * j10, k[1, 1] * j11
+        with np.errstate(divide="ignore", invalid="ignore"):
+            det = a00 * a11 - a01 * a10
+            xy = xy - np.stack([(a11 * ru - a01 * rv) / det, (a00 * rv - a10 * ru) / det], axis=1)
+    return np.asarray(xy, np.float64)
 
 
 def _vec(name: str, value: Any) -> F64:
@@ -381,14 +562,16 @@ def _vec(name: str, value: Any) -> F64:
 
 def _dlt_1d(x3: F64, xp: F64) -> F64:
     """(2, 4) projection rows [p0; p2] with ``xp = p0·X̃ / p2·X̃`` (normalised DLT)."""
-    mx, sx = x3.mean(axis=0), float(np.sqrt(np.mean(np.sum((x3 - x3.mean(axis=0)) ** 2, axis=1)))) or 1.0
+    mx = x3.mean(axis=0)
+    sx = float(np.sqrt(np.mean(np.sum((x3 - mx) ** 2, axis=1)))) or 1.0
     mp, sp = float(xp.mean()), float(xp.std()) or 1.0
     xh = np.concatenate([(x3 - mx) / sx, np.ones((len(x3), 1))], axis=1)
     xpn = (xp - mp) / sp
     a = np.concatenate([xh, -xpn[:, None] * xh], axis=1)
     _, sv, vt = np.linalg.svd(a, full_matrices=False)
     if sv[-2] < 1e-9 * sv[0]:
-        raise ValueError("poses: degenerate — the board points do not determine the projector geometry; "
+        raise ValueError("poses: degenerate — the board points do not determine the projector "
+                         "geometry; "
                          "use more poses, tilted and spread through the volume")
     pn = vt[-1].reshape(2, 4)
     t = np.eye(4)

@@ -1,7 +1,9 @@
 """The depth model's own uncertainty per pixel and height, σ_model, in the form the kernel reads.
 
 A calibration's depth model carries the fits with one board pose left out each (its
-jackknife, :meth:`app.core.depth_model.DepthModel.height_deviations`): their spread at a pixel
+jackknife; for the geometric model the whole calibration refitted — camera and its lens model,
+reference plane, projector —,
+:meth:`app.core.depth_model.DepthModel.total_height_deviations`): their spread at a pixel
 and height is the 1-σ error the calibration adds to every depth measured there. It changes
 slowly over the image and, per pixel, its variance is close to a quartic in the height (each
 leave-one-out fit's deviation is nearly quadratic in it: on the twin's calibrations a quadratic
@@ -116,7 +118,7 @@ def model_sigma_table(
     rxy = np.stack(
         [np.asarray(rays.rx, np.float64)[vv, uu], np.asarray(rays.ry, np.float64)[vv, uu]], axis=-1
     )
-    d = model.height_deviations(
+    d = model.total_height_deviations(
         uu.ravel().astype(np.float64),
         vv.ravel().astype(np.float64),
         rxy.reshape(-1, 2),

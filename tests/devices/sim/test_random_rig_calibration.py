@@ -25,9 +25,10 @@ def _in_volume(res, truth, cal):  # noqa: ANN001, ANN202
 
 
 # (seed, board reach, minimum valid share of the lit unsaturated pixels in the volume): a board
-# over the full field, and one over the central half (where the calibration cannot vouch for
-# the outer field: the share is what the current validity rule gives, with a margin)
-RIGS = [(6, 1.0, 0.90), (10, 0.5, 0.30)]
+# over the full field (measured 0.977 with σ_model from the whole calibration's refits), and one
+# over the central half (where the calibration cannot vouch for the outer field: the share is
+# what the current validity rule gives, with a margin; measured 0.440)
+RIGS = [(6, 1.0, 0.95), (10, 0.5, 0.30)]
 
 
 @pytest.mark.parametrize(("seed", "coverage", "min_valid"), RIGS)

@@ -1,0 +1,121 @@
+"""The whole calibration refitted with each board pose left out (camera and its lens model,
+reference plane, projector): its spread is σ_model, saved with the file and honest about the
+reference plane and the lens model's extrapolation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from app.calib import fit_observations
+from app.calib.model import undistort_points
+from app.core.calibration import Calibration
+from app.core.geometric import GeometricModel, undistort_newton
+from app.recon.model_sigma import model_sigma_table
+from app.recon.points import calibration_ray_tables
+from tests.helpers.calib_rig import BOARD, STANDARD_POSES, Rig, board_pose
+
+
+def _calibration(noise_px: float, seed: int = 7) -> tuple[Calibration, Rig, list]:
+    rig = Rig()
+    rng = np.random.default_rng(seed)
+    obs, truth = [], []
+    for i, (d, ax, ay, az, sh) in enumerate(STANDARD_POSES):
+        r, t = board_pose(BOARD, d, ax, ay, az, sh)
+        truth.append((r, t))
+        obs.append(rig.observe(BOARD, r, t, f"pose_{i:02d}", noise_px=noise_px, rng=rng))
+    cal = fit_observations(obs, (rig.width, rig.height), rig.schedule, model="geometric",
+                           refine=False).calibration
+    return cal, rig, truth
+
+
+def test_newton_undistortion_matches_opencv_on_strong_distortion():
+    k = np.array([[900.0, 0.0, 330.0], [0.0, 905.0, 250.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.28, 0.09, 0.001, -0.0015, -0.01])
+    rng = np.random.default_rng(0)
+    uv = np.column_stack([rng.uniform(0, 660, 500), rng.uniform(0, 500, 500)])
+    ref = undistort_points(uv, k, dist)
+    # the start: another camera's rays of the same pixels (here the pinhole's)
+    start = np.column_stack([(uv[:, 0] - 330.0) / 900.0, (uv[:, 1] - 250.0) / 905.0])
+    got = undistort_newton(uv, k, dist, start)
+    np.testing.assert_allclose(got, ref, atol=1e-9)
+    proj, _ = cv2.projectPoints(np.column_stack([got, np.ones(len(got))]), np.zeros(3),
+                                np.zeros(3), k, dist)
+    np.testing.assert_allclose(proj.reshape(-1, 2), uv, atol=1e-6)
+
+
+def test_every_pose_left_out_refits_camera_plane_and_projector():
+    cal, rig, _ = _calibration(noise_px=0.1)
+    model = cal.model
+    assert isinstance(model, GeometricModel)
+    assert len(model.pipeline) == len(STANDARD_POSES)
+    # each refit's camera and plane differ from the others' (corner noise), none is the truth
+    focal = np.array([p.camera_matrix[0, 0] for p in model.pipeline])
+    offsets = np.array([p.plane.offset_mm for p in model.pipeline])
+    assert np.ptp(focal) > 0 and np.ptp(offsets) > 0
+    assert np.all(np.abs(focal / rig.f_px - 1.0) < 0.01)
+    # the whole calibration's σ is at least the projector's alone (same poses; camera and plane
+    # add to it) over the boards' region, and it is what the kernel's table holds
+    u = np.array([320.0, 300.0, 350.0])
+    v = np.array([240.0, 220.0, 260.0])
+    rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
+    plane = cal.reference_plane
+    for h in (0.0, 10.0, 20.0):
+        total = model.height_sigma(u, v, rxy, np.full(3, h), plane)
+        d = model.height_deviations(u, v, rxy, np.full(3, h), plane)
+        projector = np.sqrt(np.sum(d**2, axis=0))
+        assert np.all(total >= 0.5 * projector) and np.all(np.isfinite(total))
+    rays = calibration_ray_tables(cal)
+    table = model_sigma_table(cal, rays, (-2.0, 22.0))
+    assert table is not None
+    depth = np.full((rig.height, rig.width), 10.0, np.float32)
+    sig = table.sigma_mm(depth)
+    total = model.height_sigma(u, v, rxy, np.full(3, 10.0), plane)
+    np.testing.assert_allclose(sig[v.astype(int), u.astype(int)], total, rtol=0.2, atol=2e-4)
+
+
+def test_the_jackknife_sigma_covers_the_reference_plane_and_camera_errors():
+    """Over noise draws the heights' error (against the true plane) at points across the field
+    is within a few σ_model of the whole calibration; the projector-only jackknife misses it."""
+    z_total, z_projector = [], []
+    for seed in range(4):
+        cal, rig, truth = _calibration(noise_px=0.15, seed=seed)
+        model = cal.model
+        assert isinstance(model, GeometricModel)
+        rng = np.random.default_rng(seed)
+        u = rng.uniform(60, 580, 200)
+        v = rng.uniform(40, 440, 200)
+        hz = rng.uniform(0.0, 20.0, 200)
+        r0, t0 = truth[0]
+        n = r0[:, 2] if r0[:, 2] @ t0 < 0 else -r0[:, 2]
+        ray = rig.rays(u, v)
+        x = ray * ((hz + n @ t0) / (ray @ n))[:, None]
+        phi = rig.phase_of_points(x)
+        rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
+        plane = cal.reference_plane
+        err = model.height_at(u, v, rxy, phi, plane) - hz
+        total = model.height_sigma(u, v, rxy, hz, plane)
+        proj = np.sqrt(np.sum(model.height_deviations(u, v, rxy, hz, plane) ** 2, axis=0))
+        z_total.append(err / total)
+        z_projector.append(err / proj)
+    zt, zp = np.concatenate(z_total), np.concatenate(z_projector)
+    assert float(np.sqrt(np.mean(zt**2))) < 2.0
+    assert float(np.sqrt(np.mean(zp**2))) > float(np.sqrt(np.mean(zt**2)))
+
+
+def test_the_refits_are_saved_with_the_calibration_file():
+    cal, _, _ = _calibration(noise_px=0.1)
+    again = Calibration.from_dict(cal.to_dict())
+    assert isinstance(again.model, GeometricModel) and isinstance(cal.model, GeometricModel)
+    assert len(again.model.pipeline) == len(cal.model.pipeline)
+    u, v = np.array([100.0, 320.0]), np.array([80.0, 240.0])
+    rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
+    h = np.array([5.0, 15.0])
+    np.testing.assert_allclose(again.model.height_sigma(u, v, rxy, h, again.reference_plane),
+                               cal.model.height_sigma(u, v, rxy, h, cal.reference_plane),
+                               rtol=1e-9)
+    data = cal.to_dict()
+    data["model"]["pipeline_jackknife"][0]["camera_matrix"] = [[1.0, 0.0], [0.0, 1.0]]
+    with pytest.raises(ValueError, match="pipeline_jackknife"):
+        Calibration.from_dict(data)
