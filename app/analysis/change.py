@@ -120,6 +120,12 @@ def _cloud(points: F32) -> F64:
     return out
 
 
+#: a transform that one more ICP step moves by less than this has settled (rad, mm): far below
+#: the noise of a map's points (tens of µm), which the pixel-pair refinement then works at
+SETTLED_ROTATION_RAD = 1e-5
+SETTLED_TRANSLATION_MM = 1e-3
+
+
 def register_rigid(points: F32, ref_points: F32, *, voxel_mm: float = DEFAULT_VOXEL_MM,
                    min_overlap: float = DEFAULT_MIN_OVERLAP,
                    max_residual_mm: float = DEFAULT_MAX_RESIDUAL_MM) -> Registration:
@@ -171,6 +177,18 @@ def register_rigid(points: F32, ref_points: F32, *, voxel_mm: float = DEFAULT_VO
                                rotation_epsilon=1e-6, translation_epsilon=1e-5)
         transform = np.asarray(res.T_target_source, np.float64)
         iterations, converged = int(res.iterations), bool(res.converged)
+    if not converged:
+        # the epsilons above sit at the noise's own jitter of the solution: one more step that
+        # moves it by far less than the noise (and the pixel-pair refinement that follows)
+        # is convergence too
+        step = small_gicp.align(target, source, target_tree, transform,
+                                registration_type="PLANE_ICP",
+                                max_correspondence_distance=FINE_DISTANCE_MM, max_iterations=1)
+        moved = np.asarray(step.T_target_source, np.float64) @ np.linalg.inv(transform)
+        cos_angle = (np.trace(moved[:3, :3]) - 1.0) / 2.0
+        angle_rad = math.acos(min(1.0, max(-1.0, cos_angle)))
+        converged = angle_rad <= SETTLED_ROTATION_RAD and \
+            float(np.linalg.norm(moved[:3, 3])) <= SETTLED_TRANSLATION_MM
     residual, overlap = _residual(np.asarray(source.points())[:, :3],
                                   np.asarray(target.points())[:, :3],
                                   np.asarray(target.normals())[:, :3], target_tree, transform)
