@@ -38,6 +38,7 @@ from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
+from app.atomic import fsync_dir
 from app.batch.setjob import (
     ALL_FILES,
     FileWriter,
@@ -194,12 +195,7 @@ def write_files(url: str, writers: Sequence[tuple[str, FileWriter]]) -> None:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
             raise
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    fsync_dir(path)
 
 
 def remove_stale_temporaries(url: str) -> int:
