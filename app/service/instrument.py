@@ -423,8 +423,14 @@ class Instrument:
         """The newest error of any part: (message, time.monotonic(), ISO time)."""
         acq, rec = self.acquisition, self.pipeline.reconstruction
         now, at = time.monotonic(), datetime.now(UTC).isoformat(timespec="milliseconds")
-        for source, msg in (("calibrations", self.calibrations.last_error),
-                            ("reconstruction", rec.last_error)):
+        sources = [("calibrations", self.calibrations.last_error),
+                   ("reconstruction", rec.last_error)]
+        if (devs := self.pipeline.devices) is not None:
+            # a device's own fault state comes before the acquisition thread records it: the
+            # status that says "fault" names it at once
+            sources += [(f"device {d.name}", d.error) for d in devs.describe()
+                        if d.state == "fault"]
+        for source, msg in sources:
             if msg and self._seen_errors.get(source, (None,))[0] != msg:
                 self._seen_errors[source] = (msg, now, at)  # first seen now (these keep no time)
         errors = list(self._seen_errors.values())
@@ -489,7 +495,9 @@ class Instrument:
             mixed_sets=counters["mixed_sets"],
             frames_received=counters["frames_received"],
             frames_dropped=counters["frames_dropped"],
-            faults=counters["faults"],
+            # a device fault the acquisition thread has not recorded yet counts already
+            faults=counters["faults"] + int(state == "fault" and acq is not None
+                                            and acq.fault is None),
             recording=self.recorder.active_name,
             bit_depth=s.bit_depth,
             schedule={"name": schedule_name_of(self.schedule), **self.schedule.to_dict(),

@@ -76,6 +76,30 @@ def test_disconnect_shows_a_fault_and_recovers(tmp_path: Path, sim_calibration_f
         assert inst.acquisition.alive and inst.pipeline.reconstruction.alive
 
 
+def test_a_device_fault_not_yet_recorded_is_named_in_the_status(
+        tmp_path: Path, sim_calibration_file: Path) -> None:
+    """A device in its fault state before the acquisition thread records it (the moment after
+    an unplug): a status that says "fault" names the device's error and counts the fault."""
+    from app.devices.errors import DeviceDisconnected
+
+    settings = live_settings(tmp_path, sim_calibration_file)
+    with TestClient(create_app(settings)) as client:
+        wait_for(client, lambda s: s["results_published"] >= 1, 120, "first result")
+        inst = client.app.state.instrument  # type: ignore[attr-defined]
+        controller = inst.pipeline.devices.controller
+        assert controller is not None and inst.acquisition.fault is None
+
+        def unplugged() -> None:
+            raise DeviceDisconnected("link lost (unplugged by the test)")
+
+        with pytest.raises(DeviceDisconnected):
+            controller._call("poll", unplugged)  # the base class's own fault path
+        st = client.get("/api/status").json()
+        assert st["state"] == "fault"
+        assert st["last_error"] and "unplugged by the test" in st["last_error"]
+        assert st["faults"] >= 1 and st["state_reason"]
+
+
 def test_status_never_says_running_without_a_recent_map(tmp_path: Path,
                                                         sim_calibration_file: Path) -> None:
     """Injected faults (unplugs, drops, timeouts): every status sample that says running has a
