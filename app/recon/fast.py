@@ -97,7 +97,8 @@ class HeightArgs(NamedTuple):
     mm, the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
     grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
     range rad, ``field_u_lo``/``field_u_hi`` (H,) the supported columns of every row: the
-    camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
+    camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the
+    sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F; the
     model's own σ: ``sm_coefs`` (R, 5, W), ``sm_rows`` (H,), ``sm_mid`` and ``sm_inv_half`` of
     :class:`~app.recon.model_sigma.ModelSigmaTable`."""
@@ -180,7 +181,8 @@ _A4 = np.float32(0.09642201479625472)
 _A5 = np.float32(-0.05591234645397164)
 _A6 = np.float32(0.021862953185210254)
 _A7 = np.float32(-0.004054562176639915)
-# The coarse levels' atan: 5 terms fitted the same way, max error 1.2e-5 rad (orders need ≪ π/ratio).
+# The coarse levels' atan: 5 terms fitted the same way, max error 1.2e-5 rad
+# (orders need ≪ π/ratio).
 _C0 = np.float32(0.9998663502225011)
 _C1 = np.float32(-0.3303051326177987)
 _C2 = np.float32(0.1801607941668026)
@@ -206,8 +208,8 @@ def _unfold(r, steep, left, below):  # type: ignore[no-untyped-def]  # pragma: n
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def atan2_0_2pi(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled (float32 in and out)
-    """Branch-free float32 atan2 mapped to [0, 2π)."""
+def atan2_0_2pi(y, x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Branch-free float32 atan2 mapped to [0, 2π) (float32 in and out)."""
     a, steep, left, below = _octant(y, x)
     s = a * a
     p = ((((((_A7 * s + _A6) * s + _A5) * s + _A4) * s + _A3) * s + _A2) * s + _A1) * s + _A0
@@ -247,8 +249,10 @@ def _lut_correct(w, row, scale):  # type: ignore[no-untyped-def]  # pragma: no c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code, tot):  # type: ignore[no-untyped-def]  # pragma: no cover
-    # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT (> the height stage's)
+def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
+          tot):  # pragma: no cover
+    # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT
+    # (> the height stage's)
     # m2_min = (floor, k0, k1): LOW_MODULATION below max(floor, k0 + k1·Σ I) (PhaseArgs.snr_min2)
     c = _INCONSISTENT if dev >= cons_rad else c
     c = _LOW_MODULATION if m2min < max(m2_min[0], m2_min[1] + m2_min[2] * tot) else c
@@ -274,11 +278,11 @@ def _px4(frames, b, v, u):  # type: ignore[no-untyped-def]  # pragma: no cover -
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
                total, m2, prev, code, lut_rows):  # pragma: no cover - compiled
-    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in :func:`_height_row`):
-    coarse atan2 for the levels that only pick orders, the precise one for the finest. ``chain`` =
-    (r1, r2, r3: the fringe-count ratios, the (4, bins + 2) phase-error table, bins/2π, whether
-    to apply it to every wrapped phase: :func:`_lut_correct`; ``lut_rows`` (6, ≥ W) float32
-    scratch for that case)."""
+    """Phase 1 of row ``v`` for 4 frequencies × 4 steps (the height follows in
+    :func:`_height_row`): coarse atan2 for the levels that only pick orders, the precise one
+    for the finest. ``chain`` = (r1, r2, r3: the fringe-count ratios, the (4, bins + 2)
+    phase-error table, bins/2π, whether to apply it to every wrapped phase:
+    :func:`_lut_correct`; ``lut_rows`` (6, ≥ W) float32 scratch for that case)."""
     r1, r2, r3, lut, scale, use_lut = chain
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
@@ -331,13 +335,13 @@ def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _px4_fit(frames, b, v, u, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def _px4_fit(frames, b, v, u, top_code):  # type: ignore[no-untyped-def]  # pragma: no cover
     """N = 4 at pixel (v, u) from frame b on, fitted to its unclipped samples (I < ``top_code``):
     (y, x, x² + y², clipped samples). With δ = 0, π/2, π, 3π/2 every sinusoid has I0 + I2 =
     I1 + I3 (= 2A), so one clipped sample is its prediction from the other three, which is the
     least-squares fit of A + a cos δ + b sin δ to them (three samples, three unknowns): with
-    r = (I0 + I2) − (I1 + I3), I0 → I0 − r, I1 → I1 + r, I2 → I2 − r, I3 → I3 + r. Closed form
-    and branch-free; with two or more clipped the result is meaningless (not taken)."""
+    r = (I0 + I2) − (I1 + I3), I0 → I0 − r, I1 → I1 + r, I2 → I2 − r, I3 → I3 + r.
+    Closed form and branch-free; with two or more clipped the result is meaningless (not taken)."""
     i0 = np.float32(frames[b, v, u])
     i1 = np.float32(frames[b + 1, v, u])
     i2 = np.float32(frames[b + 2, v, u])
@@ -439,16 +443,17 @@ def _paper_refit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: igno
         if n_sat > 0:  # a refitted code is never SATURATED: the count that drops was taken
             m = u1 - u0
             r_prev, r_m2, rc = rscratch[0, :m], rscratch[1, :m], r_code[:m]
-            _paper_refit_span(frames, v, u0, u1, chain, cons_rad, m2_min, top_code, total[u0:u1], r_m2,
-                              r_prev, rc)
+            _paper_refit_span(frames, v, u0, u1, chain, cons_rad, m2_min, top_code,
+                              total[u0:u1], r_m2, r_prev, rc)
             _take_paper_refit(m2[u0:u1], prev[u0:u1], code[u0:u1], r_m2, r_prev, rc)
             n_taken += n_sat - _count_saturated(code[u0:u1])
     return n_taken
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _paper_refit_span(frames, v, u0, u1, chain, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-                      total, m2, prev, code):  # pragma: no cover - compiled
+def _paper_refit_span(  # type: ignore[no-untyped-def]
+        frames, v, u0, u1, chain, cons_rad, m2_min, top_code,
+        total, m2, prev, code):  # pragma: no cover - compiled
     """:func:`_paper_row` with :func:`_px4_fit` over the pixels u0..u1 − 1 of row ``v`` into the
     span's ``m2``, ``prev``, ``code`` (SATURATED where a frequency has two clipped samples;
     ``total`` the span's frame sums). The row's codes are not read here: a byte test beside the
@@ -513,7 +518,8 @@ def _take_paper_refit(m2, prev, code, r_m2, r_prev, r_code):  # type: ignore[no-
 # The general path, row by row through buffers: any N, any number of frequencies, and
 # the noise-optimal combination.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _accumulate(row, s_acc, c_acc, total, top, sn, cn,  # type: ignore[no-untyped-def]
+                first):  # pragma: no cover
     if first:
         for u in range(row.shape[0]):
             x = np.float32(row[u])
@@ -531,7 +537,8 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn, first):  # type: ignore[n
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio, first, lrow, scale, use_lut):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio,  # type: ignore[no-untyped-def]
+               first, lrow, scale, use_lut):  # pragma: no cover
     # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
     if use_lut:
         for u in range(s_acc.shape[0]):
@@ -572,12 +579,14 @@ def _wrap(x):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """The phase of ≤ 1 fringe over the field: the unused arc split in half (``unwrap.absolute_phase``)."""
+    """The phase of ≤ 1 fringe over the field: the unused arc split in half
+    (``unwrap.absolute_phase``)."""
     return ph - _TWO_PI if ph > _PI * (_F1 + f0) else ph
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale, use_lut):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale,  # type: ignore[no-untyped-def]
+                 use_lut):  # pragma: no cover
     # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
     if use_lut:
         for u in range(s_acc.shape[0]):
@@ -599,7 +608,8 @@ def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale, use_lut):  # type: i
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _outside_field(p, f0, slack):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """0 if the absolute beat phase ``p`` lies on the field [−slack, 2π·f0 + slack], else ∞ (a deviation)."""
+    """0 if the absolute beat phase ``p`` lies on the field [−slack, 2π·f0 + slack], else ∞
+    (a deviation)."""
     return _F0 if (p >= -slack) & (p <= _TWO_PI * f0 + slack) else _INF
 
 
@@ -615,7 +625,8 @@ def _scaled_row(beat, wph, c, first):  # type: ignore[no-untyped-def]  # pragma:
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0,  # type: ignore[no-untyped-def]
+               first, slack):  # pragma: no cover
     """One heterodyne step over a row: the beat Σ c_i φ_i (into the scratch row ``beat``), then
     absolute or unwrapped by ``prev``. Term by term and step by step in 1-D loops: a loop over the
     K coefficients inside the pixel loop kept LLVM from vectorising (30× slower)."""
@@ -637,10 +648,11 @@ def _chain_row(wphs, coefs, beat, prev, dev, ratio, f0, first, slack):  # type: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _residual_row(wph, m2k, m2f, prev, vq, sd2, dev, ratio, ratio2, z2, floor):  # type: ignore[no-untyped-def]
-    # pragma: no cover - compiled
-    """The order test of one coarser frequency: ``sd2`` = var of r = wrap(φ_k − ratio·Φ) (``vq`` =
-    σ_I²·N/2 over each m2, plus ``floor``, the unmodelled part); ``dev`` = ∞ where r² > z²·sd2."""
+def _residual_row(wph, m2k, m2f, prev, vq, sd2, dev,  # type: ignore[no-untyped-def]
+                  ratio, ratio2, z2, floor):  # pragma: no cover - compiled
+    """The order test of one coarser frequency: ``sd2`` = var of r = wrap(φ_k − ratio·Φ)
+    (``vq`` = σ_I²·N/2 over each m2, plus ``floor``, the unmodelled part); ``dev`` = ∞ where
+    r² > z²·sd2."""
     for u in range(prev.shape[0]):
         v = vq[u] / m2k[u] + ratio2 * (vq[u] / m2f[u]) + floor
         sd2[u] = v
@@ -661,7 +673,8 @@ def _seen_row(seen, sd2, q2, four_z2, first):  # type: ignore[no-untyped-def]  #
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _seen2_row(sd0, sd1, q0, q1, four_z2, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Three frequencies (two residuals): ``dev`` = ∞ where neither clears the bound by z·σ; one pass."""
+    """Three frequencies (two residuals): ``dev`` = ∞ where neither clears the bound by z·σ;
+    one pass."""
     for u in range(dev.shape[0]):
         seen = (q0 >= four_z2 * sd0[u]) | (q1 >= four_z2 * sd1[u])
         dev[u] = dev[u] if seen else _INF
@@ -674,12 +687,13 @@ def _unseen_row(seen, dev):  # type: ignore[no-untyped-def]  # pragma: no cover
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """:func:`app.recon.unwrap.order_residuals_consistent` over a row: ``dev`` = ∞ (inconsistent) where a
-    coarser phase disagrees with the finest ``prev`` beyond z·σ, or where σ is too large for some wrong
-    order to show. ``order`` = (z², squared slip front (P, K − 1), unmodelled variance, read_var, gain,
-    1/F, N/2); σ_I² from the mean ``total``/F; ``work`` (K + 1, ≥ W) float32 scratch. Row passes with
-    scalar constants (vectorised)."""
+def _order_test(wphs, m2s, prev, total, dev, work, freqs,  # type: ignore[no-untyped-def]
+                order):  # pragma: no cover
+    """:func:`app.recon.unwrap.order_residuals_consistent` over a row: ``dev`` = ∞
+    (inconsistent) where a coarser phase disagrees with the finest ``prev`` beyond z·σ, or where
+    σ is too large for some wrong order to show. ``order`` = (z², squared slip front (P, K − 1),
+    unmodelled variance, read_var, gain, 1/F, N/2); σ_I² from the mean ``total``/F; ``work``
+    (K + 1, ≥ W) float32 scratch. Row passes with scalar constants (vectorised)."""
     z2, front2, floor2, read_var, gain, inv_frames, half_n = order
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -689,8 +703,8 @@ def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignor
         vq[u] = (read_var + gain * max(total[u] * inv_frames, _F0)) * half_n
     for i in range(n_freq - 1):
         ratio = freqs[i] / k_max
-        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, work[2 + i], dev, ratio, ratio * ratio, z2,
-                      floor2 * (_F1 + ratio * ratio))
+        _residual_row(wphs[i], m2s[i], m2s[n_freq - 1], prev, vq, work[2 + i], dev, ratio,
+                      ratio * ratio, z2, floor2 * (_F1 + ratio * ratio))
     four_z2 = np.float32(4.0) * z2
     for p in range(front2.shape[0]):
         if n_freq == 3:
@@ -702,7 +716,8 @@ def _order_test(wphs, m2s, prev, total, dev, work, freqs, order):  # type: ignor
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _weigh_row(wsum, wphi, m2, prev, wk, scale_fine):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _weigh_row(wsum, wphi, m2, prev, wk,  # type: ignore[no-untyped-def]
+               scale_fine):  # pragma: no cover
     for u in range(prev.shape[0]):
         w = wk * m2[u]  # ∝ N·B²·k²
         wsum[u] += w
@@ -716,22 +731,23 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, sing_rtol, lo, hi,  # type: ignore[no-untyped-def]
+def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyped-def]
+               phi0, inv_sphi, cubic, sing_rtol, lo, hi,
                p_lo, p_hi, read_var, gain, max_sigma, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
-               max_sigma2):
-    # pragma: no cover - compiled
+               max_sigma2):  # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`); ``c`` is the phase stage's reason. σ is the total: the sensor
-    noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k, x = (h − sm_mid)·sm_inv_half,
-    :mod:`app.recon.model_sigma`); a model σ beyond the rule's bound (``max_sigma2`` = its
-    square) is outside the calibrated field."""
+    noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k,
+    x = (h − sm_mid)·sm_inv_half, :mod:`app.recon.model_sigma`); a model σ beyond the rule's
+    bound (``max_sigma2`` = its square) is outside the calibrated field."""
     pp = (p - phi0) * inv_sphi
     t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
     inv_dd = _F1 / dd  # one division for the height and its slope
     h = (a0 + a1 * t) * inv_dd
-    slope = (a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi * (_F1 + np.float32(3.0) * cubic * (pp * pp))
+    slope = ((a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi
+             * (_F1 + np.float32(3.0) * cubic * (pp * pp)))
     x = (h - sm_mid) * sm_inv_half
     sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
     sig = np.sqrt(slope * slope * ((read_var + gain * tot) * vf) + sm2)
@@ -746,10 +762,12 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c, phi0, inv_sphi, cubic, s
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
-    """Height stage of row ``v`` (both paths): the final reason code and the row's outputs ``depth``,
-    ``sigma`` and ``pts`` (the points' (W·3,) flat view), NaN where invalid, written here while
-    the ray quotients are at hand (a separate pass read the (H, W, 3) table a second time).
+def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-def]
+                depth, sigma, pts):  # pragma: no cover - compiled
+    """Height stage of row ``v`` (both paths): the final reason code and the row's outputs
+    ``depth``, ``sigma`` and ``pts`` (the points' (W·3,) flat view), NaN where invalid, written
+    here while the ray quotients are at hand (a separate pass read the (H, W, 3) table a second
+    time).
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -761,7 +779,8 @@ def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: 
     g6, g7, g8, g9, g10, g11 = g[6], g[7], g[8], g[9], g[10], g[11]
     r_lo = m.region_lo[m.region_rows[v]]
     r_hi = m.region_hi[m.region_rows[v]]
-    f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]  # outside the camera's supported field: no height bound holds
+    # outside the camera's supported field: no height bound holds
+    f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]
     phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
     p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
     inv_frames = m.inv_frames
@@ -788,8 +807,10 @@ def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: 
             b1 += (k11 * x + k10) * x + k9
             vf = vfac[u] if combine else half_steps / m2[u]
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u],
+                                   phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma,
+                                   sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
             ok = c == _OK
             depth[u] = h if ok else _NAN
@@ -808,8 +829,10 @@ def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: 
             b1 = (k11 * x + k10) * x + k9
             vf = vfac[u] if combine else half_steps / m2[u]
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u], phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma, sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u],
+                                   phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                                   read_var, gain, max_sigma,
+                                   sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
                                    sm_mid, sm_inv_half, max_sigma2)
             ok = c == _OK
             depth[u] = h if ok else _NAN
@@ -822,10 +845,11 @@ def _height_row(v, prev, m2, total, vfac, code, m, depth, sigma, pts):  # type: 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,  # type: ignore[no-untyped-def]
-                    prev, gl):
-    # pragma: no cover - compiled
-    """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat chain."""
+def _heterodyne_row(  # type: ignore[no-untyped-def]
+        frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch,
+        total, m2, prev, gl):  # pragma: no cover - compiled
+    """Phase of row ``v`` for a heterodyne schedule: every wrapped phase first, then the beat
+    chain."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     s_acc, c_acc, top, m2min, dev, wsum, wphi = (scratch[0], scratch[1], scratch[2], scratch[3],
@@ -834,25 +858,30 @@ def _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, c
     m2s = scratch[7 + n_freq:7 + 2 * n_freq]
     for ki in range(n_freq):
         for n in range(n_steps):
-            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
+            _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n],
+                        n == 0)
         _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
-    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev, m2, wsum, wphi,
-                     total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
+    _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev,
+                     m2, wsum, wphi, total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
         _combined_row(prev, wsum, wphi)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,  # type: ignore[no-untyped-def]
-                     prev, dev, m2, wsum, wphi, total, order, work):  # pragma: no cover - compiled
+def _chain_and_weigh(  # type: ignore[no-untyped-def]
+        wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine,
+        prev, dev, m2, wsum, wphi, total, order, work):  # pragma: no cover - compiled
     """The heterodyne beat chain over a row's wrapped phases ``wphs`` (K, W) into ``prev``/``dev``,
-    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` (K + 1, ≥ W) scratch),
-    the finest m2, and with ``combine`` every frequency unwrapped by the finest and weighed."""
+    its order test (:func:`_order_test`; ``total``: the row's frame sums, ``work`` (K + 1, ≥ W)
+    scratch), the finest m2, and with ``combine`` every frequency unwrapped by the finest and
+    weighed."""
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
     slack = cons_rad * chain_f[0] / chain_f[1]
-    for s in range(chain_f.shape[0]):  # m2 is free until the finest m2 is copied in: the beat's scratch row
-        _chain_row(wphs, chain_c[s], m2, prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0], s == 0, slack)
+    # m2 is free until the finest m2 is copied in: the beat's scratch row
+    for s in range(chain_f.shape[0]):
+        _chain_row(wphs, chain_c[s], m2, prev, dev, chain_f[s] / chain_f[max(s - 1, 0)], chain_f[0],
+                   s == 0, slack)
     _order_test(wphs, m2s, prev, total, dev, work, freqs, order)
     m2[:] = m2s[n_freq - 1]
     if combine:
@@ -867,8 +896,9 @@ def _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, comb
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,  # type: ignore[no-untyped-def]
-                 m2_min, top_code, scratch, total, m2, prev, vfac, code, order, gl):  # pragma: no cover - compiled
+def _general_row(  # type: ignore[no-untyped-def]
+        frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
+        m2_min, top_code, scratch, total, m2, prev, vfac, code, order, gl):  # pragma: no cover
     """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping); ``gl`` = (the
     (K, bins + 2) phase-error table, bins/2π, whether to apply it) for each wrapped phase."""
     n_steps = cos_t.shape[0]
@@ -883,14 +913,15 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
     wsum[:] = _F0
     wphi[:] = _F0
     if heterodyne:
-        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad, order, scratch, total, m2,
-                        prev, gl)
+        _heterodyne_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, combine, cons_rad,
+                        order, scratch, total, m2, prev, gl)
     else:
         for ki in range(n_freq):
             for n in range(n_steps):
-                _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n], n == 0)
-            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0,
-                       gl[0][ki], gl[1], gl[2])
+                _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n],
+                            cos_t[n], n == 0)
+            _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
+                       ki == 0, gl[0][ki], gl[1], gl[2])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -905,7 +936,7 @@ def _general_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pragma: no cover
     """var(φ)/σ_I² of the noise-optimal phase with weight sum ``wsum``."""
     return np.float32(0.5) * (np.float32(n_steps) * k_max) ** 2 / wsum if wsum > _F0 else _INF
 
@@ -913,11 +944,11 @@ def _combined_vfac(n_steps, k_max, wsum):  # type: ignore[no-untyped-def]  # pra
 # Saturation-tolerant phase: a row with SATURATED pixels is refitted whole, branch-free, from the
 # unclipped samples of every pixel; only its SATURATED pixels with enough samples take the result.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2, weighted, first):  # type: ignore[no-untyped-def]
-    # pragma: no cover - compiled
-    """Three of the nine float32 normal-equation sums: x_i (+)= k_i·w (or k_i·w·I if ``weighted``) with
-    w = 1 where the sample is unclipped (I < ``top_code``), else 0. Three at a time: few enough
-    buffers that LLVM's run-time alias checks still let it vectorise."""
+def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2,  # type: ignore[no-untyped-def]
+               weighted, first):  # pragma: no cover - compiled
+    """Three of the nine float32 normal-equation sums: x_i (+)= k_i·w (or k_i·w·I if
+    ``weighted``) with w = 1 where the sample is unclipped (I < ``top_code``), else 0. Three at
+    a time: few enough buffers that LLVM's run-time alias checks still let it vectorise."""
     for u in range(row.shape[0]):
         i = np.float32(row[u])
         w = _F1 if i < top_code else _F0
@@ -934,9 +965,10 @@ def _fit_sums3(row, top_code, k0, k1, k2, x0, x1, x2, weighted, first):  # type:
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Cramer's rule (float64) on the symmetric 3 × 3 normal equations [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]]
-    (right-hand side [r1, rc, rs]; ``sums`` (9, ≥ W) in that order), scaled like (Σ I sin δ, Σ I cos δ)
-    (``half`` = N/2): ``s_acc`` = b·N/2, ``c_acc`` = a·N/2, ``nmin`` = min(nmin, samples used)."""
+    """Cramer's rule (float64) on the symmetric 3 × 3 normal equations
+    [[s1, sc, ss], [sc, scc, scs], [ss, scs, sss]] (right-hand side [r1, rc, rs]; ``sums``
+    (9, ≥ W) in that order), scaled like (Σ I sin δ, Σ I cos δ) (``half`` = N/2):
+    ``s_acc`` = b·N/2, ``c_acc`` = a·N/2, ``nmin`` = min(nmin, samples used)."""
     for u in range(s_acc.shape[0]):
         s1 = float(sums[0, u])
         sc = float(sums[1, u])
@@ -960,8 +992,8 @@ def _fit_solve(sums, half, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def] 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin):  # type: ignore[no-untyped-def]
-    # pragma: no cover - compiled
+def _fit_row(frames, b, v, u0, cos_t, sin_t, top_code,  # type: ignore[no-untyped-def]
+             sums, sv, s_acc, c_acc, nmin):  # pragma: no cover - compiled
     """Least squares A + a cos δ + b sin δ over the unclipped samples (I < ``top_code``) of frames
     ``b``.. of row ``v``, for every pixel u0.. u0 + m of a span at once (m = len(``s_acc``); float32
     sums ``sums`` (9, ≥ m), ``sv``: the tuple of its nine rows' first m, made once per span):
@@ -988,8 +1020,9 @@ def _count_saturated(code):  # type: ignore[no-untyped-def]  # pragma: no cover 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, nmin, n_steps, k_max, combine,  # type: ignore[no-untyped-def]
-                    cons_rad, m2_min, top_code, total):  # pragma: no cover - compiled
+def _take_refit_row(  # type: ignore[no-untyped-def]
+        m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, nmin, n_steps, k_max, combine,
+        cons_rad, m2_min, top_code, total):  # pragma: no cover - compiled
     """The refitted values where the phase-stage code is SATURATED and every frequency kept ≥ 3
     samples (phase, finest m2, σ factor, phase-stage code); their count."""
     n = 0
@@ -1005,26 +1038,29 @@ def _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, r_wsum, r_m2min, r_dev, 
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,  # type: ignore[no-untyped-def]
-                top_code, m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover - compiled
-    """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``, ``vfac``,
-    ``code``, ``total``: the span's views) that keep three unclipped samples per frequency (phase stage:
-    phase, finest m2, σ factor and phase-stage code; the height stage follows); their count.
+def _refit_span(  # type: ignore[no-untyped-def]
+        frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,
+        top_code, m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover
+    """Refit the SATURATED pixels of the span u0.. u0 + m of row ``v`` (``m2``, ``prev``,
+    ``vfac``, ``code``, ``total``: the span's views) that keep three unclipped samples per
+    frequency (phase stage: phase, finest m2, σ factor and phase-stage code; the height stage
+    follows); their count.
 
-    The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped like
-    :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 3K, ≥ m; ``total`` the span's
-    frame sums, ``order`` the heterodyne order test's constants); then only those pixels take the result."""
+    The whole span is fitted (float32 sums ``sums`` (9, ≥ m), Cramer in float64) and unwrapped
+    like :func:`_general_row` in the float32 rows of ``rscratch`` (10 + 3K, ≥ m; ``total`` the
+    span's frame sums, ``order`` the heterodyne order test's constants); then only those pixels
+    take the result."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
     m = code.shape[0]
     s_acc, c_acc, m2min, dev, wsum, wphi, r_prev, r_m2, nmin = (
-        rscratch[0, :m], rscratch[1, :m], rscratch[2, :m], rscratch[3, :m], rscratch[4, :m], rscratch[5, :m],
-        rscratch[6, :m], rscratch[7, :m], rscratch[8, :m])
+        rscratch[0, :m], rscratch[1, :m], rscratch[2, :m], rscratch[3, :m], rscratch[4, :m],
+        rscratch[5, :m], rscratch[6, :m], rscratch[7, :m], rscratch[8, :m])
     wphs = rscratch[9:9 + n_freq, :m]
     m2s = rscratch[9 + n_freq:9 + 2 * n_freq, :m]
-    sv = (sums[0, :m], sums[1, :m], sums[2, :m], sums[3, :m], sums[4, :m], sums[5, :m], sums[6, :m], sums[7, :m],
-          sums[8, :m])
+    sv = (sums[0, :m], sums[1, :m], sums[2, :m], sums[3, :m], sums[4, :m], sums[5, :m],
+          sums[6, :m], sums[7, :m], sums[8, :m])
     m2min[:] = _INF
     dev[:] = _F0
     wsum[:] = _F0
@@ -1035,35 +1071,38 @@ def _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne
         if heterodyne:
             _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
         else:
-            _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)], ki == 0,
-                       gl[0][ki], gl[1], gl[2])
+            _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
+                       ki == 0, gl[0][ki], gl[1], gl[2])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
     if heterodyne:
-        _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev, dev, r_m2,
-                         wsum, wphi, total, order, rscratch[9 + 2 * n_freq:10 + 3 * n_freq, :m])
+        _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, r_prev,
+                         dev, r_m2, wsum, wphi, total, order,
+                         rscratch[9 + 2 * n_freq:10 + 3 * n_freq, :m])
     if combine:
         _combined_row(r_prev, wsum, wphi)
-    return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps, k_max, combine,
-                           cons_rad, m2_min, top_code, total)
+    return _take_refit_row(m2, prev, vfac, code, r_m2, r_prev, wsum, m2min, dev, nmin, n_steps,
+                           k_max, combine, cons_rad, m2_min, top_code, total)
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _refit_row(frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
-               m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover - compiled
-    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their count.
-    Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local: highlights);
-    the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch`` (10 + 3K, REFIT_SPAN)
-    float32, ``sums`` (9, REFIT_SPAN) float32; ``total`` the row's frame sums)."""
+def _refit_row(  # type: ignore[no-untyped-def]
+        frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad, m2_min,
+        top_code, m2, prev, vfac, code, rscratch, sums, total, order, gl):  # pragma: no cover
+    """Refit the row's SATURATED pixels that keep three unclipped samples per frequency; their
+    count. Spans of REFIT_SPAN pixels without a SATURATED code are skipped (clipping is local:
+    highlights); the others are refitted whole, branch-free (:func:`_refit_span`; ``rscratch``
+    (10 + 3K, REFIT_SPAN) float32, ``sums`` (9, REFIT_SPAN) float32; ``total`` the row's frame
+    sums)."""
     width = code.shape[0]
     n = 0
     for u0 in range(0, width, REFIT_SPAN):
         u1 = min(width, u0 + REFIT_SPAN)
         if _count_saturated(code[u0:u1]) > 0:
-            n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
-                             m2_min, top_code, m2[u0:u1], prev[u0:u1], vfac[u0:u1], code[u0:u1], rscratch, sums,
-                             total[u0:u1], order, gl)
+            n += _refit_span(frames, v, u0, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne,
+                             combine, cons_rad, m2_min, top_code, m2[u0:u1], prev[u0:u1],
+                             vfac[u0:u1], code[u0:u1], rscratch, sums, total[u0:u1], order, gl)
     return n
 
 
@@ -1082,7 +1121,8 @@ def _select_row(out, values, code):  # type: ignore[no-untyped-def]  # pragma: n
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _shade_row(modulation, texture, m2, total, mod_scale, inv_frames):  # type: ignore[no-untyped-def]  # pragma: no cover
+def _shade_row(modulation, texture, m2, total, mod_scale,  # type: ignore[no-untyped-def]
+               inv_frames):  # pragma: no cover
     for u in range(total.shape[0]):
         b = mod_scale * np.sqrt(m2[u])
         modulation[u] = b
@@ -1101,10 +1141,11 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     mod_scale = np.float32(2.0) / np.float32(n_steps)
-    # B < min_mod ⇔ x² + y² < (min_mod/mod_scale)²; the noise-aware rule on top (PhaseArgs.snr_min2):
-    # m2 < a_min²·(N/2)·σ_I², σ_I² = read_var + gain·Σ I/F
+    # B < min_mod ⇔ x² + y² < (min_mod/mod_scale)²; the noise-aware rule on top
+    # (PhaseArgs.snr_min2): m2 < a_min²·(N/2)·σ_I², σ_I² = read_var + gain·Σ I/F
     k0 = ph.snr_min2 * m.half_steps * m.read_var
-    m2_min = ((ph.min_mod / mod_scale) * (ph.min_mod / mod_scale), k0, ph.snr_min2 * m.half_steps * m.gain * m.inv_frames)
+    m2_min = ((ph.min_mod / mod_scale) * (ph.min_mod / mod_scale), k0,
+              ph.snr_min2 * m.half_steps * m.gain * m.inv_frames)
     top_code = np.float32(ph.max_code)
     paper = n_steps == 4 and n_freq == 4 and not m.combine and not ph.heterodyne
     want_phase = out.phase.shape[0] == height
@@ -1115,7 +1156,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     chain = (r1, r2, r3, ph.lut, ph.lut_scale, ph.use_lut)
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
-    order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames, m.half_steps)  # heterodyne order test
+    order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames,
+             m.half_steps)  # heterodyne order test
     for blk in prange(n_blocks):
         v0 = blk * ROWS_PER_BLOCK
         n_rows = min(height, v0 + ROWS_PER_BLOCK) - v0
@@ -1124,7 +1166,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         code = np.empty((ROWS_PER_BLOCK, width), np.uint8)
         scratch = np.empty((0 if paper else 8 + 3 * n_freq, width), np.float32)
         lut_rows = np.empty((6 if paper and ph.use_lut else 0, width), np.float32)
-        rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)  # the saturation refit's spans
+        # the saturation refit's spans
+        rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)
         sums = np.empty((9, REFIT_SPAN), np.float32)
         # clipping is spatially coherent: where the row above had much of it, one pass that phases
         # and refits every pixel is cheaper than refitting many spans after the plain pass
@@ -1133,28 +1176,31 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             v = v0 + r
             n_refit = 0
             if paper and wide_clip:  # phased and refitted in one pass
-                n_refit = int(_paper_fit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
-                                                  m2[r], prev[r], code[r]))
+                n_refit = int(_paper_fit_row(frames, v, chain, ph.cons_rad, m2_min, top_code,
+                                             total[r], m2[r], prev[r], code[r]))
             elif paper:
-                _paper_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r], m2[r], prev[r], code[r],
-                           lut_rows)
-                if _count_saturated(code[r]) > 0:  # a vectorised byte count; spans refitted only where needed
-                    n_refit = _paper_refit_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r],
-                                               m2[r], prev[r], code[r], rscratch)
+                _paper_row(frames, v, chain, ph.cons_rad, m2_min, top_code, total[r], m2[r],
+                           prev[r], code[r], lut_rows)
+                # a vectorised byte count; spans refitted only where needed
+                if _count_saturated(code[r]) > 0:
+                    n_refit = _paper_refit_row(frames, v, chain, ph.cons_rad, m2_min, top_code,
+                                               total[r], m2[r], prev[r], code[r], rscratch)
             else:
-                _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne, m.combine,
-                             ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r], prev[r], vfac[r], code[r], order, gl)
-                # With N = 3 a clipped sample leaves 2 in its frequency, fewer than a fit needs: nothing
-                # to refit (the scan cost 2-3× the whole kernel)
+                _general_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
+                             m.combine, ph.cons_rad, m2_min, top_code, scratch, total[r], m2[r],
+                             prev[r], vfac[r], code[r], order, gl)
+                # With N = 3 a clipped sample leaves 2 in its frequency, fewer than a fit needs:
+                # nothing to refit (the scan cost 2-3× the whole kernel)
                 if n_steps > 3 and _count_saturated(code[r]) > 0:
-                    n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f, ph.heterodyne,
-                                         m.combine, ph.cons_rad, m2_min, top_code, m2[r], prev[r], vfac[r],
-                                         code[r], rscratch, sums, total[r], order, gl)
+                    n_refit = _refit_row(frames, v, cos_t, sin_t, freqs, ph.chain_c, ph.chain_f,
+                                         ph.heterodyne, m.combine, ph.cons_rad, m2_min, top_code,
+                                         m2[r], prev[r], vfac[r], code[r], rscratch, sums, total[r],
+                                         order, gl)
             recovered[v] = n_refit
             if paper:
                 wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
-            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v], out.sigma[v],
-                        out.points[v].reshape(3 * width))
+            _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v],
+                        out.sigma[v], out.points[v].reshape(3 * width))
         for r in range(n_rows):
             v = v0 + r
             _reason_row(out.reason[v], out.valid[v], code[r])
@@ -1182,20 +1228,21 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     frames = np.zeros((4, 2, 3), dt)
     trig = np.ones(4, np.float32)
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
-                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0), np.float32(np.inf),
-                   np.zeros((1, 1), np.float32), np.float32(0), np.zeros((1, 2), np.float32), np.float32(1),
-                   False)
+                   np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0),
+                   np.float32(np.inf), np.zeros((1, 1), np.float32), np.float32(0),
+                   np.zeros((1, 2), np.float32), np.float32(1), False)
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
-        np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32), np.full((1, 3), np.inf, np.float32),
+        np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32),
+        np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
         np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.float32(0), np.float32(1),
     )
-    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32), np.empty((2, 3), np.uint8),
-                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32), f32.copy(),
-                  np.empty(2, np.int32))
+    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32),
+                  np.empty((2, 3), np.uint8), np.empty((2, 3), np.bool_), f32, f32.copy(),
+                  np.empty((0, 3), np.float32), f32.copy(), np.empty(2, np.int32))
     fused_kernel(frames, ph, m, out)
     _warm.add(dt.name)

@@ -34,7 +34,8 @@ def test_polynomial_atan2_error():
     got = atan2_array(y, x).astype(np.float64)
     ref = np.mod(np.arctan2(y.astype(np.float64), x.astype(np.float64)), 2 * math.pi)
     diff = np.abs(np.angle(np.exp(1j * (got - ref))))
-    zero = (x == 0) & (y == 0)  # undefined direction: the kernel returns 0 (numpy: 0 or ±π by sign bits)
+    # undefined direction: the kernel returns 0 (numpy: 0 or ±π by sign bits)
+    zero = (x == 0) & (y == 0)
     assert (got[zero] == 0).all()
     assert diff[~zero].max() < 1e-6  # ≪ 1e-4 rad
     assert got.min() >= 0.0 and got.max() < 2 * math.pi
@@ -45,8 +46,8 @@ def test_polynomial_atan2_error():
 def test_fast_agrees_with_numpy(dtype, combine):
     rig = Rig()
     frames, _, _ = reason_scene(rig, dtype=dtype, noise=2.0, seed=11)
-    rec = Reconstructor(rig.calibration(), max_code=None if dtype == np.uint8 else 4095, with_phase=True,
-                        combine_frequencies=combine)
+    rec = Reconstructor(rig.calibration(), max_code=None if dtype == np.uint8 else 4095,
+                        with_phase=True, combine_frequencies=combine)
     a = rec.run(frames, fast=False)
     b = rec.run(frames, fast=True)
     assert np.array_equal(a.reason, b.reason)
@@ -55,12 +56,14 @@ def test_fast_agrees_with_numpy(dtype, combine):
     assert ok.mean() > 0.7
     assert np.max(np.abs(a.depth[ok] - b.depth[ok])) < 1e-3
     assert np.max(np.abs(a.points[ok] - b.points[ok])) < 1e-3
-    assert np.isnan(b.depth[~ok]).all() and np.isnan(b.points[~ok]).all() and np.isnan(b.phase[~ok]).all()
+    assert (np.isnan(b.depth[~ok]).all() and np.isnan(b.points[~ok]).all()
+            and np.isnan(b.phase[~ok]).all())
     assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
     assert np.allclose(a.modulation, b.modulation, rtol=1e-5, atol=1e-3)
     assert np.allclose(a.texture, b.texture, rtol=1e-5, atol=1e-3)
     for r in (a, b):
-        assert r.depth.dtype == r.points.dtype == r.modulation.dtype == r.texture.dtype == np.float32
+        assert (r.depth.dtype == r.points.dtype == r.modulation.dtype == r.texture.dtype
+                == np.float32)
         assert r.reason.dtype == np.uint8 and r.valid.dtype == np.bool_
 
 
@@ -125,7 +128,8 @@ def test_coarse_atan2_error():
     assert got.min() >= 0.0 and got.max() < 2 * math.pi
 
 
-@pytest.mark.parametrize("steps, frequencies", [(3, (1, 6, 36)), (5, (1, 4, 12, 36)), (4, (1, 8, 40))])
+@pytest.mark.parametrize("steps, frequencies",
+                         [(3, (1, 6, 36)), (5, (1, 4, 12, 36)), (4, (1, 8, 40))])
 def test_fast_agrees_with_numpy_on_other_schedules(steps, frequencies):
     # the general (row-by-row) path of the kernel; the paper's 4 × 4 has its own
     from app.recon import PatternSchedule
@@ -156,7 +160,8 @@ def test_phase_is_optional():
 def test_fast_agrees_with_numpy_heterodyne(steps, combine):
     from app.recon import PatternSchedule
 
-    sched = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=steps, unwrap="heterodyne")
+    sched = PatternSchedule(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=steps,
+                            unwrap="heterodyne")
     rig = Rig(schedule=sched)
     frames = rig.render(bump_surface(rig), background=110, amplitude=90, noise=0.5,
                         rng=np.random.default_rng(5))
@@ -172,7 +177,8 @@ def test_fast_agrees_with_numpy_heterodyne(steps, combine):
 
 
 @pytest.mark.parametrize(("steps", "frequencies", "combine"),
-                         [(4, (1, 4, 12, 36), False), (4, (1, 4, 12, 36), True), (5, (1, 6, 36), False)])
+                         [(4, (1, 4, 12, 36), False), (4, (1, 4, 12, 36), True),
+                          (5, (1, 6, 36), False)])
 def test_fast_agrees_with_numpy_on_clipped_samples(steps, frequencies, combine):
     """One clipped shift per frequency in a band of pixels: both paths refit it from the rest."""
     from app.recon import PatternSchedule
@@ -189,7 +195,8 @@ def test_fast_agrees_with_numpy_on_clipped_samples(steps, frequencies, combine):
     assert np.array_equal(a.reason, b.reason)
     band = np.zeros(a.valid.shape, bool)
     band[30:90] = True
-    assert a.recovered == b.recovered == int((band & ref.valid).sum() + (band & ~ref.valid & a.valid).sum())
+    assert a.recovered == b.recovered == int(
+        (band & ref.valid).sum() + (band & ~ref.valid & a.valid).sum())
     ok = a.valid
     assert (a.valid[band] == ref.valid[band]).mean() > 0.99
     assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
@@ -205,12 +212,14 @@ def test_fast_agrees_with_numpy_on_clipped_samples(steps, frequencies, combine):
     (dict(frequencies=(608 / 48, 608 / 45, 608 / 42), steps=5, unwrap="heterodyne"), True),
 ])
 def test_fast_sigma_agrees_with_numpy_on_refitted_and_heterodyne_pixels(schedule, combine):
-    """The merged kernel: σ of the height stage follows the phase stage's refit and heterodyne chain."""
+    """The merged kernel: σ of the height stage follows the phase stage's refit and heterodyne
+    chain."""
     from app.recon import PatternSchedule
 
     rig = Rig(schedule=PatternSchedule(**schedule))
     steps = rig.schedule.steps
-    frames = rig.render(bump_surface(rig), background=130, amplitude=110, noise=0.5, rng=np.random.default_rng(3))
+    frames = rig.render(bump_surface(rig), background=130, amplitude=110, noise=0.5,
+                        rng=np.random.default_rng(3))
     frames[::steps, 30:90] = 255  # one clipped shift per frequency: refitted
     rec = Reconstructor(rig.calibration(), combine_frequencies=combine)
     a = rec.run(frames, fast=False)
@@ -225,17 +234,20 @@ def test_fast_sigma_agrees_with_numpy_on_refitted_and_heterodyne_pixels(schedule
 @pytest.mark.parametrize("motion_rad", [0.0, 0.3])
 def test_fast_agrees_with_numpy_on_the_heterodyne_order_test(motion_rad):
     """heterodyne-9 (the registry's [30, 35, 36] × 3) with the modulation falling across the image:
-    the dim columns fail the order test (too noisy for a wrong order to show) in both paths alike."""
+    the dim columns fail the order test (too noisy for a wrong order to show) in both paths
+    alike."""
     from app.core.reasons import Reason
     from app.core.schedule import schedule_by_name
 
     rig = Rig(schedule=schedule_by_name("heterodyne-9"))
     h = bump_surface(rig)
     amplitude = np.linspace(90.0, 3.0, rig.width)[None, :] * np.ones((rig.height, 1))
-    frames = rig.render(h, background=100, amplitude=amplitude, noise=1.0, rng=np.random.default_rng(8))
+    frames = rig.render(h, background=100, amplitude=amplitude, noise=1.0,
+                        rng=np.random.default_rng(8))
     # an explicit modulation threshold: the noise-aware one (app.recon.validity) would reject the
     # dim columns first (LOW_MODULATION outranks), and this test is about the order test
-    rec = Reconstructor(rig.calibration(), with_phase=True, order_max_motion_rad=motion_rad, min_modulation=1.0)
+    rec = Reconstructor(rig.calibration(), with_phase=True, order_max_motion_rad=motion_rad,
+                        min_modulation=1.0)
     a = rec.run(frames, fast=False)
     b = rec.run(frames, fast=True)
     assert np.array_equal(a.reason, b.reason)
@@ -246,12 +258,14 @@ def test_fast_agrees_with_numpy_on_the_heterodyne_order_test(motion_rad):
     ok = a.valid
     assert ok.mean() > 0.4
     assert np.max(np.abs(a.phase[ok] - b.phase[ok])) < 1e-3
-    assert np.max(np.abs(a.phase[ok] - rig.finest_phase(h)[ok])) < 0.3  # no wrong order among the valid
+    # no wrong order among the valid
+    assert np.max(np.abs(a.phase[ok] - rig.finest_phase(h)[ok])) < 0.3
 
 
 def test_heterodyne_depth_under_motion_between_groups_is_valid_only_where_right():
     """Each frequency group rendered at another height (the surface moves between groups): the
-    chain alone slips at some pixels; with the order test every valid depth is the finest group's."""
+    chain alone slips at some pixels; with the order test every valid depth is the finest
+    group's."""
     from app.core.schedule import schedule_by_name
     from app.recon.phase import wrapped_phase
     from app.recon.unwrap import LIVE_MAX_MOTION_RAD, unwrap_phases
@@ -261,7 +275,8 @@ def test_heterodyne_depth_under_motion_between_groups_is_valid_only_where_right(
     h = bump_surface(rig)
     rng = np.random.default_rng(4)
     # the height change per group interval, mm: 0 at the left edge, ±2 mm at the right corners
-    step_mm = np.linspace(0.0, 2.0, rig.width)[None, :] * np.linspace(-1.0, 1.0, rig.height)[:, None]
+    step_mm = (np.linspace(0.0, 2.0, rig.width)[None, :]
+               * np.linspace(-1.0, 1.0, rig.height)[:, None])
     frames = np.empty((9, rig.height, rig.width), np.uint8)
     for g in range(3):  # groups 30, 35, 36; 36 (the map's instant) last
         f = rig.render(h + (g - 2) * step_mm, background=100, amplitude=80, noise=0.5, rng=rng)
@@ -270,7 +285,8 @@ def test_heterodyne_depth_under_motion_between_groups_is_valid_only_where_right(
     wp = wrapped_phase(frames, 3)
     chain, chain_ok = unwrap_phases(wp.phase, sched.frequencies, "heterodyne")
     assert (chain_ok & (np.abs(chain[-1] - truth) > math.pi)).sum() > 100  # the chain alone slips
-    rec = Reconstructor(rig.calibration(), with_phase=True, order_max_motion_rad=LIVE_MAX_MOTION_RAD)
+    rec = Reconstructor(rig.calibration(), with_phase=True,
+                        order_max_motion_rad=LIVE_MAX_MOTION_RAD)
     for fast_path in (False, True):
         res = rec.run(frames, fast=fast_path)
         ok = res.valid

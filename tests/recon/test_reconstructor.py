@@ -96,7 +96,8 @@ def test_bad_parameters(rig):
 
 def test_nan_calibration_rejected(rig):
     cal = rig.calibration()
-    for field, value in (("numerator", np.full(11, np.nan)), ("denominator", np.r_[np.nan, np.zeros(11)]),
+    for field, value in (("numerator", np.full(11, np.nan)),
+                         ("denominator", np.r_[np.nan, np.zeros(11)]),
                          ("camera_matrix", np.full((3, 3), np.nan))):
         kwargs = {f: getattr(cal, f) for f in (
             "camera_matrix", "dist_coeffs", "image_size", "plane_normal", "plane_offset_mm",
@@ -107,7 +108,8 @@ def test_nan_calibration_rejected(rig):
 
 
 def test_12bit_saturation_needs_max_code(rig):
-    frames = rig.render(bump_surface(rig), background=2000, amplitude=1200, dtype=np.uint16, max_code=4095)
+    frames = rig.render(bump_surface(rig), background=2000, amplitude=1200, dtype=np.uint16,
+                        max_code=4095)
     frames[2:4, 50, 60] = 4095  # two of four shifts clipped: φ is undetermined
     frames[5, 20, 30] = 4095  # one clipped: refitted from the other three
     for fast in (True, False):
