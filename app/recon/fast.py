@@ -1,4 +1,4 @@
-"""The fast path: one fused, parallel numba kernel from raw frames to depth and points.
+"""The fast path: one fused, parallel numba kernel from raw frames to depth and σ.
 
 Rows are processed in blocks (``prange``), in two phases per block so that each phase
 streams few arrays at a time:
@@ -18,8 +18,9 @@ streams few arrays at a time:
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
    terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
    the supported region and the final reason code.
-2. Outputs: reason/valid, depth, σ, modulation/texture and the optional phase (the points are
-   written by the height stage, whose loop already holds the ray quotients).
+2. Outputs: reason/valid, depth, σ, modulation/texture and the optional phase. The 3-D
+   points are not the kernel's: they follow from depth and the rays on demand
+   (:class:`app.recon.points.PointRays`), which spares most sets a (H, W, 3) write.
 
 The kernel takes named tuples (:class:`PhaseArgs`, :class:`HeightArgs`, :class:`Outputs`);
 reason codes are used by name.
@@ -93,8 +94,8 @@ class HeightArgs(NamedTuple):
     """The height stage's inputs (float32 scalars): the model's
     :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
     ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
-    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) and the plane ``offset``
-    mm, the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
+    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) (read when ``use_rays``),
+    the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
     grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
     range rad, ``field_u_lo``/``field_u_hi`` (H,) the supported columns of every row: the
     camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the
@@ -114,7 +115,6 @@ class HeightArgs(NamedTuple):
     hi: np.float32
     sing_rtol: np.float32
     ray_q: npt.NDArray[np.float32]
-    offset: np.float32
     region_lo: npt.NDArray[np.float32]
     region_hi: npt.NDArray[np.float32]
     region_rows: npt.NDArray[np.int64]
@@ -135,11 +135,10 @@ class HeightArgs(NamedTuple):
 
 
 class Outputs(NamedTuple):
-    """The kernel's (H, W) outputs (points (H, W, 3)); ``phase`` with zero rows is skipped;
+    """The kernel's (H, W) outputs; ``phase`` with zero rows is skipped;
     ``recovered`` (H,) int32: per row, the pixels refitted from their unclipped samples."""
 
     depth: npt.NDArray[np.float32]
-    points: npt.NDArray[np.float32]
     reason: npt.NDArray[np.uint8]
     valid: npt.NDArray[np.bool_]
     modulation: npt.NDArray[np.float32]
@@ -763,11 +762,9 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyp
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-def]
-                depth, sigma, pts):  # pragma: no cover - compiled
+                depth, sigma):  # pragma: no cover - compiled
     """Height stage of row ``v`` (both paths): the final reason code and the row's outputs
-    ``depth``, ``sigma`` and ``pts`` (the points' (W·3,) flat view), NaN where invalid, written
-    here while the ray quotients are at hand (a separate pass read the (H, W, 3) table a second
-    time).
+    ``depth`` and ``sigma``, NaN where invalid.
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -789,8 +786,7 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
     max_sigma2 = max_sigma * max_sigma
-    offset = m.offset
-    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat (x, y, 1)/(n·r): a point is (h − offset)·q
+    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat (x, y, 1)/(n·r)
     # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
     combine, half_steps = m.combine, m.half_steps
     if m.use_rays:
@@ -816,10 +812,6 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
             code[u] = c
-            t = h - offset if ok else _NAN
-            pts[3 * u] = t * q0
-            pts[3 * u + 1] = t * q1
-            pts[3 * u + 2] = t * q2
     else:
         for u in range(prev.shape[0]):
             x = un[u]
@@ -838,10 +830,6 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
             code[u] = c
-            t = h - offset if ok else _NAN
-            pts[3 * u] = t * q[3 * u]
-            pts[3 * u + 1] = t * q[3 * u + 1]
-            pts[3 * u + 2] = t * q[3 * u + 2]
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -1200,7 +1188,7 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             if paper:
                 wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v],
-                        out.sigma[v], out.points[v].reshape(3 * width))
+                        out.sigma[v])
         for r in range(n_rows):
             v = v0 + r
             _reason_row(out.reason[v], out.valid[v], code[r])
@@ -1234,15 +1222,15 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
-        np.zeros((2, 3, 3), np.float32), np.float32(0), np.full((1, 3), -np.inf, np.float32),
+        np.zeros((2, 3, 3), np.float32), np.full((1, 3), -np.inf, np.float32),
         np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
         np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.float32(0), np.float32(1),
     )
-    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3, 3), np.float32),
-                  np.empty((2, 3), np.uint8), np.empty((2, 3), np.bool_), f32, f32.copy(),
-                  np.empty((0, 3), np.float32), f32.copy(), np.empty(2, np.int32))
+    out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3), np.uint8),
+                  np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),
+                  f32.copy(), np.empty(2, np.int32))
     fused_kernel(frames, ph, m, out)
     _warm.add(dt.name)

@@ -99,9 +99,14 @@ def fuse_exposures(results: Sequence[ReconResult], exposures_ms: Sequence[float]
         out: npt.NDArray[_T] = np.take_along_axis(stack, index, axis=0)[0]
         return out
 
+    # members of one fast engine make their points from their depth: the fused result makes
+    # them from its picked depth on demand (the same values), the others' are picked now
+    rays = members[0].point_rays
+    lazy = rays is not None and all(r.point_rays is rays for r in members)
     fused = ReconResult(
         depth=take([r.depth for r in members]),
-        points=take([r.points for r in members]),
+        points=None if lazy else take([r.points for r in members]),
+        point_rays=rays if lazy else None,
         valid=any_valid,
         reason=take([r.reason for r in members]),
         modulation=take(modulation),

@@ -428,9 +428,10 @@ def _invalidate(depth, sigma, points, valid, reason, v, u,  # type: ignore[no-un
     """Pixel (v, u) has no depth, for reason ``code``."""
     depth[v, u] = np.nan
     sigma[v, u] = np.nan
-    points[v, u, 0] = np.nan
-    points[v, u, 1] = np.nan
-    points[v, u, 2] = np.nan
+    if points is not None:  # None: points not made yet (they follow depth when they are)
+        points[v, u, 0] = np.nan
+        points[v, u, 1] = np.nan
+        points[v, u, 2] = np.nan
     valid[v, u] = False
     reason[v, u] = code
 
@@ -594,7 +595,7 @@ def invalidate_motion(
     *,
     noise: SensorNoise,
     depth: npt.NDArray[np.float32],
-    points: npt.NDArray[np.float32],
+    points: npt.NDArray[np.float32] | None,
     valid: npt.NDArray[np.bool_],
     reason: npt.NDArray[np.uint8],
     sigma: npt.NDArray[np.float32],
@@ -610,7 +611,8 @@ def invalidate_motion(
     UNCERTAIN the same way.
 
     Args:
-        depth, sigma: (H, W) float32; points: (H, W, 3) float32; valid: (H, W) bool;
+        depth, sigma: (H, W) float32; points: (H, W, 3) float32, or None where the points
+            are not made yet (made later from the invalidated depth); valid: (H, W) bool;
             reason: (H, W) uint8 — a :class:`~app.recon.reconstructor.ReconResult`'s arrays.
         test: the test's settings.
         (the rest as :func:`motion_mask`)
@@ -628,6 +630,8 @@ def invalidate_motion(
                                  ("points", points, (h, w, 3), np.float32),
                                  ("valid", valid, (h, w), np.bool_),
                                  ("reason", reason, (h, w), np.uint8)):
+        if name == "points" and arr is None:
+            continue
         if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dt:
             raise ValueError(f"{name}: expected {np.dtype(dt).name} {shape}, got "
                              f"{getattr(arr, 'dtype', type(arr))} {getattr(arr, 'shape', '')}")

@@ -4,12 +4,17 @@ Every pixel's ray ``r = (x, y, 1)`` comes from undistorting its pixel coordinate
 (``cv2.undistortPoints`` with the calibration's camera matrix and distortion). The
 point of height ``h`` on it lies on the plane parallel to the reference plane,
 ``n·X + offset = h``: ``X = t·r`` with ``t = (h − offset) / (n·r)``.
+
+A result's points are made on demand (:class:`PointRays`, :class:`LazyPoints`): most sets
+are only looked at as depth, and the (H, W, 3) float32 points are a larger write than all
+the other per-pixel outputs together.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, overload
 
 import cv2
 import numpy as np
@@ -117,3 +122,82 @@ def points_from_height(
                          f"tables' {rays.rx.shape}")
     t = (h - plane_offset_mm) * rays.inv_m
     return np.stack([t * rays.rx, t * rays.ry, t], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class PointRays:
+    """What turns a height map into points: ``ray_q`` (H, W, 3) float32, the
+    :func:`ray_quotients` ``(x, y, 1)/(n·r)`` of every pixel, and the reference plane's
+    ``offset_mm`` (float32): a point is ``(h − offset)·q``."""
+
+    ray_q: npt.NDArray[np.float32]
+    offset_mm: np.float32
+
+    def points(self, height_mm: npt.NDArray[np.float32],
+               out: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
+        """(H, W, 3) float32 camera-frame points, mm, of (H, W) float32 heights (NaN → NaN),
+        in float32 arithmetic (the fused kernel's depth gives the points it used to write);
+        into ``out`` when it is a C-contiguous (H, W, 3) float32 array."""
+        h = np.asarray(height_mm)
+        if h.dtype != np.float32 or h.shape != self.ray_q.shape[:2]:
+            raise ValueError(f"height_mm: need float32 {self.ray_q.shape[:2]}, got "
+                             f"{h.dtype} {h.shape}")
+        if (out is None or out.shape != self.ray_q.shape or out.dtype != np.float32
+                or not out.flags.c_contiguous):
+            out = np.empty(self.ray_q.shape, np.float32)
+        t = np.subtract(h, self.offset_mm, dtype=np.float32)
+        np.multiply(t[..., None], self.ray_q, out=out)
+        return out
+
+
+class _PointsOwner(Protocol):
+    """A result whose ``points`` are a :class:`LazyPoints` field."""
+
+    depth: npt.NDArray[np.float32]
+    point_rays: PointRays | None
+
+
+class LazyPoints:
+    """A result's ``points`` field (a data descriptor): (H, W, 3) float32, mm, NaN invalid.
+
+    Set to an array, it is kept as given. Set to None (the field's default), the points are
+    made on the first read from the owner's ``depth`` and ``point_rays``
+    (:meth:`PointRays.points`, into the owner's ``_points_buf`` when it has one) and kept:
+    computed at most once, also with readers in several threads. Reading None-set points
+    of an owner without rays is an ``AttributeError``."""
+
+    _lock = threading.Lock()  # one computation at a time: readers of one result wait for it
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> None: ...
+
+    @overload
+    def __get__(self, obj: _PointsOwner, owner: type | None = None
+                ) -> npt.NDArray[np.float32]: ...
+
+    def __get__(self, obj: _PointsOwner | None, owner: type | None = None
+                ) -> npt.NDArray[np.float32] | None:
+        if obj is None:
+            return None  # the dataclass field's default: made on demand
+        state = vars(obj)
+        pts: npt.NDArray[np.float32] | None = state.get("_points")
+        if pts is not None:
+            return pts
+        with self._lock:
+            pts = state.get("_points")
+            if pts is None:
+                rays = obj.point_rays
+                if rays is None:
+                    raise AttributeError("points: neither given nor point_rays to make them")
+                pts = rays.points(obj.depth, state.get("_points_buf"))
+                state["_points"] = pts
+            return pts
+
+    def __set__(self, obj: _PointsOwner, value: npt.NDArray[np.float32] | None) -> None:
+        vars(obj)["_points"] = value
+
+    @staticmethod
+    def given(obj: object) -> npt.NDArray[np.float32] | None:
+        """The points if they exist (given or made), else None: never computes them."""
+        pts: npt.NDArray[np.float32] | None = vars(obj).get("_points")
+        return pts

@@ -31,7 +31,14 @@ from app.recon.model import (
 from app.recon.model_sigma import ModelSigmaTable, model_sigma_table, zero_table
 from app.recon.noise import resolve_sensor_noise
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
-from app.recon.points import RayTables, calibration_ray_tables, points_from_height, ray_quotients
+from app.recon.points import (
+    LazyPoints,
+    PointRays,
+    RayTables,
+    calibration_ray_tables,
+    points_from_height,
+    ray_quotients,
+)
 from app.recon.sensor import NoiseSource
 from app.recon.sensor import SensorNoise as SensorNoise  # re-exported: its historical home
 from app.recon.unwrap import (
@@ -106,7 +113,12 @@ class ReconResult:
 
     Attributes:
         depth: float32 height above the reference plane, mm, NaN invalid.
-        points: (H, W, 3) float32 camera-frame points, mm, NaN invalid.
+        points: (H, W, 3) float32 camera-frame points, mm, NaN invalid. The fast path makes
+            them on the first read, from :attr:`depth` as it is then and :attr:`point_rays`
+            (float32, as the kernel made them before), and keeps them: a set whose points
+            nobody reads never pays for them (:class:`~app.recon.points.LazyPoints`).
+            Constructed with an array, that array.
+        point_rays: the rays the points are made from (None: ``points`` given).
         valid: bool, ``reason == Reason.OK``.
         reason: uint8 :class:`~app.core.reasons.Reason` code.
         modulation: float32 finest-frequency modulation B, codes.
@@ -137,13 +149,14 @@ class ReconResult:
     """
 
     depth: F32
-    points: F32
     valid: npt.NDArray[np.bool_]
     reason: npt.NDArray[np.uint8]
     modulation: F32
     texture: F32
     phase: F32 | None
     elapsed_ms: float
+    points: LazyPoints = LazyPoints()
+    point_rays: PointRays | None = None
     sigma: F32 = field(default_factory=lambda: np.empty((0, 0), np.float32))
     recovered: int = 0
     motion: npt.NDArray[np.bool_] | None = None
@@ -445,6 +458,11 @@ class Reconstructor:
         return f32, ray_quotients(self._rays)
 
     @cached_property
+    def _point_rays(self) -> PointRays:
+        """The fast path's points on demand: the kernel's ray quotients and plane offset."""
+        return PointRays(self._fast_tables[1], np.float32(self.calibration.plane_offset_mm))
+
+    @cached_property
     def _fast_schedule(self) -> tuple[F32, F32, F32, F32, F32, np.float32, F32]:
         """float32 (cos δ_n, sin δ_n, frequencies, chain coefficients, chain frequencies, z² of the
         heterodyne order test and its squared slip front (P, K − 1), rad²) of the pattern."""
@@ -547,9 +565,10 @@ class Reconstructor:
         res.motion, res.moved_pixels, res.scene_moved = None, 0, False
         res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
         if motion is not None:
+            # points not made yet follow the invalidated depth when they are
             mp = motion_test.invalidate_motion(
                 frames, len(self.calibration.pattern.frequencies), noise=camera, depth=res.depth,
-                points=res.points, valid=res.valid, reason=res.reason, sigma=res.sigma,
+                points=LazyPoints.given(res), valid=res.valid, reason=res.reason, sigma=res.sigma,
                 test=motion, max_code=max_code)
             res.motion, res.moved_pixels, res.scene_moved = mp.mask, mp.moved, mp.scene_moved
             res.uncertain_moving_pixels, res.motion_ms = mp.uncertain, mp.elapsed_ms
@@ -621,6 +640,8 @@ class Reconstructor:
         _fast.warmup(frames.dtype)  # JIT (or cache load) outside the timed region
         t0 = time.perf_counter()
         out = self._outputs.take(frames.shape[1:], self.with_phase)
+        out.points = None  # made from this depth on the first read
+        out.point_rays = self._point_rays
         with _fast.KERNEL_LOCK:
             self._launch(frames, max_code, min_mod, out, camera)
         out.elapsed_ms = (time.perf_counter() - t0) * 1e3
@@ -644,7 +665,7 @@ class Reconstructor:
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi),
             f32(SINGULAR_RTOL),
-            ray_q, f32(cal.plane_offset_mm), r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
+            ray_q, r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
@@ -652,7 +673,7 @@ class Reconstructor:
             f32(self._model_sigma_kernel.mid_mm), f32(self._model_sigma_kernel.inv_half_mm),
         )
         recovered = np.zeros(frames.shape[1], np.int32)
-        o = _fast.Outputs(out.depth, out.points, out.reason, out.valid, out.modulation, out.texture,
+        o = _fast.Outputs(out.depth, out.reason, out.valid, out.modulation, out.texture,
                           out.phase if out.phase is not None else _NO_PHASE, out.sigma, recovered)
         _fast.fused_kernel(np.ascontiguousarray(frames), ph, m, o)
         out.recovered = int(recovered.sum())
@@ -693,9 +714,8 @@ class _OutputPool:
 
 
 def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
-    return ReconResult(
+    res = ReconResult(
         depth=np.empty((h, w), np.float32),
-        points=np.empty((h, w, 3), np.float32),
         valid=np.empty((h, w), np.bool_),
         reason=np.empty((h, w), np.uint8),
         modulation=np.empty((h, w), np.float32),
@@ -704,13 +724,21 @@ def _new_result(h: int, w: int, with_phase: bool) -> ReconResult:
         elapsed_ms=0.0,
         sigma=np.empty((h, w), np.float32),
     )
+    # where its points are made on demand (pages faulted once per pooled result, not per set)
+    vars(res)["_points_buf"] = np.empty((h, w, 3), np.float32)
+    return res
 
 
 def _reference_counts(res: ReconResult) -> tuple[int, int]:
-    """(references to ``res``, most references to any of its arrays)."""
-    arrays = [a for a in (res.depth, res.points, res.valid, res.reason, res.modulation,
-                          res.texture, res.phase, res.sigma) if a is not None]
-    return sys.getrefcount(res), max(sys.getrefcount(a) for a in arrays)
+    """(references to ``res``, most references to any of its arrays, the points' buffer
+    counted without the result's own second reference to it once the points are made)."""
+    state = vars(res)
+    # (no local name for the buffer: it would count as one more reference)
+    arrays = [a for a in (res.depth, res.valid, res.reason, res.modulation, res.texture,
+                          res.phase, res.sigma, state["_points_buf"]) if a is not None]
+    counts = [sys.getrefcount(a) for a in arrays]
+    counts[-1] -= state.get("_points") is arrays[-1]
+    return sys.getrefcount(res), max(counts)
 
 
 # The counts of a result held by a list alone, measured the way take() measures them

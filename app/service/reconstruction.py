@@ -7,7 +7,6 @@ reconstruction takes less than one set's acquisition.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -23,6 +22,7 @@ from app.recon import ReconResult, Reconstructor
 from app.recon.fusion import fuse_exposures
 from app.recon.model_sigma import ModelSigmaTable
 from app.recon.motion import MotionTest, map_time
+from app.recon.points import LazyPoints, PointRays
 from app.recon.reconstructor import split_noise
 from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
@@ -50,7 +50,6 @@ class LiveResult:
     """
 
     depth: npt.NDArray[np.float32]
-    points: npt.NDArray[np.float32]
     valid: npt.NDArray[np.bool_]
     reason: npt.NDArray[np.uint8]
     texture: npt.NDArray[np.float32]
@@ -65,6 +64,9 @@ class LiveResult:
     received_s: float
     published_s: float
     recon_ms: float
+    #: given, or made from ``depth`` and ``point_rays`` on the first read (as ReconResult's)
+    points: LazyPoints = LazyPoints()
+    point_rays: PointRays | None = None
     created: str = field(
         default_factory=lambda: datetime.now(UTC).isoformat(timespec="milliseconds"))
     seq: int = 0
@@ -285,11 +287,12 @@ class Reconstruction:
         fused = fuse_exposures([m[1] for m in pair], [float(m[0].exposure_ms) for m in pair]).result
         a, b = first[1], res
         moved = None if a.motion is None or b.motion is None else a.motion | b.motion
-        fused = dataclasses.replace(
-            fused, motion=moved, moved_pixels=a.moved_pixels + b.moved_pixels,
-            scene_moved=a.scene_moved or b.scene_moved, motion_ms=a.motion_ms + b.motion_ms,
-            uncertain_moving_pixels=a.uncertain_moving_pixels + b.uncertain_moving_pixels,
-            noise=b.noise, noise_source=b.noise_source)
+        # the fused result is this call's own: set in place (a copy would make its points)
+        fused.motion, fused.moved_pixels = moved, a.moved_pixels + b.moved_pixels
+        fused.scene_moved = a.scene_moved or b.scene_moved
+        fused.motion_ms = a.motion_ms + b.motion_ms
+        fused.uncertain_moving_pixels = a.uncertain_moving_pixels + b.uncertain_moving_pixels
+        fused.noise, fused.noise_source = b.noise, b.noise_source
         live = self._live(engine, fs, fused, full_scale, recon_ms + first[2])
         live.exposure_ms = float(pair[0][0].exposure_ms)
         live.bracket_exposures_ms = (float(pair[0][0].exposure_ms), float(pair[1][0].exposure_ms))
@@ -299,7 +302,8 @@ class Reconstruction:
               recon_ms: float) -> LiveResult:
         sched = engine.calibration.pattern
         return LiveResult(
-            depth=res.depth, points=res.points, valid=res.valid, reason=res.reason,
+            depth=res.depth, points=LazyPoints.given(res), point_rays=res.point_rays,
+            valid=res.valid, reason=res.reason,
             texture=res.texture, modulation=res.modulation, motion=res.motion, mode=fs.mode,
             frame_indices=fs.frame_indices, timestamps=fs.timestamps,
             exposure_ms=float(fs.exposure_ms), led=fs.led, full_scale=full_scale,
