@@ -94,7 +94,8 @@ class HeightArgs(NamedTuple):
     """The height stage's inputs (float32 scalars): the model's
     :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
     ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
-    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (H, W, 3) (read when ``use_rays``),
+    volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (3, H, W): the ray quotients' planes
+    (read when ``use_rays``; planar, so that the row loop loads each contiguously),
     the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
     grid row and column, ``region_rows`` (H,) the grid row of every image row, phase
     range rad, ``field_u_lo``/``field_u_hi`` (H,) the supported columns of every row: the
@@ -786,12 +787,12 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
     max_sigma2 = max_sigma * max_sigma
-    q = m.ray_q[v].reshape(3 * prev.shape[0])  # flat (x, y, 1)/(n·r)
+    qx, qy, qz = m.ray_q[0, v], m.ray_q[1, v], m.ray_q[2, v]  # (x, y, 1)/(n·r)
     # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
     combine, half_steps = m.combine, m.half_steps
     if m.use_rays:
         for u in range(prev.shape[0]):
-            q0, q1, q2 = q[3 * u], q[3 * u + 1], q[3 * u + 2]
+            q0, q1, q2 = qx[u], qy[u], qz[u]
             a0 = g0 * q0 + g1 * q1 + g2 * q2
             a1 = g3 * q0 + g4 * q1 + g5 * q2
             b0 = g6 * q0 + g7 * q1 + g8 * q2
@@ -1222,7 +1223,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
-        np.zeros((2, 3, 3), np.float32), np.full((1, 3), -np.inf, np.float32),
+        np.zeros((3, 2, 3), np.float32), np.full((1, 3), -np.inf, np.float32),
         np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),

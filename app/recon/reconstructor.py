@@ -448,14 +448,17 @@ class Reconstructor:
         return calibration_height_tables(self.calibration)
 
     @cached_property
-    def _fast_tables(self) -> tuple[HeightTables, npt.NDArray[np.float32]]:
+    def _fast_tables(self) -> tuple[HeightTables, npt.NDArray[np.float32],
+                                    npt.NDArray[np.float32]]:
+        """float32 (height tables, ray quotients (H, W, 3), the same as planes (3, H, W))."""
         t = self._height_tables
         f32 = HeightTables(
             np.ascontiguousarray(t.u_norm, np.float32),
             np.ascontiguousarray(t.row_coefs, np.float32),
             np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
         )
-        return f32, ray_quotients(self._rays)
+        q = ray_quotients(self._rays)
+        return f32, q, np.ascontiguousarray(q.transpose(2, 0, 1))
 
     @cached_property
     def _point_rays(self) -> PointRays:
@@ -651,7 +654,7 @@ class Reconstructor:
                 noise: SensorNoise) -> None:
         assert _fast is not None
         cal = self.calibration
-        tables, ray_q = self._fast_tables
+        tables, _, ray_planes = self._fast_tables
         cos_d, sin_d, freqs, chain_c, chain_f, order_z2, order_front2 = self._fast_schedule
         lo, hi = self._bounds_mm
         r_lo, r_hi, rows, p_lo, p_hi, u_lo, u_hi = self._region_columns
@@ -665,7 +668,7 @@ class Reconstructor:
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi),
             f32(SINGULAR_RTOL),
-            ray_q, r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
+            ray_planes, r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
