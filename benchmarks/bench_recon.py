@@ -5,7 +5,7 @@ closed-form Eq. (5), and the same rig with the geometric depth model (``geometri
 rows). Every run computes σ. Prints the median ms per set of each path and the ratios
 fast / memory pass and numpy / fast (with the noise model given, as live), and what
 fitting the noise to each set adds (a run without a given noise: Python, REST, CLI).
-Target: fast (with points and σ) ≤ 3× the memory pass: ``frames.sum(axis=0,
+Target: fast (with σ) ≤ 3× the memory pass: ``frames.sum(axis=0,
 dtype=np.uint16)``, one read of the frames and one (H, W) write (``frames.sum()``
 accumulates in uint64 and is slower than a memory pass, which flattered the ratio).
 
@@ -17,8 +17,9 @@ calibration of the twin, e.g. from ``fringescope calibrate`` on ``fringescope si
 ideal Eq. (5) calibration. σ is the total (noise ⊕ calibration) in every row. These rows
 also give the CPU time of one call on one numba thread (as the live service and
 reprocess run it) against the memory pass's CPU time: on a shared machine CPU time
-follows the others' load much less than wall time. ``--scenes-only`` prints these rows
-alone.
+follows the others' load much less than wall time. The fast path makes the 3-D points
+only when they are read (``ReconResult.points``): the scene rows add what making them once
+costs (CPU, one thread). ``--scenes-only`` prints these rows alone.
 """
 
 from __future__ import annotations
@@ -123,13 +124,17 @@ def twin_scenes(calibration_file: str | None) -> None:
             _, one_cpu = median_ms(lambda f=frames, n=known_noise: rec.run(f, noise=n), 30)
         finally:
             numba.set_num_threads(threads)
+        rays = res.point_rays
+        buf = np.empty((*frames.shape[1:], 3), np.float32)
+        _, pts_cpu = (median_ms(lambda q=rays, r=res, b=buf: q.points(r.depth, b), 15)
+                      if rays is not None else (0.0, float("nan")))
         clipped = float((frames.max(axis=0) >= 255).mean())
         print(f"{label:34s} fast {fast:7.2f} ms (cpu {fast_cpu:5.1f})  memory pass {mem:5.2f} ms "
               f"(cpu {mem_cpu:4.2f})  fast/memory {fast / mem:4.2f}  "
               f"1 thread: cpu {one_cpu:5.2f} ms "
               f"= {one_cpu / mem_cpu:4.2f} x the memory pass's cpu  clipped {clipped:.1%}  "
               f"refitted {res.recovered} px  valid {res.valid.mean():.3f}  "
-              f"load {os.getloadavg()[0]:.1f}")
+              f"points when read: cpu {pts_cpu:4.2f} ms  load {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
