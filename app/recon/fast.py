@@ -1198,6 +1198,19 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
 
 
+@njit(nogil=True, error_model="numpy", cache=True)
+def points_kernel(height, ray_q, offset, out):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """``out`` (H, W, 3) = (``height`` (H, W) − ``offset``)·``ray_q`` (H, W, 3), float32 and
+    without fastmath: IEEE the same as numpy's float32 arithmetic (NaN → NaN), one pass with
+    no temporaries (:meth:`app.recon.points.PointRays.points`). Serial: no threading layer."""
+    for v in range(height.shape[0]):
+        for u in range(height.shape[1]):
+            t = height[v, u] - offset
+            out[v, u, 0] = t * ray_q[v, u, 0]
+            out[v, u, 1] = t * ray_q[v, u, 1]
+            out[v, u, 2] = t * ray_q[v, u, 2]
+
+
 _warm: set[str] = set()
 
 

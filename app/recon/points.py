@@ -13,6 +13,7 @@ the other per-pixel outputs together.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, overload
 
@@ -21,6 +22,12 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.calibration import Calibration
+
+_points_kernel: Callable[..., None] | None
+try:  # one compiled pass; numpy (the same values) where numba is missing
+    from app.recon.fast import points_kernel as _points_kernel
+except ImportError:
+    _points_kernel = None
 
 
 @dataclass(frozen=True)
@@ -145,7 +152,10 @@ class PointRays:
         if (out is None or out.shape != self.ray_q.shape or out.dtype != np.float32
                 or not out.flags.c_contiguous):
             out = np.empty(self.ray_q.shape, np.float32)
-        t = np.subtract(h, self.offset_mm, dtype=np.float32)
+        if _points_kernel is not None:
+            _points_kernel(np.ascontiguousarray(h), self.ray_q, np.float32(self.offset_mm), out)
+            return out
+        t = np.subtract(h, self.offset_mm, dtype=np.float32)  # the same values, slower
         np.multiply(t[..., None], self.ray_q, out=out)
         return out
 
