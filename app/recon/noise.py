@@ -74,8 +74,7 @@ class NoiseFit:
 
     Attributes:
         noise: the model, clipped (gain ≥ 0, read noise ≥ :data:`QUANTISATION_NOISE_DN`).
-        read_var_dn2, gain_dn_per_e: the fit ``σ_I² = read_var + gain·I`` within its
-            bounds (gain ≥ 0, read_var ≥ 0: the other refitted where one reached its bound).
+        read_var_dn2, gain_dn_per_e: the unclipped fit ``σ_I² = read_var + gain·I``.
         cov: (2, 2) float64 covariance of (read_var DN², gain DN/e⁻): each kept pixel's
             residual variance is σ_I²·χ²_ν/ν, of variance 2σ_I⁴/ν, pixels independent.
         pixels: pixels in the final fit.
@@ -161,10 +160,11 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
         _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design)
         x, y = _line_form(var, design, usable)
         coef, keep = _trimmed_fit(x, y, dof, start=coef)
-    coef = _clip(x[keep], y[keep], coef) / _chi2_limit(dof)[2]
+    coef = coef / _chi2_limit(dof)[2]
     cov = _covariance(x[keep], coef, dof)
     # a fit can reach 0 read noise (motion in the set inflates the shot-noise slope); no sensor
-    # is below its rounding, and the motion test needs a read noise > 0
+    # is below its rounding, and the motion test needs a read noise > 0. The slope is kept as
+    # fitted: on a set that moves it is the steeper one, and the validity rule refuses more
     read_dn = max(math.sqrt(max(float(coef[0]), 0.0)), QUANTISATION_NOISE_DN)
     noise = SensorNoise(gain_dn_per_e=max(float(coef[1]), 0.0), read_noise_dn=read_dn)
     return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof)
@@ -410,17 +410,6 @@ def _line(x: F64, y: F64) -> F64:
     sxx = float(dx @ dx)
     slope = float(dx @ (y - ym)) / sxx if sxx > 0 else 0.0
     return np.array([ym - slope * xm, slope])
-
-
-def _clip(x: F64, y: F64, coef: F64) -> F64:
-    """The line ``coef`` refitted within its bounds: gain ≥ 0 (then read² = the mean of y),
-    read² ≥ 0 (then the line through the origin); a clipped parameter's partner refitted
-    rather than kept at a value that belonged to the other's impossible one."""
-    if coef[1] < 0.0:
-        return np.array([float(y.mean()), 0.0])
-    if coef[0] < 0.0:
-        return np.array([0.0, max(float(x @ y) / max(float(x @ x), 1e-300), 0.0)])
-    return coef
 
 
 def _covariance(x: F64, coef: F64, dof: int) -> F64:
