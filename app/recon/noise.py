@@ -74,7 +74,9 @@ class NoiseFit:
 
     Attributes:
         noise: the model, clipped (gain ≥ 0, read noise ≥ :data:`QUANTISATION_NOISE_DN`).
-        read_var_dn2, gain_dn_per_e: the unclipped fit ``σ_I² = read_var + gain·I``.
+        read_var_dn2, gain_dn_per_e: the fit ``σ_I² = read_var + gain·I`` (a negative
+            gain refitted as 0 with read_var the mean; a negative read_var kept: see
+            :func:`fit_sensor_noise`).
         cov: (2, 2) float64 covariance of (read_var DN², gain DN/e⁻): each kept pixel's
             residual variance is σ_I²·χ²_ν/ν, of variance 2σ_I⁴/ν, pixels independent.
         pixels: pixels in the final fit.
@@ -160,6 +162,8 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
         _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design)
         x, y = _line_form(var, design, usable)
         coef, keep = _trimmed_fit(x, y, dof, start=coef)
+    if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
+        coef = np.array([float(y[keep].mean()), 0.0])
     coef = coef / _chi2_limit(dof)[2]
     cov = _covariance(x[keep], coef, dof)
     # a fit can reach 0 read noise (motion in the set inflates the shot-noise slope); no sensor
