@@ -391,7 +391,8 @@ def _trimmed_fit(intensity: F64, var: F64, dof: int,
         bins = np.array_split(np.argsort(xs, kind="stable"), max(2, min(32, xs.size // 50)))
         med = np.array([np.median(vs[b]) for b in bins]) / median
         centre = np.array([xs[b].mean() for b in bins])
-        coef = np.polyfit(centre, med, 1)[::-1]
+        start_design = np.stack([np.ones(centre.size), centre], axis=1)
+        coef = np.linalg.lstsq(start_design, med, rcond=None)[0]
     else:
         coef = np.asarray(start, np.float64)
     keep = np.zeros(intensity.size, bool)
