@@ -11,7 +11,8 @@ from numba import njit
 
 
 @njit(nogil=True, error_model="numpy", cache=True)
-def set_statistics(stack, step, n, basis, top, intensity, usable, level, phasor, resid):  # type: ignore[no-untyped-def]
+def set_statistics(  # type: ignore[no-untyped-def]
+        stack, step, n, basis, top, intensity, usable, level, phasor, resid):
     """See :func:`app.recon.noise._set_statistics` (every ``step``-th row and column)."""
     f_n = stack.shape[0]
     k_n = f_n // n
@@ -85,7 +86,8 @@ def _regressors(sources_j, mag, upow, x, count):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True)
-def harmonic_fit(level, phasor, resid, basis, moments, sources, mask, var, design):  # type: ignore[no-untyped-def]
+def harmonic_fit(  # type: ignore[no-untyped-def]
+        level, phasor, resid, basis, moments, sources, mask, var, design):
     """See :func:`app.recon.noise._harmonic_fit`. Per frequency two sweeps over chunks of
     :data:`CHUNK` pixels: the normal equations over the mask, then the residual and the
     noise's weights through the fitted model; each inner loop is flat and vectorises."""
