@@ -1,23 +1,43 @@
-"""The camera's temporal noise from one fringe set: the residual of the N-step fit.
+"""The camera's temporal noise from one fringe set: what the fringe model leaves unexplained.
 
 With N > 3 phase steps the sinusoid ``A + B cos(φ + δ_n)`` leaves N − 3 degrees of freedom
-per frequency and pixel; their residual sum of squares estimates σ_I² there. Regressing
-it on the pixel's mean intensity over the whole image (without the pixels that are not
-noise: a moving tool, glints; :func:`_trimmed_fit`) gives the shot + read model
-``σ_I² = read² + gain·I`` (:class:`~app.recon.reconstructor.SensorNoise`), which then
-gives every pixel its σ_I from its own intensity.
+per frequency and pixel. Their residual, regressed on the pixel's mean intensity over the
+whole image (without the pixels that are not noise: a moving tool, glints;
+:func:`_trimmed_fit`), gives the shot + read model ``σ_I² = read² + gain·I``
+(:class:`~app.recon.sensor.SensorNoise`), which then gives every pixel its σ_I from its own
+intensity.
 
-A real projector's gamma adds harmonics of the fringe to every sample; they are not
-noise but land in that residual. Where the steps allow (N ≥ 8) the fit therefore also
-takes harmonics 2 … H, H = ⌊(N − 4)/2⌋, keeping N − 1 − 2H ≥ 3 degrees of freedom. On
-the real CFPE captures (N = 12, a home projector) this turns a residual "noise" of 4–8 DN
-at 10 DN into 0.7 DN. For N < 8 the estimate includes the second harmonic (for N = 4 it
-is the whole residual): on a real projector it is an upper bound.
+A projector's gamma adds harmonics h of the fringe to every sample, ``B_h cos(h(φ + δ_n))``;
+they are not noise. Those with h ≡ ±1 mod N alias onto the fundamental (the phase error a
+table from ``fringescope gamma`` corrects); the others land in the residual. Two parts of
+the fit take them out:
+
+* per pixel, where the steps allow (N ≥ 8), harmonics 2 … H, H = ⌊(N − 4)/2⌋, keeping
+  N − 1 − 2H ≥ 3 degrees of freedom (on the real CFPE captures, N = 12 and a home
+  projector, this turns a residual "noise" of 4–8 DN at 10 DN into 0.7 DN);
+* across the set, what is left of them: the projector's nonlinearity acts on its own
+  pattern value, so each harmonic is a fixed fraction of the pixel's fringe amplitude B
+  whatever the albedo (:func:`_harmonic_fit`). Residual harmonic ĥ (h ≡ ±ĥ mod N) is fitted
+  as ``B·Σ_h (a_h cos hφ + b_h sin hφ)`` with (a_h, b_h) common to all pixels of a frequency
+  — a few numbers for tens of thousands of pixels, so the noise keeps its degrees of
+  freedom. For N = 4 (the paper's schedule) the one residual per frequency is the Nyquist
+  component, ``B_2 cos 2φ + B_6 cos 6φ + …``: on a twin whose projector has gamma 1.5 it
+  read 6.1 DN/e⁻ of "gain" (the sensor's is 0.016) and refused nearly every pixel.
+
+The residual is orthogonal to the fundamental whatever a phase-error table does to φ, so
+the estimate is the same with and without one.
+
+Cost: one pass over a regular subsample of the pixels (numba; integer samples, no float
+copy of the frames), then the harmonic and the trimmed fits on that subsample.
+:class:`NoiseFit` carries the estimate's standard error.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from functools import lru_cache
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -27,13 +47,68 @@ from app.core.schedule import PatternSchedule
 from app.recon.phase import check_stack
 from app.recon.sensor import NoiseSource, SensorNoise
 
-MAX_PIXELS = 100_000  # a regular subsample is plenty for two parameters
-MAX_FIT_PIXELS = 50_000  # of which the trimmed fit takes at most these
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: pixels the fit reads, about: every s-th row and column (the standard error this leaves
+#: is printed by ``benchmarks/bench_noise.py``)
+MAX_PIXELS = 20_000
+#: the lowest fringe harmonics fitted across the set for each residual harmonic
+SET_HARMONICS = 2
+#: pixels per chunk of the harmonic fit (noise_kernels.CHUNK); every other chunk gives the
+#: normal equations
+FIT_CHUNK = 1024
+#: the share of pixels beyond the noise (a trim beyond the 0.1 % that noise gives) after
+#: which the set's harmonics are fitted again without them
+REFIT_SHARE = 0.01
+#: the noise of rounding to whole codes, DN (uniform over one code: 1/√12)
+QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)
+#: a pixel whose residual variance exceeds its model's by the χ²_ν/ν quantile of this
+#: probability is not noise (a moving tool, a glint): left out of the fit
+OUTLIER_QUANTILE = 0.999
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """A fitted noise model and its standard error.
+
+    Attributes:
+        noise: the model, clipped (gain ≥ 0, read noise ≥ :data:`QUANTISATION_NOISE_DN`).
+        read_var_dn2, gain_dn_per_e: the fit ``σ_I² = read_var + gain·I`` (a negative
+            gain refitted as 0 with read_var the mean; a negative read_var kept: see
+            :func:`fit_sensor_noise`).
+        cov: (2, 2) float64 covariance of (read_var DN², gain DN/e⁻): each kept pixel's
+            residual variance is σ_I²·χ²_ν/ν, of variance 2σ_I⁴/ν, pixels independent.
+        pixels: pixels in the final fit.
+        dof: ν, the residual's degrees of freedom per pixel.
+    """
+
+    noise: SensorNoise
+    read_var_dn2: float
+    gain_dn_per_e: float
+    cov: F64
+    pixels: int
+    dof: int
+
+    @property
+    def gain_se(self) -> float:
+        """Standard error of the gain, DN/e⁻."""
+        return math.sqrt(max(float(self.cov[1, 1]), 0.0))
+
+    @property
+    def read_var_se_dn2(self) -> float:
+        """Standard error of read², DN²."""
+        return math.sqrt(max(float(self.cov[0, 0]), 0.0))
+
+    def variance_se_dn2(self, mean_dn: float) -> float:
+        """Standard error of the fitted σ_I² at intensity ``mean_dn`` (DN), DN²."""
+        x = np.array([1.0, float(mean_dn)])
+        return math.sqrt(max(float(x @ self.cov @ x), 0.0))
 
 
 def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *,
                           max_code: int | None = None) -> SensorNoise:
-    """Shot + read noise of the camera from the N-step fit residual of one fringe set.
+    """Shot + read noise of the camera from what the fringe model leaves in one set.
 
     Args:
         frames: (F, H, W) uint8/uint16 in capture-set order, F = ``schedule.n_frames``.
@@ -41,13 +116,17 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *,
         max_code: sensor maximum code (pixels reaching it are left out); None → dtype max.
 
     Returns:
-        :class:`~app.recon.reconstructor.SensorNoise` fitted to the residual variance
-        against mean intensity (gain clipped at 0, read noise at least
-        :data:`QUANTISATION_NOISE_DN`).
+        :class:`~app.recon.sensor.SensorNoise` (``fit_sensor_noise(...).noise``).
 
     Raises:
         ValueError: N = 3 (no residual), wrong frame count, or too few usable pixels.
     """
+    return fit_sensor_noise(frames, schedule, max_code=max_code).noise
+
+
+def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
+                     max_code: int | None = None) -> NoiseFit:
+    """:func:`estimate_sensor_noise` with the fit's standard error (:class:`NoiseFit`)."""
     stack = check_stack(frames)
     n = schedule.steps
     if n <= 3:
@@ -57,36 +136,42 @@ def estimate_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     top = int(max_code) if max_code is not None else int(np.iinfo(stack.dtype).max)
     h, w = stack.shape[1:]
     step = max(1, math.isqrt(max(1, h * w // MAX_PIXELS)))
-    sub = stack[:, ::step, ::step].astype(np.float64)
-    delta = 2.0 * np.pi * np.arange(n) / n
-    harmonics = max(1, (n - 4) // 2)
-    cos_sin = [f(h * delta) for h in range(1, harmonics + 1) for f in (np.cos, np.sin)]
-    basis = np.stack([np.ones(n)] + cos_sin, 1)
-    residual = np.eye(n) - basis @ np.linalg.pinv(basis)  # (N, N) projector onto the unfitted part
-    dof = n - basis.shape[1]
-    var_sum = np.zeros(sub.shape[1:])
-    k = len(schedule.frequencies)
-    for fi in range(k):
-        block = sub[fi * n:(fi + 1) * n]
-        var_sum += (np.tensordot(residual, block, axes=1) ** 2).sum(axis=0) / dof
-    var = var_sum / k
-    intensity = sub.mean(axis=0)
-    usable = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
+    basis, sources = _bases(n)
+    k_n = len(schedule.frequencies)
+    rows, cols = -(-h // step), -(-w // step)
+    intensity = np.empty((rows, cols))
+    usable = np.empty((rows, cols), np.bool_)
+    level = np.empty((k_n, rows, cols))
+    phasor = np.empty((k_n, 2, rows, cols))
+    resid = np.empty((k_n, basis.shape[1] - 2, rows, cols))
+    _set_statistics(stack, step, n, basis, top, intensity, usable, level, phasor, resid)
     if usable.sum() < 100:
         raise ValueError("frames: fewer than 100 unsaturated, non-black pixels to "
                          "estimate the noise from")
-    fit = max(1, int(usable.sum()) // MAX_FIT_PIXELS)  # a regular share of the usable pixels
-    read_var, gain = _trimmed_fit(intensity[usable][::fit], var[usable][::fit], dof * k)
+    dof = k_n * (basis.shape[1] - 2)
+    var = np.empty((rows, cols))
+    design = np.empty((2, rows, cols))
+    _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design)
+    # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
+    # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
+    x, y = _line_form(var, design, usable)
+    coef, keep = _trimmed_fit(x, y, dof)
+    if keep.sum() < (1.0 - REFIT_SHARE) * x.size:  # the harmonics again, without the outliers
+        kept = np.zeros_like(usable)
+        kept[usable] = keep
+        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design)
+        x, y = _line_form(var, design, usable)
+        coef, keep = _trimmed_fit(x, y, dof, start=coef)
+    if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
+        coef = np.array([float(y[keep].mean()), 0.0])
+    coef = coef / _chi2_limit(dof)[2]
+    cov = _covariance(x[keep], coef, dof)
     # a fit can reach 0 read noise (motion in the set inflates the shot-noise slope); no sensor
-    # is below its rounding, and the motion test needs a read noise > 0
-    read_dn = max(math.sqrt(max(float(read_var), 0.0)), QUANTISATION_NOISE_DN)
-    return SensorNoise(gain_dn_per_e=max(float(gain), 0.0), read_noise_dn=read_dn)
-
-
-
-
-#: the noise of rounding to whole codes, DN (uniform over one code: 1/√12)
-QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)
+    # is below its rounding, and the motion test needs a read noise > 0. The slope is kept as
+    # fitted: on a set that moves it is the steeper one, and the validity rule refuses more
+    read_dn = max(math.sqrt(max(float(coef[0]), 0.0)), QUANTISATION_NOISE_DN)
+    noise = SensorNoise(gain_dn_per_e=max(float(coef[1]), 0.0), read_noise_dn=read_dn)
+    return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof)
 
 
 def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
@@ -109,13 +194,177 @@ def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
         return SensorNoise.typical(max_code), "nominal", str(exc)
 
 
-#: a pixel whose residual variance exceeds its model's by the χ²_ν/ν quantile of this
-#: probability is not noise (a moving tool, a glint): left out of the fit
-OUTLIER_QUANTILE = 0.999
+@lru_cache(maxsize=16)
+def _bases(n: int) -> tuple[F64, I64]:
+    """The N-step projections: (N, 2 + d) float64 columns cos δ, sin δ, then an orthonormal
+    basis of the residual (the harmonics above H, H = max(1, ⌊(N − 4)/2⌋), d = N − 1 − 2H);
+    and (d, :data:`SET_HARMONICS`) int64, the fringe harmonics h ≥ 2 that alias onto each
+    residual column (h ≡ ±ĥ mod N, the lowest)."""
+    delta = 2.0 * np.pi * np.arange(n) / n
+    fitted = max(1, (n - 4) // 2)
+    cols = [np.cos(delta), np.sin(delta)]
+    sources: list[list[int]] = []
+    for hh in range(fitted + 1, n // 2 + 1):
+        alias = [h for h in range(2, hh + 2 * n * SET_HARMONICS) if h % n in (hh, n - hh)]
+        if 2 * hh == n:  # the Nyquist harmonic: one real column
+            cols.append(np.cos(hh * delta) / math.sqrt(n))
+            sources.append(alias[:SET_HARMONICS])
+        else:
+            scale = math.sqrt(2.0 / n)
+            cols += [scale * np.cos(hh * delta), scale * np.sin(hh * delta)]
+            sources += [alias[:SET_HARMONICS]] * 2
+    return np.stack(cols, axis=1), np.array(sources, np.int64)
 
 
-def _trimmed_fit(intensity: npt.NDArray[np.float64], var: npt.NDArray[np.float64],
-                 dof: int) -> tuple[float, float]:
+def _set_statistics(stack: npt.NDArray[Any], step: int, n: int, basis: F64, top: int,
+                    intensity: F64, usable: npt.NDArray[np.bool_], level: F64, phasor: F64,
+                    resid: F64) -> None:
+    """Fill the per-pixel statistics of the subsample (every ``step``-th row and column).
+
+    Args:
+        stack: (F, H, W) uint8/uint16 frames, F = K·N.
+        step: subsample stride, px.
+        n: N, steps per frequency.
+        basis, top: :func:`_bases`'s first array; the sensor's maximum code.
+        intensity: out (R, C) float64, mean over the frames, DN.
+        usable: out (R, C) bool, no sample at 0 or ``top``.
+        level: out (K, R, C) float64, mean over each frequency's N frames, DN.
+        phasor: out (K, 2, R, C) float64, Σ I cos δ and Σ I sin δ per frequency, DN.
+        resid: out (K, d, R, C) float64, the residual's orthonormal coordinates, DN.
+    """
+    if _nb is None:
+        _statistics_numpy(stack, step, n, basis, top, intensity, usable, level, phasor, resid)
+    else:
+        _nb.set_statistics(stack, step, n, basis, top, intensity, usable, level, phasor, resid)
+
+
+def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, top: int,
+                      intensity: F64, usable: npt.NDArray[np.bool_], level: F64, phasor: F64,
+                      resid: F64) -> None:
+    """:func:`_set_statistics` in numpy (without numba; the kernel's test oracle)."""
+    sub = stack[:, ::step, ::step]
+    k_n = sub.shape[0] // n
+    blocks = sub.reshape(k_n, n, *sub.shape[1:]).astype(np.float64)
+    level[...] = blocks.mean(axis=1)
+    proj = np.einsum("knrc,nj->kjrc", blocks, basis)
+    phasor[...] = proj[:, :2]
+    resid[...] = proj[:, 2:]
+    intensity[...] = sub.mean(axis=0)
+    usable[...] = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
+
+
+def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
+                  mask: npt.NDArray[np.bool_], var: F64, design: F64) -> None:
+    """Residual variance per pixel after the fringe harmonics common to the set.
+
+    For each frequency k and residual column j, ``resid[k, j] ≈ M = Σ_h a_h·B cos hφ +
+    b_h·B sin hφ`` over h in ``sources[j]``, (a, b) least squares over the ``mask`` pixels
+    (B = |phasor|, φ its angle). ``var`` (R, C) gets the mean square of what is left, DN²
+    (its degrees of freedom: K·d per pixel, less the 2·|sources| per (k, j) the set shares).
+
+    M is computed from the pixel's own phasor, whose noise is correlated with the
+    residual's where the samples' shot noise differs (σ_n² = read² + gain·I_n): the
+    residual's noise is ``Σ_n w_n ε_n``, ``w_n = q_jn − (∂M/∂C) cos δ_n − (∂M/∂S) sin δ_n``,
+    of variance ``read²·Σ w_n² + gain·Σ w_n² I_n``. ``design`` (2, R, C) gets those two
+    sums, averaged as ``var`` (1 and the pixel's level where M is nil): the fit's regressors.
+
+    Args:
+        level: (K, R, C) each frequency's mean, DN; phasor (K, 2, R, C) and resid
+            (K, d, R, C) as :func:`_set_statistics` fills them; basis, sources from
+            :func:`_bases`.
+        mask: (R, C) bool, the pixels to fit the harmonics on.
+        var, design: out, (R, C) and (2, R, C) float64.
+    """
+    if _nb is None:
+        _harmonic_fit_numpy(level, phasor, resid, basis, sources, mask, var, design)
+    else:
+        _nb.harmonic_fit(level, phasor, resid, basis, _moments(basis), sources, mask, var, design)
+
+
+def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
+                        mask: npt.NDArray[np.bool_], var: F64, design: F64) -> None:
+    """:func:`_harmonic_fit` in numpy."""
+    z = phasor[:, 0] + 1j * phasor[:, 1]  # (K, R, C)
+    mag = np.abs(z)
+    unit = np.where(mag > 0, z / np.where(mag > 0, mag, 1.0), 1.0)
+    k_n, d = resid.shape[:2]
+    n = basis.shape[0]
+    # the normal equations from every other chunk of FIT_CHUNK pixels, as the kernel
+    every = (np.arange(mask.size) // FIT_CHUNK) % 2 == 0
+    mask = mask & every.reshape(mask.shape)
+    var[...] = 0.0
+    design[...] = 0.0
+    for k in range(k_n):
+        samples = (level[k][None] + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 0], phasor[k, 0])
+                   + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 1], phasor[k, 1])
+                   + np.einsum("nj,jrc->nrc", basis[:, 2:], resid[k]))
+        for j in range(d):
+            terms = [mag[k] * unit[k] ** h for h in sources[j]]
+            x = np.stack([f(t) for t in terms for f in (np.real, np.imag)], axis=-1)
+            coef = np.linalg.lstsq(x[mask], resid[k, j][mask], rcond=None)[0]
+            var += (resid[k, j] - x @ coef) ** 2
+            gamma = coef[0::2] - 1j * coef[1::2]
+            g_z = sum(g * (1 + h) / 2 * unit[k] ** (h - 1) for g, h in zip(gamma, sources[j],
+                                                                         strict=True))
+            g_zb = sum(g * (1 - h) / 2 * unit[k] ** (h + 1) for g, h in zip(gamma, sources[j],
+                                                                          strict=True))
+            alpha, beta = np.real(g_z + g_zb), -np.imag(g_z - g_zb)
+            w = (basis[:, 2 + j, None, None] - alpha[None] * basis[:, 0, None, None]
+                 - beta[None] * basis[:, 1, None, None])
+            design[0] += (w**2).sum(axis=0)
+            design[1] += (w**2 * samples).sum(axis=0)
+    var /= k_n * d
+    design /= k_n * d
+
+
+@lru_cache(maxsize=16)
+def _moment_table(n: int) -> F64:
+    """:func:`_moments` of the N-step basis (cached)."""
+    return _moments_of(_bases(n)[0])
+
+
+def _moments(basis: F64) -> F64:
+    """(d, 6, 3 + d) float64: for residual column j and the pairs (e_u, e_v) = (q_j, q_j),
+    (q_j, cos δ), (q_j, sin δ), (cos δ, cos δ), (sin δ, sin δ), (cos δ, sin δ), the sums
+    Σ_n e_u e_v f_n over the sample's terms f = 1, cos δ, sin δ, q_1 … q_d."""
+    return _moment_table(basis.shape[0])
+
+
+def _moments_of(basis: F64) -> F64:
+    d = basis.shape[1] - 2
+    ones = np.ones(basis.shape[0])
+    terms = np.stack([ones, basis[:, 0], basis[:, 1], *basis[:, 2:].T])  # (3 + d, N)
+    out = np.empty((d, 6, 3 + d))
+    for j in range(d):
+        q, c, s = basis[:, 2 + j], basis[:, 0], basis[:, 1]
+        for t, (u, v) in enumerate(((q, q), (q, c), (q, s), (c, c), (s, s), (c, s))):
+            out[j, t] = terms @ (u * v)
+    return out
+
+
+def _line_form(var: F64, design: F64, usable: npt.NDArray[np.bool_]) -> tuple[F64, F64]:
+    """(x, y) = (b/a, var/a) of the usable pixels: ``y ≈ read² + gain·x``."""
+    a = design[0][usable]
+    return design[1][usable] / a, var[usable] / a
+
+
+@lru_cache(maxsize=64)
+def _chi2_limit(dof: int) -> tuple[float, float, float]:
+    """(χ²_ν/ν quantile :data:`OUTLIER_QUANTILE`, χ²_ν/ν median, mean of χ²_ν/ν below that
+    quantile) for ν = ``dof``: the trim's bias, E[χ²_ν; χ²_ν < c] = ν·F_{ν+2}(c)."""
+    from scipy.stats import chi2
+
+    c = float(chi2.ppf(OUTLIER_QUANTILE, dof))
+    kept = float(chi2.cdf(c, dof + 2)) / OUTLIER_QUANTILE
+    return c / dof, float(chi2.median(dof)) / dof, kept
+
+
+#: pixels the trimmed fit's robust start reads at most (medians of intensity bins)
+START_PIXELS = 8192
+
+
+def _trimmed_fit(intensity: F64, var: F64, dof: int,
+                 start: F64 | None = None) -> tuple[F64, npt.NDArray[np.bool_]]:
     """``(read², gain)`` of ``var ≈ read² + gain·intensity`` without the pixels that are not noise.
 
     Where the scene holds still a pixel's residual variance is σ_I²·χ²_ν/ν (ν = ``dof``).
@@ -128,26 +377,59 @@ def _trimmed_fit(intensity: npt.NDArray[np.float64], var: npt.NDArray[np.float64
     Args:
         intensity, var: (P,) float64 mean intensity (DN) and residual variance (DN²).
         dof: ν, the residual's degrees of freedom per pixel.
+        start: (2,) a model to start from; None: the medians of equal-count intensity bins
+            of at most :data:`START_PIXELS` pixels (χ²_ν/ν's median divided out).
 
     Returns:
-        read noise variance, DN², and gain, DN per electron (either may be negative; the
-        caller clips).
+        ``(coef, keep)``: (2,) float64 read noise variance, DN², and gain, DN per electron
+        (either may be negative; the caller clips), and (P,) bool the pixels fitted.
     """
-    from scipy.stats import chi2
-
-    limit = float(chi2.ppf(OUTLIER_QUANTILE, dof)) / dof
-    design = np.stack([np.ones(intensity.size), intensity], axis=1)
-    # start from the median of each equal-count intensity bin (χ²_ν/ν's median divided out)
-    bins = np.array_split(np.argsort(intensity, kind="stable"),
-                          max(2, min(32, intensity.size // 50)))
-    med = np.array([np.median(var[b]) for b in bins]) / (float(chi2.median(dof)) / dof)
-    start = np.stack([np.ones(len(bins)), [intensity[b].mean() for b in bins]], axis=1)
-    coef, *_ = np.linalg.lstsq(start, med, rcond=None)
+    limit, median, _ = _chi2_limit(dof)
+    if start is None:
+        every = max(1, intensity.size // START_PIXELS)
+        xs, vs = intensity[::every], var[::every]
+        bins = np.array_split(np.argsort(xs, kind="stable"), max(2, min(32, xs.size // 50)))
+        med = np.array([np.median(vs[b]) for b in bins]) / median
+        centre = np.array([xs[b].mean() for b in bins])
+        start_design = np.stack([np.ones(centre.size), centre], axis=1)
+        coef = np.linalg.lstsq(start_design, med, rcond=None)[0]
+    else:
+        coef = np.asarray(start, np.float64)
     keep = np.zeros(intensity.size, bool)
     for _ in range(20):
-        new = var <= limit * np.maximum(design @ coef, 1e-3)
+        new = var <= limit * np.maximum(coef[0] + coef[1] * intensity, 1e-3)
         if new.sum() < 100 or np.array_equal(new, keep):
             break
         keep = new
-        coef, *_ = np.linalg.lstsq(design[keep], var[keep], rcond=None)
-    return float(coef[0]), float(coef[1])
+        coef = _line(intensity[keep], var[keep])
+    if not keep.any():
+        keep = np.ones(intensity.size, bool)
+        coef = _line(intensity, var)
+    return coef, keep
+
+
+def _line(x: F64, y: F64) -> F64:
+    """(intercept, slope) of the least-squares line through (x, y) (closed form)."""
+    xm, ym = float(x.mean()), float(y.mean())
+    dx = x - xm
+    sxx = float(dx @ dx)
+    slope = float(dx @ (y - ym)) / sxx if sxx > 0 else 0.0
+    return np.array([ym - slope * xm, slope])
+
+
+def _covariance(x: F64, coef: F64, dof: int) -> F64:
+    """(2, 2) covariance of the least-squares line's (intercept, slope) when each y is
+    model(x)·χ²_ν/ν, of variance 2·model²/ν (the sandwich formula, pixels independent)."""
+    w = 2.0 * np.maximum(coef[0] + coef[1] * x, 0.0) ** 2 / dof
+    xx = x * x
+    bread = np.linalg.inv(np.array([[x.size, x.sum()], [x.sum(), xx.sum()]]))
+    wx = w * x
+    meat = np.array([[w.sum(), wx.sum()], [wx.sum(), float(wx @ x)]])
+    return np.asarray(bread @ meat @ bread, np.float64)
+
+
+_nb: ModuleType | None
+try:
+    from app.recon import noise_kernels as _nb
+except ImportError:  # numba missing: the numpy versions (slower, same results)
+    _nb = None
