@@ -251,12 +251,19 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
         calibration_key,
         output_digest,
         run_set,
+        write_files,
         write_table,
     )
+    from app.batch.setjob import output_writers
 
     key = calibration_key(calibration)
     digest = output_digest(key, options, files, 1)
     outs = iter(range(10**6))  # a new output folder per job, as in a batch (no overwriting)
+    # the files as run_set writes them: encoded, written to temporaries, synced, renamed, the
+    # folder synced; less the encoding alone, the writing's own cost
+    writers = list(output_writers(recon, options, files).items())
+    t_write, c_write = median_ms(
+        lambda: write_files(str(tmp / "writes" / f"set_{next(outs)}"), writers), repeats)
     t_job, c_job = median_ms(
         lambda: run_set(SetTask("rec", 0, ("set_0000",), (str(first),),
                                 str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
@@ -275,8 +282,16 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
           f"{c_kernel:.1f}); decode {codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: "
           f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f} "
           f"(reason.png {t_png:.1f} / {c_png:.1f}); statistics {t_stats:.1f} / {c_stats:.1f}; "
+          f"encode + write 3 files (synced, renamed) {t_write:.1f} / {c_write:.1f}; "
           f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}; plan + table of "
           f"{n_sets} sets {c_plan:.1f} + {c_table:.1f} CPU ms ({client_ms:.2f} per set)")
+    parts = {"decode": c_decode, "Reconstructor.run": c_run, "encode": c_encode,
+             "writes": c_write - c_encode, "statistics": c_stats}
+    print(f"  whole job {c_job:.1f} CPU ms = " + " + ".join(f"{k} {v:.1f}" for k, v in
+                                                         parts.items())
+          + f" + the rest {c_job - sum(parts.values()):.1f} (the digest file, reading the "
+          f"set's metadata, the reconstructor cache, the row); wall - CPU "
+          f"{t_job - c_job:.1f} ms (waiting for the syncs, and for the CPU others take)")
 
     results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
     t0 = time.perf_counter()
