@@ -6,8 +6,10 @@ Eq. (5). Measured in this process first, on one core as a worker runs
 (:func:`app.batch.engine.one_core_per_task`): ``Reconstructor.run`` alone (frames in memory,
 tables built, the set's noise fitted inside it as in every run without a given model), its
 kernel with the noise given, frame decoding (``read_capture_set``, zstd and PNG), the
-encoders, the table statistics, the whole per-set job (``run_set``: decode + run + encode +
-atomic writes), and the client's plan and table. Then sets per second through the engine
+encoders, the table statistics, the files written as ``run_set`` writes them (temporaries
+synced, renamed, the folder synced), the whole per-set job (``run_set``: decode + run +
+encode + writes; printed as the sum of those parts and the rest), and the client's plan and
+table. Then sets per second through the engine
 with 1 and 2 local worker processes (two embedded LocalClusters, the same batch on each in
 turn, ``--rounds`` times: the ratio is the median of the rounds' ratios, so the others' load
 on a shared machine falls on both alike) and (not with ``--quick``) with an external
