@@ -159,13 +159,15 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path,
             # every process of the run, per set: workers, nannies, scheduler, client
             "tree_cpu_ms": cpu * 1e3 / len(rows),
             "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
-            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows)}
+            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
+            "write_cpu_ms": statistics.mean(r["write_cpu_ms"] for r in rows)}
 
 
 def _engine_line(r: dict[str, float]) -> str:
     return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s); CPU per set {r['tree_cpu_ms']:.0f} ms "
             f"all processes (in the task {r['cpu_ms']:.0f} ms: decode {r['decode_cpu_ms']:.0f}, "
-            f"noise fit + run {r['recon_cpu_ms']:.0f}); peak RSS growth per worker "
+            f"noise fit + run {r['recon_cpu_ms']:.0f}, encode + write + sync "
+            f"{r['write_cpu_ms']:.0f}); peak RSS growth per worker "
             f"{r['peak_growth_mb']:.0f} MB (RSS {r['peak_rss_mb']:.0f} MB)")
 
 
@@ -205,11 +207,11 @@ def main() -> int:
     parser.add_argument("--codec", choices=("zstd", "png"), default="zstd",
                         help="frame files of the batch (default zstd, as the recorder writes)")
     parser.add_argument("--quick", action="store_true",
-                        help="24 sets, 3 repeats, 2 rounds, no external cluster (< 3 min): the "
+                        help="24 sets, 5 repeats, 2 rounds, no external cluster (< 3 min): the "
                              "1 and 2 worker rates, their ratio, the overhead and peak memory")
     args = parser.parse_args()
     if args.quick:
-        args.sets, args.repeats, args.rounds = 24, 3, 2
+        args.sets, args.repeats, args.rounds = 24, 5, 2
     tmp = Path(tempfile.mkdtemp(prefix="bench-reprocess-"))
     try:
         return _run(tmp, args.sets, args.repeats, args.rounds, args.codec,
@@ -266,10 +268,12 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
     writers = list(output_writers(recon, options, files).items())
     t_write, c_write = median_ms(
         lambda: write_files(str(tmp / "writes" / f"set_{next(outs)}"), writers), repeats)
+    job_rows = []  # each call's own figures: the parts below add up to the same calls' CPU
     t_job, c_job = median_ms(
-        lambda: run_set(SetTask("rec", 0, ("set_0000",), (str(first),),
-                                str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
-                        calibration, options), repeats)
+        lambda: job_rows.append(run_set(
+            SetTask("rec", 0, ("set_0000",), (str(first),),
+                    str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
+            calibration, options)), repeats)
     # the client's work per recording: the plan (lists the sets, reads the first) and the table
     planned = plan([str(rec)], calibration, str(tmp / "planned"), options)
     rows = [run_set(t, calibration, options) for t in planned[0].todo[:2]]
@@ -287,13 +291,20 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
           f"encode + write 3 files (synced, renamed) {t_write:.1f} / {c_write:.1f}; "
           f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}; plan + table of "
           f"{n_sets} sets {c_plan:.1f} + {c_table:.1f} CPU ms ({client_ms:.2f} per set)")
-    parts = {"decode": c_decode, "Reconstructor.run": c_run, "encode": c_encode,
-             "writes": c_write - c_encode, "statistics": c_stats}
-    print(f"  whole job {c_job:.1f} CPU ms = " + " + ".join(f"{k} {v:.1f}" for k, v in
-                                                         parts.items())
-          + f" + the rest {c_job - sum(parts.values()):.1f} (the digest file, reading the "
-          f"set's metadata, the reconstructor cache, the row); wall - CPU "
-          f"{t_job - c_job:.1f} ms (waiting for the syncs, and for the CPU others take)")
+    measured = job_rows[1:]  # not the warm-up call
+
+    def job_med(key: str) -> float:
+        return statistics.median(r[key] for r in measured)
+
+    rest = statistics.median(r["cpu_ms"] - r["decode_cpu_ms"] - r["recon_cpu_ms"]
+                             - r["write_cpu_ms"] for r in measured)
+    print(f"  whole job, its own figures (median of {len(measured)}): {job_med('cpu_ms'):.1f} "
+          f"CPU ms before its digest file = decode {job_med('decode_cpu_ms'):.1f} + noise fit "
+          f"and run {job_med('recon_cpu_ms'):.1f} + encode, write, sync and rename 3 files "
+          f"{job_med('write_cpu_ms'):.1f} (of which the writing {c_write - c_encode:.1f} as "
+          f"measured apart) + the rest {rest:.1f} (statistics {c_stats:.1f}, the set's "
+          f"metadata, the row); wall - CPU {t_job - c_job:.1f} ms (waiting for the syncs, and "
+          f"for the CPU others take)")
 
     results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
     t0 = time.perf_counter()

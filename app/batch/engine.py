@@ -81,7 +81,7 @@ MAX_SETS_PER_TASK, TASKS_PER_WORKER = 8, 4
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
            "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
-           "recon_cpu_ms", "status", "error")
+           "recon_cpu_ms", "write_cpu_ms", "status", "error")
 
 
 @dataclass(frozen=True)
@@ -397,7 +397,7 @@ def _empty_row(task: SetTask) -> dict[str, Any]:
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
             "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan,
-            "recon_cpu_ms": nan, "status": "failed", "error": ""}
+            "recon_cpu_ms": nan, "write_cpu_ms": nan, "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -445,10 +445,13 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
         remove_file(_join(task.out_url, META_FILE))
+        thread_write = time.thread_time()
         # synced: on disk before the digest below is written
         write_files(task.out_url, list(output_writers(recon, options, task.files).items()))
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
-                   cpu_ms=(time.process_time() - cpu0) * 1e3)
+                   cpu_ms=(time.process_time() - cpu0) * 1e3,
+                   # encoding, writing, syncing and renaming run on this thread
+                   write_cpu_ms=(time.thread_time() - thread_write) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
                 "files": list(task.files), "options": options.to_dict(), "row": row}
         meta_bytes = (json.dumps(meta, indent=2) + "\n").encode()
@@ -613,7 +616,8 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms",
-              "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
+              "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms",
+              "write_cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
     stamps = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce")

@@ -151,6 +151,7 @@ def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_
         # the task thread's decoding and reconstruction CPU, parts of its process's CPU
         assert row["decode_cpu_ms"] > 0 and row["recon_cpu_ms"] > 0
         assert row["decode_cpu_ms"] + row["recon_cpu_ms"] < row["cpu_ms"]
+        assert 0 < row["write_cpu_ms"] < row["cpu_ms"] - row["decode_cpu_ms"] - row["recon_cpu_ms"]
     # the second run skips every set: same digest, nothing rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / rec.name).rglob("*")
               if p.is_file() and p.suffix != ".parquet"}

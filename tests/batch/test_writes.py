@@ -165,3 +165,32 @@ def test_the_data_is_synced_before_the_digest_and_the_digest_is_not(tmp_path):
                       if e[0] == "openat" and e[1].startswith(".depth.npy."))
     assert any(e == ("fsync", "set_0000") for e in again[unlink:first_temp]), again
     assert sum(e[0] == "fsync" for e in again) == 5
+
+
+def test_the_row_and_the_table_give_the_writes_cpu(tmp_path):
+    """``write_cpu_ms``: the task thread's CPU to encode, write, sync and rename the files, a
+    part of the set's CPU beside its decoding and reconstruction; a column of the table."""
+    import pandas as pd
+
+    from app.batch.engine import plan, run_set, write_table
+    from app.batch.setjob import ReconOptions
+    from app.calib import load_calibration, save_calibration
+    from app.capture import CaptureSet, write_capture_set
+    from app.devices.sim.analytic_rig import Rig, bump_surface
+
+    rig = Rig()
+    for i in range(2):
+        write_capture_set(tmp_path / "rec" / f"set_{i:04d}", CaptureSet(
+            rig.render(bump_surface(rig), noise=0.5, rng=np.random.default_rng(i)),
+            rig.schedule, exposure_ms=20.0))
+    save_calibration(rig.calibration(), tmp_path / "calibration.json")
+    calibration = load_calibration(tmp_path / "calibration.json")
+    tasks = plan([str(tmp_path / "rec")], calibration, str(tmp_path / "out"), ReconOptions())
+    rows = [run_set(t, calibration, ReconOptions()) for t in tasks[0].todo]
+    for row in rows:
+        assert row["status"] == "done", row["error"]
+        assert 0 < row["write_cpu_ms"] < row["cpu_ms"] - row["decode_cpu_ms"] - row["recon_cpu_ms"]
+    failed = {**rows[1], "index": 2, "status": "failed", "write_cpu_ms": float("nan")}
+    table = pd.read_parquet(write_table(str(tmp_path / "out" / "rec"), [*rows, failed]))
+    assert list(table["write_cpu_ms"][:2]) == [r["write_cpu_ms"] for r in rows]
+    assert np.isnan(table["write_cpu_ms"][2])
