@@ -160,11 +160,12 @@ def write_npy(fh: BinaryIO, values: npt.NDArray[Any]) -> None:
     """Write ``values`` to ``fh`` as ``np.save(fh, values, allow_pickle=False)`` does, byte
     for byte.
 
-    A C-contiguous array goes as its header and then its own memory, in one write each,
-    into a file whose size is reserved first (:func:`app.atomic.preallocate`); any other
-    array through ``np.save``.
+    A C-contiguous array as the whole of a new local file goes past the page cache
+    (:func:`app.atomic.write_direct`), elsewhere as its header and then its own memory, in
+    one write each, into a file whose size is reserved first
+    (:func:`app.atomic.preallocate`); any other array through ``np.save``.
     """
-    from app.atomic import preallocate
+    from app.atomic import preallocate, write_direct
 
     head = io.BytesIO()
     try:
@@ -176,16 +177,19 @@ def write_npy(fh: BinaryIO, values: npt.NDArray[Any]) -> None:
         np.save(fh, values, allow_pickle=False)
         return
     header = head.getvalue()
+    data = values.reshape(-1).view(np.uint8).data  # its memory, not a copy
+    size = len(header) + values.nbytes
     try:
         fd = fh.fileno()
     except (AttributeError, OSError):  # io.UnsupportedOperation: an in-memory file
         fd = -1
     if fd >= 0:
         fh.flush()
-        start = fh.tell()
-        preallocate(fd, start + len(header) + values.nbytes)
+        if fh.tell() == 0 and write_direct(fd, (header, data), size):
+            fh.seek(size)  # the file object's position where the descriptor's is
+            return
+        preallocate(fd, fh.tell() + size)
     fh.write(header)
-    data = values.reshape(-1).view(np.uint8).data  # its memory, not a copy
     while data:  # a buffered file writes it all at once; a raw one may take several calls
         data = data[fh.write(data):]
 

@@ -17,6 +17,7 @@ from typing import BinaryIO
 import numpy as np
 import pytest
 
+from app.atomic import write_direct
 from app.batch.engine import write_files
 from app.batch.setjob import write_npy
 
@@ -42,9 +43,30 @@ def test_write_npy_writes_np_saves_bytes(values, tmp_path):
         write_npy(fh, values)
     with open(tmp_path / "raw.npy", "wb", buffering=0) as fh:
         write_npy(fh, values)
+    with open(tmp_path / "after.bin", "wb") as fh:  # not a whole file: through the page cache
+        fh.write(b"abc")
+        write_npy(fh, values)
+        fh.write(b"z")
     assert in_memory.getvalue() == expected.getvalue()
     assert (tmp_path / "buffered.npy").read_bytes() == expected.getvalue()
     assert (tmp_path / "raw.npy").read_bytes() == expected.getvalue()
+    assert (tmp_path / "after.bin").read_bytes() == b"abc" + expected.getvalue() + b"z"
+
+
+def test_write_direct_writes_a_whole_new_file_or_nothing(tmp_path):
+    data = np.random.default_rng(1).integers(0, 256, 3 * 4096 + 77, dtype=np.uint8).tobytes()
+    with open(tmp_path / "new", "wb") as fh:
+        assert write_direct(fh.fileno(), (data[:100], memoryview(data)[100:]), len(data))
+        assert os.lseek(fh.fileno(), 0, os.SEEK_CUR) == len(data)
+        os.write(fh.fileno(), b"!")  # the descriptor writes on, buffered again
+    assert (tmp_path / "new").read_bytes() == data + b"!"
+    with open(tmp_path / "old", "wb") as fh:  # a file not empty is left to the caller
+        fh.write(b"keep")
+        fh.flush()
+        assert not write_direct(fh.fileno(), (data,), len(data))
+    assert (tmp_path / "old").read_bytes() == b"keep"
+    with open(tmp_path / "bad", "wb") as fh, pytest.raises(ValueError, match="^size_bytes"):
+        write_direct(fh.fileno(), (data,), len(data) + 1)
 
 
 def _writer(data: bytes):
@@ -94,8 +116,8 @@ def _traced_job(tmp: Path, rec: Path, cal: Path, out: Path, modulation: float) -
     env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_THREADING_LAYER": "workqueue"}
     env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
     subprocess.run(["strace", "-f", "-qq", "-o", str(log), "-e",
-                    "trace=openat,close,fsync,fdatasync,rename,renameat,renameat2,unlink,"
-                    "unlinkat", sys.executable, "-c", _JOB, str(rec), str(cal), str(out),
+                    "trace=openat,close,fcntl,fsync,fdatasync,rename,renameat,renameat2,"
+                    "unlink,unlinkat", sys.executable, "-c", _JOB, str(rec), str(cal), str(out),
                     str(modulation)], env=env, check=True, timeout=300, capture_output=True)
     opened: dict[str, str] = {}
     events = []
@@ -111,6 +133,9 @@ def _traced_job(tmp: Path, rec: Path, cal: Path, out: Path, modulation: float) -
             opened.pop(args.strip(), None)
         elif call in ("fsync", "fdatasync") and args.strip() in opened:
             paths = [opened[args.strip()]]
+        elif call == "fcntl" and "F_SETFL" in args and "O_DIRECT" in args:
+            fd = args.split(",")[0].strip()
+            paths = [opened[fd]] if fd in opened else []
         if paths and all(p.startswith(str(out)) for p in paths) and int(result) >= 0:
             names = tuple(os.path.basename(p) if p != str(out) else "." for p in paths)
             events.append((call, *names))
@@ -155,6 +180,11 @@ def test_the_data_is_synced_before_the_digest_and_the_digest_is_not(tmp_path):
     assert folder_sync < events.index(("openat", temp["reprocess.json"]))
     assert renames[-1][1:] == (temp["reprocess.json"], "reprocess.json")
     assert kinds.count("fsync") == 4
+    with open(tmp_path / "probe", "wb") as fh:  # where the file system takes direct writes,
+        direct = write_direct(fh.fileno(), (b"x",), 1)
+    # the arrays go past the page cache
+    assert [e[1] for e in events if e[0] == "fcntl"] == (
+        [temp["depth.npy"], temp["sigma.npy"]] if direct else [])
     assert json.loads((folder / "reprocess.json").read_text())["row"]["status"] == "done"
 
     # the same set with other options: the old digest is gone for good before any write
