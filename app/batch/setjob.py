@@ -199,7 +199,7 @@ def output_writers(recon: SetReconstruction, options: ReconOptions,
     """Writers of the output files ``names`` (a subset of :data:`ALL_FILES`), in that order.
 
     Each writes its file's bytes (see :func:`output_files`) to an open binary file; the
-    ``.npy`` arrays go straight from memory to the file (no copy of their bytes).
+    ``.npy`` arrays are written by :func:`write_npy`.
     """
     from app.batch.reasonpng import reason_png_indexed
     from app.capture.ply import ply_bytes
