@@ -6,8 +6,10 @@ Eq. (5). Measured in this process first, on one core as a worker runs
 (:func:`app.batch.engine.one_core_per_task`): ``Reconstructor.run`` alone (frames in memory,
 tables built, the set's noise fitted inside it as in every run without a given model), its
 kernel with the noise given, frame decoding (``read_capture_set``, zstd and PNG), the
-encoders, the table statistics, the whole per-set job (``run_set``: decode + run + encode +
-atomic writes), and the client's plan and table. Then sets per second through the engine
+encoders, the table statistics, the files written as ``run_set`` writes them (temporaries
+synced, renamed, the folder synced), the whole per-set job (``run_set``: decode + run +
+encode + writes; printed as the sum of those parts and the rest), and the client's plan and
+table. Then sets per second through the engine
 with 1 and 2 local worker processes (two embedded LocalClusters, the same batch on each in
 turn, ``--rounds`` times: the ratio is the median of the rounds' ratios, so the others' load
 on a shared machine falls on both alike) and (not with ``--quick``) with an external
@@ -157,13 +159,15 @@ def engine_rate(client: Any, rec: Path, cal_path: Path, out: Path,
             # every process of the run, per set: workers, nannies, scheduler, client
             "tree_cpu_ms": cpu * 1e3 / len(rows),
             "decode_cpu_ms": statistics.mean(r["decode_cpu_ms"] for r in rows),
-            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows)}
+            "recon_cpu_ms": statistics.mean(r["recon_cpu_ms"] for r in rows),
+            "write_cpu_ms": statistics.mean(r["write_cpu_ms"] for r in rows)}
 
 
 def _engine_line(r: dict[str, float]) -> str:
     return (f"{r['rate']:.2f} sets/s ({r['wall_s']:.1f} s); CPU per set {r['tree_cpu_ms']:.0f} ms "
             f"all processes (in the task {r['cpu_ms']:.0f} ms: decode {r['decode_cpu_ms']:.0f}, "
-            f"noise fit + run {r['recon_cpu_ms']:.0f}); peak RSS growth per worker "
+            f"noise fit + run {r['recon_cpu_ms']:.0f}, encode + write + sync "
+            f"{r['write_cpu_ms']:.0f}); peak RSS growth per worker "
             f"{r['peak_growth_mb']:.0f} MB (RSS {r['peak_rss_mb']:.0f} MB)")
 
 
@@ -203,11 +207,11 @@ def main() -> int:
     parser.add_argument("--codec", choices=("zstd", "png"), default="zstd",
                         help="frame files of the batch (default zstd, as the recorder writes)")
     parser.add_argument("--quick", action="store_true",
-                        help="24 sets, 3 repeats, 2 rounds, no external cluster (< 3 min): the "
+                        help="24 sets, 5 repeats, 2 rounds, no external cluster (< 3 min): the "
                              "1 and 2 worker rates, their ratio, the overhead and peak memory")
     args = parser.parse_args()
     if args.quick:
-        args.sets, args.repeats, args.rounds = 24, 3, 2
+        args.sets, args.repeats, args.rounds = 24, 5, 2
     tmp = Path(tempfile.mkdtemp(prefix="bench-reprocess-"))
     try:
         return _run(tmp, args.sets, args.repeats, args.rounds, args.codec,
@@ -251,16 +255,25 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
         calibration_key,
         output_digest,
         run_set,
+        write_files,
         write_table,
     )
+    from app.batch.setjob import output_writers
 
     key = calibration_key(calibration)
     digest = output_digest(key, options, files, 1)
     outs = iter(range(10**6))  # a new output folder per job, as in a batch (no overwriting)
+    # the files as run_set writes them: encoded, written to temporaries, synced, renamed, the
+    # folder synced; less the encoding alone, the writing's own cost
+    writers = list(output_writers(recon, options, files).items())
+    t_write, c_write = median_ms(
+        lambda: write_files(str(tmp / "writes" / f"set_{next(outs)}"), writers), repeats)
+    job_rows = []  # each call's own figures: the parts below add up to the same calls' CPU
     t_job, c_job = median_ms(
-        lambda: run_set(SetTask("rec", 0, ("set_0000",), (str(first),),
-                                str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
-                        calibration, options), repeats)
+        lambda: job_rows.append(run_set(
+            SetTask("rec", 0, ("set_0000",), (str(first),),
+                    str(tmp / "inproc" / f"set_{next(outs)}"), files, digest, key),
+            calibration, options)), repeats)
     # the client's work per recording: the plan (lists the sets, reads the first) and the table
     planned = plan([str(rec)], calibration, str(tmp / "planned"), options)
     rows = [run_set(t, calibration, options) for t in planned[0].todo[:2]]
@@ -275,8 +288,23 @@ def _run(tmp: Path, n_sets: int, repeats: int, rounds: int, codec: str, *,
           f"{c_kernel:.1f}); decode {codec} {t_decode:.1f} / {c_decode:.1f} ({codec2}: "
           f"{t_decode2:.1f} / {c_decode2:.1f}); encode 3 files {t_encode:.1f} / {c_encode:.1f} "
           f"(reason.png {t_png:.1f} / {c_png:.1f}); statistics {t_stats:.1f} / {c_stats:.1f}; "
+          f"encode + write 3 files (synced, renamed) {t_write:.1f} / {c_write:.1f}; "
           f"whole job (run_set, with atomic writes) {t_job:.1f} / {c_job:.1f}; plan + table of "
           f"{n_sets} sets {c_plan:.1f} + {c_table:.1f} CPU ms ({client_ms:.2f} per set)")
+    measured = job_rows[1:]  # not the warm-up call
+
+    def job_med(key: str) -> float:
+        return statistics.median(r[key] for r in measured)
+
+    rest = statistics.median(r["cpu_ms"] - r["decode_cpu_ms"] - r["recon_cpu_ms"]
+                             - r["write_cpu_ms"] for r in measured)
+    print(f"  whole job, its own figures (median of {len(measured)}): {job_med('cpu_ms'):.1f} "
+          f"CPU ms before its digest file = decode {job_med('decode_cpu_ms'):.1f} + noise fit "
+          f"and run {job_med('recon_cpu_ms'):.1f} + encode, write, sync and rename 3 files "
+          f"{job_med('write_cpu_ms'):.1f} (of which the writing {c_write - c_encode:.1f} as "
+          f"measured apart) + the rest {rest:.1f} (statistics {c_stats:.1f}, the set's "
+          f"metadata, the row); wall - CPU {t_job - c_job:.1f} ms (waiting for the syncs, and "
+          f"for the CPU others take)")
 
     results: dict[str, list[dict[str, float]]] = {"local 1": [], "local 2": []}
     t0 = time.perf_counter()

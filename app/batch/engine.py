@@ -81,7 +81,7 @@ MAX_SETS_PER_TASK, TASKS_PER_WORKER = 8, 4
 #: the table's columns, in order (floats are NaN where a failed set has no value)
 COLUMNS = ("index", "folder", "timestamp", "exposure_ms", "valid_fraction", "median_sigma_mm",
            "motion_share", "recon_ms", "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms",
-           "recon_cpu_ms", "status", "error")
+           "recon_cpu_ms", "write_cpu_ms", "status", "error")
 
 
 @dataclass(frozen=True)
@@ -168,12 +168,16 @@ def write_bytes(url: str, data: bytes) -> None:
         fs.pipe_file(path, data)
 
 
-def write_files(url: str, writers: Sequence[tuple[str, FileWriter]]) -> None:
+def write_files(url: str, writers: Sequence[tuple[str, FileWriter]], *,
+                durable: bool = True) -> None:
     """Write each ``(name, writer)`` file into the folder ``url``, each whole.
 
-    Locally each goes to a hidden temporary (``.NAME.*.tmp``), synced and renamed over
-    ``name``, and the folder is synced once after them (so a file written later, e.g.
-    ``reprocess.json``, is never on disk before these); an object store gets one put each.
+    Locally each file goes to a hidden temporary (``.NAME.*.tmp``) renamed over ``name``:
+    a crash of the process leaves the old file or the new one. With ``durable`` all the
+    temporaries are written, then synced, then renamed, and the folder is synced once
+    after them: after a power cut too each name holds a whole file, and once this returns
+    the files are on disk (so a file written later, e.g. ``reprocess.json``, is never on
+    disk before them). An object store gets one put each.
     """
     fs, path = _fs(url)
     if not _is_local(fs):
@@ -183,19 +187,31 @@ def write_files(url: str, writers: Sequence[tuple[str, FileWriter]]) -> None:
             fs.pipe_file(_join(path, name), buf.getvalue())
         return
     os.makedirs(path, exist_ok=True)
-    for name, write in writers:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=path)
-        try:
-            with os.fdopen(fd, "wb") as fh:
+    pending: list[tuple[str, str]] = []  # (temporary, name) not yet renamed
+    try:
+        with contextlib.ExitStack() as stack:
+            opened = []
+            for name, write in writers:
+                fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=path)
+                pending.append((tmp, name))
+                fh = stack.enter_context(os.fdopen(fd, "wb"))
                 write(fh)
                 fh.flush()
-                os.fsync(fh.fileno())
+                opened.append(fh)
+            if durable:
+                for fh in opened:
+                    os.fsync(fh.fileno())
+        while pending:
+            tmp, name = pending[0]
             os.replace(tmp, os.path.join(path, name))
-        except BaseException:
+            pending.pop(0)
+    except BaseException:
+        for tmp, _name in pending:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
-            raise
-    fsync_dir(path)
+        raise
+    if durable:
+        fsync_dir(path)
 
 
 def remove_stale_temporaries(url: str) -> int:
@@ -212,10 +228,18 @@ def remove_stale_temporaries(url: str) -> int:
 
 
 def remove_file(url: str) -> None:
-    """Delete the file at ``url`` if there is one."""
+    """Delete the file at ``url`` if there is one; a local one for good (its folder synced
+    after it), so that nothing written afterwards reaches the disk before its removal."""
     fs, path = _fs(url)
-    with contextlib.suppress(FileNotFoundError):
-        fs.rm_file(path)
+    if not _is_local(fs):
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm_file(path)
+        return
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        return
+    fsync_dir(os.path.dirname(path))
 
 
 def read_text(url: str) -> str | None:
@@ -373,7 +397,7 @@ def _empty_row(task: SetTask) -> dict[str, Any]:
     return {"index": task.index, "folder": task.folders[0], "timestamp": None, "exposure_ms": nan,
             "valid_fraction": nan, "median_sigma_mm": nan, "motion_share": nan, "recon_ms": nan,
             "decode_ms": nan, "task_ms": nan, "cpu_ms": nan, "decode_cpu_ms": nan,
-            "recon_cpu_ms": nan, "status": "failed", "error": ""}
+            "recon_cpu_ms": nan, "write_cpu_ms": nan, "status": "failed", "error": ""}
 
 
 def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> dict[str, Any]:
@@ -421,16 +445,21 @@ def run_set(task: SetTask, calibration: Calibration, options: ReconOptions) -> d
         remove_stale_temporaries(task.out_url)  # of an earlier run of this task killed mid-write
         # the old digest goes first: a run stopped among the writes must not look finished
         remove_file(_join(task.out_url, META_FILE))
+        thread_write = time.thread_time()
+        # synced: on disk before the digest below is written
         write_files(task.out_url, list(output_writers(recon, options, task.files).items()))
         row.update(status="done", task_ms=(time.perf_counter() - t0) * 1e3,
-                   cpu_ms=(time.process_time() - cpu0) * 1e3)
+                   cpu_ms=(time.process_time() - cpu0) * 1e3,
+                   # encoding, writing, syncing and renaming run on this thread
+                   write_cpu_ms=(time.thread_time() - thread_write) * 1e3)
         meta = {"format": FORMAT, "digest": task.digest, "inputs": list(task.folders),
                 "files": list(task.files), "options": options.to_dict(), "row": row}
         meta_bytes = (json.dumps(meta, indent=2) + "\n").encode()
 
         def write_meta(fh: BinaryIO) -> None:
             fh.write(meta_bytes)
-        write_files(task.out_url, [(META_FILE, write_meta)])
+        # not synced: a power cut may lose it (or leave it empty), and the set is done again
+        write_files(task.out_url, [(META_FILE, write_meta)], durable=False)
     except Exception as exc:  # noqa: BLE001 - a set that fails is a row, never the end of the batch
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}".splitlines()[0],
                    task_ms=(time.perf_counter() - t0) * 1e3)
@@ -587,7 +616,8 @@ def write_table(out_url: str, rows: Sequence[dict[str, Any]]) -> str:
     frame = pd.DataFrame({c: [r.get(c) for r in ordered] for c in COLUMNS})
     frame["index"] = frame["index"].astype("int64")
     for c in ("exposure_ms", "valid_fraction", "median_sigma_mm", "motion_share", "recon_ms",
-              "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms"):
+              "decode_ms", "task_ms", "cpu_ms", "decode_cpu_ms", "recon_cpu_ms",
+              "write_cpu_ms"):
         frame[c] = pd.to_numeric(frame[c], errors="coerce").astype("float64")
     # UTC, stored without a zone (the writer's zone-aware path is deprecated in pandas 3)
     stamps = pd.to_datetime(frame["timestamp"], utc=True, errors="coerce")

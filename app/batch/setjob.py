@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import PurePath
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -156,12 +156,50 @@ def reconstruct_captures(
 FileWriter = Callable[[BinaryIO], None]
 
 
+def write_npy(fh: BinaryIO, values: npt.NDArray[Any]) -> None:
+    """Write ``values`` to ``fh`` as ``np.save(fh, values, allow_pickle=False)`` does, byte
+    for byte.
+
+    A C-contiguous array as the whole of a new local file goes past the page cache
+    (:func:`app.atomic.write_direct`), elsewhere as its header and then its own memory, in
+    one write each, into a file whose size is reserved first
+    (:func:`app.atomic.preallocate`); any other array through ``np.save``.
+    """
+    from app.atomic import preallocate, write_direct
+
+    head = io.BytesIO()
+    try:
+        if not values.flags.c_contiguous or values.dtype.hasobject:
+            raise ValueError("not one block of plain values")
+        np.lib.format.write_array_header_1_0(head,
+                                             np.lib.format.header_data_from_array_1_0(values))
+    except ValueError:  # or a header too long for format 1.0: numpy's own way
+        np.save(fh, values, allow_pickle=False)
+        return
+    header = head.getvalue()
+    data = values.reshape(-1).view(np.uint8).data  # its memory, not a copy
+    size = len(header) + values.nbytes
+    try:
+        fd = fh.fileno()
+    except (AttributeError, OSError):  # io.UnsupportedOperation: an in-memory file
+        fd = -1
+    if fd >= 0:
+        fh.flush()
+        if fh.tell() == 0 and write_direct(fd, (header, data), size):
+            fh.seek(size)  # the file object's position where the descriptor's is
+            return
+        preallocate(fd, fh.tell() + size)
+    fh.write(header)
+    while data:  # a buffered file writes it all at once; a raw one may take several calls
+        data = data[fh.write(data):]
+
+
 def output_writers(recon: SetReconstruction, options: ReconOptions,
                    names: Sequence[str] = ALL_FILES) -> dict[str, FileWriter]:
     """Writers of the output files ``names`` (a subset of :data:`ALL_FILES`), in that order.
 
     Each writes its file's bytes (see :func:`output_files`) to an open binary file; the
-    ``.npy`` arrays go straight from memory to the file (no copy of their bytes).
+    ``.npy`` arrays are written by :func:`write_npy`.
     """
     from app.batch.reasonpng import reason_png_indexed
     from app.capture.ply import ply_bytes
@@ -173,7 +211,7 @@ def output_writers(recon: SetReconstruction, options: ReconOptions,
     res = recon.result
 
     def array(values: Callable[[], npt.NDArray[np.float32]]) -> FileWriter:
-        return lambda fh: np.save(fh, values(), allow_pickle=False)
+        return lambda fh: write_npy(fh, values())
 
     def encoded(make: Callable[[], bytes]) -> FileWriter:
         def write(fh: BinaryIO) -> None:

@@ -77,8 +77,9 @@ class DaskCluster:
         time.sleep(0.2)  # the file is written whole, but give the listener a moment
         self.address = json.loads(sched_file.read_text())["address"]
         self.workers = [subprocess.Popen(
-            [str(DASK), "worker", self.address, "--host", "127.0.0.1", "--nthreads", "1", "--no-nanny",
-             "--no-dashboard", "--name", f"w{i}"], env=_env(), stdout=log, stderr=log)
+            [str(DASK), "worker", self.address, "--host", "127.0.0.1", "--nthreads", "1",
+             "--no-nanny", "--no-dashboard", "--name", f"w{i}"],
+            env=_env(), stdout=log, stderr=log)
             for i in range(n_workers)]
         self.procs += self.workers
         from distributed import Client
@@ -125,14 +126,17 @@ def _table(out: Path, name: str) -> pd.DataFrame:
 def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_path, capsys):
     rec, cal = small
     out = tmp_path / "out"
-    args = ["reprocess", str(rec), "-c", str(cal), "-o", str(out), "--scheduler", cluster.address, "--ply"]
+    args = ["reprocess", str(rec), "-c", str(cal), "-o", str(out), "--scheduler", cluster.address,
+            "--ply"]
     assert main(args) == 0
     summary = capsys.readouterr()
-    assert summary.out.strip().splitlines()[-1].startswith("reprocess: 1 recording(s), 6 set(s): 6 done, 0 reused")
+    assert summary.out.strip().splitlines()[-1].startswith(
+        "reprocess: 1 recording(s), 6 set(s): 6 done, 0 reused")
     assert "6/6 sets" in summary.err and "sets/s" in summary.err and "ETA" in summary.err
     session = json.loads((rec / "session.json").read_text())
     table = _table(out, rec.name)
-    assert list(table["folder"]) == [s["folder"] for s in session["sets"]] and set(table["status"]) == {"done"}
+    assert (list(table["folder"]) == [s["folder"] for s in session["sets"]]
+            and set(table["status"]) == {"done"})
     for i, s in enumerate(session["sets"]):
         got = out / rec.name / s["folder"]
         ref = _reconstruct([rec / s["folder"]], cal, tmp_path / "ref" / s["folder"])
@@ -147,8 +151,10 @@ def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_
         # the task thread's decoding and reconstruction CPU, parts of its process's CPU
         assert row["decode_cpu_ms"] > 0 and row["recon_cpu_ms"] > 0
         assert row["decode_cpu_ms"] + row["recon_cpu_ms"] < row["cpu_ms"]
+        assert 0 < row["write_cpu_ms"] < row["cpu_ms"] - row["decode_cpu_ms"] - row["recon_cpu_ms"]
     # the second run skips every set: same digest, nothing rewritten
-    stamps = {p: p.stat().st_mtime_ns for p in (out / rec.name).rglob("*") if p.is_file() and p.suffix != ".parquet"}
+    stamps = {p: p.stat().st_mtime_ns for p in (out / rec.name).rglob("*")
+              if p.is_file() and p.suffix != ".parquet"}
     assert main(args) == 0
     assert "0 done, 6 reused" in capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
@@ -184,7 +190,8 @@ def test_a_worker_killed_mid_run_changes_nothing(cluster, tmp_path):
         with Client(cluster.address, timeout="30s") as watcher:
             deadline = time.monotonic() + 120
             while time.monotonic() < deadline:
-                done = list((out / rec.name).glob("set_*/reprocess.json")) if (out / rec.name).exists() else []
+                done = (list((out / rec.name).glob("set_*/reprocess.json"))
+                        if (out / rec.name).exists() else [])
                 busy = watcher.processing().get(victim_addr, [])
                 if done and busy:
                     victim.send_signal(signal.SIGKILL)
@@ -214,21 +221,23 @@ def test_local_cluster_fuses_brackets_and_reports_a_failed_set(tmp_path, capsys)
     surface = bump_surface(rig)
     folder = tmp_path / "sets"
     for i, (name, exposure) in enumerate((("a0", 5.0), ("a1", 40.0), ("b0", 5.0), ("b1", 40.0))):
-        frames = rig.render(surface, amplitude=90.0 * exposure / 40.0, background=110.0 * exposure / 40.0,
+        frames = rig.render(surface, amplitude=90.0 * exposure / 40.0,
+                            background=110.0 * exposure / 40.0,
                             noise=0.5, rng=np.random.default_rng(i))
         write_capture_set(folder / name, CaptureSet(frames, rig.schedule, exposure_ms=exposure))
     (folder / "b1" / "frame_03.png").write_bytes(b"not a png")
     cal = tmp_path / "calibration.json"
     save_calibration(rig.calibration(), cal)
     out = tmp_path / "out"
-    rc = main(["reprocess", str(folder), "-c", str(cal), "-o", str(out), "--workers", "2", "--bracket", "2",
-               "--quiet"])
+    rc = main(["reprocess", str(folder), "-c", str(cal), "-o", str(out), "--workers", "2",
+               "--bracket", "2", "--quiet"])
     assert rc == 1  # a set failed; the others are done
     assert "1 done, 0 reused, 1 failed" in capsys.readouterr().out
     table = _table(out, "sets")
     assert list(table["folder"]) == ["a0", "b0"] and list(table["status"]) == ["done", "failed"]
     assert "frame_03.png" in table.iloc[1]["error"] and np.isnan(table.iloc[1]["valid_fraction"])
-    _same_files(out / "sets" / "a0", _reconstruct([folder / "a0", folder / "a1"], cal, tmp_path / "ref"))
+    _same_files(out / "sets" / "a0",
+                _reconstruct([folder / "a0", folder / "a1"], cal, tmp_path / "ref"))
     assert not (out / "sets" / "b0").exists()
 
 
@@ -238,7 +247,8 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize("case", ["not-a-recording", "image-size", "schedule", "scheduler", "workers"])
+@pytest.mark.parametrize(
+    "case", ["not-a-recording", "image-size", "schedule", "scheduler", "workers"])
 def test_bad_input_is_one_line_and_exit_2_before_any_work(small, tmp_path, capsys, case):
     rec, cal = small
     extra: list[str] = []
@@ -260,8 +270,9 @@ def test_bad_input_is_one_line_and_exit_2_before_any_work(small, tmp_path, capsy
     rc = main(["reprocess", str(rec), "-c", str(cal), "-o", str(out), *extra])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
-    expected = {"not-a-recording": "not a recording", "image-size": "160", "schedule": "finest pattern",
-                "scheduler": "cannot connect", "workers": "--workers"}[case]
+    expected = {"not-a-recording": "not a recording", "image-size": "160",
+                "schedule": "finest pattern", "scheduler": "cannot connect",
+                "workers": "--workers"}[case]
     assert expected in err[0]
     assert not out.exists()
     assert time.monotonic() - t0 < 30
@@ -281,7 +292,8 @@ def test_remote_storage_through_fsspec(small, tmp_path):
     assert list_sets("memory://rec") == ["set_0002"]
     calibration = load_calibration(cal_path)
     key = calibration_key(calibration)
-    task = SetTask("rec", 0, ("set_0002",), ("memory://rec/set_0002",), "memory://out/rec/set_0002", FILES,
+    task = SetTask("rec", 0, ("set_0002",), ("memory://rec/set_0002",),
+                   "memory://out/rec/set_0002", FILES,
                    output_digest(key, ReconOptions(), FILES, 1), key)
     row = run_set(task, calibration, ReconOptions())
     assert row["status"] == "done", row["error"]
@@ -303,10 +315,10 @@ def test_ctrl_c_leaves_whole_files_and_the_next_run_finishes(tmp_path):
     cal = tmp_path / "calibration.json"
     save_calibration(rig.calibration(), cal)
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "app", "reprocess", str(rec), "-c", str(cal), "-o", str(out), "--workers", "2",
-           "--quiet"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(), start_new_session=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
+    cmd = [sys.executable, "-m", "app", "reprocess", str(rec), "-c", str(cal), "-o", str(out),
+           "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(), start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
     while not list(out.glob(f"{rec.name}/set_*/reprocess.json")):
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
@@ -315,7 +327,8 @@ def test_ctrl_c_leaves_whole_files_and_the_next_run_finishes(tmp_path):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err.decode()[-2000:]
     table = _table(out, rec.name)
-    assert len(table) < 24 and set(table["status"]) <= {"done"}  # the results the client had received
+    # the results the client had received
+    assert len(table) < 24 and set(table["status"]) <= {"done"}
     # a worker finishes the set in its hands; such a set is whole, just not in the table
     finished = {p.parent.name for p in out.glob(f"{rec.name}/set_*/reprocess.json")}
     assert set(table["folder"]) <= finished and len(finished) < 24
