@@ -3,8 +3,10 @@
 simulate a calibration → calibrate → simulate the 45° DOF target, planes, spheres and a dark
 and a bright 0.72 mm suture → reconstruct → validate against the simulator's ground truth.
 
-    python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8] [--board checkerboard]
-                                        [--partial-boards | --full-boards] [--keep DIR] [--strict] [--seed S]
+    python benchmarks/bench_accuracy.py [--rig default endoscope] [--poses 8]
+                                        [--board checkerboard]
+                                        [--partial-boards | --full-boards] [--keep DIR]
+                                        [--strict] [--seed S]
                                         [--exposure auto|MS]
     python benchmarks/bench_accuracy.py --random-rigs N [--seed S] [--lengths 40] [--keep DIR]
                                         [--oracle] [--strict]
@@ -25,9 +27,9 @@ valid pixels, valid fraction of lit unsaturated pixels; "in" = inside the calibr
 inside the calibration's supported region at the pixel's TRUE height and TRUE phase (the phase
 from the twin's projector geometry), reported apart from the pixels outside the volume ("out")
 and those in the volume but outside the supported region ("off": valid count, gross count, max
-error — no gross error is allowed anywhere). The predicted floor is ``ReconResult.sigma`` when the reconstruction has it, else the
-noise-floor prediction of app/analysis/noise.py. Exit code 0 (with ``--strict``: 1 if any
-acceptance target is missed).
+error — no gross error is allowed anywhere). The predicted floor is ``ReconResult.sigma`` when
+the reconstruction has it, else the noise-floor prediction of app/analysis/noise.py. Exit code 0
+(with ``--strict``: 1 if any acceptance target is missed).
 
 ``--random-rigs N``: N rigs drawn by app/devices/sim/random_rig.py from seeds S … S + N − 1
 (sensor, focal length, principal point, k1/k2, bit depth 8/10/12, triangulation angle and
@@ -38,7 +40,8 @@ the issue's targets: valid share of the lit, unsaturated pixels inside the calib
 (DOF black print excluded; and the share refused only as ``outside the calibrated field``),
 every ninth's RMS(error/σ) in 0.85–1.15 and |mean error| ≤ 0.005 mm (≤ 2 σ_model where the
 result carries a σ_model above 2.5 µm), RMS(error/σ) of random lengths (``--lengths`` per scene)
-in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting each. ``--oracle`` adds, per scene, the same figures with the
+in 0.8–1.25, zero gross errors (> 0.5 mm) on valid pixels; then the share of rigs meeting
+each. ``--oracle`` adds, per scene, the same figures with the
 twin's true geometry as the calibration (app.devices.sim.ideal.true_geometric_calibration).
 """
 
@@ -134,25 +137,41 @@ def lit_mask(world, points):  # noqa: ANN001, ANN201
         q = proj.to_projector(p)
         xp, yp = proj.column(p), proj.row(p)
         w, h = proj.size
-        return np.isfinite(p).all(-1) & (q[..., 2] > 0) & (xp >= -0.5) & (xp <= w - 0.5) & (yp >= -0.5) & \
-            (yp <= h - 0.5)
+        return (
+            np.isfinite(p).all(-1)
+            & (q[..., 2] > 0)
+            & (xp >= -0.5)
+            & (xp <= w - 0.5)
+            & (yp >= -0.5)
+            & (yp <= h - 0.5)
+        )
 
 
 def supported(cal, world, truth, points):  # noqa: ANN001, ANN201
     """Pixels whose TRUE (height, phase) lie inside the calibration's supported region; the true
-    phase from the twin's projector geometry (its projector coordinate of each true surface point)."""
+    phase from the twin's projector geometry (its projector coordinate of each true surface
+    point)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        xp = world.rig.projector.fringe_coordinate(points.astype(np.float64), cal.pattern.orientation)
+        xp = world.rig.projector.fringe_coordinate(
+            points.astype(np.float64), cal.pattern.orientation
+        )
     return supported_mask(cal.model.region, truth, true_phase_rad(xp, cal.pattern))
 
 
 def print_ninths(title, cells):  # noqa: ANN001, ANN201
     """The per-ninth table; returns how many acceptance checks it missed."""
-    print(f"\n{title}: every ninth of the image (row, col); lit pixels inside the calibrated volume and the "
-          "supported region (in), outside the volume (out), in the volume but outside the supported region (off)")
-    head = (f"{'cell':<6}{'px in':>8}{'valid':>8}{'mean mm':>9}{'RMS mm':>8}{'floor':>8}{'RMS/fl':>7}{'std/fl':>7}"
-            f"{'gross':>6}{'px out':>8}{'valid':>7}{'gross':>6}{'max mm':>8}"
-            f"{'px off':>8}{'valid':>7}{'gross':>6}{'max mm':>8}  result")
+    print(
+        f"\n{title}: every ninth of the image (row, col); lit pixels inside the calibrated "
+        "volume and the "
+        "supported region (in), outside the volume (out), in the volume but outside the "
+        "supported region (off)"
+    )
+    head = (
+        f"{'cell':<6}{'px in':>8}{'valid':>8}{'mean mm':>9}{'RMS mm':>8}{'floor':>8}"
+        f"{'RMS/fl':>7}{'std/fl':>7}"
+        f"{'gross':>6}{'px out':>8}{'valid':>7}{'gross':>6}{'max mm':>8}"
+        f"{'px off':>8}{'valid':>7}{'gross':>6}{'max mm':>8}  result"
+    )
     print(head)
     print("-" * len(head))
     missed = 0
@@ -171,41 +190,81 @@ def print_ninths(title, cells):  # noqa: ANN001, ANN201
         seen = c["pixels"] or c["outside_pixels"] or c["off_region_pixels"]
         verdict = ("MISS " + ",".join(fails)) if fails else ("PASS" if seen else "")
         omax, fmax = c["outside_max_abs_error_mm"], c["off_region_max_abs_error_mm"]
-        print(f"({c['row']},{c['col']}) {c['pixels']:>8}{c['valid_fraction']:>8.4f}{c['mean_error_mm']:>+9.4f}"
-              f"{c['rms_mm']:>8.4f}{c['floor_mm']:>8.4f}{c['rms_ratio']:>7.2f}{c['std_ratio']:>7.2f}{c['gross']:>6}"
-              f"{c['outside_pixels']:>8}{c['outside_valid']:>7}{c['outside_gross']:>6}{omax:>8.3f}"
-              f"{c['off_region_pixels']:>8}{c['off_region_valid']:>7}{c['off_region_gross']:>6}{fmax:>8.3f}  {verdict}")
+        print(
+            f"({c['row']},{c['col']}) {c['pixels']:>8}{c['valid_fraction']:>8.4f}"
+            f"{c['mean_error_mm']:>+9.4f}"
+            f"{c['rms_mm']:>8.4f}{c['floor_mm']:>8.4f}{c['rms_ratio']:>7.2f}"
+            f"{c['std_ratio']:>7.2f}{c['gross']:>6}"
+            f"{c['outside_pixels']:>8}{c['outside_valid']:>7}{c['outside_gross']:>6}{omax:>8.3f}"
+            f"{c['off_region_pixels']:>8}{c['off_region_valid']:>7}{c['off_region_gross']:>6}"
+            f"{fmax:>8.3f}  {verdict}"
+        )
     return missed
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rig", nargs="+", choices=RIG_NAMES, default=list(RIG_NAMES),
-                    help="rig presets to run (default: all)")
+    ap.add_argument(
+        "--rig",
+        nargs="+",
+        choices=RIG_NAMES,
+        default=list(RIG_NAMES),
+        help="rig presets to run (default: all)",
+    )
     ap.add_argument("--poses", type=int, default=8)
     ap.add_argument("--board", choices=("checkerboard", "circles"), default="checkerboard")
     boards = ap.add_mutually_exclusive_group()
-    boards.add_argument("--partial-boards", dest="partial_boards", action="store_true", default=None,
-                        help="boards cover only the central half of the field (the endoscope rig's default)")
-    boards.add_argument("--full-boards", dest="partial_boards", action="store_false",
-                        help="boards as large as the default rig's (the default rig's default)")
-    ap.add_argument("--corners-only", action="store_true", help="fit Eq. (5) on corners only (the paper)")
+    boards.add_argument(
+        "--partial-boards",
+        dest="partial_boards",
+        action="store_true",
+        default=None,
+        help="boards cover only the central half of the field (the endoscope rig's default)",
+    )
+    boards.add_argument(
+        "--full-boards",
+        dest="partial_boards",
+        action="store_false",
+        help="boards as large as the default rig's (the default rig's default)",
+    )
+    ap.add_argument(
+        "--corners-only", action="store_true", help="fit Eq. (5) on corners only (the paper)"
+    )
     ap.add_argument("--keep", metavar="DIR", help="keep the simulated calibration folders here")
-    ap.add_argument("--strict", action="store_true", help="exit 1 if an acceptance target is missed")
-    ap.add_argument("--seed", type=int, default=1,
-                    help="simulator seed of the calibration; the scenes' seeds move with it (default 1)")
-    ap.add_argument("--exposure", type=_exposure_arg, default="auto",
-                    help="'auto' (the instrument's auto-exposure per target scene, the default) or a fixed "
-                         "exposure in ms for the target scenes (20: the twin's default)")
-    ap.add_argument("--random-rigs", type=int, default=0, metavar="N",
-                    help="instead of the presets: N random rigs (app/devices/sim/random_rig.py), "
-                         "rig i drawn from seed S + i; per rig the issue's targets, then the share "
-                         "of rigs meeting each")
-    ap.add_argument("--lengths", type=int, default=40,
-                    help="random lengths per scene (--random-rigs)")
-    ap.add_argument("--oracle", action="store_true",
-                    help="--random-rigs: also reconstruct each scene with the twin's true geometry "
-                         "as the calibration (what rendering and reconstruction do without a fit)")
+    ap.add_argument(
+        "--strict", action="store_true", help="exit 1 if an acceptance target is missed"
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=1,
+        help="simulator seed of the calibration; the scenes' seeds move with it (default 1)",
+    )
+    ap.add_argument(
+        "--exposure",
+        type=_exposure_arg,
+        default="auto",
+        help="'auto' (the instrument's auto-exposure per target scene, the default) or a fixed "
+        "exposure in ms for the target scenes (20: the twin's default)",
+    )
+    ap.add_argument(
+        "--random-rigs",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead of the presets: N random rigs (app/devices/sim/random_rig.py), "
+        "rig i drawn from seed S + i; per rig the issue's targets, then the share "
+        "of rigs meeting each",
+    )
+    ap.add_argument(
+        "--lengths", type=int, default=40, help="random lengths per scene (--random-rigs)"
+    )
+    ap.add_argument(
+        "--oracle",
+        action="store_true",
+        help="--random-rigs: also reconstruct each scene with the twin's true geometry "
+        "as the calibration (what rendering and reconstruction do without a fit)",
+    )
     args = ap.parse_args(argv)
     if args.random_rigs:
         if args.random_rigs < 0:
@@ -222,14 +281,26 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
     rig = rig_by_name(rig_name)
     bits = rig.bit_depth
     partial = rig.partial_boards if args.partial_boards is None else args.partial_boards
-    print(f"\n=== rig {rig_name} (seed {args.seed}): {rig.image_size[0]}x{rig.image_size[1]}, f = {rig.K[0, 0]:.0f} px, "
-          f"k1 = {rig.dist[0]:+.2f}, {bits}-bit, {'partial' if partial else 'full'} boards ===")
+    print(
+        f"\n=== rig {rig_name} (seed {args.seed}): {rig.image_size[0]}x{rig.image_size[1]}, "
+        f"f = {rig.K[0, 0]:.0f} px, "
+        f"k1 = {rig.dist[0]:+.2f}, {bits}-bit, {'partial' if partial else 'full'} boards ==="
+    )
     tmp = tempfile.TemporaryDirectory(prefix="bench_accuracy_")
     base = Path(args.keep) if args.keep else Path(tmp.name)
     t0 = time.perf_counter()
-    seed0 = 10 * (args.seed - 1)  # scene seeds: 3, 4, 9, 5, 7 at --seed 1 (the figures the issue quotes)
-    folder = simulate_calibration_folder(base / f"calib_{rig_name}", board=args.board, poses=args.poses, seed=args.seed,
-                                         overwrite=True, rig=rig_name, partial_boards=partial)
+    seed0 = 10 * (
+        args.seed - 1
+    )  # scene seeds: 3, 4, 9, 5, 7 at --seed 1 (the figures the issue quotes)
+    folder = simulate_calibration_folder(
+        base / f"calib_{rig_name}",
+        board=args.board,
+        poses=args.poses,
+        seed=args.seed,
+        overwrite=True,
+        rig=rig_name,
+        partial_boards=partial,
+    )
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
     report = calibrate_folder(folder, dense=not args.corners_only)
@@ -251,27 +322,73 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
     st = (points.astype(np.float64) - origin) @ axes
     black = ruler_printer()(st[..., 0], st[..., 1]) < 0.5
     sup = supported(cal, world, truth, points)
-    dof = _plane_report(cal, res, truth, world.noise_sigma(background_codes(res), bits=bits), "DOF target",
-                        exclude=black, supported=sup)
-    ninths.append(("DOF target, black print excluded",
-                   ninths_report(res, truth, cal.height_range_mm, predicted_sigma_mm(cal, res, world, bits),
-                                 lit=lit_mask(world, points) & ~black, gross_mm=GROSS_MM, supported=sup)))
+    dof = _plane_report(
+        cal,
+        res,
+        truth,
+        world.noise_sigma(background_codes(res), bits=bits),
+        "DOF target",
+        exclude=black,
+        supported=sup,
+    )
+    ninths.append(
+        (
+            "DOF target, black print excluded",
+            ninths_report(
+                res,
+                truth,
+                cal.height_range_mm,
+                predicted_sigma_mm(cal, res, world, bits),
+                lit=lit_mask(world, points) & ~black,
+                gross_mm=GROSS_MM,
+                supported=sup,
+            ),
+        )
+    )
 
     world, cs, truth, points = capture("plane", seed0 + 4)  # fills the field, inside the volume
     res = rec.run(cs.frames)
-    ninths.append(("tilted plane (10 mm, 15 deg)",
-                   ninths_report(res, truth, cal.height_range_mm, predicted_sigma_mm(cal, res, world, bits),
-                                 lit=lit_mask(world, points), gross_mm=GROSS_MM,
-                                 supported=supported(cal, world, truth, points))))
+    ninths.append(
+        (
+            "tilted plane (10 mm, 15 deg)",
+            ninths_report(
+                res,
+                truth,
+                cal.height_range_mm,
+                predicted_sigma_mm(cal, res, world, bits),
+                lit=lit_mask(world, points),
+                gross_mm=GROSS_MM,
+                supported=supported(cal, world, truth, points),
+            ),
+        )
+    )
 
-    world, cs, truth, points = capture("far_plane", seed0 + 9)  # crosses the calibrated volume's far end
+    world, cs, truth, points = capture(
+        "far_plane", seed0 + 9
+    )  # crosses the calibrated volume's far end
     res = rec.run(cs.frames)
-    far = _plane_report(cal, res, truth, world.noise_sigma(background_codes(res), bits=bits), "far plane",
-                        supported=supported(cal, world, truth, points))
-    ninths.append(("far plane (-6 mm, 30 deg)",
-                   ninths_report(res, truth, cal.height_range_mm, predicted_sigma_mm(cal, res, world, bits),
-                                 lit=lit_mask(world, points), gross_mm=GROSS_MM,
-                                 supported=supported(cal, world, truth, points))))
+    far = _plane_report(
+        cal,
+        res,
+        truth,
+        world.noise_sigma(background_codes(res), bits=bits),
+        "far plane",
+        supported=supported(cal, world, truth, points),
+    )
+    ninths.append(
+        (
+            "far plane (-6 mm, 30 deg)",
+            ninths_report(
+                res,
+                truth,
+                cal.height_range_mm,
+                predicted_sigma_mm(cal, res, world, bits),
+                lit=lit_mask(world, points),
+                gross_mm=GROSS_MM,
+                supported=supported(cal, world, truth, points),
+            ),
+        )
+    )
 
     world, cs, truth, points = capture("sphere", seed0 + 5)
     res_one = rec.run(cs.frames)
@@ -279,15 +396,29 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
     sphere_sup = supported(cal, world, truth, points)
 
     def sphere_report(result):  # noqa: ANN001, ANN202
-        return sphere_target_report(cal, result, truth, points, [s.centre for s in spheres], spheres[0].radius_mm,
-                                    projector_centre_mm=world.rig.projector.centre,
-                                    incidence_limits_deg=(80.0, 87.0, 90.0), supported=sphere_sup)
+        return sphere_target_report(
+            cal,
+            result,
+            truth,
+            points,
+            [s.centre for s in spheres],
+            spheres[0].radius_mm,
+            projector_centre_mm=world.rig.projector.centre,
+            incidence_limits_deg=(80.0, 87.0, 90.0),
+            supported=sphere_sup,
+        )
 
     sph_one = sphere_report(res_one)
-    bracket = bracket_exposures(exposures["sphere"][0]) if args.exposure == "auto" else (exposures["sphere"][0],)
+    bracket = (
+        bracket_exposures(exposures["sphere"][0])
+        if args.exposure == "auto"
+        else (exposures["sphere"][0],)
+    )
     members = [res_one]
     for i, e in enumerate(bracket[1:], start=1):  # a later set: noise of its own
-        members.append(rec.run(_capture("sphere", seed0 + 5 + 1000 * i, rig_name, exposure_ms=e)[1].frames))
+        members.append(
+            rec.run(_capture("sphere", seed0 + 5 + 1000 * i, rig_name, exposure_ms=e)[1].frames)
+        )
     fused = fuse_exposures(members, bracket)
     res = fused.result
     sph = sphere_report(res)
@@ -300,7 +431,9 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
         # The dark suture needs more light than the default (30 ms, full LED current); the set is
         # centred on a breathing extremum so the tissue is nearly still.
         t_start = 1.0 - 7.5 * max(30.0, READOUT_MS) / 1000.0 - 0.015
-        world, cs, truth, points = _capture(scene, seed0 + 7, rig, t0_s=t_start, exposure_ms=30.0, current=current)
+        world, cs, truth, points = _capture(
+            scene, seed0 + 7, rig, t0_s=t_start, exposure_ms=30.0, current=current
+        )
         res = rec.run(cs.frames)
         origin, axes = frame_from_normal(rig.reference_point_mm, rig.reference.normal)
         st = (points.astype(np.float64) - origin) @ axes
@@ -311,32 +444,73 @@ def run_rig(rig_name: str, args: argparse.Namespace) -> int:
         # cross-sections in the surface's own (reference-plane) coordinates; the same estimator on
         # the TRUE depth map shows what the scene itself (the tissue under the thread) gives
         try:
-            measured = feature_height(res.depth, res.texture, res.valid, roi=roi,
-                                      coords_mm=plane_coordinates(res.points, cal.plane_normal))
+            measured = feature_height(
+                res.depth,
+                res.texture,
+                res.valid,
+                roi=roi,
+                coords_mm=plane_coordinates(res.points, cal.plane_normal),
+            )
         except ValueError as exc:  # e.g. no valid depth in the ROI (outside the supported region)
             measured = None
-            print(f"suture height, {scene_name}: not measured ({exc}); "
-                  f"ROI pixels outside the supported region: {float((res.reason[box] == Reason.OUTSIDE_FIELD).mean()):.2f}")
-        on_truth = feature_height(truth, res.texture, np.isfinite(truth), roi=roi,
-                                  coords_mm=plane_coordinates(points, cal.plane_normal))
+            print(
+                f"suture height, {scene_name}: not measured ({exc}); "
+                "ROI pixels outside the supported region: "
+                f"{float((res.reason[box] == Reason.OUTSIDE_FIELD).mean()):.2f}"
+            )
+        on_truth = feature_height(
+            truth,
+            res.texture,
+            np.isfinite(truth),
+            roi=roi,
+            coords_mm=plane_coordinates(points, cal.plane_normal),
+        )
         sutures[scene_name] = (measured, saturated, on_truth)
 
     ps_worst = max(abs(s["ps_mm"]) for s in sph["spheres"])
-    rows = _plane_rows(dof, far) + _sphere_rows(sph, sph_one, seg, bracket_text, exposures["sphere"][0], ps_worst)
+    rows = _plane_rows(dof, far) + _sphere_rows(
+        sph, sph_one, seg, bracket_text, exposures["sphere"][0], ps_worst
+    )
     for scene_name, (fh, saturated, ft) in sutures.items():
         if fh is None:
-            rows.append((f"suture height, {scene_name} (mm)", "no depth", "0.726 ± 0.0075", f"{SUTURE_TRUTH_MM} ± 0.01",
-                         False))
+            rows.append(
+                (
+                    f"suture height, {scene_name} (mm)",
+                    "no depth",
+                    "0.726 ± 0.0075",
+                    f"{SUTURE_TRUTH_MM} ± 0.01",
+                    False,
+                )
+            )
             continue
         rows += [
-            (f"suture height, {scene_name} (mm)", f"{fh.height_mm:.4f} ± {fh.height_se_mm:.4f}", "0.726 ± 0.0075",
-             f"{SUTURE_TRUTH_MM} ± 0.01", abs(fh.height_mm - SUTURE_TRUTH_MM) <= 0.01),
-            ("  polarity found / spread along (mm)", f"{fh.polarity} / {fh.height_std_mm:.4f}", "", "", None),
+            (
+                f"suture height, {scene_name} (mm)",
+                f"{fh.height_mm:.4f} ± {fh.height_se_mm:.4f}",
+                "0.726 ± 0.0075",
+                f"{SUTURE_TRUTH_MM} ± 0.01",
+                abs(fh.height_mm - SUTURE_TRUTH_MM) <= 0.01,
+            ),
+            (
+                "  polarity found / spread along (mm)",
+                f"{fh.polarity} / {fh.height_std_mm:.4f}",
+                "",
+                "",
+                None,
+            ),
             ("  cross-sections / ROI saturated", f"{fh.count} / {saturated:.4f}", "", "", None),
-            ("  same estimator on the true depth map (mm)", f"{ft.height_mm:.4f} ± {ft.height_se_mm:.4f}", "", "",
-             None),
+            (
+                "  same estimator on the true depth map (mm)",
+                f"{ft.height_mm:.4f} ± {ft.height_se_mm:.4f}",
+                "",
+                "",
+                None,
+            ),
         ]
-    print("exposures: " + "; ".join(f"{name} {ms:g} ms ({how})" for name, (ms, how) in exposures.items()))
+    print(
+        "exposures: "
+        + "; ".join(f"{name} {ms:g} ms ({how})" for name, (ms, how) in exposures.items())
+    )
     w = max(len(r[0]) for r in rows)
     print(f"{'figure':<{w}}  {'measured':>18}  {'paper':>14}  {'target':>13}  result")
     missed = 0
@@ -357,7 +531,10 @@ def _plane_report(cal, res, truth, noise, what, **kw):  # noqa: ANN001, ANN003, 
     try:
         return plane_target_report(cal, res, truth, noise, **kw)
     except ValueError as exc:
-        print(f"{what}: no plane fit ({exc}); valid pixels {int(np.count_nonzero(res.valid))}", flush=True)
+        print(
+            f"{what}: no plane fit ({exc}); valid pixels {int(np.count_nonzero(res.valid))}",
+            flush=True,
+        )
         return None
 
 
@@ -367,47 +544,123 @@ def _plane_rows(dof, far):  # noqa: ANN001, ANN202
         rows = [("DOF target (plane fit)", "no depth", "", "valid px", False)]
     else:
         rows = [
-        # figure, measured, paper, target text, pass
-        ("DOF plane accuracy (mm)", f"{dof['accuracy_mm']:.4f}", "0.008", "", None),
-        ("DOF plane precision (mm)", f"{dof['precision_mm']:.4f}", "0.25", "", None),
-        ("  noise floor predicted (mm)", f"{dof['noise_floor_mm']:.4f}", "", "", None),
-        ("  precision / noise floor", f"{dof['precision_ratio']:.3f}", "", "<= 1.15", dof["precision_ratio"] <= 1.15),
-        ("DOF flatness F (mm)", f"{dof['flatness_mm']:.4f}", "", "", None),
-        ("DOF valid, in volume and region, excl. black print", f"{dof['valid_fraction']:.4f}", "", ">= 0.99",
-         dof["valid_fraction"] >= 0.99),
-        ("DOF valid, in volume, all pixels", f"{dof['valid_fraction_all']:.4f}", "", "", None),
-        ("DOF mean error vs truth (mm)", f"{dof['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
-         abs(dof["mean_error_mm"]) <= 0.005),
-        ("DOF max |error| (mm)", f"{dof['max_abs_error_mm']:.4f}", "", "<= 0.5", dof["max_abs_error_mm"] <= 0.5),
-        ("DOF depth precision / floor", f"{dof['depth_precision_ratio']:.3f}", "", "", None),
+            # figure, measured, paper, target text, pass
+            ("DOF plane accuracy (mm)", f"{dof['accuracy_mm']:.4f}", "0.008", "", None),
+            ("DOF plane precision (mm)", f"{dof['precision_mm']:.4f}", "0.25", "", None),
+            ("  noise floor predicted (mm)", f"{dof['noise_floor_mm']:.4f}", "", "", None),
+            (
+                "  precision / noise floor",
+                f"{dof['precision_ratio']:.3f}",
+                "",
+                "<= 1.15",
+                dof["precision_ratio"] <= 1.15,
+            ),
+            ("DOF flatness F (mm)", f"{dof['flatness_mm']:.4f}", "", "", None),
+            (
+                "DOF valid, in volume and region, excl. black print",
+                f"{dof['valid_fraction']:.4f}",
+                "",
+                ">= 0.99",
+                dof["valid_fraction"] >= 0.99,
+            ),
+            ("DOF valid, in volume, all pixels", f"{dof['valid_fraction_all']:.4f}", "", "", None),
+            (
+                "DOF mean error vs truth (mm)",
+                f"{dof['mean_error_mm']:+.4f}",
+                "",
+                "|.| <= 0.005",
+                abs(dof["mean_error_mm"]) <= 0.005,
+            ),
+            (
+                "DOF max |error| (mm)",
+                f"{dof['max_abs_error_mm']:.4f}",
+                "",
+                "<= 0.5",
+                dof["max_abs_error_mm"] <= 0.5,
+            ),
+            ("DOF depth precision / floor", f"{dof['depth_precision_ratio']:.3f}", "", "", None),
         ]
     if far is None:
         return [*rows, ("outside volume (far plane)", "no depth", "", "valid px", False)]
-    return [*rows, ("outside volume (far plane): valid px / max |error| (mm)",
-                    f"{far['outside_valid']} / {far['outside_max_abs_error_mm']:.4f}", "", "<= 0.5",
-                    far["outside_pixels"] > 0
-                    and (far["outside_valid"] == 0 or far["outside_max_abs_error_mm"] <= 0.5))]
+    return [
+        *rows,
+        (
+            "outside volume (far plane): valid px / max |error| (mm)",
+            f"{far['outside_valid']} / {far['outside_max_abs_error_mm']:.4f}",
+            "",
+            "<= 0.5",
+            far["outside_pixels"] > 0
+            and (far["outside_valid"] == 0 or far["outside_max_abs_error_mm"] <= 0.5),
+        ),
+    ]
 
 
 def _sphere_rows(sph, sph_one, seg, bracket_text, exposure_ms, ps_worst):  # noqa: ANN001, ANN202
     """The sphere target's rows."""
     return [
-        (f"sphere valid, lit and unsaturated (in volume and region), {bracket_text}",
-         f"{sph['lit_valid_fraction']:.4f}", "", ">= 0.99", sph["lit_valid_fraction"] >= 0.99),
-        (f"  the same, one set at {exposure_ms:g} ms", f"{sph_one['lit_valid_fraction']:.4f}", "", "",
-         None),
-        ("  sphere valid, all pixels in volume and region (its shadow too)", f"{sph['valid_fraction']:.4f}", "", "",
-         None),
-        ("  sphere px off the supported region: count / valid", f"{sph['off_region_pixels']} / "
-         f"{sph['off_region_valid']}", "", "", None),
-        ("  sphere px unlit / lit beyond 87 deg (projector)",
-         f"{sph['unlit_fraction']:.4f} / {1 - sph['incidence'][87.0]['pixels_fraction']:.4f}", "", "", None),
-        ("  sphere valid where lit at <= 80 deg", f"{sph['incidence'][80.0]['valid_fraction']:.4f}", "", "", None),
-        ("sphere mean error (mm)", f"{sph['mean_error_mm']:+.4f}", "", "|.| <= 0.005",
-         abs(sph["mean_error_mm"]) <= 0.005),
-        ("sphere max |error| (mm)", f"{sph['max_abs_error_mm']:.4f}", "", "<= 0.5", sph["max_abs_error_mm"] <= 0.5),
-        (f"  the same, one set at {exposure_ms:g} ms", f"{sph_one['max_abs_error_mm']:.4f}", "", "<= 0.5",
-         sph_one["max_abs_error_mm"] <= 0.5),
+        (
+            f"sphere valid, lit and unsaturated (in volume and region), {bracket_text}",
+            f"{sph['lit_valid_fraction']:.4f}",
+            "",
+            ">= 0.99",
+            sph["lit_valid_fraction"] >= 0.99,
+        ),
+        (
+            f"  the same, one set at {exposure_ms:g} ms",
+            f"{sph_one['lit_valid_fraction']:.4f}",
+            "",
+            "",
+            None,
+        ),
+        (
+            "  sphere valid, all pixels in volume and region (its shadow too)",
+            f"{sph['valid_fraction']:.4f}",
+            "",
+            "",
+            None,
+        ),
+        (
+            "  sphere px off the supported region: count / valid",
+            f"{sph['off_region_pixels']} / {sph['off_region_valid']}",
+            "",
+            "",
+            None,
+        ),
+        (
+            "  sphere px unlit / lit beyond 87 deg (projector)",
+            f"{sph['unlit_fraction']:.4f} / {1 - sph['incidence'][87.0]['pixels_fraction']:.4f}",
+            "",
+            "",
+            None,
+        ),
+        (
+            "  sphere valid where lit at <= 80 deg",
+            f"{sph['incidence'][80.0]['valid_fraction']:.4f}",
+            "",
+            "",
+            None,
+        ),
+        (
+            "sphere mean error (mm)",
+            f"{sph['mean_error_mm']:+.4f}",
+            "",
+            "|.| <= 0.005",
+            abs(sph["mean_error_mm"]) <= 0.005,
+        ),
+        (
+            "sphere max |error| (mm)",
+            f"{sph['max_abs_error_mm']:.4f}",
+            "",
+            "<= 0.5",
+            sph["max_abs_error_mm"] <= 0.5,
+        ),
+        (
+            f"  the same, one set at {exposure_ms:g} ms",
+            f"{sph_one['max_abs_error_mm']:.4f}",
+            "",
+            "<= 0.5",
+            sph_one["max_abs_error_mm"] <= 0.5,
+        ),
         ("sphere PS worst (mm)", f"{ps_worst:.4f}", "", "<= 0.02", ps_worst <= 0.02),
         ("sphere PF (mm)", " / ".join(f"{s['pf_mm']:.3f}" for s in sph["spheres"]), "", "", None),
         ("sphere PS, RANSAC-segmented (mm)", f"{seg.ps_mm:+.4f}", "", "", None),

@@ -1,4 +1,5 @@
-"""Calibration boards: reading ``board.json`` and detection in a texture image (the spec is app.core.board)."""
+"""Calibration boards: reading ``board.json`` and detection in a texture image (the spec is
+app.core.board)."""
 
 from __future__ import annotations
 
@@ -69,14 +70,20 @@ def detect_board(texture_u8: npt.NDArray[np.uint8], board: BoardSpec) -> Detecti
     if img.ndim != 2 or img.dtype != np.uint8:
         raise ValueError(f"texture_u8: expected (H, W) uint8, got {img.shape} {img.dtype}")
     img = np.ascontiguousarray(img)
-    pts = _find_checkerboard(img, board) if board.type == "checkerboard" else _find_circles(img, board)
+    pts = (
+        _find_checkerboard(img, board)
+        if board.type == "checkerboard"
+        else _find_circles(img, board)
+    )
     if pts is None:
         empty = np.zeros((0, 2), np.float32)
         return Detection(False, empty, np.zeros((0, 3), np.float32))
     return Detection(True, pts.reshape(-1, 2).astype(np.float32), board.object_points())
 
 
-def _find_checkerboard(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[np.float32] | None:
+def _find_checkerboard(
+    img: npt.NDArray[np.uint8], board: BoardSpec
+) -> npt.NDArray[np.float32] | None:
     # The classic detector is ~100x faster on megapixel images; the exhaustive sector-based
     # one (findChessboardCornersSB) is the fallback for blurred or low-contrast boards.
     found, corners = cv2.findChessboardCorners(
@@ -107,12 +114,18 @@ def _find_circles(img: npt.NDArray[np.uint8], board: BoardSpec) -> npt.NDArray[n
     params.filterByConvexity = False
     params.filterByInertia = True
     params.minInertiaRatio = 0.05
-    grid = cv2.CALIB_CB_ASYMMETRIC_GRID if board.type == "asymmetric_circles" else cv2.CALIB_CB_SYMMETRIC_GRID
+    grid = (
+        cv2.CALIB_CB_ASYMMETRIC_GRID
+        if board.type == "asymmetric_circles"
+        else cv2.CALIB_CB_SYMMETRIC_GRID
+    )
     for image, color in ((img, 0), (255 - img, 0)):  # dark circles on white, then light on dark
         params.blobColor = color
         detector = cv2.SimpleBlobDetector_create(params)  # type: ignore[attr-defined]
         for flags in (grid, grid | cv2.CALIB_CB_CLUSTERING):
-            found, centers = cv2.findCirclesGrid(image, board.pattern_size, flags=flags, blobDetector=detector)
+            found, centers = cv2.findCirclesGrid(
+                image, board.pattern_size, flags=flags, blobDetector=detector
+            )
             if found and centers is not None and len(centers) == board.n_points:
                 return np.asarray(centers, np.float32)
     return None

@@ -1,4 +1,5 @@
-"""Camera calibration with the lens-distortion model chosen on held-out data, and the field it supports.
+"""Camera calibration with the lens-distortion model chosen on held-out data, and the field it
+supports.
 
 A bench board often covers only the centre of the field. OpenCV's polynomial distortion is then
 fitted from points out to some normalised radius ``r_max`` and extrapolated beyond it; with more
@@ -42,7 +43,11 @@ DISTORTION_MODELS: dict[str, int] = {
 }
 #: the free coefficients of each model, as indices into OpenCV's (k1, k2, p1, p2, k3)
 DISTORTION_TERMS: dict[str, tuple[int, ...]] = {
-    "k1": (0,), "k1,k2": (0, 1), "k1,p1,p2": (0, 2, 3), "k1,k2,p1,p2": (0, 1, 2, 3), "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
+    "k1": (0,),
+    "k1,k2": (0, 1),
+    "k1,p1,p2": (0, 2, 3),
+    "k1,k2,p1,p2": (0, 1, 2, 3),
+    "k1,k2,k3,p1,p2": (0, 1, 2, 3, 4),
 }
 #: the models the tie rule chooses among, all with k2 (a real k2 only 1–2 σ from 0 at the
 #: boards' reach still bends the rays beyond them; the calibration's leave-one-pose-out refits
@@ -56,7 +61,9 @@ MIN_RADIAL_SLOPE = 0.2
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
 TIE = 1.10  # a simpler model within 10 % of the best held-out error is preferred …
 TIE_PX = 0.005  # … or within 0.005 px of it (differences below that are immaterial)
-EXTRAPOLATION_TOLERANCE = 1.5  # held-out error / in-sample error on the same points that still counts as safe
+EXTRAPOLATION_TOLERANCE = (
+    1.5  # held-out error / in-sample error on the same points that still counts as safe
+)
 MIN_VIEW_POINTS = 6
 _CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12)
 
@@ -134,42 +141,73 @@ def _num(x: float) -> float | None:
     return round(float(x), 6) if math.isfinite(x) else None
 
 
-def _calibrate(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]], image_size: tuple[int, int],
-               flags: int) -> tuple[float, F64, F64, list[F64], list[F64]]:
-    rms, cam, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, image_size, None, None, flags=flags,
-                                                       criteria=_CRITERIA)
-    return (float(rms), np.asarray(cam, np.float64), np.asarray(dist, np.float64).ravel()[:5],
-            [np.asarray(r, np.float64) for r in rvecs], [np.asarray(t, np.float64) for t in tvecs])
+def _calibrate(
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    image_size: tuple[int, int],
+    flags: int,
+) -> tuple[float, F64, F64, list[F64], list[F64]]:
+    rms, cam, dist, rvecs, tvecs = cv2.calibrateCamera(
+        obj, img, image_size, None, None, flags=flags, criteria=_CRITERIA
+    )
+    return (
+        float(rms),
+        np.asarray(cam, np.float64),
+        np.asarray(dist, np.float64).ravel()[:5],
+        [np.asarray(r, np.float64) for r in rvecs],
+        [np.asarray(t, np.float64) for t in tvecs],
+    )
 
 
-def calibrate_views(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
-                    image_size: tuple[int, int], flags: int
-                    ) -> tuple[float, F64, F64, list[F64], list[F64]]:
+def calibrate_views(
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    image_size: tuple[int, int],
+    flags: int,
+) -> tuple[float, F64, F64, list[F64], list[F64]]:
     """OpenCV's camera calibration of board views with the distortion ``flags`` (one of
     :data:`DISTORTION_MODELS`): (RMS px, camera matrix (3, 3), dist (5,), rvecs, tvecs)."""
     return _calibrate(obj, img, image_size, flags)
 
 
 def _radii(img: list[npt.NDArray[np.float32]], cam: F64) -> list[F64]:
-    return [np.hypot((p.reshape(-1, 2)[:, 0] - cam[0, 2]) / cam[0, 0], (p.reshape(-1, 2)[:, 1] - cam[1, 2]) / cam[1, 1])
-            for p in img]
+    return [
+        np.hypot(
+            (p.reshape(-1, 2)[:, 0] - cam[0, 2]) / cam[0, 0],
+            (p.reshape(-1, 2)[:, 1] - cam[1, 2]) / cam[1, 1],
+        )
+        for p in img
+    ]
 
 
-def _reprojection(obj: npt.NDArray[np.float32], img: npt.NDArray[np.float32], rvec: F64, tvec: F64, cam: F64,
-                  dist: F64) -> F64:
+def _reprojection(
+    obj: npt.NDArray[np.float32],
+    img: npt.NDArray[np.float32],
+    rvec: F64,
+    tvec: F64,
+    cam: F64,
+    dist: F64,
+) -> F64:
     proj, _ = cv2.projectPoints(obj, rvec, tvec, cam, dist)
     return np.asarray(np.linalg.norm(proj.reshape(-1, 2) - img.reshape(-1, 2), axis=1), np.float64)
 
 
-def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
-                     image_size: tuple[int, int], *, select: bool = True) -> CameraFit:
-    """Camera intrinsics and distortion from board views, the distortion model chosen by radial hold-out.
+def calibrate_camera(
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    image_size: tuple[int, int],
+    *,
+    select: bool = True,
+) -> CameraFit:
+    """Camera intrinsics and distortion from board views, the distortion model chosen by radial
+    hold-out.
 
     Args:
         obj: per view (n, 3) float32 board points, mm.
         img: per view (n, 1, 2) float32 detected pixel coordinates.
         image_size: (width, height), px.
-        select: False keeps OpenCV's k1, k2, p1, p2 (the previous behaviour) with an unbounded field.
+        select: False keeps OpenCV's k1, k2, p1, p2 (the previous behaviour) with an unbounded
+            field.
 
     Returns:
         :class:`CameraFit`.
@@ -191,12 +229,21 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
         if len(views) < 3 or not has_outer:
             continue
         try:
-            _, cam, dist, rv, tv = _calibrate([obj[k][inner[k]] for k in views],
-                                              [img[k][inner[k]] for k in views], image_size, flags)
+            _, cam, dist, rv, tv = _calibrate(
+                [obj[k][inner[k]] for k in views],
+                [img[k][inner[k]] for k in views],
+                image_size,
+                flags,
+            )
         except cv2.error:
             continue
-        err = np.concatenate([_reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[i], tv[i], cam, dist)
-                              for i, k in enumerate(views) if (~inner[k]).any()])
+        err = np.concatenate(
+            [
+                _reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[i], tv[i], cam, dist)
+                for i, k in enumerate(views)
+                if (~inner[k]).any()
+            ]
+        )
         held[name] = float(np.sqrt(np.mean(err**2))) if np.all(np.isfinite(err)) else math.nan
     finite = {k: v for k, v in held.items() if math.isfinite(v) and k != REDUCED_MODEL}
     if finite:
@@ -211,16 +258,22 @@ def calibrate_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[n
     rms, cam, dist, rv, tv = _calibrate(obj, img, image_size, DISTORTION_MODELS[chosen])
     radius = r_max
     if chosen in finite:
-        outer_err = np.concatenate([_reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[k], tv[k], cam, dist)
-                                    for k in views if (~inner[k]).any()])
+        outer_err = np.concatenate(
+            [
+                _reprojection(obj[k][~inner[k]], img[k][~inner[k]], rv[k], tv[k], cam, dist)
+                for k in views
+                if (~inner[k]).any()
+            ]
+        )
         in_sample[chosen] = float(np.sqrt(np.mean(outer_err**2)))
         if finite[chosen] <= max(EXTRAPOLATION_TOLERANCE * in_sample[chosen], TIE_PX):
             radius = r_max / SPLIT
     return CameraFit(rms, cam, dist, rv, tv, chosen, held, r_max, radius)
 
 
-def field_shortfall(field_px: tuple[float, float, float, float] | None, image_size: tuple[int, int]
-                    ) -> dict[str, float]:
+def field_shortfall(
+    field_px: tuple[float, float, float, float] | None, image_size: tuple[int, int]
+) -> dict[str, float]:
     """Per image ninth (``"top left"`` … ``"bottom right"``) the fraction of its pixels outside the
     supported field ellipse; ninths fully inside are left out."""
     if field_px is None:
@@ -232,7 +285,9 @@ def field_shortfall(field_px: tuple[float, float, float, float] | None, image_si
     names = {}
     for i, rn in enumerate(("top", "middle", "bottom")):
         for j, cn in enumerate(("left", "centre", "right")):
-            blk = out[(v >= i * h / 3) & (v < (i + 1) * h / 3) & (u >= j * w / 3) & (u < (j + 1) * w / 3)]
+            blk = out[
+                (v >= i * h / 3) & (v < (i + 1) * h / 3) & (u >= j * w / 3) & (u < (j + 1) * w / 3)
+            ]
             frac = float(blk.mean()) if blk.size else 0.0
             if frac > 0:
                 names["centre" if (i, j) == (1, 1) else f"{rn} {cn}"] = frac

@@ -45,7 +45,9 @@ from app.core.limits import full_scale
 from app.core.schedule import PatternSchedule
 
 MIN_POSES = 3
-CALIBRATION_MIN_MODULATION_FRACTION = 0.02  # board phases: B ≥ 2 % of full scale (see calibrate_sets)
+CALIBRATION_MIN_MODULATION_FRACTION = (
+    0.02  # board phases: B ≥ 2 % of full scale (see calibrate_sets)
+)
 MIN_HEIGHT_SPAN_MM = 1.0
 MIN_TILT_SPREAD_DEG = 2.0
 ROBUST_POINT_SIGMAS = 4.0
@@ -116,23 +118,30 @@ class CalibrationReport:
 
     def table(self) -> str:
         """Human-readable per-pose table with totals."""
-        head = f"{'pose':>4}  {'name':<10} {'corners':>7} {'reproj_px':>9} {'fit_rms_mm':>10} {'points':>6}  {'height_mm':>15}"
+        head = (
+            f"{'pose':>4}  {'name':<10} {'corners':>7} {'reproj_px':>9} {'fit_rms_mm':>10} "
+            f"{'points':>6}  {'height_mm':>15}"
+        )
         lines = [head, "-" * len(head)]
         for p in self.poses:
             flag = "  DROPPED" if p.dropped else ""
             lines.append(
-                f"{p.pose:>4}  {p.name:<10} {p.corners:>7} {p.reprojection_px:>9.3f} {p.rms_mm:>10.4f} "
+                f"{p.pose:>4}  {p.name:<10} {p.corners:>7} {p.reprojection_px:>9.3f} "
+                f"{p.rms_mm:>10.4f} "
                 f"{p.points:>6}  {p.height_mm[0]:>7.2f}..{p.height_mm[1]:<6.2f}{flag}"
             )
         lo, hi = self.calibration.height_range_mm
         lines.append("-" * len(head))
         lines.append(
-            f"{'all':>4}  {'':<10} {sum(p.corners for p in self.poses):>7} {self.reprojection_px:>9.3f} "
+            f"{'all':>4}  {'':<10} {sum(p.corners for p in self.poses):>7} "
+            f"{self.reprojection_px:>9.3f} "
             f"{self.rms_mm:>10.4f} {sum(p.points for p in self.poses):>6}  {lo:>7.2f}..{hi:<6.2f}"
         )
         if self.uncovered:
-            lines.append(f"no control points in the {', '.join(self.uncovered)} ninth(s) of the image: "
-                         "Eq. (5) does not support depth there")
+            lines.append(
+                f"no control points in the {', '.join(self.uncovered)} ninth(s) of the image: "
+                "Eq. (5) does not support depth there"
+            )
         if self.camera is not None:
             lines.extend(self._camera_lines(self.camera))
         if self.refinement is not None:
@@ -140,21 +149,28 @@ class CalibrationReport:
         lines.extend(self._projector_lines())
         if self.held_out:
             lines.append("")
-            lines.append(f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  (leave one pose out)")
+            lines.append(
+                f"{'model':<10} {'held-out rms_mm':>15} {'held-out max_mm':>15} {'points':>7}  "
+                "(leave one pose out)"
+            )
             active = self.calibration.model.name
             for name, h in self.held_out.items():
                 if h.get("error"):
-                    lines.append(f"{name:<10} {'-':>15} {'-':>15} {'-':>7}  not fitted: {h['error']}")
+                    lines.append(
+                        f"{name:<10} {'-':>15} {'-':>15} {'-':>7}  not fitted: {h['error']}"
+                    )
                     continue
                 mark = "  <- active" if name == active else ""
-                lines.append(f"{name:<10} {_fmt(h.get('rms_mm')):>15} {_fmt(h.get('max_mm')):>15} "
-                             f"{h.get('points', 0):>7}{mark}")
+                lines.append(
+                    f"{name:<10} {_fmt(h.get('rms_mm')):>15} {_fmt(h.get('max_mm')):>15} "
+                    f"{h.get('points', 0):>7}{mark}"
+                )
         return "\n".join(lines)
 
-
     def _projector_lines(self) -> list[str]:
-        """The projector columns (rows for horizontal fringes) the active model supports: a surface
-        lit from beyond them has no depth (OUTSIDE_FIELD) — place boards where those columns fall."""
+        """The projector columns (rows for horizontal fringes) the active model supports: a
+        surface lit from beyond them has no depth (OUTSIDE_FIELD) — place boards where those
+        columns fall."""
         rng = self.calibration.model.region.phase_rad
         sched = self.calibration.pattern
         if rng is None:
@@ -163,27 +179,41 @@ class CalibrationReport:
         scale = extent / (2.0 * math.pi * float(sched.frequencies[-1]))
         lo, hi = max(0.0, rng[0] * scale), min(float(extent), rng[1] * scale)
         axis = "columns" if sched.orientation == "vertical" else "rows"
-        lines = [f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} (the boards' phase range "
-                 "and its margin); surfaces lit from outside it have no depth"]
+        lines = [
+            f"projector field supported: {axis} {lo:.0f}..{hi:.0f} of {extent} "
+            "(the boards' phase range "
+            "and its margin); surfaces lit from outside it have no depth"
+        ]
         grid = self.calibration.model.region.height_grid_mm
         if self.calibration.model.name == "geometric" and grid is not None:
             z_lo, z_hi = self.calibration.height_range_mm
-            span = np.clip(np.minimum(grid[..., 1], z_hi) - np.maximum(grid[..., 0], z_lo), 0.0, None)
+            span = np.clip(
+                np.minimum(grid[..., 1], z_hi) - np.maximum(grid[..., 0], z_lo), 0.0, None
+            )
             share = float(span.mean() / (z_hi - z_lo)) if z_hi > z_lo else math.nan
-            lines.append(f"depth model verified in {100 * share:.0f} % of the calibrated volume (image cells x "
-                         f"heights): the boards' data, and beyond them where its own 1-sigma uncertainty is "
-                         f"<= {1000 * MODEL_SIGMA_TOLERANCE_MM:.1f} um")
+            lines.append(
+                f"depth model verified in {100 * share:.0f} % of the calibrated volume "
+                "(image cells x "
+                f"heights): the boards' data, and beyond them where its own 1-sigma uncertainty is "
+                f"<= {1000 * MODEL_SIGMA_TOLERANCE_MM:.1f} um"
+            )
         return lines
 
     def _camera_lines(self, cam: CameraFit) -> list[str]:
         held = ", ".join(f"{k} {_fmt(v)}" for k, v in cam.held_out_px.items())
-        lines = [f"lens distortion: {cam.model} (held-out reprojection px, corners beyond "
-                 f"r = {SPLIT * cam.r_max:.3f} fitted from the inner ones: {held or 'not measurable'})"]
+        lines = [
+            f"lens distortion: {cam.model} (held-out reprojection px, corners beyond "
+            f"r = {SPLIT * cam.r_max:.3f} fitted from the inner ones: {held or 'not measurable'})"
+        ]
         if math.isfinite(cam.field_radius):
             short = field_shortfall(cam.field_px(), self.calibration.image_size)
             where = ", ".join(f"{k} {100 * v:.0f} %" for k, v in short.items())
-            lines.append(f"supported field: normalised radius <= {cam.field_radius:.3f} (board corners reach "
-                         f"{cam.r_max:.3f}); " + (f"unsupported (no depth): {where}" if where else "the whole image"))
+            lines.append(
+                f"supported field: normalised radius <= {cam.field_radius:.3f} "
+                "(board corners reach "
+                f"{cam.r_max:.3f}); "
+                + (f"unsupported (no depth): {where}" if where else "the whole image")
+            )
         return lines
 
 
@@ -233,11 +263,20 @@ def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False,
     if pose_dirs[0].name != "pose_00":
         raise ValueError(f"{folder}: pose_00/ (the reference plane) is missing")
     sets = [read_capture_set(p) for p in pose_dirs]
-    return calibrate_sets(board, sets, robust=robust, dense=dense, names=[p.name for p in pose_dirs], model=model)
+    return calibrate_sets(
+        board, sets, robust=robust, dense=dense, names=[p.name for p in pose_dirs], model=model
+    )
 
 
-def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = False, dense: bool = True,
-                   names: list[str] | None = None, model: str | None = None) -> CalibrationReport:
+def calibrate_sets(
+    board: BoardSpec,
+    sets: list[CaptureSet],
+    *,
+    robust: bool = False,
+    dense: bool = True,
+    names: list[str] | None = None,
+    model: str | None = None,
+) -> CalibrationReport:
     """Calibrate from capture sets of the board, ``sets[0]`` being the reference plane.
 
     Raises:
@@ -258,25 +297,41 @@ def calibrate_sets(board: BoardSpec, sets: list[CaptureSet], *, robust: bool = F
         # a fixed 2 % of full scale, not the noise-aware rule: the fit has plenty of bright board
         # pixels and wants the least-biased ones (dim squares add noise, not information)
         max_code = capture_max_code(cs)
-        res = compute_phase(cs.frames, cs.schedule, max_code=max_code,
-                            min_modulation=CALIBRATION_MIN_MODULATION_FRACTION
-                            * (max_code or np.iinfo(cs.frames.dtype).max))
+        res = compute_phase(
+            cs.frames,
+            cs.schedule,
+            max_code=max_code,
+            min_modulation=CALIBRATION_MIN_MODULATION_FRACTION
+            * (max_code or np.iinfo(cs.frames.dtype).max),
+        )
         det = detect_board(texture_to_u8(res.texture), board)
         if not det.found:
             if not robust or i == 0:
-                raise ValueError(f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})")
+                raise ValueError(
+                    f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})"
+                )
             observations.append(None)
             continue
-        observations.append(PoseObservation(det.image_points, det.object_points, res.phase, name, res.modulation))
+        observations.append(
+            PoseObservation(det.image_points, det.object_points, res.phase, name, res.modulation)
+        )
     image_size = (shape[2], shape[1])
-    return fit_observations(observations, image_size, schedule, robust=robust, dense=dense, names=names,
-                            model=model)
+    return fit_observations(
+        observations, image_size, schedule, robust=robust, dense=dense, names=names, model=model
+    )
 
 
-def fit_observations(observations: list[PoseObservation | None], image_size: tuple[int, int],
-                     schedule: PatternSchedule, *, robust: bool = False, dense: bool = True,
-                     names: list[str] | None = None, model: str | None = None,
-                     refine: bool = True) -> CalibrationReport:
+def fit_observations(
+    observations: list[PoseObservation | None],
+    image_size: tuple[int, int],
+    schedule: PatternSchedule,
+    *,
+    robust: bool = False,
+    dense: bool = True,
+    names: list[str] | None = None,
+    model: str | None = None,
+    refine: bool = True,
+) -> CalibrationReport:
     """Camera calibration, reference plane and the depth models' fits from detected poses.
 
     Both models (Eq. (5) and the geometric one) are fitted and judged on held-out poses
@@ -296,8 +351,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             camera rays. Many more, better spread points than the corners alone (the
             paper's choice, ``dense=False``), hence a better conditioned Eq. (5) fit.
         refine: with ``dense``, refine the board poses (and so the reference plane) jointly
-            with the projector by the phase over each board (:mod:`app.calib.refine`): a small
-            board's tilt from its corners alone is loose, and pose 0's tilt is the reference plane's.
+            with the projector by the phase over each board (:mod:`app.calib.refine`): a
+            small board's tilt from its corners alone is loose, and pose 0's tilt is the
+            reference plane's.
     """
     if model is not None and model not in MODEL_NAMES:
         raise ValueError(f"model: must be one of {list(MODEL_NAMES)}, got {model!r}")
@@ -306,12 +362,20 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     if not observations or observations[0] is None:
         raise ValueError("pose 0: board not found (pose 0 defines the reference plane)")
     if len(found) < MIN_POSES:
-        raise ValueError(f"poses: need at least {MIN_POSES} poses with the board found, got {len(found)}")
+        raise ValueError(
+            f"poses: need at least {MIN_POSES} poses with the board found, got {len(found)}"
+        )
     obs = [observations[i] for i in found]
     obj = [np.ascontiguousarray(o.object_points, np.float32) for o in obs]  # type: ignore[union-attr]
     img = [np.ascontiguousarray(o.image_points, np.float32).reshape(-1, 1, 2) for o in obs]  # type: ignore[union-attr]
     camfit = calibrate_camera(obj, img, image_size)
-    rms_px, cam, dist, rvecs, tvecs = camfit.rms_px, camfit.camera_matrix, camfit.dist_coeffs, camfit.rvecs, camfit.tvecs
+    rms_px, cam, dist, rvecs, tvecs = (
+        camfit.rms_px,
+        camfit.camera_matrix,
+        camfit.dist_coeffs,
+        camfit.rvecs,
+        camfit.tvecs,
+    )
     rots = [cv2.Rodrigues(r)[0] for r in rvecs]
     normals = np.array([r[:, 2] for r in rots])
     tilt = max(
@@ -319,8 +383,10 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     )
     if tilt < MIN_TILT_SPREAD_DEG:
         raise ValueError(
-            f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; tilt the board "
-            f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses so the camera model is determined"
+            f"poses: degenerate tilts — all boards within {tilt:.1f}° of each other; "
+            "tilt the board "
+            f"by at least {MIN_TILT_SPREAD_DEG:.0f}° between poses "
+            "so the camera model is determined"
         )
     refined, refinement = None, None
     if dense and refine:
@@ -351,7 +417,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     per_pose = []
     for k, o in enumerate(obs):
         proj, _ = cv2.projectPoints(obj[k], rvecs[k], tvecs[k], cam, dist)
-        reproj = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[k].reshape(-1, 2)) ** 2, axis=1))))
+        reproj = float(
+            np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[k].reshape(-1, 2)) ** 2, axis=1)))
+        )
         if dense:
             uv, z_k, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, normal, offset)  # type: ignore[arg-type]
         else:
@@ -371,7 +439,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     for k in range(len(obs)):
         if not np.any(use[pose_of == k]):
             if k == 0 or not robust:
-                raise ValueError(f"pose {found[k]} ({names[found[k]]}): no control point has a valid phase")
+                raise ValueError(
+                    f"pose {found[k]} ({names[found[k]]}): no control point has a valid phase"
+                )
             dropped_pose[k] = True
 
     if robust and len(obs) >= 4:
@@ -393,7 +463,9 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
             break
         new_use = use.copy()
         sigma = 1.4826 * float(np.median(np.abs(fit.residuals_mm)))
-        new_use &= np.abs(np.nan_to_num(res_all, nan=np.inf)) <= max(ROBUST_POINT_SIGMAS * sigma, 1e-6)
+        new_use &= np.abs(np.nan_to_num(res_all, nan=np.inf)) <= max(
+            ROBUST_POINT_SIGMAS * sigma, 1e-6
+        )
         pose_rms = np.array([_rms(res_all[(pose_of == k) & use]) for k in range(len(obs))])
         med = float(np.nanmedian(pose_rms))
         for k in range(1, len(obs)):
@@ -413,34 +485,62 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
         k = k_of[i]
         sel = pose_of == k
         hz = z[sel]
-        reports.append(PoseReport(
-            pose=i, name=names[i], corners=per_pose[k][4], reprojection_px=per_pose[k][2],
-            rms_mm=_rms(res_all[sel & use]), points=int((sel & use).sum()),
-            dropped_points=int((sel & ~use).sum()), dropped=bool(dropped_pose[k]),
-            height_mm=(float(hz.min()), float(hz.max())),
-        ))
+        reports.append(
+            PoseReport(
+                pose=i,
+                name=names[i],
+                corners=per_pose[k][4],
+                reprojection_px=per_pose[k][2],
+                rms_mm=_rms(res_all[sel & use]),
+                points=int((sel & use).sum()),
+                dropped_points=int((sel & ~use).sum()),
+                dropped=bool(dropped_pose[k]),
+                height_mm=(float(hz.min()), float(hz.max())),
+            )
+        )
     uv_all = np.stack([u, v], axis=1)
     ray_xy = undistort_points(uv_all, cam, dist)
-    samples = BoardSamples(u[use], v[use], ray_xy[use], phi[use], z[use], pose_of[use].astype(np.int64),
-                           image_size, int(schedule.frequencies[-1]), int(schedule.width))
+    samples = BoardSamples(
+        u[use],
+        v[use],
+        ray_xy[use],
+        phi[use],
+        z[use],
+        pose_of[use].astype(np.int64),
+        image_size,
+        int(schedule.frequencies[-1]),
+        int(schedule.width),
+    )
     uncovered = _check_coverage(samples)
     plane = ReferencePlane(normal, offset)
     field_px = camfit.field_px()
-    models: dict[str, DepthModel] = {"eq5": Eq5Model(fit.numerator, fit.denominator, norm,
-                                                      region_from_samples(samples).field_limited(field_px))}
+    models: dict[str, DepthModel] = {
+        "eq5": Eq5Model(
+            fit.numerator,
+            fit.denominator,
+            norm,
+            region_from_samples(samples).field_limited(field_px),
+        )
+    }
     held_out: dict[str, dict[str, float | int | str | None]] = {}
     try:
         geo = GeometricModel.fit(samples, plane)
         joint = None
         if refined is not None:  # the refits repeat the joint fit the calibration kept
-            joint = _JointFit(obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs, tvecs)
+            joint = _JointFit(
+                obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs, tvecs
+            )
         geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
         # the corner-verified camera field: opened to where the lens model is defined (σ_model
         # deciding) the twin's preset gave 0.995 valid but σ_model 2-3x its error past the boards
         geo.region = geo.region.field_limited(field_px)
         # where the model's own (jackknife) uncertainty passes the gross-error rule, and no farther
-        geo.region = geo.verified_region(image_size, plane, lambda uv: undistort_points(uv, cam, dist),
-                                         (float(z[use].min()), float(z[use].max())))
+        geo.region = geo.verified_region(
+            image_size,
+            plane,
+            lambda uv: undistort_points(uv, cam, dist),
+            (float(z[use].min()), float(z[use].max())),
+        )
         models["geometric"] = geo
     except ValueError as exc:
         if model == "geometric":
@@ -454,12 +554,25 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     if model is None:
         model = _better_model(models, held_out)
     calibration = Calibration(
-        camera_matrix=cam, dist_coeffs=dist.ravel(), image_size=image_size, plane_normal=normal,
-        plane_offset_mm=offset, model=models[model], held_out=held_out, pattern=schedule,
+        camera_matrix=cam,
+        dist_coeffs=dist.ravel(),
+        image_size=image_size,
+        plane_normal=normal,
+        plane_offset_mm=offset,
+        model=models[model],
+        held_out=held_out,
+        pattern=schedule,
         height_range_mm=(float(z[use].min()), float(z[use].max())),
         pose_residuals=[
-            {"pose": r.pose, "name": r.name, "corners": r.corners, "reprojection_px": _num(r.reprojection_px),
-             "rms_mm": _num(r.rms_mm), "points": r.points, "dropped": r.dropped}
+            {
+                "pose": r.pose,
+                "name": r.name,
+                "corners": r.corners,
+                "reprojection_px": _num(r.reprojection_px),
+                "rms_mm": _num(r.rms_mm),
+                "points": r.points,
+                "dropped": r.dropped,
+            }
             for r in reports
         ],
         extra={"camera_model": camfit.summary()},
@@ -467,10 +580,18 @@ def fit_observations(observations: list[PoseObservation | None], image_size: tup
     geo_fit = models.get("geometric")
     if refinement is not None:
         calibration.extra["refinement"] = refinement.to_dict()
-    return CalibrationReport(calibration, reports, rms_mm=_rms(res_all[use]), reprojection_px=float(rms_px),
-                             held_out=held_out, uncovered=uncovered, camera=camfit, samples=samples,
-                             geometric=geo_fit if isinstance(geo_fit, GeometricModel) else None,
-                             refinement=refinement)
+    return CalibrationReport(
+        calibration,
+        reports,
+        rms_mm=_rms(res_all[use]),
+        reprojection_px=float(rms_px),
+        held_out=held_out,
+        uncovered=uncovered,
+        camera=camfit,
+        samples=samples,
+        geometric=geo_fit if isinstance(geo_fit, GeometricModel) else None,
+        refinement=refinement,
+    )
 
 
 def _key(x: object) -> float:
@@ -483,15 +604,18 @@ def _key(x: object) -> float:
 EQ5_PREFERENCE = 0.98
 
 
-def _better_model(models: dict[str, DepthModel], held_out: dict[str, dict[str, float | int | str | None]]) -> str:
+def _better_model(
+    models: dict[str, DepthModel], held_out: dict[str, dict[str, float | int | str | None]]
+) -> str:
     if "geometric" not in models:
         return "eq5"
     eq5, geo = _key(held_out["eq5"].get("rms_mm")), _key(held_out["geometric"].get("rms_mm"))
     return "eq5" if eq5 < EQ5_PREFERENCE * geo else "geometric"
 
 
-def _held_out_errors(name: str, samples: BoardSamples, plane: ReferencePlane,
-                     fitted: list[DepthModel] | None = None) -> dict[str, float | int | str | None]:
+def _held_out_errors(
+    name: str, samples: BoardSamples, plane: ReferencePlane, fitted: list[DepthModel] | None = None
+) -> dict[str, float | int | str | None]:
     """Leave-one-pose-out height errors (mm) of model ``name``: fit on the other poses,
     evaluate on the left-out one; RMS and max |error| over all left-out points. The
     leave-one-out fits are appended to ``fitted`` when given."""
@@ -556,7 +680,9 @@ def error_structure(errors: list[npt.NDArray[np.float64]], points: list[npt.NDAr
         ``{"noise_mm", "systematic_mm", "correlation_mm"}``; None each if too few pairs.
     """
     if len(errors) != len(points):
-        raise ValueError(f"points: need one array per pose of errors ({len(errors)}), got {len(points)}")
+        raise ValueError(
+            f"points: need one array per pose of errors ({len(errors)}), got {len(points)}"
+        )
     rng = np.random.default_rng(seed)
     nb = len(_VARIOGRAM_BINS_MM) - 1
     ssum, dsum, cnt = np.zeros(nb), np.zeros(nb), np.zeros(nb)
@@ -614,21 +740,36 @@ def _check_coverage(samples: BoardSamples) -> list[str]:
     if hit.all():
         return []
     rows, cols = ("top", "middle", "bottom"), ("left", "centre", "right")
-    missing = ["centre" if (i, j) == (1, 1) else f"{rows[i]} {cols[j]}"
-               for i in range(3) for j in range(3) if not hit[i, j]]
+    missing = [
+        "centre" if (i, j) == (1, 1) else f"{rows[i]} {cols[j]}"
+        for i in range(3)
+        for j in range(3)
+        if not hit[i, j]
+    ]
     u_lo, u_hi, v_lo, v_hi = samples.u.min(), samples.u.max(), samples.v.min(), samples.v.max()
     holds_centre = (u_lo <= w / 2 <= u_hi) and (v_lo <= h / 2 <= v_hi)
-    if holds_centre and (u_hi - u_lo) >= MIN_COVERED_SPAN * w and (v_hi - v_lo) >= MIN_COVERED_SPAN * h:
+    if (
+        holds_centre
+        and (u_hi - u_lo) >= MIN_COVERED_SPAN * w
+        and (v_hi - v_lo) >= MIN_COVERED_SPAN * h
+    ):
         return missing
     raise ValueError(
-        f"poses: the boards cover too little of the field — no control point in the {', '.join(missing)} "
+        "poses: the boards cover too little of the field — no control point in the "
+        f"{', '.join(missing)} "
         f"ninth{'s' if len(missing) > 1 else ''} of the image; place the board so it reaches there"
     )
 
 
-def _held_out_outliers(u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], phi: npt.NDArray[np.float64],
-                       z: npt.NDArray[np.float64], pose_of: npt.NDArray[np.int64], use: npt.NDArray[np.bool_],
-                       image_size: tuple[int, int]) -> npt.NDArray[np.bool_]:
+def _held_out_outliers(
+    u: npt.NDArray[np.float64],
+    v: npt.NDArray[np.float64],
+    phi: npt.NDArray[np.float64],
+    z: npt.NDArray[np.float64],
+    pose_of: npt.NDArray[np.int64],
+    use: npt.NDArray[np.bool_],
+    image_size: tuple[int, int],
+) -> npt.NDArray[np.bool_]:
     """Points far off a fit of the *other* poses (leave one pose out), e.g. a fringe-order slip.
 
     A corrupted pose pulls an in-sample fit toward itself, hiding its own residuals; held
@@ -655,11 +796,18 @@ def _held_out_outliers(u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], p
     return bad
 
 
-def _dense_samples(o: PoseObservation, rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64],
-                   cam: npt.NDArray[np.float64], dist: npt.NDArray[np.float64], normal: npt.NDArray[np.float64],
-                   offset: float, target: int = DENSE_POINTS_PER_POSE
-                   ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Pixels on a grid over the board: (n, 2) pixel coordinates, heights (mm), phases (rad, NaN invalid)."""
+def _dense_samples(
+    o: PoseObservation,
+    rvec: npt.NDArray[np.float64],
+    tvec: npt.NDArray[np.float64],
+    cam: npt.NDArray[np.float64],
+    dist: npt.NDArray[np.float64],
+    normal: npt.NDArray[np.float64],
+    offset: float,
+    target: int = DENSE_POINTS_PER_POSE,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Pixels on a grid over the board: (n, 2) pixel coordinates, heights (mm), phases (rad,
+    NaN invalid)."""
     obj = o.object_points.astype(np.float64)
     d = np.linalg.norm(obj[:, None, :2] - obj[None, :, :2], axis=2)
     d[d == 0] = np.inf
@@ -702,45 +850,69 @@ def capture_max_code(cs: CaptureSet) -> int | None:
     return full_scale(bits)
 
 
-def _refine_with_phase(obs: list[PoseObservation | None], obj: list[npt.NDArray[np.float32]],
-                       img: list[npt.NDArray[np.float32]], cam: npt.NDArray[np.float64],
-                       dist: npt.NDArray[np.float64], rvecs: list[npt.NDArray[np.float64]],
-                       tvecs: list[npt.NDArray[np.float64]], schedule: PatternSchedule,
-                       free_dist: tuple[int, ...]) -> RefinedPoses | None:
+def _refine_with_phase(
+    obs: list[PoseObservation | None],
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    cam: npt.NDArray[np.float64],
+    dist: npt.NDArray[np.float64],
+    rvecs: list[npt.NDArray[np.float64]],
+    tvecs: list[npt.NDArray[np.float64]],
+    schedule: PatternSchedule,
+    free_dist: tuple[int, ...],
+) -> RefinedPoses | None:
     """Board poses refined jointly with the projector by the phase over each board
     (:mod:`app.calib.refine`); None leaves the corner poses."""
     px = _phase_pixels(obs, cam, dist, rvecs, tvecs, schedule, REFINE_POINTS_PER_POSE)
     weights = [w for _, _, w in px if w is not None]
-    return refine_board_poses(obj, img, cam, dist, rvecs, tvecs, [p for p, _, _ in px],
-                              [x for _, x, _ in px],
-                              weights if len(weights) == len(obs) else None, free_dist)
+    return refine_board_poses(
+        obj,
+        img,
+        cam,
+        dist,
+        rvecs,
+        tvecs,
+        [p for p, _, _ in px],
+        [x for _, x, _ in px],
+        weights if len(weights) == len(obs) else None,
+        free_dist,
+    )
 
 
-def _phase_pixels(obs: list[PoseObservation | None], cam: npt.NDArray[np.float64],
-                  dist: npt.NDArray[np.float64], rvecs: list[npt.NDArray[np.float64]],
-                  tvecs: list[npt.NDArray[np.float64]], schedule: PatternSchedule, target: int
-                  ) -> list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                  npt.NDArray[np.float64] | None]]:
+def _phase_pixels(
+    obs: list[PoseObservation | None],
+    cam: npt.NDArray[np.float64],
+    dist: npt.NDArray[np.float64],
+    rvecs: list[npt.NDArray[np.float64]],
+    tvecs: list[npt.NDArray[np.float64]],
+    schedule: PatternSchedule,
+    target: int,
+) -> list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64] | None]]:
     """Per pose about ``target`` board pixels (m, 2), their projector coordinates (m,) (the
     finest phase scaled to projector pixels) and phase weights (m,) (modulation over its
     median; None without a modulation map): the phase data of the joint fit."""
-    out: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
-                    npt.NDArray[np.float64] | None]] = []
+    out: list[
+        tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64] | None]
+    ] = []
     scale = schedule.width / (2.0 * math.pi * float(schedule.frequencies[-1]))
     for k, o in enumerate(obs):
         assert o is not None
-        uv, _, phi_k = _dense_samples(o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]),
-                                      0.0, target=target)
+        uv, _, phi_k = _dense_samples(
+            o, rvecs[k], tvecs[k], cam, dist, np.array([0.0, 0.0, 1.0]), 0.0, target=target
+        )
         w = None
         if o.modulation is not None:
-            b = o.modulation[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)].astype(np.float64)
+            b = o.modulation[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)].astype(
+                np.float64
+            )
             w = b / max(float(np.nanmedian(b)), 1e-9)
         out.append((uv, phi_k * scale, w))
     return out
 
 
-def _board_pose(rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64]
-                ) -> tuple[npt.NDArray[np.float64], float]:
+def _board_pose(
+    rvec: npt.NDArray[np.float64], tvec: npt.NDArray[np.float64]
+) -> tuple[npt.NDArray[np.float64], float]:
     """A board pose's plane ``normal · X + offset = 0`` (camera frame, mm; normal toward the
     camera centre)."""
     normal = np.asarray(cv2.Rodrigues(np.asarray(rvec, np.float64))[0][:, 2], np.float64)
@@ -769,12 +941,24 @@ class _JointFit:
     tvecs: list[npt.NDArray[np.float64]]
 
 
-def _refit_camera(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
-                  image_size: tuple[int, int], flags: int, left: int, joint: _JointFit | None,
-                  pixels: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                     npt.NDArray[np.float64] | None]]
-                  ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
-                             dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]]] | None:
+def _refit_camera(
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    image_size: tuple[int, int],
+    flags: int,
+    left: int,
+    joint: _JointFit | None,
+    pixels: list[
+        tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64] | None]
+    ],
+) -> (
+    tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]],
+    ]
+    | None
+):
     """The camera and every board pose with pose ``left`` left out of the fit: the joint fit
     repeated from its solution when the calibration kept one, else the corners-only fit; pose 0
     (the reference plane) left out keeps the calibration's own pose and camera (its plane

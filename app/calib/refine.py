@@ -88,10 +88,20 @@ def undistort_rays(uv: F64, cam: F64, dist: F64, iterations: int = 20) -> F64:
     return np.stack([x, y, np.ones_like(x)], axis=1)
 
 
-def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]], cam: F64, dist: F64,
-                       rvecs: list[F64], tvecs: list[F64], pixels: list[F64], proj_x: list[F64],
-                       weights: list[F64] | None = None, free_dist: tuple[int, ...] = (0,)) -> RefinedPoses | None:
-    """Jointly refine the camera, the board poses and the projector from corners and the phase on the boards.
+def refine_board_poses(
+    obj: list[npt.NDArray[np.float32]],
+    img: list[npt.NDArray[np.float32]],
+    cam: F64,
+    dist: F64,
+    rvecs: list[F64],
+    tvecs: list[F64],
+    pixels: list[F64],
+    proj_x: list[F64],
+    weights: list[F64] | None = None,
+    free_dist: tuple[int, ...] = (0,),
+) -> RefinedPoses | None:
+    """Jointly refine the camera, the board poses and the projector from corners and the phase
+    on the boards.
 
     Args:
         obj, img: per view (n, 3) board points (mm) and (n, 1, 2) detected pixels.
@@ -125,7 +135,9 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     free = tuple(int(i) for i in free_dist)
     n_cam = 4 + len(free)
     cam0 = np.array([cam[0, 0], cam[1, 1], cam[0, 2], cam[1, 2]] + [dist5[i] for i in free])
-    pose0 = np.concatenate([np.concatenate([np.ravel(rv), np.ravel(tv)]) for rv, tv in zip(rvecs, tvecs, strict=True)])
+    pose0 = np.concatenate(
+        [np.concatenate([np.ravel(rv), np.ravel(tv)]) for rv, tv in zip(rvecs, tvecs, strict=True)]
+    )
     obj64 = [np.asarray(o, np.float64) for o in obj]
     img64 = [np.asarray(i, np.float64).reshape(-1, 2) for i in img]
     o_cam, o_pose = 8, 8 + n_cam
@@ -156,8 +168,12 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     # projector start: 1-D DLT on the corner poses' board points, then its own fit
     x_init = np.concatenate([np.zeros(8), cam0, pose0])
     kd0 = camera(x_init)
-    x3 = np.concatenate([_plane_points(undistort_rays(pix[k], *kd0), pose(x_init, k)[:3], pose(x_init, k)[3:])
-                         for k in range(nv)])
+    x3 = np.concatenate(
+        [
+            _plane_points(undistort_rays(pix[k], *kd0), pose(x_init, k)[:3], pose(x_init, k)[3:])
+            for k in range(nv)
+        ]
+    )
     try:
         rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(xps)), x3)
     except (ValueError, np.linalg.LinAlgError):
@@ -174,8 +190,12 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
         return None
     x_init[:8] = start.x
     # noise scales; phase outliers (order slips, board edges) beyond OUTLIER_SCALES dropped
-    s_corner = max(float(np.sqrt(np.mean(np.concatenate([corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))),
-                   1e-3)
+    s_corner = max(
+        float(
+            np.sqrt(np.mean(np.concatenate([corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))
+        ),
+        1e-3,
+    )
     s_phase = []
     for k in range(nv):
         r0 = phase_res(x_init, k, kd0)
@@ -190,8 +210,12 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     n_p = [len(p) for p in xps]
     c_start = np.concatenate([[0], np.cumsum(n_c)])
     p_start = c_start[-1] + np.concatenate([[0], np.cumsum(n_p)])
-    support = [np.concatenate([np.arange(c_start[k], c_start[k + 1]), np.arange(p_start[k], p_start[k + 1])])
-               for k in range(nv)]
+    support = [
+        np.concatenate(
+            [np.arange(c_start[k], c_start[k + 1]), np.arange(p_start[k], p_start[k + 1])]
+        )
+        for k in range(nv)
+    ]
 
     def residuals(x: F64) -> F64:
         kd = camera(x)
@@ -219,7 +243,9 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
         return jac
 
     try:
-        res = least_squares(residuals, x_init, jac=jacobian, method="lm", x_scale="jac", max_nfev=100)
+        res = least_squares(
+            residuals, x_init, jac=jacobian, method="lm", x_scale="jac", max_nfev=100
+        )
     except (ValueError, np.linalg.LinAlgError):
         return None
     x = res.x
@@ -231,8 +257,13 @@ def refine_board_poses(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray
     # per corner (both coordinates), as cv2.calibrateCamera's RMS: comparable with the corner fit
     corner_all = np.concatenate([corner_res(x, k, kd) for k in range(nv)])
     reproj = float(np.sqrt(2.0 * np.mean(corner_all**2)))
-    change = [1e3 * math.acos(min(1.0, abs(float(_rotation(np.ravel(a))[:, 2] @ _rotation(np.ravel(b))[:, 2]))))
-              for a, b in zip(rvecs, out_r, strict=True)]
+    change = [
+        1e3
+        * math.acos(
+            min(1.0, abs(float(_rotation(np.ravel(a))[:, 2] @ _rotation(np.ravel(b))[:, 2])))
+        )
+        for a, b in zip(rvecs, out_r, strict=True)
+    ]
     return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change)
 
 

@@ -95,8 +95,17 @@ class BoardSamples:
 
     def subset(self, mask: npt.NDArray[np.bool_]) -> BoardSamples:
         """The samples where ``mask`` is True."""
-        return BoardSamples(self.u[mask], self.v[mask], self.ray_xy[mask], self.phi[mask], self.z_mm[mask],
-                            self.pose[mask], self.image_size, self.fringes, self.projector_width_px)
+        return BoardSamples(
+            self.u[mask],
+            self.v[mask],
+            self.ray_xy[mask],
+            self.phi[mask],
+            self.z_mm[mask],
+            self.pose[mask],
+            self.image_size,
+            self.fringes,
+            self.projector_width_px,
+        )
 
     def points_mm(self, plane: ReferencePlane) -> F64:
         """(n, 3) camera-frame points: the height ``z`` on each ray."""
@@ -133,9 +142,13 @@ class SupportedRegion:
     def to_dict(self) -> dict[str, Any]:
         return {
             "phase_rad": None if self.phase_rad is None else list(self.phase_rad),
-            "height_grid_mm": None if self.height_grid_mm is None else np.round(self.height_grid_mm, 6).tolist(),
+            "height_grid_mm": None
+            if self.height_grid_mm is None
+            else np.round(self.height_grid_mm, 6).tolist(),
             "cell_px": list(self.cell_px),
-            "field_px": None if self.field_px is None else [round(float(x), 4) for x in self.field_px],
+            "field_px": None
+            if self.field_px is None
+            else [round(float(x), 4) for x in self.field_px],
             "height_allowance_mm": float(self.height_allowance_mm),
         }
 
@@ -160,15 +173,19 @@ class SupportedRegion:
             raise ValueError(f"supported_region: malformed ({exc})") from None
         if cw <= 0 or ch <= 0:
             raise ValueError("supported_region: cell_px must be positive")
-        if fpx is not None and (len(fpx) != 4 or not all(math.isfinite(x) for x in fpx)
-                                or fpx[2] <= 0 or fpx[3] <= 0):
-            raise ValueError("supported_region: field_px must be 4 finite numbers (cx, cy, rx, ry), rx, ry > 0")
+        if fpx is not None and (
+            len(fpx) != 4 or not all(math.isfinite(x) for x in fpx) or fpx[2] <= 0 or fpx[3] <= 0
+        ):
+            raise ValueError(
+                "supported_region: field_px must be 4 finite numbers (cx, cy, rx, ry), rx, ry > 0"
+            )
         if not (math.isfinite(allowance) and allowance >= 0.0):
             raise ValueError("supported_region: height_allowance_mm must be finite and >= 0")
         return cls(ph, g, (cw, ch), fpx, allowance)
 
     def kernel_bounds(self, *, measured: bool = True) -> tuple[F32, float, float, float, float]:
-        """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the kernel
+        """(grid (gh, gw, 2) float32, 1/cell width, 1/cell height, phase lo, phase hi) for the
+        kernel
         (``measured``: the grid widened by :attr:`height_allowance_mm`, as the kernel tests measured
         heights); an unbounded region is a 1×1 grid of (−inf, inf)."""
         if self.height_grid_mm is None:
@@ -188,7 +205,8 @@ class SupportedRegion:
     def outside(self, height_mm: npt.ArrayLike, phase: npt.ArrayLike, *, measured: bool = False
                 ) -> npt.NDArray[np.bool_]:
         """(H, W) True where (pixel, height, phase) is outside the region (NaN counts as outside);
-        ``measured``: the heights are measured ones, allowed :attr:`height_allowance_mm` past the bounds."""
+        ``measured``: the heights are measured ones, allowed :attr:`height_allowance_mm` past
+        the bounds."""
         h = np.asarray(height_mm, np.float64)
         p = np.asarray(phase, np.float64)
         grid, inv_w, inv_h, lo, hi = self.kernel_bounds(measured=measured)
@@ -217,11 +235,18 @@ class SupportedRegion:
 
     def field_limited(self, field_px: tuple[float, float, float, float] | None) -> SupportedRegion:
         """This region with the camera-field ellipse ``field_px`` (see the attributes)."""
-        return SupportedRegion(self.phase_rad, self.height_grid_mm, self.cell_px, field_px, self.height_allowance_mm)
+        return SupportedRegion(
+            self.phase_rad, self.height_grid_mm, self.cell_px, field_px, self.height_allowance_mm
+        )
 
 
-def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 12), margin_mm: float = 2.0,
-                        dilate: int = 1) -> SupportedRegion:
+def region_from_samples(
+    samples: BoardSamples,
+    *,
+    cells: tuple[int, int] = (16, 12),
+    margin_mm: float = 2.0,
+    dilate: int = 1,
+) -> SupportedRegion:
     """The (u, v, height) region the board samples cover: per grid cell the samples' height
     range ± ``margin_mm``; cells within ``dilate`` cells of covered ones take their
     neighbours' union; cells farther away support nothing. Phase: the samples' range."""
@@ -251,7 +276,9 @@ def region_from_samples(samples: BoardSamples, *, cells: tuple[int, int] = (16, 
             lo2 = np.minimum(lo2, sl)
             hi2 = np.maximum(hi2, sh)
     covered = hi2 >= lo2
-    grid = np.stack([np.where(covered, lo2 - margin_mm, 1.0), np.where(covered, hi2 + margin_mm, -1.0)], axis=-1)
+    grid = np.stack(
+        [np.where(covered, lo2 - margin_mm, 1.0), np.where(covered, hi2 + margin_mm, -1.0)], axis=-1
+    )
     p = samples.phi[ok]
     return SupportedRegion((float(p.min()), float(p.max())) if p.size else None, grid, (cw, ch))
 
@@ -273,7 +300,8 @@ def missing_cells(region: SupportedRegion) -> list[str]:
 
 
 class DepthModel(ABC):
-    """One phase-to-height model: fitted from board samples, evaluated through :class:`HeightTables`.
+    """One phase-to-height model: fitted from board samples, evaluated through
+    :class:`HeightTables`.
 
     Implementations: :class:`app.core.eq5.Eq5Model` (``"eq5"``, Le et al. 2018 Eq. (5)) and
     :class:`app.core.geometric.GeometricModel` (``"geometric"``).
@@ -299,7 +327,8 @@ class DepthModel(ABC):
 
     @abstractmethod
     def height_at(self, u: F64, v: F64, ray_xy: F64, phi: F64, plane: ReferencePlane) -> F64:
-        """Reference float64 heights (mm) at pixels (u, v) with rays ``ray_xy`` (n, 2) and phases φ."""
+        """Reference float64 heights (mm) at pixels (u, v) with rays ``ray_xy`` (n, 2) and
+        phases φ."""
 
     @abstractmethod
     def phase_at(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:

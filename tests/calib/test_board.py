@@ -13,15 +13,19 @@ from tests.helpers.calib_rig import Rig, board_pose, render_board
 
 
 def _truth(board, rmat, tvec, rig):
-    pts, _ = cv2.projectPoints(board.object_points(), cv2.Rodrigues(rmat)[0], tvec, rig.camera_matrix,
-                               np.zeros(5))
+    pts, _ = cv2.projectPoints(
+        board.object_points(), cv2.Rodrigues(rmat)[0], tvec, rig.camera_matrix, np.zeros(5)
+    )
     return pts.reshape(-1, 2)
 
 
 @pytest.mark.parametrize(
     "board",
-    [BoardSpec("checkerboard", 9, 6, 3.0), BoardSpec("circles", 7, 5, 4.0),
-     BoardSpec("asymmetric_circles", 4, 9, 2.5)],
+    [
+        BoardSpec("checkerboard", 9, 6, 3.0),
+        BoardSpec("circles", 7, 5, 4.0),
+        BoardSpec("asymmetric_circles", 4, 9, 2.5),
+    ],
 )
 def test_detect_board_subpixel(board):
     rig = Rig()
@@ -29,7 +33,10 @@ def test_detect_board_subpixel(board):
     img = render_board(board, rmat, tvec, rig)
     det = detect_board(img, board)
     assert det.found
-    assert det.image_points.shape == (board.n_points, 2) and det.object_points.shape == (board.n_points, 3)
+    assert det.image_points.shape == (board.n_points, 2) and det.object_points.shape == (
+        board.n_points,
+        3,
+    )
     truth = _truth(board, rmat, tvec, rig)
     d = np.linalg.norm(det.image_points[:, None, :] - truth[None, :, :], axis=2).min(axis=1)
     assert np.median(d) < 0.1 and d.max() < 0.3
@@ -57,7 +64,9 @@ def test_board_spec_parsing(tmp_path):
     b = load_board(p)
     assert (b.cols, b.rows, b.pitch_mm) == (9, 6, 2.0)
     assert b.object_points()[10].tolist() == [2.0, 2.0, 0.0]
-    a = BoardSpec.from_dict({"type": "asymmetric_circles", "inner_corners": [4, 11], "spacing_mm": 1.0})
+    a = BoardSpec.from_dict(
+        {"type": "asymmetric_circles", "inner_corners": [4, 11], "spacing_mm": 1.0}
+    )
     assert a.object_points()[4].tolist() == [1.0, 1.0, 0.0]  # second row offset by one spacing
     assert BoardSpec.from_dict(b.to_dict()) == b
     for bad, msg in [

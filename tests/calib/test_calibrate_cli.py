@@ -1,4 +1,5 @@
-"""``calibrate_folder`` and ``fringescope calibrate`` on rendered fringe sets of the analytic rig."""
+"""``calibrate_folder`` and ``fringescope calibrate`` on rendered fringe sets of the analytic
+rig."""
 
 from __future__ import annotations
 
@@ -50,7 +51,12 @@ def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
     assert main(["calibrate", str(d), "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "pose_05" in text and "reproj_px" in text and "fit_rms_mm" in text and "wrote" in text
-    assert "held-out rms_mm" in text and "\neq5 " in text and "\ngeometric " in text and "<- active" in text
+    assert (
+        "held-out rms_mm" in text
+        and "\neq5 " in text
+        and "\ngeometric " in text
+        and "<- active" in text
+    )
     cal = load_calibration(out)
     assert set(cal.held_out) == {"eq5", "geometric"}
     eq5, geo = cal.held_out["eq5"]["rms_mm"], cal.held_out["geometric"]["rms_mm"]
@@ -94,14 +100,32 @@ def test_boards_covering_too_little_name_the_missing_region():
 
     rng = np.random.default_rng(0)
     u, v = rng.uniform(0, 300, 500), rng.uniform(0, 200, 500)  # top left of a 640 x 480 image
-    s = BoardSamples(u, v, np.zeros((500, 2)), np.ones(500), np.ones(500), np.zeros(500, np.int64),
-                     (640, 480), 36, 608)
+    s = BoardSamples(
+        u,
+        v,
+        np.zeros((500, 2)),
+        np.ones(500),
+        np.ones(500),
+        np.zeros(500, np.int64),
+        (640, 480),
+        36,
+        608,
+    )
     with pytest.raises(ValueError, match=r"no control point in the .*bottom right.*ninths"):
         _check_coverage(s)
     u2 = np.r_[u, rng.uniform(0, 639, 500)]
     v2 = np.r_[v, rng.uniform(0, 479, 500)]
-    s2 = BoardSamples(u2, v2, np.zeros((1000, 2)), np.ones(1000), np.ones(1000), np.zeros(1000, np.int64),
-                      (640, 480), 36, 608)
+    s2 = BoardSamples(
+        u2,
+        v2,
+        np.zeros((1000, 2)),
+        np.ones(1000),
+        np.ones(1000),
+        np.zeros(1000, np.int64),
+        (640, 480),
+        36,
+        608,
+    )
     assert _check_coverage(s2) == []
 
 
@@ -176,13 +200,36 @@ def test_cli_validate_plane_sphere_feature(calib_dir, tmp_path, capsys):
     pts, sid = raycast_scene(rig, (n, base), cylinder=(base + 0.4 * n, axis, 0.4))
     _write_scene(tmp_path / "thread", rig, pts, np.where(sid == 2, 0.35, 0.9))
     out = tmp_path / "thread.json"
-    assert main(["validate", str(tmp_path / "thread"), "-c", str(cal_path), "--feature", "--polarity",
-                 "dark", "--roi", "200,140,440,340", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                str(tmp_path / "thread"),
+                "-c",
+                str(cal_path),
+                "--feature",
+                "--polarity",
+                "dark",
+                "--roi",
+                "200,140,440,340",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     fig = json.loads(out.read_text())
-    assert fig["height_mm"] == pytest.approx(0.8, abs=0.01) and fig["count"] > 50  # the suture target
+    assert (
+        fig["height_mm"] == pytest.approx(0.8, abs=0.01) and fig["count"] > 50
+    )  # the suture target
     assert fig["height_std_mm"] < 0.1
     # Bad input: one line, exit 2.
-    assert main(["validate", str(tmp_path / "plane"), "-c", str(cal_path), "--plane", "--roi", "1,2,3"]) == 2
+    assert (
+        main(
+            ["validate", str(tmp_path / "plane"), "-c", str(cal_path), "--plane", "--roi", "1,2,3"]
+        )
+        == 2
+    )
     assert "roi" in capsys.readouterr().err
 
 
@@ -194,13 +241,38 @@ def test_a_board_on_the_central_half_is_accepted_and_its_gaps_named():
 
     rng = np.random.default_rng(1)
     u, v = rng.uniform(160, 480, 800), rng.uniform(120, 360, 800)  # central half of 640 x 480
-    s = BoardSamples(u, v, np.zeros((800, 2)), np.ones(800), np.ones(800), np.zeros(800, np.int64),
-                     (640, 480), 36, 608)
+    s = BoardSamples(
+        u,
+        v,
+        np.zeros((800, 2)),
+        np.ones(800),
+        np.ones(800),
+        np.zeros(800, np.int64),
+        (640, 480),
+        36,
+        608,
+    )
     missing = _check_coverage(s)
     assert "centre" not in missing and set(missing) <= {
-        "top left", "top right", "bottom left", "bottom right", "top centre", "bottom centre",
-        "middle left", "middle right"}
-    small = BoardSamples(u[:50] * 0.2 + 256, v[:50] * 0.2 + 192, np.zeros((50, 2)), np.ones(50), np.ones(50),
-                         np.zeros(50, np.int64), (640, 480), 36, 608)  # a patch of 64 x 48 px at the centre
+        "top left",
+        "top right",
+        "bottom left",
+        "bottom right",
+        "top centre",
+        "bottom centre",
+        "middle left",
+        "middle right",
+    }
+    small = BoardSamples(
+        u[:50] * 0.2 + 256,
+        v[:50] * 0.2 + 192,
+        np.zeros((50, 2)),
+        np.ones(50),
+        np.ones(50),
+        np.zeros(50, np.int64),
+        (640, 480),
+        36,
+        608,
+    )  # a patch of 64 x 48 px at the centre
     with pytest.raises(ValueError, match="cover too little"):
         _check_coverage(small)

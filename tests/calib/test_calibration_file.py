@@ -53,7 +53,9 @@ def test_wrong_format_version(tmp_path, cal):
         load_calibration(tmp_path / "c.json")
 
 
-@pytest.mark.parametrize("drop", ["camera_matrix", "model", "model.numerator", "reference_plane.offset_mm", "pattern"])
+@pytest.mark.parametrize(
+    "drop", ["camera_matrix", "model", "model.numerator", "reference_plane.offset_mm", "pattern"]
+)
 def test_missing_keys(tmp_path, cal, drop):
     data = cal.to_dict()
     if "." in drop:

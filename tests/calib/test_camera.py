@@ -32,7 +32,9 @@ def _views(dist, *, noise_px=0.03, seed=0, reach=1.0):
     for k in range(8):
         rvec = np.array([0.25 * math.sin(k), 0.25 * math.cos(1.3 * k), 0.1 * k])
         tvec = np.array([reach * 2.0 * math.cos(k), reach * 1.5 * math.sin(k), 40.0 + k])
-        uv, _ = cv2.projectPoints(obj.astype(np.float64), rvec, tvec, K, np.asarray(dist, np.float64))
+        uv, _ = cv2.projectPoints(
+            obj.astype(np.float64), rvec, tvec, K, np.asarray(dist, np.float64)
+        )
         uv = uv.reshape(-1, 1, 2) + rng.normal(0.0, noise_px, (len(obj), 1, 2))
         objs.append(obj.copy())
         imgs.append(uv.astype(np.float32))
@@ -43,7 +45,10 @@ def test_central_boards_bound_the_field_and_prefer_a_model_that_extrapolates():
     objs, imgs = _views([-0.25, 0.0, 0.0, 0.0, 0.0])
     fit = calibrate_camera(objs, imgs, SIZE)
     assert set(fit.held_out_px) == {REDUCED_MODEL, *CANDIDATE_MODELS}
-    radii = [np.hypot((i[:, 0, 0] - K[0, 2]) / K[0, 0], (i[:, 0, 1] - K[1, 2]) / K[1, 1]).max() for i in imgs]
+    radii = [
+        np.hypot((i[:, 0, 0] - K[0, 2]) / K[0, 0], (i[:, 0, 1] - K[1, 2]) / K[1, 1]).max()
+        for i in imgs
+    ]
     assert fit.r_max == pytest.approx(max(radii), rel=0.01)
     # the chosen model is the simplest within 10 % (or 0.005 px) of the best held-out error …
     best = min(fit.held_out_px[m] for m in CANDIDATE_MODELS)
@@ -103,8 +108,16 @@ def test_the_lens_model_is_defined_until_its_rays_fold_over():
 
 def test_field_shortfall_names_the_unsupported_ninths():
     short = field_shortfall((640.0, 512.0, 400.0, 400.0), SIZE)
-    assert set(short) == {"top left", "top centre", "top right", "middle left", "middle right", "bottom left",
-                          "bottom centre", "bottom right"}
+    assert set(short) == {
+        "top left",
+        "top centre",
+        "top right",
+        "middle left",
+        "middle right",
+        "bottom left",
+        "bottom centre",
+        "bottom right",
+    }
     assert short["top left"] > short["top centre"] > 0
     assert field_shortfall(None, SIZE) == {}
     assert field_shortfall((640.0, 512.0, 5000.0, 5000.0), SIZE) == {}

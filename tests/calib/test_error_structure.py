@@ -1,4 +1,5 @@
-"""app.calib.fitting.error_structure: held-out errors split into independent noise and a smooth part."""
+"""app.calib.fitting.error_structure: held-out errors split into independent noise and a smooth
+part."""
 
 import numpy as np
 import pytest
@@ -7,7 +8,8 @@ from app.calib.fitting import error_structure
 
 
 def _poses(noise_mm, smooth_mm, length_mm, seed=0, poses=4, n=700):
-    """Per pose: points on a 12 mm board at 60 mm and errors = iid noise + an exponential-covariance field."""
+    """Per pose: points on a 12 mm board at 60 mm and errors = iid noise + an
+    exponential-covariance field."""
     rng = np.random.default_rng(seed)
     errors, points = [], []
     for _ in range(poses):

@@ -21,7 +21,9 @@ def _observations(rig: Rig, poses=STANDARD_POSES, noise_px: float = 0.0):
     return obs, truth
 
 
-def _height_error(rig: Rig, cal: Calibration, ref: tuple[np.ndarray, np.ndarray], z_lo: float, z_hi: float):
+def _height_error(
+    rig: Rig, cal: Calibration, ref: tuple[np.ndarray, np.ndarray], z_lo: float, z_hi: float
+):
     """Max |model − truth| over random pixels of the board region and heights in [z_lo, z_hi]."""
     rng = np.random.default_rng(3)
     u = rng.uniform(200, 440, 4000)
@@ -44,7 +46,9 @@ def test_fit_reproduces_exact_rig(dense):
     r0, t0 = truth[0]
     np.testing.assert_allclose(np.abs(cal.plane_normal @ r0[:, 2]), 1.0, atol=1e-9)
     assert cal.plane_normal @ t0 < 0  # normal points toward the camera
-    assert cal.plane_offset_mm == pytest.approx(-(cal.plane_normal @ t0), abs=1e-4)  # float32 corners
+    assert cal.plane_offset_mm == pytest.approx(
+        -(cal.plane_normal @ t0), abs=1e-4
+    )  # float32 corners
     assert rep.rms_mm < 1e-4
     lo, hi = cal.height_range_mm
     assert lo < 0.0 < 20.0 < hi
@@ -75,7 +79,9 @@ def test_phase_over_the_boards_refines_camera_and_reference_plane():
     obs, truth = _observations(rig, noise_px=0.15)
     rms, focal = {}, {}
     for refine in (False, True):
-        cal = fit_observations(obs, (rig.width, rig.height), rig.schedule, refine=refine).calibration
+        cal = fit_observations(
+            obs, (rig.width, rig.height), rig.schedule, refine=refine
+        ).calibration
         rms[refine] = float(np.sqrt(np.mean(_height_error(rig, cal, truth[0], 0.0, 20.0) ** 2)))
         focal[refine] = abs(cal.camera_matrix[0, 0] - rig.f_px)
     assert rms[True] < 0.75 * rms[False]
@@ -122,8 +128,12 @@ def test_parallel_poses_are_degenerate_tilts():
 
 def test_poses_without_depth_span():
     rig = Rig()
-    poses = [(100.0, 2.0, -1.5, 0, (0, 0)), (100.1, -2.0, 1.5, 0, (0, 0)), (100.0, 1.5, 2.0, 0, (0, 0)),
-             (99.9, -1.5, -2.0, 0, (0, 0))]
+    poses = [
+        (100.0, 2.0, -1.5, 0, (0, 0)),
+        (100.1, -2.0, 1.5, 0, (0, 0)),
+        (100.0, 1.5, 2.0, 0, (0, 0)),
+        (99.9, -1.5, -2.0, 0, (0, 0)),
+    ]
     small = BoardSpec("checkerboard", 7, 5, 1.0)
     obs = []
     for i, (d, ax, ay, az, sh) in enumerate(poses):
@@ -139,7 +149,9 @@ def test_board_missing_in_pose_zero_and_too_few_found():
     with pytest.raises(ValueError, match="^pose 0: board not found"):
         fit_observations([None, *obs[1:]], (rig.width, rig.height), rig.schedule)
     with pytest.raises(ValueError, match="poses with the board found"):
-        fit_observations([obs[0], None, None, None, None, obs[5]], (rig.width, rig.height), rig.schedule)
+        fit_observations(
+            [obs[0], None, None, None, None, obs[5]], (rig.width, rig.height), rig.schedule
+        )
 
 
 def test_robust_drops_a_pose_with_an_unwrapping_error():
@@ -165,7 +177,9 @@ def test_geometric_region_is_verified_per_cell():
     pass it by the 0.25 mm step) — the leave-one-pose-out fits agree exactly there."""
     rig = Rig()
     obs, _ = _observations(rig)
-    cal = fit_observations(obs, (rig.width, rig.height), rig.schedule, model="geometric").calibration
+    cal = fit_observations(
+        obs, (rig.width, rig.height), rig.schedule, model="geometric"
+    ).calibration
     g = cal.model.region.height_grid_mm
     lo, hi = cal.height_range_mm
     assert g is not None and g.shape == (24, 32, 2)
