@@ -670,6 +670,9 @@ def _sphere_rows(sph, sph_one, seg, bracket_text, exposure_ms, ps_worst):  # noq
 NINTH_RMS_Z = (0.85, 1.15)
 LENGTH_RMS_Z = (0.8, 1.25)
 COVERAGE_TARGET = 0.97
+#: the coverage target's condition: boards reaching at least half the field from its centre (the
+#: generator also draws smaller boards, down to the central third)
+CONDITION_REACH = 0.5
 BIAS_MM = 0.005
 MODEL_SIGMA_SMALL_MM = 0.0025
 
@@ -920,7 +923,8 @@ def run_random_rigs(args: argparse.Namespace) -> int:
         f"{time.perf_counter() - t_all:.0f} s ==="
     )
     head = (
-        f"{'rig':<11}{'board':>6}{'bits':>5}{'valid DOF':>10}{'tissue':>8}{'out-field':>10}"
+        f"{'rig':<11}{'board':>6}{'cond':>5}{'bits':>5}{'valid DOF':>10}{'tissue':>8}"
+        f"{'out-field':>10}"
         f"{'lens':>7}{'ninth z':>14}{'max|mean|':>10}{'len z':>7}{'gross':>6}  missed"
     )
     print(head)
@@ -930,14 +934,18 @@ def run_random_rigs(args: argparse.Namespace) -> int:
         v = random_rig_verdicts(r)
         verdicts.append(v)
         if "error" in r:
-            print(f"{r['rig']:<11}  calibration refused: {r['error']}")
+            cond = "yes" if r["coverage"] >= CONDITION_REACH else "no"
+            print(f"{r['rig']:<11}{r['coverage']:>6.2f}{cond:>5}  calibration refused: "
+                  f"{r['error']}")
             continue
         sc = r["scenes"]
         zs = [c[1] for s in sc.values() for c in s["cells"] if c[0] >= 50]
         means = [abs(c[2]) for s in sc.values() for c in s["cells"] if c[0] >= 50]
         bits = r["describe"].split("-bit")[0].rsplit(" ", 1)[-1]
         print(
-            f"{r['rig']:<11}{r['coverage']:>6.2f}{bits:>5}{sc['dof_target']['valid']:>10.4f}"
+            f"{r['rig']:<11}{r['coverage']:>6.2f}"
+            f"{'yes' if r['coverage'] >= CONDITION_REACH else 'no':>5}{bits:>5}"
+            f"{sc['dof_target']['valid']:>10.4f}"
             f"{sc['intestine_flap']['valid']:>8.4f}"
             f"{max(s['outside_field'] for s in sc.values()):>10.4f}"
             f"{max(s['outside_lens'] for s in sc.values()):>7.4f}"
@@ -945,7 +953,12 @@ def run_random_rigs(args: argparse.Namespace) -> int:
             f"{r['gross']:>6}  "
             + (",".join(k for k, ok in v.items() if not ok) or "-")
         )
-    print("\nshare of rigs meeting each target (issue 26: >= 90 %; zero gross on every rig):")
+    inside = [r["coverage"] >= CONDITION_REACH for r in rows]
+    print(
+        "\nshare of rigs meeting each target (issue 26: >= 90 %; zero gross on every rig): all "
+        f"rigs, then the {sum(inside)} whose boards reach >= {CONDITION_REACH:.0%} of the field "
+        "(the targets' condition)"
+    )
     missed = 0
     for key, text in (
         ("coverage", f"valid >= {COVERAGE_TARGET:.0%} of lit unsaturated px in the volume"),
@@ -955,9 +968,14 @@ def run_random_rigs(args: argparse.Namespace) -> int:
         ("zero_gross", "zero gross errors (> 0.5 mm) on valid pixels"),
     ):
         share = float(np.mean([v[key] for v in verdicts]))
+        cond = [v[key] for v, ok in zip(verdicts, inside, strict=True) if ok]
+        share_in = float(np.mean(cond)) if cond else float("nan")
         need = 1.0 if key == "zero_gross" else 0.9
         missed += share < need
-        print(f"  {text:<66} {share:>6.0%}  {'PASS' if share >= need else 'MISS'}")
+        print(
+            f"  {text:<66} {share:>6.0%}  {'PASS' if share >= need else 'MISS'}"
+            f"   in condition {share_in:>6.0%}  {'PASS' if share_in >= need else 'MISS'}"
+        )
     tmp.cleanup()
     return 1 if (args.strict and missed) else 0
 
