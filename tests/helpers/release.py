@@ -11,6 +11,11 @@ A module-scoped autouse fixture (loaded by tests/conftest.py) runs after each te
 - Cyclic garbage is collected: an Instrument, its threads' queues and its result slot form
   cycles the collector reaches by allocation counts, not by size.
 - The freed heap goes back to the system (glibc ``malloc_trim``).
+
+The same release also runs after any single test that left the process more than
+``TEST_GROWTH_MB`` larger than it found it (a live app, a calibration solve): without it a
+module's next test built its app beside the last one's (the calibration wizard module went
+from 2.1 to 4.3 GB). A test that leaves less costs one read of /proc/self/status.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import ctypes.util
 import functools
 import gc
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -40,6 +46,20 @@ def fastapi_callable_caches() -> list[functools._lru_cache_wrapper[object]]:
     return [f for f in vars(models).values() if isinstance(f, functools._lru_cache_wrapper)]
 
 
+TEST_GROWTH_MB = 200.0
+
+
+def rss_mb() -> float:
+    """This process's resident set now, MB (0 where /proc is absent)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 def release_memory() -> None:
     """Forget FastAPI's classified endpoints, collect cycles, trim the heap."""
     for cache in fastapi_callable_caches():
@@ -52,3 +72,11 @@ def release_memory() -> None:
 def _release_after_module() -> Iterator[None]:
     yield
     release_memory()
+
+
+@pytest.fixture(autouse=True)
+def _release_after_a_large_test() -> Iterator[None]:
+    before_mb = rss_mb()
+    yield
+    if rss_mb() - before_mb > TEST_GROWTH_MB:
+        release_memory()

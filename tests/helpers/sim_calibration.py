@@ -68,21 +68,48 @@ def make_sim_calibration(data: Path) -> Path:
     return path
 
 
+def compile_live_kernels(data: Path, calibration_file: Path) -> None:
+    """Run the live instrument with ``calibration_file`` until its first depth map: the
+    kernels of the live path are compiled into numba's disk cache (NUMBA_CACHE_DIR)."""
+    from app.service.instrument import Instrument
+
+    inst = Instrument(Settings(data_dir=data, calibration_file=calibration_file, viewer=False,
+                               sim_seed=1, sim_scene="dof_target"))
+    try:
+        inst.start()
+        deadline = time.monotonic() + 900
+        while inst.status().to_dict()["results_published"] < 1:
+            assert time.monotonic() < deadline, "no live depth map within 15 minutes"
+            time.sleep(0.5)
+    finally:
+        inst.close()
+
+
 @pytest.fixture(scope="session")
 def sim_calibration_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The simulator's calibration, made the way a first start makes it, once per test run.
 
     The calibration is made in ``<shared>/simcal-data`` under an exclusive lock; a process
-    that finds the file there (written atomically by the service) reuses it.
+    that finds the file there (written atomically by the service) reuses it. Under the same
+    lock the first process runs the live instrument to its first depth map once: with a
+    fresh numba cache two workers otherwise compiled the same kernels side by side while
+    their live tests' first-result timeouts ran.
     """
     shared = shared_dir(tmp_path_factory)
     data = shared / "simcal-data"
     path = data / "calibrations" / "sim.json"
+    compiled = shared / "live-kernels-compiled"
     with open(shared / "simcal.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
-        if path.is_file():
-            return path
-        if data.exists():  # a process that held the lock died mid-way: start afresh
-            shutil.rmtree(data)
-        data.mkdir()
-        return make_sim_calibration(data)
+        if not path.is_file():
+            if data.exists():  # a process that held the lock died mid-way: start afresh
+                shutil.rmtree(data)
+            data.mkdir()
+            make_sim_calibration(data)
+        if not compiled.exists():
+            warm = shared / "live-kernels-data"
+            shutil.rmtree(warm, ignore_errors=True)
+            compile_live_kernels(warm, path)
+            shutil.rmtree(warm, ignore_errors=True)
+            compiled.touch()
+        return path
