@@ -10,6 +10,8 @@ A module-scoped autouse fixture (loaded by tests/conftest.py) runs after each te
   goes; only the classification of a callable is cached).
 - Cyclic garbage is collected: an Instrument, its threads' queues and its result slot form
   cycles the collector reaches by allocation counts, not by size.
+- The simulator's shared scene renderers are forgotten when the process is still above
+  ``RENDERERS_ABOVE_MB`` (two xdist workers each keeping three was 2 GB of the sum).
 - The freed heap goes back to the system (glibc ``malloc_trim``).
 
 The same release also runs after any single test that left the process more than
@@ -25,6 +27,7 @@ import ctypes
 import ctypes.util
 import functools
 import gc
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -47,6 +50,9 @@ def fastapi_callable_caches() -> list[functools._lru_cache_wrapper[object]]:
 
 
 TEST_GROWTH_MB = 200.0
+# the simulator keeps up to 3 scene renderers for the next world (~0.3 GB each): a process
+# above this after collecting gives them back (rebuilt in seconds from the geometry cache)
+RENDERERS_ABOVE_MB = 1000.0
 
 
 def rss_mb() -> float:
@@ -61,10 +67,15 @@ def rss_mb() -> float:
 
 
 def release_memory() -> None:
-    """Forget FastAPI's classified endpoints, collect cycles, trim the heap."""
+    """Forget FastAPI's classified endpoints, collect cycles, trim the heap; above
+    ``RENDERERS_ABOVE_MB`` also forget the simulator's shared renderers."""
     for cache in fastapi_callable_caches():
         cache.cache_clear()
     gc.collect()
+    world = sys.modules.get("app.devices.sim.world")
+    if world is not None and rss_mb() > RENDERERS_ABOVE_MB:
+        world.release_shared_renderers()
+        gc.collect()
     _malloc_trim()
 
 
