@@ -4,9 +4,10 @@ Enabled by ``FRINGESCOPE_TEST_RSS=FILE`` (tests/conftest.py loads it): one tab-s
 line per test phase end, ``nodeid  rss_mb  peak_mb  children_mb  worker``, where
 ``rss_mb`` is the pytest process now, ``peak_mb`` its high-water mark so far (``VmHWM``),
 ``children_mb`` the summed resident set of its live child processes (servers, browsers,
-builds) and ``worker`` the pytest-xdist worker (``main`` without xdist; the workers append
-to one file, a line at a time). The suite's peak is where ``peak_mb`` jumps; a fixture that
-keeps memory shows as ``rss_mb`` staying up after its tests.
+builds) and ``worker`` the pytest-xdist worker (the workers append to one file, a line at
+a time), or ``main``: a run without xdist, or the xdist controller (its children are the
+workers: its ``children_mb`` is their sum). The suite's peak is where ``peak_mb`` jumps; a
+fixture that keeps memory shows as ``rss_mb`` staying up after its tests.
 """
 
 from __future__ import annotations
