@@ -11,7 +11,7 @@ A module-scoped autouse fixture (loaded by tests/conftest.py) runs after each te
 - Cyclic garbage is collected: an Instrument, its threads' queues and its result slot form
   cycles the collector reaches by allocation counts, not by size.
 - The simulator's shared scene renderers are forgotten when the process is still above
-  ``RENDERERS_ABOVE_MB`` (two xdist workers each keeping three was 2 GB of the sum).
+  ``RENDERERS_ABOVE_MB`` (two xdist workers keeping three each: ~1.8 GB of the sum).
 - The freed heap goes back to the system (glibc ``malloc_trim``); large blocks are mapped
   one by one from the start (:func:`bound_the_heap`).
 
@@ -30,9 +30,10 @@ import functools
 import gc
 import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
+
+from tests.helpers.rss import status_mb
 
 # glibc mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD, _M_ARENA_MAX = -3, -8
@@ -82,13 +83,7 @@ RENDERERS_ABOVE_MB = 1000.0
 
 def rss_mb() -> float:
     """This process's resident set now, MB (0 where /proc is absent)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return 0.0
+    return status_mb("VmRSS")
 
 
 def release_memory() -> None:

@@ -21,7 +21,7 @@ import pytest
 ENV = "FRINGESCOPE_TEST_RSS"
 
 
-def _status_mb(key: str) -> float:
+def status_mb(key: str) -> float:
     """A ``VmRSS``/``VmHWM`` line of /proc/self/status, MB (0 where /proc is absent)."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -55,7 +55,7 @@ class RssLog:
 
     @pytest.hookimpl(trylast=True)
     def pytest_runtest_logfinish(self, nodeid: str) -> None:
-        self.out.write(f"{nodeid}\t{_status_mb('VmRSS'):.0f}\t{_status_mb('VmHWM'):.0f}"
+        self.out.write(f"{nodeid}\t{status_mb('VmRSS'):.0f}\t{status_mb('VmHWM'):.0f}"
                        f"\t{_children_mb():.0f}\t{self.worker}\n")
         self.out.flush()
 
