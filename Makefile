@@ -30,10 +30,19 @@ run: $(VENV)/.installed-run
 system-deps:
 	@bash scripts/install-system-deps.sh
 
+# The suite in two pytest runs: everything but the `serial` tests on $(TEST_WORKERS) pytest-xdist
+# workers (a module's tests stay on one worker: its fixtures are built once), then the serial
+# tests (wall-clock or rate thresholds) alone. Both runs share one folder for the simulator's
+# calibration (tests/helpers/sim_calibration.py); both always run, either failing fails.
+TEST_WORKERS ?= 2
 test: $(VENV)/.installed-dev system-deps
 	$(BIN)/ruff check app tests benchmarks scripts
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	@shared=$$(mktemp -d) && trap 'rm -rf "$$shared"' EXIT && export FRINGESCOPE_TEST_SHARED_DIR=$$shared \
+	&& rc=0 \
+	&& { $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not serial" || rc=$$?; } \
+	&& { $(BIN)/python -m pytest -q -m serial || rc=$$?; } \
+	&& exit $$rc
 
 bench: $(VENV)/.installed-dev
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done

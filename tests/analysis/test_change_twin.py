@@ -51,20 +51,27 @@ class Map:
         self.sigma_model = sigma_model
 
 
-_FRAMES: dict[Any, tuple[Any, Any]] = {}  # (key, seed, t0) -> (frames, truth): rendered once
+Frames = dict[Any, tuple[Any, Any]]  # (key, seed, t0) -> (frames, truth)
 
 
-def _renderer(cal: Calibration, rig: Any) -> Callable[..., Map]:
+@pytest.fixture(scope="module")
+def frames() -> Frames:
+    """The twin's sets, rendered once for every calibration (freed with the module: ~45 MB
+    a set, which a module-level dict kept for the rest of the test session)."""
+    return {}
+
+
+def _renderer(cal: Calibration, rig: Any, rendered: Frames) -> Callable[..., Map]:
     engine = Reconstructor(cal)
     cache: dict[Any, Map] = {}
 
     def render(key: str, scene: Scene, seed: int, t0_s: float = 0.0) -> Map:
-        if (key, seed, t0_s) not in _FRAMES:
+        if (key, seed, t0_s) not in rendered:
             world = SimulatedWorld(scene, seed=seed)
             cs, truth, _ = render_capture_set(scene, world=world, t0_s=t0_s)
-            _FRAMES[key, seed, t0_s] = (cs.frames, truth)
+            rendered[key, seed, t0_s] = (cs.frames, truth)
         if (key, seed, t0_s) not in cache:
-            frames, truth = _FRAMES[key, seed, t0_s]
+            frames, truth = rendered[key, seed, t0_s]
             res = engine.run(frames)
             cache[key, seed, t0_s] = Map(res.depth, res.sigma_noise, res.points, truth,
                                          res.sigma_model)
@@ -76,23 +83,24 @@ def _renderer(cal: Calibration, rig: Any) -> Callable[..., Map]:
 
 
 @pytest.fixture(scope="module")
-def twin() -> Callable[..., Map]:
+def twin(frames: Frames) -> Callable[..., Map]:
     rig = default_rig()
-    return _renderer(ideal_calibration(rig, PatternSchedule()), rig)
+    return _renderer(ideal_calibration(rig, PatternSchedule()), rig, frames)
 
 
-@pytest.fixture(scope="module")
-def fitted_twin(sim_calibration_file: Path) -> Callable[..., Map]:
+# one test each: their engines and maps go when it ends, not with the module
+@pytest.fixture()
+def fitted_twin(sim_calibration_file: Path, frames: Frames) -> Callable[..., Map]:
     """The same sets reconstructed with the calibration the simulator's service makes and
     uses (board poses rendered by the twin, fitted, with its σ_model): what a user has."""
-    return _renderer(load_calibration(sim_calibration_file), default_rig())
+    return _renderer(load_calibration(sim_calibration_file), default_rig(), frames)
 
 
-@pytest.fixture(scope="module")
-def exact_twin() -> Callable[..., Map]:
+@pytest.fixture()
+def exact_twin(frames: Frames) -> Callable[..., Map]:
     """The same sets reconstructed with the twin's own geometry as the calibration."""
     rig = default_rig()
-    return _renderer(true_geometric_calibration(rig, PatternSchedule()), rig)
+    return _renderer(true_geometric_calibration(rig, PatternSchedule()), rig, frames)
 
 
 def _truth_along_normal(cal: Calibration, ref: Map, cur_truth: Any) -> Any:

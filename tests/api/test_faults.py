@@ -100,6 +100,7 @@ def test_a_device_fault_not_yet_recorded_is_named_in_the_status(
         assert st["faults"] >= 1 and st["state_reason"]
 
 
+@pytest.mark.serial
 def test_status_never_says_running_without_a_recent_map(tmp_path: Path,
                                                         sim_calibration_file: Path) -> None:
     """Injected faults (unplugs, drops, timeouts): every status sample that says running has a

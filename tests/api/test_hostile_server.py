@@ -22,7 +22,7 @@ import pytest
 from tests.helpers.hostile import capture_json, png_bomb_zip, zero_png
 from tests.helpers.served import ServedApp, free_port
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 MB = 1024 * 1024
 

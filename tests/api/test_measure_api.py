@@ -24,6 +24,7 @@ def valid_pixels(
     return [[int(uu[i] + margin), int(vv[i] + margin)] for i in k]
 
 
+@pytest.mark.serial
 def test_measure_on_the_latest_result_matches_the_functions(live: TestClient) -> None:
     inst = live.app.state.instrument  # type: ignore[attr-defined]
     assert live.post("/api/acquisition/stop").status_code == 200  # hold the latest result still

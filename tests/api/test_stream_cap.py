@@ -25,6 +25,8 @@ from app.config import Settings
 from app.main import create_app
 from tests.helpers.outputs import serve
 
+pytestmark = pytest.mark.serial  # status answer times compared: alone on the machine
+
 CAP = 3
 
 

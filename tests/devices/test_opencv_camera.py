@@ -47,6 +47,7 @@ def test_sync_restarts_pattern_counting(video):
     cam.close()
 
 
+@pytest.mark.serial
 def test_file_paced_at_requested_rate(video):
     cam = OpenCVCamera(str(video), fps=50.0)
     cam.open()

@@ -44,6 +44,7 @@ def test_single_capture_set_folder_replays(tmp_path):
     cam.close()
 
 
+@pytest.mark.serial
 def test_paced_by_recorded_timestamps_and_speed(tmp_path):
     rec = make_recording(tmp_path / "rec", n_sets=1, timestamps=True)
     for speed, expected_s in ((1.0, 0.450), (3.0, 0.150)):

@@ -242,6 +242,7 @@ def test_silent_device_faults_then_recovers(emu):
         ctl.close()
 
 
+@pytest.mark.serial
 def test_unplug_faults_and_replug_resumes_within_2_s(emu):
     ctl = _ctl(emu.port)
     ctl.open()
@@ -261,6 +262,7 @@ def test_unplug_faults_and_replug_resumes_within_2_s(emu):
     ctl.close()
 
 
+@pytest.mark.serial
 def test_reboot_on_open_the_banner_ends_the_reset_wait(tmp_path):
     """Arduino-like board: deaf for 0.3 s after each open, then the banner."""
     emu = PtyControllerEmulator(tmp_path / "ttyUNO", auto_reset_s=0.3).start()

@@ -1,11 +1,13 @@
 """Memory per test: a pytest plugin that logs the process's resident set after each test.
 
 Enabled by ``FRINGESCOPE_TEST_RSS=FILE`` (tests/conftest.py loads it): one tab-separated
-line per test phase end, ``nodeid  rss_mb  peak_mb  children_mb``, where ``rss_mb`` is
-the pytest process now, ``peak_mb`` its high-water mark so far (``VmHWM``) and
+line per test phase end, ``nodeid  rss_mb  peak_mb  children_mb  worker``, where
+``rss_mb`` is the pytest process now, ``peak_mb`` its high-water mark so far (``VmHWM``),
 ``children_mb`` the summed resident set of its live child processes (servers, browsers,
-builds). The suite's peak is where ``peak_mb`` jumps; a fixture that keeps memory shows as
-``rss_mb`` staying up after its tests.
+builds) and ``worker`` the pytest-xdist worker (the workers append to one file, a line at
+a time), or ``main``: a run without xdist, or the xdist controller (its children are the
+workers: its ``children_mb`` is their sum). The suite's peak is where ``peak_mb`` jumps; a
+fixture that keeps memory shows as ``rss_mb`` staying up after its tests.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import pytest
 ENV = "FRINGESCOPE_TEST_RSS"
 
 
-def _status_mb(key: str) -> float:
+def status_mb(key: str) -> float:
     """A ``VmRSS``/``VmHWM`` line of /proc/self/status, MB (0 where /proc is absent)."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -49,11 +51,12 @@ class RssLog:
 
     def __init__(self, out: TextIO) -> None:
         self.out = out
+        self.worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
 
     @pytest.hookimpl(trylast=True)
     def pytest_runtest_logfinish(self, nodeid: str) -> None:
-        self.out.write(f"{nodeid}\t{_status_mb('VmRSS'):.0f}\t{_status_mb('VmHWM'):.0f}"
-                       f"\t{_children_mb():.0f}\n")
+        self.out.write(f"{nodeid}\t{status_mb('VmRSS'):.0f}\t{status_mb('VmHWM'):.0f}"
+                       f"\t{_children_mb():.0f}\t{self.worker}\n")
         self.out.flush()
 
 

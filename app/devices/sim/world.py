@@ -45,6 +45,18 @@ def shared_renderer(name: str, rig: SimRig, schedule: PatternSchedule, sensor: S
         return r
 
 
+def release_shared_renderers() -> int:
+    """Forget the renderers worlds share (~0.3 GB each with their caches); how many were held.
+
+    A world that holds one keeps it; the next world of the same scene builds it again (from
+    the disk cache when it has one). For a long-lived process that has finished with a scene.
+    """
+    with _RENDERERS_LOCK:
+        n = len(_RENDERERS)
+        _RENDERERS.clear()
+    return n
+
+
 class SimulatedWorld:
     """One scene seen by one rig; the projector's state decides what light falls on it.
 
