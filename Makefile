@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 export NUMBA_THREADING_LAYER ?= workqueue
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.venv/numba-cache
 
-.PHONY: run test lint bench clean system-deps
+.PHONY: run test test-parallel lint bench clean system-deps
 
 # Re-install only when pyproject.toml changes (stamp files keep both targets idempotent).
 $(BIN)/python:
@@ -30,14 +30,17 @@ run: $(VENV)/.installed-run
 system-deps:
 	@bash scripts/install-system-deps.sh
 
-# The suite in two pytest runs: everything but the `serial` tests on $(TEST_WORKERS) pytest-xdist
-# workers (a module's tests stay on one worker: its fixtures are built once), then the serial
-# tests (wall-clock or rate thresholds) alone. Both runs share one folder for the simulator's
-# calibration (tests/helpers/sim_calibration.py); both always run, either failing fails.
+# The whole suite in one pytest process. `make test-parallel` runs it on $(TEST_WORKERS)
+# pytest-xdist workers (`serial` tests, which assert wall-clock times or rates, alone after);
+# on this 2-core machine that is ~20 min against ~23 but needs more memory in sum and has
+# shown load-dependent failures, so it is not the default yet.
 TEST_WORKERS ?= 2
 test: $(VENV)/.installed-dev system-deps
 	$(BIN)/ruff check app tests benchmarks scripts
 	$(BIN)/mypy
+	$(BIN)/python -m pytest -q
+
+test-parallel: $(VENV)/.installed-dev system-deps
 	@shared=$$(mktemp -d) && trap 'rm -rf "$$shared"' EXIT && export FRINGESCOPE_TEST_SHARED_DIR=$$shared \
 	&& rc=0 \
 	&& { $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not serial" || rc=$$?; } \

@@ -50,7 +50,7 @@ class Strict(BaseModel):
 
 
 class ExposureIn(Strict):
-    exposure_ms: float = Field(..., ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS,
+    exposure_ms: float = Field(..., strict=True, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS,
                                description="camera exposure, "
                                            f"{EXPOSURE_MIN_MS:g}–{EXPOSURE_MAX_MS:g} ms")
 
@@ -61,9 +61,10 @@ class ExposureOut(BaseModel):
 
 
 class AutoExposureIn(Strict):
-    saturation_limit: float = Field(DEFAULT_SATURATION_LIMIT, ge=0.0, lt=1.0,
+    saturation_limit: float = Field(DEFAULT_SATURATION_LIMIT, strict=True, ge=0.0, lt=1.0,
                                     description="allowed saturated fraction")
-    max_exposure_ms: float = Field(EXPOSURE_MAX_MS, ge=EXPOSURE_MIN_MS, le=EXPOSURE_MAX_MS)
+    max_exposure_ms: float = Field(EXPOSURE_MAX_MS, strict=True, ge=EXPOSURE_MIN_MS,
+                                   le=EXPOSURE_MAX_MS)
 
 
 class ExposureTrialOut(BaseModel):
@@ -236,8 +237,9 @@ class ReconstructSummary(BaseModel):
         None, description="the same of the calibration's part, mm")
 
 
-PositiveMm = Annotated[float, Field(gt=0.0, le=1000.0)]
-BoardSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
+PositiveMm = Annotated[float, Field(strict=True, gt=0.0, le=1000.0)]
+BoardSize = Annotated[list[Annotated[int, Field(strict=True, ge=2, le=200)]],
+                      Field(min_length=2, max_length=2)]
 #: ``inner_corners`` is the grid size for every board type; an older ``grid`` key is read too
 InnerCorners = Annotated[BoardSize, Field(validation_alias=AliasChoices("inner_corners", "grid"))]
 
@@ -365,7 +367,7 @@ class ActivateIn(Strict):
 
 
 class RoiIn(Strict):
-    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]],
+    roi: Annotated[list[Annotated[int, Field(strict=True, ge=0, le=1_000_000)]],
                    Field(min_length=4, max_length=4)] = Field(
         ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
                          "x0 < x1 and y0 < y1, and the box inside the depth map")

@@ -142,6 +142,48 @@ def test_non_finite_numbers_are_422_naming_the_field(
     assert seen > 200
 
 
+def _numeric_properties(spec: dict[str, Any], schema: dict[str, Any]) -> list[tuple[str, str]]:
+    """(property, the rest of a body) for each top-level number or integer property (through
+    $ref, anyOf and oneOf; an alternative's ``type`` tag is kept so the number is what fails)."""
+    schema = _resolve(spec, schema)
+    tag = schema.get("properties", {}).get("type", {})
+    tag_value = tag.get("const", (tag.get("enum") or [None])[0])
+    rest = "" if tag_value is None else f', "type": {json.dumps(tag_value)}'
+    out = []
+    for name, prop in schema.get("properties", {}).items():
+        prop = _resolve(spec, prop)
+        types = {_resolve(spec, s).get("type") for s in [prop, *prop.get("anyOf", [])]}
+        if types & {"number", "integer"}:
+            out.append((name, rest))
+    for alt in schema.get("anyOf", []) + schema.get("oneOf", []):
+        out += [case for case in _numeric_properties(spec, alt) if case not in out]
+    return out
+
+
+def test_a_boolean_or_a_string_for_a_number_is_422_naming_the_field(
+    client: TestClient, spec: dict[str, Any]
+) -> None:
+    """JSON ``false`` is not 0 and ``"0.1"`` is not 0.1: a number field refuses both (a
+    lax parser read ``{"saturation_limit": false}`` as a 0 % saturation limit)."""
+    seen = 0
+    for path, item in spec["paths"].items():
+        for method, op in item.items():
+            content = op.get("requestBody", {}).get("content", {})
+            if "application/json" not in content:
+                continue
+            schema = content["application/json"]["schema"]
+            for prop, rest in _numeric_properties(spec, schema):
+                for lit in ("false", "true", '"0.1"'):
+                    body = f'{{"{prop}": {lit}{rest}}}'
+                    r = _send(client, method.upper(), path, body)
+                    what = f"{method.upper()} {path} {body}"
+                    assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
+                    detail = _one_line_4xx(r, what)
+                    assert f".{prop}: " in detail, f"{what}: {detail}"  # names it
+                    seen += 1
+    assert seen >= 9  # exposure, auto-exposure (2), and the rest the document has
+
+
 def test_non_finite_query_and_path_parameters_are_4xx_naming_them(
     client: TestClient, spec: dict[str, Any]
 ) -> None:

@@ -7,8 +7,9 @@ from app.devices.sim import SimulatedWorld
 from app.devices.sim.world import release_shared_renderers
 
 
-def test_released_renderers_are_kept_by_their_worlds_and_built_again_for_new_ones(
-        plane_world: SimulatedWorld) -> None:
+def test_released_renderers_are_kept_by_their_worlds_and_built_again_for_new_ones() -> None:
+    # its own world, not the session's: the shared cache may have evicted that one's renderer
+    plane_world = SimulatedWorld("plane", seed=3, distortion=False)
     held = plane_world.renderer
     assert SimulatedWorld("plane", seed=3, distortion=False).renderer is held  # shared
     assert release_shared_renderers() >= 1
