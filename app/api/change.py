@@ -32,8 +32,7 @@ class ReferenceRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     recording: str | None = Field(None, min_length=1, max_length=200,
                                   description="a recording's name (with index)")
-    index: int | None = Field(None, strict=True, ge=0, le=10**7,
-                              description="the set's index in it")
+    index: int | None = Field(None, ge=0, le=10**7, description="the set's index in it")
 
 
 class ReferenceInfo(BaseModel):

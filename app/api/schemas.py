@@ -238,8 +238,7 @@ class ReconstructSummary(BaseModel):
 
 
 PositiveMm = Annotated[float, Field(strict=True, gt=0.0, le=1000.0)]
-BoardSize = Annotated[list[Annotated[int, Field(strict=True, ge=2, le=200)]],
-                      Field(min_length=2, max_length=2)]
+BoardSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
 #: ``inner_corners`` is the grid size for every board type; an older ``grid`` key is read too
 InnerCorners = Annotated[BoardSize, Field(validation_alias=AliasChoices("inner_corners", "grid"))]
 
@@ -367,7 +366,7 @@ class ActivateIn(Strict):
 
 
 class RoiIn(Strict):
-    roi: Annotated[list[Annotated[int, Field(strict=True, ge=0, le=1_000_000)]],
+    roi: Annotated[list[Annotated[int, Field(ge=0, le=1_000_000)]],
                    Field(min_length=4, max_length=4)] = Field(
         ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
                          "x0 < x1 and y0 < y1, and the box inside the depth map")
