@@ -50,8 +50,8 @@ class SimulatedCamera(Camera):
 
     def _do_open(self) -> None:
         self.link.check_open()
-        self.link.opened()
         _ = self.world.renderer  # precompute the geometry now, not inside the first grab
+        self.link.opened()  # armed once open has succeeded, after the (possibly slow) trace
 
     def _do_close(self) -> None:
         pass
