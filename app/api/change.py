@@ -8,12 +8,12 @@ from typing import Any, Literal
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import binary, get_instrument
 from app.api.errors import COMMON, R400, R404, R409, R413, R415, R422
-from app.api.schemas import CAPTURE_UPLOAD
+from app.api.schemas import CAPTURE_UPLOAD, Strict, integers_are_numbers
 from app.api.upload import capture_from_request, read_body
 from app.capture.recording import recordings_root, validate_name
 from app.core.errors import InvalidRequest
@@ -26,13 +26,14 @@ router = APIRouter(prefix="/api", tags=["change"])
 _JSON_LIMIT_BYTES = 4096
 
 
-class ReferenceRequest(BaseModel):
+class ReferenceRequest(Strict):
     """Which map becomes the reference: the newest (no body, or ``{}``) or a recorded set."""
 
-    model_config = ConfigDict(extra="forbid")
     recording: str | None = Field(None, min_length=1, max_length=200,
                                   description="a recording's name (with index)")
     index: int | None = Field(None, ge=0, le=10**7, description="the set's index in it")
+
+    _integers = integers_are_numbers("index")
 
 
 class ReferenceInfo(BaseModel):

@@ -24,10 +24,13 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictBool,
+    ValidationInfo,
     create_model,
+    field_validator,
     model_validator,
 )
 from pydantic.json_schema import SkipJsonSchema
+from pydantic_core import PydanticCustomError
 
 from app.analysis.measure import EXACT_POINTS, MIN_POINTS
 from app.capture.recording import NAME_PATTERN
@@ -47,6 +50,50 @@ EXPOSURE_MIN_MS, EXPOSURE_MAX_MS = EXPOSURE_RANGE_MS
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _integer_nesting(annotation: object) -> int | None:
+    """How deep the integers sit in ``annotation`` (``int`` 0, ``list[int]`` 1, …); None when
+    it holds none. ``X | None`` is read as ``X``; ``bool`` is not an integer here."""
+    if annotation is int:
+        return 0
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Annotated:
+        return _integer_nesting(args[0])
+    if origin in (Union, UnionType):
+        depths = {_integer_nesting(a) for a in args if a is not type(None)}
+        return depths.pop() if len(depths) == 1 else None
+    if origin is list and args:
+        inner = _integer_nesting(args[0])
+        return None if inner is None else inner + 1
+    return None
+
+
+def _refuse_non_numbers(value: object, nesting: int) -> None:
+    if nesting == 0:
+        if isinstance(value, (bool, str)):
+            what = "a boolean" if isinstance(value, bool) else "a string"
+            raise PydanticCustomError("int_type", "must be a JSON integer, not {what}",
+                                      {"what": what})
+    elif isinstance(value, list):
+        for item in value:
+            _refuse_non_numbers(item, nesting - 1)
+
+
+def integers_are_numbers(*fields: str) -> Any:
+    """A validator for a body's integer ``fields``: ``false`` is not 0 nor ``"5"`` 5 (lax
+    parsing reads them so). Not ``strict=True``, which also refuses ``19.0`` (an integer to
+    JSON Schema), nor an annotated validator, which hides the bounds from the OpenAPI document;
+    and per field, since a before-validator may not touch a union's discriminator."""
+
+    def check(cls: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
+        nesting = _integer_nesting(cls.model_fields[info.field_name or ""].annotation)
+        if nesting is None:
+            raise TypeError(f"{cls.__name__}.{info.field_name} holds no integers")
+        _refuse_non_numbers(value, nesting)
+        return value
+
+    return field_validator(*fields, mode="before")(classmethod(check))
 
 
 class ExposureIn(Strict):
@@ -250,6 +297,8 @@ class CheckerboardIn(Strict):
     inner_corners: InnerCorners
     square_mm: PositiveMm
 
+    _integers = integers_are_numbers("inner_corners")
+
 
 class CirclesIn(Strict):
     """A (symmetric or asymmetric) circle grid ``board.json``: grid [cols, rows] and spacing, mm."""
@@ -257,6 +306,8 @@ class CirclesIn(Strict):
     type: Literal["circles", "asymmetric_circles"]
     inner_corners: InnerCorners
     spacing_mm: PositiveMm
+
+    _integers = integers_are_numbers("inner_corners")
 
 
 BoardIn = Annotated[CheckerboardIn | CirclesIn, Field(discriminator="type")]
@@ -370,6 +421,8 @@ class RoiIn(Strict):
                    Field(min_length=4, max_length=4)] = Field(
         ..., description="[x0, y0, x1, y1] pixels, x1/y1 exclusive. Rule (422 otherwise): "
                          "x0 < x1 and y0 < y1, and the box inside the depth map")
+
+    _integers = integers_are_numbers("roi")
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiIn:
@@ -501,8 +554,10 @@ class MeasureIn(MeasureSpec):
     recording: str | None = Field(None, pattern=RECORDING_NAME_REGEX, max_length=64,
                                   description="measure on this recording's set (default: "
                                               "the latest live result)")
-    index: int | None = Field(None, strict=True, ge=0, le=999_999,
+    index: int | None = Field(None, ge=0, le=999_999,
                               description="the recording's set index (with `recording`)")
+
+    _integers = integers_are_numbers("index")
 
     @model_validator(mode="after")
     def _both(self) -> MeasureIn:

@@ -109,6 +109,11 @@ class Calibration:
         self.plane_offset_mm = float(plane_offset_mm)
         if not math.isfinite(self.plane_offset_mm):
             raise ValueError("plane_offset_mm: must be finite")
+        if len(image_size) != 2 or not all(
+            isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+            and float(x).is_integer() for x in image_size
+        ):  # a file's true or "1384" is not a width
+            raise ValueError(f"image_size: must be two integers, got {list(image_size)!r:.80}")
         w, h = (int(x) for x in image_size)
         if w <= 0 or h <= 0:
             raise ValueError(f"image_size: invalid {image_size}")

@@ -184,6 +184,57 @@ def test_a_boolean_or_a_string_for_a_number_is_422_naming_the_field(
     assert seen >= 9  # exposure, auto-exposure (2), and the rest the document has
 
 
+def _integer_properties(
+    spec: dict[str, Any], schema: dict[str, Any]
+) -> list[tuple[str, int, str]]:
+    """(property, its minimum item count (0 for a scalar), the rest of a body) for each top-level
+    property holding integers: an integer, or an array of them."""
+    schema = _resolve(spec, schema)
+    tag = schema.get("properties", {}).get("type", {})
+    tag_value = tag.get("const", (tag.get("enum") or [None])[0])
+    rest = "" if tag_value is None else f', "type": {json.dumps(tag_value)}'
+    out = []
+    for name, prop in schema.get("properties", {}).items():
+        for alt in [_resolve(spec, s) for s in [_resolve(spec, prop), *prop.get("anyOf", [])]]:
+            if alt.get("type") == "integer":
+                out.append((name, 0, rest))
+            elif (alt.get("type") == "array"
+                  and _resolve(spec, alt["items"]).get("type") == "integer"):
+                out.append((name, max(1, alt.get("minItems", 1)), rest))
+    for alt in schema.get("anyOf", []) + schema.get("oneOf", []):
+        out += [case for case in _integer_properties(spec, alt) if case not in out]
+    return out
+
+
+def test_a_boolean_or_a_string_for_an_integer_is_422_naming_the_field(
+    client: TestClient, spec: dict[str, Any]
+) -> None:
+    """JSON ``false`` is not 0 and ``"5"`` is not 5 where an integer belongs (a ROI, a board's
+    corners, a set's index), alone or in an array; ``19.0`` stays an integer (JSON Schema's)."""
+    seen = 0
+    for path, item in spec["paths"].items():
+        for method, op in item.items():
+            content = op.get("requestBody", {}).get("content", {})
+            if "application/json" not in content:
+                continue
+            if (method.upper(), path) == ("PUT", "/api/calibration/file"):
+                continue  # a calibration file, read by its format's reader (tests/core)
+            schema = content["application/json"]["schema"]
+            for prop, items, rest in _integer_properties(spec, schema):
+                for lit, what_it_is in (("false", "a boolean"), ("true", "a boolean"),
+                                        ('"5"', "a string")):
+                    value = lit if items == 0 else "[" + ", ".join([lit] * items) + "]"
+                    body = f'{{"{prop}": {value}{rest}}}'
+                    r = _send(client, method.upper(), path, body)
+                    what = f"{method.upper()} {path} {body}"
+                    assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
+                    detail = _one_line_4xx(r, what)
+                    assert f".{prop}: must be a JSON integer, not {what_it_is}" in detail, (
+                        f"{what}: {detail}")
+                    seen += 1
+    assert seen >= 12  # ROI (2 routes), board corners (2 board types), reference and set index
+
+
 def test_non_finite_query_and_path_parameters_are_4xx_naming_them(
     client: TestClient, spec: dict[str, Any]
 ) -> None:

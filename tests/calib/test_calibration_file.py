@@ -103,3 +103,17 @@ def test_atomic_write_keeps_old_file(tmp_path, cal, monkeypatch):
         save_calibration(cal, path)
     assert path.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json"]  # no temp file left
+
+
+@pytest.mark.parametrize("size", [[True, 1032], ["1384", 1032], [1384.5, 1032], [1384]])
+def test_an_image_size_is_two_integers(tmp_path, cal, size):
+    """A file's ``true`` or ``"1384"`` is not a width (``int()`` would read them as 1 and 1384)."""
+    path = save_calibration(cal, tmp_path / "c.json")
+    data = json.loads(path.read_text())
+    data["image_size"] = size
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="calibration: image_size: must be two integers"):
+        load_calibration(path)
+    data["image_size"] = [float(cal.image_size[0]), cal.image_size[1]]  # 1384.0 is 1384
+    path.write_text(json.dumps(data))
+    assert load_calibration(path).image_size == cal.image_size
