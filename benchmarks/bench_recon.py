@@ -26,16 +26,17 @@ from __future__ import annotations
 
 import argparse
 import os
-
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
-
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.core.jit import WIDE_VECTORS, numba_environment
+
+# before numba is imported: numba runs the kernel as under the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
+
+import numpy as np
 from timing import median_ms
 
 from app.devices.sim.analytic_rig import Rig, bump_surface
@@ -48,6 +49,12 @@ WIDTH, HEIGHT = 1384, 1032
 def memory_pass(frames: np.ndarray) -> np.ndarray:
     """One read of the frames and one (H, W) write: the floor any per-pixel kernel pays."""
     return frames.sum(axis=0, dtype=np.uint16)
+
+
+def vector_width() -> str:
+    """Which vectors numba was told to prefer (:mod:`app.core.jit`)."""
+    wide = os.environ.get("NUMBA_CPU_FEATURES", "").endswith(WIDE_VECTORS)
+    return "512-bit vectors preferred" if wide else "LLVM's default vector width"
 
 
 def main() -> int:
@@ -109,7 +116,7 @@ def twin_scenes(calibration_file: str | None) -> None:
     known = ("with its sigma_model table" if rec.model_sigma is not None
              else "sigma_model 0 (no jackknife)")
     print(f"twin scenes, calibration {calibration_file or 'ideal (eq5)'}: model {cal.model.name}, "
-          f"{known}; {numba.get_num_threads()} numba threads, then 1")
+          f"{known}; {numba.get_num_threads()} numba threads, then 1; {vector_width()}")
     threads = numba.get_num_threads()
     for label, scene, exposure_ms in (("45 deg plate, bright half clipped", "dof_target", 40.0),
                                       ("tissue (intestine_flap)", "intestine_flap", 20.0)):

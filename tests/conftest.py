@@ -1,9 +1,11 @@
-"""Shared test setup: numba on 2 cores must not spin OpenMP threads; memory released after each
-module (tests/helpers/release.py) and logged per test on request (tests/helpers/rss.py)."""
+"""Shared test setup: numba configured as the CLI configures it (no spinning OpenMP threads on 2
+cores, 512-bit vectors where the CPU has them: app/core/jit.py) before any test imports it; memory
+released after each module (tests/helpers/release.py) and logged per test on request
+(tests/helpers/rss.py)."""
 
-import os
+from app.core.jit import configure_numba
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+configure_numba()
 
 pytest_plugins = [
     "tests.helpers.release",  # after each module: FastAPI's endpoint caches, cycles, heap

@@ -11,12 +11,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
-import os
 import pkgutil
 import sys
 from collections.abc import Sequence
 
 from app import __version__
+from app.core.jit import configure_numba
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+    configure_numba()  # before the commands import numba: threading layer, vector width
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

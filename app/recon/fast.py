@@ -1,9 +1,8 @@
 """The fast path: one fused, parallel numba kernel from raw frames to depth and σ.
 
-Rows are processed in blocks (``prange``), in two phases per block so that each phase
-streams few arrays at a time:
+Rows are processed in blocks (``prange``), row by row through block-local buffers:
 
-1. Phase, then height, into block-local buffers: for the paper's schedule (4
+1. Phase, then height: for the paper's schedule (4
    frequencies × 4 steps) one loop per row reads all 16 frames of a pixel and keeps
    everything in registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse
    levels with a cheaper atan2 (they only pick fringe orders), the finest with the
@@ -17,8 +16,9 @@ streams few arrays at a time:
    stage (:func:`_height_row`, both paths) evaluates the depth model's closed form
    (:mod:`app.core.depth_model`: per-row polynomial coefficients, plus the ray quotient
    terms for the geometric model), σ (sensor noise → phase via the modulation → ∂z/∂φ),
-   the supported region and the final reason code.
-2. Outputs: reason/valid, depth, σ, modulation/texture and the optional phase. The 3-D
+   the supported region and the final reason code, and writes every output of the row in
+   the same pixel loop: reason/valid, depth, σ, modulation/texture.
+2. The optional phase, from the block's buffers once its rows are done. The 3-D
    points are not the kernel's: they follow from depth and the rays on demand
    (:class:`app.recon.points.PointRays`), which spares most sets a (H, W, 3) write.
 
@@ -31,9 +31,12 @@ those of the numpy oracle (``phase``/``unwrap``/``model``/``points``); only the
 arithmetic is float32. ``fastmath`` excludes ``nnan``/``ninf`` because NaN marks
 invalid pixels. The JIT result is cached on disk (``cache=True``).
 
-The threading layer is the entry points' setting, not this module's: the CLI, the Makefile
-and the container set ``NUMBA_THREADING_LAYER=workqueue`` (OpenMP's spinning threads are
-8x slower on 2 cores), and numba reads it when the first parallel kernel is compiled.
+The threading layer and the vector width are the entry points' settings, not this module's
+(:func:`app.core.jit.configure_numba`): the CLI, the tests, the benchmarks, the Makefile and the
+container set ``NUMBA_THREADING_LAYER=workqueue`` (OpenMP's spinning threads are 8x slower on 2
+cores), numba reads it when the first parallel kernel is compiled; on an AVX-512 CPU the CLI,
+the tests and ``bench_recon`` also let LLVM use 512-bit vectors (its tuning keeps 256: the
+kernel's float32 loops then take ~30 % more CPU).
 """
 
 from __future__ import annotations
@@ -763,9 +766,12 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyp
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-def]
-                depth, sigma):  # pragma: no cover - compiled
-    """Height stage of row ``v`` (both paths): the final reason code and the row's outputs
-    ``depth`` and ``sigma``, NaN where invalid.
+                depth, sigma, reason, valid, modulation, texture, mod_scale):  # pragma: no cover
+    """Height stage of row ``v`` (both paths): the final reason code and all the row's outputs
+    but the phase: ``depth`` and ``sigma`` (float32, mm; NaN where invalid), ``reason`` (uint8),
+    ``valid`` (bool), ``modulation`` B = ``mod_scale``·√m2 and ``texture`` Σ I/F + B (float32,
+    codes). In the one pixel loop: a second pass over the block's rows for the last four cost
+    ~12 % of the kernel's CPU (re-reading m2, total and the codes).
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -813,6 +819,11 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
             code[u] = c
+            reason[u] = c
+            valid[u] = ok
+            b = mod_scale * np.sqrt(m2[u])
+            modulation[u] = b
+            texture[u] = total[u] * inv_frames + b
     else:
         for u in range(prev.shape[0]):
             x = un[u]
@@ -831,6 +842,11 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
             code[u] = c
+            reason[u] = c
+            valid[u] = ok
+            b = mod_scale * np.sqrt(m2[u])
+            modulation[u] = b
+            texture[u] = total[u] * inv_frames + b
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -1095,27 +1111,11 @@ def _refit_row(  # type: ignore[no-untyped-def]
     return n
 
 
-# Phase 2: outputs from the block buffers.
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _reason_row(reason, valid, code):  # type: ignore[no-untyped-def]  # pragma: no cover
-    for u in range(code.shape[0]):
-        reason[u] = code[u]
-        valid[u] = code[u] == 0
-
-
+# Phase 2: the optional phase output from the block buffers.
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _select_row(out, values, code):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(out.shape[0]):
         out[u] = values[u] if code[u] == 0 else _NAN
-
-
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
-def _shade_row(modulation, texture, m2, total, mod_scale,  # type: ignore[no-untyped-def]
-               inv_frames):  # pragma: no cover
-    for u in range(total.shape[0]):
-        b = mod_scale * np.sqrt(m2[u])
-        modulation[u] = b
-        texture[u] = total[u] * inv_frames + b
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -1189,13 +1189,11 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
             if paper:
                 wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v],
-                        out.sigma[v])
-        for r in range(n_rows):
-            v = v0 + r
-            _reason_row(out.reason[v], out.valid[v], code[r])
-            if want_phase:
-                _select_row(out.phase[v], prev[r], code[r])
-            _shade_row(out.modulation[v], out.texture[v], m2[r], total[r], mod_scale, m.inv_frames)
+                        out.sigma[v], out.reason[v], out.valid[v], out.modulation[v],
+                        out.texture[v], mod_scale)
+        if want_phase:  # the one output the height stage does not write
+            for r in range(n_rows):
+                _select_row(out.phase[v0 + r], prev[r], code[r])
 
 
 @njit(nogil=True, error_model="numpy", cache=True)
