@@ -1,0 +1,138 @@
+"""A phase-error table from the set itself: the projector's power-law gamma, read from its
+second harmonic.
+
+A projector whose output is its pattern value to the power γ shows the N-step decoder
+``((1 + cos θ)/2)^γ`` instead of a sinusoid. Its harmonics, as fractions of the
+fundamental, are fixed by γ alone (Liu, Wang, Lau, Hassebrook, "Gamma model and its
+analysis for phase measuring profilometry", JOSA A 27(3) 553, 2010):
+
+    B_h / B_1 = Π_{j=1}^{h−1} (γ − j) / Π_{j=2}^{h} (γ + j),   so   B_2 / B_1 = (γ − 1)/(γ + 2).
+
+With N = 4 the set's noise fit (:mod:`app.recon.noise`) measures the 2nd harmonic as one
+number per frequency common to all pixels (the Nyquist residual), while the 3rd and 5th
+alias onto the fundamental, invisible in the set, as a phase error ≈ (B_5 − B_3)/B_1 ·
+sin 4φ. Under the power law the first gives γ, and γ gives the error: a
+:class:`~app.recon.gamma.PhaseErrorLUT` made from the set, applied where no learned table
+is given.
+
+What the real projector says (tests/recon/test_gamma_model.py, the CFPE captures: a home
+projector, 8-bit camera, 4-step subsets of 12-step sets): the measured 2nd harmonic reads
+γ 1.44–1.59, and the table made from it removes 10–20 % of the 4-step phase error's RMS
+against the 12-step phase on every scene, frequency and subset, but not all of it: the
+real odd harmonics grow near the top of the camera's range, which no power law of the
+projector holds.
+
+Only N = 4 is corrected: for N ≥ 8 the aliased harmonics are the 7th and above (below
+5·10⁻⁴ of B for γ ≤ 2, under the noise); for N = 5 … 7 the 2nd harmonic shares its
+residual column with others and is not isolated by the fit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from app.recon.gamma import PhaseErrorLUT
+
+F64 = npt.NDArray[np.float64]
+#: samples of the fringe phase the table is synthesised from (32 per table bin)
+SYNTH_SAMPLES = 4096
+#: table entries per frequency
+TABLE_BINS = 128
+#: the only N whose aliased harmonics (3rd, 5th) are inferred from the measured 2nd
+CORRECTED_STEPS = 4
+
+
+def power_law_harmonic_ratio(gamma: float, h: int) -> float:
+    """B_h / B_1 of the pattern ``((1 + cos θ)/2)^γ`` (dimensionless, signed).
+
+    Args:
+        gamma: the projector's exponent γ > 0.
+        h: harmonic order, ≥ 1.
+    """
+    if h < 1:
+        raise ValueError(f"h: need a harmonic order >= 1, got {h}")
+    num = math.prod(gamma - j for j in range(1, h))
+    den = math.prod(gamma + j for j in range(2, h + 1))
+    return num / den
+
+
+def gamma_from_second_harmonic(ratio: float) -> float | None:
+    """γ of a power-law projector whose 2nd harmonic is ``ratio`` = B_2/B_1.
+
+    The inverse of ``(γ − 1)/(γ + 2)``: γ = (1 + 2r)/(1 − r). None where no γ > 0 gives
+    ``ratio`` (r ≤ −1/2 or r ≥ 1: not a power law).
+    """
+    if not (math.isfinite(ratio) and -0.5 < ratio < 1.0):
+        return None
+    return (1.0 + 2.0 * ratio) / (1.0 - ratio)
+
+
+def power_law_phase_error(gamma: float, steps: int, bins: int = TABLE_BINS) -> F64:
+    """The N-step wrapped-phase error of a power-law projector, as a function of the phase.
+
+    The pattern ``((1 + cos(θ + δ_n))/2)^γ``, δ_n = 2πn/N, is decoded as
+    :func:`app.recon.phase.wrapped_phase` does (φ = arg Σ I_n e^{−iδ_n}), and the error
+    φ − θ binned on φ as :meth:`PhaseErrorLUT.fit` does: the table :meth:`PhaseErrorLUT.apply`
+    subtracts. Neither the pattern's offset nor the albedo changes it.
+
+    Args:
+        gamma: the exponent γ > 0.
+        steps: N ≥ 3.
+        bins: table entries.
+
+    Returns:
+        (bins,) float64, radians, at bin centres (i + 0.5)·2π/bins.
+    """
+    theta = (np.arange(SYNTH_SAMPLES) + 0.5) * (2.0 * np.pi / SYNTH_SAMPLES)
+    delta = 2.0 * np.pi * np.arange(steps) / steps
+    pattern = ((1.0 + np.cos(theta[None, :] + delta[:, None])) / 2.0) ** gamma  # (N, S)
+    phasor = (pattern * np.exp(-1j * delta)[:, None]).sum(axis=0)
+    measured = np.mod(np.angle(phasor), 2.0 * np.pi)
+    table = PhaseErrorLUT.fit(measured[None, None, :], theta[None, None, :], bins=bins)
+    return np.asarray(table.error_rad[0], np.float64)
+
+
+def second_harmonic_ratios(harmonics: F64, sources: npt.NDArray[np.int64],
+                           steps: int) -> F64 | None:
+    """(K,) B_2/B_1 per frequency from the noise fit's set harmonics, or None where the fit
+    does not isolate the 2nd harmonic (N ≠ :data:`CORRECTED_STEPS`).
+
+    For N = 4 the one residual column is the Nyquist one, ``Σ_n I_n (−1)^n / 2``; a 2nd
+    harmonic ``r·B cos(2(φ + δ_n))`` puts ``2rB cos 2φ`` there, and the fit's regressor is
+    the phasor's magnitude ``2B`` times cos 2φ: its coefficient a_2 is r itself.
+
+    Args:
+        harmonics: (K, d, 2·S) float64, :attr:`app.recon.noise.NoiseFit.harmonics`.
+        sources: (d, S) int64, :attr:`app.recon.noise.NoiseFit.sources`.
+        steps: N.
+    """
+    if steps != CORRECTED_STEPS or sources.shape[0] != 1 or int(sources[0, 0]) != 2:
+        return None
+    return np.asarray(harmonics[:, 0, 0], np.float64)
+
+
+def self_calibrated_table(harmonics: F64, sources: npt.NDArray[np.int64],
+                          steps: int) -> PhaseErrorLUT | None:
+    """The phase-error table a power-law projector with the set's 2nd harmonic gives.
+
+    One γ per frequency (the projector's blur thins the harmonics of the finer fringes, so
+    each frequency's own 2nd harmonic is the better guide to its 3rd and 5th).
+
+    Args:
+        harmonics, sources, steps: as :func:`second_harmonic_ratios`.
+
+    Returns:
+        :class:`PhaseErrorLUT` for N-step phase (``steps`` recorded, any fringe counts), or
+        None where N ≠ 4 or some frequency's 2nd harmonic fits no power law.
+    """
+    ratios = second_harmonic_ratios(harmonics, sources, steps)
+    if ratios is None:
+        return None
+    gammas = [gamma_from_second_harmonic(float(r)) for r in ratios]
+    if any(g is None for g in gammas):
+        return None
+    table = np.stack([power_law_phase_error(float(g), steps) for g in gammas if g is not None])
+    return PhaseErrorLUT(table, steps)
