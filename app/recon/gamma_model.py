@@ -22,14 +22,15 @@ against the 12-step phase on every scene, frequency and subset, but not all of i
 real odd harmonics grow near the top of the camera's range, which no power law of the
 projector holds.
 
-Only N = 4 is corrected: for N ≥ 8 the aliased harmonics are the 7th and above (below
-5·10⁻⁴ of B for γ ≤ 2, under the noise); for N = 5 … 7 the 2nd harmonic shares its
+Only N = 4 is corrected: for N ≥ 8 the aliased harmonics are the 7th and above (4·10⁻⁴
+of B at γ 1.5, under the noise); for N = 5 … 7 the 2nd harmonic shares its
 residual column with others and is not isolated by the fit.
 """
 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +44,8 @@ SYNTH_SAMPLES = 4096
 TABLE_BINS = 128
 #: the only N whose aliased harmonics (3rd, 5th) are inferred from the measured 2nd
 CORRECTED_STEPS = 4
+#: the γ range the set's 2nd harmonic is inverted over, and the grid's points
+GAMMA_MIN, GAMMA_MAX, GAMMA_GRID = 0.1, 8.0, 160
 
 
 def power_law_harmonic_ratio(gamma: float, h: int) -> float:
@@ -57,6 +60,63 @@ def power_law_harmonic_ratio(gamma: float, h: int) -> float:
     num = math.prod(gamma - j for j in range(1, h))
     den = math.prod(gamma + j for j in range(2, h + 1))
     return num / den
+
+
+def measured_second_harmonic(gamma: float, steps: int = CORRECTED_STEPS) -> float:
+    """The 2nd-harmonic coefficient the noise fit reads from a power-law projector's N-step set.
+
+    Not quite (γ − 1)/(γ + 2): the fit's regressors are built from the decoded phasor, whose
+    phase and magnitude carry the aliased 3rd and 5th harmonics (≈ 2.6 % more at γ 1.5). The
+    fit is repeated here on the noiseless pattern over a uniform phase: the Nyquist residual
+    ``Σ_n I_n (−1)^n / √N`` regressed on |z|·(cos 2φ, sin 2φ, cos 6φ, sin 6φ) of the decoded
+    phasor z (:data:`app.recon.noise.SET_HARMONICS` = 2 harmonics, 2 and 6).
+
+    Args:
+        gamma: the exponent γ > 0.
+        steps: N, even.
+
+    Returns:
+        The coefficient of |z| cos 2φ (dimensionless).
+    """
+    theta = (np.arange(SYNTH_SAMPLES) + 0.5) * (2.0 * np.pi / SYNTH_SAMPLES)
+    delta = 2.0 * np.pi * np.arange(steps) / steps
+    pattern = ((1.0 + np.cos(theta[None, :] + delta[:, None])) / 2.0) ** gamma  # (N, S)
+    phasor = (pattern * np.exp(1j * delta)[:, None]).sum(axis=0)  # the fit's Σ I (cos, sin) δ
+    nyquist = (pattern * np.cos(np.pi * np.arange(steps))[:, None]).sum(axis=0) / np.sqrt(steps)
+    mag, unit = np.abs(phasor), phasor / np.abs(phasor)
+    design = np.stack([f(mag * unit**h) for h in (2, 6) for f in (np.real, np.imag)], axis=1)
+    return float(np.linalg.lstsq(design, nyquist, rcond=None)[0][0])
+
+
+@lru_cache(maxsize=4)
+def _measured_grid(steps: int) -> tuple[F64, F64]:
+    """(γ, :func:`measured_second_harmonic`) on :data:`GAMMA_GRID` points, log-spaced over
+    (:data:`GAMMA_MIN`, :data:`GAMMA_MAX`), γ ascending (made once: ~0.1 s)."""
+    gammas = np.geomspace(GAMMA_MIN, GAMMA_MAX, GAMMA_GRID)
+    return gammas, np.array([measured_second_harmonic(float(g), steps) for g in gammas])
+
+
+def gamma_from_measured_second_harmonic(ratio: float,
+                                        steps: int = CORRECTED_STEPS) -> float | None:
+    """γ whose :func:`measured_second_harmonic` is ``ratio``, or None where no γ in
+    (:data:`GAMMA_MIN`, :data:`GAMMA_MAX`) gives it.
+
+    Interpolated in a grid, then two secant steps on the function itself (γ to ~1e-9).
+    """
+    gammas, measured = _measured_grid(steps)
+    if not (math.isfinite(ratio) and measured[0] < ratio < measured[-1]):
+        return None
+    if not np.all(np.diff(measured) > 0):  # the inversion needs a monotone response
+        raise RuntimeError("measured_second_harmonic is not monotone in γ on the grid")
+    i = int(np.searchsorted(measured, ratio))
+    g0, g1 = float(gammas[i - 1]), float(gammas[i])
+    m0, m1 = float(measured[i - 1]), float(measured[i])
+    for _ in range(3):  # secant steps inside the bracketing cell
+        g = g0 + (ratio - m0) * (g1 - g0) / (m1 - m0)
+        g0, m0, g1, m1 = g1, m1, g, measured_second_harmonic(g, steps)
+        if m1 == m0:
+            break
+    return g1
 
 
 def gamma_from_second_harmonic(ratio: float) -> float | None:
@@ -131,7 +191,7 @@ def self_calibrated_table(harmonics: F64, sources: npt.NDArray[np.int64],
     ratios = second_harmonic_ratios(harmonics, sources, steps)
     if ratios is None:
         return None
-    gammas = [gamma_from_second_harmonic(float(r)) for r in ratios]
+    gammas = [gamma_from_measured_second_harmonic(float(r)) for r in ratios]
     if any(g is None for g in gammas):
         return None
     table = np.stack([power_law_phase_error(float(g), steps) for g in gammas if g is not None])
