@@ -37,7 +37,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app.core.schedule import PatternSchedule  # noqa: E402
-from app.recon.gamma_model import gamma_from_second_harmonic, second_harmonic_ratios  # noqa: E402
+from app.recon.gamma_model import (  # noqa: E402
+    gamma_from_measured_second_harmonic,
+    second_harmonic_ratios,
+)
 from app.recon.noise import fit_sensor_noise, resolve_set_noise  # noqa: E402
 from app.recon.phase import wrapped_phase  # noqa: E402
 
@@ -112,7 +115,7 @@ def main() -> int:
                 before = wrap(few.phase[k][ok] - r - shift)
                 after = wrap(corrected[k][ok] - r - shift)
                 sys_rms = float(est.phase_error.amplitude_rad()[k])
-                gamma = gamma_from_second_harmonic(float(ratios[k]))
+                gamma = gamma_from_measured_second_harmonic(float(ratios[k]))
                 line = [f"scene {scene:02d} subset {offset} period {PERIODS_PX[k]}: "
                         f"γ {gamma:.3f} table RMS {sys_rms:.4f} | error RMS {rms(before):.4f} → "
                         f"{rms(after):.4f}, systematic {systematic_rms(before, r):.4f} → "
