@@ -90,6 +90,9 @@ def rms(x: F64) -> float:
 
 
 def main() -> int:
+    import argparse
+
+    argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0]).parse_args()
     if not (CFPE / "recordings").is_dir():
         print(f"CFPE: not found at {CFPE}")
         return 1
