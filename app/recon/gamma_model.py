@@ -181,6 +181,16 @@ def second_harmonic_ratios(harmonics: F64, sources: npt.NDArray[np.int64],
     return np.asarray(harmonics[:, 0, 0], np.float64)
 
 
+def _first_order_rms(ratio: float) -> float:
+    """RMS of the N = 4 table to first order, |r_5 − r_3|/√2 (rad), at the closed form's γ of
+    ``ratio``; inf where no γ fits (the full inversion decides)."""
+    gamma = gamma_from_second_harmonic(ratio)
+    if gamma is None:
+        return math.inf
+    rms = power_law_harmonic_ratio(gamma, 5) - power_law_harmonic_ratio(gamma, 3)
+    return abs(rms) / math.sqrt(2.0)
+
+
 def self_calibrated_table(harmonics: F64, sources: npt.NDArray[np.int64],
                           steps: int) -> PhaseErrorLUT | None:
     """The phase-error table a power-law projector with the set's 2nd harmonic gives.
@@ -199,6 +209,8 @@ def self_calibrated_table(harmonics: F64, sources: npt.NDArray[np.int64],
     ratios = second_harmonic_ratios(harmonics, sources, steps)
     if ratios is None:
         return None
+    if max(_first_order_rms(float(r)) for r in ratios) < 0.5 * MIN_TABLE_RMS_RAD:
+        return None  # a sinusoidal projector: skip the inversion (~3 ms per set)
     gammas = [gamma_from_measured_second_harmonic(float(r)) for r in ratios]
     if any(g is None for g in gammas):
         return None
