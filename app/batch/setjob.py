@@ -124,21 +124,23 @@ def reconstruct_captures(
         :class:`SetReconstruction`; σ uses the camera noise the sets show (the N-step
         residual, N > 3: the first set that has it; else the typical sensor).
     """
-    from app.recon.noise import resolve_sensor_noise
+    from app.recon.noise import resolve_set_noise
 
     noise: SensorNoise | None = None
+    table: PhaseErrorLUT | None = None  # the projector's gamma as that set shows it (N = 4)
     source: NoiseSource = "nominal"
     note = ""
     for c in captures:  # the first set that shows its noise gives it to the bracket
-        est, source, note = resolve_sensor_noise(c.frames, c.schedule,
-                                                 options.max_code or c.max_code)
+        est = resolve_set_noise(c.frames, c.schedule, options.max_code or c.max_code)
+        source, note = est.source, est.note
         if source == "set":
-            noise = est
+            noise, table = est.noise, est.phase_error
             break
     # the tables are the calibration's alone; the noise is this set's, passed with the call
     rec = new_reconstructor(calibration, options, None) if base is None else base
     # each set at its own bit_depth unless told; without a fitted noise each run's nominal
-    members = [rec.run(c.frames, max_code=options.max_code or c.max_code, noise=noise)
+    members = [rec.run(c.frames, max_code=options.max_code or c.max_code, noise=noise,
+                       phase_error=table)
                for c in captures]
     for m in members:
         m.noise_source, m.noise_note = source, note

@@ -241,9 +241,12 @@ def _lut_correct(w, row, scale):  # type: ignore[no-untyped-def]  # pragma: no c
     """The wrapped phase ``w`` in [0, 2π) less the phase-error table's error at ``w``, in [0, 2π):
     :meth:`app.recon.gamma.PhaseErrorLUT.apply` in float32. ``row`` (bins + 2,) is one frequency's
     :meth:`~app.recon.gamma.PhaseErrorLUT.kernel_table` (padded circularly: no modulo), ``scale``
-    bins/2π; x = w·scale + 1/2 ∈ [1/2, bins + 1/2) so its truncation is the floor."""
+    bins/2π; x = w·scale + 1/2 ∈ [1/2, bins + 1/2) so its truncation is the floor. The index is
+    clamped to the row: a saturation refit without enough samples gives w = NaN, whose int32 is
+    arbitrary (an N = 4 set's own gamma table reached that path on the general kernel and read
+    far outside the row); such a pixel is SATURATED and its value unused."""
     x = w * scale + np.float32(0.5)
-    j = np.int32(x)
+    j = min(max(np.int32(x), np.int32(0)), np.int32(row.shape[0] - 2))
     t = x - np.float32(j)
     e0 = row[j]
     r = w - (e0 + t * (row[j + 1] - e0))

@@ -44,6 +44,8 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.schedule import PatternSchedule
+from app.recon.gamma import PhaseErrorLUT
+from app.recon.gamma_model import self_calibrated_table
 from app.recon.phase import check_stack
 from app.recon.sensor import NoiseSource, SensorNoise
 
@@ -81,6 +83,13 @@ class NoiseFit:
             residual variance is σ_I²·χ²_ν/ν, of variance 2σ_I⁴/ν, pixels independent.
         pixels: pixels in the final fit.
         dof: ν, the residual's degrees of freedom per pixel.
+        steps: N, the set's phase steps per frequency.
+        harmonics: (K, d, 2·S) float64, the projector harmonics common to the set: for
+            frequency k and residual column j, the coefficients (a_h, b_h) of
+            ``B cos hφ``, ``B sin hφ`` over h in ``sources[j]``, scaled to the column's
+            basis (for N = 4 the one column is the Nyquist one and a_2 is the 2nd
+            harmonic's fraction of the fringe amplitude B; :mod:`app.recon.gamma_model`).
+        sources: (d, S) int64, the harmonics h of each residual column.
     """
 
     noise: SensorNoise
@@ -89,6 +98,9 @@ class NoiseFit:
     cov: F64
     pixels: int
     dof: int
+    steps: int
+    harmonics: F64
+    sources: I64
 
     @property
     def gain_se(self) -> float:
@@ -151,7 +163,8 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     dof = k_n * (basis.shape[1] - 2)
     var = np.empty((rows, cols))
     design = np.empty((2, rows, cols))
-    _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design)
+    harmonics = np.empty((k_n, sources.shape[0], 2 * sources.shape[1]))
+    _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design, harmonics)
     # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
     # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
     x, y = _line_form(var, design, usable)
@@ -159,7 +172,7 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     if keep.sum() < (1.0 - REFIT_SHARE) * x.size:  # the harmonics again, without the outliers
         kept = np.zeros_like(usable)
         kept[usable] = keep
-        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design)
+        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design, harmonics)
         x, y = _line_form(var, design, usable)
         coef, keep = _trimmed_fit(x, y, dof, start=coef)
     if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
@@ -171,12 +184,31 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     # fitted: on a set that moves it is the steeper one, and the validity rule refuses more
     read_dn = max(math.sqrt(max(float(coef[0]), 0.0)), QUANTISATION_NOISE_DN)
     noise = SensorNoise(gain_dn_per_e=max(float(coef[1]), 0.0), read_noise_dn=read_dn)
-    return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof)
+    return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof, n,
+                    harmonics, sources)
 
 
-def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
-                         max_code: int) -> tuple[SensorNoise, NoiseSource, str]:
-    """The noise model a run without a given one uses: the set's own where it has one.
+@dataclass(frozen=True)
+class SetNoise:
+    """What a run without a given noise model takes from its own set.
+
+    Attributes:
+        noise: the camera noise: the set's fit, or :meth:`SensorNoise.typical`.
+        source: ``"set"`` or ``"nominal"``.
+        note: why the set could not give it ("" when it did).
+        phase_error: the projector-gamma table the set's own 2nd harmonic gives under a
+            power-law projector (:func:`app.recon.gamma_model.self_calibrated_table`; N = 4
+            only), None otherwise.
+    """
+
+    noise: SensorNoise
+    source: NoiseSource
+    note: str
+    phase_error: PhaseErrorLUT | None
+
+
+def resolve_set_noise(frames: Any, schedule: PatternSchedule, max_code: int) -> SetNoise:
+    """The noise model and gamma table a run without given ones uses: the set's own.
 
     Args:
         frames: (F, H, W) uint8/uint16 in capture-set order.
@@ -184,14 +216,27 @@ def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
         max_code: sensor maximum code of the set.
 
     Returns:
-        ``(noise, source, note)``: :func:`estimate_sensor_noise` of the set and ``"set"``
-        where N > 3 and enough pixels are usable, else :meth:`SensorNoise.typical` and
-        ``"nominal"``; ``note`` says why the set could not give it ("" when it did).
+        :class:`SetNoise`: :func:`fit_sensor_noise` of the set where N > 3 and enough
+        pixels are usable (with its power-law table where N = 4), else
+        :meth:`SensorNoise.typical`, ``"nominal"`` and no table.
     """
     try:
-        return estimate_sensor_noise(frames, schedule, max_code=max_code), "set", ""
+        fit = fit_sensor_noise(frames, schedule, max_code=max_code)
     except ValueError as exc:  # N = 3 (no residual) or too few usable pixels
-        return SensorNoise.typical(max_code), "nominal", str(exc)
+        return SetNoise(SensorNoise.typical(max_code), "nominal", str(exc), None)
+    table = self_calibrated_table(fit.harmonics, fit.sources, fit.steps)
+    return SetNoise(fit.noise, "set", "", table)
+
+
+def resolve_sensor_noise(frames: Any, schedule: PatternSchedule,
+                         max_code: int) -> tuple[SensorNoise, NoiseSource, str]:
+    """The noise model a run without a given one uses: the set's own where it has one.
+
+    Returns:
+        ``(noise, source, note)`` of :func:`resolve_set_noise`.
+    """
+    est = resolve_set_noise(frames, schedule, max_code)
+    return est.noise, est.source, est.note
 
 
 @lru_cache(maxsize=16)
@@ -254,7 +299,7 @@ def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, to
 
 
 def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
-                  mask: npt.NDArray[np.bool_], var: F64, design: F64) -> None:
+                  mask: npt.NDArray[np.bool_], var: F64, design: F64, coef: F64) -> None:
     """Residual variance per pixel after the fringe harmonics common to the set.
 
     For each frequency k and residual column j, ``resid[k, j] ≈ M = Σ_h a_h·B cos hφ +
@@ -274,15 +319,19 @@ def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
             :func:`_bases`.
         mask: (R, C) bool, the pixels to fit the harmonics on.
         var, design: out, (R, C) and (2, R, C) float64.
+        coef: out, (K, d, 2·S) float64, the fitted (a_h, b_h) per frequency and residual
+            column, h over ``sources[j]`` (S = :data:`SET_HARMONICS`); fractions of B.
     """
     if _nb is None:
-        _harmonic_fit_numpy(level, phasor, resid, basis, sources, mask, var, design)
+        _harmonic_fit_numpy(level, phasor, resid, basis, sources, mask, var, design, coef)
     else:
-        _nb.harmonic_fit(level, phasor, resid, basis, _moments(basis), sources, mask, var, design)
+        _nb.harmonic_fit(level, phasor, resid, basis, _moments(basis), sources, mask, var, design,
+                         coef)
 
 
 def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
-                        mask: npt.NDArray[np.bool_], var: F64, design: F64) -> None:
+                        mask: npt.NDArray[np.bool_], var: F64, design: F64,
+                        coef_out: F64) -> None:
     """:func:`_harmonic_fit` in numpy."""
     z = phasor[:, 0] + 1j * phasor[:, 1]  # (K, R, C)
     mag = np.abs(z)
@@ -302,6 +351,7 @@ def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources
             terms = [mag[k] * unit[k] ** h for h in sources[j]]
             x = np.stack([f(t) for t in terms for f in (np.real, np.imag)], axis=-1)
             coef = np.linalg.lstsq(x[mask], resid[k, j][mask], rcond=None)[0]
+            coef_out[k, j] = coef
             var += (resid[k, j] - x @ coef) ** 2
             gamma = coef[0::2] - 1j * coef[1::2]
             g_z = sum(g * (1 + h) / 2 * unit[k] ** (h - 1) for g, h in zip(gamma, sources[j],

@@ -87,10 +87,11 @@ def _regressors(sources_j, mag, upow, x, count):  # type: ignore[no-untyped-def]
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True)
 def harmonic_fit(  # type: ignore[no-untyped-def]
-        level, phasor, resid, basis, moments, sources, mask, var, design):
+        level, phasor, resid, basis, moments, sources, mask, var, design, coef_out):
     """See :func:`app.recon.noise._harmonic_fit`. Per frequency two sweeps over chunks of
     :data:`CHUNK` pixels: the normal equations over the mask, then the residual and the
-    noise's weights through the fitted model; each inner loop is flat and vectorises."""
+    noise's weights through the fitted model; each inner loop is flat and vectorises.
+    ``coef_out`` (K, d, 2·S) gets the fitted (a_h, b_h) of each frequency and column."""
     k_n, d, rows, cols = resid.shape
     n = basis.shape[0]
     size = rows * cols
@@ -144,6 +145,7 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
                     ata[j, a, b] = ata[j, b, a]
                 ata[j, a, a] += 1e-9 * (ata[j, a, a] + 1.0)  # an all-dark set stays solvable
             coef[j] = np.linalg.solve(ata[j], atb[j])
+            coef_out[k, j] = coef[j]
         for lo in range(0, size, CHUNK):
             hi = min(lo + CHUNK, size)
             cnt = hi - lo

@@ -29,7 +29,7 @@ from app.recon.model import (
     pixel_tables,
 )
 from app.recon.model_sigma import ModelSigmaTable, model_sigma_table, zero_table
-from app.recon.noise import resolve_sensor_noise
+from app.recon.noise import resolve_set_noise
 from app.recon.phase import check_stack, resolve_levels, wrapped_phase
 from app.recon.points import (
     LazyPoints,
@@ -83,6 +83,26 @@ def phase_variance_factor(modulation_sq: npt.ArrayLike, steps: int) -> npt.NDArr
     = (N·B/2)²`` (so ``2 / (N·B²)``)."""
     with np.errstate(divide="ignore"):
         return steps / (2.0 * np.asarray(modulation_sq, np.float64))
+
+
+def _choose_table(learned: PhaseErrorLUT | None, given: PhaseErrorLUT | None,
+                  from_set: PhaseErrorLUT | None) -> tuple[PhaseErrorLUT | None, str]:
+    """The phase-error table a run applies and :attr:`ReconResult.phase_error_source`."""
+    if learned is not None:
+        return learned, "learned"
+    if given is not None:
+        return given, "given"
+    if from_set is not None:
+        return from_set, "set"
+    return None, "none"
+
+
+def _kernel_lut(table: PhaseErrorLUT | None, k: int) -> tuple[F32, np.float32, bool]:
+    """(K, bins + 2) float32 kernel table, bins/2π, apply? of ``table`` for K = ``k``."""
+    if table is None:
+        return np.zeros((k, 2), np.float32), np.float32(1.0), False
+    bins = table.error_rad.shape[1]
+    return table.kernel_table(), np.float32(bins / (2.0 * np.pi)), True
 
 
 @dataclass
@@ -146,6 +166,10 @@ class ReconResult:
             constructor), ``"set"`` (fitted to this set's N-step residual, N > 3) or
             ``"nominal"`` (:meth:`SensorNoise.typical`: the set could not give it).
         noise_note: why the set could not give its noise ("" otherwise).
+        phase_error_source: the projector-gamma table the wrapped phases were corrected with:
+            ``"learned"`` (the constructor's, from ``fringescope gamma``), ``"given"`` (passed
+            to ``run``), ``"set"`` (inferred from this set's 2nd harmonic under a power-law
+            projector, :mod:`app.recon.gamma_model`) or ``"none"``.
     """
 
     depth: F32
@@ -168,6 +192,7 @@ class ReconResult:
     noise_source: NoiseSource = "given"
     noise_note: str = ""
     model_sigma: ModelSigmaTable | None = None
+    phase_error_source: str = "none"
 
     @property
     def sigma_model(self) -> F32:
@@ -481,13 +506,15 @@ class Reconstructor:
 
     @cached_property
     def _fast_lut(self) -> tuple[F32, np.float32, bool]:
+        """:meth:`_lut_args` of the constructor's table (made once)."""
+        return _kernel_lut(self.phase_error, len(self.calibration.pattern.frequencies))
+
+    def _lut_args(self, table: PhaseErrorLUT | None) -> tuple[F32, np.float32, bool]:
         """The kernel's phase-error table (K, bins + 2) float32, bins/2π and whether to apply it
         (a (K, 2) zero table when there is none)."""
-        k = len(self.calibration.pattern.frequencies)
-        if self.phase_error is None:
-            return np.zeros((k, 2), np.float32), np.float32(1.0), False
-        bins = self.phase_error.error_rad.shape[1]
-        return self.phase_error.kernel_table(), np.float32(bins / (2.0 * np.pi)), True
+        if table is self.phase_error:
+            return self._fast_lut
+        return _kernel_lut(table, len(self.calibration.pattern.frequencies))
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
@@ -521,7 +548,8 @@ class Reconstructor:
         return self.noise if self.noise is not None else SensorNoise.typical(max_code)
 
     def run(self, frames: Any, *, fast: bool | None = None, max_code: int | None = None,
-            noise: SensorNoise | None = None, motion: MotionTest | None = None) -> ReconResult:
+            noise: SensorNoise | None = None, motion: MotionTest | None = None,
+            phase_error: PhaseErrorLUT | None = None) -> ReconResult:
         """Reconstruct one fringe set.
 
         Args:
@@ -532,15 +560,24 @@ class Reconstructor:
                 (a capture set's ``max_code``, from its ``bit_depth``).
             noise: the camera's noise model for this set (σ, the validity rule, the order
                 and motion tests); None → the constructor's, else fitted to this set
-                (:func:`app.recon.noise.resolve_sensor_noise`: N > 3, else the nominal).
+                (:func:`app.recon.noise.resolve_set_noise`: N > 3, else the nominal).
             motion: test the set for motion between its frequency groups
                 (:mod:`app.recon.motion`) and invalidate the moved pixels; None: no test.
+            phase_error: a projector-gamma table for this set, used where the constructor has
+                no learned one (a caller that fitted the set's noise itself passes the
+                table :func:`~app.recon.noise.resolve_set_noise` gave with it). None: where
+                the noise is fitted to this set, the table its 2nd harmonic gives (N = 4).
 
         Returns:
             :class:`ReconResult`.
         """
         if noise is not None and not isinstance(noise, SensorNoise):
             raise ValueError("noise: expected a SensorNoise")
+        if phase_error is not None:
+            if not isinstance(phase_error, PhaseErrorLUT):
+                raise ValueError("phase_error: expected a PhaseErrorLUT")
+            sched = self.calibration.pattern
+            phase_error.check_schedule(sched.steps, tuple(float(k) for k in sched.frequencies))
         if motion is not None:
             from app.recon import motion as motion_test
 
@@ -552,18 +589,23 @@ class Reconstructor:
             frames.dtype, self.max_code if max_code is None else max_code, self.min_modulation)
         source: NoiseSource = "given"
         note = ""
+        set_table: PhaseErrorLUT | None = None
         if noise is not None:
             camera = noise
         elif self.noise is not None:
             camera = self.noise
-        else:  # the set's own noise, as every path without a measured model
-            camera, source, note = resolve_sensor_noise(frames, self.calibration.pattern, max_code)
+        else:  # the set's own noise (and gamma), as every path without a measured model
+            est = resolve_set_noise(frames, self.calibration.pattern, max_code)
+            camera, source, note, set_table = est.noise, est.source, est.note, est.phase_error
+        # a table learned against a many-step reference beats one inferred from the set
+        table, table_source = _choose_table(self.phase_error, phase_error, set_table)
         use_fast = self.fast if fast is None else (bool(fast) and _fast is not None)
         if use_fast:
-            res = self._run_fast(frames, max_code, min_mod, camera)
+            res = self._run_fast(frames, max_code, min_mod, camera, table)
         else:
-            res = self._run_numpy(frames, max_code, min_mod, camera)
+            res = self._run_numpy(frames, max_code, min_mod, camera, table)
         res.noise, res.noise_source, res.noise_note = camera, source, note
+        res.phase_error_source = table_source
         res.model_sigma = self.model_sigma
         res.motion, res.moved_pixels, res.scene_moved = None, 0, False
         res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
@@ -580,13 +622,13 @@ class Reconstructor:
         return res
 
     def _run_numpy(self, frames: npt.NDArray[Any], max_code: int, min_mod: float,
-                   camera: SensorNoise) -> ReconResult:
+                   camera: SensorNoise, lut: PhaseErrorLUT | None) -> ReconResult:
         t0 = time.perf_counter()
         cal = self.calibration
         model, rays = self._tables64
         phi, wp, reason = _phase_numpy(
             frames, cal.pattern, max_code, min_mod, self.consistency_rad, self.combine_frequencies,
-            phase_error=self.phase_error, noise=camera,
+            phase_error=lut, noise=camera,
             snr_min=None if self.min_modulation is not None else self._snr_min,
             false_alarm_rate=self.order_false_alarm_rate, max_motion_rad=self.order_max_motion_rad,
         )
@@ -638,7 +680,7 @@ class Reconstructor:
         )
 
     def _run_fast(self, frames: npt.NDArray[Any], max_code: int, min_mod: float,
-                  camera: SensorNoise) -> ReconResult:
+                  camera: SensorNoise, table: PhaseErrorLUT | None) -> ReconResult:
         assert _fast is not None
         _fast.warmup(frames.dtype)  # JIT (or cache load) outside the timed region
         t0 = time.perf_counter()
@@ -646,12 +688,12 @@ class Reconstructor:
         out.points = None  # made from this depth on the first read
         out.point_rays = self._point_rays
         with _fast.KERNEL_LOCK:
-            self._launch(frames, max_code, min_mod, out, camera)
+            self._launch(frames, max_code, min_mod, out, camera, table)
         out.elapsed_ms = (time.perf_counter() - t0) * 1e3
         return out
 
     def _launch(self, frames: npt.NDArray[Any], max_code: int, min_mod: float, out: ReconResult,
-                noise: SensorNoise) -> None:
+                noise: SensorNoise, table: PhaseErrorLUT | None) -> None:
         assert _fast is not None
         cal = self.calibration
         tables, _, ray_planes = self._fast_tables
@@ -663,7 +705,8 @@ class Reconstructor:
                              f32(self.consistency_rad),
                              chain_c, chain_f, cal.pattern.unwrap == "heterodyne",
                              f32(0.0 if self.min_modulation is not None else self._snr_min ** 2),
-                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2), *self._fast_lut)
+                             order_z2, order_front2, f32(PHASE_FLOOR_RAD**2),
+                             *self._lut_args(table))
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
             f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi),

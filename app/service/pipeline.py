@@ -304,7 +304,8 @@ class LivePipeline:
         capture = self.next_capture(timeout, exposure_ms=exposure_ms)
         frames = capture.frames
         full = 255.0 if frames.dtype == np.uint8 else float(full_scale(self.config.bit_depth))
-        res = engine.run(frames, noise=self.reconstruction.live_noise(engine, full))
+        res = engine.run(frames, noise=self.reconstruction.live_noise(engine, full),
+                         phase_error=self.reconstruction.noise.phase_error(engine.calibration.pattern))
         dim = np.isin(res.reason, (int(Reason.LOW_MODULATION), int(Reason.UNCERTAIN)))
         lit = res.texture > 0.02 * capture.max_code  # the scene, not the unlit background
         considered = lit & (res.reason != int(Reason.SATURATED))

@@ -265,7 +265,8 @@ class Reconstruction:
         t0 = time.perf_counter()
         frames = fs.stack()
         full_scale = 255.0 if frames.dtype == np.uint8 else float(2**self.bit_depth - 1)
-        res = engine.run(frames, noise=self.live_noise(engine, full_scale), motion=self.motion)
+        res = engine.run(frames, noise=self.live_noise(engine, full_scale), motion=self.motion,
+                         phase_error=self.noise.phase_error(engine.calibration.pattern))
         return res, full_scale, 1000.0 * (time.perf_counter() - t0)
 
     def process(self, engine: Reconstructor, fs: FrameSet) -> LiveResult:

@@ -15,6 +15,12 @@ projector harmonics only ADD to the residual, so the quietest estimate seen so f
 a quarter of full scale) is kept: a moving scene can make the noise model too pessimistic
 (fewer valid pixels, larger σ) until a stiller set is seen, never too optimistic by more than
 the estimate's own scatter (a few per cent in variance over thousands of pixels).
+
+With N = 4 the same fit reads the projector's 2nd harmonic, from which a power-law gamma
+gives the phase-error table of the aliased 3rd and 5th (:mod:`app.recon.gamma_model`); the
+newest set's table is kept for its schedule and passed with the noise
+(``Reconstructor.run(frames, noise=..., phase_error=...)``): the projector, not the
+scene, makes it, and the engine uses a learned table instead where it has one.
 """
 
 from __future__ import annotations
@@ -24,7 +30,8 @@ import math
 import threading
 
 from app.core.schedule import PatternSchedule
-from app.recon.noise import estimate_sensor_noise
+from app.recon.gamma import PhaseErrorLUT
+from app.recon.noise import resolve_set_noise
 from app.recon.sensor import SensorNoise
 
 log = logging.getLogger(__name__)
@@ -48,6 +55,7 @@ class LiveNoise:
         self.interval_s = float(interval_s)
         self._lock = threading.Lock()
         self._noise: SensorNoise | None = None
+        self._table: tuple[PatternSchedule, PhaseErrorLUT] | None = None
         self._max_code: int | None = None
         self._next_s = -math.inf
         self.estimates = 0
@@ -58,6 +66,14 @@ class LiveNoise:
         with self._lock:
             return self._noise
 
+    def phase_error(self, schedule: PatternSchedule) -> PhaseErrorLUT | None:
+        """The projector-gamma table the newest estimate of ``schedule``'s sets gave (None:
+        none yet, N ≠ 4, or it was measured on another schedule)."""
+        with self._lock:
+            if self._table is None or self._table[0] != schedule:
+                return None
+            return self._table[1]
+
     def due(self, now_s: float, schedule: PatternSchedule) -> bool:
         """Whether a set taken now with ``schedule`` should be measured (N = 3 has no residual)."""
         return self.interval_s > 0.0 and schedule.steps > 3 and now_s >= self._next_s
@@ -67,14 +83,15 @@ class LiveNoise:
         """Fit one set's residual; keep it if it is quieter than the model so far (or the sensor
         range changed). Returns the model in use afterwards."""
         self._next_s = now_s + self.interval_s
-        try:
-            est = estimate_sensor_noise(frames, schedule, max_code=max_code)
-        except ValueError as exc:  # too few usable pixels (dark, saturated): try again later
-            log.debug("live noise estimate: %s", exc)
+        found = resolve_set_noise(frames, schedule, max_code)
+        if found.source != "set":  # too few usable pixels (dark, saturated): try again later
+            log.debug("live noise estimate: %s", found.note)
             return self.current
+        est = found.noise
         ref = REFERENCE_FRACTION * max_code
         with self._lock:
             self.estimates += 1
+            self._table = None if found.phase_error is None else (schedule, found.phase_error)
             if (self._noise is None or self._max_code != max_code
                     or float(est.variance_dn2(ref)) < float(self._noise.variance_dn2(ref))):
                 self._noise, self._max_code = est, max_code

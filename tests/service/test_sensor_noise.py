@@ -65,3 +65,31 @@ def test_measuring_off_and_bad_interval():
     assert not live.due(1e9, SCHEDULE) and live.describe()["source"] == "nominal (measuring off)"
     with pytest.raises(ValueError, match="interval_s"):
         LiveNoise(interval_s=-1.0)
+
+
+def test_a_4_step_estimate_keeps_the_projectors_gamma_table_for_its_schedule():
+    """The live estimate also reads the projector's gamma from the set's 2nd harmonic: a power
+    law of γ 1.5 gives the table of the aliased 3rd and 5th harmonics, kept for that schedule
+    only (another schedule's sets get none until measured)."""
+    from app.recon.gamma_model import power_law_phase_error
+
+    rng = np.random.default_rng(2)
+    h, w = 96, 128
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    frames = []
+    for k in SCHEDULE.frequencies:
+        for n in range(SCHEDULE.steps):
+            theta = 2 * np.pi * k * (x + 0.37 * y) / w + 2 * np.pi * n / SCHEDULE.steps
+            mean = 10.0 + 200.0 * (0.4 + 0.6 * y / h) * ((1 + np.cos(theta)) / 2) ** 1.5
+            frames.append(mean + rng.normal(0.0, 0.7, mean.shape))
+    stack = np.clip(np.rint(frames), 0, 255).astype(np.uint8)
+    live = LiveNoise(interval_s=1.0)
+    assert live.phase_error(SCHEDULE) is None
+    live.update(stack, SCHEDULE, 255, now_s=0.0)
+    table = live.phase_error(SCHEDULE)
+    assert table is not None and table.error_rad.shape[0] == len(SCHEDULE.frequencies)
+    truth = power_law_phase_error(1.5, 4)
+    for row in table.error_rad:  # within 10 % of the true table's RMS
+        assert np.sqrt(np.mean((row - truth) ** 2)) < 0.1 * np.sqrt(np.mean(truth**2))
+    assert live.phase_error(PatternSchedule(frequencies=(1, 4, 12, 36), steps=4,
+                                            width=912)) is None
