@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -268,6 +268,63 @@ def calibrate_folder(calib_dir: str | os.PathLike[str], *, robust: bool = False,
     )
 
 
+@dataclass(frozen=True)
+class ObservedSet:
+    """What the fit needs of one board capture set once it has been looked at.
+
+    The frames themselves are no longer needed: a calibration session keeps this per pose
+    (about 11 MB at 1384 x 1032) instead of the whole fringe set (tens of MB).
+
+    Attributes:
+        schedule: the set's pattern schedule.
+        frame_shape: (F, H, W) of its frames.
+        observation: the board's points and the finest phase (its name not yet given), None
+            where the board was not found in the set's texture.
+    """
+
+    schedule: PatternSchedule
+    frame_shape: tuple[int, int, int]
+    observation: PoseObservation | None
+
+
+def observe_set(board: BoardSpec, cs: CaptureSet) -> ObservedSet:
+    """Compute the phase of a board capture set and find the board in its texture.
+
+    Args:
+        board: the board shown.
+        cs: (F, H, W) frames of one pose with their schedule.
+    """
+    from app.recon import compute_phase  # the engine; imported late so I/O stays optional
+
+    # a fixed 2 % of full scale, not the noise-aware rule: the fit has plenty of bright board
+    # pixels and wants the least-biased ones (dim squares add noise, not information)
+    max_code = capture_max_code(cs)
+    res = compute_phase(
+        cs.frames,
+        cs.schedule,
+        max_code=max_code,
+        min_modulation=CALIBRATION_MIN_MODULATION_FRACTION
+        * (max_code or np.iinfo(cs.frames.dtype).max),
+    )
+    det = detect_board(texture_to_u8(res.texture), board)
+    shape = (int(cs.frames.shape[0]), int(cs.frames.shape[1]), int(cs.frames.shape[2]))
+    if not det.found:
+        return ObservedSet(cs.schedule, shape, None)
+    obs = PoseObservation(det.image_points, det.object_points, res.phase, "", res.modulation)
+    return ObservedSet(cs.schedule, shape, obs)
+
+
+def _check_observed(board: BoardSpec, observed: ObservedSet, first: ObservedSet, i: int,
+                    name: str, robust: bool) -> None:
+    """Raise the ValueError of :func:`calibrate_sets` for pose ``i`` (mismatch, no board)."""
+    if observed.schedule != first.schedule or observed.frame_shape != first.frame_shape:
+        raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
+    if observed.observation is None and (not robust or i == 0):
+        raise ValueError(
+            f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})"
+        )
+
+
 def calibrate_sets(
     board: BoardSpec,
     sets: list[CaptureSet],
@@ -283,41 +340,48 @@ def calibrate_sets(
         ValueError: too few poses, board not found (naming the pose), mismatched sets,
             too little depth span or degenerate tilts.
     """
-    from app.recon import compute_phase  # the engine; imported late so I/O stays optional
-
     if len(sets) < MIN_POSES:
         raise ValueError(f"poses: need at least {MIN_POSES} board poses, got {len(sets)}")
     names = names or [f"pose_{i:02d}" for i in range(len(sets))]
-    schedule = sets[0].schedule
-    shape = sets[0].frames.shape
-    observations: list[PoseObservation | None] = []
+    observed: list[ObservedSet] = []
     for i, (cs, name) in enumerate(zip(sets, names, strict=True)):
-        if cs.schedule != schedule or cs.frames.shape != shape:
+        if cs.schedule != sets[0].schedule or cs.frames.shape != sets[0].frames.shape:
+            # before the phase: a mismatched set costs no computation
             raise ValueError(f"pose {i} ({name}): pattern or frame size differs from pose 0")
-        # a fixed 2 % of full scale, not the noise-aware rule: the fit has plenty of bright board
-        # pixels and wants the least-biased ones (dim squares add noise, not information)
-        max_code = capture_max_code(cs)
-        res = compute_phase(
-            cs.frames,
-            cs.schedule,
-            max_code=max_code,
-            min_modulation=CALIBRATION_MIN_MODULATION_FRACTION
-            * (max_code or np.iinfo(cs.frames.dtype).max),
-        )
-        det = detect_board(texture_to_u8(res.texture), board)
-        if not det.found:
-            if not robust or i == 0:
-                raise ValueError(
-                    f"pose {i} ({name}): board not found ({board.type} {board.cols}x{board.rows})"
-                )
-            observations.append(None)
-            continue
-        observations.append(
-            PoseObservation(det.image_points, det.object_points, res.phase, name, res.modulation)
-        )
-    image_size = (shape[2], shape[1])
+        observed.append(observe_set(board, cs))
+        _check_observed(board, observed[-1], observed[0], i, name, robust)
+    return calibrate_observed(board, observed, robust=robust, dense=dense, names=names,
+                              model=model)
+
+
+def calibrate_observed(
+    board: BoardSpec,
+    observed: list[ObservedSet],
+    *,
+    robust: bool = False,
+    dense: bool = True,
+    names: list[str] | None = None,
+    model: str | None = None,
+) -> CalibrationReport:
+    """:func:`calibrate_sets` from sets already looked at (:func:`observe_set`), ``observed[0]``
+    being the reference plane; the same checks and errors.
+
+    Raises:
+        ValueError: as :func:`calibrate_sets`.
+    """
+    if len(observed) < MIN_POSES:
+        raise ValueError(f"poses: need at least {MIN_POSES} board poses, got {len(observed)}")
+    names = names or [f"pose_{i:02d}" for i in range(len(observed))]
+    observations: list[PoseObservation | None] = []
+    for i, (seen, name) in enumerate(zip(observed, names, strict=True)):
+        _check_observed(board, seen, observed[0], i, name, robust)
+        obs = seen.observation
+        observations.append(None if obs is None else replace(obs, name=name))
+    first = observed[0].frame_shape
+    image_size = (first[2], first[1])
     return fit_observations(
-        observations, image_size, schedule, robust=robust, dense=dense, names=names, model=model
+        observations, image_size, observed[0].schedule, robust=robust, dense=dense, names=names,
+        model=model
     )
 
 

@@ -26,7 +26,7 @@ from app.calib.coverage import (
     model_sigma,
     suggest_pose,
 )
-from app.calib.fitting import CalibrationReport, calibrate_sets
+from app.calib.fitting import CalibrationReport, ObservedSet, calibrate_observed, observe_set
 from app.capture.captureset import CaptureSet
 from app.core.board import BoardSpec
 from app.core.encoding import png_bytes
@@ -40,10 +40,29 @@ log = logging.getLogger("fringescope.service")
 
 @dataclass
 class Pose:
-    capture: CaptureSet
+    """One captured view of the board: what the wizard shows and what the solve fits.
+
+    The fringe set itself is not kept: ``observed`` holds what the fit needs of it (phase and
+    points, ~11 MB), where the frames are tens of MB a pose.
+
+    Attributes:
+        observed: the calibration's view of the set (:func:`~app.calib.fitting.observe_set`,
+            its own phase threshold and board search), None where no board was found.
+        detection: the board found in the pose's texture (shown to the user).
+        preview_png: the texture with the detected points drawn, PNG bytes.
+        exposure_ms: the set's exposure, ms; led: its LED.
+        frame_shape: (F, H, W) of the set's frames; schedule: their pattern schedule.
+        phase: (H, W) float32 finest unwrapped phase, rad, when found (the coverage's σ_model).
+    """
+
+    observed: ObservedSet | None
     detection: Detection
     preview_png: bytes
-    phase: npt.NDArray[np.float32] | None = None  # (H, W) finest unwrapped phase, rad, when found
+    exposure_ms: float
+    led: str
+    frame_shape: tuple[int, int, int]
+    schedule: PatternSchedule
+    phase: npt.NDArray[np.float32] | None = None
     created: str = field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="seconds"))
 
     @property
@@ -56,8 +75,8 @@ class Pose:
             "found": self.found,
             "corners": int(len(self.detection.image_points)),
             "created": self.created,
-            "exposure_ms": self.capture.exposure_ms,
-            "led": self.capture.led,
+            "exposure_ms": self.exposure_ms,
+            "led": self.led,
             "preview_url": f"/api/calibration/session/poses/{index}/preview.png",
         }
 
@@ -144,7 +163,12 @@ class CalibrationSession:
             phase = res.phase if det.found else None
         else:
             det, phase = _NOT_FOUND, None
-        pose = Pose(capture, det, preview_png(tex, self.board, det), phase)
+        # the solve's phase (its own modulation threshold) now, so the frames need not be kept
+        observed = observe_set(self.board, capture) if det.found else None
+        shape = capture.frames.shape
+        pose = Pose(observed, det, preview_png(tex, self.board, det), capture.exposure_ms,
+                    capture.led, (int(shape[0]), int(shape[1]), int(shape[2])),
+                    capture.schedule, phase)
         with self.lock:
             self.poses.append(pose)
             self.report = None
@@ -161,7 +185,7 @@ class CalibrationSession:
             if self._coverage is not None:
                 return self._coverage
             found = [p for p in self.poses if p.found]
-            shape = self.poses[0].capture.frames.shape if self.poses else (0, 1, 1)
+            shape = self.poses[0].frame_shape if self.poses else (0, 1, 1)
             version = self._version
         size = (int(shape[2]), int(shape[1]))  # before any pose: unknown, a 1 x 1 image
         if not found:
@@ -169,7 +193,7 @@ class CalibrationSession:
             result = cov, suggest_pose(cov, [])
         else:
             img = [p.detection.image_points for p in found]
-            sched = found[0].capture.schedule
+            sched = found[0].schedule
             phases = [p.phase for p in found if p.phase is not None]
             try:
                 views = board_views(img, [p.detection.object_points for p in found], size)
@@ -220,8 +244,11 @@ class CalibrationSession:
         if not used:
             raise ValueError("poses: no pose with the board detected")
         names = [f"pose_{i:02d}" for i, _ in used]
-        report = calibrate_sets(self.board, [p.capture for _, p in used], robust=robust,
-                                names=names)
+        observed: list[ObservedSet] = []
+        for _, p in used:
+            assert p.observed is not None, "observe_set runs for every pose whose board is found"
+            observed.append(p.observed)
+        report = calibrate_observed(self.board, observed, robust=robust, names=names)
         with self.lock:
             self.report = report
         return report
