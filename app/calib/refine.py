@@ -157,9 +157,12 @@ def refine_board_poses(
         uv, _ = cv2.projectPoints(obj64[k], q[:3], q[3:], kd[0], kd[1])
         return np.asarray((uv.reshape(-1, 2) - img64[k]).ravel(), np.float64)
 
-    def phase_res(x: F64, k: int, kd: tuple[F64, F64]) -> F64:
+    def phase_res(x: F64, k: int, kd: tuple[F64, F64], rays: list[F64] | None = None) -> F64:
+        """View k's phase residuals (m,), projector px × weight; ``rays``: the views' (m, 3)
+        undistorted rays under ``kd`` when already known (they depend on the camera alone)."""
         q = pose(x, k)
-        pts = _plane_points(undistort_rays(pix[k], kd[0], kd[1]), q[:3], q[3:])
+        ray_k = undistort_rays(pix[k], kd[0], kd[1]) if rays is None else rays[k]
+        pts = _plane_points(ray_k, q[:3], q[3:])
         r = _rotation(x[:3])
         xn = (pts @ r[0] + x[3]) / (pts @ r[2] + x[4])
         xd = (xps[k] - x[6]) / x[5]
@@ -168,11 +171,10 @@ def refine_board_poses(
     # projector start: 1-D DLT on the corner poses' board points, then its own fit
     x_init = np.concatenate([np.zeros(8), cam0, pose0])
     kd0 = camera(x_init)
+    # the start's camera is fixed: its rays are undistorted once, not on every evaluation
+    rays0 = [undistort_rays(pix[k], *kd0) for k in range(nv)]
     x3 = np.concatenate(
-        [
-            _plane_points(undistort_rays(pix[k], *kd0), pose(x_init, k)[:3], pose(x_init, k)[3:])
-            for k in range(nv)
-        ]
+        [_plane_points(rays0[k], pose(x_init, k)[:3], pose(x_init, k)[3:]) for k in range(nv)]
     )
     try:
         rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(xps)), x3)
@@ -182,7 +184,7 @@ def refine_board_poses(
 
     def proj_only(xp: F64) -> F64:
         xx = np.concatenate([xp, x_init[8:]])
-        return np.concatenate([phase_res(xx, k, kd0) for k in range(nv)])
+        return np.concatenate([phase_res(xx, k, kd0, rays0) for k in range(nv)])
 
     try:
         start = least_squares(proj_only, x_init[:8], method="lm", x_scale="jac", max_nfev=2000)
@@ -198,7 +200,7 @@ def refine_board_poses(
     )
     s_phase = []
     for k in range(nv):
-        r0 = phase_res(x_init, k, kd0)
+        r0 = phase_res(x_init, k, kd0, rays0)
         s = max(1.4826 * float(np.median(np.abs(r0))), 1e-4)
         ok = np.abs(r0) <= OUTLIER_SCALES * s
         if int(ok.sum()) < MIN_PHASE_POINTS:
@@ -217,27 +219,32 @@ def refine_board_poses(
         for k in range(nv)
     ]
 
-    def residuals(x: F64) -> F64:
+    def residuals(x: F64, rays: list[F64] | None = None) -> F64:
         kd = camera(x)
         parts = [corner_res(x, k, kd) / s_corner for k in range(nv)]
-        parts += [phase_res(x, k, kd) / s_phase[k] for k in range(nv)]
+        parts += [phase_res(x, k, kd, rays) / s_phase[k] for k in range(nv)]
         return np.concatenate(parts)
 
     def jacobian(x: F64) -> F64:
-        """Forward differences, the views' pose columns perturbed together (disjoint rows)."""
-        f0 = residuals(x)
+        """Forward differences, the views' pose columns perturbed together (disjoint rows).
+
+        The rays are undistorted once for ``x``'s camera and reused for the columns that leave
+        the camera as it is (projector and poses): the iterative undistortion was most of the
+        cost, repeated for each of those columns with the same result."""
+        rays = [undistort_rays(pix[k], *camera(x)) for k in range(nv)]
+        f0 = residuals(x, rays)
         jac = np.zeros((f0.size, x.size))
         for j in range(o_pose):  # projector and camera: every row
             h = 1e-7 * max(1.0, abs(float(x[j])))
             xx = x.copy()
             xx[j] += h
-            jac[:, j] = (residuals(xx) - f0) / h
+            jac[:, j] = (residuals(xx, rays if j < o_cam else None) - f0) / h
         for i in range(6):
             xx = x.copy()
             hs = [1e-7 * max(1.0, abs(float(x[o_pose + 6 * k + i]))) for k in range(nv)]
             for k in range(nv):
                 xx[o_pose + 6 * k + i] += hs[k]
-            d = residuals(xx) - f0
+            d = residuals(xx, rays) - f0
             for k in range(nv):
                 jac[support[k], o_pose + 6 * k + i] = d[support[k]] / hs[k]
         return jac

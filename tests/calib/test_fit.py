@@ -8,6 +8,7 @@ import pytest
 from app.calib import BoardSpec, fit_observations, height_mm, sample_phase
 from app.core.calibration import Calibration
 from app.core.eq5 import basis, evaluate, fit_eq5
+from tests.helpers.calib_fits import standard_noisy_observations
 from tests.helpers.calib_rig import BOARD, STANDARD_POSES, Rig, board_pose
 
 
@@ -62,10 +63,13 @@ def test_fit_reproduces_exact_rig(dense):
     assert "pose_05" in table and "reproj_px" in table and "all" in table
 
 
-def test_fit_with_corner_noise_stays_accurate():
-    rig = Rig()
+def test_fit_with_corner_noise_stays_accurate(standard_noisy_fit):
+    """The package's shared fit (tests/calib/conftest.py) of exactly these observations."""
+    rig, rep = standard_noisy_fit
     obs, truth = _observations(rig, noise_px=0.05)
-    rep = fit_observations(obs, (rig.width, rig.height), rig.schedule)
+    for mine, shared in zip(obs, standard_noisy_observations(rig), strict=True):
+        np.testing.assert_array_equal(mine.image_points, shared.image_points)
+        np.testing.assert_array_equal(mine.phase, shared.phase)
     assert 0.02 < rep.reprojection_px < 0.1
     err = _height_error(rig, rep.calibration, truth[0], 0.0, 20.0)
     assert err.mean() < 0.02 and err.max() < 0.1

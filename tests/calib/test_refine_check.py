@@ -22,6 +22,7 @@ from app.calib.fitting import PoseObservation
 from app.calib.refine import corner_sum_squares
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.cli import main
+from tests.helpers.calib_fits import standard_noisy_observations
 from tests.helpers.calib_rig import (
     BOARD,
     STANDARD_POSES,
@@ -97,10 +98,12 @@ def test_defect_projector_refinement_rejected_corners_only_camera_kept():
     assert rep.calibration.extra["refinement"]["accepted"] is False
 
 
-def test_projector_the_model_describes_is_still_refined():
-    rig = Rig()
-    obs = _observations(rig)
-    rep = fit_observations(obs, (rig.width, rig.height), rig.schedule)
+def test_projector_the_model_describes_is_still_refined(standard_noisy_fit):
+    """The package's shared fit (tests/calib/conftest.py) of this module's observations of the
+    analytic rig (the same poses, noise and seed)."""
+    rig, rep = standard_noisy_fit
+    for mine, shared in zip(_observations(rig), standard_noisy_observations(rig), strict=True):
+        np.testing.assert_array_equal(mine.image_points, shared.image_points)
     ref = rep.refinement
     assert ref is not None and ref.accepted is True, ref.reason
     assert ref.chi2 <= ref.chi2_limit
