@@ -42,17 +42,27 @@ def _properties(spec: dict[str, Any], schema: dict[str, Any]) -> list[str]:
     return names
 
 
-def json_operations(spec: dict[str, Any]) -> list[tuple[str, str, list[str]]]:
-    """(method, path, body properties) of every operation that takes a JSON body."""
-    out = []
+def _tag_rest(schema: dict[str, Any]) -> str:
+    """The rest of a body that keeps a union alternative's ``type`` tag (so the property under
+    test is what fails), or ""."""
+    tag = schema.get("properties", {}).get("type", {})
+    tag_value = tag.get("const", (tag.get("enum") or [None])[0])
+    return "" if tag_value is None else f', "type": {json.dumps(tag_value)}'
+
+
+def _json_body_schemas(spec: dict[str, Any]) -> Iterator[tuple[str, str, dict[str, Any]]]:
+    """(method, path, body schema) of every operation whose body is JSON."""
     for path, item in spec["paths"].items():
         for method, op in item.items():
             content = op.get("requestBody", {}).get("content", {})
             if "application/json" in content:
-                out.append(
-                    (method.upper(), path, _properties(spec, content["application/json"]["schema"]))
-                )
-    return out
+                yield method.upper(), path, content["application/json"]["schema"]
+
+
+def json_operations(spec: dict[str, Any]) -> list[tuple[str, str, list[str]]]:
+    """(method, path, body properties) of every operation that takes a JSON body."""
+    return [(method, path, _properties(spec, schema))
+            for method, path, schema in _json_body_schemas(spec)]
 
 
 def parameter_cases(spec: dict[str, Any]) -> list[tuple[str, str, str, str]]:
@@ -146,9 +156,7 @@ def _numeric_properties(spec: dict[str, Any], schema: dict[str, Any]) -> list[tu
     """(property, the rest of a body) for each top-level number property (through
     $ref, anyOf and oneOf; an alternative's ``type`` tag is kept so the number is what fails)."""
     schema = _resolve(spec, schema)
-    tag = schema.get("properties", {}).get("type", {})
-    tag_value = tag.get("const", (tag.get("enum") or [None])[0])
-    rest = "" if tag_value is None else f', "type": {json.dumps(tag_value)}'
+    rest = _tag_rest(schema)
     out = []
     for name, prop in schema.get("properties", {}).items():
         prop = _resolve(spec, prop)
@@ -166,21 +174,16 @@ def test_a_boolean_or_a_string_for_a_number_is_422_naming_the_field(
     """JSON ``false`` is not 0 and ``"0.1"`` is not 0.1: a number field refuses both (a
     lax parser read ``{"saturation_limit": false}`` as a 0 % saturation limit)."""
     seen = 0
-    for path, item in spec["paths"].items():
-        for method, op in item.items():
-            content = op.get("requestBody", {}).get("content", {})
-            if "application/json" not in content:
-                continue
-            schema = content["application/json"]["schema"]
-            for prop, rest in _numeric_properties(spec, schema):
-                for lit in ("false", "true", '"0.1"'):
-                    body = f'{{"{prop}": {lit}{rest}}}'
-                    r = _send(client, method.upper(), path, body)
-                    what = f"{method.upper()} {path} {body}"
-                    assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
-                    detail = _one_line_4xx(r, what)
-                    assert f".{prop}: " in detail, f"{what}: {detail}"  # names it
-                    seen += 1
+    for method, path, schema in _json_body_schemas(spec):
+        for prop, rest in _numeric_properties(spec, schema):
+            for lit in ("false", "true", '"0.1"'):
+                body = f'{{"{prop}": {lit}{rest}}}'
+                r = _send(client, method, path, body)
+                what = f"{method} {path} {body}"
+                assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
+                detail = _one_line_4xx(r, what)
+                assert f".{prop}: " in detail, f"{what}: {detail}"  # names it
+                seen += 1
     assert seen >= 9  # exposure, auto-exposure (2), and the rest the document has
 
 
@@ -190,9 +193,7 @@ def _integer_properties(
     """(property, its minimum item count (0 for a scalar), the rest of a body) for each top-level
     property holding integers: an integer, or an array of them."""
     schema = _resolve(spec, schema)
-    tag = schema.get("properties", {}).get("type", {})
-    tag_value = tag.get("const", (tag.get("enum") or [None])[0])
-    rest = "" if tag_value is None else f', "type": {json.dumps(tag_value)}'
+    rest = _tag_rest(schema)
     out = []
     for name, prop in schema.get("properties", {}).items():
         for alt in [_resolve(spec, s) for s in [_resolve(spec, prop), *prop.get("anyOf", [])]]:
@@ -212,26 +213,20 @@ def test_a_boolean_or_a_string_for_an_integer_is_422_naming_the_field(
     """JSON ``false`` is not 0 and ``"5"`` is not 5 where an integer belongs (a ROI, a board's
     corners, a set's index), alone or in an array; ``19.0`` stays an integer (JSON Schema's)."""
     seen = 0
-    for path, item in spec["paths"].items():
-        for method, op in item.items():
-            content = op.get("requestBody", {}).get("content", {})
-            if "application/json" not in content:
-                continue
-            if (method.upper(), path) == ("PUT", "/api/calibration/file"):
-                continue  # a calibration file, read by its format's reader (tests/core)
-            schema = content["application/json"]["schema"]
-            for prop, items, rest in _integer_properties(spec, schema):
-                for lit, what_it_is in (("false", "a boolean"), ("true", "a boolean"),
-                                        ('"5"', "a string")):
-                    value = lit if items == 0 else "[" + ", ".join([lit] * items) + "]"
-                    body = f'{{"{prop}": {value}{rest}}}'
-                    r = _send(client, method.upper(), path, body)
-                    what = f"{method.upper()} {path} {body}"
-                    assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
-                    detail = _one_line_4xx(r, what)
-                    assert f".{prop}: must be a JSON integer, not {what_it_is}" in detail, (
-                        f"{what}: {detail}")
-                    seen += 1
+    for method, path, schema in _json_body_schemas(spec):
+        if (method, path) == ("PUT", "/api/calibration/file"):
+            continue  # a calibration file, read by its format's reader (tests/calib)
+        for prop, items, rest in _integer_properties(spec, schema):
+            for lit, kind in (("false", "a boolean"), ("true", "a boolean"), ('"5"', "a string")):
+                value = lit if items == 0 else "[" + ", ".join([lit] * items) + "]"
+                body = f'{{"{prop}": {value}{rest}}}'
+                r = _send(client, method, path, body)
+                what = f"{method} {path} {body}"
+                assert r.status_code == 422, f"{what}: {r.status_code} {r.text[:200]}"
+                detail = _one_line_4xx(r, what)
+                assert f".{prop}: must be a JSON integer, not {kind}" in detail, (
+                    f"{what}: {detail}")
+                seen += 1
     assert seen >= 12  # ROI (2 routes), board corners (2 board types), reference and set index
 
 
