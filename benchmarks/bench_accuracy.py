@@ -56,8 +56,11 @@ from pathlib import Path
 
 import numpy as np
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from app.core.jit import numba_environment
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 from app.analysis import feature_height, sphere_figures  # noqa: E402
 from app.analysis.acceptance import (  # noqa: E402

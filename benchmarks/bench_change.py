@@ -28,9 +28,12 @@ import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from app.core.jit import numba_environment
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 import numpy as np
 from timing import median_ms

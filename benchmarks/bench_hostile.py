@@ -28,8 +28,11 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from app.core.jit import numba_environment
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 MB = 1024 * 1024
 

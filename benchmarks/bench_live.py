@@ -24,8 +24,11 @@ import threading
 import time
 from pathlib import Path
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from app.core.jit import numba_environment
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 import httpx
 import numpy as np

@@ -25,8 +25,11 @@ import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from app.core.jit import numba_environment
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 from app.calib import calibrate_folder  # noqa: E402
 from app.devices.sim import simulate_calibration_folder  # noqa: E402

@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import os
 
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 # one BLAS thread, as Dask's nanny gives its workers: the in-process CPU figures are then a
 # worker's (two spinning OpenBLAS threads made the noise fit's CPU 60 ms instead of 16)
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -54,6 +53,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from app.core.jit import numba_environment  # noqa: E402
+
+# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
+os.environ.update(numba_environment(os.environ))
 
 from timing import median_ms  # noqa: E402  (benchmarks/ is the script's folder)
 
