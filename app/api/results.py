@@ -173,6 +173,7 @@ async def reconstruct(
         shape=list(res.depth.shape),
         noise_source=res.noise_source,
         noise_note=res.noise_note,
+        phase_error_source=res.phase_error_source,
         read_noise_dn=noise.read_noise_dn if noise is not None else float("nan"),
         gain_dn_per_e=noise.gain_dn_per_e if noise is not None else float("nan"),
         sigma_median_mm=_median(res.sigma, res.valid),

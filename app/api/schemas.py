@@ -40,6 +40,7 @@ from app.core.calibration import FORMAT_V1 as CALIBRATION_FORMAT_V1
 from app.core.limits import EXPOSURE_RANGE_MS, Led
 from app.core.records import DeviceStatus, Status
 from app.recon.exposure import DEFAULT_SATURATION_LIMIT
+from app.recon.reconstructor import PhaseErrorSource
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -273,6 +274,10 @@ class ReconstructSummary(BaseModel):
         description="camera noise behind σ and the validity rule: fitted to the set (N > 3) or the "
                     "nominal sensor where the set cannot give it (noise_note says why)")
     noise_note: str = ""
+    phase_error_source: PhaseErrorSource = Field(
+        "none", description="the projector-gamma phase-error table the wrapped phases were "
+                            "corrected with: the calibration's learned one, or the set's own "
+                            "(an N = 4 set whose projector departs from a sinusoid), or none")
     read_noise_dn: float = Field(description="the noise model's signal-independent σ, DN")
     gain_dn_per_e: float = Field(description="the noise model's shot-noise gain, DN per electron")
     sigma_median_mm: float | None = Field(

@@ -144,6 +144,8 @@ def reconstruct_captures(
                for c in captures]
     for m in members:
         m.noise_source, m.noise_note = source, note
+        if table is not None and m.phase_error_source == "given":
+            m.phase_error_source = "set"  # the table passed is this set's own
     exposures = tuple(c.exposure_ms for c in captures)
     if len(members) == 1:
         return SetReconstruction(members[0], None, exposures, rec.fast)
@@ -151,6 +153,7 @@ def reconstruct_captures(
 
     fused = fuse_exposures(members, exposures)
     fused.result.noise_source, fused.result.noise_note = source, note
+    fused.result.phase_error_source = members[0].phase_error_source
     return SetReconstruction(fused.result, fused, exposures, rec.fast)
 
 
@@ -323,10 +326,12 @@ def summary_line(recon: SetReconstruction) -> str:
 
 
 def noise_summary(res: ReconResult) -> str:
-    """``noise_source=set (read 1.52 DN, gain 0.0160 DN/e)``; a nominal one says why."""
+    """``noise_source=set (read 1.52 DN, gain 0.0160 DN/e), phase_error=set``; a nominal
+    noise says why; ``phase_error`` names the projector-gamma table applied (learned, given, the
+    set's own, or none)."""
     text = f"noise_source={res.noise_source}"
     if res.noise is not None:
         text += f" (read {res.noise.read_noise_dn:.2f} DN, gain {res.noise.gain_dn_per_e:.4f} DN/e)"
     if res.noise_note:
         text += f": {res.noise_note}"
-    return text
+    return text + f", phase_error={res.phase_error_source}"

@@ -10,7 +10,7 @@ import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -85,8 +85,13 @@ def phase_variance_factor(modulation_sq: npt.ArrayLike, steps: int) -> npt.NDArr
         return steps / (2.0 * np.asarray(modulation_sq, np.float64))
 
 
+#: which projector-gamma table a run applied: the reconstructor's learned one, one passed to the
+#: run, the set's own (an N = 4 set, :mod:`app.recon.gamma_model`), or none
+PhaseErrorSource = Literal["learned", "given", "set", "none"]
+
+
 def _choose_table(learned: PhaseErrorLUT | None, given: PhaseErrorLUT | None,
-                  from_set: PhaseErrorLUT | None) -> tuple[PhaseErrorLUT | None, str]:
+                  from_set: PhaseErrorLUT | None) -> tuple[PhaseErrorLUT | None, PhaseErrorSource]:
     """The phase-error table a run applies and :attr:`ReconResult.phase_error_source`."""
     if learned is not None:
         return learned, "learned"
@@ -192,7 +197,7 @@ class ReconResult:
     noise_source: NoiseSource = "given"
     noise_note: str = ""
     model_sigma: ModelSigmaTable | None = None
-    phase_error_source: str = "none"
+    phase_error_source: PhaseErrorSource = "none"
 
     @property
     def sigma_model(self) -> F32:

@@ -165,6 +165,8 @@ def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
     body = r.json()
     assert body["noise_source"] == "set"
     assert body["read_noise_dn"] == pytest.approx(py.noise.read_noise_dn)
+    # the twin's projector is sinusoidal: no table on any path, and each says so alike
+    assert body["phase_error_source"] == py.phase_error_source == "none"
     rest_depth = np.load(
         io.BytesIO(live.post("/api/reconstruct?format=npy", files=_files(folder)).content)
     )
@@ -186,7 +188,8 @@ def test_sigma_is_honest_and_the_same_from_python_rest_and_cli(
         )
         == 0
     )
-    assert "noise_source=set" in capsys.readouterr().out
+    cli_line = capsys.readouterr().out
+    assert "noise_source=set" in cli_line and "phase_error=none" in cli_line
     cli_depth, cli_sigma = (
         np.load(tmp_path / "out" / "depth.npy"),
         np.load(tmp_path / "out" / "sigma.npy"),

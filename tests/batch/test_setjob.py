@@ -42,3 +42,28 @@ def test_median_float32_nan_and_empty():
 def test_median_float32_names_its_argument():
     with pytest.raises(ValueError, match="^values"):
         median_float32(np.zeros(3))
+
+
+def test_a_gamma_projectors_set_says_which_table_corrected_it():
+    """``reconstruct``/``reprocess`` pass the set's own table to the run: the result (and the CLI
+    line) says ``set``, not ``given``; a learned table wins and says ``learned``."""
+    from app.batch.setjob import ReconOptions, noise_summary, reconstruct_captures
+    from app.devices.sim.ideal import ideal_calibration
+    from app.devices.sim.offline import render_capture_set
+    from app.devices.sim.optics import rig_by_name
+    from app.devices.sim.world import SimulatedWorld
+    from app.recon.gamma import PhaseErrorLUT
+
+    rig = rig_by_name("default", distortion=False)
+    cal = ideal_calibration(rig)
+    world = SimulatedWorld("intestine_flap", seed=2, projector_gamma=1.5, rig=rig)
+    capture = render_capture_set("intestine_flap", exposure_ms=15.0, world=world)[0]
+
+    own = reconstruct_captures([capture], cal, ReconOptions()).result
+    assert own.phase_error_source == "set"
+    assert noise_summary(own).endswith(", phase_error=set")
+    learned = PhaseErrorLUT(np.zeros((4, 64)), steps=4,
+                            frequencies=tuple(float(k) for k in cal.pattern.frequencies))
+    taught = reconstruct_captures([capture], cal, ReconOptions(phase_error=learned)).result
+    assert taught.phase_error_source == "learned"
+    assert noise_summary(taught).endswith(", phase_error=learned")
