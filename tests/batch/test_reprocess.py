@@ -52,6 +52,10 @@ def _same_files(a: Path, b: Path, names=FILES) -> None:
         assert (a / name).read_bytes() == (b / name).read_bytes(), f"{a / name} != {b / name}"
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env.update(PYTHONPATH=str(ROOT), NUMBA_THREADING_LAYER="workqueue", NUMBA_NUM_THREADS="1")
@@ -317,8 +321,11 @@ def test_ctrl_c_leaves_whole_files_and_the_next_run_finishes(tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "app", "reprocess", str(rec), "-c", str(cal), "-o", str(out),
            "--workers", "2", "--quiet"]
+    # a terminal's command has SIGINT's default action; a suite started in the background (`make
+    # test &`, nohup) passes SIGINT ignored to its children, and the command would run to the end
     proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(), start_new_session=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
     while not list(out.glob(f"{rec.name}/set_*/reprocess.json")):
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
