@@ -1,14 +1,14 @@
 """``fringescope reprocess``: whole recordings through the per-set job on Dask distributed.
 
-The client plans one set task per capture set (or per exposure bracket of consecutive
-sets), skips sets whose outputs already carry the same digest (calibration + options +
-files), ships the calibration once to every worker (``scatter(broadcast=True)``) and submits
-the set tasks, a few consecutive ones per Dask task (:func:`sets_per_task`: Dask's own cost
-per task is a few ms of CPU); each worker reads its sets itself (frames never travel through
-the client), runs :func:`app.batch.setjob.reconstruct_captures`, writes the files
-atomically, and returns a small row per set. A set that fails is a row with its error. A
-worker that dies mid-task is replaced by the scheduler, which reruns the task elsewhere
-(outputs are rewritten whole).
+The client plans one set task per capture set (or per exposure bracket of consecutive sets),
+skips sets whose outputs already carry the same digest (calibration + options + files + the
+software that made them), ships the calibration once to every worker
+(``scatter(broadcast=True)``) and submits the set tasks, a few consecutive ones per Dask
+task (:func:`sets_per_task`: Dask's own cost per task is a few ms of CPU); each worker reads
+its sets itself (frames never travel through the client), runs
+:func:`app.batch.setjob.reconstruct_captures`, writes the files atomically, and returns a
+small row per set. A set that fails is a row with its error. A worker that dies mid-task is
+replaced by the scheduler, which reruns the task elsewhere (outputs are rewritten whole).
 
 Paths are fsspec URLs (a plain path is the local file system): workers on other machines
 read recordings from shared storage or an object store.
@@ -23,12 +23,14 @@ Output layout::
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import io
 import json
 import logging
 import math
 import os
+import pathlib
 import sys
 import tempfile
 import time
@@ -310,10 +312,46 @@ def calibration_key(calibration: Calibration) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
+#: the parts of the ``app`` package whose code shapes a set's outputs: the numerics, the
+#: contracts, capture-set reading, the writers
+OUTPUT_CODE = ("atomic.py", "batch", "capture", "core", "recon")
+
+
+def source_digest(root: pathlib.Path, parts: Sequence[str]) -> str:
+    """sha256 of the ``.py`` files under ``root``'s ``parts`` (files or folders), with their
+    paths relative to ``root``, in a fixed order."""
+    h = hashlib.sha256()
+    for part in parts:
+        top = root / part
+        files = [top] if top.is_file() else sorted(top.rglob("*.py"))
+        for f in files:
+            h.update(f.relative_to(root).as_posix().encode("utf-8") + b"\0")
+            h.update(f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def software_key() -> str:
+    """The build that makes outputs: Fringescope's version, the source of :data:`OUTPUT_CODE`
+    and the numeric libraries' versions. A resumed run redoes the sets an older build made
+    (their numbers may differ) instead of keeping them."""
+    import cv2
+    import numba
+    import numpy
+
+    import app
+
+    spec = {"fringescope": app.__version__, "numpy": numpy.__version__,
+            "numba": numba.__version__, "opencv": cv2.__version__,
+            "source": source_digest(pathlib.Path(app.__file__).parent, OUTPUT_CODE)}
+    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode("utf-8")).hexdigest()
+
+
 def output_digest(cal_key: str, options: ReconOptions, files: Sequence[str], bracket: int) -> str:
-    """sha256 of everything that shapes a set's outputs besides its frames."""
+    """sha256 of everything that shapes a set's outputs besides its frames (the software
+    included: :func:`software_key`)."""
     spec = {"format": FORMAT, "calibration": cal_key, "options": options.to_dict(),
-            "files": sorted(files), "bracket": bracket}
+            "files": sorted(files), "bracket": bracket, "software": software_key()}
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode("utf-8")).hexdigest()
 
 

@@ -126,7 +126,10 @@ class Status:
     warnings: tuple[str, ...] = field(default=())
     sensor_noise: dict[str, Any] | None = field(default=None, metadata=doc(
         "the camera noise model σ and the validity rule use: source (measured | nominal), "
-        "read_noise_dn, gain_dn_per_e, estimates"))
+        "read_noise_dn, gain_dn_per_e, estimates; the projector-gamma correction of the newest "
+        "depth map, phase_error (learned: the calibration's table; measured: the live sets' "
+        "own; set: that set's own, before the first live estimate; none; null: no map yet), "
+        "and gamma_table_rms_rad, the RMS of the live sets' table (null: none)"))
     state_reason: str | None = field(default=None, metadata=doc(
         "why the state is not running, or the start-up phase; while running, "
         "what slows the depth rate (exposure bracketing)"))

@@ -440,6 +440,14 @@ class Instrument:
             return None, None, None
         return max(errors, key=lambda e: e[1] or 0.0)
 
+    def _phase_error_in_use(self) -> str | None:
+        """Which projector-gamma table corrected the newest map, in the status's words."""
+        _, newest = self.results.latest()
+        if newest is None:
+            return None
+        # the live thread passes the table it measured from the live sets to the engine
+        return {"given": "measured"}.get(newest.phase_error_source, newest.phase_error_source)
+
     def status(self) -> Status:
         """The status record (``GET /api/status`` is its :meth:`~Status.to_dict`)."""
         acq, rec, s = self.acquisition, self.pipeline.reconstruction, self.settings
@@ -505,7 +513,7 @@ class Instrument:
                       "calibration_applies": (None if self.calibration is None
                                               else self.pipeline.engine_note is None)},
             warnings=tuple(warnings),
-            sensor_noise=rec.noise.describe(),
+            sensor_noise={**rec.noise.describe(), "phase_error": self._phase_error_in_use()},
             state_reason=reason,
             phase=phase,
             progress=progress,

@@ -23,7 +23,7 @@ from app.recon.fusion import fuse_exposures
 from app.recon.model_sigma import ModelSigmaTable
 from app.recon.motion import MotionTest, map_time
 from app.recon.points import LazyPoints, PointRays
-from app.recon.reconstructor import split_noise
+from app.recon.reconstructor import PhaseErrorSource, split_noise
 from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
 from app.service.sensor_noise import LiveNoise
@@ -78,6 +78,9 @@ class LiveResult:
     uncertain_moving_pixels: int = 0
     noise: SensorNoise | None = None
     noise_source: NoiseSource = "given"  # or "set"/"nominal": the engine's own until measured
+    #: the projector-gamma table the set was corrected with (``given``: the live sets' own,
+    #: :meth:`LiveNoise.phase_error`)
+    phase_error_source: PhaseErrorSource = "none"
     #: exposure bracketing: the two sets' exposures (ms) this map fuses (None: one set)
     bracket_exposures_ms: tuple[float, float] | None = None
     model_sigma: ModelSigmaTable | None = None
@@ -294,6 +297,7 @@ class Reconstruction:
         fused.motion_ms = a.motion_ms + b.motion_ms
         fused.uncertain_moving_pixels = a.uncertain_moving_pixels + b.uncertain_moving_pixels
         fused.noise, fused.noise_source = b.noise, b.noise_source
+        fused.phase_error_source = b.phase_error_source
         live = self._live(engine, fs, fused, full_scale, recon_ms + first[2])
         live.exposure_ms = float(pair[0][0].exposure_ms)
         live.bracket_exposures_ms = (float(pair[0][0].exposure_ms), float(pair[1][0].exposure_ms))
@@ -314,5 +318,6 @@ class Reconstruction:
                                 combined=engine.combine_frequencies),
             moved_pixels=res.moved_pixels, motion_ms=res.motion_ms, scene_moved=res.scene_moved,
             uncertain_moving_pixels=res.uncertain_moving_pixels, noise=res.noise,
-            noise_source=res.noise_source, model_sigma=res.model_sigma,
+            noise_source=res.noise_source, phase_error_source=res.phase_error_source,
+            model_sigma=res.model_sigma,
         )

@@ -29,6 +29,8 @@ import logging
 import math
 import threading
 
+import numpy as np
+
 from app.core.schedule import PatternSchedule
 from app.recon.gamma import PhaseErrorLUT
 from app.recon.noise import resolve_set_noise
@@ -100,8 +102,14 @@ class LiveNoise:
     def describe(self) -> dict[str, object]:
         """For the status: the model in use and where it comes from."""
         noise = self.current
+        with self._lock:
+            table = None if self._table is None else self._table[1]
+        gamma: dict[str, object] = {"gamma_table_rms_rad": None if table is None else round(
+            float(np.sqrt(np.mean(table.error_rad**2))), 6)}
         if noise is None:
             return {"source": "nominal" if self.interval_s > 0 else "nominal (measuring off)",
-                    "read_noise_dn": None, "gain_dn_per_e": None, "estimates": self.estimates}
+                    "read_noise_dn": None, "gain_dn_per_e": None, "estimates": self.estimates,
+                    **gamma}
         return {"source": "measured", "read_noise_dn": round(noise.read_noise_dn, 4),
-                "gain_dn_per_e": round(noise.gain_dn_per_e, 6), "estimates": self.estimates}
+                "gain_dn_per_e": round(noise.gain_dn_per_e, 6), "estimates": self.estimates,
+                **gamma}

@@ -57,6 +57,10 @@ def test_the_live_engine_uses_the_cameras_measured_noise(live: TestClient) -> No
     # passed to the engine with every set (σ, the validity rule, the motion test), not installed in
     # it
     assert res is not None and res.noise is inst.pipeline.reconstruction.noise.current
+    # the twin's projector is sinusoidal: its sets measure no gamma, the maps are not corrected
+    noise = live.get("/api/status").json()["sensor_noise"]
+    assert noise["phase_error"] == "none" == res.phase_error_source
+    assert noise["gamma_table_rms_rad"] is None
 
 
 def test_exposure_and_led_reach_the_frames(live: TestClient) -> None:

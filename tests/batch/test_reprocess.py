@@ -127,7 +127,8 @@ def _table(out: Path, name: str) -> pd.DataFrame:
 
 
 @pytest.mark.slow
-def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_path, capsys):
+def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_path, capsys,
+                                                           monkeypatch):
     rec, cal = small
     out = tmp_path / "out"
     args = ["reprocess", str(rec), "-c", str(cal), "-o", str(out), "--scheduler", cluster.address,
@@ -163,6 +164,13 @@ def test_external_scheduler_matches_reconstruct_and_resumes(small, cluster, tmp_
     assert "0 done, 6 reused" in capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert set(_table(out, rec.name)["status"]) == {"reused"}
+    # another build is another digest: its outputs are not kept (the numbers may differ)
+    import app.batch.engine as engine
+
+    monkeypatch.setattr(engine, "software_key", lambda: "a build with other numerics")
+    assert main([*args, "--quiet"]) == 0
+    assert set(_table(out, rec.name)["status"]) == {"done"}
+    monkeypatch.undo()
     # another option is another digest: everything is redone
     assert main([*args, "--min-modulation", "200", "--quiet"]) == 0
     assert capsys.readouterr().err == ""
@@ -416,3 +424,24 @@ def test_a_worker_reuses_freed_memory_under_dasks_trim_threshold():
         faults[mode] = int(out.stdout.split()[-1])
     assert faults["plain"] >= 5 * 10, faults
     assert faults["worker"] * 20 < faults["plain"], faults
+
+
+def test_the_software_key_follows_the_code_that_makes_outputs(tmp_path):
+    """The digest's software part changes with any source file of the listed parts, and
+    only with those (a change to the web API does not redo a recording)."""
+    from app.batch.engine import source_digest
+
+    (tmp_path / "recon").mkdir()
+    (tmp_path / "api").mkdir()
+    (tmp_path / "recon" / "phase.py").write_text("STEPS = 4\n")
+    (tmp_path / "atomic.py").write_text("pass\n")
+    (tmp_path / "api" / "routes.py").write_text("pass\n")
+    parts = ("atomic.py", "recon")
+    before = source_digest(tmp_path, parts)
+    (tmp_path / "api" / "routes.py").write_text("ROUTES = 2\n")
+    assert source_digest(tmp_path, parts) == before
+    (tmp_path / "recon" / "phase.py").write_text("STEPS = 5\n")
+    changed = source_digest(tmp_path, parts)
+    assert changed != before
+    (tmp_path / "recon" / "phase.py").rename(tmp_path / "recon" / "wrap.py")
+    assert source_digest(tmp_path, parts) not in (before, changed)  # a path is part of it

@@ -91,5 +91,8 @@ def test_a_4_step_estimate_keeps_the_projectors_gamma_table_for_its_schedule():
     truth = power_law_phase_error(1.5, 4)
     for row in table.error_rad:  # within 10 % of the true table's RMS
         assert np.sqrt(np.mean((row - truth) ** 2)) < 0.1 * np.sqrt(np.mean(truth**2))
+    # the status says how large the correction the live sets measured is
+    rms = float(np.sqrt(np.mean(table.error_rad**2)))
+    assert live.describe()["gamma_table_rms_rad"] == pytest.approx(rms, abs=1e-6) and rms > 1e-3
     assert live.phase_error(PatternSchedule(frequencies=(1, 4, 12, 36), steps=4,
                                             width=912)) is None
