@@ -91,7 +91,7 @@ class PoseSuggestionOut(BaseModel):
              operation_id="suggest_pose", responses={**R409, **COMMON})
 def suggest_pose(inst: InstrumentDep) -> Any:
     """Where to hold the board next; on the simulator its board is moved there (a few seconds)."""
-    return inst.suggest_pose()
+    return inst.wizard.suggest_pose()
 
 
 class SessionCancelOut(BaseModel):
@@ -103,7 +103,7 @@ class SessionCancelOut(BaseModel):
                responses=COMMON)
 def cancel_session(inst: InstrumentDep) -> SessionCancelOut:
     """Close the session without a calibration (its poses are dropped); none open: nothing to do."""
-    session = inst.cancel_session()
+    session = inst.wizard.cancel_session()
     poses = 0 if session is None else len(session.poses)
     return SessionCancelOut(cancelled=session is not None, poses=poses)
 
@@ -173,7 +173,7 @@ def activate(
 ) -> Any:
     """Check the solved calibration (physical checks, then a dry run on the newest frames unless
     ``force``; 422 naming the reason), then make it active and save it in the data folder."""
-    return inst.activate_session(body.name, force=force)
+    return inst.wizard.activate_session(body.name, force=force)
 
 
 @router.get("/file", responses={200: {"content": {"application/json": {}}}, **R404, **COMMON})

@@ -89,7 +89,7 @@ async def set_reference(request: Request,
             request, int(inst.settings.max_upload_mb * 1024 * 1024),
             frame_size=None if cal is None else cal.image_size)
         ref = await run_in_threadpool(inst.change.reference_from_capture, capture,
-                                      inst.reconstruct_capture, {"kind": "upload"})
+                                      inst.calibrations.reconstruct, {"kind": "upload"})
         return ref.describe()
     body = await read_body(request, _JSON_LIMIT_BYTES)
     try:  # the body-limit middleware has refused deep nesting and non-finite numbers
@@ -110,7 +110,7 @@ async def set_reference(request: Request,
             raise InvalidRequest(str(exc)) from None
         ref = await run_in_threadpool(inst.change.reference_from_recording,
                                       recordings_root(inst.settings.data_dir), name, req.index,
-                                      inst.reconstruct_capture)
+                                      inst.calibrations.reconstruct)
         return ref.describe()
     res = inst.latest_result()
     ref = inst.change.set_reference(res.depth, res.sigma_noise, res.points,

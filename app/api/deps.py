@@ -2,7 +2,8 @@
 
 Routers name the part they use (``PipelineDep``, ``CalibrationsDep``, ``RecorderDep``) and
 call it directly; ``InstrumentDep`` is for what cuts across parts (schedule and control
-changes, the status record, the calibration wizard's twin scene).
+changes, the status record, the calibration wizard's steps on the live view:
+``instrument.wizard``).
 """
 
 from __future__ import annotations

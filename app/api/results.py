@@ -158,7 +158,7 @@ async def reconstruct(
     cal = inst.calibration  # frames of another size are refused before they are decoded
     size = None if cal is None else cal.image_size
     capture = await capture_from_request(request, limit, frame_size=size)
-    res = await run_in_threadpool(inst.reconstruct_capture, capture)
+    res = await run_in_threadpool(inst.calibrations.reconstruct, capture)
     if format == "npy":
         data = _field(res, field)
         data = data if data is not None else np.full_like(res.depth, np.nan)

@@ -11,31 +11,21 @@ joined in :meth:`Instrument.close`.
 
 from __future__ import annotations
 
-import functools
-import inspect
 import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from app.capture.captureset import CaptureSet
 from app.config import Settings
 from app.core.calibration import Calibration
 from app.core.errors import Conflict, DeviceUnavailable, InvalidRequest
 from app.core.limits import full_scale
 from app.core.records import Bracket, State, Status
 from app.core.schedule import PatternSchedule, schedule_by_name, schedule_name_of
-from app.devices.sim.offline import auto_exposure_ms, simulate_calibration_folder
-from app.devices.sim.optics import rig_by_name
-from app.devices.sim.scenes import board_poses, board_scene
-from app.recon import ReconResult
 from app.recon.reconstructor import SensorNoise
 from app.service import calibration_store
 from app.service.alarms import AlarmBoard
-from app.service.calibration_session import CalibrationSession, advice_dict, twin_board_pose
 from app.service.calibrations import CalibrationManager
 from app.service.change import ChangeService
 from app.service.devices import DeviceBundle, create_devices
@@ -44,19 +34,13 @@ from app.service.poses import TrackerPoses
 from app.service.reconstruction import LiveResult
 from app.service.recorder import Recorder
 from app.service.schedules import rig_pixels, schedule_table, sensor_noise_of
+from app.service.wizard import CalibrationWizard, sim_calibration_poses
 
 if TYPE_CHECKING:
     from app.service.acquisition import Acquisition
     from app.service.store import LatestSlot
 
 __all__ = ["Instrument"]
-
-
-@functools.cache
-def sim_calibration_poses() -> int:
-    """Board poses the simulator's first-start calibration simulates (its writer's default)."""
-    default = inspect.signature(simulate_calibration_folder).parameters["poses"].default
-    return int(default) if isinstance(default, int) else 8
 
 
 class Instrument:
@@ -92,11 +76,13 @@ class Instrument:
         self.change = ChangeService(Path(settings.data_dir) / "reference",
                                     lambda: self.calibration)
         self.results.subscribe(self.change.on_map)
-        self._twin_scene_moved = False  # the wizard put the twin's board in view
         # the status shows the recording and a schedule change waits for its end
         self.recorder = Recorder(self, min_free_mb=settings.recording_min_free_mb,
                                  pose_source=None if poses is None else poses.latest,
                                  alarms=self.alarms, changes=self.change)
+        # the REST wizard's steps on the live view (the twin's board, its exposure)
+        self.wizard = CalibrationWizard(settings, self.pipeline, self.calibrations,
+                                        self.set_exposure)
 
     # -- the parts, by the names the routers, the viewer and the recorder use ----------------
     @property
@@ -147,69 +133,6 @@ class Instrument:
             out.append(creating)
         return out
 
-    # -- calibration -----------------------------------------------------------------------
-    def reconstruct_capture(self, capture: CaptureSet) -> ReconResult:
-        """Reconstruct an uploaded set with the active calibration (its own engine instance)."""
-        return self.calibrations.reconstruct(capture)
-
-    def cancel_session(self) -> CalibrationSession | None:
-        """End the calibration session without a calibration (the one ended, or None)."""
-        session = self.calibrations.cancel_session()
-        self._restore_twin_scene()
-        return session
-
-    def suggest_pose(self) -> dict[str, Any]:
-        """Where to hold the board for the session's next pose; the twin puts its board there.
-
-        Pose 0 is the reference plane (flat, the farthest); after it the session's coverage
-        (:mod:`app.calib.coverage`) names the image region, height and tilts that add most
-        calibrated cells. On the twin the board (the session's spec) moves there and the
-        exposure is set for it; on hardware the answer is the advice alone. ``of`` is the
-        simulator's calibration series length, the poses planned at least.
-        """
-        session = self.calibrations.require_session()
-        devices = self.pipeline.devices
-        world = devices.world if devices is not None else None
-        rig = world.rig if world is not None else rig_by_name(self.settings.sim_rig)
-        planned = sim_calibration_poses()
-        k = sum(1 for p in session.poses if p.found)
-        cov, advice = session.coverage()
-        if k == 0:  # the reference plane, where the simulator's own calibration puts it
-            pose = board_poses(rig, planned, seed=0)[0]
-        else:
-            pose = twin_board_pose(rig, session.board, advice)
-        origin, axes = pose
-        ref = rig.reference
-        height_mm = float(ref.normal @ origin + ref.offset_mm)
-        cos_tilt = abs(float(axes[:, 2] @ ref.normal))  # axes: columns e_s, e_t, normal
-        tilt_deg = float(np.degrees(np.arccos(min(cos_tilt, 1.0))))
-        exposure_ms = None
-        if world is not None:
-            world.set_scene(board_scene(rig, session.board, pose))
-            self._twin_scene_moved = True
-            exposure_ms = round(auto_exposure_ms(world, led=world.led, current=world.current,
-                                                 bits=self.settings.bit_depth), 2)
-            self.set_exposure(exposure_ms)
-        return {"index": k, "of": max(planned, k + 1), "height_mm": round(height_mm, 2),
-                "tilt_deg": round(tilt_deg, 1), "moved": world is not None,
-                "exposure_ms": exposure_ms,
-                "hint": f"pose {k} of {max(planned, k + 1)}: the whole board in view; "
-                        f"{advice.text}",
-                "suggestion": advice_dict(advice), "coverage": session.coverage_dict()}
-
-    def _restore_twin_scene(self) -> None:
-        """After the session: the twin shows its configured scene again."""
-        devices = self.pipeline.devices
-        world = devices.world if devices is not None else None
-        if world is not None and self._twin_scene_moved:
-            self._twin_scene_moved = False
-            world.set_scene(self.settings.sim_scene)
-
-    def activate_session(self, name: str, *, force: bool = False) -> dict[str, Any]:
-        summary = self.calibrations.activate_session(name, force=force).to_dict()
-        self._restore_twin_scene()
-        return summary
-
     # -- control ---------------------------------------------------------------------------
     def set_exposure(self, exposure_ms: float) -> float:
         self._changing(f"the exposure change to {exposure_ms:g} ms")
@@ -228,7 +151,7 @@ class Instrument:
         self._changing(f"exposure bracketing {'on' if on else 'off'}")
         self.pipeline.set_bracket(on)
 
-    def bracket_status(self) -> Bracket | None:
+    def _bracket_status(self) -> Bracket | None:
         """The status's ``bracket`` record: exposures, who switched it on, the rate note."""
         acq, note = self.acquisition, self.pipeline.bracket_note()
         if acq is None or note is None:
@@ -526,7 +449,7 @@ class Instrument:
             patched_sets=counters["patched_sets"],
             warmup=dict(warmup),
             since_warmup=since,
-            bracket=self.bracket_status(),
+            bracket=self._bracket_status(),
             calibration_session=None if session is None else {
                 "board": session.board.to_dict(), "created": session.created,
                 "poses": len(session.poses), "solved": session.report is not None},

@@ -121,3 +121,15 @@ def test_closing_during_the_first_calibration_stops_it(tmp_path: Path) -> None:
     assert not any((tmp_path / "calibrations").glob(".sim-calib-*"))
     assert not (tmp_path / "calibrations" / "sim.json").exists()
     assert not any(t.is_alive() for t in inst.threads())
+
+
+def test_the_instrument_keeps_only_what_cuts_across_parts():
+    """The facade stays thin (issue 23: at most 15 public methods; properties are the parts'
+    names): a new capability goes to its part (pipeline, calibrations, wizard, recorder)."""
+    import inspect
+
+    from app.service.instrument import Instrument
+
+    methods = [name for name, member in vars(Instrument).items()
+               if not name.startswith("_") and inspect.isfunction(member)]
+    assert len(methods) <= 15, methods
