@@ -101,25 +101,29 @@ def _interpolate(error_rad: F64, wrapped: F64) -> F64:
 
 
 def fit_series(error_rad: F64, period: int, *, max_dev_rad: float = SERIES_MAX_DEV_RAD,
-               max_harmonics: int = SERIES_MAX_HARMONICS) -> PhaseErrorSeries | None:
-    """The shortest Fourier series in the harmonics of ``period`` that reproduces the tables.
+               harmonics: int = SERIES_MAX_HARMONICS) -> PhaseErrorSeries | None:
+    """The Fourier series in the first ``harmonics`` harmonics of ``period`` that best
+    reproduces the tables, if it reproduces them to ``max_dev_rad``.
 
     The coefficients are the least-squares projection of the tables' linear interpolation
     (sampled :data:`SERIES_SAMPLES_PER_BIN` times per bin, bin centres included) onto
-    1, cos(jPφ), sin(jPφ); J grows from 0 until every row's largest deviation on those
-    samples is ≤ ``max_dev_rad``.
+    1, cos(jPφ), sin(jPφ), j = 1..J. All J = ``harmonics`` are kept even where fewer would
+    pass: the fused kernel evaluates that many whatever the coefficients (zeros included), so
+    the more accurate series costs nothing.
 
     Args:
         error_rad: (K, bins) float64 tables, rad (:attr:`PhaseErrorLUT.error_rad`).
         period: P ≥ 1.
-        max_dev_rad: the tolerance, rad.
-        max_harmonics: the largest J tried.
+        max_dev_rad: the tolerance on every row's largest |series − table| on those samples, rad.
+        harmonics: J ≥ 0.
 
     Returns:
-        :class:`PhaseErrorSeries`, or None where no J ≤ ``max_harmonics`` reaches the tolerance
-        (a noisy or sharp table: apply it as a table).
+        :class:`PhaseErrorSeries`, or None where the series misses the tolerance (a noisy or
+        sharp table: apply it as a table) or J·P reaches the table's Nyquist harmonic.
     """
     bins = error_rad.shape[1]
+    if period < 1 or harmonics * period >= bins // 2:
+        return None
     n_samples = SERIES_SAMPLES_PER_BIN * bins
     phase = np.arange(n_samples) * (TWO_PI / n_samples)
     table = _interpolate(error_rad, phase)
@@ -127,18 +131,15 @@ def fit_series(error_rad: F64, period: int, *, max_dev_rad: float = SERIES_MAX_D
     spectrum = np.fft.rfft(table, axis=1) / n_samples
     coefs = [spectrum[:, 0].real]
     series = np.repeat(coefs[0][:, None], n_samples, axis=1)
-    for j in range(max_harmonics + 1):
-        if j > 0:
-            h = j * period
-            if h >= spectrum.shape[1]:
-                return None
-            a, b = 2.0 * spectrum[:, h].real, -2.0 * spectrum[:, h].imag
-            coefs += [a, b]
-            series = series + a[:, None] * np.cos(h * phase) + b[:, None] * np.sin(h * phase)
-        dev = float(np.abs(series - table).max())
-        if dev <= max_dev_rad:
-            return PhaseErrorSeries(np.stack(coefs, axis=1), int(period), dev)
-    return None
+    for j in range(1, harmonics + 1):
+        h = j * period
+        a, b = 2.0 * spectrum[:, h].real, -2.0 * spectrum[:, h].imag
+        coefs += [a, b]
+        series = series + a[:, None] * np.cos(h * phase) + b[:, None] * np.sin(h * phase)
+    dev = float(np.abs(series - table).max())
+    if dev > max_dev_rad:
+        return None
+    return PhaseErrorSeries(np.stack(coefs, axis=1), int(period), dev)
 
 
 @dataclass(frozen=True, eq=False)
