@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -31,18 +32,56 @@ from app.core.jit import numba_environment
 os.environ.update(numba_environment(os.environ))
 
 import numpy as np
+import numpy.typing as npt
 from timing import median_ms
 
 from app.devices.sim.ideal import ideal_calibration
 from app.devices.sim.offline import render_capture_set
 from app.devices.sim.optics import rig_by_name
 from app.devices.sim.world import SimulatedWorld
-from app.recon import Reconstructor
+from app.recon import Reconstructor, SensorNoise
+from app.recon.gamma import PhaseErrorLUT
 from app.recon.noise import resolve_set_noise
 
 GAMMA = 1.5  # the twin projector's response exponent
 #: (scene, exposure ms, seed)
 SETS = (("intestine_flap", 15.0, 2), ("dof_target", 40.0, 3))
+
+
+def time_paths(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
+               lut: PhaseErrorLUT, rec: Reconstructor, table_only: Reconstructor,
+               repeats: int) -> None:
+    """Print the CPU and wall ms of the three paths, back to back, in two rounds (a change of
+    load shows as a change between them), and their ratios."""
+    paths: dict[str, Callable[[], object]] = {
+        "no table": lambda: rec.run(frames, max_code=max_code, noise=noise),
+        "table": lambda: table_only.run(frames, max_code=max_code, noise=noise, phase_error=lut),
+        "series": lambda: rec.run(frames, max_code=max_code, noise=noise, phase_error=lut),
+    }
+    for rnd in range(2):
+        cpu_ms = {}
+        for name, fn in paths.items():
+            wall, cpu = median_ms(fn, repeats)
+            cpu_ms[name] = cpu
+            print(f"  round {rnd}: {name:8s} cpu {cpu:6.2f} ms  wall {wall:6.2f} ms  "
+                  f"load {os.getloadavg()[0]:.1f}")
+        print(f"  round {rnd}: table / no table {cpu_ms['table'] / cpu_ms['no table']:.2f}  "
+              f"series / no table {cpu_ms['series'] / cpu_ms['no table']:.2f}  "
+              f"series / table {cpu_ms['series'] / cpu_ms['table']:.2f} (CPU)")
+
+
+def compare_outputs(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
+                    lut: PhaseErrorLUT, rec: Reconstructor, table_only: Reconstructor) -> None:
+    """Print how far the series' outputs are from the table's."""
+    a = table_only.run(frames, max_code=max_code, noise=noise, phase_error=lut)
+    b = rec.run(frames, max_code=max_code, noise=noise, phase_error=lut)
+    assert a.phase is not None and b.phase is not None
+    ok = a.valid & b.valid
+    print(f"  series vs table: reasons differ at {int(np.sum(a.reason != b.reason))} px, "
+          f"valid {a.valid.mean():.4f} / {b.valid.mean():.4f}, "
+          f"max |Δdepth| {np.abs(a.depth[ok] - b.depth[ok]).max():.2e} mm, "
+          f"max |Δphase| {np.abs(a.phase[ok] - b.phase[ok]).max():.2e} rad, "
+          f"max |Δσ|/σ {np.abs(a.sigma[ok] / b.sigma[ok] - 1).max():.2e}")
 
 
 def main() -> int:
@@ -51,7 +90,7 @@ def main() -> int:
     args = ap.parse_args()
     rig = rig_by_name("default", distortion=False)
     cal = ideal_calibration(rig)
-    with_table = Reconstructor(cal, with_phase=True)
+    rec = Reconstructor(cal, with_phase=True)
     table_only = Reconstructor(cal, with_phase=True, phase_error_series=False)
     print(f"bench_gamma_kernel: γ {GAMMA} twin, {os.cpu_count()} CPUs, "
           f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
@@ -61,7 +100,7 @@ def main() -> int:
         cs = render_capture_set(scene, exposure_ms=exposure_ms, world=world)[0]
         est = resolve_set_noise(cs.frames, cal.pattern, cs.max_code)
         lut = est.phase_error
-        if lut is None:
+        if lut is None or est.noise is None:
             print(f"{scene}: the set gives no table")
             continue
         series = lut.series
@@ -70,33 +109,8 @@ def main() -> int:
                f"max |series − table| {series.max_dev_rad:.1e} rad")
         print(f"{scene} {exposure_ms:g} ms: table RMS {lut.amplitude_rad().max():.4f} rad, "
               f"series: {fit}")
-
-        def run(rec: Reconstructor, table: object = lut) -> object:
-            return rec.run(cs.frames, max_code=cs.max_code, noise=est.noise,
-                           phase_error=table)  # type: ignore[arg-type]
-
-        rows = {}
-        # back to back, twice, so that a change of load shows as a change between the rounds
-        for rnd in range(2):
-            for name, fn in (("no table", lambda: run(with_table, None)),
-                             ("table", lambda: run(table_only)),
-                             ("series", lambda: run(with_table))):
-                wall, cpu = median_ms(fn, args.repeats)
-                rows[name] = cpu
-                print(f"  round {rnd}: {name:8s} cpu {cpu:6.2f} ms  wall {wall:6.2f} ms  "
-                      f"load {os.getloadavg()[0]:.1f}")
-            print(f"  round {rnd}: table / no table {rows['table'] / rows['no table']:.2f}  "
-                  f"series / no table {rows['series'] / rows['no table']:.2f}  "
-                  f"series / table {rows['series'] / rows['table']:.2f} (CPU)")
-        a = table_only.run(cs.frames, max_code=cs.max_code, noise=est.noise, phase_error=lut)
-        b = with_table.run(cs.frames, max_code=cs.max_code, noise=est.noise, phase_error=lut)
-        ok = a.valid & b.valid
-        assert a.phase is not None and b.phase is not None
-        print(f"  series vs table: reasons differ at {int(np.sum(a.reason != b.reason))} px, "
-              f"valid {a.valid.mean():.4f} / {b.valid.mean():.4f}, "
-              f"max |Δdepth| {np.abs(a.depth[ok] - b.depth[ok]).max():.2e} mm, "
-              f"max |Δphase| {np.abs(a.phase[ok] - b.phase[ok]).max():.2e} rad, "
-              f"max |Δσ|/σ {np.abs(a.sigma[ok] / b.sigma[ok] - 1).max():.2e}")
+        time_paths(cs.frames, cs.max_code, est.noise, lut, rec, table_only, args.repeats)
+        compare_outputs(cs.frames, cs.max_code, est.noise, lut, rec, table_only)
     return 0
 
 

@@ -61,7 +61,7 @@ class PhaseErrorSeries:
     @property
     def harmonics(self) -> int:
         """J, the harmonics of the period kept."""
-        return (self.coefficients.shape[1] - 1) // 2
+        return int(self.coefficients.shape[1] - 1) // 2
 
     def error_at(self, wrapped: npt.ArrayLike) -> F64:
         """The series at the phases ``wrapped`` (K, …) (radians; row k by frequency k's

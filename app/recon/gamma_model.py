@@ -51,8 +51,9 @@ TABLE_BINS = 512
 CORRECTED_STEPS = 4
 #: a table whose RMS is below this (rad) is not applied: a sinusoidal projector's set reads
 #: ≤ 3·10⁻⁵ rad (twin, γ 1.0), γ 1.1 reads 4·10⁻³; a correction of 10⁻³ rad, a tenth or less
-#: of the phase noise of the sets here, changes RMS(e/σ) by < 0.5 %, while the fused kernel's
-#: table path costs ~35 ms CPU on a 1384 × 1032 set (47 ms for 11 without)
+#: of the phase noise of the sets here, changes RMS(e/σ) by < 0.5 %, while applying a table
+#: costs the fused kernel ~2 ms CPU on a 1384 × 1032 set as its Fourier series (9 ms without;
+#: 34 ms more as table look-ups: ``benchmarks/bench_gamma_kernel.py``)
 MIN_TABLE_RMS_RAD = 1e-3
 #: the γ range the set's 2nd harmonic is inverted over, and the grid's points
 GAMMA_MIN, GAMMA_MAX, GAMMA_GRID = 0.1, 8.0, 160

@@ -393,8 +393,9 @@ class Reconstructor:
             schedule.
         phase_error_series: whether the fused kernel may evaluate a phase-error table (this
             one, or a run's) as its Fourier series (:attr:`PhaseErrorLUT.series`, within
-            ``gamma.SERIES_MAX_DEV_RAD`` of the table; ~5× cheaper than the look-ups) where
-            the table has one; False: always the table (comparisons).
+            ``gamma.SERIES_MAX_DEV_RAD`` of the table: on the twin's 1384 × 1032 sets the
+            kernel's CPU drops from 4.9–6.9× to 1.2–1.3× that without a table) where the
+            table has one; False: always the table (comparisons).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
