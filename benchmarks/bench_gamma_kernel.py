@@ -2,7 +2,9 @@
 
 Sets of the twin whose projector has γ 1.5 (the default rig's 8-bit 1384 × 1032, 4 × 4
 schedule): tissue (``intestine_flap`` at 15 ms) and the 45° DOF target at 40 ms (its
-bright half clips and is refitted). Each set is reconstructed with the table its own 2nd
+bright half clips and is refitted), and tissue again with the frequencies combined
+(``combine_frequencies``: the kernel's general row-by-row path, which heterodyne schedules
+and N ≠ 4 take too). Each set is reconstructed with the table its own 2nd
 harmonic gives (:mod:`app.recon.gamma_model`, the table a run without a learned one
 applies) passed to the run, three ways, back to back in one process with the same noise
 model: no table; the table looked up per sample (``phase_error_series=False``, the path
@@ -44,8 +46,9 @@ from app.recon.gamma import PhaseErrorLUT
 from app.recon.noise import resolve_set_noise
 
 GAMMA = 1.5  # the twin projector's response exponent
-#: (scene, exposure ms, seed)
-SETS = (("intestine_flap", 15.0, 2), ("dof_target", 40.0, 3))
+#: (scene, exposure ms, seed, combine frequencies: the kernel's general row-by-row path)
+SETS = (("intestine_flap", 15.0, 2, False), ("dof_target", 40.0, 3, False),
+        ("intestine_flap", 15.0, 2, True))
 
 
 def time_paths(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
@@ -90,12 +93,13 @@ def main() -> int:
     args = ap.parse_args()
     rig = rig_by_name("default", distortion=False)
     cal = ideal_calibration(rig)
-    rec = Reconstructor(cal, with_phase=True)
-    table_only = Reconstructor(cal, with_phase=True, phase_error_series=False)
     print(f"bench_gamma_kernel: γ {GAMMA} twin, {os.cpu_count()} CPUs, "
           f"NUMBA_THREADING_LAYER={os.environ.get('NUMBA_THREADING_LAYER')}, "
           f"{args.repeats} calls per path")
-    for scene, exposure_ms, seed in SETS:
+    for scene, exposure_ms, seed, combine in SETS:
+        rec = Reconstructor(cal, with_phase=True, combine_frequencies=combine)
+        table_only = Reconstructor(cal, with_phase=True, combine_frequencies=combine,
+                                   phase_error_series=False)
         world = SimulatedWorld(scene, seed=seed, projector_gamma=GAMMA, rig=rig)
         cs = render_capture_set(scene, exposure_ms=exposure_ms, world=world)[0]
         est = resolve_set_noise(cs.frames, cal.pattern, cs.max_code)
@@ -107,7 +111,8 @@ def main() -> int:
         fit = ("none (table path)" if series is None else
                f"{series.harmonics} harmonics of {series.period}φ, "
                f"max |series − table| {series.max_dev_rad:.1e} rad")
-        print(f"{scene} {exposure_ms:g} ms: table RMS {lut.amplitude_rad().max():.4f} rad, "
+        path = "general path (frequencies combined)" if combine else "4 × 4 path"
+        print(f"{scene} {exposure_ms:g} ms, {path}: table RMS {lut.amplitude_rad().max():.4f} rad, "
               f"series: {fit}")
         time_paths(cs.frames, cs.max_code, est.noise, lut, rec, table_only, args.repeats)
         compare_outputs(cs.frames, cs.max_code, est.noise, lut, rec, table_only)

@@ -75,8 +75,8 @@ class PhaseArgs(NamedTuple):
     projector-gamma phase-error table (:meth:`app.recon.gamma.PhaseErrorLUT.kernel_table`)
     subtracted from every wrapped phase when ``use_lut``, ``lut_scale`` its bins/2π; ``series``
     (K, 7) float32 the same table as a Fourier series in 4φ
-    (:meth:`app.recon.gamma.PhaseErrorSeries.kernel_coefficients`), which the paper's schedule
-    (4 frequencies × 4 steps) evaluates instead of the table when ``use_series``."""
+    (:meth:`app.recon.gamma.PhaseErrorSeries.kernel_coefficients`), which every path evaluates
+    instead of the table when ``use_series``."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -649,9 +649,24 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn,  # type: ignore[no-untype
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio,  # type: ignore[no-untyped-def]
-               first, lrow, scale, use_lut):  # pragma: no cover
-    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
-    if use_lut:
+               first, lrow, scale, use_lut, crow, use_ser):  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by the series ``crow``
+    # (:func:`_series_row`) if ``use_ser``, else by the table ``lrow`` if ``use_lut``
+    if use_ser:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            phw = _series_correct(atan2_0_2pi(yy, xx), yy, xx, q, crow)
+            if first:
+                prev[u] = phw
+            else:
+                p, d = _order_step(prev[u], phw, ratio)
+                prev[u] = p
+                dev[u] = max(dev[u], d)
+    elif use_lut:
         for u in range(s_acc.shape[0]):
             yy = -s_acc[u]
             xx = c_acc[u]
@@ -697,9 +712,18 @@ def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - com
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale,  # type: ignore[no-untyped-def]
-                 use_lut):  # pragma: no cover
-    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
-    if use_lut:
+                 use_lut, crow, use_ser):  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by the series ``crow``
+    # (:func:`_series_row`) if ``use_ser``, else by the table ``lrow`` if ``use_lut``
+    if use_ser:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            wph[u] = _series_correct(atan2_0_2pi(yy, xx), yy, xx, q, crow)
+    elif use_lut:
         for u in range(s_acc.shape[0]):
             yy = -s_acc[u]
             xx = c_acc[u]
@@ -973,7 +997,8 @@ def _heterodyne_row(  # type: ignore[no-untyped-def]
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n],
                         n == 0)
-        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2],
+                     _series_row(gl[3], ki), gl[4])
     _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev,
                      m2, wsum, wphi, total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
@@ -1013,7 +1038,8 @@ def _general_row(  # type: ignore[no-untyped-def]
         frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
         m2_min, top_code, scratch, total, m2, prev, vfac, code, order, gl):  # pragma: no cover
     """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping); ``gl`` = (the
-    (K, bins + 2) phase-error table, bins/2π, whether to apply it) for each wrapped phase."""
+    (K, bins + 2) phase-error table, bins/2π, whether to apply it, its (K, 7) series, whether to
+    evaluate that instead) for each wrapped phase."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -1034,7 +1060,8 @@ def _general_row(  # type: ignore[no-untyped-def]
                 _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n],
                             cos_t[n], n == 0)
             _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
-                       ki == 0, gl[0][ki], gl[1], gl[2])
+                       ki == 0, gl[0][ki], gl[1], gl[2],
+                       _series_row(gl[3], ki), gl[4])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -1182,10 +1209,12 @@ def _refit_span(  # type: ignore[no-untyped-def]
     for ki in range(n_freq):
         _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin)
         if heterodyne:
-            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
+            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2],
+                         _series_row(gl[3], ki), gl[4])
         else:
             _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
-                       ki == 0, gl[0][ki], gl[1], gl[2])
+                       ki == 0, gl[0][ki], gl[1], gl[2],
+                       _series_row(gl[3], ki), gl[4])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -1249,7 +1278,8 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
-    gl = (ph.lut, ph.lut_scale, ph.use_lut)  # the phase-error table (PhaseArgs)
+    # the phase-error table and its series (PhaseArgs)
+    gl = (ph.lut, ph.lut_scale, ph.use_lut, ph.series, ph.use_series)
     # the series replaces the table where given (the paper's schedule only; PhaseArgs)
     chain = (r1, r2, r3, ph.lut, ph.lut_scale, ph.use_lut, ph.series, ph.use_series)
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK

@@ -110,7 +110,7 @@ KernelLUT = tuple[F32, np.float32, bool, F32, bool]
 def _kernel_lut(table: PhaseErrorLUT | None, k: int, series: bool = True) -> KernelLUT:
     """The fused kernel's phase-error arguments for ``table`` and K = ``k`` frequencies: its
     Fourier series too where ``series`` and the table has one in the fused kernel's form
-    (period 4, ≤ 3 harmonics: the 4 × 4 schedule's path evaluates it instead of the table)."""
+    (period 4, ≤ 3 harmonics: an N = 4 table; the kernel evaluates it instead of the table)."""
     no_series = np.zeros((k, 1 + 2 * SERIES_MAX_HARMONICS), np.float32)
     if table is None:
         return np.zeros((k, 2), np.float32), np.float32(1.0), False, no_series, False

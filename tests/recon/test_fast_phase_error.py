@@ -130,14 +130,18 @@ def test_a_learned_table_without_a_series_is_looked_up(gamma_twin):
     np.testing.assert_array_equal(a.phase, b.phase)
 
 
-@pytest.mark.parametrize("scene, exposure_ms, seed", [("intestine_flap", 15.0, 2),
-                                                      ("dof_target", 40.0, 3)])
-def test_the_sets_own_table_as_a_series_gives_the_tables_depth(scene, exposure_ms, seed):
+@pytest.mark.parametrize("scene, exposure_ms, seed, combine", [
+    ("intestine_flap", 15.0, 2, False), ("dof_target", 40.0, 3, False),
+    ("intestine_flap", 15.0, 2, True)])
+def test_the_sets_own_table_as_a_series_gives_the_tables_depth(scene, exposure_ms, seed,
+                                                               combine):
     """A γ 1.5 twin set's own table (its 2nd harmonic, :mod:`app.recon.gamma_model`) has a
     series; the fused kernel evaluates it (4 × 4 schedule) and gives the table's depth within
     1e-4 mm, its phase within 1e-4 rad, σ within 1e-4 relative and the same reason codes, and
     is as close to the numpy path (the table) as the look-ups are. The 45° target at 40 ms clips:
-    its rows are refitted whole and in spans, with the series as with the table."""
+    its rows are refitted whole and in spans, with the series as with the table. With the
+    frequencies combined the kernel takes its general row-by-row path (as heterodyne schedules
+    do), which evaluates the series too."""
     from app.recon.noise import resolve_set_noise
 
     rig = rig_by_name("default", distortion=False)
@@ -148,8 +152,9 @@ def test_the_sets_own_table_as_a_series_gives_the_tables_depth(scene, exposure_m
     lut = est.phase_error
     assert lut is not None and lut.series is not None
     assert lut.amplitude_rad().min() > 0.005  # the gamma's error is there to remove
-    series = Reconstructor(cal, with_phase=True, noise=est.noise)
-    table = Reconstructor(cal, with_phase=True, noise=est.noise, phase_error_series=False)
+    series = Reconstructor(cal, with_phase=True, noise=est.noise, combine_frequencies=combine)
+    table = Reconstructor(cal, with_phase=True, noise=est.noise, combine_frequencies=combine,
+                          phase_error_series=False)
     a = table.run(cs.frames, max_code=cs.max_code, phase_error=lut)
     b = series.run(cs.frames, max_code=cs.max_code, phase_error=lut)
     c = table.run(cs.frames, max_code=cs.max_code, phase_error=lut, fast=False)
