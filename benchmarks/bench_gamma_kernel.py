@@ -10,8 +10,10 @@ applies) passed to the run, three ways, back to back in one process with the sam
 model: no table; the table looked up per sample (``phase_error_series=False``, the path
 before the series); the table as its Fourier series (:attr:`PhaseErrorLUT.series`, the
 default where a table has one). Prints the median CPU ms per call (all numba threads) and
-wall ms, the ratios table / no table and series / no table, series / table, and how far the
-series' outputs are from the table's (depth, phase, σ, reason codes). The load average is
+wall ms, the ratios table / no table and series / no table, series / table; then a run given
+neither noise nor table (the set's noise, table and series made per run: Python, REST, CLI)
+with the look-ups and with the series; and how far the series' outputs are from the table's
+(depth, phase, σ, reason codes). The load average is
 printed beside every row: CPU time follows the others' load far less than wall time, but
 not wholly.
 
@@ -73,6 +75,19 @@ def time_paths(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
               f"series / table {cpu_ms['series'] / cpu_ms['table']:.2f} (CPU)")
 
 
+def time_own_estimate(frames: npt.NDArray[np.uint8], max_code: int, rec: Reconstructor,
+                      table_only: Reconstructor, repeats: int) -> None:
+    """Print the CPU ms of a run given neither noise nor table (Python, REST, CLI): the set's
+    noise and its table are estimated per run, and the series fitted per run."""
+    cpu_ms = {}
+    for name, r in (("table", table_only), ("series", rec)):
+        wall, cpu = median_ms(lambda r=r: r.run(frames, max_code=max_code), repeats)
+        cpu_ms[name] = cpu
+        print(f"  own noise and table, {name:6s}: cpu {cpu:6.2f} ms  wall {wall:6.2f} ms  "
+              f"load {os.getloadavg()[0]:.1f}")
+    print(f"  own noise and table: series / table {cpu_ms['series'] / cpu_ms['table']:.2f} (CPU)")
+
+
 def compare_outputs(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
                     lut: PhaseErrorLUT, rec: Reconstructor, table_only: Reconstructor) -> None:
     """Print how far the series' outputs are from the table's."""
@@ -115,6 +130,7 @@ def main() -> int:
         print(f"{scene} {exposure_ms:g} ms, {path}: table RMS {lut.amplitude_rad().max():.4f} rad, "
               f"series: {fit}")
         time_paths(cs.frames, cs.max_code, est.noise, lut, rec, table_only, args.repeats)
+        time_own_estimate(cs.frames, cs.max_code, rec, table_only, args.repeats)
         compare_outputs(cs.frames, cs.max_code, est.noise, lut, rec, table_only)
     return 0
 

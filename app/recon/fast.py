@@ -336,7 +336,10 @@ def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_ser:  # the table as a series of the phasor: one vectorised pass
+    # the table as a series of the phasor: one vectorised pass. Past the first level the
+    # corrected phase is not wrapped: a hierarchical step's result and residual do not change
+    # when its wrapped phase moves by 2π (the order absorbs it), and the wrap's selects cost
+    if use_ser:
         c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
                           _series_row(ser, 3))
         for u in range(frames.shape[2]):
@@ -346,9 +349,9 @@ def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-
             y3, x3, q, t3, m3 = _px4(frames, 12, v, u)
             qmin = min(min(q0, q1), min(q2, q))
             p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
-            p, d1 = _order_step(p, _series_correct(atan2_coarse(y1, x1), y1, x1, q1, c1), r1)
-            p, d2 = _order_step(p, _series_correct(atan2_coarse(y2, x2), y2, x2, q2, c2), r2)
-            p, d3 = _order_step(p, _series_correct(atan2_0_2pi(y3, x3), y3, x3, q, c3), r3)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
             dev = max(max(d1, d2), d3)
             tot = (tt + t1) + (t2 + t3)
             total[u] = tot
@@ -437,7 +440,7 @@ def _paper_fit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore
     n_refit = _F0
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_ser:
+    if use_ser:  # past the first level not wrapped (as _paper_row)
         c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
                           _series_row(ser, 3))
         for u in range(frames.shape[2]):
@@ -449,9 +452,9 @@ def _paper_fit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore
             y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
             qmin = min(min(q0, q1), min(q2, q))
             p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
-            p, d1 = _order_step(p, _series_correct(atan2_coarse(y1, x1), y1, x1, q1, c1), r1)
-            p, d2 = _order_step(p, _series_correct(atan2_coarse(y2, x2), y2, x2, q2, c2), r2)
-            p, d3 = _order_step(p, _series_correct(atan2_0_2pi(y3, x3), y3, x3, q, c3), r3)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
             dev = max(max(d1, d2), d3)
             prev[u] = p
             m2[u] = q
@@ -553,7 +556,7 @@ def _paper_refit_span(  # type: ignore[no-untyped-def]
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_ser:
+    if use_ser:  # past the first level not wrapped (as _paper_row)
         c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
                           _series_row(ser, 3))
         for u in range(u0, u1):
@@ -563,9 +566,9 @@ def _paper_refit_span(  # type: ignore[no-untyped-def]
             y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
             qmin = min(min(q0, q1), min(q2, q))
             p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
-            p, d1 = _order_step(p, _series_correct(atan2_coarse(y1, x1), y1, x1, q1, c1), r1)
-            p, d2 = _order_step(p, _series_correct(atan2_coarse(y2, x2), y2, x2, q2, c2), r2)
-            p, d3 = _order_step(p, _series_correct(atan2_0_2pi(y3, x3), y3, x3, q, c3), r3)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
             dev = max(max(d1, d2), d3)
             i = u - u0
             prev[i] = p
