@@ -4,18 +4,17 @@ Sets of the twin whose projector has γ 1.5 (the default rig's 8-bit 1384 × 103
 schedule): tissue (``intestine_flap`` at 15 ms) and the 45° DOF target at 40 ms (its
 bright half clips and is refitted), and tissue again with the frequencies combined
 (``combine_frequencies``: the kernel's general row-by-row path, which heterodyne schedules
-and N ≠ 4 take too). Each set is reconstructed with the table its own 2nd
-harmonic gives (:mod:`app.recon.gamma_model`, the table a run without a learned one
-applies) passed to the run, three ways, back to back in one process with the same noise
+take too; a table of N ≠ 4 has no series in the kernel's form and is looked up). Each set
+is reconstructed with the table its own 2nd harmonic gives (:mod:`app.recon.gamma_model`,
+the table a run without a learned one applies) passed to the run, three ways, back to back in one process with the same noise
 model: no table; the table looked up per sample (``phase_error_series=False``, the path
 before the series); the table as its Fourier series (:attr:`PhaseErrorLUT.series`, the
-default where a table has one). Prints the median CPU ms per call (all numba threads) and
-wall ms, the ratios table / no table and series / no table, series / table; then a run given
+default where a table has one), called in turn. Prints the median CPU ms per call (all numba
+threads), the ratios table / no table and series / no table, series / table; then a run given
 neither noise nor table (the set's noise, table and series made per run: Python, REST, CLI)
 with the look-ups and with the series; and how far the series' outputs are from the table's
-(depth, phase, σ, reason codes). The load average is
-printed beside every row: CPU time follows the others' load far less than wall time, but
-not wholly.
+(depth, phase, σ, reason codes). The load average is printed beside the timings: CPU time
+follows the others' load far less than wall time, but not wholly.
 
 ``python benchmarks/bench_gamma_kernel.py [--repeats N]``
 """
@@ -24,7 +23,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -56,23 +57,28 @@ SETS = (("intestine_flap", 15.0, 2, False), ("dof_target", 40.0, 3, False),
 def time_paths(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorNoise,
                lut: PhaseErrorLUT, rec: Reconstructor, table_only: Reconstructor,
                repeats: int) -> None:
-    """Print the CPU and wall ms of the three paths, back to back, in two rounds (a change of
-    load shows as a change between them), and their ratios."""
+    """Print the median CPU ms of the three paths, called in turn (no table, table, series)
+    ``repeats`` times so that a change of load falls on all three, and the medians of the
+    per-turn ratios with their quartiles."""
     paths: dict[str, Callable[[], object]] = {
         "no table": lambda: rec.run(frames, max_code=max_code, noise=noise),
         "table": lambda: table_only.run(frames, max_code=max_code, noise=noise, phase_error=lut),
         "series": lambda: rec.run(frames, max_code=max_code, noise=noise, phase_error=lut),
     }
-    for rnd in range(2):
-        cpu_ms = {}
+    cpu_ms: dict[str, list[float]] = {name: [] for name in paths}
+    for fn in paths.values():
+        fn()  # warm-up
+    for _ in range(repeats):
         for name, fn in paths.items():
-            wall, cpu = median_ms(fn, repeats)
-            cpu_ms[name] = cpu
-            print(f"  round {rnd}: {name:8s} cpu {cpu:6.2f} ms  wall {wall:6.2f} ms  "
-                  f"load {os.getloadavg()[0]:.1f}")
-        print(f"  round {rnd}: table / no table {cpu_ms['table'] / cpu_ms['no table']:.2f}  "
-              f"series / no table {cpu_ms['series'] / cpu_ms['no table']:.2f}  "
-              f"series / table {cpu_ms['series'] / cpu_ms['table']:.2f} (CPU)")
+            c0 = time.process_time()
+            fn()
+            cpu_ms[name].append((time.process_time() - c0) * 1e3)
+    print("  " + "  ".join(f"{name} cpu {statistics.median(v):6.2f} ms"
+                           for name, v in cpu_ms.items()) + f"  load {os.getloadavg()[0]:.1f}")
+    for num, den in (("table", "no table"), ("series", "no table"), ("series", "table")):
+        ratio = np.asarray(cpu_ms[num]) / np.asarray(cpu_ms[den])
+        q1, med, q3 = np.percentile(ratio, [25, 50, 75])
+        print(f"  {num} / {den}: {med:.2f} (quartiles {q1:.2f}–{q3:.2f}; CPU, per turn)")
 
 
 def time_own_estimate(frames: npt.NDArray[np.uint8], max_code: int, rec: Reconstructor,
@@ -104,7 +110,7 @@ def compare_outputs(frames: npt.NDArray[np.uint8], max_code: int, noise: SensorN
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=21, help="timed calls per path (median)")
+    ap.add_argument("--repeats", type=int, default=31, help="timed calls per path (median)")
     args = ap.parse_args()
     rig = rig_by_name("default", distortion=False)
     cal = ideal_calibration(rig)
