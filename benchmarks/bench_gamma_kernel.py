@@ -6,8 +6,8 @@ bright half clips and is refitted), and tissue again with the frequencies combin
 (``combine_frequencies``: the kernel's general row-by-row path, which heterodyne schedules
 take too; a table of N ≠ 4 has no series in the kernel's form and is looked up). Each set
 is reconstructed with the table its own 2nd harmonic gives (:mod:`app.recon.gamma_model`,
-the table a run without a learned one applies) passed to the run, three ways, back to back in one process with the same noise
-model: no table; the table looked up per sample (``phase_error_series=False``, the path
+the table a run without a learned one applies) passed to the run, three ways, back to back
+in one process with the same noise model: no table; the table looked up per sample (``phase_error_series=False``, the path
 before the series); the table as its Fourier series (:attr:`PhaseErrorLUT.series`, the
 default where a table has one), called in turn. Prints the median CPU ms per call (all numba
 threads), the ratios table / no table and series / no table, series / table; then a run given
