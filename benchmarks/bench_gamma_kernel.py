@@ -1,20 +1,21 @@
 """What applying a projector-gamma phase-error table costs the fused kernel.
 
 Sets of the twin whose projector has γ 1.5 (the default rig's 8-bit 1384 × 1032, 4 × 4
-schedule): tissue (``intestine_flap`` at 15 ms) and the 45° DOF target at 40 ms (its
-bright half clips and is refitted), and tissue again with the frequencies combined
+schedule): tissue (``intestine_flap`` at 15 ms) and the 45° DOF target at 40 ms (its bright
+half clips and is refitted), and tissue again with the frequencies combined
 (``combine_frequencies``: the kernel's general row-by-row path, which heterodyne schedules
-take too; a table of N ≠ 4 has no series in the kernel's form and is looked up). Each set
-is reconstructed with the table its own 2nd harmonic gives (:mod:`app.recon.gamma_model`,
-the table a run without a learned one applies) passed to the run, three ways, back to back
-in one process with the same noise model: no table; the table looked up per sample (``phase_error_series=False``, the path
-before the series); the table as its Fourier series (:attr:`PhaseErrorLUT.series`, the
-default where a table has one), called in turn. Prints the median CPU ms per call (all numba
-threads), the ratios table / no table and series / no table, series / table; then a run given
-neither noise nor table (the set's noise, table and series made per run: Python, REST, CLI)
-with the look-ups and with the series; and how far the series' outputs are from the table's
-(depth, phase, σ, reason codes). The load average is printed beside the timings: CPU time
-follows the others' load far less than wall time, but not wholly.
+take too; a table of N ≠ 4 has no series in the kernel's form and is looked up). Each set is
+reconstructed with the table its own 2nd harmonic gives (:mod:`app.recon.gamma_model`, the
+table a run without a learned one applies) passed to the run, three ways, in one process
+with the same noise model and called in turn: no table; the table looked up per sample
+(``phase_error_series=False``, the path before the series); the table as its Fourier series
+(:attr:`PhaseErrorLUT.series`, the default where a table has one). Prints the median CPU ms
+per call (all numba threads), the ratios table / no table, series / no table and series /
+table; then a run given neither noise nor table (the set's noise, table and series made per
+run: Python, REST, CLI) with the look-ups and with the series; and how far the series'
+outputs are from the table's (depth, phase, σ, reason codes). The load average is printed
+beside the timings: CPU time follows the others' load far less than wall time, but not
+wholly.
 
 ``python benchmarks/bench_gamma_kernel.py [--repeats N]``
 """
