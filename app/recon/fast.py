@@ -10,9 +10,10 @@ Rows are processed in blocks (``prange``), row by row through block-local buffer
    stage's reason code. A projector-gamma phase-error table is applied to every wrapped
    phase: as its Fourier series in 4φ (:attr:`app.recon.gamma.PhaseErrorLUT.series`),
    evaluated from the pixel's phasor in the same vectorised loop, where the table has one;
-   else by scalar look-ups in a pass of their own (they do not vectorise: ~5× the CPU). Any other schedule (any N ≥ 3, heterodyne unwrapping), and the
-   noise-optimal combination of frequencies, takes a general row-by-row path with the
-   same semantics. Then a scan of the row's codes finds pixels with a clipped sample; a
+   else by scalar look-ups in a pass of their own (they do not vectorise: ~5× the CPU).
+   Any other schedule (any N ≥ 3, heterodyne unwrapping), and the noise-optimal
+   combination of frequencies, takes a general row-by-row path with the same semantics
+   (the series too). Then a scan of the row's codes finds pixels with a clipped sample; a
    row that has some is refitted whole, branch-free, from the unclipped samples
    (saturation-tolerant phase), and its SATURATED pixels take the result; on
    unsaturated data that scan is all it costs. The height
