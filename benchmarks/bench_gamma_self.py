@@ -10,7 +10,9 @@ subset and period this prints:
   (:func:`app.recon.noise.resolve_set_noise`, :mod:`app.recon.gamma_model`);
 * the 4-step phase error against the 12-step phase (rad RMS over the usable pixels),
   without and with the table made from γ (route a), and its systematic part (the RMS of
-  the error's mean in 64 bins of the reference phase: the part a table can remove);
+  the error's mean in 64 bins of the reference phase: the part a table can remove), and the
+  same with the table's Fourier series (:attr:`app.recon.gamma.PhaseErrorLUT.series`, what
+  the fused kernel evaluates for a 4 × 4 schedule) in its place;
 * RMS(error / σ_φ) with σ_φ predicted from the noise as the run would (the subset's own
   noise fit; the 12-step fit's, whose per-pixel harmonics leave the cleaner noise, beside
   it), for the error without a table, with the table, and without a table but σ_φ widened
@@ -112,6 +114,10 @@ def main() -> int:
             ratios = second_harmonic_ratios(fit4.harmonics, fit4.sources, fit4.steps)
             assert est.phase_error is not None and ratios is not None
             corrected = est.phase_error.apply(few.phase)
+            # the same table as the fused kernel's Fourier series (PhaseErrorLUT.series), if any
+            series = est.phase_error.series
+            by_series = (None if series is None else
+                         np.mod(few.phase - series.error_at(few.phase), 2 * np.pi))
             shift = 2 * np.pi * offset / 12  # the subset's first step
             ok = usable & ~few.saturated
             for k in range(3):
@@ -126,6 +132,14 @@ def main() -> int:
                         f"{systematic_rms(after, r):.4f}"]
                 vals = {"error": rms(before), "error_a": rms(after),
                         "sys": systematic_rms(before, r), "sys_a": systematic_rms(after, r)}
+                if by_series is None:
+                    line.append("  series: none (the table path)")
+                else:
+                    after_s = wrap(by_series[k][ok] - r - shift)
+                    vals |= {"error_s": rms(after_s), "sys_s": systematic_rms(after_s, r)}
+                    line.append(f"  series ({series.harmonics} harmonics of "
+                                f"{series.period}φ): error RMS {rms(after_s):.4f}, "
+                                f"systematic {systematic_rms(after_s, r):.4f}")
                 for name, noise in (("set", est.noise), ("12-step", noise12)):
                     var_i = noise.variance_dn2(few.background[ok])
                     sigma = np.sqrt(var_i * 2.0 / (4.0 * few.modulation[k][ok] ** 2) * (2 / 3))

@@ -7,9 +7,13 @@ Rows are processed in blocks (``prange``), row by row through block-local buffer
    everything in registers — Σ I sinδ and Σ I cosδ as differences of frames, the coarse
    levels with a cheaper atan2 (they only pick fringe orders), the finest with the
    precise one, the hierarchical unwrapping with its consistency test and the phase
-   stage's reason code. Any other schedule (any N ≥ 3, heterodyne unwrapping), and the
-   noise-optimal combination of frequencies, takes a general row-by-row path with the
-   same semantics. Then a scan of the row's codes finds pixels with a clipped sample; a
+   stage's reason code. A projector-gamma phase-error table is applied to every wrapped
+   phase: as its Fourier series in 4φ (:attr:`app.recon.gamma.PhaseErrorLUT.series`),
+   evaluated from the pixel's phasor in the same vectorised loop, where the table has one;
+   else by scalar look-ups in a pass of their own (they do not vectorise: ~5× the CPU).
+   Any other schedule (any N ≥ 3, heterodyne unwrapping), and the noise-optimal
+   combination of frequencies, takes a general row-by-row path with the same semantics
+   (the series too). Then a scan of the row's codes finds pixels with a clipped sample; a
    row that has some is refitted whole, branch-free, from the unclipped samples
    (saturation-tolerant phase), and its SATURATED pixels take the result; on
    unsaturated data that scan is all it costs. The height
@@ -73,7 +77,10 @@ class PhaseArgs(NamedTuple):
     :func:`~app.recon.unwrap.order_slip_front`, ``order_floor2`` the unmodelled phase variance of
     every wrapped phase (``unwrap.PHASE_FLOOR_RAD``²), rad². ``lut`` (K, bins + 2) float32 the
     projector-gamma phase-error table (:meth:`app.recon.gamma.PhaseErrorLUT.kernel_table`)
-    subtracted from every wrapped phase when ``use_lut``, ``lut_scale`` its bins/2π."""
+    subtracted from every wrapped phase when ``use_lut``, ``lut_scale`` its bins/2π; ``series``
+    (K, 7) float32 the same table as a Fourier series in 4φ
+    (:meth:`app.recon.gamma.PhaseErrorSeries.kernel_coefficients`), which every path evaluates
+    instead of the table when ``use_series``."""
 
     cos_t: npt.NDArray[np.float32]
     sin_t: npt.NDArray[np.float32]
@@ -91,6 +98,8 @@ class PhaseArgs(NamedTuple):
     lut: npt.NDArray[np.float32]
     lut_scale: np.float32
     use_lut: bool
+    series: npt.NDArray[np.float32]
+    use_series: bool
 
 
 class HeightArgs(NamedTuple):
@@ -255,6 +264,44 @@ def _lut_correct(w, row, scale):  # type: ignore[no-untyped-def]  # pragma: no c
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _series_error(y, x, q, c):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """The phase-error series (:class:`app.recon.gamma.PhaseErrorSeries`: period 4, 3
+    harmonics) at φ = atan2(y, x), rad, from the phasor (x, y) and q = x² + y² (float32).
+    ``c`` = (a_0, a_1, b_1, a_2, b_2, a_3, b_3), one row of
+    :meth:`~app.recon.gamma.PhaseErrorSeries.kernel_coefficients`. e^{i4φ} = ((x + iy)²/q)²,
+    then e^{i8φ}, e^{i12φ} by complex products: no atan2 and no look-up, so the pixel loop
+    vectorises. q = 0 (no fringe) reads e = a_0."""
+    inv = _F1 / max(q, _TINY)
+    c2 = (x * x - y * y) * inv
+    s2 = np.float32(2.0) * x * y * inv
+    c4 = c2 * c2 - s2 * s2
+    s4 = np.float32(2.0) * c2 * s2
+    c8 = c4 * c4 - s4 * s4
+    s8 = np.float32(2.0) * c4 * s4
+    c12 = c8 * c4 - s8 * s4
+    s12 = c8 * s4 + s8 * c4
+    return c[0] + (c[1] * c4 + c[2] * s4) + (c[3] * c8 + c[4] * s8) + (c[5] * c12 + c[6] * s12)
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _series_correct(w, y, x, q, c):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """The wrapped phase ``w`` = atan2(y, x) in [0, 2π) less the series' error
+    (:func:`_series_error`), in [0, 2π): :func:`_lut_correct` without the table."""
+    r = w - _series_error(y, x, q, c)
+    r = r + _TWO_PI if r < _F0 else r
+    return r - _TWO_PI if r >= _TWO_PI else r
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _series_row(ser, k):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """Row ``k`` of the (K, 7) series coefficients as a tuple of scalars: read once per row,
+    outside the pixel loop (loads from an array inside it could alias the row's stores, which
+    kept LLVM from vectorising)."""
+    r = ser[k]
+    return (r[0], r[1], r[2], r[3], r[4], r[5], r[6])
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _mask(c, dev, m2min, top, cons_rad, m2_min, top_code,  # type: ignore[no-untyped-def]
           tot):  # pragma: no cover
     # the phase stage's causes: SATURATED > LOW_MODULATION > UNWRAP_INCONSISTENT
@@ -289,11 +336,34 @@ def _paper_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore[no-
     for the finest. ``chain`` = (r1, r2, r3: the fringe-count ratios, the (4, bins + 2)
     phase-error table, bins/2π, whether to apply it to every wrapped phase:
     :func:`_lut_correct`; ``lut_rows`` (6, ≥ W) float32 scratch for that case)."""
-    r1, r2, r3, lut, scale, use_lut = chain
+    r1, r2, r3, lut, scale, use_lut, ser, use_ser = chain
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_lut:  # three passes: the table's look-ups do not vectorise (no gathers), the rest does
+    # the table as a series of the phasor: one vectorised pass. Past the first level the
+    # corrected phase is not wrapped: a hierarchical step's result and residual do not change
+    # when its wrapped phase moves by 2π (the order absorbs it), and the wrap's selects cost
+    if use_ser:
+        c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
+                          _series_row(ser, 3))
+        for u in range(frames.shape[2]):
+            y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
+            y1, x1, q1, t1, m1 = _px4(frames, 4, v, u)
+            y2, x2, q2, t2, m2_ = _px4(frames, 8, v, u)
+            y3, x3, q, t3, m3 = _px4(frames, 12, v, u)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
+            dev = max(max(d1, d2), d3)
+            tot = (tt + t1) + (t2 + t3)
+            total[u] = tot
+            prev[u] = p
+            m2[u] = q
+            top = max(max(mx, m1), max(m2_, m3))
+            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+    elif use_lut:  # three passes: the table's look-ups do not vectorise (no gathers), the rest does
         w = lut_rows
         for u in range(frames.shape[2]):
             y0, x0, q0, tt, mx = _px4(frames, 0, v, u)
@@ -369,12 +439,34 @@ def _paper_fit_row(frames, v, chain, cons_rad, m2_min, top_code,  # type: ignore
     widespread: every pixel's phase from :func:`_px4_fit` (on an unclipped pixel the same
     arithmetic and result as :func:`_px4`), SATURATED only where a frequency has two clipped
     samples; returns the pixels with a clipped sample that were refitted (float32)."""
-    r1, r2, r3, lut, scale, use_lut = chain
+    r1, r2, r3, lut, scale, use_lut, ser, use_ser = chain
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     n_refit = _F0
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_lut:
+    if use_ser:  # past the first level not wrapped (as _paper_row)
+        c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
+                          _series_row(ser, 3))
+        for u in range(frames.shape[2]):
+            tot = _px16_total(frames, v, u)
+            total[u] = tot
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
+            dev = max(max(d1, d2), d3)
+            prev[u] = p
+            m2[u] = q
+            n_max = max(max(n0, n1), max(n2, n3))
+            top = top_code if n_max > _F1 else _F0
+            code[u] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, tot)
+            n_refit += _F1 if (n_max > _F0) & (n_max <= _F1) else _F0
+    elif use_lut:
         for u in range(frames.shape[2]):
             tot = _px16_total(frames, v, u)
             total[u] = tot
@@ -464,11 +556,31 @@ def _paper_refit_span(  # type: ignore[no-untyped-def]
     span's ``m2``, ``prev``, ``code`` (SATURATED where a frequency has two clipped samples;
     ``total`` the span's frame sums). The row's codes are not read here: a byte test beside the
     float ones kept LLVM from vectorising."""
-    r1, r2, r3, lut, scale, use_lut = chain
+    r1, r2, r3, lut, scale, use_lut, ser, use_ser = chain
     l0, l1, l2, l3 = lut[0], lut[1], lut[2], lut[3]
     # one loop per choice, each written out: a run-time switch, or a helper too large for LLVM to
     # inline, in the pixel loop kept LLVM from vectorising it
-    if use_lut:
+    if use_ser:  # past the first level not wrapped (as _paper_row)
+        c0, c1, c2, c3 = (_series_row(ser, 0), _series_row(ser, 1), _series_row(ser, 2),
+                          _series_row(ser, 3))
+        for u in range(u0, u1):
+            y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
+            y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
+            y2, x2, q2, n2 = _px4_fit(frames, 8, v, u, top_code)
+            y3, x3, q, n3 = _px4_fit(frames, 12, v, u, top_code)
+            qmin = min(min(q0, q1), min(q2, q))
+            p = _series_correct(atan2_coarse(y0, x0), y0, x0, q0, c0)
+            p, d1 = _order_step(p, atan2_coarse(y1, x1) - _series_error(y1, x1, q1, c1), r1)
+            p, d2 = _order_step(p, atan2_coarse(y2, x2) - _series_error(y2, x2, q2, c2), r2)
+            p, d3 = _order_step(p, atan2_0_2pi(y3, x3) - _series_error(y3, x3, q, c3), r3)
+            dev = max(max(d1, d2), d3)
+            i = u - u0
+            prev[i] = p
+            m2[i] = q
+            # two clipped samples in a frequency: top = top_code, so SATURATED (not taken)
+            top = top_code if max(max(n0, n1), max(n2, n3)) > _F1 else _F0
+            code[i] = _mask(_OK, dev, qmin, top, cons_rad, m2_min, top_code, total[i])
+    elif use_lut:
         for u in range(u0, u1):
             y0, x0, q0, n0 = _px4_fit(frames, 0, v, u, top_code)
             y1, x1, q1, n1 = _px4_fit(frames, 4, v, u, top_code)
@@ -544,9 +656,24 @@ def _accumulate(row, s_acc, c_acc, total, top, sn, cn,  # type: ignore[no-untype
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _level_row(s_acc, c_acc, prev, m2, m2min, dev, ratio,  # type: ignore[no-untyped-def]
-               first, lrow, scale, use_lut):  # pragma: no cover
-    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
-    if use_lut:
+               first, lrow, scale, use_lut, crow, use_ser):  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by the series ``crow``
+    # (:func:`_series_row`) if ``use_ser``, else by the table ``lrow`` if ``use_lut``
+    if use_ser:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            phw = _series_correct(atan2_0_2pi(yy, xx), yy, xx, q, crow)
+            if first:
+                prev[u] = phw
+            else:
+                p, d = _order_step(prev[u], phw, ratio)
+                prev[u] = p
+                dev[u] = max(dev[u], d)
+    elif use_lut:
         for u in range(s_acc.shape[0]):
             yy = -s_acc[u]
             xx = c_acc[u]
@@ -592,9 +719,18 @@ def _absolute(ph, f0):  # type: ignore[no-untyped-def]  # pragma: no cover - com
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _wrapped_row(s_acc, c_acc, wph, m2, m2min, lrow, scale,  # type: ignore[no-untyped-def]
-                 use_lut):  # pragma: no cover
-    # one loop per choice (as _paper_row), the wrapped phase corrected by ``lrow`` if ``use_lut``
-    if use_lut:
+                 use_lut, crow, use_ser):  # pragma: no cover
+    # one loop per choice (as _paper_row), the wrapped phase corrected by the series ``crow``
+    # (:func:`_series_row`) if ``use_ser``, else by the table ``lrow`` if ``use_lut``
+    if use_ser:
+        for u in range(s_acc.shape[0]):
+            yy = -s_acc[u]
+            xx = c_acc[u]
+            q = xx * xx + yy * yy
+            m2[u] = q
+            m2min[u] = min(m2min[u], q)
+            wph[u] = _series_correct(atan2_0_2pi(yy, xx), yy, xx, q, crow)
+    elif use_lut:
         for u in range(s_acc.shape[0]):
             yy = -s_acc[u]
             xx = c_acc[u]
@@ -868,7 +1004,8 @@ def _heterodyne_row(  # type: ignore[no-untyped-def]
         for n in range(n_steps):
             _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n], cos_t[n],
                         n == 0)
-        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
+        _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2],
+                     _series_row(gl[3], ki), gl[4])
     _chain_and_weigh(wphs, m2s, chain_c, chain_f, freqs, cons_rad, n_steps, combine, prev, dev,
                      m2, wsum, wphi, total, order, scratch[7 + 2 * n_freq:8 + 3 * n_freq])
     if combine:
@@ -908,7 +1045,8 @@ def _general_row(  # type: ignore[no-untyped-def]
         frames, v, cos_t, sin_t, freqs, chain_c, chain_f, heterodyne, combine, cons_rad,
         m2_min, top_code, scratch, total, m2, prev, vfac, code, order, gl):  # pragma: no cover
     """Phase 1 of row ``v`` for any schedule (hierarchical or heterodyne unwrapping); ``gl`` = (the
-    (K, bins + 2) phase-error table, bins/2π, whether to apply it) for each wrapped phase."""
+    (K, bins + 2) phase-error table, bins/2π, whether to apply it, its (K, 7) series, whether to
+    evaluate that instead) for each wrapped phase."""
     n_steps = cos_t.shape[0]
     n_freq = freqs.shape[0]
     k_max = freqs[n_freq - 1]
@@ -929,7 +1067,8 @@ def _general_row(  # type: ignore[no-untyped-def]
                 _accumulate(frames[ki * n_steps + n, v], s_acc, c_acc, total, top, sin_t[n],
                             cos_t[n], n == 0)
             _level_row(s_acc, c_acc, prev, m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
-                       ki == 0, gl[0][ki], gl[1], gl[2])
+                       ki == 0, gl[0][ki], gl[1], gl[2],
+                       _series_row(gl[3], ki), gl[4])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, m2, prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -1077,10 +1216,12 @@ def _refit_span(  # type: ignore[no-untyped-def]
     for ki in range(n_freq):
         _fit_row(frames, ki * n_steps, v, u0, cos_t, sin_t, top_code, sums, sv, s_acc, c_acc, nmin)
         if heterodyne:
-            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2])
+            _wrapped_row(s_acc, c_acc, wphs[ki], m2s[ki], m2min, gl[0][ki], gl[1], gl[2],
+                         _series_row(gl[3], ki), gl[4])
         else:
             _level_row(s_acc, c_acc, r_prev, r_m2, m2min, dev, freqs[ki] / freqs[max(ki - 1, 0)],
-                       ki == 0, gl[0][ki], gl[1], gl[2])
+                       ki == 0, gl[0][ki], gl[1], gl[2],
+                       _series_row(gl[3], ki), gl[4])
             if combine:
                 kk = freqs[ki]
                 _weigh_row(wsum, wphi, r_m2, r_prev, np.float32(n_steps) * kk * kk, k_max / kk)
@@ -1144,8 +1285,10 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
     r1 = freqs[min(1, n_freq - 1)] / freqs[0]
     r2 = freqs[min(2, n_freq - 1)] / freqs[min(1, n_freq - 1)]
     r3 = freqs[n_freq - 1] / freqs[min(2, n_freq - 1)]
-    gl = (ph.lut, ph.lut_scale, ph.use_lut)  # the phase-error table (PhaseArgs)
-    chain = (r1, r2, r3, ph.lut, ph.lut_scale, ph.use_lut)
+    # the phase-error table and its series (PhaseArgs)
+    gl = (ph.lut, ph.lut_scale, ph.use_lut, ph.series, ph.use_series)
+    # the series replaces the table where given (the paper's schedule only; PhaseArgs)
+    chain = (r1, r2, r3, ph.lut, ph.lut_scale, ph.use_lut, ph.series, ph.use_series)
     n_blocks = (height + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     recovered = out.recovered
     order = (ph.order_z2, ph.order_front2, ph.order_floor2, m.read_var, m.gain, m.inv_frames,
@@ -1233,7 +1376,8 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
     ph = PhaseArgs(trig, trig, np.ones(1, np.float32), np.int32(1), np.float32(0), np.float32(1),
                    np.ones((1, 1), np.float32), np.ones(1, np.float32), False, np.float32(0),
                    np.float32(np.inf), np.zeros((1, 1), np.float32), np.float32(0),
-                   np.zeros((1, 2), np.float32), np.float32(1), False)
+                   np.zeros((1, 2), np.float32), np.float32(1), False,
+                   np.zeros((1, 7), np.float32), False)
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
         np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),

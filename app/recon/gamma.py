@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,121 @@ TWO_PI = 2.0 * math.pi
 F64 = npt.NDArray[np.float64]
 #: ``format`` of a saved table (``fringescope gamma``)
 LUT_FORMAT = "fringescope-phase-error"
+#: the most a table's Fourier series may differ from the table (its linear interpolation, as
+#: :meth:`PhaseErrorLUT.apply` reads it) anywhere on the circle, rad; a table whose series does
+#: not reach it is applied as a table
+SERIES_MAX_DEV_RAD = 1e-4
+#: the most harmonics of the table's period a series keeps (what the fused kernel evaluates)
+SERIES_MAX_HARMONICS = 3
+#: points per table bin at which the series is fitted to the table and checked against it (bin
+#: centres included): the largest |series − table| between two of them exceeds theirs by at most
+#: |e''|·(π/(4·bins))²/2, < 10⁻⁶ rad for the tables here
+SERIES_SAMPLES_PER_BIN = 4
+
+
+@dataclass(frozen=True, eq=False)
+class PhaseErrorSeries:
+    """A phase-error table as a short Fourier series of the wrapped phase φ:
+
+        e(φ) = a_0 + Σ_{j=1..J} a_j cos(jPφ) + b_j sin(jPφ)
+
+    in the harmonics of the table's period 2π/P (P = N for an N-step decoder: its gamma error
+    repeats every 2π/N). Evaluated from the pixel's unit phasor (cos φ, sin φ) by complex
+    multiplication, it needs neither φ nor a table look-up, so the fused kernel's pixel loop
+    stays vectorised (:func:`app.recon.fast._series_error`).
+
+    Attributes:
+        coefficients: (K, 1 + 2J) float64 per frequency (a_0, a_1, b_1, …, a_J, b_J), rad.
+        period: P, the harmonic the series' terms are multiples of.
+        max_dev_rad: the largest |series − table| found on the fitting grid, rad.
+    """
+
+    coefficients: F64
+    period: int
+    max_dev_rad: float
+
+    @property
+    def harmonics(self) -> int:
+        """J, the harmonics of the period kept."""
+        return int(self.coefficients.shape[1] - 1) // 2
+
+    def error_at(self, wrapped: npt.ArrayLike) -> F64:
+        """The series at the phases ``wrapped`` (K, …) (radians; row k by frequency k's
+        coefficients), rad, float64."""
+        w = np.asarray(wrapped, dtype=np.float64)
+        if w.shape[:1] != self.coefficients.shape[:1]:
+            raise ValueError(f"wrapped: expected {self.coefficients.shape[0]} rows, "
+                             f"got shape {w.shape}")
+        out = np.empty_like(w)
+        for k in range(w.shape[0]):
+            c = self.coefficients[k]
+            out[k] = c[0]
+            for j in range(1, self.harmonics + 1):
+                arg = (j * self.period) * w[k]
+                out[k] += c[2 * j - 1] * np.cos(arg) + c[2 * j] * np.sin(arg)
+        return out
+
+    def kernel_coefficients(self, harmonics: int = SERIES_MAX_HARMONICS) -> npt.NDArray[np.float32]:
+        """(K, 1 + 2·``harmonics``) float32 :attr:`coefficients` padded with zeros: the fused
+        kernel evaluates a fixed number of harmonics."""
+        if self.harmonics > harmonics:
+            raise ValueError(f"harmonics: the series has {self.harmonics}, more than {harmonics}")
+        out = np.zeros((self.coefficients.shape[0], 1 + 2 * harmonics), np.float32)
+        out[:, :self.coefficients.shape[1]] = self.coefficients
+        return out
+
+
+def _interpolate(error_rad: F64, wrapped: F64) -> F64:
+    """(K, M) the tables ``error_rad`` (K, bins) at the phases ``wrapped`` (M,) rad in [0, 2π):
+    linear interpolation between bin centres, circular (:meth:`PhaseErrorLUT.apply`'s)."""
+    bins = error_rad.shape[1]
+    x = wrapped * (bins / TWO_PI) - 0.5
+    i0 = np.floor(x).astype(np.int64)
+    t = x - i0
+    return np.asarray((1.0 - t) * error_rad[:, i0 % bins] + t * error_rad[:, (i0 + 1) % bins],
+                      np.float64)
+
+
+def fit_series(error_rad: F64, period: int, *, max_dev_rad: float = SERIES_MAX_DEV_RAD,
+               harmonics: int = SERIES_MAX_HARMONICS) -> PhaseErrorSeries | None:
+    """The Fourier series in the first ``harmonics`` harmonics of ``period`` that best
+    reproduces the tables, if it reproduces them to ``max_dev_rad``.
+
+    The coefficients are the least-squares projection of the tables' linear interpolation
+    (sampled :data:`SERIES_SAMPLES_PER_BIN` times per bin, bin centres included) onto
+    1, cos(jPφ), sin(jPφ), j = 1..J. All J = ``harmonics`` are kept even where fewer would
+    pass: the fused kernel evaluates that many whatever the coefficients (zeros included), so
+    the more accurate series costs nothing.
+
+    Args:
+        error_rad: (K, bins) float64 tables, rad (:attr:`PhaseErrorLUT.error_rad`).
+        period: P ≥ 1.
+        max_dev_rad: the tolerance on every row's largest |series − table| on those samples, rad.
+        harmonics: J ≥ 0.
+
+    Returns:
+        :class:`PhaseErrorSeries`, or None where the series misses the tolerance (a noisy or
+        sharp table: apply it as a table) or J·P reaches the table's Nyquist harmonic.
+    """
+    bins = error_rad.shape[1]
+    if period < 1 or harmonics * period >= bins // 2:
+        return None
+    n_samples = SERIES_SAMPLES_PER_BIN * bins
+    phase = np.arange(n_samples) * (TWO_PI / n_samples)
+    table = _interpolate(error_rad, phase)
+    # (K, n/2 + 1) complex: the mean of table·e^{−ihφ}; a_h = 2·Re, b_h = −2·Im for h > 0
+    spectrum = np.fft.rfft(table, axis=1) / n_samples
+    coefs = [spectrum[:, 0].real]
+    series = np.repeat(coefs[0][:, None], n_samples, axis=1)
+    for j in range(1, harmonics + 1):
+        h = j * period
+        a, b = 2.0 * spectrum[:, h].real, -2.0 * spectrum[:, h].imag
+        coefs += [a, b]
+        series = series + a[:, None] * np.cos(h * phase) + b[:, None] * np.sin(h * phase)
+    dev = float(np.abs(series - table).max())
+    if dev > max_dev_rad:
+        return None
+    return PhaseErrorSeries(np.stack(coefs, axis=1), int(period), dev)
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,6 +280,15 @@ class PhaseErrorLUT:
             raise ValueError(f"frequencies: {len(freqs)} listed for a table of "
                              f"{table.shape[0]} rows")
         return cls(table, steps, freqs)
+
+    @cached_property
+    def series(self) -> PhaseErrorSeries | None:
+        """The table as a short Fourier series (:func:`fit_series`) in the harmonics of its
+        period 2π/N (N = :attr:`steps`), fitted once per table; None where the steps are not
+        recorded or no series within :data:`SERIES_MAX_HARMONICS` harmonics reproduces the
+        table to :data:`SERIES_MAX_DEV_RAD` (learned tables: their bins carry the learning's
+        noise in every harmonic)."""
+        return fit_series(self.error_rad, self.steps) if self.steps else None
 
     def kernel_table(self) -> npt.NDArray[np.float32]:
         """(K, bins + 2) float32 the table for the fused kernel: entry j of a row is the error at

@@ -39,17 +39,21 @@ import numpy.typing as npt
 from app.recon.gamma import PhaseErrorLUT
 
 F64 = npt.NDArray[np.float64]
-#: samples of the fringe phase the table and the fit are synthesised from (8 per table bin;
-#: a uniform grid sums the harmonics that matter, below the 100th, exactly)
+#: samples of the fringe phase the table and the fit are synthesised from (a uniform grid sums
+#: the harmonics that matter, below the 100th, exactly; the table interpolates between them:
+#: ≤ 2·10⁻⁶ rad at γ 1.5)
 SYNTH_SAMPLES = 1024
-#: table entries per frequency
-TABLE_BINS = 128
+#: table entries per frequency: the linear interpolation between 512 bin centres follows the
+#: error to ~4·10⁻⁶ rad at γ 1.5 (6.8·10⁻⁵ with 128), so that its Fourier series, which the
+#: fused kernel evaluates, and the table give the same phase to ~10⁻⁵ rad
+TABLE_BINS = 512
 #: the only N whose aliased harmonics (3rd, 5th) are inferred from the measured 2nd
 CORRECTED_STEPS = 4
 #: a table whose RMS is below this (rad) is not applied: a sinusoidal projector's set reads
 #: ≤ 3·10⁻⁵ rad (twin, γ 1.0), γ 1.1 reads 4·10⁻³; a correction of 10⁻³ rad, a tenth or less
-#: of the phase noise of the sets here, changes RMS(e/σ) by < 0.5 %, while the fused kernel's
-#: table path costs ~35 ms CPU on a 1384 × 1032 set (47 ms for 11 without)
+#: of the phase noise of the sets here, changes RMS(e/σ) by < 0.5 %, while applying a table
+#: costs the fused kernel ~2 ms CPU on a 1384 × 1032 set as its Fourier series (9 ms without;
+#: 34 ms more as table look-ups: ``benchmarks/bench_gamma_kernel.py``)
 MIN_TABLE_RMS_RAD = 1e-3
 #: the γ range the set's 2nd harmonic is inverted over, and the grid's points
 GAMMA_MIN, GAMMA_MAX, GAMMA_GRID = 0.1, 8.0, 160
@@ -142,9 +146,14 @@ def power_law_phase_error(gamma: float, steps: int, bins: int = TABLE_BINS) -> F
     """The N-step wrapped-phase error of a power-law projector, as a function of the phase.
 
     The pattern ``((1 + cos(θ + δ_n))/2)^γ``, δ_n = 2πn/N, is decoded as
-    :func:`app.recon.phase.wrapped_phase` does (φ = arg Σ I_n e^{−iδ_n}), and the error
-    φ − θ binned on φ as :meth:`PhaseErrorLUT.fit` does: the table :meth:`PhaseErrorLUT.apply`
-    subtracts. Neither the pattern's offset nor the albedo changes it.
+    :func:`app.recon.phase.wrapped_phase` does (φ = arg Σ I_n e^{−iδ_n}) on
+    :data:`SYNTH_SAMPLES` uniform θ, and the error e = φ − θ read at the bin centres of φ by
+    linear interpolation in φ (φ(θ) rises monotonically for every γ in (:data:`GAMMA_MIN`,
+    :data:`GAMMA_MAX`): dφ/dθ ≥ 0.06): the table :meth:`PhaseErrorLUT.apply` subtracts. The
+    error is sampled, not averaged over bins: a bin mean of the few samples that fall in it
+    (φ − θ binned as :meth:`PhaseErrorLUT.fit` does) put ~1·10⁻⁴ rad of sampling ripple into
+    every entry, which no short series (:attr:`PhaseErrorLUT.series`) follows. Neither the
+    pattern's offset nor the albedo changes it.
 
     Args:
         gamma: the exponent γ > 0.
@@ -159,8 +168,11 @@ def power_law_phase_error(gamma: float, steps: int, bins: int = TABLE_BINS) -> F
     pattern = ((1.0 + np.cos(theta[None, :] + delta[:, None])) / 2.0) ** gamma  # (N, S)
     phasor = (pattern * np.exp(-1j * delta)[:, None]).sum(axis=0)
     measured = np.mod(np.angle(phasor), 2.0 * np.pi)
-    table = PhaseErrorLUT.fit(measured[None, None, :], theta[None, None, :], bins=bins)
-    return np.asarray(table.error_rad[0], np.float64)
+    error = np.angle(np.exp(1j * (measured - theta)))
+    order = np.argsort(measured)
+    centres = (np.arange(bins) + 0.5) * (2.0 * np.pi / bins)
+    return np.asarray(np.interp(centres, measured[order], error[order], period=2.0 * np.pi),
+                      np.float64)
 
 
 def second_harmonic_ratios(harmonics: F64, sources: npt.NDArray[np.int64],

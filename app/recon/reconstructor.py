@@ -19,7 +19,7 @@ from app.core.calibration import Calibration
 from app.core.depth_model import HeightTables
 from app.core.reasons import assign_reasons
 from app.core.schedule import PatternSchedule
-from app.recon.gamma import PhaseErrorLUT
+from app.recon.gamma import SERIES_MAX_HARMONICS, PhaseErrorLUT
 from app.recon.model import (
     SINGULAR_RTOL,
     ModelTables,
@@ -102,12 +102,24 @@ def _choose_table(learned: PhaseErrorLUT | None, given: PhaseErrorLUT | None,
     return None, "none"
 
 
-def _kernel_lut(table: PhaseErrorLUT | None, k: int) -> tuple[F32, np.float32, bool]:
-    """(K, bins + 2) float32 kernel table, bins/2π, apply? of ``table`` for K = ``k``."""
+#: the fused kernel's phase-error arguments (:class:`app.recon.fast.PhaseArgs`): the (K, bins + 2)
+#: float32 table, bins/2π, apply it?, the (K, 7) float32 series coefficients, evaluate them?
+KernelLUT = tuple[F32, np.float32, bool, F32, bool]
+
+
+def _kernel_lut(table: PhaseErrorLUT | None, k: int, series: bool = True) -> KernelLUT:
+    """The fused kernel's phase-error arguments for ``table`` and K = ``k`` frequencies: its
+    Fourier series too where ``series`` and the table has one in the fused kernel's form
+    (period 4, ≤ 3 harmonics: an N = 4 table; the kernel evaluates it instead of the table)."""
+    no_series = np.zeros((k, 1 + 2 * SERIES_MAX_HARMONICS), np.float32)
     if table is None:
-        return np.zeros((k, 2), np.float32), np.float32(1.0), False
+        return np.zeros((k, 2), np.float32), np.float32(1.0), False, no_series, False
     bins = table.error_rad.shape[1]
-    return table.kernel_table(), np.float32(bins / (2.0 * np.pi)), True
+    fit = table.series if series else None
+    if fit is None or fit.period != 4:
+        return table.kernel_table(), np.float32(bins / (2.0 * np.pi)), True, no_series, False
+    return (table.kernel_table(), np.float32(bins / (2.0 * np.pi)), True,
+            fit.kernel_coefficients(), True)
 
 
 @dataclass
@@ -379,6 +391,11 @@ class Reconstructor:
             (``fringescope gamma``) subtracted from every wrapped phase before unwrapping, on
             both paths; None: none. ``ValueError`` unless it was learned for the calibration's
             schedule.
+        phase_error_series: whether the fused kernel may evaluate a phase-error table (this
+            one, or a run's) as its Fourier series (:attr:`PhaseErrorLUT.series`, within
+            ``gamma.SERIES_MAX_DEV_RAD`` of the table: on the twin's 1384 × 1032 sets the
+            kernel's CPU drops from 4.9–6.9× to 1.2–1.3× that without a table) where the
+            table has one; False: always the table (comparisons).
 
     Per-pixel model and ray tables are computed once here for the calibration's
     image size.
@@ -402,6 +419,7 @@ class Reconstructor:
         order_false_alarm_rate: float = DEFAULT_FALSE_ALARM_RATE,
         order_max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
         phase_error: PhaseErrorLUT | None = None,
+        phase_error_series: bool = True,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
@@ -425,6 +443,7 @@ class Reconstructor:
             raise ValueError(f"order_error_rate: must be in (0, 0.1], got {order_error_rate}")
         self.calibration = calibration
         self.phase_error = phase_error
+        self.phase_error_series = bool(phase_error_series)
         self.order_error_rate = float(order_error_rate)
         self.max_code = max_code
         self.min_modulation = min_modulation
@@ -510,16 +529,18 @@ class Reconstructor:
                 np.ascontiguousarray(front**2, np.float32))
 
     @cached_property
-    def _fast_lut(self) -> tuple[F32, np.float32, bool]:
+    def _fast_lut(self) -> KernelLUT:
         """:meth:`_lut_args` of the constructor's table (made once)."""
-        return _kernel_lut(self.phase_error, len(self.calibration.pattern.frequencies))
+        return _kernel_lut(self.phase_error, len(self.calibration.pattern.frequencies),
+                           self.phase_error_series)
 
-    def _lut_args(self, table: PhaseErrorLUT | None) -> tuple[F32, np.float32, bool]:
+    def _lut_args(self, table: PhaseErrorLUT | None) -> KernelLUT:
         """The kernel's phase-error table (K, bins + 2) float32, bins/2π and whether to apply it
-        (a (K, 2) zero table when there is none)."""
+        (a (K, 2) zero table when there is none), and its series (:data:`KernelLUT`)."""
         if table is self.phase_error:
             return self._fast_lut
-        return _kernel_lut(table, len(self.calibration.pattern.frequencies))
+        return _kernel_lut(table, len(self.calibration.pattern.frequencies),
+                           self.phase_error_series)
 
     @cached_property
     def _tables64(self) -> tuple[ModelTables, RayTables]:
