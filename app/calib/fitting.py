@@ -757,9 +757,7 @@ def error_structure(errors: list[npt.NDArray[np.float64]], points: list[npt.NDAr
         if len(e) > max_points:
             keep = rng.choice(len(e), max_points, replace=False)
             e, x = e[keep], x[keep]
-        iu = np.triu_indices(len(e), 1)
-        d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)[iu]
-        g = 0.5 * (e[:, None] - e[None, :])[iu] ** 2
+        d, g = _pair_distances_and_semivariances(x, e)
         b = np.searchsorted(_VARIOGRAM_BINS_MM, d) - 1
         inb = (b >= 0) & (b < nb)
         np.add.at(ssum, b[inb], g[inb])
@@ -784,6 +782,27 @@ def error_structure(errors: list[npt.NDArray[np.float64]], points: list[npt.NDAr
     _, n2, length_mm = best
     return {"noise_mm": _num(math.sqrt(n2)), "systematic_mm": _num(math.sqrt(max(0.0, ms - n2))),
             "correlation_mm": _num(length_mm)}
+
+
+def _pair_distances_and_semivariances(
+    x: npt.NDArray[np.float64], e: npt.NDArray[np.float64]
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Every pair i < j of one pose's samples (row-major, as ``np.triu_indices(n, 1)``): its
+    distance ``|x_i − x_j|`` (mm) and half squared error difference ``½ (e_i − e_j)²`` (mm²).
+
+    Args:
+        x: (n, 3) float64 sample points, mm.
+        e: (n,) float64 height errors, mm.
+
+    Returns:
+        Two (n (n − 1) / 2,) float64 arrays. ``pdist`` computes only the pairs the variogram
+        uses: the full (n, n, 3) difference array took ~8x the time at n = 1500 (54 MB), for
+        the same values bit for bit (both sum the three squared components in order).
+    """
+    from scipy.spatial.distance import pdist  # late, as the other scipy solvers here
+
+    i, j = np.triu_indices(len(e), 1)
+    return np.asarray(pdist(x), np.float64), 0.5 * (e[i] - e[j]) ** 2
 
 
 #: the boards' control points must span at least this fraction of the image width and height

@@ -3,8 +3,11 @@ rig."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,11 +48,23 @@ def calib_dir(tmp_path_factory):
     return d, rig, truth
 
 
-def test_cli_calibrate_writes_file_and_table(calib_dir, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def cli_calibration(calib_dir, tmp_path_factory) -> tuple[int, str, Path]:  # noqa: ANN001
+    """``fringescope calibrate <calib_dir> -o cal.json`` run once for the module (a full
+    calibration, ~20 s of CPU): its exit code, what it printed and the file it wrote. Read by
+    the test of the command's output and by the validate test, which needs a calibration."""
+    d, _, _ = calib_dir
+    out = tmp_path_factory.mktemp("cli_cal") / "cal.json"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["calibrate", str(d), "-o", str(out)])
+    return code, printed.getvalue(), out
+
+
+def test_cli_calibrate_writes_file_and_table(calib_dir, cli_calibration):
     d, rig, truth = calib_dir
-    out = tmp_path / "cal.json"
-    assert main(["calibrate", str(d), "-o", str(out)]) == 0
-    text = capsys.readouterr().out
+    code, text, out = cli_calibration
+    assert code == 0
     assert "pose_05" in text and "reproj_px" in text and "fit_rms_mm" in text and "wrote" in text
     assert (
         "held-out rms_mm" in text
@@ -163,10 +178,10 @@ def _write_scene(path, rig, pts, albedo, seed=11):
     write_capture_set(path, CaptureSet(fringe_frames(rig, pts, albedo, seed=seed), rig.schedule))
 
 
-def test_cli_validate_plane_sphere_feature(calib_dir, tmp_path, capsys):
+def test_cli_validate_plane_sphere_feature(calib_dir, cli_calibration, tmp_path, capsys):
     d, rig, truth = calib_dir
-    cal_path = tmp_path / "cal.json"
-    assert main(["calibrate", str(d), "-o", str(cal_path)]) == 0
+    code, _, cal_path = cli_calibration  # the module's `calibrate` run (read only)
+    assert code == 0
     n, t0 = _reference(truth)
     # A plane 10 mm up, tilted 30° about the camera's y axis.
     tilt = np.array([[np.cos(0.52), 0, np.sin(0.52)], [0, 1, 0], [-np.sin(0.52), 0, np.cos(0.52)]])

@@ -45,8 +45,15 @@ def test_newton_undistortion_matches_opencv_on_strong_distortion():
     np.testing.assert_allclose(proj.reshape(-1, 2), uv, atol=1e-6)
 
 
-def test_every_pose_left_out_refits_camera_plane_and_projector():
-    cal, rig, _ = _calibration(noise_px=0.1)
+@pytest.fixture(scope="module")
+def calibration_at_0p1_px() -> tuple[Calibration, Rig, list]:
+    """:func:`_calibration` with corner noise 0.1 px (seed 7), made once for the module's two
+    tests that read it (a geometric fit with its jackknife costs ~20 s of CPU); read only."""
+    return _calibration(noise_px=0.1)
+
+
+def test_every_pose_left_out_refits_camera_plane_and_projector(calibration_at_0p1_px):
+    cal, rig, _ = calibration_at_0p1_px
     model = cal.model
     assert isinstance(model, GeometricModel)
     assert len(model.pipeline) == len(STANDARD_POSES)
@@ -104,8 +111,8 @@ def test_the_jackknife_sigma_covers_the_reference_plane_and_camera_errors():
     assert float(np.sqrt(np.mean(zp**2))) > float(np.sqrt(np.mean(zt**2)))
 
 
-def test_the_refits_are_saved_with_the_calibration_file():
-    cal, _, _ = _calibration(noise_px=0.1)
+def test_the_refits_are_saved_with_the_calibration_file(calibration_at_0p1_px):
+    cal, _, _ = calibration_at_0p1_px
     again = Calibration.from_dict(cal.to_dict())
     assert isinstance(again.model, GeometricModel) and isinstance(cal.model, GeometricModel)
     assert len(again.model.pipeline) == len(cal.model.pipeline)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -83,6 +84,22 @@ GAMMA = 1.5  # the twin's DMD response exponent, left uncorrected
 FREQS = (1.0, 4.0, 12.0, 36.0)
 
 
+@pytest.fixture(scope="module")
+def twin_set() -> Iterator[Callable[[str, float], tuple]]:
+    """:func:`_twin_set` rendered once per (rig, gamma) for the module: the four tests below
+    asked for 3 distinct sets 9 times (a full-size render each). The sets are read only (the
+    noise fit and the reconstruction read the frames); dropped when the module ends."""
+    rendered: dict[tuple[str, float], tuple] = {}
+
+    def get(rig_name: str, gamma: float) -> tuple:
+        if (rig_name, gamma) not in rendered:
+            rendered[(rig_name, gamma)] = _twin_set(rig_name, gamma)
+        return rendered[(rig_name, gamma)]
+
+    yield get
+    rendered.clear()
+
+
 def _twin_set(rig_name: str, gamma: float, seed: int = 2):
     """intestine_flap at 15 ms on rig ``rig_name`` (no camera distortion) with projector
     ``gamma``: (capture set, truth depth, the sensor's σ_I² model as (read² DN², gain))."""
@@ -98,11 +115,11 @@ def _twin_set(rig_name: str, gamma: float, seed: int = 2):
     return cs, truth, ((g * sensor.read_noise_e) ** 2 + 1 / 12, g)
 
 
-def test_numba_kernels_equal_the_numpy_versions(monkeypatch):
+def test_numba_kernels_equal_the_numpy_versions(monkeypatch, twin_set):
     """The one-pass statistics and the harmonic fit in numba give the numpy versions' fit."""
     from app.recon import noise
 
-    cs, _, _ = _twin_set("endoscope", GAMMA)
+    cs, _, _ = twin_set("endoscope", GAMMA)
     fast = noise.fit_sensor_noise(cs.frames, cs.schedule, max_code=cs.max_code)
     monkeypatch.setattr(noise, "_nb", None)
     slow = noise.fit_sensor_noise(cs.frames, cs.schedule, max_code=cs.max_code)
@@ -112,11 +129,11 @@ def test_numba_kernels_equal_the_numpy_versions(monkeypatch):
     assert fast.read_var_dn2 == pytest.approx(slow.read_var_dn2, rel=1e-6)
 
 
-def test_a_gamma_15_projector_leaves_the_sensor_noise_on_a_12_bit_twin():
+def test_a_gamma_15_projector_leaves_the_sensor_noise_on_a_12_bit_twin(twin_set):
     """The old fit read the gamma's second harmonic as noise (113.9 DN/e⁻ against the sensor's
     0.256): the fit is now the sensor's within 3 standard errors, at the set's median
     intensity and at its 10th and 90th percentiles."""
-    cs, _, (read2, gain) = _twin_set("endoscope", GAMMA)
+    cs, _, (read2, gain) = twin_set("endoscope", GAMMA)
     fit = fit_sensor_noise(cs.frames, cs.schedule, max_code=cs.max_code)
     lit = cs.frames.mean(axis=0)
     for level in np.percentile(lit[lit > 50], [10, 50, 90]):
@@ -128,13 +145,13 @@ def test_a_gamma_15_projector_leaves_the_sensor_noise_on_a_12_bit_twin():
     assert fit.variance_se_dn2(mid) / fit.noise.variance_dn2(mid) < 0.02
 
 
-def test_a_gamma_15_projector_gives_the_gamma_10_noise_on_the_8_bit_twin():
+def test_a_gamma_15_projector_gives_the_gamma_10_noise_on_the_8_bit_twin(twin_set):
     """8-bit: the same noise as the linear projector's set within 3 combined standard errors,
     and within 4 % of the sensor's model at the set's usual levels (sub-DN noise rounded to
     codes and the darkest pixels cut at 0 make the realised noise of an 8-bit set 1–3 % below
     it there, and 8 % at 10 DN, with either gamma: the fit's read² is 0.10 DN² for 0.12)."""
-    cs1, _, (read2, gain) = _twin_set("default", 1.0)
-    cs15, _, _ = _twin_set("default", GAMMA)
+    cs1, _, (read2, gain) = twin_set("default", 1.0)
+    cs15, _, _ = twin_set("default", GAMMA)
     f1 = fit_sensor_noise(cs1.frames, cs1.schedule, max_code=cs1.max_code)
     f15 = fit_sensor_noise(cs15.frames, cs15.schedule, max_code=cs15.max_code)
     assert f15.gain_dn_per_e < 0.02  # was 6.1 DN/e⁻
@@ -146,7 +163,7 @@ def test_a_gamma_15_projector_gives_the_gamma_10_noise_on_the_8_bit_twin():
 
 
 @pytest.mark.slow
-def test_gamma_15_depth_with_and_without_a_phase_error_table():
+def test_gamma_15_depth_with_and_without_a_phase_error_table(twin_set):
     """Reconstructor(cal).run on a gamma 1.5 twin fits the sensor's noise, with or without a
     table from ``fringescope gamma``: as many lit, unsaturated pixels valid as at gamma 1.0,
     none off by > 0.5 mm. With the learned table RMS(e/σ) ≈ 1; without one the set's own 2nd
@@ -173,7 +190,7 @@ def test_gamma_15_depth_with_and_without_a_phase_error_table():
 
     def run(gamma: float, table: PhaseErrorLUT | None,
             infer: bool = True) -> tuple[float, float, int, str]:
-        cs, truth, _ = _twin_set("default", gamma)
+        cs, truth, _ = twin_set("default", gamma)
         rec = Reconstructor(cal, phase_error=table)
         res = rec.run(cs.frames, max_code=cs.max_code)
         assert res.noise_source == "set" and res.noise is not None
