@@ -76,27 +76,50 @@ def _powers(re, im, lo, hi, upow, mag):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True, inline="always")
-def _regressors(sources_j, mag, upow, x, count):  # type: ignore[no-untyped-def]
-    """x[2i, :count], x[2i + 1, :count] = B cos hφ, B sin hφ for h = sources_j[i]."""
+def _regressors(sources_j, mag, upow, t_level, t_amp, x, count):  # type: ignore[no-untyped-def]
+    """x[2i], x[2i + 1] = B cos hφ, B sin hφ for h = sources_j[i] (rows 0 … 2S − 1), then the
+    same times t_level (rows 2S … 4S − 1) and times t_amp (rows 4S … 6S − 1), over :count."""
+    m0 = 2 * sources_j.shape[0]
     for i in range(sources_j.shape[0]):
         h = sources_j[i]
         for p in range(count):
-            x[2 * i, p] = mag[p] * upow[h, 0, p]
-            x[2 * i + 1, p] = mag[p] * upow[h, 1, p]
+            c = mag[p] * upow[h, 0, p]
+            s = mag[p] * upow[h, 1, p]
+            x[2 * i, p] = c
+            x[2 * i + 1, p] = s
+            x[m0 + 2 * i, p] = c * t_level[p]
+            x[m0 + 2 * i + 1, p] = s * t_level[p]
+            x[2 * m0 + 2 * i, p] = c * t_amp[p]
+            x[2 * m0 + 2 * i + 1, p] = s * t_amp[p]
+
+
+@njit(nogil=True, fastmath=True, error_model="numpy", cache=True, inline="always")
+def _brightness(lev, mag, lo, count, centre, t_level, t_amp):  # type: ignore[no-untyped-def]
+    """t_level[:count] = A/Ã − 1, t_amp[:count] = |z|/z̃ − 1 for pixels lo … lo + count − 1
+    (centre = (Ã, z̃), the set's medians)."""
+    inv_a, inv_z = 1.0 / centre[0], 1.0 / centre[1]
+    for p in range(count):
+        t_level[p] = lev[lo + p] * inv_a - 1.0
+        t_amp[p] = mag[p] * inv_z - 1.0
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True)
 def harmonic_fit(  # type: ignore[no-untyped-def]
-        level, phasor, resid, basis, moments, sources, mask, var, design, coef_out):
+        level, phasor, resid, basis, moments, sources, centre, ridge, mask, var, design,
+        coef_out):
     """See :func:`app.recon.noise._harmonic_fit`. Per frequency two sweeps over chunks of
     :data:`CHUNK` pixels: the normal equations over the mask, then the residual and the
     noise's weights through the fitted model; each inner loop is flat and vectorises.
-    ``coef_out`` (K, d, 2·S) gets the fitted (a_h, b_h) of each frequency and column."""
+    ``centre`` (K, 2) holds each frequency's median level Ã and phasor magnitude z̃ over the
+    mask, ``ridge`` the relative ridge ρ on the normal equations' diagonal; ``coef_out``
+    (K, d, 6·S) gets the fitted coefficients of each frequency and column in the order of
+    :func:`_regressors`' rows."""
     k_n, d, rows, cols = resid.shape
     n = basis.shape[0]
     size = rows * cols
     n_src = sources.shape[1]
-    m = 2 * n_src
+    m0 = 2 * n_src
+    m = 3 * m0
     top_h = 0
     for j in range(d):
         for i in range(n_src):
@@ -111,9 +134,12 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
     out_b[:] = 0.0
     upow = np.empty((top_h + 2, 2, CHUNK))  # unit phasor^h, h = 0 … top_h + 1
     mag = np.empty(CHUNK)
+    t_level = np.empty(CHUNK)
+    t_amp = np.empty(CHUNK)
     x = np.empty((m, CHUNK))
     alpha = np.empty(CHUNK)
     beta = np.empty(CHUNK)
+    eps = np.empty(CHUNK)
     coef = np.empty((d, m))
     for k in range(k_n):
         re = phasor[k, 0].ravel()
@@ -127,8 +153,9 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
             hi = min(lo + CHUNK, size)
             cnt = hi - lo
             _powers(re, im, lo, hi, upow, mag)
+            _brightness(lev, mag, lo, cnt, centre[k], t_level, t_amp)
             for j in range(d):
-                _regressors(sources[j], mag, upow, x, cnt)
+                _regressors(sources[j], mag, upow, t_level, t_amp, x, cnt)
                 for a in range(m):
                     acc = 0.0
                     for p in range(cnt):
@@ -143,45 +170,59 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
             for a in range(m):
                 for b in range(a):
                     ata[j, a, b] = ata[j, b, a]
-                ata[j, a, a] += 1e-9 * (ata[j, a, a] + 1.0)  # an all-dark set stays solvable
+                ata[j, a, a] += ridge * (ata[j, a, a] + 1.0)
             coef[j] = np.linalg.solve(ata[j], atb[j])
             coef_out[k, j] = coef[j]
+        inv_a, inv_z = 1.0 / centre[k, 0], 1.0 / centre[k, 1]
         for lo in range(0, size, CHUNK):
             hi = min(lo + CHUNK, size)
             cnt = hi - lo
             _powers(re, im, lo, hi, upow, mag)
+            _brightness(lev, mag, lo, cnt, centre[k], t_level, t_amp)
             for j in range(d):
-                _regressors(sources[j], mag, upow, x, cnt)
+                _regressors(sources[j], mag, upow, t_level, t_amp, x, cnt)
                 for p in range(cnt):
                     e = flat[k, j, lo + p]
                     for a in range(m):
                         e -= coef[j, a] * x[a, p]
                     out[lo + p] += e * e
-                # the model M(C, S) = Re Σ γ_i z^h |z|^(1−h), γ_i = a_i − i·b_i, moves with
-                # the samples' noise: ∂M/∂C = Re(G_z + G_z̄), ∂M/∂S = −Im(G_z − G_z̄),
-                # G_z = Σ γ_i (1 + h)/2 u^(h−1), G_z̄ = Σ γ_i (1 − h)/2 u^(h+1)
+                # the model M(C, S, A) = Re Σ γ_i(A, |z|) z^h |z|^(1−h), γ_i = γ_i0 +
+                # γ_iA·t_A + γ_iB·t_B (γ = a − i·b; t_A = A/Ã − 1, t_B = |z|/z̃ − 1) moves
+                # with the samples' noise: ∂M/∂C = Re(G_z + G_z̄), ∂M/∂S = −Im(G_z − G_z̄),
+                # G_z = Σ u^(h−1) ((1 + h)/2 γ_i + γ_iB |z|/(2z̃)),
+                # G_z̄ = Σ u^(h+1) ((1 − h)/2 γ_i + γ_iB |z|/(2z̃)), ∂M/∂A = Re Σ γ_iA u^h |z|/Ã
                 alpha[:cnt] = 0.0
                 beta[:cnt] = 0.0
+                eps[:cnt] = 0.0
                 for i in range(n_src):
                     h = sources[j, i]
-                    ga, gb = coef[j, 2 * i], -coef[j, 2 * i + 1]
+                    a0, b0 = coef[j, 2 * i], -coef[j, 2 * i + 1]
+                    a_l, b_l = coef[j, m0 + 2 * i], -coef[j, m0 + 2 * i + 1]
+                    a_b, b_b = coef[j, 2 * m0 + 2 * i], -coef[j, 2 * m0 + 2 * i + 1]
                     f1, f2 = 0.5 * (1 + h), 0.5 * (1 - h)
                     for p in range(cnt):
-                        zr = f1 * (ga * upow[h - 1, 0, p] - gb * upow[h - 1, 1, p])
-                        zi = f1 * (ga * upow[h - 1, 1, p] + gb * upow[h - 1, 0, p])
-                        br = f2 * (ga * upow[h + 1, 0, p] - gb * upow[h + 1, 1, p])
-                        bi = f2 * (ga * upow[h + 1, 1, p] + gb * upow[h + 1, 0, p])
+                        ga = a0 + a_l * t_level[p] + a_b * t_amp[p]
+                        gb = b0 + b_l * t_level[p] + b_b * t_amp[p]
+                        half = 0.5 * mag[p] * inv_z
+                        ca, cb = f1 * ga + half * a_b, f1 * gb + half * b_b
+                        da, db = f2 * ga + half * a_b, f2 * gb + half * b_b
+                        zr = ca * upow[h - 1, 0, p] - cb * upow[h - 1, 1, p]
+                        zi = ca * upow[h - 1, 1, p] + cb * upow[h - 1, 0, p]
+                        br = da * upow[h + 1, 0, p] - db * upow[h + 1, 1, p]
+                        bi = da * upow[h + 1, 1, p] + db * upow[h + 1, 0, p]
                         alpha[p] += zr + br
                         beta[p] -= zi - bi
-                # the residual's noise is Σ_n w_n ε_n, w_n = q_jn − α cos δ_n − β sin δ_n:
-                # variance read²·Σ w_n² + gain·Σ w_n² I_n, Σ w_n² = 1 + (α² + β²)·N/2; the
-                # second from the moments Σ_n e_u e_v I_n (e: q_j, cos δ, sin δ) of the
-                # samples I_n = level + (2/N)(C cos δ_n + S sin δ_n) + Σ_j' r_j' q_j'n
+                        eps[p] += (a_l * upow[h, 0, p] - b_l * upow[h, 1, p]) * mag[p] * inv_a
+                # the residual's noise is Σ_n w_n ε_n, w_n = q_jn − α cos δ_n − β sin δ_n
+                # − ε/N: variance read²·Σ w_n² + gain·Σ w_n² I_n, Σ w_n² = 1 + (α² + β²)·N/2
+                # + ε²/N; the second from the moments Σ_n e_u e_v I_n (e: q_j, cos δ, sin δ)
+                # of the samples I_n = level + (2/N)(C cos δ_n + S sin δ_n) + Σ_j' r_j' q_j'n,
+                # and for the ε terms Σ_n I_n = N·A, Σ q_jn I_n = r_j, Σ cos δ_n I_n = C, …
                 mj = moments[j]
                 for p in range(cnt):
                     q = lo + p
                     u0, u1, u2 = lev[q], (2.0 / n) * re[q], (2.0 / n) * im[q]
-                    m0 = mj[0, 0] * u0 + mj[0, 1] * u1 + mj[0, 2] * u2
+                    m0_ = mj[0, 0] * u0 + mj[0, 1] * u1 + mj[0, 2] * u2
                     m1 = mj[1, 0] * u0 + mj[1, 1] * u1 + mj[1, 2] * u2
                     m2 = mj[2, 0] * u0 + mj[2, 1] * u1 + mj[2, 2] * u2
                     m3 = mj[3, 0] * u0 + mj[3, 1] * u1 + mj[3, 2] * u2
@@ -189,16 +230,18 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
                     m5 = mj[5, 0] * u0 + mj[5, 1] * u1 + mj[5, 2] * u2
                     for jj in range(d):
                         r = flat[k, jj, q]
-                        m0 += mj[0, 3 + jj] * r
+                        m0_ += mj[0, 3 + jj] * r
                         m1 += mj[1, 3 + jj] * r
                         m2 += mj[2, 3 + jj] * r
                         m3 += mj[3, 3 + jj] * r
                         m4 += mj[4, 3 + jj] * r
                         m5 += mj[5, 3 + jj] * r
-                    al, be = alpha[p], beta[p]
-                    out_a[q] += 1.0 + (al * al + be * be) * (0.5 * n)
-                    out_b[q] += (m0 - 2.0 * al * m1 - 2.0 * be * m2 + al * al * m3 + be * be * m4
-                                 + 2.0 * al * be * m5)
+                    al, be, ep = alpha[p], beta[p], eps[p]
+                    out_a[q] += 1.0 + (al * al + be * be) * (0.5 * n) + ep * ep / n
+                    out_b[q] += (m0_ - 2.0 * al * m1 - 2.0 * be * m2 + al * al * m3
+                                 + be * be * m4 + 2.0 * al * be * m5
+                                 + ep * (ep * lev[q] - 2.0 * flat[k, j, q] + 2.0 * al * re[q]
+                                         + 2.0 * be * im[q]) / n)
     scale = 1.0 / (k_n * d)
     for p in range(size):
         out[p] *= scale
