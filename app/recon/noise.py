@@ -19,9 +19,9 @@ the fit take them out:
   acting on its own pattern value makes each harmonic a fixed fraction of the pixel's
   fringe amplitude B whatever the albedo; a real one is not that clean (the CFPE home
   projector and 8-bit camera: the 3rd harmonic −0.03 of B in dim pixels, −0.056 in bright
-  ones), so the fractions are fitted as linear in the pixel's brightness. Residual harmonic
+  ones), so the fractions are fitted as quadratic in the pixel's level. Residual harmonic
   ĥ (h ≡ ±ĥ mod N) is fitted as ``B·Σ_h (a_h cos hφ + b_h sin hφ)``, ``a_h = a_h0 +
-  a_hA·(A/Ã − 1) + a_hB·(B/B̃ − 1)`` (A the level; Ã, B̃ the set's medians), the
+  a_h1·t + a_h2·t²``, ``t = A/Ã − 1`` (A the level, Ã the set's median), the
   coefficients common to all pixels of a frequency — a few numbers for tens of thousands of
   pixels, so the noise keeps its degrees of freedom. For N = 4 (the paper's schedule) the
   one residual per frequency is the Nyquist component, ``B_2 cos 2φ + B_6 cos 6φ + …``: on
@@ -66,12 +66,11 @@ SET_HARMONICS = 2
 #: normal equations
 FIT_CHUNK = 1024
 #: ridge of the harmonic fit, relative to each regressor's sum of squares (+ 1: an all-dark
-#: set stays solvable). Where the pixels' level and amplitude go together (albedo alone
-#: varies: A/Ã ≈ B/B̃) the two brightness slopes are told apart by nothing but noise; the
-#: ridge keeps their split small instead of noise-driven (it shrinks only combinations of
-#: regressors whose share of the sum of squares is below ρ: the fitted harmonics move by
-#: < √ρ of a regressor), and it bounds the normal equations' condition, so the kernel's
-#: sums in another order give the numpy solution to ~10⁻⁹
+#: set stays solvable). Where the pixels' levels span little (a uniform scene) t and t² are
+#: nearly collinear and their split is told apart by nothing but noise; the ridge keeps it
+#: small instead of noise-driven (it shrinks only combinations of regressors whose share of
+#: the sums of squares is below ρ), and it bounds the normal equations' condition, so the
+#: kernel's sums in another order give the numpy solution to ~10⁻⁹
 HARMONIC_RIDGE = 1e-6
 #: the share of pixels beyond the noise (a trim beyond the 0.1 % that noise gives) after
 #: which the set's harmonics are fitted again without them
@@ -98,16 +97,16 @@ class NoiseFit:
         dof: ν, the residual's degrees of freedom per pixel.
         steps: N, the set's phase steps per frequency.
         harmonics: (K, d, 2·S) float64, the projector harmonics common to the set at its
-            median brightness (A = Ã, B = B̃): for frequency k and residual column j, the
+            median level (A = Ã): for frequency k and residual column j, the
             coefficients (a_h, b_h) of ``B cos hφ``, ``B sin hφ`` over h in ``sources[j]``,
             scaled to the column's basis (for N = 4 the one column is the Nyquist one and
             a_2 is the 2nd harmonic's fraction of the fringe amplitude B;
             :mod:`app.recon.gamma_model`).
         sources: (d, S) int64, the harmonics h of each residual column.
         harmonic_slopes: (K, d, 2, 2·S) float64, how those coefficients change with the
-            pixel's brightness: per unit of A/Ã − 1 (index 0) and of B/B̃ − 1 (index 1).
-        brightness_centre: (K, 2) float64, (Ã, B̃) per frequency, DN: the median level
-            and fringe amplitude of the pixels the harmonics were fitted on.
+            pixel's level: the coefficients of t = A/Ã − 1 (index 0) and of t² (index 1).
+        brightness_centre: (K,) float64, Ã per frequency, DN: the median level of the
+            pixels the harmonics were fitted on.
     """
 
     noise: SensorNoise
@@ -184,7 +183,7 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     var = np.empty((rows, cols))
     design = np.empty((2, rows, cols))
     harmonics = np.empty((k_n, sources.shape[0], 3 * 2 * sources.shape[1]))
-    centre = np.empty((k_n, 2))
+    centre = np.empty(k_n)
     _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design, harmonics, centre)
     # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
     # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
@@ -208,9 +207,8 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     noise = SensorNoise(gain_dn_per_e=max(float(coef[1]), 0.0), read_noise_dn=read_dn)
     m = 2 * sources.shape[1]
     slopes = np.stack([harmonics[..., m:2 * m], harmonics[..., 2 * m:]], axis=2)
-    amplitude = centre * np.array([1.0, 2.0 / n])  # z̃ = N·B̃/2
     return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof, n,
-                    np.ascontiguousarray(harmonics[..., :m]), sources, slopes, amplitude)
+                    np.ascontiguousarray(harmonics[..., :m]), sources, slopes, centre)
 
 
 @dataclass(frozen=True)
@@ -323,21 +321,20 @@ def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, to
     usable[...] = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
 
 
-def brightness_centre(level: F64, phasor: F64, mask: npt.NDArray[np.bool_]) -> F64:
-    """(K, 2) float64: each frequency's median level Ã (DN) and phasor magnitude z̃ (DN,
-    N·B/2) over the ``mask`` pixels, where the set's harmonics are centred (1.0 where the
-    mask is empty or dark: the brightness terms are then nil, not undefined).
+def brightness_centre(level: F64, mask: npt.NDArray[np.bool_]) -> F64:
+    """(K,) float64: each frequency's median level Ã (DN) over the ``mask`` pixels, where the
+    set's harmonics are centred (1.0 where the mask is empty or dark: the brightness terms
+    are then nil, not undefined).
 
     Args:
-        level: (K, R, C) each frequency's mean, DN; phasor: (K, 2, R, C), DN.
+        level: (K, R, C) each frequency's mean, DN.
         mask: (R, C) bool.
     """
-    mag = np.hypot(phasor[:, 0], phasor[:, 1])[:, mask]  # (K, P)
     lev = level[:, mask]
     if lev.shape[1] == 0:
-        return np.ones((level.shape[0], 2))
-    centre = np.stack([np.median(lev, axis=1), np.median(mag, axis=1)], axis=1)
-    return np.where(centre > 0.0, centre, 1.0)
+        return np.ones(level.shape[0])
+    centre = np.median(lev, axis=1)
+    return np.asarray(np.where(centre > 0.0, centre, 1.0), np.float64)
 
 
 def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
@@ -347,18 +344,21 @@ def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
 
     For each frequency k and residual column j, ``resid[k, j] ≈ M = Σ_h a_h·B cos hφ +
     b_h·B sin hφ`` over h in ``sources[j]`` (B = |phasor|, φ its angle), where each
-    coefficient is linear in the pixel's brightness: ``a_h = a_h0 + a_hA·t_A + a_hB·t_B``,
-    ``t_A = A/Ã − 1`` (A the frequency's mean level), ``t_B = B/B̃ − 1`` (Ã, B̃ the mask's
-    medians: :func:`brightness_centre`), so (a_h0, b_h0) are the harmonic at the median
-    brightness. A projector's nonlinearity alone gives fixed fractions of B; the real CFPE
-    camera + projector's harmonics change with brightness (the 3rd harmonic from −0.03 to
-    −0.056 of B between dim and bright pixels), and a fixed fraction left 1.4–2.7 × the 12-step
-    noise in the 4-step residual (benchmarks/bench_gamma_self.py). The 3·2·|sources|
-    coefficients per (k, j), least squares over the ``mask`` pixels of every other chunk of
-    :data:`FIT_CHUNK`, are a few numbers against thousands of pixels: the residual of the
-    pixels they are fitted on is smaller by their leverage (m/P on average), that of the
-    pixels between them larger by about as much, so ``var`` (R, C), the mean square of what
-    is left (DN²), keeps K·d degrees of freedom per pixel.
+    coefficient is quadratic in the pixel's level: ``a_h = a_h0 + a_h1·t + a_h2·t²``,
+    ``t = A/Ã − 1`` (A the frequency's mean level, Ã the mask's median:
+    :func:`brightness_centre`), so (a_h0, b_h0) are the harmonic at the median level. A
+    projector's nonlinearity alone gives fixed fractions of B; the real CFPE camera +
+    projector's harmonics change with brightness (the 3rd harmonic −0.03 of B in dim
+    pixels, −0.056 in bright ones), and a fixed fraction left them in the 4-step residual
+    (``benchmarks/bench_gamma_self.py``). The level, not the amplitude, is the regressor: with
+    N = 4 the decoded |z| carries the aliased 3rd and 5th harmonics as a cos 4φ ripple, and
+    |z|·cos 2φ regressors then trade with the fixed ones (on a γ 1.5 twin the fit read a
+    2nd harmonic 5 % off and a noise 6 % high); the level's ripple is the 4th harmonic's,
+    ~0.3 % of B. The 3·2·|sources| coefficients per (k, j), least squares over the ``mask``
+    pixels of every other chunk of :data:`FIT_CHUNK`, are a few numbers against thousands
+    of pixels: the residual of the pixels they are fitted on is smaller by their leverage
+    (m/P on average), that of the pixels between them larger by about as much, so ``var``
+    (R, C), the mean square of what is left (DN²), keeps K·d degrees of freedom per pixel.
 
     M is computed from the pixel's own phasor and level, whose noise is correlated with the
     residual's where the samples' shot noise differs (σ_n² = read² + gain·I_n): the
@@ -374,12 +374,11 @@ def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
         mask: (R, C) bool, the pixels to fit the harmonics on.
         var, design: out, (R, C) and (2, R, C) float64.
         coef: out, (K, d, 3·2·S) float64 (S = :data:`SET_HARMONICS`): per frequency and
-            residual column the (a_h, b_h) over h in ``sources[j]`` at the median
-            brightness (fractions of B), then their slopes in t_A, then in t_B.
-        centre: out, (K, 2) float64, :func:`brightness_centre` of the mask (Ã and the median
-            phasor magnitude z̃ = N·B̃/2, DN).
+            residual column the (a_h, b_h) over h in ``sources[j]`` at the median level
+            (fractions of B), then their coefficients of t, then of t².
+        centre: out, (K,) float64, :func:`brightness_centre` of the mask (Ã, DN).
     """
-    centre[...] = brightness_centre(level, phasor, mask)
+    centre[...] = brightness_centre(level, mask)
     if _nb is None:
         _harmonic_fit_numpy(level, phasor, resid, basis, sources, centre, mask, var, design,
                             coef)
@@ -406,13 +405,11 @@ def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources
         samples = (level[k][None] + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 0], phasor[k, 0])
                    + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 1], phasor[k, 1])
                    + np.einsum("nj,jrc->nrc", basis[:, 2:], resid[k]))
-        t_level = level[k] / centre[k, 0] - 1.0
-        t_amp = mag[k] / centre[k, 1] - 1.0
+        t = level[k] / centre[k] - 1.0
         for j in range(d):
             terms = [mag[k] * unit[k] ** h for h in sources[j]]
-            base = [f(t) for t in terms for f in (np.real, np.imag)]
-            x = np.stack(base + [c * t_level for c in base] + [c * t_amp for c in base],
-                         axis=-1)
+            base = [f(v) for v in terms for f in (np.real, np.imag)]
+            x = np.stack(base + [c * t for c in base] + [c * t * t for c in base], axis=-1)
             # the ridge-regularised least squares as augmented rows, solved by lstsq (the
             # kernel solves its normal equations: an independent route to the same solution)
             fitted = x[mask]
@@ -422,18 +419,17 @@ def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources
                                    rcond=None)[0]
             coef_out[k, j] = coef
             var += (resid[k, j] - x @ coef) ** 2
-            # γ = a − i·b per source: at the median brightness, and its slopes in t_A, t_B
-            g0, g_level, g_amp = (coef[o:o + len(base):2] - 1j * coef[o + 1:o + len(base):2]
-                                  for o in (0, len(base), 2 * len(base)))
+            # γ = a − i·b per source: at the median level, and its coefficients of t and t²
+            g0, g1, g2 = (coef[o:o + len(base):2] - 1j * coef[o + 1:o + len(base):2]
+                          for o in (0, len(base), 2 * len(base)))
             g_z = np.zeros_like(z[k])
             g_zb = np.zeros_like(z[k])
             d_level = np.zeros_like(mag[k])
             for i, h in enumerate(sources[j]):
-                g = g0[i] + g_level[i] * t_level + g_amp[i] * t_amp
-                amp_term = g_amp[i] * mag[k] / (2.0 * centre[k, 1])
-                g_z += ((1 + h) / 2 * g + amp_term) * unit[k] ** (h - 1)
-                g_zb += ((1 - h) / 2 * g + amp_term) * unit[k] ** (h + 1)
-                d_level += np.real(g_level[i] * unit[k] ** h) * mag[k] / centre[k, 0]
+                g = g0[i] + (g1[i] + g2[i] * t) * t
+                g_z += (1 + h) / 2 * g * unit[k] ** (h - 1)
+                g_zb += (1 - h) / 2 * g * unit[k] ** (h + 1)
+                d_level += np.real((g1[i] + 2.0 * g2[i] * t) * unit[k] ** h) * mag[k] / centre[k]
             alpha, beta = np.real(g_z + g_zb), -np.imag(g_z - g_zb)
             w = (basis[:, 2 + j, None, None] - alpha[None] * basis[:, 0, None, None]
                  - beta[None] * basis[:, 1, None, None] - d_level[None] / n)

@@ -76,31 +76,22 @@ def _powers(re, im, lo, hi, upow, mag):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True, inline="always")
-def _regressors(sources_j, mag, upow, t_level, t_amp, x, count):  # type: ignore[no-untyped-def]
+def _regressors(sources_j, mag, upow, t_level, x, count):  # type: ignore[no-untyped-def]
     """x[2i], x[2i + 1] = B cos hφ, B sin hφ for h = sources_j[i] (rows 0 … 2S − 1), then the
-    same times t_level (rows 2S … 4S − 1) and times t_amp (rows 4S … 6S − 1), over :count."""
+    same times t (rows 2S … 4S − 1) and times t² (rows 4S … 6S − 1), over :count."""
     m0 = 2 * sources_j.shape[0]
     for i in range(sources_j.shape[0]):
         h = sources_j[i]
         for p in range(count):
             c = mag[p] * upow[h, 0, p]
             s = mag[p] * upow[h, 1, p]
+            t = t_level[p]
             x[2 * i, p] = c
             x[2 * i + 1, p] = s
-            x[m0 + 2 * i, p] = c * t_level[p]
-            x[m0 + 2 * i + 1, p] = s * t_level[p]
-            x[2 * m0 + 2 * i, p] = c * t_amp[p]
-            x[2 * m0 + 2 * i + 1, p] = s * t_amp[p]
-
-
-@njit(nogil=True, fastmath=True, error_model="numpy", cache=True, inline="always")
-def _brightness(lev, mag, lo, count, centre, t_level, t_amp):  # type: ignore[no-untyped-def]
-    """t_level[:count] = A/Ã − 1, t_amp[:count] = |z|/z̃ − 1 for pixels lo … lo + count − 1
-    (centre = (Ã, z̃), the set's medians)."""
-    inv_a, inv_z = 1.0 / centre[0], 1.0 / centre[1]
-    for p in range(count):
-        t_level[p] = lev[lo + p] * inv_a - 1.0
-        t_amp[p] = mag[p] * inv_z - 1.0
+            x[m0 + 2 * i, p] = c * t
+            x[m0 + 2 * i + 1, p] = s * t
+            x[2 * m0 + 2 * i, p] = c * t * t
+            x[2 * m0 + 2 * i + 1, p] = s * t * t
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True)
@@ -110,9 +101,9 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
     """See :func:`app.recon.noise._harmonic_fit`. Per frequency two sweeps over chunks of
     :data:`CHUNK` pixels: the normal equations over the mask, then the residual and the
     noise's weights through the fitted model; each inner loop is flat and vectorises.
-    ``centre`` (K, 2) holds each frequency's median level Ã and phasor magnitude z̃ over the
-    mask, ``ridge`` the relative ridge ρ on the normal equations' diagonal; ``coef_out``
-    (K, d, 6·S) gets the fitted coefficients of each frequency and column in the order of
+    ``centre`` (K,) holds each frequency's median level Ã over the mask, ``ridge`` the
+    relative ridge ρ on the normal equations' diagonal; ``coef_out`` (K, d, 6·S) gets the
+    fitted coefficients of each frequency and column in the order of
     :func:`_regressors`' rows."""
     k_n, d, rows, cols = resid.shape
     n = basis.shape[0]
@@ -135,7 +126,6 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
     upow = np.empty((top_h + 2, 2, CHUNK))  # unit phasor^h, h = 0 … top_h + 1
     mag = np.empty(CHUNK)
     t_level = np.empty(CHUNK)
-    t_amp = np.empty(CHUNK)
     x = np.empty((m, CHUNK))
     alpha = np.empty(CHUNK)
     beta = np.empty(CHUNK)
@@ -145,6 +135,7 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
         re = phasor[k, 0].ravel()
         im = phasor[k, 1].ravel()
         lev = level[k].ravel()
+        inv_a = 1.0 / centre[k]
         ata = np.zeros((d, m, m))
         atb = np.zeros((d, m))
         # the normal equations from every other chunk: a few shared numbers need far fewer
@@ -153,9 +144,10 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
             hi = min(lo + CHUNK, size)
             cnt = hi - lo
             _powers(re, im, lo, hi, upow, mag)
-            _brightness(lev, mag, lo, cnt, centre[k], t_level, t_amp)
+            for p in range(cnt):
+                t_level[p] = lev[lo + p] * inv_a - 1.0
             for j in range(d):
-                _regressors(sources[j], mag, upow, t_level, t_amp, x, cnt)
+                _regressors(sources[j], mag, upow, t_level, x, cnt)
                 for a in range(m):
                     acc = 0.0
                     for p in range(cnt):
@@ -173,46 +165,44 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
                 ata[j, a, a] += ridge * (ata[j, a, a] + 1.0)
             coef[j] = np.linalg.solve(ata[j], atb[j])
             coef_out[k, j] = coef[j]
-        inv_a, inv_z = 1.0 / centre[k, 0], 1.0 / centre[k, 1]
         for lo in range(0, size, CHUNK):
             hi = min(lo + CHUNK, size)
             cnt = hi - lo
             _powers(re, im, lo, hi, upow, mag)
-            _brightness(lev, mag, lo, cnt, centre[k], t_level, t_amp)
+            for p in range(cnt):
+                t_level[p] = lev[lo + p] * inv_a - 1.0
             for j in range(d):
-                _regressors(sources[j], mag, upow, t_level, t_amp, x, cnt)
+                _regressors(sources[j], mag, upow, t_level, x, cnt)
                 for p in range(cnt):
                     e = flat[k, j, lo + p]
                     for a in range(m):
                         e -= coef[j, a] * x[a, p]
                     out[lo + p] += e * e
-                # the model M(C, S, A) = Re Σ γ_i(A, |z|) z^h |z|^(1−h), γ_i = γ_i0 +
-                # γ_iA·t_A + γ_iB·t_B (γ = a − i·b; t_A = A/Ã − 1, t_B = |z|/z̃ − 1) moves
-                # with the samples' noise: ∂M/∂C = Re(G_z + G_z̄), ∂M/∂S = −Im(G_z − G_z̄),
-                # G_z = Σ u^(h−1) ((1 + h)/2 γ_i + γ_iB |z|/(2z̃)),
-                # G_z̄ = Σ u^(h+1) ((1 − h)/2 γ_i + γ_iB |z|/(2z̃)), ∂M/∂A = Re Σ γ_iA u^h |z|/Ã
+                # the model M(C, S, A) = Re Σ γ_i(A) z^h |z|^(1−h), γ_i = γ_i0 + γ_i1·t +
+                # γ_i2·t² (γ = a − i·b; t = A/Ã − 1) moves with the samples' noise:
+                # ∂M/∂C = Re(G_z + G_z̄), ∂M/∂S = −Im(G_z − G_z̄), G_z = Σ γ_i (1 + h)/2 u^(h−1),
+                # G_z̄ = Σ γ_i (1 − h)/2 u^(h+1), and ∂M/∂A = Re Σ (γ_i1 + 2γ_i2·t) u^h |z| / Ã
                 alpha[:cnt] = 0.0
                 beta[:cnt] = 0.0
                 eps[:cnt] = 0.0
                 for i in range(n_src):
                     h = sources[j, i]
                     a0, b0 = coef[j, 2 * i], -coef[j, 2 * i + 1]
-                    a_l, b_l = coef[j, m0 + 2 * i], -coef[j, m0 + 2 * i + 1]
-                    a_b, b_b = coef[j, 2 * m0 + 2 * i], -coef[j, 2 * m0 + 2 * i + 1]
+                    a1, b1 = coef[j, m0 + 2 * i], -coef[j, m0 + 2 * i + 1]
+                    a2, b2 = coef[j, 2 * m0 + 2 * i], -coef[j, 2 * m0 + 2 * i + 1]
                     f1, f2 = 0.5 * (1 + h), 0.5 * (1 - h)
                     for p in range(cnt):
-                        ga = a0 + a_l * t_level[p] + a_b * t_amp[p]
-                        gb = b0 + b_l * t_level[p] + b_b * t_amp[p]
-                        half = 0.5 * mag[p] * inv_z
-                        ca, cb = f1 * ga + half * a_b, f1 * gb + half * b_b
-                        da, db = f2 * ga + half * a_b, f2 * gb + half * b_b
-                        zr = ca * upow[h - 1, 0, p] - cb * upow[h - 1, 1, p]
-                        zi = ca * upow[h - 1, 1, p] + cb * upow[h - 1, 0, p]
-                        br = da * upow[h + 1, 0, p] - db * upow[h + 1, 1, p]
-                        bi = da * upow[h + 1, 1, p] + db * upow[h + 1, 0, p]
+                        t = t_level[p]
+                        ga = a0 + (a1 + a2 * t) * t
+                        gb = b0 + (b1 + b2 * t) * t
+                        zr = f1 * (ga * upow[h - 1, 0, p] - gb * upow[h - 1, 1, p])
+                        zi = f1 * (ga * upow[h - 1, 1, p] + gb * upow[h - 1, 0, p])
+                        br = f2 * (ga * upow[h + 1, 0, p] - gb * upow[h + 1, 1, p])
+                        bi = f2 * (ga * upow[h + 1, 1, p] + gb * upow[h + 1, 0, p])
                         alpha[p] += zr + br
                         beta[p] -= zi - bi
-                        eps[p] += (a_l * upow[h, 0, p] - b_l * upow[h, 1, p]) * mag[p] * inv_a
+                        da, db = a1 + 2.0 * a2 * t, b1 + 2.0 * b2 * t
+                        eps[p] += (da * upow[h, 0, p] - db * upow[h, 1, p]) * mag[p] * inv_a
                 # the residual's noise is Σ_n w_n ε_n, w_n = q_jn − α cos δ_n − β sin δ_n
                 # − ε/N: variance read²·Σ w_n² + gain·Σ w_n² I_n, Σ w_n² = 1 + (α² + β²)·N/2
                 # + ε²/N; the second from the moments Σ_n e_u e_v I_n (e: q_j, cos δ, sin δ)
