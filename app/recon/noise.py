@@ -321,19 +321,26 @@ def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, to
     usable[...] = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
 
 
+#: the harmonics' centre Ã is the median level of every this-th pixel of the fit's mask (a
+#: centre needs no more; the median of all costs 1.2 ms CPU of the fit's 9 on a 1384 × 1032
+#: set)
+CENTRE_EVERY = 4
+
+
 def brightness_centre(level: F64, mask: npt.NDArray[np.bool_]) -> F64:
-    """(K,) float64: each frequency's median level Ã (DN) over the ``mask`` pixels, where the
-    set's harmonics are centred (1.0 where the mask is empty or dark: the brightness terms
-    are then nil, not undefined).
+    """(K,) float64: each frequency's median level Ã (DN) over every
+    :data:`CENTRE_EVERY`-th pixel of the ``mask`` (row-major), where the set's harmonics are
+    centred (1.0 where the mask is empty or dark: the brightness terms are then nil, not
+    undefined).
 
     Args:
         level: (K, R, C) each frequency's mean, DN.
         mask: (R, C) bool.
     """
-    lev = level[:, mask]
-    if lev.shape[1] == 0:
+    picks = np.flatnonzero(mask)[::CENTRE_EVERY]
+    if picks.size == 0:
         return np.ones(level.shape[0])
-    centre = np.median(lev, axis=1)
+    centre = np.median(level.reshape(level.shape[0], -1)[:, picks], axis=1)
     return np.asarray(np.where(centre > 0.0, centre, 1.0), np.float64)
 
 

@@ -76,22 +76,14 @@ def _powers(re, im, lo, hi, upow, mag):  # type: ignore[no-untyped-def]
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True, inline="always")
-def _regressors(sources_j, mag, upow, t_level, x, count):  # type: ignore[no-untyped-def]
-    """x[2i], x[2i + 1] = B cos hφ, B sin hφ for h = sources_j[i] (rows 0 … 2S − 1), then the
-    same times t (rows 2S … 4S − 1) and times t² (rows 4S … 6S − 1), over :count."""
-    m0 = 2 * sources_j.shape[0]
+def _regressors(sources_j, mag, upow, x, count):  # type: ignore[no-untyped-def]
+    """x[2i, :count], x[2i + 1, :count] = B cos hφ, B sin hφ for h = sources_j[i]: the fit's
+    regressors at the median level (those of t and t² are these times t, t²)."""
     for i in range(sources_j.shape[0]):
         h = sources_j[i]
         for p in range(count):
-            c = mag[p] * upow[h, 0, p]
-            s = mag[p] * upow[h, 1, p]
-            t = t_level[p]
-            x[2 * i, p] = c
-            x[2 * i + 1, p] = s
-            x[m0 + 2 * i, p] = c * t
-            x[m0 + 2 * i + 1, p] = s * t
-            x[2 * m0 + 2 * i, p] = c * t * t
-            x[2 * m0 + 2 * i + 1, p] = s * t * t
+            x[2 * i, p] = mag[p] * upow[h, 0, p]
+            x[2 * i + 1, p] = mag[p] * upow[h, 1, p]
 
 
 @njit(nogil=True, fastmath=True, error_model="numpy", cache=True)
@@ -103,8 +95,8 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
     noise's weights through the fitted model; each inner loop is flat and vectorises.
     ``centre`` (K,) holds each frequency's median level Ã over the mask, ``ridge`` the
     relative ridge ρ on the normal equations' diagonal; ``coef_out`` (K, d, 6·S) gets the
-    fitted coefficients of each frequency and column in the order of
-    :func:`_regressors`' rows."""
+    fitted coefficients of each frequency and column: of :func:`_regressors`' rows x_i, then
+    of x_i·t, then of x_i·t² (t = A/Ã − 1)."""
     k_n, d, rows, cols = resid.shape
     n = basis.shape[0]
     size = rows * cols
@@ -126,7 +118,10 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
     upow = np.empty((top_h + 2, 2, CHUNK))  # unit phasor^h, h = 0 … top_h + 1
     mag = np.empty(CHUNK)
     t_level = np.empty(CHUNK)
-    x = np.empty((m, CHUNK))
+    x = np.empty((m0, CHUNK))
+    wt = np.empty((5, CHUNK))  # mask weight × t^q
+    xx = np.empty(CHUNK)
+    res = np.empty(CHUNK)
     alpha = np.empty(CHUNK)
     beta = np.empty(CHUNK)
     eps = np.empty(CHUNK)
@@ -138,30 +133,47 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
         inv_a = 1.0 / centre[k]
         ata = np.zeros((d, m, m))
         atb = np.zeros((d, m))
+        sums = np.zeros((d, m0, m0, 5))
         # the normal equations from every other chunk: a few shared numbers need far fewer
         # pixels than the per-pixel residual
         for lo in range(0, size, 2 * CHUNK):
             hi = min(lo + CHUNK, size)
             cnt = hi - lo
             _powers(re, im, lo, hi, upow, mag)
+            # the regressors are x_i·t^s (x_i at the median level, s = 0, 1, 2): the normal
+            # equations need Σ w x_i x_i' t^q, q = 0 … 4, and Σ w x_i r t^s only
             for p in range(cnt):
-                t_level[p] = lev[lo + p] * inv_a - 1.0
+                t = lev[lo + p] * inv_a - 1.0
+                wt[0, p] = weight[lo + p]
+                for q in range(1, 5):
+                    wt[q, p] = wt[q - 1, p] * t
             for j in range(d):
-                _regressors(sources[j], mag, upow, t_level, x, cnt)
-                for a in range(m):
-                    acc = 0.0
-                    for p in range(cnt):
-                        acc += weight[lo + p] * x[a, p] * flat[k, j, lo + p]
-                    atb[j, a] += acc
-                    for b in range(a, m):
+                _regressors(sources[j], mag, upow, x, cnt)
+                for a in range(m0):
+                    for q in range(3):
                         acc = 0.0
                         for p in range(cnt):
-                            acc += weight[lo + p] * x[a, p] * x[b, p]
-                        ata[j, a, b] += acc
+                            acc += wt[q, p] * x[a, p] * flat[k, j, lo + p]
+                        atb[j, q * m0 + a] += acc
+                    for b in range(a, m0):
+                        for p in range(cnt):
+                            xx[p] = x[a, p] * x[b, p]
+                        for q in range(5):
+                            acc = 0.0
+                            for p in range(cnt):
+                                acc += wt[q, p] * xx[p]
+                            sums[j, a, b, q] += acc
+        for j in range(d):
+            for a in range(m0):
+                for b in range(a, m0):
+                    for s_a in range(3):
+                        for s_b in range(3):
+                            # row (s_a, a), column (s_b, b) and its mirror (s_b, b), (s_a, a)
+                            v = sums[j, a, b, s_a + s_b]
+                            ata[j, s_a * m0 + a, s_b * m0 + b] = v
+                            ata[j, s_b * m0 + b, s_a * m0 + a] = v
         for j in range(d):
             for a in range(m):
-                for b in range(a):
-                    ata[j, a, b] = ata[j, b, a]
                 ata[j, a, a] += ridge * (ata[j, a, a] + 1.0)
             coef[j] = np.linalg.solve(ata[j], atb[j])
             coef_out[k, j] = coef[j]
@@ -172,12 +184,8 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
             for p in range(cnt):
                 t_level[p] = lev[lo + p] * inv_a - 1.0
             for j in range(d):
-                _regressors(sources[j], mag, upow, t_level, x, cnt)
                 for p in range(cnt):
-                    e = flat[k, j, lo + p]
-                    for a in range(m):
-                        e -= coef[j, a] * x[a, p]
-                    out[lo + p] += e * e
+                    res[p] = flat[k, j, lo + p]
                 # the model M(C, S, A) = Re Σ γ_i(A) z^h |z|^(1−h), γ_i = γ_i0 + γ_i1·t +
                 # γ_i2·t² (γ = a − i·b; t = A/Ã − 1) moves with the samples' noise:
                 # ∂M/∂C = Re(G_z + G_z̄), ∂M/∂S = −Im(G_z − G_z̄), G_z = Σ γ_i (1 + h)/2 u^(h−1),
@@ -203,6 +211,10 @@ def harmonic_fit(  # type: ignore[no-untyped-def]
                         beta[p] -= zi - bi
                         da, db = a1 + 2.0 * a2 * t, b1 + 2.0 * b2 * t
                         eps[p] += (da * upow[h, 0, p] - db * upow[h, 1, p]) * mag[p] * inv_a
+                        # the model's value: B (a cos hφ + b sin hφ), b = −gb
+                        res[p] -= mag[p] * (ga * upow[h, 0, p] - gb * upow[h, 1, p])
+                for p in range(cnt):
+                    out[lo + p] += res[p] * res[p]
                 # the residual's noise is Σ_n w_n ε_n, w_n = q_jn − α cos δ_n − β sin δ_n
                 # − ε/N: variance read²·Σ w_n² + gain·Σ w_n² I_n, Σ w_n² = 1 + (α² + β²)·N/2
                 # + ε²/N; the second from the moments Σ_n e_u e_v I_n (e: q_j, cos δ, sin δ)
