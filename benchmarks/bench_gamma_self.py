@@ -116,7 +116,7 @@ def main() -> int:
             few = wrapped_phase(sub, 4, max_code=255)
             est = resolve_set_noise(sub, schedule(4), 255)
             fit4 = fit_sensor_noise(sub, schedule(4), max_code=255)
-            ratios = second_harmonic_ratios(fit4.harmonics, fit4.sources, fit4.steps)
+            ratios = second_harmonic_ratios(fit4.mean_harmonics, fit4.sources, fit4.steps)
             assert est.phase_error is not None and ratios is not None
             corrected = est.phase_error.apply(few.phase)
             sigma_ratio = float(np.sqrt(fit4.noise.variance_dn2(median_dn)

@@ -27,7 +27,8 @@ the fit take them out:
   one residual per frequency is the Nyquist component, ``B_2 cos 2φ + B_6 cos 6φ + …``: on
   a twin whose projector has gamma 1.5 a fit without it read 6.1 DN/e⁻ of "gain" (the
   sensor's is 0.016) and refused nearly every pixel; on the real CFPE 4-step subsets fixed
-  fractions left 2.1–3.1 DN/e⁻ for the 12-step fit's 0.05–0.11.
+  fractions gave σ_I 1.57–5.48 × the 12-step fit's (scene 8: gain 3.1 DN/e⁻), the
+  level-dependent ones 0.85–1.25 × (``benchmarks/bench_gamma_self.py``).
 
 The residual is orthogonal to the fundamental whatever a phase-error table does to φ, so
 the estimate is the same with and without one.
@@ -107,6 +108,8 @@ class NoiseFit:
             pixel's level: the coefficients of t = A/Ã − 1 (index 0) and of t² (index 1).
         brightness_centre: (K,) float64, Ã per frequency, DN: the median level of the
             pixels the harmonics were fitted on.
+        level_moments: (K, 2) float64, E[t] and E[t²] of t = A/Ã − 1 over those pixels,
+            weighted by B² (the regressors' weight in a least-squares fit).
     """
 
     noise: SensorNoise
@@ -120,6 +123,19 @@ class NoiseFit:
     sources: I64
     harmonic_slopes: F64
     brightness_centre: F64
+    level_moments: F64
+
+    @property
+    def mean_harmonics(self) -> F64:
+        """(K, d, 2·S) float64: the harmonics' B²-weighted mean share over the fitted
+        pixels, ``a_h0 + a_h1·E[t] + a_h2·E[t²]`` (:attr:`level_moments`): what one share
+        common to all pixels reads, and what the set's gamma table is made from (on the
+        CFPE 4-step subsets its table leaves 0.475 of the systematic phase error on the 36
+        cases' mean, the share at the median level's 0.502, a fixed-share fit's 0.479)."""
+        slope, curve = self.harmonic_slopes[:, :, 0], self.harmonic_slopes[:, :, 1]
+        mean_t = self.level_moments[:, 0, None, None]
+        mean_t2 = self.level_moments[:, 1, None, None]
+        return np.asarray(self.harmonics + slope * mean_t + curve * mean_t2, np.float64)
 
     @property
     def gain_se(self) -> float:
@@ -185,6 +201,7 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     harmonics = np.empty((k_n, sources.shape[0], 3 * 2 * sources.shape[1]))
     centre = np.empty(k_n)
     _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design, harmonics, centre)
+    fitted = usable
     # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
     # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
     x, y = _line_form(var, design, usable)
@@ -194,6 +211,7 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
         kept[usable] = keep
         _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design, harmonics,
                       centre)
+        fitted = kept
         x, y = _line_form(var, design, usable)
         coef, keep = _trimmed_fit(x, y, dof, start=coef)
     if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
@@ -208,7 +226,8 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     m = 2 * sources.shape[1]
     slopes = np.stack([harmonics[..., m:2 * m], harmonics[..., 2 * m:]], axis=2)
     return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof, n,
-                    np.ascontiguousarray(harmonics[..., :m]), sources, slopes, centre)
+                    np.ascontiguousarray(harmonics[..., :m]), sources, slopes, centre,
+                    _level_moments(level, phasor, fitted, centre))
 
 
 @dataclass(frozen=True)
@@ -247,7 +266,7 @@ def resolve_set_noise(frames: Any, schedule: PatternSchedule, max_code: int) -> 
         fit = fit_sensor_noise(frames, schedule, max_code=max_code)
     except ValueError as exc:  # N = 3 (no residual) or too few usable pixels
         return SetNoise(SensorNoise.typical(max_code), "nominal", str(exc), None)
-    table = self_calibrated_table(fit.harmonics, fit.sources, fit.steps)
+    table = self_calibrated_table(fit.mean_harmonics, fit.sources, fit.steps)
     return SetNoise(fit.noise, "set", "", table)
 
 
@@ -325,6 +344,20 @@ def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, to
 #: centre needs no more; the median of all costs 1.2 ms CPU of the fit's 9 on a 1384 × 1032
 #: set)
 CENTRE_EVERY = 4
+
+
+def _level_moments(level: F64, phasor: F64, mask: npt.NDArray[np.bool_], centre: F64) -> F64:
+    """(K, 2) float64: E[t], E[t²] of t = A/Ã − 1 over the ``mask`` pixels weighted by
+    |phasor|² ∝ B² (0 where the mask holds no light).
+
+    Args:
+        level: (K, R, C) DN; phasor: (K, 2, R, C) DN; mask: (R, C) bool; centre: (K,) Ã, DN.
+    """
+    weight = (phasor[:, 0, mask] ** 2 + phasor[:, 1, mask] ** 2)  # (K, P)
+    t = level[:, mask] / centre[:, None] - 1.0
+    total = np.maximum(weight.sum(axis=1), np.finfo(np.float64).tiny)
+    return np.stack([(weight * t).sum(axis=1) / total, (weight * t * t).sum(axis=1) / total],
+                    axis=1)
 
 
 def brightness_centre(level: F64, mask: npt.NDArray[np.bool_]) -> F64:
