@@ -108,8 +108,9 @@ class NoiseFit:
             pixel's level: the coefficients of t = A/Ã − 1 (index 0) and of t² (index 1).
         brightness_centre: (K,) float64, Ã per frequency, DN: the median level of the
             pixels the harmonics were fitted on.
-        level_moments: (K, 2) float64, E[t] and E[t²] of t = A/Ã − 1 over those pixels,
-            weighted by B² (the regressors' weight in a least-squares fit).
+        level_moments: (K, 2) float64, E[t] and E[t²] of t = A/Ã − 1 over those pixels
+            (every :data:`CENTRE_EVERY`-th), weighted by B² (the regressors' weight in a
+            least-squares fit).
     """
 
     noise: SensorNoise
@@ -347,17 +348,21 @@ CENTRE_EVERY = 4
 
 
 def _level_moments(level: F64, phasor: F64, mask: npt.NDArray[np.bool_], centre: F64) -> F64:
-    """(K, 2) float64: E[t], E[t²] of t = A/Ã − 1 over the ``mask`` pixels weighted by
-    |phasor|² ∝ B² (0 where the mask holds no light).
+    """(K, 2) float64: E[t], E[t²] of t = A/Ã − 1 over every :data:`CENTRE_EVERY`-th
+    ``mask`` pixel (as :func:`brightness_centre`) weighted by |phasor|² ∝ B² (0 where the
+    mask holds no light).
 
     Args:
         level: (K, R, C) DN; phasor: (K, 2, R, C) DN; mask: (R, C) bool; centre: (K,) Ã, DN.
     """
-    weight = (phasor[:, 0, mask] ** 2 + phasor[:, 1, mask] ** 2)  # (K, P)
-    t = level[:, mask] / centre[:, None] - 1.0
+    k_n = level.shape[0]
+    picks = np.flatnonzero(mask)[::CENTRE_EVERY]
+    flat = phasor.reshape(k_n, 2, -1)
+    weight = flat[:, 0, picks] ** 2 + flat[:, 1, picks] ** 2  # (K, P)
+    t = level.reshape(k_n, -1)[:, picks] / centre[:, None] - 1.0
     total = np.maximum(weight.sum(axis=1), np.finfo(np.float64).tiny)
-    return np.stack([(weight * t).sum(axis=1) / total, (weight * t * t).sum(axis=1) / total],
-                    axis=1)
+    wt = weight * t
+    return np.stack([wt.sum(axis=1) / total, (wt * t).sum(axis=1) / total], axis=1)
 
 
 def brightness_centre(level: F64, mask: npt.NDArray[np.bool_]) -> F64:
