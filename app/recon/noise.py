@@ -18,8 +18,8 @@ the fit take them out:
 * across the set, what is left of them (:func:`_harmonic_fit`). A projector's nonlinearity
   acting on its own pattern value makes each harmonic a fixed fraction of the pixel's
   fringe amplitude B whatever the albedo; a real one is not that clean (the CFPE home
-  projector and 8-bit camera: the 3rd harmonic −0.03 of B in dim pixels, −0.056 in bright
-  ones), so the fractions are fitted as quadratic in the pixel's level. Residual harmonic
+  projector and 8-bit camera: the 3rd harmonic reaches −0.056 of B where B ≥ 100 DN while
+  the 2nd falls), so the fractions are fitted as quadratic in the pixel's level. Residual harmonic
   ĥ (h ≡ ±ĥ mod N) is fitted as ``B·Σ_h (a_h cos hφ + b_h sin hφ)``, ``a_h = a_h0 +
   a_h1·t + a_h2·t²``, ``t = A/Ã − 1`` (A the level, Ã the set's median), the
   coefficients common to all pixels of a frequency — a few numbers for tens of thousands of
@@ -393,8 +393,8 @@ def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
     ``t = A/Ã − 1`` (A the frequency's mean level, Ã the mask's median:
     :func:`brightness_centre`), so (a_h0, b_h0) are the harmonic at the median level. A
     projector's nonlinearity alone gives fixed fractions of B; the real CFPE camera +
-    projector's harmonics change with brightness (the 3rd harmonic −0.03 of B in dim
-    pixels, −0.056 in bright ones), and a fixed fraction left them in the 4-step residual
+    projector's harmonics change with brightness (the 3rd harmonic reaches −0.056 of B
+    where B ≥ 100 DN while the 2nd falls), and a fixed fraction left them in the residual
     (``benchmarks/bench_gamma_self.py``). The level, not the amplitude, is the regressor: with
     N = 4 the decoded |z| carries the aliased 3rd and 5th harmonics as a cos 4φ ripple, and
     |z|·cos 2φ regressors then trade with the fixed ones (on a γ 1.5 twin the fit read a
