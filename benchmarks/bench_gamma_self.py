@@ -13,6 +13,9 @@ subset and period this prints:
   the error's mean in 64 bins of the reference phase: the part a table can remove), and the
   same with the table's Fourier series (:attr:`app.recon.gamma.PhaseErrorLUT.series`, what
   the fused kernel evaluates for a 4 × 4 schedule) in its place;
+* the noise fits: gain (DN/e⁻) and read noise (DN) of the subset's own fit and of the
+  12-step fit of the same scene, and the ratio of their σ_I at the scene's median usable
+  mean intensity (σ_φ ∝ σ_I: the factor by which the subset's σ differs from the 12-step's);
 * RMS(error / σ_φ) with σ_φ predicted from the noise as the run would (the subset's own
   noise fit; the 12-step fit's, whose per-pixel harmonics leave the cleaner noise, beside
   it), for the error without a table, with the table, and without a table but σ_φ widened
@@ -106,18 +109,28 @@ def main() -> int:
         ref = wrapped_phase(full, 12, max_code=255)
         usable = (ref.modulation.min(axis=0) >= 10.0) & ~(full >= 255).any(axis=0)
         noise12 = fit_sensor_noise(full, schedule(12), max_code=255).noise
+        median_dn = float(np.median(full.mean(axis=0)[usable]))
+        print(f"scene {scene:02d} 12-step fit: gain {noise12.gain_dn_per_e:.4f} DN/e-, read "
+              f"{noise12.read_noise_dn:.3f} DN; σ_I at the median usable level {median_dn:.0f} DN "
+              f"{np.sqrt(noise12.variance_dn2(median_dn)):.3f} DN", flush=True)
         for offset in range(3):
             sub = np.ascontiguousarray(per[:, offset::3].reshape(12, *per.shape[2:]))
             few = wrapped_phase(sub, 4, max_code=255)
             est = resolve_set_noise(sub, schedule(4), 255)
             fit4 = fit_sensor_noise(sub, schedule(4), max_code=255)
-            ratios = second_harmonic_ratios(fit4.harmonics, fit4.sources, fit4.steps)
+            ratios = second_harmonic_ratios(fit4.mean_harmonics, fit4.sources, fit4.steps)
             assert est.phase_error is not None and ratios is not None
             corrected = est.phase_error.apply(few.phase)
             # the same table as the fused kernel's Fourier series (PhaseErrorLUT.series), if any
             series = est.phase_error.series
             by_series = (None if series is None else
                          np.mod(few.phase - series.error_at(few.phase), 2 * np.pi))
+            sigma_ratio = float(np.sqrt(fit4.noise.variance_dn2(median_dn)
+                                        / noise12.variance_dn2(median_dn)))
+            print(f"scene {scene:02d} subset {offset} 4-step fit: gain "
+                  f"{fit4.noise.gain_dn_per_e:.4f} DN/e-, read {fit4.noise.read_noise_dn:.3f} DN;"
+                  f" σ_I / 12-step σ_I at {median_dn:.0f} DN {sigma_ratio:.3f}", flush=True)
+            totals.setdefault(f"{scene:02d} sigma_I_ratio", []).append(sigma_ratio)
             shift = 2 * np.pi * offset / 12  # the subset's first step
             ok = usable & ~few.saturated
             for k in range(3):

@@ -16,12 +16,13 @@ sin 4φ. Under the power law the first gives γ, and γ gives the error: a
 is given.
 
 What the real projector says (tests/recon/test_gamma_model.py, the CFPE captures: a home
-projector, 8-bit camera, 4-step subsets of 12-step sets): the measured 2nd harmonic reads
-γ 1.33–1.52, and the table made from it reduces the 4-step phase error against the 12-step
-phase on all 36 scene × subset × period cases (scene means 11–19 % of its RMS) and its
-systematic part by 35–83 %, but not all of it: the real odd harmonics grow near the top of
-the camera's range, which no power law of the projector holds
-(``benchmarks/bench_gamma_self.py``).
+projector, 8-bit camera, 4-step subsets of 12-step sets): the measured 2nd harmonic (its
+B²-weighted mean share, :attr:`app.recon.noise.NoiseFit.mean_harmonics`: the fit's share
+changes with the pixel's level) reads γ 1.42–1.56, and the table made from it reduces the
+4-step phase error against the 12-step phase on all 36 scene × subset × period cases (scene
+means 11–18 % of its RMS) and its systematic part by 35–83 %, but not all of it: the real
+odd harmonics grow near the top of the camera's range, which no power law of the projector
+holds (``benchmarks/bench_gamma_self.py``).
 
 Only N = 4 is corrected: for N ≥ 8 the aliased harmonics are the 7th and above (4·10⁻⁴
 of B at γ 1.5, under the noise); for N = 5 … 7 the 2nd harmonic shares its
@@ -185,7 +186,7 @@ def second_harmonic_ratios(harmonics: F64, sources: npt.NDArray[np.int64],
     the phasor's magnitude ``2B`` times cos 2φ: its coefficient a_2 is r itself.
 
     Args:
-        harmonics: (K, d, 2·S) float64, :attr:`app.recon.noise.NoiseFit.harmonics`.
+        harmonics: (K, d, 2·S) float64, :attr:`app.recon.noise.NoiseFit.mean_harmonics`.
         sources: (d, S) int64, :attr:`app.recon.noise.NoiseFit.sources`.
         steps: N.
     """

@@ -15,14 +15,20 @@ the fit take them out:
 * per pixel, where the steps allow (N ≥ 8), harmonics 2 … H, H = ⌊(N − 4)/2⌋, keeping
   N − 1 − 2H ≥ 3 degrees of freedom (on the real CFPE captures, N = 12 and a home
   projector, this turns a residual "noise" of 4–8 DN at 10 DN into 0.7 DN);
-* across the set, what is left of them: the projector's nonlinearity acts on its own
-  pattern value, so each harmonic is a fixed fraction of the pixel's fringe amplitude B
-  whatever the albedo (:func:`_harmonic_fit`). Residual harmonic ĥ (h ≡ ±ĥ mod N) is fitted
-  as ``B·Σ_h (a_h cos hφ + b_h sin hφ)`` with (a_h, b_h) common to all pixels of a frequency
-  — a few numbers for tens of thousands of pixels, so the noise keeps its degrees of
-  freedom. For N = 4 (the paper's schedule) the one residual per frequency is the Nyquist
-  component, ``B_2 cos 2φ + B_6 cos 6φ + …``: on a twin whose projector has gamma 1.5 it
-  read 6.1 DN/e⁻ of "gain" (the sensor's is 0.016) and refused nearly every pixel.
+* across the set, what is left of them (:func:`_harmonic_fit`). A projector's nonlinearity
+  acting on its own pattern value makes each harmonic a fixed fraction of the pixel's
+  fringe amplitude B whatever the albedo; a real one is not that clean (the CFPE home
+  projector and 8-bit camera: the 3rd harmonic reaches −0.056 of B where B ≥ 100 DN while
+  the 2nd falls), so the fractions are fitted as quadratic in the pixel's level. Residual harmonic
+  ĥ (h ≡ ±ĥ mod N) is fitted as ``B·Σ_h (a_h cos hφ + b_h sin hφ)``, ``a_h = a_h0 +
+  a_h1·t + a_h2·t²``, ``t = A/Ã − 1`` (A the level, Ã the set's median), the
+  coefficients common to all pixels of a frequency — a few numbers for tens of thousands of
+  pixels, so the noise keeps its degrees of freedom. For N = 4 (the paper's schedule) the
+  one residual per frequency is the Nyquist component, ``B_2 cos 2φ + B_6 cos 6φ + …``: on
+  a twin whose projector has gamma 1.5 a fit without it read 6.1 DN/e⁻ of "gain" (the
+  sensor's is 0.016) and refused nearly every pixel; on the real CFPE 4-step subsets fixed
+  fractions gave σ_I 1.57–5.48 × the 12-step fit's (scene 8: gain 3.1 DN/e⁻), the
+  level-dependent ones 0.85–1.25 × (``benchmarks/bench_gamma_self.py``).
 
 The residual is orthogonal to the fundamental whatever a phase-error table does to φ, so
 the estimate is the same with and without one.
@@ -60,6 +66,13 @@ SET_HARMONICS = 2
 #: pixels per chunk of the harmonic fit (noise_kernels.CHUNK); every other chunk gives the
 #: normal equations
 FIT_CHUNK = 1024
+#: ridge of the harmonic fit, relative to each regressor's sum of squares (+ 1: an all-dark
+#: set stays solvable). Where the pixels' levels span little (a uniform scene) t and t² are
+#: nearly collinear and their split is told apart by nothing but noise; the ridge keeps it
+#: small instead of noise-driven (it shrinks only combinations of regressors whose share of
+#: the sums of squares is below ρ), and it bounds the normal equations' condition, so the
+#: kernel's sums in another order give the numpy solution to ~10⁻⁹
+HARMONIC_RIDGE = 1e-6
 #: the share of pixels beyond the noise (a trim beyond the 0.1 % that noise gives) after
 #: which the set's harmonics are fitted again without them
 REFIT_SHARE = 0.01
@@ -84,12 +97,20 @@ class NoiseFit:
         pixels: pixels in the final fit.
         dof: ν, the residual's degrees of freedom per pixel.
         steps: N, the set's phase steps per frequency.
-        harmonics: (K, d, 2·S) float64, the projector harmonics common to the set: for
-            frequency k and residual column j, the coefficients (a_h, b_h) of
-            ``B cos hφ``, ``B sin hφ`` over h in ``sources[j]``, scaled to the column's
-            basis (for N = 4 the one column is the Nyquist one and a_2 is the 2nd
-            harmonic's fraction of the fringe amplitude B; :mod:`app.recon.gamma_model`).
+        harmonics: (K, d, 2·S) float64, the projector harmonics common to the set at its
+            median level (A = Ã): for frequency k and residual column j, the
+            coefficients (a_h, b_h) of ``B cos hφ``, ``B sin hφ`` over h in ``sources[j]``,
+            scaled to the column's basis (for N = 4 the one column is the Nyquist one and
+            a_2 is the 2nd harmonic's fraction of the fringe amplitude B;
+            :mod:`app.recon.gamma_model`).
         sources: (d, S) int64, the harmonics h of each residual column.
+        harmonic_slopes: (K, d, 2, 2·S) float64, how those coefficients change with the
+            pixel's level: the coefficients of t = A/Ã − 1 (index 0) and of t² (index 1).
+        brightness_centre: (K,) float64, Ã per frequency, DN: the median level of the
+            pixels the harmonics were fitted on.
+        level_moments: (K, 2) float64, E[t] and E[t²] of t = A/Ã − 1 over those pixels
+            (every :data:`CENTRE_EVERY`-th), weighted by B² (the regressors' weight in a
+            least-squares fit).
     """
 
     noise: SensorNoise
@@ -101,6 +122,21 @@ class NoiseFit:
     steps: int
     harmonics: F64
     sources: I64
+    harmonic_slopes: F64
+    brightness_centre: F64
+    level_moments: F64
+
+    @property
+    def mean_harmonics(self) -> F64:
+        """(K, d, 2·S) float64: the harmonics' B²-weighted mean share over the fitted
+        pixels, ``a_h0 + a_h1·E[t] + a_h2·E[t²]`` (:attr:`level_moments`): what one share
+        common to all pixels reads, and what the set's gamma table is made from (on the
+        CFPE 4-step subsets its table leaves 0.475 of the systematic phase error on the 36
+        cases' mean, the share at the median level's 0.502, a fixed-share fit's 0.479)."""
+        slope, curve = self.harmonic_slopes[:, :, 0], self.harmonic_slopes[:, :, 1]
+        mean_t = self.level_moments[:, 0, None, None]
+        mean_t2 = self.level_moments[:, 1, None, None]
+        return np.asarray(self.harmonics + slope * mean_t + curve * mean_t2, np.float64)
 
     @property
     def gain_se(self) -> float:
@@ -163,8 +199,10 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     dof = k_n * (basis.shape[1] - 2)
     var = np.empty((rows, cols))
     design = np.empty((2, rows, cols))
-    harmonics = np.empty((k_n, sources.shape[0], 2 * sources.shape[1]))
-    _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design, harmonics)
+    harmonics = np.empty((k_n, sources.shape[0], 3 * 2 * sources.shape[1]))
+    centre = np.empty(k_n)
+    _harmonic_fit(level, phasor, resid, basis, sources, usable, var, design, harmonics, centre)
+    fitted = usable
     # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
     # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
     x, y = _line_form(var, design, usable)
@@ -172,7 +210,9 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     if keep.sum() < (1.0 - REFIT_SHARE) * x.size:  # the harmonics again, without the outliers
         kept = np.zeros_like(usable)
         kept[usable] = keep
-        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design, harmonics)
+        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design, harmonics,
+                      centre)
+        fitted = kept
         x, y = _line_form(var, design, usable)
         coef, keep = _trimmed_fit(x, y, dof, start=coef)
     if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
@@ -184,8 +224,11 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     # fitted: on a set that moves it is the steeper one, and the validity rule refuses more
     read_dn = max(math.sqrt(max(float(coef[0]), 0.0)), QUANTISATION_NOISE_DN)
     noise = SensorNoise(gain_dn_per_e=max(float(coef[1]), 0.0), read_noise_dn=read_dn)
+    m = 2 * sources.shape[1]
+    slopes = np.stack([harmonics[..., m:2 * m], harmonics[..., 2 * m:]], axis=2)
     return NoiseFit(noise, float(coef[0]), float(coef[1]), cov, int(keep.sum()), dof, n,
-                    harmonics, sources)
+                    np.ascontiguousarray(harmonics[..., :m]), sources, slopes, centre,
+                    _level_moments(level, phasor, fitted, centre))
 
 
 @dataclass(frozen=True)
@@ -224,7 +267,7 @@ def resolve_set_noise(frames: Any, schedule: PatternSchedule, max_code: int) -> 
         fit = fit_sensor_noise(frames, schedule, max_code=max_code)
     except ValueError as exc:  # N = 3 (no residual) or too few usable pixels
         return SetNoise(SensorNoise.typical(max_code), "nominal", str(exc), None)
-    table = self_calibrated_table(fit.harmonics, fit.sources, fit.steps)
+    table = self_calibrated_table(fit.mean_harmonics, fit.sources, fit.steps)
     return SetNoise(fit.noise, "set", "", table)
 
 
@@ -298,20 +341,76 @@ def _statistics_numpy(stack: npt.NDArray[Any], step: int, n: int, basis: F64, to
     usable[...] = (sub.max(axis=0) < top) & (sub.min(axis=0) > 0)
 
 
+#: the harmonics' centre Ã is the median level of every this-th pixel of the fit's mask (a
+#: centre needs no more; the median of all costs 1.2 ms CPU of the fit's 9 on a 1384 × 1032
+#: set)
+CENTRE_EVERY = 4
+
+
+def _level_moments(level: F64, phasor: F64, mask: npt.NDArray[np.bool_], centre: F64) -> F64:
+    """(K, 2) float64: E[t], E[t²] of t = A/Ã − 1 over every :data:`CENTRE_EVERY`-th
+    ``mask`` pixel (as :func:`brightness_centre`) weighted by |phasor|² ∝ B² (0 where the
+    mask holds no light).
+
+    Args:
+        level: (K, R, C) DN; phasor: (K, 2, R, C) DN; mask: (R, C) bool; centre: (K,) Ã, DN.
+    """
+    k_n = level.shape[0]
+    picks = np.flatnonzero(mask)[::CENTRE_EVERY]
+    flat = phasor.reshape(k_n, 2, -1)
+    weight = flat[:, 0, picks] ** 2 + flat[:, 1, picks] ** 2  # (K, P)
+    t = level.reshape(k_n, -1)[:, picks] / centre[:, None] - 1.0
+    total = np.maximum(weight.sum(axis=1), np.finfo(np.float64).tiny)
+    wt = weight * t
+    return np.stack([wt.sum(axis=1) / total, (wt * t).sum(axis=1) / total], axis=1)
+
+
+def brightness_centre(level: F64, mask: npt.NDArray[np.bool_]) -> F64:
+    """(K,) float64: each frequency's median level Ã (DN) over every
+    :data:`CENTRE_EVERY`-th pixel of the ``mask`` (row-major), where the set's harmonics are
+    centred (1.0 where the mask is empty or dark: the brightness terms are then nil, not
+    undefined).
+
+    Args:
+        level: (K, R, C) each frequency's mean, DN.
+        mask: (R, C) bool.
+    """
+    picks = np.flatnonzero(mask)[::CENTRE_EVERY]
+    if picks.size == 0:
+        return np.ones(level.shape[0])
+    centre = np.median(level.reshape(level.shape[0], -1)[:, picks], axis=1)
+    return np.asarray(np.where(centre > 0.0, centre, 1.0), np.float64)
+
+
 def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
-                  mask: npt.NDArray[np.bool_], var: F64, design: F64, coef: F64) -> None:
+                  mask: npt.NDArray[np.bool_], var: F64, design: F64, coef: F64,
+                  centre: F64) -> None:
     """Residual variance per pixel after the fringe harmonics common to the set.
 
     For each frequency k and residual column j, ``resid[k, j] ≈ M = Σ_h a_h·B cos hφ +
-    b_h·B sin hφ`` over h in ``sources[j]``, (a, b) least squares over the ``mask`` pixels
-    (B = |phasor|, φ its angle). ``var`` (R, C) gets the mean square of what is left, DN²
-    (its degrees of freedom: K·d per pixel, less the 2·|sources| per (k, j) the set shares).
+    b_h·B sin hφ`` over h in ``sources[j]`` (B = |phasor|, φ its angle), where each
+    coefficient is quadratic in the pixel's level: ``a_h = a_h0 + a_h1·t + a_h2·t²``,
+    ``t = A/Ã − 1`` (A the frequency's mean level, Ã the mask's median:
+    :func:`brightness_centre`), so (a_h0, b_h0) are the harmonic at the median level. A
+    projector's nonlinearity alone gives fixed fractions of B; the real CFPE camera +
+    projector's harmonics change with brightness (the 3rd harmonic reaches −0.056 of B
+    where B ≥ 100 DN while the 2nd falls), and a fixed fraction left them in the residual
+    (``benchmarks/bench_gamma_self.py``). The level, not the amplitude, is the regressor: with
+    N = 4 the decoded |z| carries the aliased 3rd and 5th harmonics as a cos 4φ ripple, and
+    |z|·cos 2φ regressors then trade with the fixed ones (on a γ 1.5 twin the fit read a
+    2nd harmonic 5 % off and a noise 6 % high); the level's ripple is the 4th harmonic's,
+    ~0.3 % of B. The 3·2·|sources| coefficients per (k, j), least squares over the ``mask``
+    pixels of every other chunk of :data:`FIT_CHUNK`, are a few numbers against thousands
+    of pixels: the residual of the pixels they are fitted on is smaller by their leverage
+    (m/P on average), that of the pixels between them larger by about as much, so ``var``
+    (R, C), the mean square of what is left (DN²), keeps K·d degrees of freedom per pixel.
 
-    M is computed from the pixel's own phasor, whose noise is correlated with the
+    M is computed from the pixel's own phasor and level, whose noise is correlated with the
     residual's where the samples' shot noise differs (σ_n² = read² + gain·I_n): the
-    residual's noise is ``Σ_n w_n ε_n``, ``w_n = q_jn − (∂M/∂C) cos δ_n − (∂M/∂S) sin δ_n``,
-    of variance ``read²·Σ w_n² + gain·Σ w_n² I_n``. ``design`` (2, R, C) gets those two
-    sums, averaged as ``var`` (1 and the pixel's level where M is nil): the fit's regressors.
+    residual's noise is ``Σ_n w_n ε_n``, ``w_n = q_jn − (∂M/∂C) cos δ_n − (∂M/∂S) sin δ_n −
+    (∂M/∂A)/N``, of variance ``read²·Σ w_n² + gain·Σ w_n² I_n``. ``design`` (2, R, C) gets
+    those two sums, averaged as ``var`` (1 and the pixel's level where M is nil): the fit's
+    regressors.
 
     Args:
         level: (K, R, C) each frequency's mean, DN; phasor (K, 2, R, C) and resid
@@ -319,20 +418,24 @@ def _harmonic_fit(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
             :func:`_bases`.
         mask: (R, C) bool, the pixels to fit the harmonics on.
         var, design: out, (R, C) and (2, R, C) float64.
-        coef: out, (K, d, 2·S) float64, the fitted (a_h, b_h) per frequency and residual
-            column, h over ``sources[j]`` (S = :data:`SET_HARMONICS`); fractions of B.
+        coef: out, (K, d, 3·2·S) float64 (S = :data:`SET_HARMONICS`): per frequency and
+            residual column the (a_h, b_h) over h in ``sources[j]`` at the median level
+            (fractions of B), then their coefficients of t, then of t².
+        centre: out, (K,) float64, :func:`brightness_centre` of the mask (Ã, DN).
     """
+    centre[...] = brightness_centre(level, mask)
     if _nb is None:
-        _harmonic_fit_numpy(level, phasor, resid, basis, sources, mask, var, design, coef)
+        _harmonic_fit_numpy(level, phasor, resid, basis, sources, centre, mask, var, design,
+                            coef)
     else:
-        _nb.harmonic_fit(level, phasor, resid, basis, _moments(basis), sources, mask, var, design,
-                         coef)
+        _nb.harmonic_fit(level, phasor, resid, basis, _moments(basis), sources, centre,
+                         HARMONIC_RIDGE, mask, var, design, coef)
 
 
 def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources: I64,
-                        mask: npt.NDArray[np.bool_], var: F64, design: F64,
+                        centre: F64, mask: npt.NDArray[np.bool_], var: F64, design: F64,
                         coef_out: F64) -> None:
-    """:func:`_harmonic_fit` in numpy."""
+    """:func:`_harmonic_fit` in numpy (``centre`` given)."""
     z = phasor[:, 0] + 1j * phasor[:, 1]  # (K, R, C)
     mag = np.abs(z)
     unit = np.where(mag > 0, z / np.where(mag > 0, mag, 1.0), 1.0)
@@ -347,20 +450,34 @@ def _harmonic_fit_numpy(level: F64, phasor: F64, resid: F64, basis: F64, sources
         samples = (level[k][None] + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 0], phasor[k, 0])
                    + (2.0 / n) * np.einsum("n,rc->nrc", basis[:, 1], phasor[k, 1])
                    + np.einsum("nj,jrc->nrc", basis[:, 2:], resid[k]))
+        t = level[k] / centre[k] - 1.0
         for j in range(d):
             terms = [mag[k] * unit[k] ** h for h in sources[j]]
-            x = np.stack([f(t) for t in terms for f in (np.real, np.imag)], axis=-1)
-            coef = np.linalg.lstsq(x[mask], resid[k, j][mask], rcond=None)[0]
+            base = [f(v) for v in terms for f in (np.real, np.imag)]
+            x = np.stack(base + [c * t for c in base] + [c * t * t for c in base], axis=-1)
+            # the ridge-regularised least squares as augmented rows, solved by lstsq (the
+            # kernel solves its normal equations: an independent route to the same solution)
+            fitted = x[mask]
+            ridge = np.diag(np.sqrt(HARMONIC_RIDGE * ((fitted**2).sum(axis=0) + 1.0)))
+            coef = np.linalg.lstsq(np.concatenate([fitted, ridge]),
+                                   np.concatenate([resid[k, j][mask], np.zeros(x.shape[-1])]),
+                                   rcond=None)[0]
             coef_out[k, j] = coef
             var += (resid[k, j] - x @ coef) ** 2
-            gamma = coef[0::2] - 1j * coef[1::2]
-            g_z = sum(g * (1 + h) / 2 * unit[k] ** (h - 1) for g, h in zip(gamma, sources[j],
-                                                                         strict=True))
-            g_zb = sum(g * (1 - h) / 2 * unit[k] ** (h + 1) for g, h in zip(gamma, sources[j],
-                                                                          strict=True))
+            # γ = a − i·b per source: at the median level, and its coefficients of t and t²
+            g0, g1, g2 = (coef[o:o + len(base):2] - 1j * coef[o + 1:o + len(base):2]
+                          for o in (0, len(base), 2 * len(base)))
+            g_z = np.zeros_like(z[k])
+            g_zb = np.zeros_like(z[k])
+            d_level = np.zeros_like(mag[k])
+            for i, h in enumerate(sources[j]):
+                g = g0[i] + (g1[i] + g2[i] * t) * t
+                g_z += (1 + h) / 2 * g * unit[k] ** (h - 1)
+                g_zb += (1 - h) / 2 * g * unit[k] ** (h + 1)
+                d_level += np.real((g1[i] + 2.0 * g2[i] * t) * unit[k] ** h) * mag[k] / centre[k]
             alpha, beta = np.real(g_z + g_zb), -np.imag(g_z - g_zb)
             w = (basis[:, 2 + j, None, None] - alpha[None] * basis[:, 0, None, None]
-                 - beta[None] * basis[:, 1, None, None])
+                 - beta[None] * basis[:, 1, None, None] - d_level[None] / n)
             design[0] += (w**2).sum(axis=0)
             design[1] += (w**2 * samples).sum(axis=0)
     var /= k_n * d

@@ -78,6 +78,62 @@ def test_projector_gamma_harmonics_are_not_noise():
     assert abs(fit4.noise.variance_dn2(1000.0) - truth) < 3 * fit4.variance_se_dn2(1000.0)
 
 
+#: the 2nd harmonic's share of B in :func:`_brightness_harmonic_set`: at the median level,
+#: and its coefficients of t = A/1600 − 1 and of t²
+SHARE_AT_MEDIAN, SHARE_SLOPE, SHARE_CURVE = 0.10, -0.08, 0.5
+
+
+def _brightness_harmonic_set(rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+    """A 4-step, 3-frequency 12-bit set whose 2nd harmonic, as a fraction of B, changes with
+    the pixel's level A (the real CFPE projector's kind, not a power law): r_2 = 0.10 −
+    0.08·t + 0.5·t², t = A/1600 − 1. A varies across the image (1200 … 2000 DN) and the
+    amplitude B down it (300 … 1100 DN), so the harmonic is not a function of B. Shot + read
+    noise: (frames (12, 240, 320) uint16, read² DN², gain DN/e⁻)."""
+    h, w = 240, 320
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    level = 1200.0 + 800.0 * x / w  # above B: no sample clipped at 0
+    amp = 300.0 + 800.0 * y / h
+    t = level / 1600.0 - 1.0
+    ratio = SHARE_AT_MEDIAN + SHARE_SLOPE * t + SHARE_CURVE * t**2
+    read, gain = 4.0, 0.5
+    frames = []
+    for k in (1, 4, 12):
+        theta = 2.0 * np.pi * k * (x + 0.3 * y) / w
+        for n in range(4):
+            phase = theta + 2.0 * np.pi * n / 4
+            mean = level + amp * (np.cos(phase) + ratio * np.cos(2.0 * phase))
+            noisy = mean + rng.normal(size=mean.shape) * np.sqrt(read**2 + gain * mean)
+            frames.append(np.clip(np.rint(noisy), 0, 4095).astype(np.uint16))
+    return np.stack(frames), read**2 + 1 / 12, gain
+
+
+def test_harmonics_that_change_with_brightness_are_not_noise():
+    """The set-wide harmonics are quadratic in the pixel's level: a 2nd harmonic whose share
+    of B changes with A (0.10 … 0.15 over the set; its departure from the median share
+    reaches 55 DN, the noise is 30 DN) is fitted out and the sensor's noise found within 3
+    standard errors; the fit reads the harmonic at the set's median level and its
+    coefficients of A/Ã − 1 and (A/Ã − 1)²."""
+    frames, read2, gain = _brightness_harmonic_set(np.random.default_rng(6))
+    fit = fit_sensor_noise(frames, PatternSchedule(frequencies=(1, 4, 12), steps=4),
+                           max_code=4095)
+    assert abs(fit.gain_dn_per_e - gain) < 3 * fit.gain_se
+    for level in (1300.0, 1600.0, 1900.0):
+        truth = read2 + gain * level
+        assert abs(fit.noise.variance_dn2(level) - truth) < 3 * fit.variance_se_dn2(level)
+    # the centre is the median level of the fitted pixels (A is uniform over 1200 … 2000 DN)
+    centre = fit.brightness_centre
+    assert centre == pytest.approx(1600.0, rel=0.02)
+    # the truth in the fit's own t = A/Ã − 1: t_truth = s·(1 + t) − 1, s = Ã/1600
+    s = centre / 1600.0
+    at_median = SHARE_AT_MEDIAN + SHARE_SLOPE * (s - 1) + SHARE_CURVE * (s - 1) ** 2
+    slope = (SHARE_SLOPE + 2 * SHARE_CURVE * (s - 1)) * s
+    curve = SHARE_CURVE * s**2
+    # within 3 standard errors (their spread over seeds 6–9: 3·10⁻⁴, 1.3·10⁻³, 7·10⁻³)
+    assert fit.harmonics[:, 0, 0] == pytest.approx(at_median, abs=1e-3)
+    assert fit.harmonic_slopes[:, 0, 0, 0] == pytest.approx(slope, abs=4e-3)
+    assert fit.harmonic_slopes[:, 0, 1, 0] == pytest.approx(curve, abs=0.03)
+
+
 # -- the projector's gamma on the twin ---------------------------------------------------------
 
 GAMMA = 1.5  # the twin's DMD response exponent, left uncorrected
