@@ -3,6 +3,7 @@ cores, 512-bit vectors where the CPU has them: app/core/jit.py) before any test 
 released after each module (tests/helpers/release.py) and logged per test on request
 (tests/helpers/rss.py)."""
 
+import tests.helpers.blas_threads  # noqa: F401  (first: one BLAS thread, before numpy loads)
 from app.core.jit import configure_numba
 
 configure_numba()

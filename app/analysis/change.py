@@ -256,6 +256,47 @@ class _Pairs(NamedTuple):
     moved: F64
 
 
+def project_to_pixels(points: F64, camera_matrix: F64, dist_coeffs: F64) -> F64:
+    """Pixel coordinates of camera-frame points: ``cv2.projectPoints`` with rvec = tvec = 0.
+
+    The same arithmetic in the same order as OpenCV's (bit-identical results, checked in
+    tests/analysis/test_change_registration.py) without the (2N, 15) Jacobian its Python
+    binding always computes: for a whole map (1.4 M points) that is 336 MB and ~6x the time.
+    A tilted sensor (14 coefficients, τx or τy ≠ 0) goes to OpenCV.
+
+    Args:
+        points: (N, 3) float64 camera-frame points, mm (z = 0 is taken as z = 1, as OpenCV).
+        camera_matrix: (3, 3) intrinsics, px (the skew is ignored, as OpenCV).
+        dist_coeffs: OpenCV distortion coefficients (0, 4, 5, 8, 12 or 14 of them).
+
+    Returns:
+        (N, 2) float64 pixel coordinates (u, v).
+    """
+    dist = np.asarray(dist_coeffs, np.float64).ravel()
+    if dist.size > 12 and np.any(dist[12:] != 0):
+        uv, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), camera_matrix, dist)
+        out: F64 = np.asarray(uv, np.float64).reshape(-1, 2)
+        return out
+    k = np.zeros(12)
+    k[:dist.size] = dist[:12]
+    z = points[:, 2]
+    inv_z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
+    x, y = points[:, 0] * inv_z, points[:, 1] * inv_z
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
+    radial = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+    inv_rational = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+    # term by term in OpenCV's order: the sums round as its do
+    xd = x * radial * inv_rational + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4
+    yd = y * radial * inv_rational + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4
+    uv_px: F64 = np.empty((len(points), 2))
+    uv_px[:, 0] = xd * camera_matrix[0, 0] + camera_matrix[0, 2]
+    uv_px[:, 1] = yd * camera_matrix[1, 1] + camera_matrix[1, 2]
+    return uv_px
+
+
 def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tuple[int, int],
            camera_matrix: F64, dist_coeffs: F64, stride: int = 1) -> _Pairs:
     h, w = shape
@@ -270,8 +311,7 @@ def _pairs(points: F32, valid: npt.NDArray[np.bool_], transform: F64, shape: tup
     keep, moved = keep[front], moved[front]
     if len(keep) == 0:  # nothing in front of the camera (cv2 returns None for no points)
         return _Pairs(keep, keep, moved)
-    uv, _ = cv2.projectPoints(moved, np.zeros(3), np.zeros(3), camera_matrix, dist_coeffs)
-    uv = np.rint(uv.reshape(-1, 2)).astype(np.int64)
+    uv = np.rint(project_to_pixels(moved, camera_matrix, dist_coeffs)).astype(np.int64)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     keep, moved, uv = keep[inside], moved[inside], uv[inside]
     # the point nearest the camera wins a pixel: written last
@@ -468,4 +508,5 @@ def compare(depth: F32, sigma: F32, points: F32, ref_depth: F32, ref_sigma: F32,
 
 
 __all__ = ["DEFAULT_MOVED_SHARE", "ChangeResult", "Registration", "change_along_normal",
-           "compare", "register_rigid", "registered_extra_sigma_mm", "surface_normals"]
+           "compare", "project_to_pixels", "register_rigid", "registered_extra_sigma_mm",
+           "surface_normals"]

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from app.analysis.change import compare, register_rigid, surface_normals
+from app.analysis.change import compare, project_to_pixels, register_rigid, surface_normals
 
 H, W = 240, 320
 K = np.array([[300.0, 0, (W - 1) / 2], [0, 300.0, (H - 1) / 2], [0, 0, 1]])
@@ -196,3 +196,26 @@ def test_a_transform_that_puts_every_point_behind_the_camera_compares_nothing(re
     behind[2, 3] = -1000.0  # 1 m back: every point at z < 0
     cm = change_along_normal(ref_pts, ref_sig, ref_pts, ref_sig, behind, K, DIST)
     assert cm.compared == 0 and not cm.changed.any() and np.isnan(cm.delta).all()
+
+
+@pytest.mark.parametrize("dist", [
+    np.zeros(0), np.zeros(5),
+    np.array([-0.05, 0.0, 0.0, 0.0, 0.0]),  # the twin's lens
+    np.array([0.21, -0.33, 1.2e-3, -8e-4]),
+    np.array([-0.12, 0.08, 1e-3, -1e-3, 0.015]),
+    np.array([-0.12, 0.08, 1e-3, -1e-3, 0.015, 0.02, -0.01, 0.005]),  # rational
+    np.array([-0.12, 0.08, 1e-3, -1e-3, 0.015, 0.02, -0.01, 0.005, 1e-3, -2e-4, 5e-4, 3e-4]),
+    np.array([-0.12, 0.08, 1e-3, -1e-3, 0.015, 0, 0, 0, 0, 0, 0, 0, 0.01, -0.02]),  # tilted
+])
+def test_the_projection_is_opencvs_to_the_last_bit(dist: np.ndarray) -> None:
+    """The registered comparison projects a whole map without OpenCV's Jacobian: the pixel
+    coordinates must be OpenCV's exactly (a rounding apart would move a pixel's pairing)."""
+    rng = np.random.default_rng(7)
+    n = 200_000
+    pts = np.column_stack([rng.uniform(-25, 25, n), rng.uniform(-20, 20, n),
+                           rng.uniform(20, 90, n)])
+    cam = np.array([[1650.3, 0.0, 691.5], [0.0, 1649.1, 515.5], [0.0, 0.0, 1.0]])
+    expected, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cam, dist)
+    got = project_to_pixels(pts, cam, dist)
+    assert got.shape == (n, 2) and got.dtype == np.float64
+    assert np.array_equal(got, expected.reshape(-1, 2))

@@ -64,10 +64,17 @@ def frames() -> Frames:
 def _renderer(cal: Calibration, rig: Any, rendered: Frames) -> Callable[..., Map]:
     engine = Reconstructor(cal)
     cache: dict[Any, Map] = {}
+    # the last scene's world: its next seed reuses the traced geometry (seconds a set, and
+    # ~0.3 GB, so one slot); reseeded, it renders what a new world of that seed renders
+    last_world: dict[str, SimulatedWorld] = {}
 
     def render(key: str, scene: Scene, seed: int, t0_s: float = 0.0) -> Map:
         if (key, seed, t0_s) not in rendered:
-            world = SimulatedWorld(scene, seed=seed)
+            world = last_world.get(key)
+            if world is None:
+                last_world.clear()
+                world = last_world[key] = SimulatedWorld(scene, seed=seed)
+            world.reseed(seed)
             cs, truth, _ = render_capture_set(scene, world=world, t0_s=t0_s)
             rendered[key, seed, t0_s] = (cs.frames, truth)
         if (key, seed, t0_s) not in cache:
