@@ -9,6 +9,7 @@ import numpy.typing as npt
 import pytest
 from numba import njit
 
+from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
 from app.devices.sim.ideal import ideal_calibration
 from app.devices.sim.offline import render_capture_set
@@ -161,10 +162,15 @@ def test_the_sets_own_table_as_a_series_gives_the_tables_depth(scene, exposure_m
     assert a.phase is not None and b.phase is not None and c.phase is not None
     assert a.phase_error_source == b.phase_error_source == "given"
     assert np.array_equal(a.reason, b.reason)
-    # the look-ups differ from the numpy path at 1 pixel of the tissue set (UNWRAP_INCONSISTENT
-    # there, UNCERTAIN in the kernel: a float32 borderline); the series adds no other
+    # the look-ups differ from the numpy path at a few pixels of the tissue set
+    # (UNWRAP_INCONSISTENT there, UNCERTAIN in the kernel: float32 borderlines; how many sit on
+    # the border depends on the set's noise fit); the series adds no other
     assert np.array_equal(c.reason != b.reason, c.reason != a.reason)
-    assert np.sum(c.reason != b.reason) <= 2
+    differ = c.reason != b.reason
+    assert np.sum(differ) <= 1e-5 * differ.size
+    borderline = {int(Reason.UNWRAP_INCONSISTENT), int(Reason.UNCERTAIN)}
+    assert set(np.unique(c.reason[differ]).tolist()) <= borderline
+    assert set(np.unique(b.reason[differ]).tolist()) <= borderline
     assert a.recovered == b.recovered == c.recovered
     if scene == "dof_target":
         assert b.recovered > 10_000
