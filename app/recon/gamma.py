@@ -92,8 +92,9 @@ class PhaseErrorSeries:
 
 
 def _interpolate(error_rad: F64, wrapped: F64) -> F64:
-    """(K, M) the tables ``error_rad`` (K, bins) at the phases ``wrapped`` (M,) rad in [0, 2π):
-    linear interpolation between bin centres, circular (:meth:`PhaseErrorLUT.apply`'s)."""
+    """(K, …) the tables ``error_rad`` (K, bins) at the phases ``wrapped`` (…) rad in [0, 2π):
+    linear interpolation between bin centres, circular (what :meth:`PhaseErrorLUT.apply`
+    corrects by)."""
     bins = error_rad.shape[1]
     x = wrapped * (bins / TWO_PI) - 0.5
     i0 = np.floor(x).astype(np.int64)
@@ -316,15 +317,12 @@ class PhaseErrorLUT:
             wrapped: (K, H, W) wrapped phases, radians, K = the table's frequencies.
         """
         w = np.asarray(wrapped, dtype=np.float64)
-        k_n, bins = self.error_rad.shape
+        k_n = self.error_rad.shape[0]
         if w.ndim != 3 or w.shape[0] != k_n:
             raise ValueError(f"wrapped: expected shape ({k_n}, H, W), got {w.shape}")
         out = np.empty_like(w)
         for k in range(k_n):
-            x = w[k] * (bins / TWO_PI) - 0.5
-            i0 = np.floor(x).astype(np.int64)
-            t = x - i0
-            corr = (1.0 - t) * self.error_rad[k][i0 % bins] + t * self.error_rad[k][(i0 + 1) % bins]
+            corr = _interpolate(self.error_rad[k:k + 1], w[k])[0]
             out[k] = np.mod(w[k] - corr, TWO_PI)
         out[out >= TWO_PI] = 0.0
         return out
