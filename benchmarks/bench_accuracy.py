@@ -57,10 +57,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from app.core.jit import numba_environment
+from app.core.jit import numeric_environment
 
-# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
-os.environ.update(numba_environment(os.environ))
+# before numba is imported: the numeric settings of the CLI (app/core/jit.py)
+os.environ.update(numeric_environment(os.environ))
 
 from app.analysis import feature_height, sphere_figures  # noqa: E402
 from app.analysis.acceptance import (  # noqa: E402

@@ -32,10 +32,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.jit import numba_environment
+from app.core.jit import numeric_environment
 
 # before numba is imported: numba runs the kernel as under the CLI (app/core/jit.py)
-os.environ.update(numba_environment(os.environ))
+os.environ.update(numeric_environment(os.environ))
 
 import numpy as np
 import numpy.typing as npt

@@ -23,10 +23,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from app.core.jit import numba_environment
+from app.core.jit import numeric_environment
 
-# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
-os.environ.update(numba_environment(os.environ))
+# before numba is imported: the numeric settings of the CLI (app/core/jit.py)
+os.environ.update(numeric_environment(os.environ))
 
 import numpy as np
 

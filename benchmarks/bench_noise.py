@@ -36,10 +36,10 @@ import numpy.typing as npt
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from app.core.jit import numba_environment  # noqa: E402
+from app.core.jit import numeric_environment  # noqa: E402
 
-# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
-os.environ.update(numba_environment(os.environ))
+# before numba is imported: the numeric settings of the CLI (app/core/jit.py)
+os.environ.update(numeric_environment(os.environ))
 
 from timing import median_ms  # noqa: E402  (benchmarks/ is the script's folder)
 

@@ -1,12 +1,12 @@
-"""Shared test setup: numba configured as the CLI configures it (no spinning OpenMP threads on 2
-cores, 512-bit vectors where the CPU has them: app/core/jit.py) before any test imports it; memory
+"""Shared test setup: numba and OpenBLAS configured as the CLI configures them (no spinning OpenMP
+or BLAS threads on 2 cores, 512-bit vectors where the CPU has them: app/core/jit.py) before any
+test imports numpy or numba; memory
 released after each module (tests/helpers/release.py) and logged per test on request
 (tests/helpers/rss.py)."""
 
-import tests.helpers.blas_threads  # noqa: F401  (first: one BLAS thread, before numpy loads)
-from app.core.jit import configure_numba
+from app.core.jit import configure_numerics
 
-configure_numba()
+configure_numerics()
 
 pytest_plugins = [
     "tests.helpers.release",  # after each module: FastAPI's endpoint caches, cycles, heap

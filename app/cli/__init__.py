@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from app import __version__
-from app.core.jit import configure_numba
+from app.core.jit import configure_numerics
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    configure_numba()  # before the commands import numba: threading layer, vector width
+    configure_numerics()  # before the commands import numpy and numba (app/core/jit.py)
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

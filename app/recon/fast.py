@@ -36,8 +36,8 @@ arithmetic is float32. ``fastmath`` excludes ``nnan``/``ninf`` because NaN marks
 invalid pixels. The JIT result is cached on disk (``cache=True``).
 
 The threading layer and the vector width are the entry points' settings, not this module's
-(:func:`app.core.jit.configure_numba`): the CLI, the tests, the benchmarks, the Makefile and the
-container set ``NUMBA_THREADING_LAYER=workqueue`` (OpenMP's spinning threads are 8x slower on 2
+(:func:`app.core.jit.configure_numerics`): the CLI, the tests, the benchmarks, the Makefile and
+the container set ``NUMBA_THREADING_LAYER=workqueue`` (OpenMP's spinning threads are 8x slower on 2
 cores), numba reads it when the first parallel kernel is compiled; on an AVX-512 CPU the CLI,
 the tests and ``bench_recon`` also let LLVM use 512-bit vectors (its tuning keeps 256: the
 kernel's float32 loops then take ~30 % more CPU).

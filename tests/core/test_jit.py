@@ -1,10 +1,21 @@
-"""numba's process settings (app/core/jit.py): threading layer and 512-bit vectors."""
+"""The numeric process settings (app/core/jit.py): numba's threading layer and 512-bit vectors,
+OpenBLAS's thread count."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
-from app.core.jit import WIDE_VECTORS, configure_numba, host_cpu_features, wide_vector_features
+from app.core.jit import (
+    BLAS_THREADS,
+    BLAS_THREADS_VARIABLE,
+    WIDE_VECTORS,
+    configure_numerics,
+    host_cpu_features,
+    wide_vector_features,
+)
 
 AVX512_HOST = "+sse2,+avx2,+avx512f,+avx512bw,-amx-tile,+fma"
 
@@ -27,15 +38,18 @@ def test_no_avx512_nothing_to_widen(host: str) -> None:
 
 
 def test_configure_keeps_what_is_given() -> None:
-    env = {"NUMBA_THREADING_LAYER": "omp", "NUMBA_CPU_FEATURES": "+sse2"}
-    configure_numba(env)
-    assert env == {"NUMBA_THREADING_LAYER": "omp", "NUMBA_CPU_FEATURES": "+sse2"}
+    given = {"NUMBA_THREADING_LAYER": "omp", "NUMBA_CPU_FEATURES": "+sse2",
+             BLAS_THREADS_VARIABLE: "4"}
+    env = dict(given)
+    configure_numerics(env)
+    assert env == given
 
 
 def test_configure_sets_the_defaults_from_this_host() -> None:
     env: dict[str, str] = {}
-    configure_numba(env)
+    configure_numerics(env)
     assert env["NUMBA_THREADING_LAYER"] == "workqueue"
+    assert env[BLAS_THREADS_VARIABLE] == BLAS_THREADS == "1"
     assert env.get("NUMBA_CPU_FEATURES") == wide_vector_features(host_cpu_features())
 
 
@@ -53,3 +67,12 @@ def test_the_test_process_compiles_as_configured() -> None:
     else:
         assert features == expected
         assert features.endswith(WIDE_VECTORS)
+
+
+def test_the_cli_configures_before_numpy_loads() -> None:
+    """OpenBLAS reads its thread count once, when numpy loads it: importing the CLI package
+    (whose ``main`` configures the process first) must not load numpy."""
+    code = "import sys, app.cli; print('numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
