@@ -27,6 +27,7 @@ from app.devices.sim.radiometry import (
 )
 from app.devices.sim.raycast import raycast_capsule
 from app.devices.sim.scenes.base import F64, Scene
+from app.devices.sim.shading_kernels import shade_geometry
 from app.devices.sim.trace import integrate_print, trace
 
 F32 = npt.NDArray[np.float32]
@@ -129,18 +130,14 @@ class Renderer:
         fringe modulation of frequency k after defocus and subsurface blur."""
         proj = self.rig.projector
         k = np.asarray(self.schedule.frequencies, np.float64)
-        wp = self.schedule.width
-        to_p = proj.centre - points
-        d_p = np.sqrt(np.einsum("ij,ij->i", to_p, to_p))
-        light = to_p / d_p[:, None]
-        nrm = np.array(normals, copy=True)
-        flip = np.einsum("ij,ij->i", nrm, points) > 0  # normals face the camera
-        nrm[flip] *= -1
-        cos_i = np.clip(np.einsum("ij,ij->i", nrm, light), 0.0, None)
-        view = -points / np.sqrt(np.einsum("ij,ij->i", points, points))[:, None]
-        half = light + view
-        half /= np.sqrt(np.einsum("ij,ij->i", half, half))[:, None]
-        cos_h = np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None)
+        n_pts = points.shape[0]
+        d_p, cos_i, cos_h = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts)
+        lit = np.empty(n_pts, np.bool_)
+        # distance, incidence and half-vector cosines and the projector's lit test, one pass
+        pts, nrm, centre, rot, kp = (np.ascontiguousarray(a, np.float64)
+                                     for a in (points, normals, proj.centre, proj.R, proj.K))
+        shade_geometry(pts, nrm, centre, rot, kp, float(self.schedule.width),
+                       float(proj.size[1]), d_p, cos_i, cos_h, lit)
         names = [MATERIALS[m] for m in range(len(MATERIALS))]
         refl = np.array([REFLECTANCE[n][led] for n in names])[material] * albedo
         ks = np.array([SPECULAR.get(n, (0.0, 1.0))[0] for n in names])[material]
@@ -148,13 +145,6 @@ class Renderer:
         sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
         g_d = refl * cos_i / d_p**2
         g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
-        q = proj.to_projector(points)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xp = proj.K[0, 0] * q[:, 0] / q[:, 2] + proj.K[0, 2]
-            yp = proj.K[1, 1] * q[:, 1] / q[:, 2] + proj.K[1, 2]
-        front = q[:, 2] > 0
-        lit = front & (xp >= -0.5) & (xp <= wp - 0.5) & (yp >= -0.5) & (yp <= proj.size[1] - 0.5)
-        lit &= np.isfinite(points).all(axis=1)
         g_d = np.where(lit, g_d, 0.0)
         g_s = np.where(lit, g_s, 0.0)
         z = points[:, 2]

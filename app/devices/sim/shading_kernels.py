@@ -1,0 +1,93 @@
+"""Numba kernels of the renderer's once-per-scene precompute: small matrix products and the
+per-pixel shading arithmetic.
+
+They replace numpy expressions that made a temporary array per operation (a 1384 × 1032
+image of 3-vectors is 34 MB per temporary). Each kernel evaluates the same IEEE operations in
+the same order as the numpy expression it replaces and is compiled without fast-math (no
+fused multiply-add, no reassociation), so its results are bit-identical; the transcendental
+functions (``exp``, ``pow``) stay in numpy, whose SIMD versions numba's libm calls would not
+match to the last bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+
+@nb.njit(cache=True, nogil=True)
+def mat3_rows(p: F64, m: F64, out: F64) -> None:  # pragma: no cover - compiled
+    """out[i, j] = p[i, 0]·m[0, j] + p[i, 1]·m[1, j] + p[i, 2]·m[2, j], summed left to right.
+
+    p: (N, 3) float64; m: (3, k) float64; out: (N, k) float64.
+    """
+    k = m.shape[1]
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        for j in range(k):
+            out[i, j] = x * m[0, j] + y * m[1, j] + z * m[2, j]
+
+
+@nb.njit(cache=True, nogil=True)
+def mat3_shifted_rows(p: F64, shift: F64, m: F64, out: F64) -> None:  # pragma: no cover
+    """As :func:`mat3_rows` for the rows p[i] − shift ((3,) float64), without the (N, 3)
+    difference array: the subtraction is rounded first, as numpy's would be."""
+    k = m.shape[1]
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0] - shift[0], p[i, 1] - shift[1], p[i, 2] - shift[2]
+        for j in range(k):
+            out[i, j] = x * m[0, j] + y * m[1, j] + z * m[2, j]
+
+
+@nb.njit(cache=True, nogil=True)
+def shade_geometry(points: F64, normals: F64, centre: F64, rot: F64, kp: F64, width_p: float,
+                   height_p: float, d_p: F64, cos_i: F64, cos_h: F64,
+                   lit: npt.NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+    """Per-point geometry of the projector light (see ``Renderer.shade``), one pass.
+
+    Args:
+        points: (N, 3) float64 camera-frame points, mm (finite).
+        normals: (N, 3) float64 surface normals (any sign; turned to face the camera here).
+        centre: (3,) float64 projector centre, mm; rot: (3, 3) float64 projector rotation (its
+            frame's vectors to the camera frame's: a point's projector coordinates are
+            (X − centre)·rot); kp: (3, 3) float64 projector intrinsics.
+        width_p, height_p: extent (projector px) of the pattern along x and y.
+        d_p: out (N,) float64 distance to the projector, mm.
+        cos_i: out (N,) float64 cosine of incidence, ≥ 0 (NaN stays NaN, as np.clip).
+        cos_h: out (N,) float64 cosine between normal and the half vector, ≥ 0.
+        lit: out (N,) bool: in front of the projector, inside its pattern and finite.
+    """
+    # The dot products sum x, z, then y: the order of numpy's einsum("ij,ij->i") over rows of
+    # three (two SIMD lanes), which the numpy expression used.
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        tx, ty, tz = centre[0] - px, centre[1] - py, centre[2] - pz
+        d = math.sqrt(tx * tx + tz * tz + ty * ty)
+        lx, ly, lz = tx / d, ty / d, tz / d
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        if nx * px + nz * pz + ny * py > 0:  # normals face the camera
+            nx, ny, nz = -nx, -ny, -nz
+        ci = nx * lx + nz * lz + ny * ly
+        pn = math.sqrt(px * px + pz * pz + py * py)
+        vx, vy, vz = -px / pn, -py / pn, -pz / pn
+        hx, hy, hz = lx + vx, ly + vy, lz + vz
+        hn = math.sqrt(hx * hx + hz * hz + hy * hy)
+        hx, hy, hz = hx / hn, hy / hn, hz / hn
+        ch = nx * hx + nz * hz + ny * hy
+        d_p[i] = d
+        cos_i[i] = 0.0 if ci < 0.0 else ci
+        cos_h[i] = 0.0 if ch < 0.0 else ch
+        # projector coordinates of the point: (X − centre)·rot
+        qx = -tx * rot[0, 0] + -ty * rot[1, 0] + -tz * rot[2, 0]
+        qy = -tx * rot[0, 1] + -ty * rot[1, 1] + -tz * rot[2, 1]
+        qz = -tx * rot[0, 2] + -ty * rot[1, 2] + -tz * rot[2, 2]
+        xp = kp[0, 0] * qx / qz + kp[0, 2]
+        yp = kp[1, 1] * qy / qz + kp[1, 2]
+        lit[i] = (qz > 0 and xp >= -0.5 and xp <= width_p - 0.5 and yp >= -0.5
+                  and yp <= height_p - 0.5 and math.isfinite(px) and math.isfinite(py)
+                  and math.isfinite(pz))

@@ -1,0 +1,110 @@
+"""The precompute's numba kernels (shading_kernels) against the numpy expressions they
+replaced, kept here as references: the results must be bit-identical, so the twin's frames
+and every accuracy figure measured on them stay as they were."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from app.devices.sim import SimulatedWorld
+from app.devices.sim.optics import mat3, mat3_shifted
+from app.devices.sim.radiometry import MATERIALS, REFLECTANCE, SPECULAR, SSS_MM, defocus_sigma_px
+from app.devices.sim.render import Renderer
+
+F64 = npt.NDArray[np.float64]
+
+
+def _mat3_reference(points: F64, m: F64) -> F64:
+    """The numpy broadcast ``mat3`` was before its kernel."""
+    p = np.asarray(points, np.float64)
+    if m.ndim == 1:
+        out: F64 = p[..., 0] * m[0] + p[..., 1] * m[1] + p[..., 2] * m[2]
+    else:
+        out = p[..., 0, None] * m[0] + p[..., 1, None] * m[1] + p[..., 2, None] * m[2]
+    return out
+
+
+def _shade_reference(r: Renderer, points: F64, normals: F64, material: npt.NDArray[np.uint8],
+                     albedo: F64, sigma_cam: F64, grad_xp: F64, led: str) -> tuple[F64, F64]:
+    """``Renderer.shade`` as it was in numpy (einsum dot products, the projector test through
+    ``to_projector``), before its per-pixel geometry became a kernel."""
+    proj = r.rig.projector
+    k = np.asarray(r.schedule.frequencies, np.float64)
+    wp = r.schedule.width
+    to_p = proj.centre - points
+    d_p = np.sqrt(np.einsum("ij,ij->i", to_p, to_p))
+    light = to_p / d_p[:, None]
+    nrm = np.array(normals, copy=True)
+    flip = np.einsum("ij,ij->i", nrm, points) > 0
+    nrm[flip] *= -1
+    cos_i = np.clip(np.einsum("ij,ij->i", nrm, light), 0.0, None)
+    view = -points / np.sqrt(np.einsum("ij,ij->i", points, points))[:, None]
+    half = light + view
+    half /= np.sqrt(np.einsum("ij,ij->i", half, half))[:, None]
+    cos_h = np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None)
+    names = [MATERIALS[m] for m in range(len(MATERIALS))]
+    refl = np.array([REFLECTANCE[n][led] for n in names])[material] * albedo
+    ks = np.array([SPECULAR.get(n, (0.0, 1.0))[0] for n in names])[material]
+    shin = np.array([SPECULAR.get(n, (0.0, 1.0))[1] for n in names])[material]
+    sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
+    g_d = refl * cos_i / d_p**2
+    g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
+    q = _mat3_reference(points - proj.centre, proj.R)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xp = proj.K[0, 0] * q[:, 0] / q[:, 2] + proj.K[0, 2]
+        yp = proj.K[1, 1] * q[:, 1] / q[:, 2] + proj.K[1, 2]
+    front = q[:, 2] > 0
+    lit = front & (xp >= -0.5) & (xp <= wp - 0.5) & (yp >= -0.5) & (yp <= proj.size[1] - 0.5)
+    lit &= np.isfinite(points).all(axis=1)
+    g_d = np.where(lit, g_d, 0.0)
+    g_s = np.where(lit, g_s, 0.0)
+    z = points[:, 2]
+    f_px = r.rig.camera.K[0, 0]
+    sig_p = defocus_sigma_px(d_p, r.rig.projector_focus_mm, r.rig.projector_blur_per_inv_mm)
+    sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
+    var_s = sigma_cam**2 + sig_p_cam**2
+    var_d = var_s + (sss * f_px / z) ** 2
+    ang = (2 * math.pi * k[:, None] * grad_xp[None] / r.schedule.axis_length) ** 2 / 2.0
+    fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
+    base = g_d + g_s
+    return np.nan_to_num(base), np.nan_to_num(fringe)
+
+
+def test_mat3_is_bit_identical_to_the_numpy_sums() -> None:
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(40, 57, 3)) * 30.0
+    points[3, 4] = np.nan
+    points[5, 6, 2] = np.inf
+    m = rng.normal(size=(3, 3))
+    shift = rng.normal(size=3)
+    np.testing.assert_array_equal(mat3(points, m), _mat3_reference(points, m))
+    np.testing.assert_array_equal(mat3(points, m[:, 1]), _mat3_reference(points, m[:, 1]))
+    np.testing.assert_array_equal(mat3(points, m[:, :2]), _mat3_reference(points, m[:, :2]))
+    np.testing.assert_array_equal(mat3_shifted(points, shift, m),
+                                  _mat3_reference(points - shift, m))
+    # a non-contiguous view (the renderer passes slices of its point image)
+    view = points[:, ::2]
+    np.testing.assert_array_equal(mat3(view, m), _mat3_reference(view, m))
+    assert mat3(points, m[:, 1]).shape == (40, 57)
+
+
+@pytest.mark.parametrize(("scene", "rig"), [("anastomosis", "default"),
+                                            ("dof_target", "endoscope-projector-defect")])
+@pytest.mark.parametrize("led", ["green", "red"])
+def test_shade_is_bit_identical_to_the_numpy_expression(scene: str, rig: str, led: str) -> None:
+    """Every pixel of a tissue scene (specular, subsurface, unlit background) and of a printed
+    target on another rig: base and fringe parts equal to the last bit."""
+    r = SimulatedWorld(scene, seed=1, rig=rig).renderer
+    pts = r.points.reshape(-1, 3)
+    safe = np.where(np.isfinite(pts), pts, np.array([0.0, 0.0, 1e6]))
+    args = (safe, np.nan_to_num(r._normals), r._material, r.albedo, r.sigma_cam.ravel(),
+            r.grad_xp, led)
+    base, fringe = r.shade(*args)
+    base_ref, fringe_ref = _shade_reference(r, *args)
+    assert 0 < np.count_nonzero(base) < base.size  # lit and unlit pixels both tested
+    np.testing.assert_array_equal(base, base_ref)
+    np.testing.assert_array_equal(fringe, fringe_ref)
