@@ -27,7 +27,7 @@ from app.devices.sim.radiometry import (
 )
 from app.devices.sim.raycast import raycast_capsule
 from app.devices.sim.scenes.base import F64, Scene
-from app.devices.sim.shading_kernels import shade_geometry
+from app.devices.sim.shading_kernels import shade_combine, shade_geometry, shade_terms
 from app.devices.sim.trace import integrate_print, trace
 
 F32 = npt.NDArray[np.float32]
@@ -143,22 +143,21 @@ class Renderer:
         ks = np.array([SPECULAR.get(n, (0.0, 1.0))[0] for n in names])[material]
         shin = np.array([SPECULAR.get(n, (0.0, 1.0))[1] for n in names])[material]
         sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
-        g_d = refl * cos_i / d_p**2
-        g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
-        g_d = np.where(lit, g_d, 0.0)
-        g_s = np.where(lit, g_s, 0.0)
-        z = points[:, 2]
-        f_px = self.rig.camera.K[0, 0]
-        sig_p = defocus_sigma_px(d_p, self.rig.projector_focus_mm,
-                                 self.rig.projector_blur_per_inv_mm)
-        sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
-        var_s = sigma_cam**2 + sig_p_cam**2
-        var_d = var_s + (sss * f_px / z) ** 2
-        # σ² → attenuation exponent
-        ang = (2 * math.pi * k[:, None] * grad_xp[None] / self.schedule.axis_length) ** 2 / 2.0
-        fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
-        base = g_d + g_s
-        return np.nan_to_num(base), np.nan_to_num(fringe)
+        spec = 0.05 * ks * cos_h**shin  # pow in numpy: its SIMD pow is the reference's
+        f_px = float(self.rig.camera.K[0, 0])
+        g_d, g_s = np.empty(n_pts), np.empty(n_pts)
+        # exponents of the fringe attenuation (σ² → exponent), then exp in place (numpy's)
+        exp_d, exp_s = np.empty((k.size, n_pts)), np.empty((k.size, n_pts))
+        shade_terms(refl, cos_i, d_p, spec, lit, np.ascontiguousarray(sigma_cam, np.float64),
+                    np.ascontiguousarray(grad_xp, np.float64), sss,
+                    np.ascontiguousarray(pts[:, 2]), f_px,
+                    0.5 * self.rig.projector_blur_per_inv_mm, 1.0 / self.rig.projector_focus_mm,
+                    2 * math.pi * k, float(self.schedule.axis_length), g_d, g_s, exp_d, exp_s)
+        np.exp(exp_d, out=exp_d)
+        np.exp(exp_s, out=exp_s)
+        base, fringe = np.empty(n_pts), np.empty((k.size, n_pts))
+        shade_combine(g_d, g_s, exp_d, exp_s, base, fringe)
+        return base, fringe
 
     def _led_arrays(self, led: str) -> tuple[F32, F32]:
         with self._cache_lock:

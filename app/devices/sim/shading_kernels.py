@@ -91,3 +91,66 @@ def shade_geometry(points: F64, normals: F64, centre: F64, rot: F64, kp: F64, wi
         lit[i] = (qz > 0 and xp >= -0.5 and xp <= width_p - 0.5 and yp >= -0.5
                   and yp <= height_p - 0.5 and math.isfinite(px) and math.isfinite(py)
                   and math.isfinite(pz))
+
+
+@nb.njit(cache=True, nogil=True)
+def shade_terms(refl: F64, cos_i: F64, d_p: F64, spec: F64, lit: npt.NDArray[np.bool_],
+                sigma_cam: F64, grad_xp: F64, sss: F64, z: F64, f_px: float, half_blur: float,
+                inv_focus: float, two_pi_k: F64, axis_px: float, g_d: F64, g_s: F64,
+                arg_d: F64, arg_s: F64) -> None:  # pragma: no cover - compiled
+    """Diffuse and specular gains and the fringe attenuation exponents (see
+    ``Renderer.shade``), one pass; the numpy expression's operations in its order.
+
+    Args:
+        refl: (N,) float64 reflectance × albedo; cos_i, d_p, lit: from :func:`shade_geometry`.
+        spec: (N,) float64 specular lobe 0.05·k_s·cos_hˢʰⁱⁿ (pow in numpy).
+        sigma_cam: (N,) float64 camera defocus σ, px; grad_xp: (N,) float64 projector px per
+            camera px; sss: (N,) float64 subsurface scattering length, mm; z: (N,) float64 depth,
+            mm; f_px: camera focal length, px.
+        half_blur, inv_focus: 0.5 · the projector's blur per inverse mm and 1 / its focus (mm⁻¹).
+        two_pi_k: (F,) float64 2π · fringe frequency (periods per axis); axis_px: the pattern's
+            axis length, projector px.
+        g_d, g_s: out (N,) float64 diffuse and specular gain, mm⁻² (0 where unlit).
+        arg_d, arg_s: out (F, N) float64 exponents −(2πk·∇x_p/L)²/2 · σ² of the diffuse
+            (camera + projector defocus + subsurface) and specular (defocus only) fringe parts.
+    """
+    for i in range(refl.shape[0]):
+        d2 = d_p[i] * d_p[i]
+        gd = refl[i] * cos_i[i] / d2
+        gs = (spec[i] if cos_i[i] > 0 else 0.0) / d2
+        g_d[i] = gd if lit[i] else 0.0
+        g_s[i] = gs if lit[i] else 0.0
+        sig_p = half_blur * abs(1.0 / d_p[i] - inv_focus)
+        g = grad_xp[i]
+        sig_p_cam = sig_p / (g if g >= 1e-6 or g != g else 1e-6)  # np.maximum keeps NaN
+        var_s = sigma_cam[i] * sigma_cam[i] + sig_p_cam * sig_p_cam
+        t = sss[i] * f_px / z[i]
+        var_d = var_s + t * t
+        for f in range(two_pi_k.shape[0]):
+            a = two_pi_k[f] * g / axis_px
+            ang = a * a / 2.0
+            arg_d[f, i] = -ang * var_d
+            arg_s[f, i] = -ang * var_s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _finite(x: float) -> float:  # pragma: no cover - compiled
+    """np.nan_to_num of one value: NaN → 0, ±inf → ± the largest float64."""
+    if x != x:
+        return 0.0
+    if x == math.inf:
+        return 1.7976931348623157e308
+    if x == -math.inf:
+        return -1.7976931348623157e308
+    return x
+
+
+@nb.njit(cache=True, nogil=True)
+def shade_combine(g_d: F64, g_s: F64, exp_d: F64, exp_s: F64, base: F64,
+                  fringe: F64) -> None:  # pragma: no cover - compiled
+    """base = nan_to_num(g_d + g_s) (N,), fringe = nan_to_num(g_d·exp_d + g_s·exp_s) (F, N),
+    float64, from :func:`shade_terms`' gains and the exponentials of its exponents."""
+    for i in range(g_d.shape[0]):
+        base[i] = _finite(g_d[i] + g_s[i])
+        for f in range(exp_d.shape[0]):
+            fringe[f, i] = _finite(g_d[i] * exp_d[f, i] + g_s[i] * exp_s[f, i])
