@@ -114,7 +114,9 @@ def shade_terms(refl: F64, cos_i: F64, d_p: F64, spec: F64, lit: npt.NDArray[np.
         arg_d, arg_s: out (F, N) float64 exponents −(2πk·∇x_p/L)²/2 · σ² of the diffuse
             (camera + projector defocus + subsurface) and specular (defocus only) fringe parts.
     """
-    for i in range(refl.shape[0]):
+    n = refl.shape[0]
+    var_s, var_d = np.empty(n), np.empty(n)
+    for i in range(n):
         d2 = d_p[i] * d_p[i]
         gd = refl[i] * cos_i[i] / d2
         gs = (spec[i] if cos_i[i] > 0 else 0.0) / d2
@@ -123,14 +125,18 @@ def shade_terms(refl: F64, cos_i: F64, d_p: F64, spec: F64, lit: npt.NDArray[np.
         sig_p = half_blur * abs(1.0 / d_p[i] - inv_focus)
         g = grad_xp[i]
         sig_p_cam = sig_p / (g if g >= 1e-6 or g != g else 1e-6)  # np.maximum keeps NaN
-        var_s = sigma_cam[i] * sigma_cam[i] + sig_p_cam * sig_p_cam
+        var_s[i] = sigma_cam[i] * sigma_cam[i] + sig_p_cam * sig_p_cam
         t = sss[i] * f_px / z[i]
-        var_d = var_s + t * t
-        for f in range(two_pi_k.shape[0]):
-            a = two_pi_k[f] * g / axis_px
+        var_d[i] = var_s[i] + t * t
+    # frequency-major: each row a contiguous, branch-free loop that vectorises
+    for f in range(two_pi_k.shape[0]):
+        tk = two_pi_k[f]
+        row_d, row_s = arg_d[f], arg_s[f]
+        for i in range(n):
+            a = tk * grad_xp[i] / axis_px
             ang = a * a / 2.0
-            arg_d[f, i] = -ang * var_d
-            arg_s[f, i] = -ang * var_s
+            row_d[i] = -ang * var_d[i]
+            row_s[i] = -ang * var_s[i]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -152,5 +158,7 @@ def shade_combine(g_d: F64, g_s: F64, exp_d: F64, exp_s: F64, base: F64,
     float64, from :func:`shade_terms`' gains and the exponentials of its exponents."""
     for i in range(g_d.shape[0]):
         base[i] = _finite(g_d[i] + g_s[i])
-        for f in range(exp_d.shape[0]):
-            fringe[f, i] = _finite(g_d[i] * exp_d[f, i] + g_s[i] * exp_s[f, i])
+    for f in range(exp_d.shape[0]):
+        row, e_d, e_s = fringe[f], exp_d[f], exp_s[f]
+        for i in range(g_d.shape[0]):
+            row[i] = _finite(g_d[i] * e_d[i] + g_s[i] * e_s[i])
