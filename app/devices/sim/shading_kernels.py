@@ -162,3 +162,19 @@ def shade_combine(g_d: F64, g_s: F64, exp_d: F64, exp_s: F64, base: F64,
         row, e_d, e_s = fringe[f], exp_d[f], exp_s[f]
         for i in range(g_d.shape[0]):
             row[i] = _finite(g_d[i] * e_d[i] + g_s[i] * e_s[i])
+
+
+@nb.njit(cache=True, nogil=True)
+def checker_reflectance(s: F64, t: F64, half_s: float, half_t: float, pitch: float, black: float,
+                        out: F64) -> None:  # pragma: no cover - compiled
+    """out[i] = ``black`` on the dark squares of a checkerboard print, else 1.0.
+
+    s, t: (N,) float64 board coordinates, mm (NaN: off the board, prints 1.0); the print spans
+    |s| < half_s, |t| < half_t (mm) in squares of side ``pitch`` (mm), the one at the
+    (−half_s, −half_t) corner dark. The same float operations as the numpy expression
+    (floor, then Python's modulo of the sum), so the same squares.
+    """
+    for i in range(s.shape[0]):
+        inside = abs(s[i]) < half_s and abs(t[i]) < half_t
+        parity = (math.floor((s[i] + half_s) / pitch) + math.floor((t[i] + half_t) / pitch)) % 2
+        out[i] = black if inside and parity == 0 else 1.0

@@ -14,6 +14,8 @@ from app.devices.sim import SimulatedWorld
 from app.devices.sim.optics import mat3, mat3_shifted
 from app.devices.sim.radiometry import MATERIALS, REFLECTANCE, SPECULAR, SSS_MM, defocus_sigma_px
 from app.devices.sim.render import Renderer
+from app.devices.sim.scenes import sim_board
+from app.devices.sim.scenes.targets import BLACK, board_printer
 
 F64 = npt.NDArray[np.float64]
 
@@ -108,3 +110,32 @@ def test_shade_is_bit_identical_to_the_numpy_expression(scene: str, rig: str, le
     assert 0 < np.count_nonzero(base) < base.size  # lit and unlit pixels both tested
     np.testing.assert_array_equal(base, base_ref)
     np.testing.assert_array_equal(fringe, fringe_ref)
+
+
+def test_checkerboard_print_matches_the_numpy_expression() -> None:
+    """The board printer's kernel prints the same squares as the numpy expression it replaced,
+    on and around the print, at square edges and off the board (NaN)."""
+    spec = sim_board("checkerboard")
+    p = spec.pitch_mm
+    half_s, half_t = (spec.cols + 1) * p / 2, (spec.rows + 1) * p / 2
+
+    def reference(s: F64, t: F64) -> F64:
+        inside = (np.abs(s) < half_s) & (np.abs(t) < half_t)
+        parity = (np.floor((s + half_s) / p) + np.floor((t + half_t) / p)) % 2
+        out: F64 = np.where(inside & (parity == 0), BLACK, 1.0)
+        return out
+
+    rng = np.random.default_rng(5)
+    s = rng.uniform(-1.3 * half_s, 1.3 * half_s, (5000, 8))
+    t = rng.uniform(-1.3 * half_t, 1.3 * half_t, (5000, 8))
+    edges = (np.arange(-spec.cols - 2, spec.cols + 3) * p / 2)[:, None]
+    s[: edges.size, :2] = edges  # exactly on square edges and the print's border
+    t[: edges.size, 2:4] = edges
+    s[-10:, 0] = np.nan
+    t[-20:-10, 1] = np.nan
+    printed = board_printer(spec)(s, t)
+    np.testing.assert_array_equal(printed, reference(s, t))
+    assert {BLACK, 1.0} == set(np.unique(printed))
+    # broadcast arguments, as a print function accepts
+    np.testing.assert_array_equal(board_printer(spec)(s[:, :1], t[:1]),
+                                  reference(s[:, :1], t[:1]))
