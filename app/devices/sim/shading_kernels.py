@@ -178,3 +178,70 @@ def checker_reflectance(s: F64, t: F64, half_s: float, half_t: float, pitch: flo
         inside = abs(s[i]) < half_s and abs(t[i]) < half_t
         parity = (math.floor((s[i] + half_s) / pitch) + math.floor((t[i] + half_t) / pitch)) % 2
         out[i] = black if inside and parity == 0 else 1.0
+
+
+@nb.njit(cache=True, inline="always")
+def _bilinear_clamped(grid: npt.NDArray[np.floating], s0: float, t0: float, ds: float, s: float,
+                      t: float) -> float:  # pragma: no cover - compiled
+    """trace._bilinear_np for one point: the grid (ny, nx) at (s, t) mm, clamped to its edge."""
+    ny, nx = grid.shape
+    fx = min(max((s - s0) / ds, 0.0), nx - 1 - 1e-9)
+    fy = min(max((t - t0) / ds, 0.0), ny - 1 - 1e-9)
+    ix, iy = int(fx), int(fy)
+    ax, ay = fx - ix, fy - iy
+    g00, g01 = np.float64(grid[iy, ix]), np.float64(grid[iy, ix + 1])
+    g10, g11 = np.float64(grid[iy + 1, ix]), np.float64(grid[iy + 1, ix + 1])
+    value: float = (1 - ay) * ((1 - ax) * g00 + ax * g01) + ay * ((1 - ax) * g10 + ax * g11)
+    return value
+
+
+@nb.njit(cache=True, nogil=True)
+def heightfield_hits(origin: F64, dirs: F64, t_hit: F64, frame_origin: F64, axes: F64,
+                     s0: float, t0: float, ds: float, material_grid: npt.NDArray[np.uint8],
+                     texture: npt.NDArray[np.floating], dh_ds: F64, dh_dt: F64, sloped: bool,
+                     points: F64, st: F64, normals: F64, material: npt.NDArray[np.uint8],
+                     albedo: F64, background: int) -> None:  # pragma: no cover - compiled
+    """What ``trace`` derives from the height field's ray parameters, one pass per ray.
+
+    Args:
+        origin: (3,) float64 ray origin, mm; dirs: (N, 3) float64; t_hit: (N,) float64 (NaN: no
+            hit). frame_origin (3,), axes (3, 3) (columns e_s, e_t, n), s0, t0, ds: the height
+            field's frame and grid (mm); material_grid (ny, nx) uint8, texture (ny, nx)
+            float (float32 in the scenes): its material codes and printed albedo.
+        dh_ds, dh_dt: (ny, nx) float64 height slopes (np.gradient), read if ``sloped``;
+            otherwise every normal is the frame's n.
+        points: out (N, 3) float64 origin + t·dir (NaN where no hit); st: out (N, 2) float64
+            surface coordinates (NaN where no hit); normals: out (N, 3) float64 (NaN where no
+            hit); material: out (N,) uint8 (``background`` where no hit); albedo: out (N,)
+            float64 (1 where no hit).
+    """
+    ny, nx = material_grid.shape
+    for i in range(dirs.shape[0]):
+        th = t_hit[i]
+        px = origin[0] + th * dirs[i, 0]
+        py = origin[1] + th * dirs[i, 1]
+        pz = origin[2] + th * dirs[i, 2]
+        points[i, 0], points[i, 1], points[i, 2] = px, py, pz
+        if not math.isfinite(th):
+            st[i, 0] = st[i, 1] = math.nan
+            normals[i, 0] = normals[i, 1] = normals[i, 2] = math.nan
+            material[i] = background
+            albedo[i] = 1.0
+            continue
+        x, y, z = px - frame_origin[0], py - frame_origin[1], pz - frame_origin[2]
+        s = x * axes[0, 0] + y * axes[1, 0] + z * axes[2, 0]
+        t = x * axes[0, 1] + y * axes[1, 1] + z * axes[2, 1]
+        st[i, 0], st[i, 1] = s, t
+        if sloped:
+            nl0 = -_bilinear_clamped(dh_ds, s0, t0, ds, s, t)
+            nl1 = -_bilinear_clamped(dh_dt, s0, t0, ds, s, t)
+            norm = math.sqrt(nl0 * nl0 + nl1 * nl1 + 1.0)
+            nl0, nl1, nl2 = nl0 / norm, nl1 / norm, 1.0 / norm
+            for j in range(3):
+                normals[i, j] = nl0 * axes[j, 0] + nl1 * axes[j, 1] + nl2 * axes[j, 2]
+        else:
+            normals[i, 0], normals[i, 1], normals[i, 2] = axes[0, 2], axes[1, 2], axes[2, 2]
+        ix = min(max(int(np.rint((s - s0) / ds)), 0), nx - 1)
+        iy = min(max(int(np.rint((t - t0) / ds)), 0), ny - 1)
+        material[i] = material_grid[iy, ix]
+        albedo[i] = _bilinear_clamped(texture, s0, t0, ds, s, t)
