@@ -39,12 +39,22 @@ def blur_varying(img: F64, sigma_px: F64,
                  levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
     """Spatially varying Gaussian blur by interpolating between a few pre-blurred copies."""
     sig = np.clip(np.nan_to_num(sigma_px, nan=0.0), levels[0], levels[-1])
-    stack = [img if s == 0 else gaussian_filter(img, s, mode="nearest") for s in levels]
-    out = np.array(stack[0], copy=True)
+    # blur only to the levels some pixel needs (a board in focus never reaches 3 or 6 px)
+    stack: dict[int, F64] = {}
+
+    def blurred(i: int) -> F64:
+        if i not in stack:
+            s = levels[i]
+            stack[i] = img if s == 0 else gaussian_filter(img, s, mode="nearest")
+        return stack[i]
+
+    out = np.array(blurred(0), copy=True)
     for lo in range(len(levels) - 1):
         sel = (sig > levels[lo]) & (sig <= levels[lo + 1])
+        if not sel.any():
+            continue
         a = (sig[sel] - levels[lo]) / (levels[lo + 1] - levels[lo])
-        out[sel] = (1 - a) * stack[lo][sel] + a * stack[lo + 1][sel]
+        out[sel] = (1 - a) * blurred(lo)[sel] + a * blurred(lo + 1)[sel]
     return out
 
 
@@ -155,9 +165,9 @@ class Renderer:
                     2 * math.pi * k, float(self.schedule.axis_length), g_d, g_s, exp_d, exp_s)
         np.exp(exp_d, out=exp_d)
         np.exp(exp_s, out=exp_s)
-        base, fringe = np.empty(n_pts), np.empty((k.size, n_pts))
-        shade_combine(g_d, g_s, exp_d, exp_s, base, fringe)
-        return base, fringe
+        base = np.empty(n_pts)
+        shade_combine(g_d, g_s, exp_d, exp_s, base, exp_d)  # the fringe parts over exp_d
+        return base, exp_d
 
     def _led_arrays(self, led: str) -> tuple[F32, F32]:
         with self._cache_lock:

@@ -155,7 +155,8 @@ def _finite(x: float) -> float:  # pragma: no cover - compiled
 def shade_combine(g_d: F64, g_s: F64, exp_d: F64, exp_s: F64, base: F64,
                   fringe: F64) -> None:  # pragma: no cover - compiled
     """base = nan_to_num(g_d + g_s) (N,), fringe = nan_to_num(g_d·exp_d + g_s·exp_s) (F, N),
-    float64, from :func:`shade_terms`' gains and the exponentials of its exponents."""
+    float64, from :func:`shade_terms`' gains and the exponentials of its exponents. ``fringe``
+    may be ``exp_d`` itself (element by element, read before written)."""
     for i in range(g_d.shape[0]):
         base[i] = _finite(g_d[i] + g_s[i])
     for f in range(exp_d.shape[0]):
