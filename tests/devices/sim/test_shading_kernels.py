@@ -180,20 +180,20 @@ def test_mat3_is_bit_identical_to_the_numpy_sums() -> None:
 
 @pytest.mark.parametrize(("scene", "rig"), [("anastomosis", "default"),
                                             ("dof_target", "endoscope-projector-defect")])
-@pytest.mark.parametrize("led", ["green", "red"])
-def test_shade_is_bit_identical_to_the_numpy_expression(scene: str, rig: str, led: str) -> None:
+def test_shade_is_bit_identical_to_the_numpy_expression(scene: str, rig: str) -> None:
     """Every pixel of a tissue scene (specular, subsurface, unlit background) and of a printed
-    target on another rig: base and fringe parts equal to the last bit."""
+    target on another rig, under two LEDs: base and fringe parts equal to the last bit."""
     r = SimulatedWorld(scene, seed=1, rig=rig).renderer
     pts = r.points.reshape(-1, 3)
     safe = np.where(np.isfinite(pts), pts, np.array([0.0, 0.0, 1e6]))
-    args = (safe, np.nan_to_num(r._normals), r._material, r.albedo, r.sigma_cam.ravel(),
-            r.grad_xp, led)
-    base, fringe = r.shade(*args)
-    base_ref, fringe_ref = _shade_reference(r, *args)
-    assert 0 < np.count_nonzero(base) < base.size  # lit and unlit pixels both tested
-    np.testing.assert_array_equal(base, base_ref)
-    np.testing.assert_array_equal(fringe, fringe_ref)
+    for led in ("green", "red"):
+        args = (safe, np.nan_to_num(r._normals), r._material, r.albedo, r.sigma_cam.ravel(),
+                r.grad_xp, led)
+        base, fringe = r.shade(*args)
+        base_ref, fringe_ref = _shade_reference(r, *args)
+        assert 0 < np.count_nonzero(base) < base.size  # lit and unlit pixels both tested
+        np.testing.assert_array_equal(base, base_ref)
+        np.testing.assert_array_equal(fringe, fringe_ref)
 
 
 def test_checkerboard_print_matches_the_numpy_expression() -> None:
@@ -228,14 +228,15 @@ def test_checkerboard_print_matches_the_numpy_expression() -> None:
 @pytest.mark.parametrize("scene", ["anastomosis", "dof_target", "intestine_pile", "board"])
 def test_trace_is_bit_identical_to_the_numpy_expression(scene: str) -> None:
     """Height field with slopes, spheres and a tool (tissue scenes), a flat printed target and a
-    tilted calibration board: every output of every ray equal to the last bit."""
+    tilted calibration board: every output of every ray equal to the last bit. Every 5th
+    pixel's ray (the kernel treats each ray on its own; a fifth keeps the test quick)."""
     rig = rig_by_name("default")
     if scene == "board":
         spec = sim_board("checkerboard")
         built = board_scene(rig, spec, board_poses(rig, 3, seed=2)[2])
     else:
         built = build_scene(scene, rig)
-    rays = rig.camera.pixel_rays().reshape(-1, 3)
+    rays = np.ascontiguousarray(rig.camera.pixel_rays().reshape(-1, 3)[::5])
     for t_s in (0.0, 0.4):
         got, want = trace(built, rays, t_s), _trace_reference(built, rays, t_s)
         for name in ("points", "normals", "material", "albedo", "st"):
