@@ -14,7 +14,7 @@ import numpy.typing as npt
 from app.atomic import atomic_write_text
 from app.capture.captureset import CaptureSet, write_capture_set
 from app.core.board import BoardSpec
-from app.core.encoding import npy_bytes
+from app.core.encoding import npy_bytes, png_bytes
 from app.core.limits import (
     DEFAULT_EXPOSURE_MS,
     DEFAULT_LED,
@@ -218,6 +218,10 @@ def simulate_calibration_folder(out_dir: str | os.PathLike[str], *, board: str =
                          "pose": k})
         if partial:
             sim_meta["partial_board"] = True
-        write_capture_set(out / f"pose_{k:02d}", cap, overwrite=overwrite,
+        # PNG level 1 without the per-row prediction filter: lossless as the default, a quarter
+        # less encoding CPU (8-bit 1384 x 1032: 21 -> 16 ms a frame) for files 10-16 % larger
+        # (0.50 -> 0.58 MB; 12-bit 1280 x 1024: 38 -> 28 ms, 1.20 -> 1.32 MB)
+        encoded = [png_bytes(frame, compression=1, filter_none=True) for frame in cap.frames]
+        write_capture_set(out / f"pose_{k:02d}", cap, overwrite=overwrite, encoded=encoded,
                           extra_files={"truth_depth.npy": npy_bytes(depth)})
     return out

@@ -27,6 +27,7 @@ from app.devices.sim.radiometry import (
 )
 from app.devices.sim.raycast import raycast_capsule
 from app.devices.sim.scenes.base import F64, Scene
+from app.devices.sim.shading_kernels import shade_combine, shade_geometry, shade_terms
 from app.devices.sim.trace import integrate_print, trace
 
 F32 = npt.NDArray[np.float32]
@@ -38,12 +39,22 @@ def blur_varying(img: F64, sigma_px: F64,
                  levels: tuple[float, ...] = (0.0, 0.75, 1.5, 3.0, 6.0)) -> F64:
     """Spatially varying Gaussian blur by interpolating between a few pre-blurred copies."""
     sig = np.clip(np.nan_to_num(sigma_px, nan=0.0), levels[0], levels[-1])
-    stack = [img if s == 0 else gaussian_filter(img, s, mode="nearest") for s in levels]
-    out = np.array(stack[0], copy=True)
+    # blur only to the levels some pixel needs (a board in focus never reaches 3 or 6 px)
+    stack: dict[int, F64] = {}
+
+    def blurred(i: int) -> F64:
+        if i not in stack:
+            s = levels[i]
+            stack[i] = img if s == 0 else gaussian_filter(img, s, mode="nearest")
+        return stack[i]
+
+    out = np.array(blurred(0), copy=True)
     for lo in range(len(levels) - 1):
         sel = (sig > levels[lo]) & (sig <= levels[lo + 1])
+        if not sel.any():
+            continue
         a = (sig[sel] - levels[lo]) / (levels[lo + 1] - levels[lo])
-        out[sel] = (1 - a) * stack[lo][sel] + a * stack[lo + 1][sel]
+        out[sel] = (1 - a) * blurred(lo)[sel] + a * blurred(lo + 1)[sel]
     return out
 
 
@@ -129,46 +140,34 @@ class Renderer:
         fringe modulation of frequency k after defocus and subsurface blur."""
         proj = self.rig.projector
         k = np.asarray(self.schedule.frequencies, np.float64)
-        wp = self.schedule.width
-        to_p = proj.centre - points
-        d_p = np.sqrt(np.einsum("ij,ij->i", to_p, to_p))
-        light = to_p / d_p[:, None]
-        nrm = np.array(normals, copy=True)
-        flip = np.einsum("ij,ij->i", nrm, points) > 0  # normals face the camera
-        nrm[flip] *= -1
-        cos_i = np.clip(np.einsum("ij,ij->i", nrm, light), 0.0, None)
-        view = -points / np.sqrt(np.einsum("ij,ij->i", points, points))[:, None]
-        half = light + view
-        half /= np.sqrt(np.einsum("ij,ij->i", half, half))[:, None]
-        cos_h = np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None)
+        n_pts = points.shape[0]
+        d_p, cos_i, cos_h = np.empty(n_pts), np.empty(n_pts), np.empty(n_pts)
+        lit = np.empty(n_pts, np.bool_)
+        # distance, incidence and half-vector cosines and the projector's lit test, one pass
+        pts, nrm, centre, rot, kp = (np.ascontiguousarray(a, np.float64)
+                                     for a in (points, normals, proj.centre, proj.R, proj.K))
+        shade_geometry(pts, nrm, centre, rot, kp, float(self.schedule.width),
+                       float(proj.size[1]), d_p, cos_i, cos_h, lit)
         names = [MATERIALS[m] for m in range(len(MATERIALS))]
         refl = np.array([REFLECTANCE[n][led] for n in names])[material] * albedo
         ks = np.array([SPECULAR.get(n, (0.0, 1.0))[0] for n in names])[material]
         shin = np.array([SPECULAR.get(n, (0.0, 1.0))[1] for n in names])[material]
         sss = np.array([SSS_MM.get(n, {}).get(led, 0.0) for n in names])[material]
-        g_d = refl * cos_i / d_p**2
-        g_s = np.where(cos_i > 0, 0.05 * ks * cos_h**shin, 0.0) / d_p**2
-        q = proj.to_projector(points)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xp = proj.K[0, 0] * q[:, 0] / q[:, 2] + proj.K[0, 2]
-            yp = proj.K[1, 1] * q[:, 1] / q[:, 2] + proj.K[1, 2]
-        front = q[:, 2] > 0
-        lit = front & (xp >= -0.5) & (xp <= wp - 0.5) & (yp >= -0.5) & (yp <= proj.size[1] - 0.5)
-        lit &= np.isfinite(points).all(axis=1)
-        g_d = np.where(lit, g_d, 0.0)
-        g_s = np.where(lit, g_s, 0.0)
-        z = points[:, 2]
-        f_px = self.rig.camera.K[0, 0]
-        sig_p = defocus_sigma_px(d_p, self.rig.projector_focus_mm,
-                                 self.rig.projector_blur_per_inv_mm)
-        sig_p_cam = sig_p / np.maximum(grad_xp, 1e-6)
-        var_s = sigma_cam**2 + sig_p_cam**2
-        var_d = var_s + (sss * f_px / z) ** 2
-        # σ² → attenuation exponent
-        ang = (2 * math.pi * k[:, None] * grad_xp[None] / self.schedule.axis_length) ** 2 / 2.0
-        fringe = g_d[None] * np.exp(-ang * var_d[None]) + g_s[None] * np.exp(-ang * var_s[None])
-        base = g_d + g_s
-        return np.nan_to_num(base), np.nan_to_num(fringe)
+        spec = 0.05 * ks * cos_h**shin  # pow in numpy: its SIMD pow is the reference's
+        f_px = float(self.rig.camera.K[0, 0])
+        g_d, g_s = np.empty(n_pts), np.empty(n_pts)
+        # exponents of the fringe attenuation (σ² → exponent), then exp in place (numpy's)
+        exp_d, exp_s = np.empty((k.size, n_pts)), np.empty((k.size, n_pts))
+        shade_terms(refl, cos_i, d_p, spec, lit, np.ascontiguousarray(sigma_cam, np.float64),
+                    np.ascontiguousarray(grad_xp, np.float64), sss,
+                    np.ascontiguousarray(pts[:, 2]), f_px,
+                    0.5 * self.rig.projector_blur_per_inv_mm, 1.0 / self.rig.projector_focus_mm,
+                    2 * math.pi * k, float(self.schedule.axis_length), g_d, g_s, exp_d, exp_s)
+        np.exp(exp_d, out=exp_d)
+        np.exp(exp_s, out=exp_s)
+        base = np.empty(n_pts)
+        shade_combine(g_d, g_s, exp_d, exp_s, base, exp_d)  # the fringe parts over exp_d
+        return base, exp_d
 
     def _led_arrays(self, led: str) -> tuple[F32, F32]:
         with self._cache_lock:

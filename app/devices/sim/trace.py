@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from app.devices.sim.optics import mat3
 from app.devices.sim.radiometry import material_id
 from app.devices.sim.raycast import raycast_capsule, raycast_heightfield, raycast_sphere
 from app.devices.sim.scenes.base import F64, HeightField, Scene
+from app.devices.sim.shading_kernels import heightfield_hits
 
 WHITE = material_id("white")
 BACKGROUND = material_id("background")
@@ -27,17 +27,6 @@ class Hits:
     st: F64  # (N, 2) surface coordinates on the height field (NaN elsewhere)
 
 
-def _bilinear_np(grid: F64, s0: float, t0: float, ds: float, s: F64, t: F64) -> F64:
-    ny, nx = grid.shape
-    fx = np.clip((s - s0) / ds, 0, nx - 1 - 1e-9)
-    fy = np.clip((t - t0) / ds, 0, ny - 1 - 1e-9)
-    ix, iy = fx.astype(int), fy.astype(int)
-    ax, ay = fx - ix, fy - iy
-    out: F64 = ((1 - ay) * ((1 - ax) * grid[iy, ix] + ax * grid[iy, ix + 1])
-                + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
-    return out
-
-
 def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) -> Hits:
     """Trace rays from the camera centre through ``scene`` at time ``t_s`` (seconds).
 
@@ -50,30 +39,22 @@ def trace(scene: Scene, dirs: F64, t_s: float = 0.0, *, with_tool: bool = True) 
     hf = scene.surface
     t_hit = raycast_heightfield(origin, dirs, hf.origin, hf.axes, hf.heights, hf.s0, hf.t0, hf.ds,
                                 hf.hmin, hf.hmax)
-    points = origin + t_hit[:, None] * dirs
-    loc = hf.local(points)
-    s, t = loc[:, 0], loc[:, 1]
     ok = np.isfinite(t_hit)
-    normals = np.full((n, 3), np.nan)
-    material = np.full(n, BACKGROUND, np.uint8)
-    albedo = np.ones(n)
-    if np.ptp(hf.heights) > 0:
+    sloped = bool(np.ptp(hf.heights) > 0)
+    if sloped:
         # np.gradient returns d/d(row) first: rows are t, columns s.
         dh_dt, dh_ds = (np.asarray(g, np.float64) for g in np.gradient(hf.heights, hf.ds))
-        hs = _bilinear_np(dh_ds, hf.s0, hf.t0, hf.ds, s[ok], t[ok])
-        ht = _bilinear_np(dh_dt, hf.s0, hf.t0, hf.ds, s[ok], t[ok])
-        nl = np.stack([-hs, -ht, np.ones_like(hs)], -1)
-        nl /= np.linalg.norm(nl, axis=1, keepdims=True)
-        normals[ok] = mat3(nl, hf.axes.T)
     else:
-        normals[ok] = hf.axes[:, 2]
-    ny, nx = hf.heights.shape
-    ix = np.clip(np.rint((s[ok] - hf.s0) / hf.ds).astype(int), 0, nx - 1)
-    iy = np.clip(np.rint((t[ok] - hf.t0) / hf.ds).astype(int), 0, ny - 1)
-    material[ok] = hf.material[iy, ix]
-    albedo[ok] = _bilinear_np(hf.texture.astype(np.float64), hf.s0, hf.t0, hf.ds, s[ok], t[ok])
-    st = np.full((n, 2), np.nan)
-    st[ok] = loc[ok, :2]
+        dh_dt = dh_ds = np.zeros((1, 1))
+    points, st, normals = np.empty((n, 3)), np.empty((n, 2)), np.empty((n, 3))
+    material, albedo = np.empty(n, np.uint8), np.empty(n)
+    # points, surface coordinates, normals, material and printed albedo in one pass per ray
+    heightfield_hits(np.asarray(origin, np.float64), np.ascontiguousarray(dirs, np.float64),
+                     t_hit, np.asarray(hf.origin, np.float64),
+                     np.ascontiguousarray(hf.axes, np.float64), float(hf.s0), float(hf.t0),
+                     float(hf.ds), np.ascontiguousarray(hf.material, np.uint8),
+                     np.ascontiguousarray(hf.texture), dh_ds, dh_dt, sloped, points,
+                     st, normals, material, albedo, int(BACKGROUND))
     best = np.where(ok, t_hit, np.inf)
     for sph in scene.spheres:
         ts = raycast_sphere(origin, dirs, sph.centre, sph.radius_mm)

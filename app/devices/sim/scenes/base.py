@@ -52,9 +52,9 @@ class HeightField:
 
     def local(self, points: F64) -> F64:
         """(s, t, w) of camera-frame points (…, 3)."""
-        from app.devices.sim.optics import mat3
+        from app.devices.sim.optics import mat3_shifted
 
-        return mat3(np.asarray(points) - self.origin, self.axes)
+        return mat3_shifted(np.asarray(points, np.float64), self.origin, self.axes)
 
 
 @dataclass

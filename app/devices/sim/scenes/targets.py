@@ -16,6 +16,7 @@ from app.devices.sim.scenes.base import (
     flat_field,
     frame_from_normal,
 )
+from app.devices.sim.shading_kernels import checker_reflectance
 
 BLACK = 0.07  # printed black relative to the paper's white
 
@@ -53,9 +54,13 @@ def board_printer(spec: BoardSpec) -> PrintFn:
         half_s, half_t = (cols + 1) * p / 2, (rows + 1) * p / 2
 
         def checker(s: F64, t: F64) -> F64:
-            inside = (np.abs(s) < half_s) & (np.abs(t) < half_t)
-            parity = (np.floor((s + half_s) / p) + np.floor((t + half_t) / p)) % 2
-            return np.where(inside & (parity == 0), BLACK, 1.0)
+            # one compiled pass (the numpy expression made six temporaries: 25 ms a call)
+            ss, tt = np.broadcast_arrays(np.asarray(s, np.float64), np.asarray(t, np.float64))
+            out = np.empty(ss.shape)
+            checker_reflectance(np.ascontiguousarray(ss).reshape(-1),
+                                np.ascontiguousarray(tt).reshape(-1), half_s, half_t, p, BLACK,
+                                out.reshape(-1))
+            return out
 
         return checker
     if spec.type != "circles":
