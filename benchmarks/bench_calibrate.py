@@ -200,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {label:<10} {med:7.2f} {kind} = {med / base:8.1f} x baseline")
         numbers = fingerprint(report)
         if args.save:
-            np.savez(args.save, **numbers)
+            save: Any = np.savez  # its **arrays collide with allow_pickle in numpy's stubs
+            save(args.save, **numbers)
             print(f"numbers saved to {args.save}")
         if args.compare:
             compare(numbers, args.compare)
