@@ -220,7 +220,7 @@ class JointProblem:
         """(residuals, state) exact derivatives of :meth:`residuals`: the corners' from
         ``cv2.projectPoints``, the phase's by the chain rule through the board plane, the
         projector and (:func:`undistort_rays_jacobian`) the camera's undistortion."""
-        nv, o_pose, n_cam = len(self.obj), self.o_pose, 4 + len(self.free)
+        nv, o_pose = len(self.obj), self.o_pose
         kd = self.camera(x)
         s_phase = self.s_phase or [1.0] * nv
         n_c = [2 * len(o) for o in self.obj]
@@ -235,49 +235,62 @@ class JointProblem:
             jac[blk, o_pose + 6 * k: o_pose + 6 * k + 6] = jp[:, :6] / self.s_corner
             jac[blk, 8:o_pose] = jp[:, cam_cols] / self.s_corner
             row += n_c[k]
-        rp, jrp = cv2.Rodrigues(np.asarray(x[:3], np.float64))
-        d_rp = jrp.reshape(3, 3, 3)  # [i] = d R / d rvec_i (row-major 3 × 3)
-        g_x5, g_x3, g_x4 = x[5], x[3], x[4]
         rays = self.rays(x)
         for k in range(nv):
-            ray = rays[k]
-            q = self.pose(x, k)
-            rb, jrb = cv2.Rodrigues(np.asarray(q[:3], np.float64))
-            n, t = rb[:, 2], q[3:]
-            nt, rn = float(n @ t), ray @ n
-            s = nt / rn
-            pts = ray * s[:, None]
-            num, den = pts @ rp[0] + g_x3, pts @ rp[2] + g_x4
-            xn = num / den
-            xd = (self.xps[k] - x[6]) / g_x5
-            w = self.wts[k] / s_phase[k]
-            c = w * g_x5
-            g = xd * (1.0 + x[7] * xd * xd)
-            g1 = 1.0 + 3.0 * x[7] * xd * xd  # dg / dxd
-            blk = slice(row, row + len(ray))
-            # projector: rotation, t_x, t_z, focal length, principal point, k1
-            for i in range(3):
-                dxn = (pts @ d_rp[i][0] - xn * (pts @ d_rp[i][2])) / den
-                jac[blk, i] = -c * dxn
-            jac[blk, 3] = -c / den
-            jac[blk, 4] = c * xn / den
-            jac[blk, 5] = w * (g - xn - g1 * xd)
-            jac[blk, 6] = -w * g1
-            jac[blk, 7] = c * xd**3
-            # the board point P = ray·s, s = (n·t) / (ray·n): dr/dP, then the pose and the ray
-            dr_dp = -(c / den)[:, None] * (rp[0][None, :] - xn[:, None] * rp[2][None, :])
-            dr_dp_ray = np.einsum("ij,ij->i", dr_dp, ray)
-            d_n = jrb.reshape(3, 3, 3)[:, :, 2]  # [i] = d n / d rvec_i
-            for i in range(3):
-                ds = (float(d_n[i] @ t) * rn - nt * (ray @ d_n[i])) / (rn * rn)
-                jac[blk, o_pose + 6 * k + i] = dr_dp_ray * ds
-            jac[blk, o_pose + 6 * k + 3: o_pose + 6 * k + 6] = (dr_dp_ray / rn)[:, None] * n
-            # camera: through the ray's x and y (its z is 1)
-            dr_dray = s[:, None] * dr_dp[:, :2] - (dr_dp_ray * nt / (rn * rn))[:, None] * n[:2]
-            d_ray = undistort_rays_jacobian(ray, *kd, self.free)  # (m, 2, n_cam)
-            jac[blk, 8:8 + n_cam] = np.einsum("ib,ibj->ij", dr_dray, d_ray)
-            row += len(ray)
+            blk = slice(row, row + len(rays[k]))
+            jp = self.phase_jacobian(x, k, rays[k], 1.0 / s_phase[k], kd)
+            jac[blk, :o_pose] = jp[:, :o_pose]
+            jac[blk, o_pose + 6 * k: o_pose + 6 * k + 6] = jp[:, o_pose:]
+            row += len(rays[k])
         return jac
+
+    def phase_jacobian(self, x: F64, k: int, ray: F64, scale: float,
+                       kd: tuple[F64, F64] | None = None) -> F64:
+        """Derivatives of view ``k``'s phase residuals (:meth:`phase_res`) × ``scale`` at
+        ``x``, its rays ``ray`` (m, 3) given: (m, 8) in the projector's parameters with ``kd``
+        None (the camera held), else (m, 8 + camera's + 6): projector, camera (``kd``: its
+        matrix and distortion in ``x``), then view ``k``'s pose."""
+        rp, jrp = cv2.Rodrigues(np.asarray(x[:3], np.float64))
+        d_rp = jrp.reshape(3, 3, 3)  # [i] = d R / d rvec_i (row-major 3 × 3)
+        q = self.pose(x, k)
+        rb, jrb = cv2.Rodrigues(np.asarray(q[:3], np.float64))
+        n, t = rb[:, 2], q[3:]
+        nt, rn = float(n @ t), ray @ n
+        s = nt / rn
+        pts = ray * s[:, None]
+        den = pts @ rp[2] + x[4]
+        xn = (pts @ rp[0] + x[3]) / den
+        xd = (self.xps[k] - x[6]) / x[5]
+        w = self.wts[k] * scale
+        c = w * x[5]
+        g = xd * (1.0 + x[7] * xd * xd)
+        g1 = 1.0 + 3.0 * x[7] * xd * xd  # dg / dxd
+        n_cam = self.o_pose - 8
+        out = np.empty((len(ray), 8 if kd is None else 8 + n_cam + 6))
+        # projector: rotation, t_x, t_z, focal length, principal point, k1
+        for i in range(3):
+            out[:, i] = -c * (pts @ d_rp[i][0] - xn * (pts @ d_rp[i][2])) / den
+        out[:, 3] = -c / den
+        out[:, 4] = c * xn / den
+        out[:, 5] = w * (g - xn - g1 * xd)
+        out[:, 6] = -w * g1
+        out[:, 7] = c * xd**3
+        if kd is None:
+            return out
+        # the board point P = ray·s, s = (n·t) / (ray·n): dr/dP, then the pose and the ray
+        dr_dp = -(c / den)[:, None] * (rp[0][None, :] - xn[:, None] * rp[2][None, :])
+        dr_dp_ray = np.einsum("ij,ij->i", dr_dp, ray)
+        d_n = jrb.reshape(3, 3, 3)[:, :, 2]  # [i] = d n / d rvec_i
+        o = 8 + n_cam
+        for i in range(3):
+            ds = (float(d_n[i] @ t) * rn - nt * (ray @ d_n[i])) / (rn * rn)
+            out[:, o + i] = dr_dp_ray * ds
+        out[:, o + 3: o + 6] = (dr_dp_ray / rn)[:, None] * n
+        # camera: through the ray's x and y (its z is 1)
+        dr_dray = s[:, None] * dr_dp[:, :2] - (dr_dp_ray * nt / (rn * rn))[:, None] * n[:2]
+        d_ray = undistort_rays_jacobian(ray, *kd, self.free)  # (m, 2, n_cam)
+        out[:, 8:o] = np.einsum("ib,ibj->ij", dr_dray, d_ray)
+        return out
 
 
 def refine_board_poses(
@@ -351,8 +364,13 @@ def refine_board_poses(
         xx = np.concatenate([xp, x_init[8:]])
         return np.concatenate([prob.phase_res(xx, k, rays0[k]) for k in range(nv)])
 
+    def proj_only_jac(xp: F64) -> F64:
+        xx = np.concatenate([xp, x_init[8:]])
+        return np.concatenate([prob.phase_jacobian(xx, k, rays0[k], 1.0) for k in range(nv)])
+
     try:
-        start = least_squares(proj_only, x_init[:8], method="lm", x_scale="jac", max_nfev=2000)
+        start = least_squares(proj_only, x_init[:8], jac=proj_only_jac, method="lm",
+                              x_scale="jac", max_nfev=2000)
     except (ValueError, np.linalg.LinAlgError):
         return None
     x_init[:8] = start.x

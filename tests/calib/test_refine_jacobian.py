@@ -81,3 +81,20 @@ def test_undistortion_jacobian_matches_central_differences() -> None:
     numeric = approx_derivative(rays_xy, theta, method="3-point").reshape(len(uv), 2, -1)
     scale = np.abs(numeric).max(axis=(0, 1))
     assert np.all(np.abs(exact - numeric).max(axis=(0, 1)) <= 1e-6 * scale)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_projector_only_jacobian_matches_central_differences(seed: int) -> None:
+    """The start's projector-only fit: one view's phase residuals in the projector's 8
+    parameters, the camera and pose held (its rays given)."""
+    prob, x = _problem(np.random.default_rng(seed), (0, 1))
+    ray = prob.rays(x)[1]
+
+    def phase(xp: np.ndarray) -> np.ndarray:
+        return prob.phase_res(np.concatenate([xp, x[8:]]), 1, ray) * 0.5
+
+    exact = prob.phase_jacobian(x, 1, ray, 0.5)
+    numeric = approx_derivative(phase, x[:8], method="3-point")
+    assert exact.shape == numeric.shape == (len(ray), 8)
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(np.abs(exact - numeric).max(axis=0) <= 1e-6 * scale)
