@@ -51,7 +51,9 @@ class RefinedPoses:
     """Result of :func:`refine_board_poses`: the camera (``camera_matrix`` (3, 3), ``dist_coeffs``
     (5,)), per view ``rvecs``/``tvecs`` (3, 1), the corners' RMS reprojection error (px, per
     corner as ``cv2.calibrateCamera`` reports it: √(Σ|Δuv|² / n)) and the board normals' change
-    (mrad) per view."""
+    (mrad) per view, and the projector of the joint fit (8,): rotation vector, t_x, t_z (mm),
+    focal length and principal point (px), k1 — what a refit of a subset of the views may start
+    from."""
 
     camera_matrix: F64
     dist_coeffs: F64
@@ -59,6 +61,7 @@ class RefinedPoses:
     tvecs: list[F64]
     reprojection_px: float
     tilt_change_mrad: list[float]
+    projector: F64 | None = None
 
 
 def _plane_points(rays: F64, rvec: F64, tvec: F64) -> F64:
@@ -304,6 +307,7 @@ def refine_board_poses(
     proj_x: list[F64],
     weights: list[F64] | None = None,
     free_dist: tuple[int, ...] = (0,),
+    projector_start: F64 | None = None,
 ) -> RefinedPoses | None:
     """Jointly refine the camera, the board poses and the projector from corners and the phase
     on the boards.
@@ -319,6 +323,9 @@ def refine_board_poses(
             modulation B over the view's median: σ_φ ∝ 1/B); None weighs them alike.
         free_dist: indices (into k1, k2, p1, p2, k3) of the distortion terms refined; the
             others stay as given.
+        projector_start: (8,) a projector (:attr:`RefinedPoses.projector`) the projector-only
+            fit starts from instead of the direct linear start (e.g. the joint fit of all views
+            when a subset of them is refitted); None: the direct linear start.
 
     Returns:
         :class:`RefinedPoses`, or None when the data do not allow it (too few phase points,
@@ -352,13 +359,17 @@ def refine_board_poses(
     kd0 = prob.camera(x_init)
     # the start's camera is fixed: its rays are undistorted once, not on every evaluation
     rays0 = prob.rays(x_init)
-    x3 = np.concatenate([_plane_points(rays0[k], prob.pose(x_init, k)[:3],
-                                       prob.pose(x_init, k)[3:]) for k in range(nv)])
-    try:
-        rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(prob.xps)), x3)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    x_init[:8] = np.concatenate([Rotation.from_matrix(rot).as_rotvec(), [t[0], t[2], f, c, 0.0]])
+    if projector_start is not None:
+        x_init[:8] = np.asarray(projector_start, np.float64)
+    else:
+        x3 = np.concatenate([_plane_points(rays0[k], prob.pose(x_init, k)[:3],
+                                           prob.pose(x_init, k)[3:]) for k in range(nv)])
+        try:
+            rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(prob.xps)), x3)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        x_init[:8] = np.concatenate([Rotation.from_matrix(rot).as_rotvec(),
+                                     [t[0], t[2], f, c, 0.0]])
 
     def proj_only(xp: F64) -> F64:
         xx = np.concatenate([xp, x_init[8:]])
@@ -414,7 +425,7 @@ def refine_board_poses(
         )
         for a, b in zip(rvecs, out_r, strict=True)
     ]
-    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change)
+    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change, x[:8].copy())
 
 
 @dataclass
