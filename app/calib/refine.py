@@ -228,7 +228,8 @@ class JointProblem:
         s_phase = self.s_phase or [1.0] * nv
         n_c = [2 * len(o) for o in self.obj]
         n_rows = sum(n_c) + sum(len(p) for p in self.pix)
-        jac = np.zeros((n_rows, x.size))
+        # column-major: MINPACK's layout, which the solver would otherwise copy it to
+        jac = np.zeros((n_rows, x.size), order="F")
         cam_cols = [6, 7, 8, 9] + [10 + i for i in self.free]  # projectPoints' f, c, dist
         row = 0
         for k in range(nv):
@@ -377,7 +378,12 @@ def refine_board_poses(
 
     def proj_only_jac(xp: F64) -> F64:
         xx = np.concatenate([xp, x_init[8:]])
-        return np.concatenate([prob.phase_jacobian(xx, k, rays0[k], 1.0) for k in range(nv)])
+        out = np.empty((sum(len(r) for r in rays0), 8), order="F")  # MINPACK's layout
+        row = 0
+        for k in range(nv):
+            out[row:row + len(rays0[k])] = prob.phase_jacobian(xx, k, rays0[k], 1.0)
+            row += len(rays0[k])
+        return out
 
     try:
         start = least_squares(proj_only, x_init[:8], jac=proj_only_jac, method="lm",
