@@ -162,7 +162,28 @@ def compare(now: dict[str, F64], path: Path) -> None:
         same_nan = np.isnan(a) & np.isnan(b)
         d = np.where(same_nan, 0.0, np.abs(b - a))
         rel = np.where(same_nan, 0.0, d / np.maximum(np.abs(a), 1e-300))
-        print(f"  {key:<34} {float(np.max(d)):.3e}  rel {float(np.max(rel)):.3e}")
+        print(f"  {key:<34} {float(np.max(d)):.3e}  rel {float(np.max(rel)):.3e}"
+              + _in_standard_errors(key, d, ref))
+
+
+def _in_standard_errors(key: str, diff: F64, ref: dict[str, F64]) -> str:
+    """For the projector and the camera: the largest difference in units of the parameter's
+    jackknife standard error in ``ref`` (√((g − 1)/g Σ (θ_i − θ̄)²) over its g refits): how
+    far within the fit's own noise it is; "" for other numbers or without a jackknife."""
+    part = {"geometric": "projector", "camera_matrix": "camera", "dist_coeffs": "camera"}.get(key)
+    refits = [ref[k] for k in sorted(ref) if k.startswith("jackknife[") and k.endswith(
+        f".{part}")]
+    if part is None or len(refits) < 3:
+        return ""
+    stack = np.stack(refits)
+    if part == "camera":  # the refits' (camera matrix (9), dist (5)), as the calibration's
+        stack = stack[:, :9] if key == "camera_matrix" else stack[:, 9:9 + diff.size]
+    g = len(stack)
+    se = np.sqrt((g - 1) / g * np.sum((stack - stack.mean(axis=0)) ** 2, axis=0)).ravel()
+    ok = se > 0
+    if not ok.any():
+        return ""
+    return f"  = {float(np.max(diff.ravel()[ok] / se[ok])):.1e} jackknife SE"
 
 
 def main(argv: list[str] | None = None) -> int:
