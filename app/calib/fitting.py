@@ -591,9 +591,8 @@ def fit_observations(
         geo = GeometricModel.fit(samples, plane)
         joint = None
         if refined is not None:  # the refits repeat the joint fit the calibration kept
-            joint = _JointFit(
-                obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs, tvecs
-            )
+            joint = _JointFit(obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs,
+                              tvecs, refined.projector)
         geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
         # the corner-verified camera field: opened to where the lens model is defined (σ_model
         # deciding) the twin's preset gave 0.995 valid but σ_model 2-3x its error past the boards
@@ -1013,7 +1012,8 @@ JACKKNIFE_REFINE_POINTS_PER_POSE = REFINE_POINTS_PER_POSE
 @dataclass
 class _JointFit:
     """The joint (corners + phase) fit the calibration kept, for its refits to repeat: the
-    poses' observations, the schedule, the free distortion terms and its solution."""
+    poses' observations, the schedule, the free distortion terms and its solution (the camera,
+    the poses and the projector, (8,) as :attr:`RefinedPoses.projector`)."""
 
     obs: list[PoseObservation | None]
     schedule: PatternSchedule
@@ -1022,6 +1022,7 @@ class _JointFit:
     dist_coeffs: npt.NDArray[np.float64]
     rvecs: list[npt.NDArray[np.float64]]
     tvecs: list[npt.NDArray[np.float64]]
+    projector: npt.NDArray[np.float64] | None = None
 
 
 def _refit_camera(
@@ -1043,9 +1044,10 @@ def _refit_camera(
     | None
 ):
     """The camera and every board pose with pose ``left`` left out of the fit: the joint fit
-    repeated from its solution when the calibration kept one, else the corners-only fit; pose 0
-    (the reference plane) left out keeps the calibration's own pose and camera (its plane
-    is defined by that board alone). None when the fit fails."""
+    repeated from its solution (camera, poses and projector: no direct linear start) when the
+    calibration kept one, else the corners-only fit; pose 0 (the reference plane) left out
+    keeps the calibration's own pose and camera (its plane is defined by that board alone).
+    None when the fit fails."""
     keep = [k for k in range(len(obj)) if k != left]
     if joint is not None:
         if left == 0:
@@ -1057,7 +1059,7 @@ def _refit_camera(
             joint.dist_coeffs, [joint.rvecs[k] for k in keep], [joint.tvecs[k] for k in keep],
             [pixels[k][0] for k in keep], [pixels[k][1] for k in keep],
             weights if len(weights) == len(keep) else None,
-            joint.free_dist)
+            joint.free_dist, joint.projector)
         if refined is not None:
             pose_of = {k: (refined.rvecs[i], refined.tvecs[i]) for i, k in enumerate(keep)}
             return refined.camera_matrix, refined.dist_coeffs, pose_of

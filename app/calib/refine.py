@@ -32,7 +32,7 @@ The joint fit is accepted when ΔSSR / σ² ≤ χ²_p(0.99): its camera lies wi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -51,7 +51,9 @@ class RefinedPoses:
     """Result of :func:`refine_board_poses`: the camera (``camera_matrix`` (3, 3), ``dist_coeffs``
     (5,)), per view ``rvecs``/``tvecs`` (3, 1), the corners' RMS reprojection error (px, per
     corner as ``cv2.calibrateCamera`` reports it: √(Σ|Δuv|² / n)) and the board normals' change
-    (mrad) per view."""
+    (mrad) per view, and the projector of the joint fit (8,): rotation vector, t_x, t_z (mm),
+    focal length and principal point (px), k1 — what a refit of a subset of the views may start
+    from."""
 
     camera_matrix: F64
     dist_coeffs: F64
@@ -59,6 +61,7 @@ class RefinedPoses:
     tvecs: list[F64]
     reprojection_px: float
     tilt_change_mrad: list[float]
+    projector: F64 | None = None
 
 
 def _plane_points(rays: F64, rvec: F64, tvec: F64) -> F64:
@@ -88,6 +91,212 @@ def undistort_rays(uv: F64, cam: F64, dist: F64, iterations: int = 20) -> F64:
     return np.stack([x, y, np.ones_like(x)], axis=1)
 
 
+def undistort_rays_jacobian(rays: F64, cam: F64, dist: F64, free: tuple[int, ...]) -> F64:
+    """(n, 2, 4 + len(free)) derivatives of the undistorted rays' (x, y) (:func:`undistort_rays`)
+    with respect to the camera's fx, fy, cx, cy (px) and the distortion terms ``free`` (indices
+    into k1, k2, p1, p2, k3), at fixed pixels.
+
+    Implicit differentiation of the distortion equations ``D(x, y; k) = ((u − cx) / fx,
+    (v − cy) / fy)`` the undistortion solves: d(x, y) = J_D⁻¹ (d rhs − ∂D/∂k dk), J_D the
+    2 × 2 derivative of the distortion in (x, y) at the ray.
+
+    Args:
+        rays: (n, 3) float64 undistorted rays (x, y, 1) of the pixels under ``cam``, ``dist``.
+        cam: (3, 3) camera matrix, px; dist: OpenCV (k1, k2, p1, p2, k3) (fewer: zeros).
+        free: the distortion terms differentiated, in this order after the four intrinsics.
+    """
+    k1, k2, p1, p2, k3 = (list(np.ravel(dist)) + [0.0] * 5)[:5]
+    fx, fy = float(cam[0, 0]), float(cam[1, 1])
+    x, y = rays[:, 0], rays[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r²
+    # J_D: the distortion's derivative in (x, y)
+    a = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+    c = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    det = a * d - b * c
+    # the distorted normalised coordinates x_d = x·radial + dx, y_d = y·radial + dy
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    zero = np.zeros_like(x)
+    # d(rhs)/dθ − ∂D/∂θ per parameter: (2, n) each
+    rhs = [np.stack([-xd / fx, zero]), np.stack([zero, -yd / fy]),
+           np.stack([np.full_like(x, -1.0 / fx), zero]),
+           np.stack([zero, np.full_like(x, -1.0 / fy)])]
+    d_dist = [np.stack([x * r2, y * r2]), np.stack([x * r2 * r2, y * r2 * r2]),
+              np.stack([2.0 * x * y, r2 + 2.0 * y * y]),
+              np.stack([r2 + 2.0 * x * x, 2.0 * x * y]), np.stack([x * r2**3, y * r2**3])]
+    rhs += [-d_dist[i] for i in free]
+    out = np.empty((len(x), 2, len(rhs)))
+    for j, (gx, gy) in enumerate(rhs):
+        out[:, 0, j] = (d * gx - b * gy) / det
+        out[:, 1, j] = (a * gy - c * gx) / det
+    return out
+
+
+@dataclass
+class JointProblem:
+    """The joint fit's residuals and their exact Jacobian (:func:`refine_board_poses`).
+
+    The state ``x`` (float64) is the projector (rotation vector (3), t_x, t_z mm, focal length
+    and principal point px, k1 along the fringe axis), the camera (fx, fy, cx, cy px and the
+    distortion terms ``free``) and per view its board pose (rotation vector, translation mm).
+    The residuals are every view's corner reprojection errors (px, u and v interleaved) over
+    ``s_corner``, then every view's phase residuals (projector px × weight) over its
+    ``s_phase``.
+
+    Attributes:
+        obj: per view (n, 3) board points, mm; img: per view (n, 2) detected pixels.
+        pix: per view (m, 2) board pixels; xps: (m,) their projector coordinates, px;
+            wts: (m,) their phase weights.
+        dist5: the distortion (k1, k2, p1, p2, k3) whose terms outside ``free`` stay fixed.
+        free: the distortion terms in the state.
+        s_corner: the corners' noise scale, px; s_phase: per view the phase's, projector px.
+    """
+
+    obj: list[F64]
+    img: list[F64]
+    pix: list[F64]
+    xps: list[F64]
+    wts: list[F64]
+    dist5: list[float]
+    free: tuple[int, ...]
+    s_corner: float = 1.0
+    s_phase: list[float] | None = None
+    #: the last state's rays (:meth:`rays`): the solver asks for the residuals and then the
+    #: Jacobian at the same state, and undistorting is the costly part of both
+    _rays_of: tuple[bytes, list[F64]] | None = field(default=None, init=False, repr=False)
+
+    @property
+    def o_pose(self) -> int:
+        """Index of the first pose parameter in the state (after projector and camera)."""
+        return 8 + 4 + len(self.free)
+
+    def camera(self, x: F64) -> tuple[F64, F64]:
+        """The state's camera matrix (3, 3) and distortion (5,)."""
+        c = x[8:self.o_pose]
+        k = np.array([[c[0], 0.0, c[2]], [0.0, c[1], c[3]], [0.0, 0.0, 1.0]])
+        d = np.array(self.dist5, np.float64)
+        d[list(self.free)] = c[4:]
+        return k, d
+
+    def pose(self, x: F64, k: int) -> F64:
+        """View ``k``'s (6,) rotation vector and translation in the state."""
+        return x[self.o_pose + 6 * k: self.o_pose + 6 * k + 6]
+
+    def rays(self, x: F64) -> list[F64]:
+        """Per view the (m, 3) undistorted rays of its board pixels under the state's camera."""
+        key = np.asarray(x[8:self.o_pose], np.float64).tobytes()
+        if self._rays_of is None or self._rays_of[0] != key:
+            kd = self.camera(x)
+            self._rays_of = (key, [undistort_rays(p, *kd) for p in self.pix])
+        return self._rays_of[1]
+
+    def corner_res(self, x: F64, k: int, kd: tuple[F64, F64]) -> F64:
+        """View ``k``'s (2n,) corner reprojection errors, px (u, v interleaved)."""
+        q = self.pose(x, k)
+        uv, _ = cv2.projectPoints(self.obj[k], q[:3], q[3:], kd[0], kd[1])
+        return np.asarray((uv.reshape(-1, 2) - self.img[k]).ravel(), np.float64)
+
+    def phase_res(self, x: F64, k: int, ray_k: F64) -> F64:
+        """View ``k``'s (m,) phase residuals, projector px × weight, its rays ``ray_k``
+        (m, 3) given (they depend on the camera alone)."""
+        q = self.pose(x, k)
+        pts = _plane_points(ray_k, q[:3], q[3:])
+        r = _rotation(x[:3])
+        xn = (pts @ r[0] + x[3]) / (pts @ r[2] + x[4])
+        xd = (self.xps[k] - x[6]) / x[5]
+        return np.asarray(self.wts[k] * x[5] * (xd * (1.0 + x[7] * xd * xd) - xn), np.float64)
+
+    def residuals(self, x: F64, rays: list[F64] | None = None) -> F64:
+        """All residuals, each over its noise scale; ``rays``: :meth:`rays` of ``x`` if known."""
+        kd = self.camera(x)
+        rays = self.rays(x) if rays is None else rays
+        s_phase = self.s_phase or [1.0] * len(self.pix)
+        parts = [self.corner_res(x, k, kd) / self.s_corner for k in range(len(self.obj))]
+        parts += [self.phase_res(x, k, rays[k]) / s_phase[k] for k in range(len(self.pix))]
+        return np.concatenate(parts)
+
+    def jacobian(self, x: F64) -> F64:
+        """(residuals, state) exact derivatives of :meth:`residuals`: the corners' from
+        ``cv2.projectPoints``, the phase's by the chain rule through the board plane, the
+        projector and (:func:`undistort_rays_jacobian`) the camera's undistortion."""
+        nv, o_pose = len(self.obj), self.o_pose
+        kd = self.camera(x)
+        s_phase = self.s_phase or [1.0] * nv
+        n_c = [2 * len(o) for o in self.obj]
+        n_rows = sum(n_c) + sum(len(p) for p in self.pix)
+        # column-major: MINPACK's layout, which the solver would otherwise copy it to
+        jac = np.zeros((n_rows, x.size), order="F")
+        cam_cols = [6, 7, 8, 9] + [10 + i for i in self.free]  # projectPoints' f, c, dist
+        row = 0
+        for k in range(nv):
+            q = self.pose(x, k)
+            _, jp = cv2.projectPoints(self.obj[k], q[:3], q[3:], kd[0], kd[1])
+            blk = slice(row, row + n_c[k])
+            jac[blk, o_pose + 6 * k: o_pose + 6 * k + 6] = jp[:, :6] / self.s_corner
+            jac[blk, 8:o_pose] = jp[:, cam_cols] / self.s_corner
+            row += n_c[k]
+        rays = self.rays(x)
+        for k in range(nv):
+            blk = slice(row, row + len(rays[k]))
+            jp = self.phase_jacobian(x, k, rays[k], 1.0 / s_phase[k], kd)
+            jac[blk, :o_pose] = jp[:, :o_pose]
+            jac[blk, o_pose + 6 * k: o_pose + 6 * k + 6] = jp[:, o_pose:]
+            row += len(rays[k])
+        return jac
+
+    def phase_jacobian(self, x: F64, k: int, ray: F64, scale: float,
+                       kd: tuple[F64, F64] | None = None) -> F64:
+        """Derivatives of view ``k``'s phase residuals (:meth:`phase_res`) × ``scale`` at
+        ``x``, its rays ``ray`` (m, 3) given: (m, 8) in the projector's parameters with ``kd``
+        None (the camera held), else (m, 8 + camera's + 6): projector, camera (``kd``: its
+        matrix and distortion in ``x``), then view ``k``'s pose."""
+        rp, jrp = cv2.Rodrigues(np.asarray(x[:3], np.float64))
+        d_rp = jrp.reshape(3, 3, 3)  # [i] = d R / d rvec_i (row-major 3 × 3)
+        q = self.pose(x, k)
+        rb, jrb = cv2.Rodrigues(np.asarray(q[:3], np.float64))
+        n, t = rb[:, 2], q[3:]
+        nt, rn = float(n @ t), ray @ n
+        s = nt / rn
+        pts = ray * s[:, None]
+        den = pts @ rp[2] + x[4]
+        xn = (pts @ rp[0] + x[3]) / den
+        xd = (self.xps[k] - x[6]) / x[5]
+        w = self.wts[k] * scale
+        c = w * x[5]
+        g = xd * (1.0 + x[7] * xd * xd)
+        g1 = 1.0 + 3.0 * x[7] * xd * xd  # dg / dxd
+        n_cam = self.o_pose - 8
+        out = np.empty((len(ray), 8 if kd is None else 8 + n_cam + 6))
+        # projector: rotation, t_x, t_z, focal length, principal point, k1
+        for i in range(3):
+            out[:, i] = -c * (pts @ d_rp[i][0] - xn * (pts @ d_rp[i][2])) / den
+        out[:, 3] = -c / den
+        out[:, 4] = c * xn / den
+        out[:, 5] = w * (g - xn - g1 * xd)
+        out[:, 6] = -w * g1
+        out[:, 7] = c * xd**3
+        if kd is None:
+            return out
+        # the board point P = ray·s, s = (n·t) / (ray·n): dr/dP, then the pose and the ray
+        dr_dp = -(c / den)[:, None] * (rp[0][None, :] - xn[:, None] * rp[2][None, :])
+        dr_dp_ray = np.einsum("ij,ij->i", dr_dp, ray)
+        d_n = jrb.reshape(3, 3, 3)[:, :, 2]  # [i] = d n / d rvec_i
+        o = 8 + n_cam
+        for i in range(3):
+            ds = (float(d_n[i] @ t) * rn - nt * (ray @ d_n[i])) / (rn * rn)
+            out[:, o + i] = dr_dp_ray * ds
+        out[:, o + 3: o + 6] = (dr_dp_ray / rn)[:, None] * n
+        # camera: through the ray's x and y (its z is 1)
+        dr_dray = s[:, None] * dr_dp[:, :2] - (dr_dp_ray * nt / (rn * rn))[:, None] * n[:2]
+        d_ray = undistort_rays_jacobian(ray, *kd, self.free)  # (m, 2, n_cam)
+        out[:, 8:o] = np.einsum("ib,ibj->ij", dr_dray, d_ray)
+        return out
+
+
 def refine_board_poses(
     obj: list[npt.NDArray[np.float32]],
     img: list[npt.NDArray[np.float32]],
@@ -99,6 +308,7 @@ def refine_board_poses(
     proj_x: list[F64],
     weights: list[F64] | None = None,
     free_dist: tuple[int, ...] = (0,),
+    projector_start: F64 | None = None,
 ) -> RefinedPoses | None:
     """Jointly refine the camera, the board poses and the projector from corners and the phase
     on the boards.
@@ -114,6 +324,9 @@ def refine_board_poses(
             modulation B over the view's median: σ_φ ∝ 1/B); None weighs them alike.
         free_dist: indices (into k1, k2, p1, p2, k3) of the distortion terms refined; the
             others stay as given.
+        projector_start: (8,) a projector (:attr:`RefinedPoses.projector`) the projector-only
+            fit starts from instead of the direct linear start (e.g. the joint fit of all views
+            when a subset of them is refitted); None: the direct linear start.
 
     Returns:
         :class:`RefinedPoses`, or None when the data do not allow it (too few phase points,
@@ -127,142 +340,89 @@ def refine_board_poses(
     keep = [np.isfinite(p) & np.isfinite(w) & (w > 0) for p, w in zip(proj_x, wts, strict=True)]
     if nv < 3 or any(int(k.sum()) < MIN_PHASE_POINTS for k in keep):
         return None
-    pix = [np.asarray(q, np.float64)[k] for q, k in zip(pixels, keep, strict=True)]
-    xps = [np.asarray(p, np.float64)[k] for p, k in zip(proj_x, keep, strict=True)]
-    wts = [np.asarray(w, np.float64)[k] for w, k in zip(wts, keep, strict=True)]
     cam = np.asarray(cam, np.float64)
-    dist5 = (list(np.ravel(np.asarray(dist, np.float64))) + [0.0] * 5)[:5]
     free = tuple(int(i) for i in free_dist)
-    n_cam = 4 + len(free)
-    cam0 = np.array([cam[0, 0], cam[1, 1], cam[0, 2], cam[1, 2]] + [dist5[i] for i in free])
+    prob = JointProblem(
+        [np.asarray(o, np.float64) for o in obj],
+        [np.asarray(i, np.float64).reshape(-1, 2) for i in img],
+        [np.asarray(q, np.float64)[k] for q, k in zip(pixels, keep, strict=True)],
+        [np.asarray(p, np.float64)[k] for p, k in zip(proj_x, keep, strict=True)],
+        [np.asarray(w, np.float64)[k] for w, k in zip(wts, keep, strict=True)],
+        (list(np.ravel(np.asarray(dist, np.float64))) + [0.0] * 5)[:5], free)
+    cam0 = np.array([cam[0, 0], cam[1, 1], cam[0, 2], cam[1, 2]] + [prob.dist5[i] for i in free])
     pose0 = np.concatenate(
         [np.concatenate([np.ravel(rv), np.ravel(tv)]) for rv, tv in zip(rvecs, tvecs, strict=True)]
     )
-    obj64 = [np.asarray(o, np.float64) for o in obj]
-    img64 = [np.asarray(i, np.float64).reshape(-1, 2) for i in img]
-    o_cam, o_pose = 8, 8 + n_cam
-
-    def camera(x: F64) -> tuple[F64, F64]:
-        c = x[o_cam:o_pose]
-        k = np.array([[c[0], 0.0, c[2]], [0.0, c[1], c[3]], [0.0, 0.0, 1.0]])
-        d = np.array(dist5, np.float64)
-        d[list(free)] = c[4:]
-        return k, d
-
-    def pose(x: F64, k: int) -> F64:
-        return x[o_pose + 6 * k: o_pose + 6 * k + 6]
-
-    def corner_res(x: F64, k: int, kd: tuple[F64, F64]) -> F64:
-        q = pose(x, k)
-        uv, _ = cv2.projectPoints(obj64[k], q[:3], q[3:], kd[0], kd[1])
-        return np.asarray((uv.reshape(-1, 2) - img64[k]).ravel(), np.float64)
-
-    def phase_res(x: F64, k: int, kd: tuple[F64, F64], rays: list[F64] | None = None) -> F64:
-        """View k's phase residuals (m,), projector px × weight; ``rays``: the views' (m, 3)
-        undistorted rays under ``kd`` when already known (they depend on the camera alone)."""
-        q = pose(x, k)
-        ray_k = undistort_rays(pix[k], kd[0], kd[1]) if rays is None else rays[k]
-        pts = _plane_points(ray_k, q[:3], q[3:])
-        r = _rotation(x[:3])
-        xn = (pts @ r[0] + x[3]) / (pts @ r[2] + x[4])
-        xd = (xps[k] - x[6]) / x[5]
-        return np.asarray(wts[k] * x[5] * (xd * (1.0 + x[7] * xd * xd) - xn), np.float64)
+    o_cam = 8
 
     # projector start: 1-D DLT on the corner poses' board points, then its own fit
     x_init = np.concatenate([np.zeros(8), cam0, pose0])
-    kd0 = camera(x_init)
+    kd0 = prob.camera(x_init)
     # the start's camera is fixed: its rays are undistorted once, not on every evaluation
-    rays0 = [undistort_rays(pix[k], *kd0) for k in range(nv)]
-    x3 = np.concatenate(
-        [_plane_points(rays0[k], pose(x_init, k)[:3], pose(x_init, k)[3:]) for k in range(nv)]
-    )
-    try:
-        rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(xps)), x3)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    x_init[:8] = np.concatenate([Rotation.from_matrix(rot).as_rotvec(), [t[0], t[2], f, c, 0.0]])
+    rays0 = prob.rays(x_init)
+    if projector_start is not None:
+        x_init[:8] = np.asarray(projector_start, np.float64)
+    else:
+        x3 = np.concatenate([_plane_points(rays0[k], prob.pose(x_init, k)[:3],
+                                           prob.pose(x_init, k)[3:]) for k in range(nv)])
+        try:
+            rot, t, f, c = _decompose(_dlt_1d(x3, np.concatenate(prob.xps)), x3)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        x_init[:8] = np.concatenate([Rotation.from_matrix(rot).as_rotvec(),
+                                     [t[0], t[2], f, c, 0.0]])
 
     def proj_only(xp: F64) -> F64:
         xx = np.concatenate([xp, x_init[8:]])
-        return np.concatenate([phase_res(xx, k, kd0, rays0) for k in range(nv)])
+        return np.concatenate([prob.phase_res(xx, k, rays0[k]) for k in range(nv)])
+
+    def proj_only_jac(xp: F64) -> F64:
+        xx = np.concatenate([xp, x_init[8:]])
+        out = np.empty((sum(len(r) for r in rays0), 8), order="F")  # MINPACK's layout
+        row = 0
+        for k in range(nv):
+            out[row:row + len(rays0[k])] = prob.phase_jacobian(xx, k, rays0[k], 1.0)
+            row += len(rays0[k])
+        return out
 
     try:
-        start = least_squares(proj_only, x_init[:8], method="lm", x_scale="jac", max_nfev=2000)
+        start = least_squares(proj_only, x_init[:8], jac=proj_only_jac, method="lm",
+                              x_scale="jac", max_nfev=2000)
     except (ValueError, np.linalg.LinAlgError):
         return None
     x_init[:8] = start.x
     # noise scales; phase outliers (order slips, board edges) beyond OUTLIER_SCALES dropped
-    s_corner = max(
-        float(
-            np.sqrt(np.mean(np.concatenate([corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))
-        ),
+    prob.s_corner = max(
+        float(np.sqrt(np.mean(np.concatenate(
+            [prob.corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))),
         1e-3,
     )
     s_phase = []
     for k in range(nv):
-        r0 = phase_res(x_init, k, kd0, rays0)
+        r0 = prob.phase_res(x_init, k, rays0[k])
         s = max(1.4826 * float(np.median(np.abs(r0))), 1e-4)
         ok = np.abs(r0) <= OUTLIER_SCALES * s
         if int(ok.sum()) < MIN_PHASE_POINTS:
             return None
-        pix[k], xps[k], wts[k] = pix[k][ok], xps[k][ok], wts[k][ok]
+        prob.pix[k], prob.xps[k], prob.wts[k] = prob.pix[k][ok], prob.xps[k][ok], prob.wts[k][ok]
         s_phase.append(s)
-
-    n_c = [2 * len(o) for o in obj64]
-    n_p = [len(p) for p in xps]
-    c_start = np.concatenate([[0], np.cumsum(n_c)])
-    p_start = c_start[-1] + np.concatenate([[0], np.cumsum(n_p)])
-    support = [
-        np.concatenate(
-            [np.arange(c_start[k], c_start[k + 1]), np.arange(p_start[k], p_start[k + 1])]
-        )
-        for k in range(nv)
-    ]
-
-    def residuals(x: F64, rays: list[F64] | None = None) -> F64:
-        kd = camera(x)
-        parts = [corner_res(x, k, kd) / s_corner for k in range(nv)]
-        parts += [phase_res(x, k, kd, rays) / s_phase[k] for k in range(nv)]
-        return np.concatenate(parts)
-
-    def jacobian(x: F64) -> F64:
-        """Forward differences, the views' pose columns perturbed together (disjoint rows).
-
-        The rays are undistorted once for ``x``'s camera and reused for the columns that leave
-        the camera as it is (projector and poses): the iterative undistortion was most of the
-        cost, repeated for each of those columns with the same result."""
-        rays = [undistort_rays(pix[k], *camera(x)) for k in range(nv)]
-        f0 = residuals(x, rays)
-        jac = np.zeros((f0.size, x.size))
-        for j in range(o_pose):  # projector and camera: every row
-            h = 1e-7 * max(1.0, abs(float(x[j])))
-            xx = x.copy()
-            xx[j] += h
-            jac[:, j] = (residuals(xx, rays if j < o_cam else None) - f0) / h
-        for i in range(6):
-            xx = x.copy()
-            hs = [1e-7 * max(1.0, abs(float(x[o_pose + 6 * k + i]))) for k in range(nv)]
-            for k in range(nv):
-                xx[o_pose + 6 * k + i] += hs[k]
-            d = residuals(xx, rays) - f0
-            for k in range(nv):
-                jac[support[k], o_pose + 6 * k + i] = d[support[k]] / hs[k]
-        return jac
+    prob.s_phase = s_phase
+    prob._rays_of = None  # the pixels changed
 
     try:
         res = least_squares(
-            residuals, x_init, jac=jacobian, method="lm", x_scale="jac", max_nfev=100
+            prob.residuals, x_init, jac=prob.jacobian, method="lm", x_scale="jac", max_nfev=100
         )
     except (ValueError, np.linalg.LinAlgError):
         return None
     x = res.x
     if not np.all(np.isfinite(x)) or x[o_cam] <= 0 or x[o_cam + 1] <= 0:
         return None
-    kd = camera(x)
-    out_r = [pose(x, k)[:3].reshape(3, 1).copy() for k in range(nv)]
-    out_t = [pose(x, k)[3:].reshape(3, 1).copy() for k in range(nv)]
+    kd = prob.camera(x)
+    out_r = [prob.pose(x, k)[:3].reshape(3, 1).copy() for k in range(nv)]
+    out_t = [prob.pose(x, k)[3:].reshape(3, 1).copy() for k in range(nv)]
     # per corner (both coordinates), as cv2.calibrateCamera's RMS: comparable with the corner fit
-    corner_all = np.concatenate([corner_res(x, k, kd) for k in range(nv)])
+    corner_all = np.concatenate([prob.corner_res(x, k, kd) for k in range(nv)])
     reproj = float(np.sqrt(2.0 * np.mean(corner_all**2)))
     change = [
         1e3
@@ -271,7 +431,7 @@ def refine_board_poses(
         )
         for a, b in zip(rvecs, out_r, strict=True)
     ]
-    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change)
+    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change, x[:8].copy())
 
 
 @dataclass
