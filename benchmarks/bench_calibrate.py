@@ -44,10 +44,10 @@ import numpy as np
 import numpy.typing as npt
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from app.core.jit import numba_environment
+from app.core.jit import numeric_environment
 
-# before numba is imported: the threading layer and vector width of the CLI (app/core/jit.py)
-os.environ.update(numba_environment(os.environ))
+# before numba is imported: the numeric settings of the CLI (app/core/jit.py)
+os.environ.update(numeric_environment(os.environ))
 
 import app.calib.fitting as fitting  # noqa: E402
 from app.calib import CalibrationReport, calibrate_folder  # noqa: E402
