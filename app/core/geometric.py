@@ -103,6 +103,15 @@ class GeometricModel(DepthModel):
     #: reference plane, projector; set by the calibration, saved with the model): their spread is
     #: the height's uncertainty from all of them (:meth:`total_height_deviations`)
     pipeline: list[PipelineFit] = field(default_factory=list, repr=False, compare=False)
+    #: the whole calibration refitted with the next camera lens model (set by the calibration,
+    #: saved with the model): where its heights part from this model's, the lens model's
+    #: choice is uncertain (beyond the board corners' reach)
+    lens_alternative: PipelineFit | None = field(default=None, repr=False, compare=False)
+    #: (cx, cy, rx, ry) px: the ellipse to which the held-out corners verified the chosen lens
+    #: model's extrapolation (the :attr:`lens_alternative`'s row counts only beyond it);
+    #: None: everywhere
+    lens_verified_px: tuple[float, float, float, float] | None = field(
+        default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.rvec = _vec("rvec", self.rvec)
@@ -183,8 +192,9 @@ class GeometricModel(DepthModel):
         """(K, n) height errors (mm) of the whole calibration whose Gram matrix is the covariance
         of heights above the reference plane at n (pixel, height) places: the delete-one-pose
         jackknife of :attr:`pipeline` (each refit's camera gives the pixel's ray, its plane the
-        height, its projector the phase → height map) and the :attr:`alternative`'s row;
-        :meth:`height_deviations` without a pipeline of at least 3 refits."""
+        height, its projector the phase → height map), the :attr:`alternative`'s row and the
+        :attr:`lens_alternative`'s row; :meth:`height_deviations` without a pipeline of at least
+        3 refits."""
         return self._total_rows(u, v, ray_xy, height_mm, plane)
 
     def _total_rows(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane,
@@ -209,6 +219,12 @@ class GeometricModel(DepthModel):
         if self.alternative is not None:
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
             rows = np.concatenate([rows, alt[None]])
+        if self.lens_alternative is not None:
+            lens = self.lens_alternative.height_at(uv, rxy, phi) - h
+            if self.lens_verified_px is not None:
+                cx, cy, rx, ry = self.lens_verified_px
+                lens = np.where(((uu - cx) / rx) ** 2 + ((vv - cy) / ry) ** 2 > 1.0, lens, 0.0)
+            rows = np.concatenate([rows, lens[None]])
         return np.asarray(rows, np.float64)
 
     def refit(self, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
@@ -245,6 +261,10 @@ class GeometricModel(DepthModel):
         out = super().to_dict()
         if self.pipeline:
             out["pipeline_jackknife"] = [p.to_dict() for p in self.pipeline]
+        if self.lens_alternative is not None:
+            out["lens_alternative"] = self.lens_alternative.to_dict()
+            if self.lens_verified_px is not None:
+                out["lens_verified_px"] = [float(x) for x in self.lens_verified_px]
         return out
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,
