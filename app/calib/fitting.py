@@ -19,8 +19,10 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.camera import (
+    CANDIDATE_MODELS,
     DISTORTION_MODELS,
     DISTORTION_TERMS,
+    REDUCED_MODEL,
     SPLIT,
     CameraFit,
     calibrate_camera,
@@ -208,11 +210,18 @@ class CalibrationReport:
         if math.isfinite(cam.field_radius):
             short = field_shortfall(cam.field_px(), self.calibration.image_size)
             where = ", ".join(f"{k} {100 * v:.0f} %" for k, v in short.items())
+            model = self.calibration.model
+            beyond = (
+                "depth there only where the calibration's own sigma (its refits and the next "
+                "lens model's disagreement) passes the gross-error rule"
+                if isinstance(model, GeometricModel) and model.lens_alternative is not None
+                else "no depth there"
+            )
             lines.append(
-                f"supported field: normalised radius <= {cam.field_radius:.3f} "
+                f"corner-verified lens field: normalised radius <= {cam.field_radius:.3f} "
                 "(board corners reach "
                 f"{cam.r_max:.3f}); "
-                + (f"unsupported (no depth): {where}" if where else "the whole image")
+                + (f"beyond it ({where}): {beyond}" if where else "the whole image")
             )
         return lines
 
@@ -594,9 +603,16 @@ def fit_observations(
             joint = _JointFit(obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs,
                               tvecs, refined.projector)
         geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
-        # the corner-verified camera field: opened to where the lens model is defined (σ_model
-        # deciding) the twin's preset gave 0.995 valid but σ_model 2-3x its error past the boards
-        geo.region = geo.region.field_limited(field_px)
+        if geo.pipeline:
+            alternative = _lens_alternative(obj, img, image_size, camfit.model, samples, geo,
+                                            joint)
+            if alternative is not None:
+                geo.lens_alternative, geo.lens_alternative_pipeline = alternative
+            geo.lens_verified_px = field_px
+        # the field where the lens model is defined: beyond the corners' reach the refits' spread
+        # and the next lens model's row (σ_model) decide, pixel by pixel
+        geo.region = geo.region.field_limited(
+            camfit.defined_field_px() if geo.pipeline else field_px)
         # where the model's own (jackknife) uncertainty passes the gross-error rule, and no farther
         geo.region = geo.verified_region(
             image_size,
@@ -1077,6 +1093,79 @@ def _refit_camera(
     return cam, dist, pose_of
 
 
+def _refit_through(cam: npt.NDArray[np.float64], dist: npt.NDArray[np.float64],
+                   pose_of: dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]],
+                   samples: BoardSamples, geo: GeometricModel,
+                   left: int | None = None) -> PipelineFit | None:
+    """The reference plane (pose 0's board), the samples' heights and the projector refitted
+    through the camera ``cam``, ``dist`` and board poses ``pose_of`` (pose index → rvec, tvec),
+    pose ``left`` left out; None when the projector cannot be fitted."""
+    normal, offset = _board_pose(*pose_of[0])
+    plane = ReferencePlane(normal, offset)
+    rays = undistort_points(np.column_stack([samples.u, samples.v]), cam, dist)
+    r3 = np.column_stack([rays, np.ones(len(rays))])
+    z = np.full(len(rays), np.nan)
+    for k in (int(k) for k in np.unique(samples.pose)):
+        if k == left:
+            continue
+        sel = samples.pose == k
+        n_k, off_k = _board_pose(*pose_of[k])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pts = r3[sel] * (-off_k / (r3[sel] @ n_k))[:, None]
+        z[sel] = pts @ normal + offset
+    train = (samples.pose != left) & np.isfinite(z)
+    sub = BoardSamples(samples.u[train], samples.v[train], rays[train], samples.phi[train],
+                       z[train], samples.pose[train], samples.image_size, samples.fringes,
+                       samples.projector_width_px)
+    try:
+        projector = geo.refit(sub, plane)
+    except ValueError:
+        return None
+    return PipelineFit(cam, dist[:5].copy(), plane, projector)
+
+
+def _lens_alternative(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
+                      image_size: tuple[int, int], lens_model: str, samples: BoardSamples,
+                      geo: GeometricModel, joint: _JointFit | None
+                      ) -> tuple[PipelineFit, list[PipelineFit]] | None:
+    """The whole calibration refitted with the next lens model of the held-out ladder (k1 →
+    k1,k2 → k1,k2,p1,p2 → k1,k2,k3,p1,p2) from all poses, and its own leave-one-pose-out refits
+    (:func:`_pipeline_jackknife`): the term the held-out test did not choose may be real, and
+    beyond the corners' reach the two models' rays part (a dropped k2 bends every ray past the
+    boards, and no refit of the chosen model shows it); the refits say how much of the parting
+    is the richer model's own scatter. The joint corners + phase fit is repeated with the other
+    model's terms when the calibration kept one. None after the last model or when a fit
+    fails."""
+    ladder = (REDUCED_MODEL, *CANDIDATE_MODELS)
+    if lens_model not in ladder[:-1]:
+        return None
+    other = ladder[ladder.index(lens_model) + 1]
+    try:
+        _, cam, dist, rvecs, tvecs = calibrate_views(obj, img, image_size,
+                                                     DISTORTION_MODELS[other])
+    except cv2.error:
+        return None
+    if joint is not None:
+        pixels = _phase_pixels(joint.obs, cam, dist, rvecs, tvecs, joint.schedule,
+                               JACKKNIFE_REFINE_POINTS_PER_POSE)
+        weights = [w for (_, _, w) in pixels if w is not None]
+        refined = refine_board_poses(
+            obj, img, cam, dist, rvecs, tvecs, [p[0] for p in pixels], [p[1] for p in pixels],
+            weights if len(weights) == len(pixels) else None, DISTORTION_TERMS[other])
+        if refined is not None:
+            cam, dist = refined.camera_matrix, refined.dist_coeffs
+            rvecs, tvecs = list(refined.rvecs), list(refined.tvecs)
+            joint = _JointFit(joint.obs, joint.schedule, DISTORTION_TERMS[other], cam, dist,
+                              rvecs, tvecs)
+        else:
+            joint = None
+    fit = _refit_through(cam, dist, dict(enumerate(zip(rvecs, tvecs, strict=True))), samples,
+                         geo)
+    if fit is None:
+        return None
+    return fit, _pipeline_jackknife(obj, img, image_size, other, samples, geo, joint)
+
+
 def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
                         image_size: tuple[int, int], lens_model: str, samples: BoardSamples,
                         geo: GeometricModel, joint: _JointFit | None = None) -> list[PipelineFit]:
@@ -1092,7 +1181,6 @@ def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArra
     if len(poses) < MIN_POSES:
         return []
     flags = DISTORTION_MODELS[lens_model]
-    uv = np.column_stack([samples.u, samples.v])
     pixels = [] if joint is None else _phase_pixels(
         joint.obs, joint.camera_matrix, joint.dist_coeffs, joint.rvecs, joint.tvecs,
         joint.schedule, JACKKNIFE_REFINE_POINTS_PER_POSE)
@@ -1101,29 +1189,9 @@ def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArra
         fit = _refit_camera(obj, img, image_size, flags, left, joint, pixels)
         if fit is None:
             continue
-        cam, dist, pose_of = fit
-        normal, offset = _board_pose(*pose_of[0])
-        plane = ReferencePlane(normal, offset)
-        rays = undistort_points(uv, cam, dist)
-        r3 = np.column_stack([rays, np.ones(len(rays))])
-        z = np.full(len(rays), np.nan)
-        for k in poses:
-            if k == left:
-                continue
-            sel = samples.pose == k
-            n_k, off_k = _board_pose(*pose_of[k])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pts = r3[sel] * (-off_k / (r3[sel] @ n_k))[:, None]
-            z[sel] = pts @ normal + offset
-        train = (samples.pose != left) & np.isfinite(z)
-        sub = BoardSamples(samples.u[train], samples.v[train], rays[train], samples.phi[train],
-                           z[train], samples.pose[train], samples.image_size, samples.fringes,
-                           samples.projector_width_px)
-        try:
-            projector = geo.refit(sub, plane)
-        except ValueError:
-            continue
-        out.append(PipelineFit(cam, dist[:5].copy(), plane, projector))
+        refit = _refit_through(*fit, samples, geo, left)
+        if refit is not None:
+            out.append(refit)
     return out if len(out) >= MIN_POSES else []
 
 

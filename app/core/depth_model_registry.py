@@ -6,6 +6,7 @@ implementations so that the contract never imports its own subclasses.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from app.core.depth_model import DepthModel, SupportedRegion
@@ -45,9 +46,31 @@ def depth_model_from_dict(data: Any) -> DepthModel:
         raise ValueError("model.pipeline_jackknife: expected a list of objects")
     if pipeline and not isinstance(model, GeometricModel):
         raise ValueError("model.pipeline_jackknife: only the geometric model carries one")
+    lens = data.get("lens_alternative")
+    if lens is not None and not isinstance(model, GeometricModel):
+        raise ValueError("model.lens_alternative: only the geometric model carries one")
     if isinstance(model, GeometricModel):
         try:
             model.pipeline = [PipelineFit.from_dict(p) for p in pipeline]
+            model.lens_alternative = None if lens is None else PipelineFit.from_dict(lens)
+            model.lens_verified_px = _ellipse("lens_verified_px", data.get("lens_verified_px"))
+            alt_jack = data.get("lens_alternative_jackknife", [])
+            if not isinstance(alt_jack, list):
+                raise ValueError("lens_alternative_jackknife: expected a list of objects")
+            model.lens_alternative_pipeline = [PipelineFit.from_dict(p) for p in alt_jack]
         except ValueError as exc:
             raise ValueError(f"model.{exc}") from None
     return model
+
+
+def _ellipse(name: str, value: Any) -> tuple[float, float, float, float] | None:
+    """(cx, cy, rx, ry) px from a list of 4 finite numbers with rx, ry > 0 (None stays None)."""
+    if value is None:
+        return None
+    try:
+        cx, cy, rx, ry = (float(x) for x in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected 4 numbers (cx, cy, rx, ry)") from None
+    if not all(math.isfinite(x) for x in (cx, cy, rx, ry)) or rx <= 0 or ry <= 0:
+        raise ValueError(f"{name}: expected 4 finite numbers, rx, ry > 0")
+    return cx, cy, rx, ry

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from app.calib import fit_observations
+from app.calib.camera import CANDIDATE_MODELS, DISTORTION_TERMS, REDUCED_MODEL
 from app.calib.model import undistort_points
 from app.core.calibration import Calibration
 from app.core.geometric import GeometricModel, undistort_newton
@@ -116,6 +117,9 @@ def test_the_refits_are_saved_with_the_calibration_file(calibration_at_0p1_px):
     again = Calibration.from_dict(cal.to_dict())
     assert isinstance(again.model, GeometricModel) and isinstance(cal.model, GeometricModel)
     assert len(again.model.pipeline) == len(cal.model.pipeline)
+    assert cal.model.lens_alternative is not None and again.model.lens_alternative is not None
+    np.testing.assert_array_equal(again.model.lens_alternative.dist_coeffs,
+                                  cal.model.lens_alternative.dist_coeffs)
     u, v = np.array([100.0, 320.0]), np.array([80.0, 240.0])
     rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
     h = np.array([5.0, 15.0])
@@ -126,3 +130,48 @@ def test_the_refits_are_saved_with_the_calibration_file(calibration_at_0p1_px):
     data["model"]["pipeline_jackknife"][0]["camera_matrix"] = [[1.0, 0.0], [0.0, 1.0]]
     with pytest.raises(ValueError, match="pipeline_jackknife"):
         Calibration.from_dict(data)
+
+
+def test_the_next_lens_model_is_refitted_and_its_row_added(calibration_at_0p1_px):
+    """Beside the chosen lens model, the whole calibration refitted with the next one of the
+    held-out ladder: its terms free, the others 0; beyond the corner-verified field σ_model²
+    grows by the square of its height's difference from the model's (less the richer model's
+    own scatter when its refits are kept)."""
+    cal, _, _ = calibration_at_0p1_px
+    model = cal.model
+    assert isinstance(model, GeometricModel)
+    ladder = (REDUCED_MODEL, *CANDIDATE_MODELS)
+    chosen = str(cal.extra["camera_model"]["distortion_model"])
+    alt = model.lens_alternative
+    assert chosen in ladder[:-1] and alt is not None
+    other = ladder[ladder.index(chosen) + 1]
+    free = set(DISTORTION_TERMS[other])
+    assert all(alt.dist_coeffs[i] == 0.0 for i in range(5) if i not in free)
+    assert any(alt.dist_coeffs[i] != 0.0 for i in free - set(DISTORTION_TERMS[chosen]))
+    u = np.array([20.0, 320.0, 630.0])
+    v = np.array([15.0, 240.0, 470.0])
+    rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
+    h = np.array([0.0, 10.0, 20.0])
+    plane = cal.reference_plane
+    phi = model.phase_at(u, v, rxy, h, plane)
+    diff = alt.height_at(np.column_stack([u, v]), rxy, phi) - h
+    refits = model.lens_alternative_pipeline
+    assert len(refits) == len(model.pipeline)  # the richer model's own refits, pose by pose
+    debiased = model.height_sigma(u, v, rxy, h, plane)
+    model.lens_alternative_pipeline = []  # without them the whole parting counts
+    try:
+        with_row = model.height_sigma(u, v, rxy, h, plane)
+        model.lens_alternative = None
+        without = model.height_sigma(u, v, rxy, h, plane)
+    finally:
+        model.lens_alternative, model.lens_alternative_pipeline = alt, refits
+    # less the richer model's own scatter, the row is smaller, never larger
+    assert np.all(without <= debiased + 1e-12) and np.all(debiased <= with_row + 1e-12)
+    # the row counts beyond the field the held-out corners verified the chosen model to
+    assert model.lens_verified_px is not None
+    cx, cy, rx, ry = model.lens_verified_px
+    beyond = ((u - cx) / rx) ** 2 + ((v - cy) / ry) ** 2 > 1.0
+    assert beyond.any() and not beyond.all()
+    np.testing.assert_allclose(with_row**2 - without**2, np.where(beyond, diff**2, 0.0),
+                               rtol=1e-6, atol=1e-12)
+    assert np.all(np.abs(diff) > 0)
