@@ -1156,7 +1156,7 @@ def _lens_alternative(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[
             cam, dist = refined.camera_matrix, refined.dist_coeffs
             rvecs, tvecs = list(refined.rvecs), list(refined.tvecs)
             joint = _JointFit(joint.obs, joint.schedule, DISTORTION_TERMS[other], cam, dist,
-                              rvecs, tvecs, refined.projector)
+                              rvecs, tvecs)
         else:
             joint = None
     fit = _refit_through(cam, dist, dict(enumerate(zip(rvecs, tvecs, strict=True))), samples,
