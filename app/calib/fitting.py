@@ -604,10 +604,8 @@ def fit_observations(
                               tvecs, refined.projector)
         geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
         if geo.pipeline:
-            alternative = _lens_alternative(obj, img, image_size, camfit.model, samples, geo,
-                                            joint)
-            if alternative is not None:
-                geo.lens_alternative, geo.lens_alternative_pipeline = alternative
+            geo.lens_alternative = _lens_alternative(obj, img, image_size, camfit.model, samples,
+                                                     geo, joint)
             geo.lens_verified_px = field_px
         # the field where the lens model is defined: beyond the corners' reach the refits' spread
         # and the next lens model's row (σ_model) decide, pixel by pixel
@@ -1126,16 +1124,13 @@ def _refit_through(cam: npt.NDArray[np.float64], dist: npt.NDArray[np.float64],
 
 def _lens_alternative(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],
                       image_size: tuple[int, int], lens_model: str, samples: BoardSamples,
-                      geo: GeometricModel, joint: _JointFit | None
-                      ) -> tuple[PipelineFit, list[PipelineFit]] | None:
+                      geo: GeometricModel, joint: _JointFit | None) -> PipelineFit | None:
     """The whole calibration refitted with the next lens model of the held-out ladder (k1 →
-    k1,k2 → k1,k2,p1,p2 → k1,k2,k3,p1,p2) from all poses, and its own leave-one-pose-out refits
-    (:func:`_pipeline_jackknife`): the term the held-out test did not choose may be real, and
-    beyond the corners' reach the two models' rays part (a dropped k2 bends every ray past the
-    boards, and no refit of the chosen model shows it); the refits say how much of the parting
-    is the richer model's own scatter. The joint corners + phase fit is repeated with the other
-    model's terms when the calibration kept one. None after the last model or when a fit
-    fails."""
+    k1,k2 → k1,k2,p1,p2 → k1,k2,k3,p1,p2) from all poses: the term the held-out test did not
+    choose may be real, and beyond the corners' reach the two models' rays part (a dropped k2
+    bends every ray past the boards, and no refit of the chosen model shows it). The joint
+    corners + phase fit is repeated with the other model's terms when the calibration kept one.
+    None after the last model or when a fit fails."""
     ladder = (REDUCED_MODEL, *CANDIDATE_MODELS)
     if lens_model not in ladder[:-1]:
         return None
@@ -1155,15 +1150,8 @@ def _lens_alternative(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[
         if refined is not None:
             cam, dist = refined.camera_matrix, refined.dist_coeffs
             rvecs, tvecs = list(refined.rvecs), list(refined.tvecs)
-            joint = _JointFit(joint.obs, joint.schedule, DISTORTION_TERMS[other], cam, dist,
-                              rvecs, tvecs)
-        else:
-            joint = None
-    fit = _refit_through(cam, dist, dict(enumerate(zip(rvecs, tvecs, strict=True))), samples,
-                         geo)
-    if fit is None:
-        return None
-    return fit, _pipeline_jackknife(obj, img, image_size, other, samples, geo, joint)
+    return _refit_through(cam, dist, dict(enumerate(zip(rvecs, tvecs, strict=True))), samples,
+                          geo)
 
 
 def _pipeline_jackknife(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[np.float32]],

@@ -54,10 +54,6 @@ def depth_model_from_dict(data: Any) -> DepthModel:
             model.pipeline = [PipelineFit.from_dict(p) for p in pipeline]
             model.lens_alternative = None if lens is None else PipelineFit.from_dict(lens)
             model.lens_verified_px = _ellipse("lens_verified_px", data.get("lens_verified_px"))
-            alt_jack = data.get("lens_alternative_jackknife", [])
-            if not isinstance(alt_jack, list):
-                raise ValueError("lens_alternative_jackknife: expected a list of objects")
-            model.lens_alternative_pipeline = [PipelineFit.from_dict(p) for p in alt_jack]
         except ValueError as exc:
             raise ValueError(f"model.{exc}") from None
     return model

@@ -112,10 +112,6 @@ class GeometricModel(DepthModel):
     #: None: everywhere
     lens_verified_px: tuple[float, float, float, float] | None = field(
         default=None, repr=False, compare=False)
-    #: the :attr:`lens_alternative`'s own leave-one-pose-out refits (saved with the model): the
-    #: part of its parting from this model that is its own scatter
-    lens_alternative_pipeline: list[PipelineFit] = field(default_factory=list, repr=False,
-                                                         compare=False)
 
     def __post_init__(self) -> None:
         self.rvec = _vec("rvec", self.rvec)
@@ -224,29 +220,12 @@ class GeometricModel(DepthModel):
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
             rows = np.concatenate([rows, alt[None]])
         if self.lens_alternative is not None:
-            lens = self._lens_row(uv, rxy, phi, h, rows[:g])
+            lens = self.lens_alternative.height_at(uv, rxy, phi) - h
             if self.lens_verified_px is not None:
                 cx, cy, rx, ry = self.lens_verified_px
                 lens = np.where(((uu - cx) / rx) ** 2 + ((vv - cy) / ry) ** 2 > 1.0, lens, 0.0)
             rows = np.concatenate([rows, lens[None]])
         return np.asarray(rows, np.float64)
-
-    def _lens_row(self, uv: F64, rxy: F64, phi: F64, h: F64, pipeline_rows: F64) -> F64:
-        """(n,) the :attr:`lens_alternative`'s row: its height's difference d from this model's
-        ``h`` (n,) at phases ``phi``, less the part that is scatter. Nested least-squares fits on
-        the same data differ by var(d) = var(richer) − var(chosen) when the dropped term is 0
-        (each variance from its own leave-one-pose-out refits; ``pipeline_rows`` (g, n) this
-        model's), so d² − var(d) estimates the dropped term's squared bias: the row is
-        sign(d)·√max(d² − var(d), 0); the whole d without the richer model's refits."""
-        assert self.lens_alternative is not None
-        d = self.lens_alternative.height_at(uv, rxy, phi) - h
-        alt = self.lens_alternative_pipeline
-        if len(alt) < 3:
-            return d
-        hs = np.stack([p.height_at(uv, rxy, phi) for p in alt])
-        var_alt = (len(alt) - 1) / len(alt) * np.sum((hs - hs.mean(axis=0)) ** 2, axis=0)
-        var_d = np.maximum(var_alt - np.sum(pipeline_rows**2, axis=0), 0.0)
-        return np.asarray(np.sign(d) * np.sqrt(np.maximum(d * d - var_d, 0.0)), np.float64)
 
     def refit(self, samples: BoardSamples, plane: ReferencePlane) -> GeometricModel:
         """This model's form (k1 free or a pinhole, as this model) refitted to ``samples`` by
@@ -286,9 +265,6 @@ class GeometricModel(DepthModel):
             out["lens_alternative"] = self.lens_alternative.to_dict()
             if self.lens_verified_px is not None:
                 out["lens_verified_px"] = [float(x) for x in self.lens_verified_px]
-            if self.lens_alternative_pipeline:
-                out["lens_alternative_jackknife"] = [
-                    p.to_dict() for p in self.lens_alternative_pipeline]
         return out
 
     def verified_region(self, image_size: tuple[int, int], plane: ReferencePlane,

@@ -134,9 +134,8 @@ def test_the_refits_are_saved_with_the_calibration_file(calibration_at_0p1_px):
 
 def test_the_next_lens_model_is_refitted_and_its_row_added(calibration_at_0p1_px):
     """Beside the chosen lens model, the whole calibration refitted with the next one of the
-    held-out ladder: its terms free, the others 0; beyond the corner-verified field σ_model²
-    grows by the square of its height's difference from the model's (less the richer model's
-    own scatter when its refits are kept)."""
+    held-out ladder: its terms free, the others 0; σ_model² grows by the square of its height's
+    difference from the model's at every place."""
     cal, _, _ = calibration_at_0p1_px
     model = cal.model
     assert isinstance(model, GeometricModel)
@@ -153,20 +152,14 @@ def test_the_next_lens_model_is_refitted_and_its_row_added(calibration_at_0p1_px
     rxy = undistort_points(np.column_stack([u, v]), cal.camera_matrix, cal.dist_coeffs)
     h = np.array([0.0, 10.0, 20.0])
     plane = cal.reference_plane
+    with_row = model.height_sigma(u, v, rxy, h, plane)
     phi = model.phase_at(u, v, rxy, h, plane)
     diff = alt.height_at(np.column_stack([u, v]), rxy, phi) - h
-    refits = model.lens_alternative_pipeline
-    assert len(refits) == len(model.pipeline)  # the richer model's own refits, pose by pose
-    debiased = model.height_sigma(u, v, rxy, h, plane)
-    model.lens_alternative_pipeline = []  # without them the whole parting counts
+    model.lens_alternative = None
     try:
-        with_row = model.height_sigma(u, v, rxy, h, plane)
-        model.lens_alternative = None
         without = model.height_sigma(u, v, rxy, h, plane)
     finally:
-        model.lens_alternative, model.lens_alternative_pipeline = alt, refits
-    # less the richer model's own scatter, the row is smaller, never larger
-    assert np.all(without <= debiased + 1e-12) and np.all(debiased <= with_row + 1e-12)
+        model.lens_alternative = alt
     # the row counts beyond the field the held-out corners verified the chosen model to
     assert model.lens_verified_px is not None
     cx, cy, rx, ry = model.lens_verified_px
