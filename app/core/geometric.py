@@ -198,9 +198,10 @@ class GeometricModel(DepthModel):
         return self._total_rows(u, v, ray_xy, height_mm, plane)
 
     def _total_rows(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane,
-                    refit_rays: list[F64] | None = None) -> F64:
+                    refit_rays: list[F64] | None = None, lens_rays: F64 | None = None) -> F64:
         """:meth:`total_height_deviations`; ``refit_rays``: each refit's rays of the pixels
-        (:meth:`PipelineFit.rays`), when the caller reuses them over many heights."""
+        (:meth:`PipelineFit.rays`), ``lens_rays``: the :attr:`lens_alternative`'s, when the
+        caller reuses them over many heights."""
         g = len(self.pipeline)
         if g < 3:
             return self.height_deviations(u, v, ray_xy, height_mm, plane)
@@ -220,7 +221,10 @@ class GeometricModel(DepthModel):
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
             rows = np.concatenate([rows, alt[None]])
         if self.lens_alternative is not None:
-            lens = self.lens_alternative.height_at(uv, rxy, phi) - h
+            la = self.lens_alternative
+            if lens_rays is None:
+                lens_rays = la.rays(uv, rxy)
+            lens = la.projector.height_at(uu, vv, lens_rays, phi, la.plane) - h
             if self.lens_verified_px is not None:
                 cx, cy, rx, ry = self.lens_verified_px
                 lens = np.where(((uu - cx) / rx) ** 2 + ((vv - cy) / ry) ** 2 > 1.0, lens, 0.0)
@@ -322,6 +326,7 @@ class GeometricModel(DepthModel):
         r3 = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
         nr = r3 @ np.asarray(plane.normal, np.float64)
         refit_rays = [p.rays(uv, rxy) for p in self.pipeline] if len(self.pipeline) >= 3 else None
+        lens_rays = None if self.lens_alternative is None else self.lens_alternative.rays(uv, rxy)
         ok = np.empty((len(hs), gh, gw), bool)
         in_data = np.empty((len(hs), gh, gw), bool)
         # the phases the model is verified at: the boards' (with the region's margin) and every
@@ -334,7 +339,7 @@ class GeometricModel(DepthModel):
             phi = self.phase_of_points(pts)
             data = bool(in_range[k]) & (phi >= p_lo) & (phi <= p_hi)
             rows = self._total_rows(uv[:, 0], uv[:, 1], rxy, np.full(len(uv), hk), plane,
-                                    refit_rays)
+                                    refit_rays, lens_rays)
             sig = (np.sqrt(np.sum(rows * rows, axis=0)) if rows.shape[0]
                    else np.full(len(uv), np.nan))
             good = data | (np.where(np.isfinite(sig), sig, np.inf) <= tolerance_mm)
