@@ -56,6 +56,9 @@ CANDIDATE_MODELS = ("k1,k2", "k1,k2,p1,p2", "k1,k2,k3,p1,p2")
 #: k1 alone only where the held-out corners do not favour k2: its held-out error is no larger
 #: than every candidate's (no preference for the simpler model on a near tie)
 REDUCED_MODEL = "k1"
+#: every lens model the held-out test weighs, fewest terms first (the calibration refits the
+#: next one after its choice: its disagreement is part of sigma_model past the corners)
+MODEL_LADDER = (REDUCED_MODEL, *CANDIDATE_MODELS)
 #: the lens model is defined (rays do not fold over) while d r_d / d r >= this
 MIN_RADIAL_SLOPE = 0.2
 SPLIT = 0.75  # corners beyond SPLIT·r_max are held out
@@ -223,7 +226,7 @@ def calibrate_camera(
     held: dict[str, float] = {}
     in_sample: dict[str, float] = {}
     has_outer = any(int((~inner[k]).sum()) > 0 for k in views)
-    for name in (REDUCED_MODEL, *CANDIDATE_MODELS):
+    for name in MODEL_LADDER:
         flags = DISTORTION_MODELS[name]
         held[name] = math.nan
         if len(views) < 3 or not has_outer:

@@ -19,10 +19,9 @@ import numpy.typing as npt
 
 from app.calib.board import detect_board, load_board, texture_to_u8
 from app.calib.camera import (
-    CANDIDATE_MODELS,
     DISTORTION_MODELS,
     DISTORTION_TERMS,
-    REDUCED_MODEL,
+    MODEL_LADDER,
     SPLIT,
     CameraFit,
     calibrate_camera,
@@ -1131,10 +1130,9 @@ def _lens_alternative(obj: list[npt.NDArray[np.float32]], img: list[npt.NDArray[
     bends every ray past the boards, and no refit of the chosen model shows it). The joint
     corners + phase fit is repeated with the other model's terms when the calibration kept one.
     None after the last model or when a fit fails."""
-    ladder = (REDUCED_MODEL, *CANDIDATE_MODELS)
-    if lens_model not in ladder[:-1]:
+    if lens_model not in MODEL_LADDER[:-1]:
         return None
-    other = ladder[ladder.index(lens_model) + 1]
+    other = MODEL_LADDER[MODEL_LADDER.index(lens_model) + 1]
     try:
         _, cam, dist, rvecs, tvecs = calibrate_views(obj, img, image_size,
                                                      DISTORTION_MODELS[other])

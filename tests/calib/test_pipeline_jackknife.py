@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.calib import fit_observations
-from app.calib.camera import CANDIDATE_MODELS, DISTORTION_TERMS, REDUCED_MODEL
+from app.calib.camera import DISTORTION_TERMS, MODEL_LADDER
 from app.calib.model import undistort_points
 from app.core.calibration import Calibration
 from app.core.geometric import GeometricModel, undistort_newton
@@ -139,7 +139,7 @@ def test_the_next_lens_model_is_refitted_and_its_row_added(calibration_at_0p1_px
     cal, _, _ = calibration_at_0p1_px
     model = cal.model
     assert isinstance(model, GeometricModel)
-    ladder = (REDUCED_MODEL, *CANDIDATE_MODELS)
+    ladder = MODEL_LADDER
     chosen = str(cal.extra["camera_model"]["distortion_model"])
     alt = model.lens_alternative
     assert chosen in ladder[:-1] and alt is not None
