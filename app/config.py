@@ -14,7 +14,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from app.core.limits import DEFAULT_LED, EXPOSURE_RANGE_MS, BitDepth, Led
+from app.core.limits import DEFAULT_EXPOSURE_MS, DEFAULT_LED, EXPOSURE_RANGE_MS, BitDepth, Led
 from app.core.schedule import DEFAULT_SCHEDULE, schedule_by_name
 
 
@@ -67,7 +67,9 @@ class Settings(BaseSettings):
     sim_disconnect_every_s: float = Field(0.0, ge=0)
 
     # acquisition
-    exposure_ms: float = Field(30.0, ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1])
+    exposure_ms: float = Field(
+        DEFAULT_EXPOSURE_MS, ge=EXPOSURE_RANGE_MS[0], le=EXPOSURE_RANGE_MS[1]
+    )
     led: Led = DEFAULT_LED
     bit_depth: BitDepth = 8
     rolling: bool = False
