@@ -80,7 +80,8 @@ class Settings(BaseSettings):
     # moved regions grow by this many pixels before they are invalidated (their rims)
     motion_grow_px: int = Field(4, ge=0, le=16)
     # gross-error tolerance, mm (0: off): a valid pixel's noise exceeds it only at rate 1e-6, so
-    # pixels with σ > E/4.89 are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
+    # pixels with σ > E/4.89 (its noise part weighed by the phasor tail, app.recon.validity step 5)
+    # are UNCERTAIN, and > E/(4.89 + k) in a set where the scene moved
     # (k: the motion test's single-pixel bound; app.recon.motion.sigma_bounds, README
     # "Rolling mode and motion")
     gross_error_mm: float = Field(0.5, ge=0, le=100)

@@ -115,7 +115,9 @@ class HeightArgs(NamedTuple):
     sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F; the
     model's own σ: ``sm_coefs`` (R, 5, W), ``sm_rows`` (H,), ``sm_mid`` and ``sm_inv_half`` of
-    :class:`~app.recon.model_sigma.ModelSigmaTable`."""
+    :class:`~app.recon.model_sigma.ModelSigmaTable`; the gross-error test's phasor tail
+    (:mod:`app.recon.validity`, step 5): ``gross_sq`` g² mm² (0: no tail weight), ``tail_coefs``
+    (4,) and ``tail_t_max`` of :func:`~app.recon.validity.phasor_tail_factor_sq`."""
 
     u_norm: npt.NDArray[np.float32]
     row_coefs: npt.NDArray[np.float32]
@@ -145,6 +147,9 @@ class HeightArgs(NamedTuple):
     sm_rows: npt.NDArray[np.int64]
     sm_mid: np.float32
     sm_inv_half: np.float32
+    gross_sq: np.float32
+    tail_coefs: npt.NDArray[np.float32]
+    tail_t_max: np.float32
 
 
 class Outputs(NamedTuple):
@@ -875,13 +880,15 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyped-def]
                phi0, inv_sphi, cubic, sing_rtol, lo, hi,
-               p_lo, p_hi, read_var, gain, max_sigma, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
-               max_sigma2):  # pragma: no cover - compiled
+               p_lo, p_hi, read_var, gain, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
+               max_sigma2, gross_sq, t1, t2, t3, t4, t_max):  # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`); ``c`` is the phase stage's reason. σ is the total: the sensor
     noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k,
     x = (h − sm_mid)·sm_inv_half, :mod:`app.recon.model_sigma`); a model σ beyond the rule's
-    bound (``max_sigma2`` = its square) is outside the calibrated field."""
+    bound (``max_sigma2`` = its square) is outside the calibrated field. The UNCERTAIN test
+    weighs the noise variance by (θ_g/sin θ_g)², θ_g² = ``gross_sq``/slope² capped at
+    ``t_max``, as 1 + Σ t_k·θ_g^2k (:func:`app.recon.validity.phasor_tail_factor_sq`)."""
     pp = (p - phi0) * inv_sphi
     t = pp + cubic * (pp * pp * pp)
     b1p = b1 * t
@@ -892,11 +899,15 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyp
              * (_F1 + np.float32(3.0) * cubic * (pp * pp)))
     x = (h - sm_mid) * sm_inv_half
     sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
-    sig = np.sqrt(slope * slope * ((read_var + gain * tot) * vf) + sm2)
+    slope2 = slope * slope
+    noise_var = slope2 * ((read_var + gain * tot) * vf)
+    sig = np.sqrt(noise_var + sm2)
+    th2 = min(gross_sq / max(slope2, _TINY), t_max)
+    tail2 = _F1 + th2 * (t1 + th2 * (t2 + th2 * (t3 + th2 * t4)))
     singular = abs(dd) <= sing_rtol * (abs(b0) + abs(b1p))
     in_volume = (h >= lo) & (h <= hi)
     in_field = (h >= rlo) & (h <= rhi) & (p >= p_lo) & (p <= p_hi) & (sm2 <= max_sigma2)
-    hc = _UNCERTAIN if sig > max_sigma else _OK
+    hc = _UNCERTAIN if noise_var * tail2 + sm2 > max_sigma2 else _OK
     hc = _OUTSIDE_FIELD if not in_field else hc
     hc = _OUTSIDE_VOLUME if not in_volume else hc
     hc = _MODEL_SINGULAR if singular else hc
@@ -926,6 +937,8 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]
     phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
     p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
+    gross_sq, t_max = m.gross_sq, m.tail_t_max
+    t1, t2, t3, t4 = m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3]
     inv_frames = m.inv_frames
     un = m.u_norm
     sc = m.sm_coefs[m.sm_rows[v]]  # (5, W): σ_model² = Σ s_k·x^k of every column
@@ -948,12 +961,14 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             b0 += (k8 * x + k7) * x + k6
             b1 += (k11 * x + k10) * x + k9
             vf = vfac[u] if combine else half_steps / m2[u]
+            rl = r_lo[u] if f_lo <= u <= f_hi else _INF
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u],
+                                   rl, r_hi[u], code[u],
                                    phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma,
+                                   read_var, gain,
                                    sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
-                                   sm_mid, sm_inv_half, max_sigma2)
+                                   sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
+                                   t_max)
             ok = c == _OK
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
@@ -971,12 +986,14 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
             b0 = (k8 * x + k7) * x + k6
             b1 = (k11 * x + k10) * x + k9
             vf = vfac[u] if combine else half_steps / m2[u]
+            rl = r_lo[u] if f_lo <= u <= f_hi else _INF
             h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   r_lo[u] if f_lo <= u <= f_hi else _INF, r_hi[u], code[u],
+                                   rl, r_hi[u], code[u],
                                    phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain, max_sigma,
+                                   read_var, gain,
                                    sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
-                                   sm_mid, sm_inv_half, max_sigma2)
+                                   sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
+                                   t_max)
             ok = c == _OK
             depth[u] = h if ok else _NAN
             sigma[u] = sig if ok else _NAN
@@ -1387,6 +1404,7 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
         np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.float32(0), np.float32(1),
+        np.float32(0), np.zeros(4, np.float32), np.float32(1),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3), np.uint8),
                   np.empty((2, 3), np.bool_), f32, f32.copy(), np.empty((0, 3), np.float32),

@@ -58,9 +58,12 @@ from app.recon.unwrap import (
 from app.recon.validity import (
     DEFAULT_GROSS_ERROR_MM,
     DEFAULT_ORDER_ERROR_RATE,
+    PHASOR_TAIL_COEFS,
+    PHASOR_TAIL_T_MAX,
     max_depth_sigma_mm,
     min_phasor_snr,
     modulation_threshold,
+    phasor_tail_factor_sq,
 )
 
 if TYPE_CHECKING:  # imported at run time by run(): the motion test needs numba
@@ -455,8 +458,11 @@ class Reconstructor:
         self.max_sigma_mm = None if max_sigma_mm is None else float(max_sigma_mm)
         self.gross_error_mm = gross_error_mm
         self._sigma_limit_mm = self.max_sigma_mm  # what the UNCERTAIN test uses
+        # the rule's error g, whose phase θ_g the noise's phasor tail is weighed at (0: none)
+        self._tail_gross_mm = 0.0
         if max_sigma_mm is None and min_modulation is None and gross_error_mm is not None:
             self._sigma_limit_mm = max_depth_sigma_mm(gross_error_mm, self.order_error_rate)
+            self._tail_gross_mm = float(gross_error_mm)
         self.order_false_alarm_rate = float(order_false_alarm_rate)
         order_test_bound(2, self.order_false_alarm_rate)  # ValueError naming false_alarm_rate
         self.order_max_motion_rad = float(order_max_motion_rad)
@@ -675,7 +681,15 @@ class Reconstructor:
         with np.errstate(invalid="ignore"):
             sigma_noise = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
             sigma = np.sqrt(sigma_noise**2 + sigma_model**2)
-            uncertain = sigma > self._sigma_limit_mm if self._sigma_limit_mm is not None else None
+            # the noise part weighed by its phasor tail (app.recon.validity, step 5)
+            tail = phasor_tail_factor_sq(
+                np.where(np.isfinite(slope) & (slope != 0.0),
+                         self._tail_gross_mm**2 / np.maximum(slope**2, 1e-300), np.inf)
+            )
+            uncertain = (
+                sigma_noise**2 * tail + sigma_model**2 > self._sigma_limit_mm**2
+                if self._sigma_limit_mm is not None else None
+            )
             if self._sigma_limit_mm is not None:  # the model's own σ fails the rule: outside field
                 outside_field = outside_field | ~(sigma_model <= self._sigma_limit_mm)
         reason = assign_reasons(
@@ -743,6 +757,7 @@ class Reconstructor:
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
             self._model_sigma_kernel.coefs, self._model_sigma_kernel.rows,
             f32(self._model_sigma_kernel.mid_mm), f32(self._model_sigma_kernel.inv_half_mm),
+            f32(self._tail_gross_mm**2), _TAIL_COEFS, f32(PHASOR_TAIL_T_MAX),
         )
         recovered = np.zeros(frames.shape[1], np.int32)
         o = _fast.Outputs(out.depth, out.reason, out.valid, out.modulation, out.texture,
@@ -752,6 +767,7 @@ class Reconstructor:
 
 
 _NO_PHASE = np.empty((0, 0), np.float32)  # the kernel skips the phase output for zero rows
+_TAIL_COEFS = np.asarray(PHASOR_TAIL_COEFS, np.float32)
 
 
 class _OutputPool:

@@ -42,10 +42,19 @@ the phase noise depends on B/σ_I, not on B. The rule here follows the unwrappin
 
 5. **Depth noise.** Right orders do not make a depth right: a pixel whose depth σ (the same
    sensor noise through ∂z/∂φ, ``ReconResult.sigma``) is large is wrong by more than
-   ``gross_error_mm`` (:data:`DEFAULT_GROSS_ERROR_MM`, 0.5 mm: the whole-field issue's
-   definition of a wrong depth) with probability ``erfc(g/(σ√2))``. The same bound gives
-   ``σ_z ≤ g / (√2·erfc⁻¹(rate))`` (0.102 mm for 0.5 mm at 1e-6; :func:`max_depth_sigma_mm`);
-   pixels beyond it are UNCERTAIN.
+   ``gross_error_mm`` g (:data:`DEFAULT_GROSS_ERROR_MM`, 0.5 mm: the whole-field issue's
+   definition of a wrong depth). A Gaussian depth error would do so with probability
+   ``erfc(g/(σ√2))``, which gives the bound ``σ_z ≤ g / (√2·erfc⁻¹(rate))`` (0.102 mm for
+   0.5 mm at 1e-6; :func:`max_depth_sigma_mm`). But the noise part of the depth error is the
+   phase error θ of step 1 times ∂z/∂φ, and a depth error beyond g is a phase error beyond
+   ``θ_g = g/|∂z/∂φ|`` — about a radian on a typical rig at that σ, where step 1's tails are
+   far heavier than the Gaussian's: the phasor's tip must leave the wedge of half-angle θ_g,
+   two half-planes at distance ``a·sin θ_g``, so ``P(|θ| > θ_g) ≤ 2·Q(a·sin θ_g)`` where the
+   Gaussian says ``2·Q(a·θ_g)`` (at a = 5, θ_g = 1: 3·10⁻⁵ against 6·10⁻⁷). So the noise part
+   is weighed by ``θ_g / sin θ_g`` (:func:`phasor_tail_factor_sq`; θ_g capped at π/2, where
+   the bound becomes a ≥ the Gaussian's z) and pixels with
+   ``√((σ_noise·θ_g/sin θ_g)² + σ_model²)`` beyond the bound are UNCERTAIN; ``sigma`` itself
+   stays the 1-σ of the depth.
 
 An explicit ``min_modulation`` (codes) replaces the whole rule (then only ``B_min ≥
 min_modulation``). The rule is only as good as the noise model: a camera whose real noise
@@ -76,6 +85,12 @@ from app.recon.unwrap import DEFAULT_CONSISTENCY_RAD, check_consistency_rad, unw
 DEFAULT_ORDER_ERROR_RATE = 1e-6
 #: A depth error beyond this is a wrong depth, mm (acceptance: zero valid pixels beyond 0.5 mm).
 DEFAULT_GROSS_ERROR_MM = 0.5
+
+#: ``(θ/sin θ)² ≈ 1 + Σ_k c_k·t^k``, t = θ² ∈ [0, (π/2)²]: least squares on the exact function,
+#: within 1.1e-4 of it (tests/recon/test_validity.py)
+PHASOR_TAIL_COEFS = (0.33211458, 0.07104973, 0.00567615, 0.0035039)
+#: θ_g is capped at π/2 (module docstring, step 5)
+PHASOR_TAIL_T_MAX = (math.pi / 2.0) ** 2
 
 F64 = npt.NDArray[np.float64]
 _GRID = 4096  # samples of one wrapped phase over (−π, π]
@@ -209,3 +224,22 @@ def max_depth_sigma_mm(gross_error_mm: float = DEFAULT_GROSS_ERROR_MM,
         raise ValueError(f"rate: must be in (0, 0.1], got {rate}")
     # √2·erfc⁻¹(rate) = Φ⁻¹(1 − rate/2)
     return gross_error_mm / NormalDist().inv_cdf(1.0 - rate / 2.0)
+
+
+def phasor_tail_factor_sq(theta_sq: npt.ArrayLike) -> F64:
+    """``(θ_g / sin θ_g)²`` for the squared phase error ``theta_sq`` (rad²) that makes a depth
+    wrong, θ_g capped at π/2 (module docstring, step 5): the weight of a pixel's noise variance
+    in the gross-error test. 1 at 0; NaN stays NaN.
+
+    Args:
+        theta_sq: θ_g² (rad², ≥ 0; any shape; +inf: the cap).
+
+    Returns:
+        float64 array of ``theta_sq``'s shape, in [1, (π/2)²].
+    """
+    t = np.asarray(theta_sq, np.float64)
+    if np.any(t < 0):
+        raise ValueError("theta_sq: must be >= 0")
+    t = np.minimum(t, PHASOR_TAIL_T_MAX)
+    c1, c2, c3, c4 = PHASOR_TAIL_COEFS
+    return np.asarray(1.0 + t * (c1 + t * (c2 + t * (c3 + t * c4))), np.float64)

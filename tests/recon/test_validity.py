@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from app.core.reasons import Reason
 from app.core.schedule import PatternSchedule
 from app.devices.sim.analytic_rig import Rig, bump_surface
 from app.recon import Reconstructor, compute_phase
+from app.recon.model import evaluate_height_slope
 from app.recon.phase import MODULATION_FLOOR_DN, wrapped_phase
 from app.recon.reconstructor import SensorNoise
 from app.recon.unwrap import unwrap_phases
@@ -19,6 +21,7 @@ from app.recon.validity import (
     min_phasor_snr,
     modulation_threshold,
     phasor_phase_density,
+    phasor_tail_factor_sq,
     step_gains,
     undetected_order_error_rate,
 )
@@ -209,20 +212,57 @@ def test_depth_sigma_part_of_the_rule(dim_rig):
     assert math.erfc(0.5 / (limit * math.sqrt(2))) == pytest.approx(1e-6, rel=1e-6)
     assert limit == pytest.approx(0.1022, abs=1e-4)
     frames = _dim_frames(dim_rig, seed=2)
-    free = Reconstructor(dim_rig.calibration(), gross_error_mm=None).run(frames, fast=False)
+    free_rec = Reconstructor(dim_rig.calibration(), gross_error_mm=None, with_phase=True)
+    free = free_rec.run(frames, fast=False)
     free_reason, free_sigma = free.reason.copy(), free.sigma.copy()
+    # the noise part weighed by the phasor tail at θ_g = 0.5 mm / |∂z/∂φ| (validity, step 5)
+    _, _, slope = evaluate_height_slope(free_rec._tables64[0], free.phase.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tail = phasor_tail_factor_sq(np.nan_to_num(0.25 / slope**2, nan=np.inf))
+    weighed = np.sqrt(free.sigma_noise.astype(np.float64) ** 2 * tail
+                      + free.sigma_model.astype(np.float64) ** 2)
     for fast in (False, True):
         res = Reconstructor(dim_rig.calibration()).run(frames, fast=fast)
         ok = free_reason == Reason.OK
         assert ok.sum() > 1000
-        noisy = ok & (free_sigma > limit * 1.001)
-        quiet = ok & (free_sigma < limit * 0.999)
+        noisy = ok & (weighed > limit * 1.001)
+        quiet = ok & (weighed < limit * 0.999)
         assert noisy.sum() > 100 and quiet.sum() > 100
         assert (res.reason[noisy] == Reason.UNCERTAIN).all() and (
             res.reason[quiet] == Reason.OK
         ).all()
+        # the tail refuses pixels the Gaussian reading of σ would have passed
+        assert (res.reason[ok & (free_sigma < limit * 0.999)] == Reason.UNCERTAIN).any()
     # an explicit max_sigma_mm or min_modulation replaces it
     res = Reconstructor(dim_rig.calibration(), max_sigma_mm=10.0).run(frames)
     assert not (res.reason == Reason.UNCERTAIN).any()
     res = Reconstructor(dim_rig.calibration(), min_modulation=1.0).run(frames)
     assert not (res.reason == Reason.UNCERTAIN).any()
+
+
+def test_the_phasor_tail_factor_is_theta_over_sin_theta_squared():
+    t = np.linspace(0.0, (math.pi / 2) ** 2, 5001)
+    exact = np.ones_like(t)
+    exact[1:] = t[1:] / np.sin(np.sqrt(t[1:])) ** 2
+    np.testing.assert_allclose(phasor_tail_factor_sq(t), exact, rtol=1.1e-4)
+    assert phasor_tail_factor_sq(0.0) == 1.0
+    cap = (math.pi / 2) ** 2  # θ_g capped at π/2: (π/2 / 1)²
+    np.testing.assert_allclose(phasor_tail_factor_sq([10.0, np.inf]), cap, rtol=1.1e-4)
+    with pytest.raises(ValueError, match="^theta_sq"):
+        phasor_tail_factor_sq(-1.0)
+
+
+@pytest.mark.parametrize(("snr", "theta_g"), [(5.0, 1.0), (4.0, 0.8), (8.0, 0.6), (3.0, 1.4)])
+def test_a_phasors_phase_error_beyond_theta_g_is_bounded_by_the_tail_not_the_gaussian(snr, theta_g):
+    """P(|θ| > θ_g) from the exact density of a phasor's phase (Goodman): above the Gaussian's
+    2·Q(a·θ_g) that the Gaussian reading of σ = 1/a assumes, below the half-planes' bound
+    2·Q(a·sin θ_g) the rule uses — which the factor θ_g / sin θ_g turns into a σ."""
+    th = np.linspace(theta_g, math.pi, 200001)
+    tail = 2.0 * float(np.trapezoid(phasor_phase_density(th, snr), th))
+    q = NormalDist().cdf
+    gaussian = 2.0 * (1.0 - q(snr * theta_g))
+    half_planes = 2.0 * (1.0 - q(snr * math.sin(theta_g)))
+    assert 2.0 * gaussian < tail <= half_planes * 1.0001
+    # the weighed σ = θ_g/(a·sin θ_g) gives the half-planes' probability as a Gaussian's
+    weighed_sigma = math.sqrt(float(phasor_tail_factor_sq(theta_g**2))) / snr
+    assert 2.0 * (1.0 - q(theta_g / weighed_sigma)) == pytest.approx(half_planes, rel=2e-3)
