@@ -157,16 +157,19 @@ class Calibration:
         return ReferencePlane(self.plane_normal, self.plane_offset_mm)
 
     def height_deviations(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        """(K, n) the depth model's height errors (mm) at camera-frame points (n, 3), mm, whose
-        Gram matrix is their covariance (:meth:`~app.core.depth_model.DepthModel.height_deviations`:
-        the errors the calibration shares between points); K = 0 when it carries none. The
-        pixel of each point is its projection through the camera model."""
+        """(K, n) the calibration's height errors (mm) at camera-frame points (n, 3), mm, whose
+        Gram matrix is their covariance: the same rows as the pixels' σ_model
+        (:meth:`~app.core.depth_model.DepthModel.total_height_deviations`: for a geometric model
+        the whole calibration's pose jackknife — camera and lens, reference plane, projector —
+        and the alternative models' rows; the errors the calibration shares between points).
+        K = 0 when it carries none. The pixel of each point is its projection through the camera
+        model."""
         x = np.asarray(points_mm, np.float64).reshape(-1, 3)
         with np.errstate(divide="ignore", invalid="ignore"):
             ray = x[:, :2] / x[:, 2:3]
             height = x @ self.plane_normal + self.plane_offset_mm
         u, v = self.project_rays(ray)
-        return self.model.height_deviations(u, v, ray, height, self.reference_plane)
+        return self.model.total_height_deviations(u, v, ray, height, self.reference_plane)
 
     def project_rays(self, ray_xy: npt.ArrayLike
                      ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
