@@ -784,9 +784,12 @@ def lens_field_mask(cal):  # noqa: ANN001, ANN201
 
 
 def random_lengths(res, truth_pts, cal, n, rng):  # noqa: ANN001, ANN201
-    """(error mm, σ mm) of ``n`` random lengths between two valid pixels (σ as the API reports it:
-    noise and the calibration term), each against the same length on the true points."""
+    """(error mm, σ mm) of ``n`` random lengths between two valid pixels (σ as ``POST
+    /api/measure`` reports it, app.service.measure.measure_result: the pixels' noise part and the
+    calibration's own 3-D covariance, shared between the two points), each against the same
+    length on the true points."""
     normal, cal_sigma, cal_length = calibration_terms(cal)
+    noise_sigma = res.sigma_noise  # the calibration part enters through its own covariance
     ok = res.valid & np.all(np.isfinite(truth_pts), -1)
     vv, uu = np.nonzero(ok)
     errs, sigmas = [], []
@@ -800,13 +803,14 @@ def random_lengths(res, truth_pts, cal, n, rng):  # noqa: ANN001, ANN201
                 "length",
                 res.points,
                 res.valid,
-                res.sigma,
+                noise_sigma,
                 pix,
                 snap_px=0.0,
                 plane_normal=normal,
                 reason=res.reason,
                 calibration_sigma_mm=cal_sigma,
                 calibration_length_mm=cal_length,
+                calibration=cal,
             )
             t = measure("length", truth_pts, ok, None, pix, snap_px=0.0, plane_normal=normal)
         except ValueError:

@@ -180,6 +180,13 @@ class _Surface:
         d = self.calibration.height_deviations(x)
         return np.asarray(np.where(np.isfinite(d), d, 0.0), np.float64)
 
+    def cal_point_rows(self, x: F64) -> F64:
+        """(K, n, 3) the calibration's 3-D errors of points ``x`` (n, 3)
+        (:meth:`Calibration.point_deviations`); NaN points contribute nothing."""
+        assert self.calibration is not None
+        d = self.calibration.point_deviations(x)
+        return np.asarray(np.where(np.isfinite(d), d, 0.0), np.float64)
+
     @property
     def shape(self) -> tuple[int, int]:
         return (int(self.valid.shape[0]), int(self.valid.shape[1]))
@@ -338,6 +345,20 @@ def _slope(f: Callable[[F64], float], pts: F64, dirs: F64, i: int) -> float:
     return (f(p1) - f(p2)) / (2 * step)
 
 
+def _gradient(f: Callable[[F64], float], pts: F64) -> F64:
+    """(n, 3) ∂f/∂(x, y, z) of every point of ``pts`` (n, 3), mm (central differences, the step
+    as :func:`_propagate`)."""
+    step = max(1e-6, float(np.max(np.abs(pts))) * 1e-7) * 10.0
+    grad = np.zeros(pts.shape, np.float64)
+    for i in range(len(pts)):
+        for c in range(3):
+            p1, p2 = pts.copy(), pts.copy()
+            p1[i, c] += step
+            p2[i, c] -= step
+            grad[i, c] = (f(p1) - f(p2)) / (2 * step)
+    return grad
+
+
 def _picks(surf: _Surface, pixels: F64, snap_px: float, first: int = 1,
            fill: bool = False) -> list[PickedPoint]:
     return [pick(surf, float(u), float(v), snap_px, f"point {first + i}", fill)
@@ -395,12 +416,22 @@ def _cal_sigma(surf: _Surface, coef: F64, x: F64, chunk: int = 1024) -> float:
     return surf.cal_sigma * math.sqrt(max(0.0, var))
 
 
+def _cal_sigma_3d(surf: _Surface, grad: F64, x: F64) -> float:
+    """σ of Σ_i grad_i · e_i for the calibration's 3-D errors e_i of points ``x`` (n, 3), mm
+    (``grad`` (n, 3): the value's gradient by each point's position)."""
+    return float(np.linalg.norm(np.einsum("knc,nc->k", surf.cal_point_rows(x), grad)))
+
+
 def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64, sig: F64,
                        ids: Sequence[Any], picks: list[PickedPoint], surf: _Surface) -> Measurement:
-    """The value, its σ from the pixels' noise and, in quadrature, from the calibration term."""
+    """The value, its σ from the pixels' noise and, in quadrature, from the calibration term:
+    with the calibration's own error model its 3-D point errors (height and sideways, shared
+    between the points as the calibration shares them), f followed to first order."""
     noise = _propagate(f, pts, dirs, sig, ids)
-    cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts) \
-        if surf.has_cal else 0.0
+    if surf.calibration is not None:
+        cal = _cal_sigma_3d(surf, _gradient(f, pts), pts)
+    else:
+        cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts)
     return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
                        extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal,
                               "coverage": min(p.coverage for p in picks)})
@@ -885,9 +916,11 @@ def area(points: npt.ArrayLike, valid: npt.ArrayLike, sigma: npt.ArrayLike | Non
         np.add.at(cimg, (rows, cols), coef[i] * w_fit)
     sig_b = np.where(okb, surf.sig(slice(bv0, bv1), slice(bu0, bu1)), 0.0)
     sigma_a = float(np.sqrt(np.sum((cimg * sig_b * okb) ** 2)))
-    # the calibration term: systematic and smooth, so not reduced by the box means; correlated
-    # between samples by their distance (a height error shared by the whole polygon scales its area)
-    sigma_cal = _cal_sigma(surf, coef, X)
+    # the calibration term: systematic and smooth, so not reduced by the box means; shared between
+    # samples (its 3-D rows with the calibration's own model: a focal length's error scales the
+    # area; else correlated by distance: a height error shared by the polygon scales its area)
+    sigma_cal = _cal_sigma_3d(surf, grad, X) if surf.calibration is not None \
+        else _cal_sigma(surf, coef, X)
     # variance of each sample's height noise (box mean, bilinear mix;
     # neighbours' overlap ignored here)
     var_box = _box_sum(np.where(okb, sig_b**2, 0.0), half) / np.maximum(cnt, 1.0) ** 2

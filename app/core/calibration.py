@@ -28,6 +28,8 @@ from app.core.schedule import PatternSchedule
 FORMAT_V1 = "fringescope.calibration/1"
 FORMAT = "fringescope.calibration/2"
 
+_F64 = npt.NDArray[np.float64]
+
 __all__ = ["FORMAT", "FORMAT_V1", "N_DENOMINATOR", "N_NUMERATOR", "Calibration"]
 
 
@@ -164,12 +166,26 @@ class Calibration:
         and the alternative models' rows; the errors the calibration shares between points).
         K = 0 when it carries none. The pixel of each point is its projection through the camera
         model."""
+        return self.model.total_height_deviations(*self._places(points_mm), self.reference_plane)
+
+    def point_deviations(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """(K, n, 3) the calibration's errors (mm) of camera-frame points (n, 3), mm, whose Gram
+        matrix is their covariance: the rows of :meth:`height_deviations` in 3-D
+        (:meth:`~app.core.depth_model.DepthModel.total_point_deviations`), so a point moves
+        sideways as well as in height where the camera's refits say so (a focal length's error
+        scales a length across the view as well as along it). K = 0 when it carries none."""
+        return self.model.total_point_deviations(*self._places(points_mm), self.reference_plane)
+
+    def _places(self, points_mm: npt.ArrayLike) -> tuple[_F64, _F64, _F64, _F64]:
+        """(u, v, ray_xy, height_mm) of camera-frame points (n, 3), mm: each point's pixel (its
+        projection through the camera model), undistorted normalised ray (n, 2) and height above
+        the reference plane."""
         x = np.asarray(points_mm, np.float64).reshape(-1, 3)
         with np.errstate(divide="ignore", invalid="ignore"):
             ray = x[:, :2] / x[:, 2:3]
             height = x @ self.plane_normal + self.plane_offset_mm
         u, v = self.project_rays(ray)
-        return self.model.total_height_deviations(u, v, ray, height, self.reference_plane)
+        return u, v, ray, height
 
     def project_rays(self, ray_xy: npt.ArrayLike
                      ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:

@@ -370,6 +370,19 @@ class DepthModel(ABC):
         without such a jackknife gives :meth:`height_deviations`."""
         return self.height_deviations(u, v, ray_xy, height_mm, plane)
 
+    def total_point_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                               plane: ReferencePlane) -> F64:
+        """(K, n, 3) errors (mm) of the camera-frame points at n (pixel, height) places whose
+        Gram matrix is their covariance: here the rows of :meth:`total_height_deviations`, each
+        moving its point along its ray (``r / (n·r)`` per mm of height); a model that carries
+        its camera's refits moves the points sideways as well."""
+        d = self.total_height_deviations(u, v, ray_xy, height_mm, plane)
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        r = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            along = r / (r @ np.asarray(plane.normal, np.float64))[:, None]
+        return np.asarray(d[:, :, None] * along[None], np.float64)
+
     def height_sigma(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
                      plane: ReferencePlane) -> F64:
         """(n,) 1-σ uncertainty (mm) of this model's height at pixels (u, v) (rays ``ray_xy``

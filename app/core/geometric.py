@@ -197,6 +197,26 @@ class GeometricModel(DepthModel):
         3 refits."""
         return self._total_rows(u, v, ray_xy, height_mm, plane)
 
+    def _places(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane
+                ) -> tuple[F64, F64, F64, F64, F64, F64]:
+        """(rays (n, 2), u, v, heights, phases (n,), pixels (n, 2)) of n (pixel, height) places,
+        the scalars broadcast to n."""
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        n = len(rxy)
+        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (n,))
+        uu = np.broadcast_to(np.asarray(u, np.float64).ravel(), (n,))
+        vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
+        phi = self.phase_at(uu, vv, rxy, h, plane)
+        return rxy, uu, vv, h, phi, np.stack([uu, vv], axis=1)
+
+    def _beyond_lens_verified(self, u: F64, v: F64) -> npt.NDArray[np.bool_]:
+        """Pixels (u, v) beyond :attr:`lens_verified_px` (all where it is None), where the
+        :attr:`lens_alternative`'s row counts."""
+        if self.lens_verified_px is None:
+            return np.ones(np.shape(u), bool)
+        cx, cy, rx, ry = self.lens_verified_px
+        return np.asarray(((u - cx) / rx) ** 2 + ((v - cy) / ry) ** 2 > 1.0)
+
     def _total_rows(self, u: F64, v: F64, ray_xy: F64, height_mm: F64, plane: ReferencePlane,
                     refit_rays: list[F64] | None = None, lens_rays: F64 | None = None) -> F64:
         """:meth:`total_height_deviations`; ``refit_rays``: each refit's rays of the pixels
@@ -205,13 +225,7 @@ class GeometricModel(DepthModel):
         g = len(self.pipeline)
         if g < 3:
             return self.height_deviations(u, v, ray_xy, height_mm, plane)
-        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
-        n = len(rxy)
-        h = np.broadcast_to(np.asarray(height_mm, np.float64).ravel(), (n,))
-        uu = np.broadcast_to(np.asarray(u, np.float64).ravel(), (n,))
-        vv = np.broadcast_to(np.asarray(v, np.float64).ravel(), (n,))
-        phi = self.phase_at(uu, vv, rxy, h, plane)
-        uv = np.stack([uu, vv], axis=1)
+        rxy, uu, vv, h, phi, uv = self._places(u, v, ray_xy, height_mm, plane)
         if refit_rays is None:
             refit_rays = [p.rays(uv, rxy) for p in self.pipeline]
         hs = np.stack([p.projector.height_at(uu, vv, r, phi, p.plane)
@@ -225,9 +239,37 @@ class GeometricModel(DepthModel):
             if lens_rays is None:
                 lens_rays = la.rays(uv, rxy)
             lens = la.projector.height_at(uu, vv, lens_rays, phi, la.plane) - h
-            if self.lens_verified_px is not None:
-                cx, cy, rx, ry = self.lens_verified_px
-                lens = np.where(((uu - cx) / rx) ** 2 + ((vv - cy) / ry) ** 2 > 1.0, lens, 0.0)
+            lens = np.where(self._beyond_lens_verified(uu, vv), lens, 0.0)
+            rows = np.concatenate([rows, lens[None]])
+        return np.asarray(rows, np.float64)
+
+    def total_point_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
+                               plane: ReferencePlane) -> F64:
+        """(K, n, 3) errors (mm) of the camera-frame points at n (pixel, height) places whose
+        Gram matrix is their covariance, the rows of :meth:`total_height_deviations` in 3-D:
+        each refit of :attr:`pipeline` puts the pixel's phase on its own camera's ray at its own
+        height, so the point moves sideways (focal length, principal point, lens) as well as in
+        height; the :attr:`alternative` moves it along this calibration's ray; the
+        :attr:`lens_alternative` onto its own ray, beyond :attr:`lens_verified_px` only. Without
+        a pipeline of at least 3: the height rows along the ray (:class:`DepthModel`)."""
+        g = len(self.pipeline)
+        if g < 3:
+            return super().total_point_deviations(u, v, ray_xy, height_mm, plane)
+        rxy, uu, vv, h, phi, uv = self._places(u, v, ray_xy, height_mm, plane)
+        here = _point_on_ray(rxy, h, plane)
+
+        def point_of(fit: PipelineFit) -> F64:
+            r = fit.rays(uv, rxy)
+            return _point_on_ray(r, fit.projector.height_at(uu, vv, r, phi, fit.plane), fit.plane)
+
+        pts = np.stack([point_of(p) for p in self.pipeline])
+        rows = math.sqrt((g - 1) / g) * (pts - pts.mean(axis=0))
+        if self.alternative is not None:
+            alt_h = self.alternative.height_at(uu, vv, rxy, phi, plane)
+            rows = np.concatenate([rows, (_point_on_ray(rxy, alt_h, plane) - here)[None]])
+        if self.lens_alternative is not None:
+            lens = point_of(self.lens_alternative) - here
+            lens = np.where(self._beyond_lens_verified(uu, vv)[:, None], lens, 0.0)
             rows = np.concatenate([rows, lens[None]])
         return np.asarray(rows, np.float64)
 
@@ -573,6 +615,15 @@ def undistort_newton(uv: F64, camera_matrix: F64, dist_coeffs: F64, start_xy: F6
             det = a00 * a11 - a01 * a10
             xy = xy - np.stack([(a11 * ru - a01 * rv) / det, (a00 * rv - a10 * ru) / det], axis=1)
     return np.asarray(xy, np.float64)
+
+
+def _point_on_ray(ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
+    """(n, 3) camera-frame points (mm) at ``height_mm`` (n,) above ``plane`` on the undistorted
+    normalised rays ``ray_xy`` (n, 2)."""
+    r = np.concatenate([ray_xy, np.ones((len(ray_xy), 1))], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (height_mm - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64))
+    return np.asarray(r * s[:, None], np.float64)
 
 
 def _vec(name: str, value: Any) -> F64:

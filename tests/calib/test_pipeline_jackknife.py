@@ -168,3 +168,47 @@ def test_the_next_lens_model_is_refitted_and_its_row_added(calibration_at_0p1_px
     np.testing.assert_allclose(with_row**2 - without**2, np.where(beyond, diff**2, 0.0),
                                rtol=1e-6, atol=1e-12)
     assert np.all(np.abs(diff) > 0)
+
+
+def test_a_lengths_calibration_sigma_is_the_refits_own_spread_of_that_length(
+        calibration_at_0p1_px):
+    """Each refit puts the two pixels' phases on its own camera's rays at its own heights; the
+    delete-one spread of the length between them (with the two alternatives' differences) is
+    the length's calibration σ that ``Calibration.point_deviations`` gives, sideways moves
+    included; moving the points along this calibration's rays alone gives a different σ. (Two
+    pixels inside the ellipse the corners verified: the lens alternative's row is zero there;
+    beyond it that row reaches a millimetre at this rig's corners, where first order and the
+    refits' exact lengths part by a few per cent.)"""
+    cal, _, _ = calibration_at_0p1_px
+    model = cal.model
+    assert isinstance(model, GeometricModel) and model.alternative is not None
+    plane = cal.reference_plane
+    uv = np.array([[200.0, 150.0], [450.0, 330.0]])
+    rxy = undistort_points(uv, cal.camera_matrix, cal.dist_coeffs)
+    h = np.array([2.0, 18.0])
+    r3 = np.column_stack([rxy, np.ones(2)])
+    pts = r3 * ((h - plane.offset_mm) / (r3 @ plane.normal))[:, None]
+    phi = model.phase_at(uv[:, 0], uv[:, 1], rxy, h, plane)
+
+    def length_of(camera_rays: np.ndarray, heights: np.ndarray, p: object) -> float:
+        r = np.column_stack([camera_rays, np.ones(2)])
+        x = r * ((heights - p.offset_mm) / (r @ p.normal))[:, None]  # type: ignore[attr-defined]
+        return float(np.linalg.norm(x[1] - x[0]))
+
+    refit = np.array([length_of(f.rays(uv, rxy), f.height_at(uv, rxy, phi), f.plane)
+                      for f in model.pipeline])
+    g = len(refit)
+    var = (g - 1) / g * float(np.sum((refit - refit.mean()) ** 2))
+    here = float(np.linalg.norm(pts[1] - pts[0]))
+    alt_h = model.alternative.height_at(uv[:, 0], uv[:, 1], rxy, phi, plane)
+    var += (length_of(rxy, alt_h, plane) - here) ** 2
+    assert model.lens_verified_px is not None
+    cx, cy, rx, ry = model.lens_verified_px
+    assert all(((uv[:, 0] - cx) / rx) ** 2 + ((uv[:, 1] - cy) / ry) ** 2 < 1.0)
+    grad = (pts[1] - pts[0]) / here
+    rows = cal.point_deviations(pts)
+    sigma = float(np.linalg.norm(rows[:, 1] @ grad - rows[:, 0] @ grad))
+    assert sigma == pytest.approx(np.sqrt(var), rel=0.02)
+    along = cal.height_deviations(pts)[:, :, None] * (r3 / (r3 @ plane.normal)[:, None])[None]
+    sigma_along = float(np.linalg.norm(along[:, 1] @ grad - along[:, 0] @ grad))
+    assert abs(sigma_along - sigma) > 0.05 * sigma

@@ -157,11 +157,11 @@ def test_forty_random_lengths_never_have_too_small_a_sigma(forty_lengths_rms_z):
 
 LENGTH_SIGMA_TOO_LARGE = (
     "issue 26's lower bound for lengths is not met on this rig with central-half boards: the "
-    "lengths' sigma is 20-25 % too large, RMS(error/sigma) 0.749 for these 40 pairs with the "
-    "whole calibration's rows in it (0.7994 with the projector's refits alone, 0.74-0.88 over "
-    "four samples of 400; 0.79-0.92 before the phasor-tail rule, which removes 0.06 % of the "
-    "pixels): the rows' own overstatement past the corners (sigma_model in the corner ninths "
-    "about twice the real error, above)"
+    "lengths' sigma is 25-35 % too large, RMS(error/sigma) 0.698 for these 40 pairs with the "
+    "whole calibration's 3-D rows in it (0.633-0.764 over four samples of 400; 0.749 with its "
+    "rows along the rays, 0.7994 with the projector's refits alone): the rows' own "
+    "overstatement past the corners (sigma_model in the corner ninths about twice the real "
+    "error, above), which the points' sideways moves there add to"
 )
 
 
