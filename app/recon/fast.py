@@ -936,7 +936,7 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     # outside the camera's supported field: no height bound holds
     f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]
     phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
-    p_lo, p_hi, read_var, gain, max_sigma = m.phase_lo, m.phase_hi, m.read_var, m.gain, m.max_sigma
+    p_lo, p_hi, read_var, gain = m.phase_lo, m.phase_hi, m.read_var, m.gain
     gross_sq, t_max = m.gross_sq, m.tail_t_max
     t1, t2, t3, t4 = m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3]
     inv_frames = m.inv_frames
@@ -944,65 +944,41 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     sc = m.sm_coefs[m.sm_rows[v]]  # (5, W): σ_model² = Σ s_k·x^k of every column
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
-    max_sigma2 = max_sigma * max_sigma
+    max_sigma2 = m.max_sigma * m.max_sigma
     qx, qy, qz = m.ray_q[0, v], m.ray_q[1, v], m.ray_q[2, v]  # (x, y, 1)/(n·r)
     # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
     combine, half_steps = m.combine, m.half_steps
-    if m.use_rays:
-        for u in range(prev.shape[0]):
+    use_rays = m.use_rays
+    for u in range(prev.shape[0]):
+        x = un[u]
+        a0 = (k2 * x + k1) * x + k0
+        a1 = (k5 * x + k4) * x + k3
+        b0 = (k8 * x + k7) * x + k6
+        b1 = (k11 * x + k10) * x + k9
+        if use_rays:  # loop-invariant: the compiler makes two loops (an Eq. (5) model has none)
             q0, q1, q2 = qx[u], qy[u], qz[u]
-            a0 = g0 * q0 + g1 * q1 + g2 * q2
-            a1 = g3 * q0 + g4 * q1 + g5 * q2
-            b0 = g6 * q0 + g7 * q1 + g8 * q2
-            b1 = g9 * q0 + g10 * q1 + g11 * q2
-            x = un[u]
-            a0 += (k2 * x + k1) * x + k0
-            a1 += (k5 * x + k4) * x + k3
-            b0 += (k8 * x + k7) * x + k6
-            b1 += (k11 * x + k10) * x + k9
-            vf = vfac[u] if combine else half_steps / m2[u]
-            rl = r_lo[u] if f_lo <= u <= f_hi else _INF
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   rl, r_hi[u], code[u],
-                                   phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain,
-                                   sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
-                                   sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
-                                   t_max)
-            ok = c == _OK
-            depth[u] = h if ok else _NAN
-            sigma[u] = sig if ok else _NAN
-            code[u] = c
-            reason[u] = c
-            valid[u] = ok
-            b = mod_scale * np.sqrt(m2[u])
-            modulation[u] = b
-            texture[u] = total[u] * inv_frames + b
-    else:
-        for u in range(prev.shape[0]):
-            x = un[u]
-            a0 = (k2 * x + k1) * x + k0
-            a1 = (k5 * x + k4) * x + k3
-            b0 = (k8 * x + k7) * x + k6
-            b1 = (k11 * x + k10) * x + k9
-            vf = vfac[u] if combine else half_steps / m2[u]
-            rl = r_lo[u] if f_lo <= u <= f_hi else _INF
-            h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                                   rl, r_hi[u], code[u],
-                                   phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
-                                   read_var, gain,
-                                   sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
-                                   sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
-                                   t_max)
-            ok = c == _OK
-            depth[u] = h if ok else _NAN
-            sigma[u] = sig if ok else _NAN
-            code[u] = c
-            reason[u] = c
-            valid[u] = ok
-            b = mod_scale * np.sqrt(m2[u])
-            modulation[u] = b
-            texture[u] = total[u] * inv_frames + b
+            a0 += g0 * q0 + g1 * q1 + g2 * q2
+            a1 += g3 * q0 + g4 * q1 + g5 * q2
+            b0 += g6 * q0 + g7 * q1 + g8 * q2
+            b1 += g9 * q0 + g10 * q1 + g11 * q2
+        vf = vfac[u] if combine else half_steps / m2[u]
+        rl = r_lo[u] if f_lo <= u <= f_hi else _INF
+        h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
+                               rl, r_hi[u], code[u],
+                               phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                               read_var, gain,
+                               sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                               sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
+                               t_max)
+        ok = c == _OK
+        depth[u] = h if ok else _NAN
+        sigma[u] = sig if ok else _NAN
+        code[u] = c
+        reason[u] = c
+        valid[u] = ok
+        b = mod_scale * np.sqrt(m2[u])
+        modulation[u] = b
+        texture[u] = total[u] * inv_frames + b
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)

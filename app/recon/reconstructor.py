@@ -681,17 +681,18 @@ class Reconstructor:
         with np.errstate(invalid="ignore"):
             sigma_noise = np.abs(slope) * np.sqrt(camera.variance_dn2(wp.background) * vfac)
             sigma = np.sqrt(sigma_noise**2 + sigma_model**2)
-            # the noise part weighed by its phasor tail (app.recon.validity, step 5)
-            tail = phasor_tail_factor_sq(
-                np.where(np.isfinite(slope) & (slope != 0.0),
-                         self._tail_gross_mm**2 / np.maximum(slope**2, 1e-300), np.inf)
-            )
-            uncertain = (
-                sigma_noise**2 * tail + sigma_model**2 > self._sigma_limit_mm**2
-                if self._sigma_limit_mm is not None else None
-            )
-            if self._sigma_limit_mm is not None:  # the model's own σ fails the rule: outside field
-                outside_field = outside_field | ~(sigma_model <= self._sigma_limit_mm)
+        uncertain = None
+        if self._sigma_limit_mm is not None:
+            # the noise part weighed by its phasor tail (app.recon.validity, step 5); a flat or
+            # undefined slope takes the cap
+            with np.errstate(divide="ignore", invalid="ignore"):
+                theta_sq = np.where(np.isfinite(slope) & (slope != 0.0),
+                                    self._tail_gross_mm**2 / slope**2, np.inf)
+                limit_sq = self._sigma_limit_mm**2
+                uncertain = sigma_noise**2 * phasor_tail_factor_sq(theta_sq) \
+                    + sigma_model**2 > limit_sq
+            # the model's own σ fails the rule: outside the field
+            outside_field = outside_field | ~(sigma_model <= self._sigma_limit_mm)
         reason = assign_reasons(
             phi.shape,
             saturated=reason == 2,
