@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,8 @@ class RandomRig:
             f"{self.baseline_mm:.1f} mm, reference {self.rig.reference_point_mm[2]:.1f} mm, "
             f"board {self.board.cols}x{self.board.rows} x {self.board.pitch_mm:.3f} mm reaching "
             f"{self.coverage:.2f}, {self.poses} poses"
+            + (f", projector k1 {self.rig.projector.radial[0]:+.3f}"
+               if self.rig.projector.radial[0] else "")
         )
 
 
@@ -150,7 +152,8 @@ def _square_px(rig: SimRig, board: BoardSpec) -> float:
     return board.pitch_mm * float(rig.K[0, 0]) / float(rig.reference_point_mm[2])
 
 
-def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = None) -> RandomRig:
+def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = None,
+               projector_k1_max: float = 0.0) -> RandomRig:
     """Draw a rig from ``seed`` (same seed → same rig).
 
     Ranges: sensor width 960–1440 px, aspect 0.70–0.82; diagonal field 50–75°; principal point
@@ -160,11 +163,17 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
     reference plane tilted up to 5° about each axis; board 8–12 × 6–9 inner corners (one fewer
     each way, until 5 columns or 4 rows, while a square would span < 30 px at the reference
     plane) reaching ``coverage`` (default drawn in 1/3–1) of the half field; ``poses`` board
-    poses (default drawn in 6–16).
+    poses (default drawn in 6–16). ``projector_k1_max`` > 0: the projector lens has a radial
+    distortion k1 drawn in ±``projector_k1_max`` (normalised projector coordinates; 2-D, so it
+    bends each fringe along its length, which the depth models' projector lacks) from a stream of
+    its own, so every other parameter is the rig's without it; 0: a pinhole projector.
 
     Raises:
-        ValueError: ``coverage`` outside 1/3–1 or ``poses`` outside 6–16 (naming the argument).
+        ValueError: ``coverage`` outside 1/3–1, ``poses`` outside 6–16 or ``projector_k1_max``
+            outside 0–0.2 (naming the argument).
     """
+    if not 0.0 <= projector_k1_max <= 0.2:
+        raise ValueError(f"projector_k1_max: must be within 0–0.2, got {projector_k1_max}")
     if coverage is not None and not COVERAGE_RANGE[0] - 1e-9 <= coverage <= COVERAGE_RANGE[1]:
         raise ValueError(f"coverage: must be within 1/3–1, got {coverage}")
     if poses is not None and not POSES_RANGE[0] <= poses <= POSES_RANGE[1]:
@@ -205,6 +214,10 @@ def random_rig(seed: int, *, coverage: float | None = None, poses: int | None = 
         [[fp, 0.0, (DMD_SIZE[0] - 1) / 2], [0.0, fp, (DMD_SIZE[1] - 1) / 2], [0.0, 0.0, 1.0]]
     )
     projector = ProjectorModel(Kp, R, centre, DMD_SIZE)
+    if projector_k1_max > 0.0:
+        own = np.random.default_rng(np.random.SeedSequence([0x516, seed, 2]))
+        projector = replace(projector, radial=(float(own.uniform(-1.0, 1.0)) * projector_k1_max,
+                                               0.0))
     focus = distance - rng.uniform(9.0, 13.0)
     rig = SimRig(
         camera,

@@ -124,3 +124,21 @@ def test_fixed_coverage_and_poses_are_kept():
     r = random_rig(3, coverage=0.5, poses=6)
     assert r.poses == 6 and len(r.pose_list()) == 6
     assert 0.45 <= r.coverage <= 0.5
+
+
+def test_a_projector_distortion_is_drawn_apart_from_the_rest_of_the_rig():
+    """``projector_k1_max``: the projector's radial k1 within ±max, every other part of the rig
+    as without it (its own stream); the rig renders it (fringes bend)."""
+    plain = random_rig(5)
+    bent = random_rig(5, projector_k1_max=0.05)
+    assert plain.rig.projector.radial == (0.0, 0.0)
+    k1, k2 = bent.rig.projector.radial
+    assert 0.0 < abs(k1) <= 0.05 and k2 == 0.0
+    np.testing.assert_array_equal(bent.rig.camera.K, plain.rig.camera.K)
+    np.testing.assert_array_equal(bent.rig.projector.K, plain.rig.projector.K)
+    assert (bent.board, bent.poses, bent.pose_seed) == (plain.board, plain.poses, plain.pose_seed)
+    assert "projector k1" in bent.describe() and "projector k1" not in plain.describe()
+    p = np.array([[3.0, 2.5, float(plain.rig.reference_point_mm[2])]])
+    assert bent.rig.projector.column(p)[0] != pytest.approx(plain.rig.projector.column(p)[0])
+    with pytest.raises(ValueError, match="projector_k1_max"):
+        random_rig(5, projector_k1_max=0.5)
