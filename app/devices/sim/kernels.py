@@ -11,14 +11,21 @@ import math
 
 import numba as nb
 import numpy as np
+import numpy.typing as npt
+
+F32 = npt.NDArray[np.float32]
+I32 = npt.NDArray[np.int32]
+I64 = npt.NDArray[np.int64]
+U64 = npt.NDArray[np.uint64]
+DN = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]  # a noisy frame: 8 or 12 bits
 
 # fast-math without the no-NaN/no-Inf assumptions (the kernels test for NaN).
 FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
 
 
 @nb.njit(cache=True, inline="always")
-def _next(state):
-    x = state[0]
+def _next(state: U64) -> np.uint64:
+    x: np.uint64 = state[0]
     x ^= x >> np.uint64(12)
     x ^= x << np.uint64(25)
     x ^= x >> np.uint64(27)
@@ -27,7 +34,7 @@ def _next(state):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _adc(mean, g, read2, maxv, z):
+def _adc(mean: float, g: float, read2: float, maxv: int, z: float) -> int:
     """Quantised DN of a pixel of noise-free mean ``mean`` (DN) and unit normal deviate ``z``
     (shot + read noise, clipped to 0 .. maxv; branch-free so that row loops vectorise)."""
     mean = max(mean, 0.0)
@@ -36,7 +43,8 @@ def _adc(mean, g, read2, maxv, z):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def add_noise(out, mean, g, read2, maxv, table, state):
+def add_noise(out: DN, mean: F32, g: float, read2: float, maxv: int, table: F32,
+              state: U64) -> None:
     """out[i] = ADC(mean[i] + noise) for a precomputed noise-free mean (DN)."""
     n = out.shape[0]
     i = 0
@@ -51,14 +59,16 @@ def add_noise(out, mean, g, read2, maxv, table, state):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def mean_static(mean, base, fringe, ck, sk, cosd, sind, lut, qbar, scale, amb):
+def mean_static(mean: F32, base: F32, fringe: F32, ck: F32, sk: F32, cosd: float, sind: float,
+                lut: F32, qbar: float, scale: float, amb: float) -> None:
     for i in range(mean.shape[0]):
         p = 0.5 + 0.5 * (ck[i] * cosd - sk[i] * sind)
         mean[i] = scale * (base[i] * qbar + fringe[i] * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy", inline="always")
-def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):
+def _fringe_index(n0: float, d0: float, b: float, n_add: float, d_add: float, k_over_w: float,
+                  shift_frac: float, width_p: float, nq: int) -> int:
     """Index into the (nq,) projector table of a rest-pose sample (N0, D0, base b) moved by δ
     (see moving_frame); −1 where it is unlit (b = 0 or off the pattern). Branch-free: vectorises."""
     xp = (n0 + n_add) / (d0 + d_add)
@@ -71,8 +81,9 @@ def _fringe_index(n0, d0, b, n_add, d_add, k_over_w, shift_frac, width_p, nq):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w, shift_frac,
-               width_p, nq):
+def _index_run(kk: I32, u0: int, u1: int, s0: int, n0_row: F32, d0_row: F32, base_row: F32,
+               n_add: float, d_add: float, k_over_w: float, shift_frac: float, width_p: float,
+               nq: int) -> None:
     """kk[u0 .. u1 − 1] = table indices of the contiguous rest-pose samples
     s0 .. s0 + u1 − u0 − 1."""
     for i in range(u1 - u0):
@@ -81,7 +92,7 @@ def _index_run(kk, u0, u1, s0, n0_row, d0_row, base_row, n_add, d_add, k_over_w,
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _shade(q, b, fr, qbar, scale, amb):
+def _shade(q: float, b: float, fr: float, qbar: float, scale: float, amb: float) -> float:
     """DN of a sample of base b and fringe part fr lit by projector output q
     (NaN: unlit → ambient)."""
     m = scale * (b * qbar + fr * (q - qbar)) + amb
@@ -89,7 +100,8 @@ def _shade(q, b, fr, qbar, scale, amb):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _shade_run(row, qv, u0, u1, s0, base_row, fringe_row, qbar, scale, amb):
+def _shade_run(row: F32, qv: F32, u0: int, u1: int, s0: int, base_row: F32, fringe_row: F32,
+               qbar: float, scale: float, amb: float) -> None:
     """row[u] = DN of the rest-pose sample s0 + u − u0 lit by projector
     output qv[u] (NaN: unlit)."""
     for i in range(u1 - u0):
@@ -97,7 +109,8 @@ def _shade_run(row, qv, u0, u1, s0, base_row, fringe_row, qbar, scale, amb):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _flow_run(block_flow, by, bx, block, w):
+def _flow_run(block_flow: I64, by: int, bx: int, block: int, w: int
+              ) -> tuple[int, int, int, int, int, int, int]:
     """The run of tiles bx .. e − 1 of tile row ``by`` sharing tile bx's flow (fu, fv): returns
     (e, fu, fv, u0, u1, a, b) with columns u0 .. u1 − 1, of which a .. b − 1 have their
     rest-pose source u − fu inside the image (the others clamp to column 0 or W − 1)."""
@@ -112,8 +125,10 @@ def _flow_run(block_flow, by, bx, block, w):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add, k_over_w,
-               shift_frac, width_p, qtab, qbar, scale, amb):
+def _scene_row(row: F32, kk: I32, qv: F32, v: int, nd: F32, base: F32, fringe: F32,
+               block_flow: I64, block: int, n_add: float, d_add: float, k_over_w: float,
+               shift_frac: float, width_p: float, qtab: F32, qbar: float, scale: float,
+               amb: float) -> None:
     """Noise-free row ``v`` (W,) float32 DN of the moved scene (see moving_frame) into ``row``.
 
     Neighbouring tiles mostly share their flow, so each run of equal flow reads a contiguous
@@ -153,7 +168,8 @@ def _scene_row(row, kk, qv, v, nd, base, fringe, block_flow, block, n_add, d_add
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _deviates(z, u0, u1, table, state, r, j):
+def _deviates(z: F32, u0: int, u1: int, table: F32, state: U64, r: np.uint64, j: int
+              ) -> tuple[np.uint64, int]:
     """z[u0 .. u1 − 1] = the next normal deviates, four per generator step; (r, j) carries the
     current step's bits and how many of its four are used. Returns the new (r, j)."""
     for u in range(u0, u1):
@@ -166,16 +182,19 @@ def _deviates(z, u0, u1, table, state, r, j):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _adc_run(out_row, row, z, u0, u1, g, read2, maxv):
+def _adc_run(out_row: DN, row: F32, z: F32, u0: int, u1: int, g: float, read2: float,
+             maxv: int) -> None:
     """out_row[u] = ADC(row[u], z[u]) for u0 ≤ u < u1 (vectorised)."""
     for u in range(u0, u1):
         out_row[u] = _adc(row[u], g, read2, maxv, z[u])
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def moving_frame(out, noisy, band, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add,
-                 k_over_w, shift_frac, width_p, qtab, qbar, scale, amb, g, read2, maxv, table,
-                 state):
+def moving_frame(out: F32 | DN, noisy: bool, band: F32, zbuf: F32, kk: I32, qv: F32, nd: F32,
+                 base: F32, fringe: F32, block_flow: I64, block: int, n_add: float, d_add: float,
+                 k_over_w: float, shift_frac: float, width_p: float, qtab: F32, qbar: float,
+                 scale: float, amb: float, g: float, read2: float, maxv: int, table: F32,
+                 state: U64) -> None:
     """A frame of a rigidly translated scene: the noise-free mean (``noisy`` False, ``out``
     float32) or the noisy, quantised frame (``noisy`` True, ``out`` uint8/uint16), in one pass.
 

@@ -12,9 +12,11 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
+F64 = npt.NDArray[np.float64]
+
 
 @nb.njit(cache=True, inline="always")
-def _bilinear(grid, s0, t0, ds, s, t):
+def _bilinear(grid: F64, s0: float, t0: float, ds: float, s: float, t: float) -> float:
     ny, nx = grid.shape
     fx = (s - s0) / ds
     fy = (t - t0) / ds
@@ -24,12 +26,14 @@ def _bilinear(grid, s0, t0, ds, s, t):
     iy = min(int(fy), ny - 2)
     ax = fx - ix
     ay = fy - iy
-    return ((1 - ay) * ((1 - ax) * grid[iy, ix] + ax * grid[iy, ix + 1])
-            + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
+    value: float = ((1 - ay) * ((1 - ax) * grid[iy, ix] + ax * grid[iy, ix + 1])
+                    + ay * ((1 - ax) * grid[iy + 1, ix] + ax * grid[iy + 1, ix + 1]))
+    return value
 
 
 @nb.njit(cache=True, nogil=True)
-def raycast_heightfield(origin, dirs, frame_origin, axes, heights, s0, t0, ds, hmin, hmax):
+def raycast_heightfield(origin: F64, dirs: F64, frame_origin: F64, axes: F64, heights: F64,
+                        s0: float, t0: float, ds: float, hmin: float, hmax: float) -> F64:
     """First intersection of each ray with a height field over a plane frame.
 
     Args:

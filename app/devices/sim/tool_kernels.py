@@ -14,11 +14,14 @@ import numba as nb
 import numpy as np
 import numpy.typing as npt
 
-from app.devices.sim.kernels import FAST, _adc_run, _deviates, _scene_row
+from app.devices.sim.kernels import DN, F32, FAST, I32, I64, U64, _adc_run, _deviates, _scene_row
+
+F64 = npt.NDArray[np.float64]
+Vec3 = tuple[float, float, float]  # a 3-vector as loop-invariant scalars (see _tool_span)
 
 
 @nb.njit(cache=True, error_model="numpy")
-def tool_spans(sx, sy, v0, v1, rad_px, w):
+def tool_spans(sx: F64, sy: F64, v0: int, v1: int, rad_px: float, w: int) -> I64:
     """First/last column (v1 − v0 + 1, 2) int64 of rows v0 .. v1 covered by discs of radius rad_px
     (px) at the samples (sx, sy) (n,) px, clipped to 0 .. w − 1 (first > last: none).
     Not fastmath: the same spans as the numpy formulation in render.py used to give."""
@@ -70,7 +73,8 @@ class ToolFrame(NamedTuple):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):
+def _capsule_t(rx: float, ry: float, rz: float, p0: F64, a_hat: F64, length: float, radius: float
+               ) -> tuple[float, float, float, float]:
     """Ray (from the origin, direction r) against a capsule; returns (t, nx, ny, nz) or t = inf.
 
     The capsule lies inside the infinite cylinder around its axis, so a ray that misses the
@@ -112,7 +116,7 @@ def _capsule_t(rx, ry, rz, p0, a_hat, length, radius):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _pow(x, e):
+def _pow(x: float, e: float) -> float:
     """x**e for x ≥ 0; by repeated squaring for a small whole e (specular
     exponents: ~7× faster than pow)."""
     if e == int(e) and 0 <= e < 1024:
@@ -124,7 +128,8 @@ def _pow(x, e):
             x *= x
             n >>= 1
         return y
-    return x**e
+    p: float = x**e  # float ** float is Any in typeshed (a negative base gives a complex)
+    return p
 
 
 # fdlibm kernel coefficients of sin and cos on [−π/4, π/4] (|error| < 1e-16).
@@ -135,7 +140,7 @@ _C = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.480158728947672
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _cos(x):
+def _cos(x: float) -> float:
     """cos(x) (rad) to ~1e-15 for |x| ≲ 1e3; branch-free so that the loops calling it vectorise
     (math.cos is a scalar libm call). Quadrant reduction, then the fdlibm polynomials."""
     q = math.floor(x * (2.0 / math.pi) + 0.5)
@@ -150,7 +155,7 @@ def _cos(x):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _pow_bits(x, n):
+def _pow_bits(x: float, n: int) -> float:
     """x**n for x ≥ 0 and a whole 0 ≤ n < 1024: the products of _pow, unrolled (no loop, so
     the loops calling it vectorise)."""
     y = 1.0
@@ -176,7 +181,8 @@ def _pow_bits(x, n):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _cylinder(rx, ry, rz, p0, a_hat, radius):
+def _cylinder(rx: float, ry: float, rz: float, p0: Vec3, a_hat: Vec3, radius: float
+              ) -> tuple[float, float, float, float, float, float, float]:
     """The infinite-cylinder step of _capsule_t (same arithmetic): (a, disc, t, axial position,
     normal x, y, z); a hit needs a > 0, disc ≥ 0, t > 0 and 0 ≤ axial ≤ length."""
     ox, oy, oz = -p0[0], -p0[1], -p0[2]
@@ -194,7 +200,8 @@ def _cylinder(rx, ry, rz, p0, a_hat, radius):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _cylinder_run(tt, rx, ry, rz, u0, u1, p0, a_hat, length, radius):
+def _cylinder_run(tt: F64, rx: F64, ry: F64, rz: F64, u0: int, u1: int, p0: Vec3, a_hat: Vec3,
+                  length: float, radius: float) -> int:
     """tt[u] = ray parameter (mm) of the tool's cylinder hit of ray (rx, ry, rz)[u], u0 ≤ u ≤ u1;
     inf: miss, NaN: the end spheres decide (see _capsule_t). Returns the number of NaNs.
 
@@ -211,7 +218,8 @@ def _cylinder_run(tt, rx, ry, rz, u0, u1, p0, a_hat, length, radius):
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _light(t, rx, ry, rz, p0, a_hat, radius, pc):
+def _light(t: float, rx: float, ry: float, rz: float, p0: Vec3, a_hat: Vec3, radius: float,
+           pc: Vec3) -> tuple[float, float, float, float, float, float, float, float, float, float]:
     """Geometry of the cylinder hit at ray parameter t: (X, Y, Z) point, unit normal, unit
     direction to the projector and distance d (mm)."""
     _, _, _, _, nx, ny, nz = _cylinder(rx, ry, rz, p0, a_hat, radius)
@@ -222,8 +230,10 @@ def _light(t, rx, ry, rz, p0, a_hat, radius, pc):
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al, a_c, ga, g_c,
-                    width_p, rows_lit, two_pi_k_over_w, shift, dz):
+def _tool_index_run(kk: F64, tt: F64, rx: F64, ry: F64, rz: F64, zrow: F64, u0: int, u1: int,
+                    p0: Vec3, a_hat: Vec3, radius: float, pc: Vec3, al: Vec3, a_c: float,
+                    ga: Vec3, g_c: float, width_p: float, rows_lit: bool,
+                    two_pi_k_over_w: float, shift: float, dz: float) -> None:
     """kk[u] = projector response table index (as float) of the cylinder hit tt[u] (_cylinder_run)
     where it is in front of the rest-pose depth zrow[u] + dz and lit; −9 where in front but
     unlit, NaN where not in front."""
@@ -244,8 +254,9 @@ def _tool_index_run(kk, tt, rx, ry, rz, zrow, u0, u1, p0, a_hat, radius, pc, al,
 
 
 @nb.njit(cache=True, fastmath=FAST, error_model="numpy")
-def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, ks, n_shin, atten,
-                 qbar, scale, amb):
+def _tool_dn_run(out: F64, tt: F64, qq: F64, rx: F64, ry: F64, rz: F64, u0: int, u1: int,
+                 p0: Vec3, a_hat: Vec3, radius: float, pc: Vec3, refl: float, ks: float,
+                 n_shin: int, atten: float, qbar: float, scale: float, amb: float) -> None:
     """out[u] = DN of the cylinder hit tt[u] given qq[u] = projector output − qbar (lit), −9
     (unlit: ambient) or NaN (not in front: NaN); n_shin: the whole specular exponent."""
     for u in range(u0, u1 + 1):
@@ -262,7 +273,8 @@ def _tool_dn_run(out, tt, qq, rx, ry, rz, u0, u1, p0, a_hat, radius, pc, refl, k
 
 
 @nb.njit(cache=True, fastmath=FAST, inline="always")
-def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):
+def _tool_pixel(rx: float, ry: float, rz: float, zs: float, tool: ToolFrame, lut: F32,
+                qbar: float, scale: float, amb: float) -> float:
     """DN of the tool along ray (rx, ry, rz) in front of the scene at depth zs (NaN: none) by
     the full scalar capsule test (for the rays the vectorised cylinder passes leave out)."""
     (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit,
@@ -285,11 +297,13 @@ def _tool_pixel(rx, ry, rz, zs, tool, lut, qbar, scale, amb):
     cos_h = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
     base = (refl * cos_i + 0.05 * ks * _pow(cos_h, shin)) / (d * d)
     p = 0.5 + 0.5 * math.cos(two_pi_k_over_w * xp + shift)
-    return scale * (base * qbar + atten * base * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
+    dn: float = scale * (base * qbar + atten * base * (lut[int(p * 255.0 + 0.5)] - qbar)) + amb
+    return dn
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
+def _tool_span(row: F32, sc: tuple[F64, F64, F64], v: int, u0: int, u1: int, rays: F64, zs: F64,
+               tool: ToolFrame, lut: F32, qbar: float, scale: float, amb: float) -> None:
     """Overwrite row[u0 .. u1] (row ``v`` of the mean frame) where the tool is in front of the scene
     (its rest-pose depth zs (H, W) + tool.dz, NaN off-object). rays: (3, H, W) float64 planes of
     the unit pixel rays; sc: three (W,) float64 scratch rows (separate arrays: views of one 2-D
@@ -299,6 +313,12 @@ def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
     vectorised loops (cylinder, table index, DN) with only the table look-up scalar, the
     few rays the end spheres decide through the scalar _tool_pixel.
     """
+    # (for mypy: the vectors are the tool's arrays first, then tuples of their components)
+    p0: F64 | Vec3
+    a_hat: F64 | Vec3
+    pc: F64 | Vec3
+    al: F64 | Vec3
+    ga: F64 | Vec3
     # Fields as locals: LLVM keeps them in registers (field access in the loop is 2× slower).
     (p0, a_hat, length, radius, refl, ks, shin, pc, al, a_c, ga, g_c, width_p, rows_lit,
      two_pi_k_over_w, shift, atten, dz) = tool
@@ -327,9 +347,12 @@ def _tool_span(row, sc, v, u0, u1, rays, zs, tool, lut, qbar, scale, amb):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=FAST, error_model="numpy")
-def tool_frame(out, noisy, row, zbuf, kk, qv, nd, base, fringe, block_flow, block, n_add, d_add,
-               k_over_w, shift_frac, width_p, qtab, qbar, scale, amb, g, read2, maxv, table, state,
-               rays, zs, v0, spans, tool, lut):
+def tool_frame(out: F32 | DN, noisy: bool, row: F32, zbuf: F32, kk: I32, qv: F32, nd: F32,
+               base: F32, fringe: F32, block_flow: I64, block: int, n_add: float, d_add: float,
+               k_over_w: float, shift_frac: float, width_p: float, qtab: F32, qbar: float,
+               scale: float, amb: float, g: float, read2: float, maxv: int, table: F32,
+               state: U64, rays: F64, zs: F64, v0: int, spans: I64, tool: ToolFrame,
+               lut: F32) -> None:
     """moving_frame with the capsule ``tool`` in front, row by row in raster order (the noise
     sequence of add_noise over the mean frame), so the mean frame is never stored.
 
