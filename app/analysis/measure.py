@@ -430,8 +430,10 @@ def _point_measurement(kind: str, f: Callable[[F64], float], pts: F64, dirs: F64
     noise = _propagate(f, pts, dirs, sig, ids)
     if surf.calibration is not None:
         cal = _cal_sigma_3d(surf, _gradient(f, pts), pts)
-    else:
+    elif surf.has_cal:
         cal = _cal_sigma(surf, np.array([_slope(f, pts, dirs, i) for i in range(len(pts))]), pts)
+    else:  # no calibration term: no slopes to evaluate
+        cal = 0.0
     return Measurement(kind, f(pts), math.hypot(noise, cal), picks,
                        extra={"sigma_noise_mm": noise, "sigma_calibration_mm": cal,
                               "coverage": min(p.coverage for p in picks)})
