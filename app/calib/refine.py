@@ -9,7 +9,8 @@ over ±10 mm), and the other poses' errors bend the depth model.
 The phase measured densely over each board constrains its plane far better: the projector's
 surface of equal phase (:mod:`app.core.geometric`) must meet the camera ray of every board
 pixel on the board. :func:`refine_board_poses` minimises, jointly over the projector (pose,
-focal length, principal point and k1 along the fringe axis) and every board pose, the corner
+focal length and principal point along the fringe axis, and its lens's radial k1 as the depth
+model has it, t_y = 0) and every board pose, the corner
 reprojection errors and the projector-coordinate residuals of the board pixels, each divided
 by its own noise scale (phase outliers beyond 5 scales dropped first), and over the camera
 intrinsics (focal lengths, principal point and the distortion terms the camera calibration
@@ -141,7 +142,7 @@ class JointProblem:
     """The joint fit's residuals and their exact Jacobian (:func:`refine_board_poses`).
 
     The state ``x`` (float64) is the projector (rotation vector (3), t_x, t_z mm, focal length
-    and principal point px, k1 along the fringe axis), the camera (fx, fy, cx, cy px and the
+    and principal point px, the lens's radial k1), the camera (fx, fy, cx, cy px and the
     distortion terms ``free``) and per view its board pose (rotation vector, translation mm).
     The residuals are every view's corner reprojection errors (px, u and v interleaved) over
     ``s_corner``, then every view's phase residuals (projector px × weight) over its
@@ -206,9 +207,10 @@ class JointProblem:
         q = self.pose(x, k)
         pts = _plane_points(ray_k, q[:3], q[3:])
         r = _rotation(x[:3])
-        xn = (pts @ r[0] + x[3]) / (pts @ r[2] + x[4])
-        xd = (self.xps[k] - x[6]) / x[5]
-        return np.asarray(self.wts[k] * x[5] * (xd * (1.0 + x[7] * xd * xd) - xn), np.float64)
+        den = pts @ r[2] + x[4]
+        xn, yn = (pts @ r[0] + x[3]) / den, (pts @ r[1]) / den
+        xp = x[5] * xn * (1.0 + x[7] * (xn * xn + yn * yn)) + x[6]
+        return np.asarray(self.wts[k] * (self.xps[k] - xp), np.float64)
 
     def residuals(self, x: F64, rays: list[F64] | None = None) -> F64:
         """All residuals, each over its noise scale; ``rays``: :meth:`rays` of ``x`` if known."""
@@ -263,26 +265,30 @@ class JointProblem:
         s = nt / rn
         pts = ray * s[:, None]
         den = pts @ rp[2] + x[4]
-        xn = (pts @ rp[0] + x[3]) / den
-        xd = (self.xps[k] - x[6]) / x[5]
+        xn, yn = (pts @ rp[0] + x[3]) / den, (pts @ rp[1]) / den
         w = self.wts[k] * scale
         c = w * x[5]
-        g = xd * (1.0 + x[7] * xd * xd)
-        g1 = 1.0 + 3.0 * x[7] * xd * xd  # dg / dxd
+        r2 = xn * xn + yn * yn
+        # the residual w·(x_p − f·x_n·(1 + k1·r²) − c) through x_n (a) and y_n (b)
+        a = -c * (1.0 + x[7] * (r2 + 2.0 * xn * xn))
+        b = -c * 2.0 * x[7] * xn * yn
         n_cam = self.o_pose - 8
         out = np.empty((len(ray), 8 if kd is None else 8 + n_cam + 6))
         # projector: rotation, t_x, t_z, focal length, principal point, k1
         for i in range(3):
-            out[:, i] = -c * (pts @ d_rp[i][0] - xn * (pts @ d_rp[i][2])) / den
-        out[:, 3] = -c / den
-        out[:, 4] = c * xn / den
-        out[:, 5] = w * (g - xn - g1 * xd)
-        out[:, 6] = -w * g1
-        out[:, 7] = c * xd**3
+            p_r2 = pts @ d_rp[i][2]
+            out[:, i] = (a * (pts @ d_rp[i][0] - xn * p_r2)
+                         + b * (pts @ d_rp[i][1] - yn * p_r2)) / den
+        out[:, 3] = a / den
+        out[:, 4] = -(a * xn + b * yn) / den
+        out[:, 5] = -w * xn * (1.0 + x[7] * r2)
+        out[:, 6] = -w
+        out[:, 7] = -c * xn * r2
         if kd is None:
             return out
         # the board point P = ray·s, s = (n·t) / (ray·n): dr/dP, then the pose and the ray
-        dr_dp = -(c / den)[:, None] * (rp[0][None, :] - xn[:, None] * rp[2][None, :])
+        dr_dp = ((a / den)[:, None] * (rp[0][None, :] - xn[:, None] * rp[2][None, :])
+                 + (b / den)[:, None] * (rp[1][None, :] - yn[:, None] * rp[2][None, :]))
         dr_dp_ray = np.einsum("ij,ij->i", dr_dp, ray)
         d_n = jrb.reshape(3, 3, 3)[:, :, 2]  # [i] = d n / d rvec_i
         o = 8 + n_cam

@@ -15,8 +15,11 @@ camera ray, ``n`` the reference-plane normal):
 Eq. (5) uses the row quadratics only (``cubic`` 0); the geometric model the ray terms
 only. :class:`HeightTables` carries both parts; a model says which by its numbers.
 
-A model also records its :class:`SupportedRegion` (where its fit data reach) and
-serialises to a JSON object ``{"name": ..., **params, "supported_region": {...}}``.
+A radial projector lens (``radial_k`` ≠ 0, then ``cubic`` is 0) bends each fringe along its
+length: ``φ' = t·(1 + radial_k·(t² + y²))`` with y the undistorted projector coordinate across
+the fringes, which along the pixel's ray moves on its epipolar line ``y = α + β·t``, with
+``α = e0·q / d·q`` and ``β = e1·q / d·q`` (``cross_coefs`` = e0, e1, d): a cubic in t per pixel
+that :func:`column_term` solves by Newton's method.
 """
 
 from __future__ import annotations
@@ -50,6 +53,8 @@ class HeightTables(NamedTuple):
         ray_coefs: (12,) (ρ, σ, τ) of a0, a1, b0, b1 on the ray quotient q.
         phi0, inv_sphi: phase normalisation.
         cubic: coefficient of φ'³ in t.
+        cross_coefs: (9,) e0, e1, d (3 each) on the ray quotient q: the pixel's epipolar line.
+        radial_k: the radial lens's coefficient (0: none).
     """
 
     u_norm: F64
@@ -58,6 +63,45 @@ class HeightTables(NamedTuple):
     phi0: float
     inv_sphi: float
     cubic: float
+    cross_coefs: F64
+    radial_k: float
+
+
+#: Newton steps of :func:`column_term` from its first-order start (2 reach 1e-12 of the
+#: coordinate at radial_k 0.05; the third covers the random rigs' 0.2)
+COLUMN_ITERATIONS = 3
+
+
+def epipolar_lines(cross_coefs: npt.ArrayLike, ray_q: npt.ArrayLike) -> tuple[F64, F64]:
+    """(α, β), each of shape (…), of the epipolar lines ``y = α + β·t`` of rays ``ray_q`` (…, 3)
+    (any scale: the ratios cancel it) under :attr:`HeightTables.cross_coefs` (9,)."""
+    c = np.asarray(cross_coefs, np.float64).reshape(3, 3)
+    q = np.asarray(ray_q, np.float64)
+    if q.shape[-1:] != (3,):
+        raise ValueError(f"ray_q: need shape (..., 3), got {q.shape}")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_d = 1.0 / (q @ c[2])
+        return np.asarray((q @ c[0]) * inv_d), np.asarray((q @ c[1]) * inv_d)
+
+
+def column_term(pp: npt.ArrayLike, cubic: float, alpha: npt.ArrayLike, beta: npt.ArrayLike,
+                radial_k: float, iterations: int = COLUMN_ITERATIONS) -> tuple[F64, F64]:
+    """(t, dt/dφ') of the module docstring: the undistorted projector coordinate t along the
+    fringe axis (…) of the distorted one ``pp`` = φ' (…), with ``radial_k`` on the epipolar lines
+    (α, β) (…); ``radial_k`` 0: ``φ' + cubic·φ'³`` and ``1 + 3·cubic·φ'²``."""
+    x = np.asarray(pp, np.float64)
+    if radial_k == 0.0:
+        return x + cubic * x**3, 1.0 + 3.0 * cubic * x * x
+    a, b = np.asarray(alpha, np.float64), np.asarray(beta, np.float64)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        y = a + b * x
+        t = x * (1.0 - radial_k * (x * x + y * y))  # the first-order inverse
+        inv = np.ones_like(x)
+        for _ in range(iterations):
+            y = a + b * t
+            inv = 1.0 / (1.0 + radial_k * (3.0 * t * t + y * y + 2.0 * t * b * y))
+            t = t - (t * (1.0 + radial_k * (t * t + y * y)) - x) * inv
+        return t, inv
 
 
 @dataclass
@@ -315,6 +359,10 @@ class DepthModel(ABC):
     #: another model form fitted to the same data (None: none): where the two disagree the
     #: choice between them is uncertain too
     alternative: DepthModel | None
+    #: the scale of the :attr:`alternative`'s row: 1 where the data could not reject it; where
+    #: they did at p-value p, √(p·(1 − p)) (the spread of a choice made with probability p
+    #: of being wrong), 0 where p is nil
+    alternative_weight: float = 1.0
 
     @classmethod
     @abstractmethod
@@ -359,7 +407,7 @@ class DepthModel(ABC):
         rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
         if self.alternative is not None:
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
-            rows = np.concatenate([rows, alt[None]])
+            rows = np.concatenate([rows, self.alternative_weight * alt[None]])
         return np.asarray(rows, np.float64)
 
     def total_height_deviations(self, u: F64, v: F64, ray_xy: F64, height_mm: F64,
@@ -408,6 +456,8 @@ class DepthModel(ABC):
             out["jackknife"] = [m.params() for m in self.jackknife]
         if self.alternative is not None:
             out["alternative"] = self.alternative.params()
+            if self.alternative_weight != 1.0:
+                out["alternative_weight"] = self.alternative_weight
         return out
 
 
@@ -420,11 +470,14 @@ def row_tables_zero(image_size: tuple[int, int]) -> tuple[F64, F64]:
 
 
 __all__ = [
+    "COLUMN_ITERATIONS",
     "BoardSamples",
     "DepthModel",
     "HeightTables",
     "ReferencePlane",
     "SupportedRegion",
+    "column_term",
+    "epipolar_lines",
     "missing_cells",
     "region_from_samples",
 ]

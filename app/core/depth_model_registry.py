@@ -36,11 +36,16 @@ def depth_model_from_dict(data: Any) -> DepthModel:
         raise ValueError("model.jackknife: expected a list of objects")
     if alt is not None and not isinstance(alt, dict):
         raise ValueError("model.alternative: expected an object")
+    weight = data.get("alternative_weight", 1.0)
+    if (isinstance(weight, bool) or not isinstance(weight, int | float)
+            or not 0.0 <= float(weight) <= 1.0):
+        raise ValueError("model.alternative_weight: expected a number in 0..1")
     try:
         model.jackknife = [kind.from_params(p, SupportedRegion()) for p in jack]
         model.alternative = None if alt is None else kind.from_params(alt, SupportedRegion())
     except ValueError as exc:
         raise ValueError(f"model.jackknife: {exc}") from None
+    model.alternative_weight = float(weight)
     pipeline = data.get("pipeline_jackknife", [])
     if not isinstance(pipeline, list):
         raise ValueError("model.pipeline_jackknife: expected a list of objects")

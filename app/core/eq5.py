@@ -269,6 +269,7 @@ class Eq5Model(DepthModel):
             row_coefs=np.ascontiguousarray(np.stack(cols, axis=1), dtype=np.float64),
             ray_coefs=np.zeros(12),
             phi0=float(p0), inv_sphi=1.0 / float(sp), cubic=0.0,
+            cross_coefs=np.zeros(9), radial_k=0.0,
         )
 
     def params(self) -> dict[str, Any]:

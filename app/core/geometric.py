@@ -1,11 +1,15 @@
-"""The geometric phase-to-depth model: the projector as an inverse 1-D camera.
+"""The geometric phase-to-depth model: the projector as an inverse camera seen through its fringes.
 
-The projector is a pinhole along its fringe axis: a camera-frame point X maps to projector
-coordinates ``X_p = R·X + t`` and to the normalised coordinate ``x_n = X_p,x / X_p,z``;
-the lens bends it radially, ``x_n = x_d·(1 + k1·x_d²)``, and the projector column is
+The projector is a pinhole: a camera-frame point X maps to projector coordinates
+``X_p = R·X + t`` and to normalised coordinates ``x_n = X_p,x / X_p,z`` (along the fringe axis)
+and ``y_n = X_p,y / X_p,z`` (across it); the lens bends them radially as OpenCV's camera model
+does, ``(x_d, y_d) = (x_n, y_n)·(1 + k1·(x_n² + y_n²))``, and the projector column is
 ``x_p = f·x_d + c``. The finest fringe has phase ``φ = 2π·K·x_p / W`` (K fringes across
 W projector pixels), so ``x_d = (φ − φ0)·inv_sphi`` with ``φ0 = 2πKc/W`` and
-``inv_sphi = W/(2πKf)``.
+``inv_sphi = W/(2πKf)``. Only x_d is measured: ``t_y`` (the projector centre's offset across
+the fringes) shows only through the lens's bending, so it is fitted with a radial k1 and kept 0
+without one (a pinhole's heights do not depend on it). Held at 0, a projector 2 mm off the
+camera's epipolar plane left 0.03 mm errors in the image corners on the analytic rig.
 
 The surface of equal phase is the plane ``(R0 − x_n R2)·X + (t0 − x_n t2) = 0`` (R0, R2
 rows of R). On the camera ray ``X = s·r`` and with the reference plane
@@ -14,7 +18,10 @@ rows of R). On the camera ray ``X = s·r`` and with the reference plane
     height = [(off·R0 − t0·n)·q + x_n·(t2·n − off·R2)·q] / [R0·q − x_n·R2·q]
 
 — linear over linear in x_n, per pixel: the kernel form of :mod:`app.core.depth_model`
-with ray coefficients only and ``cubic = k1``.
+with ray coefficients only and ``radial_k = k1`` on the pixel's epipolar line
+``y_n = α + β·x_n`` (:meth:`GeometricModel.cross_coefficients`). Calibrations saved before the
+radial lens model (no ``k1_radial`` key) bend along the fringe axis only and the other way,
+``x_n = x_d·(1 + k1·x_d²)`` (``cubic = k1``), as they were fitted.
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ from app.core.depth_model import (
     HeightTables,
     ReferencePlane,
     SupportedRegion,
+    column_term,
+    epipolar_lines,
     row_tables_zero,
 )
 
@@ -71,15 +80,18 @@ def _rotation(rvec: F64) -> F64:
 
 @dataclass
 class GeometricModel(DepthModel):
-    """Projector pose and 1-D intrinsics along the fringe axis.
+    """Projector pose, intrinsics along the fringe axis and the lens's radial distortion.
 
     Attributes:
         rvec: (3,) rotation vector camera → projector frame.
-        t_mm: (3,) translation camera → projector frame (the component along the
-            fringe lines is not observable and kept 0), mm.
+        t_mm: (3,) translation camera → projector frame, mm (the component along the fringe
+            lines is fitted with a radial k1, else 0).
         focal_px, principal_px: focal length and principal point along the fringe axis, px.
-        k1: radial distortion of the projector lens along its fringe axis.
+        k1: radial distortion of the projector lens (normalised coordinates, ray → pattern).
         projector_width_px: W; fringes: K of the finest frequency.
+        k1_radial: k1 is OpenCV's radial term on ``x_n² + y_n²`` (a real lens); False:
+            ``x_n = x_d·(1 + k1·x_d²)`` along the fringe axis only (the model of calibrations
+            saved before, kept for them).
     """
 
     name: ClassVar[str] = "geometric"
@@ -91,12 +103,14 @@ class GeometricModel(DepthModel):
     projector_width_px: int
     fringes: int
     region: SupportedRegion = field(default_factory=SupportedRegion)
+    k1_radial: bool = True
     #: the fits with one board pose left out each (set by :meth:`fit`; saved with the model): their
     #: spread is the model's own uncertainty (:meth:`~app.core.depth_model.DepthModel.height_sigma`)
     jackknife: list[GeometricModel] = field(default_factory=list, repr=False, compare=False)
     #: the other projector model fitted to the same data (with k1 for a pinhole, a pinhole for
     #: k1; set by :meth:`fit`): where the two disagree, the choice is uncertain
     alternative: GeometricModel | None = field(default=None, repr=False, compare=False)
+    alternative_weight: float = field(default=1.0, repr=False, compare=False)
     #: the boards' own phase range (no margin; set by :meth:`fit`, not serialised)
     data_phase_rad: tuple[float, float] | None = field(default=None, repr=False, compare=False)
     #: the whole calibration refitted with one board pose left out each (camera and lens model,
@@ -123,6 +137,7 @@ class GeometricModel(DepthModel):
             setattr(self, name, val)
         if self.focal_px == 0.0:
             raise ValueError("focal_px: must be non-zero")
+        self.k1_radial = bool(self.k1_radial)
         self.projector_width_px = int(self.projector_width_px)
         self.fringes = int(self.fringes)
         if self.projector_width_px <= 0 or self.fringes <= 0:
@@ -145,17 +160,35 @@ class GeometricModel(DepthModel):
         t0, t2 = self.t_mm[0], self.t_mm[2]
         return np.stack([off * r[0] - t0 * n, t2 * n - off * r[2], r[0], -r[2]])
 
+    def cross_coefficients(self) -> F64:
+        """(3, 3) e0, e1, d: linear forms on a camera ray whose ratios ``α = e0·r / d·r`` and
+        ``β = e1·r / d·r`` give the ray's epipolar line ``y_n = α + β·x_n`` (zeros where the
+        lens does not act across the fringes)."""
+        if not (self.k1_radial and self.k1 != 0.0):
+            return np.zeros((3, 3))
+        r = self.rotation
+        t0, t1, t2 = self.t_mm
+        return np.stack([t1 * r[0] - t0 * r[1], t2 * r[1] - t1 * r[2], t2 * r[0] - t0 * r[2]])
+
     def height_tables(self, image_size: tuple[int, int], plane: ReferencePlane) -> HeightTables:
         u_norm, rows = row_tables_zero(image_size)
         phi0, inv_sphi = self.phase_normalization()
+        radial = self.k1 if self.k1_radial else 0.0
         return HeightTables(u_norm, rows, self.plane_coefficients(plane).ravel(),
-                            phi0, inv_sphi, self.k1)
+                            phi0, inv_sphi, 0.0 if self.k1_radial else self.k1,
+                            self.cross_coefficients().ravel(), radial)
 
-    def x_normalised(self, phi: F64) -> F64:
-        """Undistorted normalised projector coordinate x_n of phase φ."""
+    def x_normalised(self, phi: F64, ray_xy: F64) -> F64:
+        """Undistorted normalised projector coordinate x_n (n,) of phases φ (n,) seen along
+        camera rays ``ray_xy`` (n, 2) (the lens's bending depends on the ray's epipolar line)."""
         phi0, inv_sphi = self.phase_normalization()
-        xd = (np.asarray(phi, np.float64) - phi0) * inv_sphi
-        return xd * (1.0 + self.k1 * xd * xd)
+        xd = (np.asarray(phi, np.float64).ravel() - phi0) * inv_sphi
+        rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
+        r = np.concatenate([rxy, np.ones((len(rxy), 1))], axis=1)
+        alpha, beta = epipolar_lines(self.cross_coefficients(), r)
+        t, _ = column_term(xd, 0.0 if self.k1_radial else self.k1, alpha, beta,
+                           self.k1 if self.k1_radial else 0.0, iterations=5)
+        return t
 
     def height_at(self, u: F64, v: F64, ray_xy: F64, phi: F64, plane: ReferencePlane) -> F64:
         rxy = np.asarray(ray_xy, np.float64).reshape(-1, 2)
@@ -163,19 +196,31 @@ class GeometricModel(DepthModel):
         with np.errstate(divide="ignore", invalid="ignore"):
             q = r / (r @ np.asarray(plane.normal, np.float64))[:, None]
             a0, a1, b0, b1 = (q @ self.plane_coefficients(plane).T).T
-            xn = self.x_normalised(np.asarray(phi, np.float64).ravel())
+            xn = self.x_normalised(np.asarray(phi, np.float64).ravel(), rxy)
             return np.asarray((a0 + a1 * xn) / (b0 + b1 * xn), np.float64)
+
+    def distorted(self, xn: F64, yn: F64) -> F64:
+        """x_d (n,) of undistorted normalised projector coordinates (x_n, y_n) (n,): the radial
+        lens in closed form (a lens along the fringe axis inverted by Newton's method)."""
+        xn = np.asarray(xn, np.float64)
+        k1 = self.k1
+        if self.k1_radial:
+            yn = np.asarray(yn, np.float64)
+            return np.asarray(xn * (1.0 + k1 * (xn * xn + yn * yn)), np.float64)
+        xd = xn.copy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for _ in range(8):
+                xd = xd - (xd * (1.0 + k1 * xd * xd) - xn) / (1.0 + 3.0 * k1 * xd * xd)
+        return xd
 
     def phase_of_points(self, points_mm: F64) -> F64:
         """(n,) finest phase (rad) this model assigns to camera-frame points (n, 3), mm: the
-        inverse of the equal-phase surfaces (k1 inverted by Newton's method)."""
+        inverse of the equal-phase surfaces."""
         x = np.asarray(points_mm, np.float64).reshape(-1, 3)
-        r = self.rotation
+        r, t = self.rotation, self.t_mm
         with np.errstate(divide="ignore", invalid="ignore"):
-            xn = (x @ r[0] + self.t_mm[0]) / (x @ r[2] + self.t_mm[2])
-            xd = xn.copy()
-            for _ in range(8):
-                xd = xd - (xd * (1.0 + self.k1 * xd * xd) - xn) / (1.0 + 3.0 * self.k1 * xd * xd)
+            z = x @ r[2] + t[2]
+            xd = self.distorted((x @ r[0] + t[0]) / z, (x @ r[1] + t[1]) / z)
         phi0, inv_sphi = self.phase_normalization()
         return np.asarray(xd / inv_sphi + phi0, np.float64)
 
@@ -233,7 +278,7 @@ class GeometricModel(DepthModel):
         rows = math.sqrt((g - 1) / g) * (hs - hs.mean(axis=0))
         if self.alternative is not None:
             alt = self.alternative.height_at(uu, vv, rxy, phi, plane) - h
-            rows = np.concatenate([rows, alt[None]])
+            rows = np.concatenate([rows, self.alternative_weight * alt[None]])
         if self.lens_alternative is not None:
             la = self.lens_alternative
             if lens_rays is None:
@@ -266,7 +311,8 @@ class GeometricModel(DepthModel):
         rows = math.sqrt((g - 1) / g) * (pts - pts.mean(axis=0))
         if self.alternative is not None:
             alt_h = self.alternative.height_at(uu, vv, rxy, phi, plane)
-            rows = np.concatenate([rows, (_point_on_ray(rxy, alt_h, plane) - here)[None]])
+            rows = np.concatenate([rows, self.alternative_weight
+                                   * (_point_on_ray(rxy, alt_h, plane) - here)[None]])
         if self.lens_alternative is not None:
             lens = point_of(self.lens_alternative) - here
             lens = np.where(self._beyond_lens_verified(uu, vv)[:, None], lens, 0.0)
@@ -285,23 +331,20 @@ class GeometricModel(DepthModel):
         x3 = samples.subset(ok).points_mm(plane)
         xp = samples.phi[ok] * self.projector_width_px / (2.0 * math.pi * self.fringes)
         with_k1 = self.k1 != 0.0
+        # t_y is free with a radial k1 (the bending across the fringes shows it), else 0
+        n_free = (9 if self.k1_radial else 8) if with_k1 else 7
         x0 = np.array([*self.rvec, self.t_mm[0], self.t_mm[2], self.focal_px, self.principal_px,
-                       self.k1])
+                       self.k1, self.t_mm[1] if n_free == 9 else 0.0])
 
-        def residuals(x: F64) -> F64:
-            k1 = x[7] if with_k1 else 0.0
-            r = _rotation(x[:3])
-            xn = (x3 @ r[0] + x[3]) / (x3 @ r[2] + x[4])
-            xd = (xp - x[6]) / x[5]
-            return np.asarray(x[5] * (xd * (1.0 + k1 * xd * xd) - xn), np.float64)
+        def full(x: F64) -> F64:
+            return np.concatenate([x, np.zeros(9 - len(x))])
 
-        n_free = 8 if with_k1 else 7
-        sol = least_squares(lambda x: residuals(np.concatenate([x, [0.0]])[:8]), x0[:n_free],
-                            method="lm", x_scale="jac", max_nfev=5000)
-        x = np.concatenate([sol.x, [0.0]])[:8] if np.all(np.isfinite(sol.x)) else x0
-        return GeometricModel(x[:3], np.array([x[3], 0.0, x[4]]), float(x[5]), float(x[6]),
-                              float(x[7]) if with_k1 else 0.0, self.projector_width_px,
-                              self.fringes)
+        sol = least_squares(lambda x: _column_residuals_px(full(x), x3, xp, self.k1_radial),
+                            x0[:n_free], method="lm", x_scale="jac", max_nfev=5000)
+        x = full(sol.x) if np.all(np.isfinite(sol.x)) else x0
+        return GeometricModel(x[:3], np.array([x[3], x[8], x[4]]), float(x[5]), float(x[6]),
+                              float(x[7]), self.projector_width_px, self.fringes,
+                              k1_radial=self.k1_radial)
 
     def to_dict(self) -> dict[str, Any]:
         out = super().to_dict()
@@ -416,9 +459,11 @@ class GeometricModel(DepthModel):
 
     def params(self) -> dict[str, Any]:
         return {
-            "description": "projector as an inverse 1-D camera along the fringe axis",
+            "description": "projector as an inverse camera along the fringe axis, its lens "
+                           + ("radial" if self.k1_radial else "along the fringe axis"),
             "rvec": self.rvec.tolist(), "t_mm": self.t_mm.tolist(),
             "focal_px": self.focal_px, "principal_px": self.principal_px, "k1": self.k1,
+            "k1_radial": self.k1_radial,
             "projector_width_px": self.projector_width_px, "fringes": self.fringes,
         }
 
@@ -428,8 +473,12 @@ class GeometricModel(DepthModel):
         miss = [k for k in keys if k not in params]
         if miss:
             raise ValueError(f"missing keys {[f'model.{k}' for k in miss]}")
+        # absent: a calibration saved before the radial lens model, fitted along the axis
+        radial = params.get("k1_radial", False)
+        if not isinstance(radial, bool):
+            raise ValueError("model.k1_radial: must be true or false")
         try:
-            return cls(**{k: params[k] for k in keys}, region=region)
+            return cls(**{k: params[k] for k in keys}, region=region, k1_radial=radial)
         except TypeError as exc:
             raise ValueError(f"model: malformed value ({exc})") from None
 
@@ -454,24 +503,22 @@ class GeometricModel(DepthModel):
         rot, t, f, c = _decompose(p, x3)
         from scipy.spatial.transform import Rotation
 
-        x0 = np.concatenate([Rotation.from_matrix(rot).as_rotvec(), [t[0], t[2], f, c, 0.0]])
+        x0 = np.concatenate([Rotation.from_matrix(rot).as_rotvec(),
+                             [t[0], t[2], f, c, 0.0, 0.0]])
 
         def residuals(x: F64) -> F64:
-            r = _rotation(x[:3])
-            xn = (x3 @ r[0] + x[3]) / (x3 @ r[2] + x[4])
-            xd = (xp - x[6]) / x[5]
-            return np.asarray(x[5] * (xd * (1.0 + x[7] * xd * xd) - xn), np.float64)
+            return _column_residuals_px(x, x3, xp, True)
 
-        def solve(sel: npt.NDArray[np.bool_], with_k1: bool) -> F64:
+        def solve(sel: npt.NDArray[np.bool_], with_k1: bool, free_ty: bool = True) -> F64:
+            # t_y shows only through k1's bending: free with k1, else 0
+            n_free = (9 if free_ty else 8) if with_k1 else 7
+
             def res_k(x: F64) -> F64:
-                return residuals(np.concatenate([x, [0.0]]))[sel]
+                return residuals(np.concatenate([x, np.zeros(9 - n_free)]))[sel]
 
-            if with_k1:
-                r = least_squares(lambda x: residuals(x)[sel], x0, method="lm", x_scale="jac",
-                                  max_nfev=5000)
-                return np.asarray(r.x if np.all(np.isfinite(r.x)) else x0, np.float64)
-            r = least_squares(res_k, x0[:7], method="lm", x_scale="jac", max_nfev=5000)
-            return np.concatenate([r.x if np.all(np.isfinite(r.x)) else x0[:7], [0.0]])
+            r = least_squares(res_k, x0[:n_free], method="lm", x_scale="jac", max_nfev=5000)
+            xs = r.x if np.all(np.isfinite(r.x)) else x0[:n_free]
+            return np.concatenate([xs, np.zeros(9 - n_free)])
 
         # Projector distortion by held-out phase: the outer parts of the boards' phase range
         # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts
@@ -494,11 +541,14 @@ class GeometricModel(DepthModel):
             jack[True] = [solve(pose != p, True) for p in poses]
         x_k1 = solve(everything, True)
         use_k1 = not held or held[True] <= held[False]
+        p_pinhole = 1.0  # the t-test's p-value of k1 = 0
         if True in jack:
             k1s = np.array([xj[7] for xj in jack[True]])
             se_k1 = math.sqrt((len(k1s) - 1) / len(k1s) * float(np.sum((k1s - k1s.mean()) ** 2)))
             t_crit = float(student_t.ppf(0.5 + 0.5 * K1_CONFIDENCE, len(k1s) - 1))
             use_k1 = use_k1 and abs(float(x_k1[7])) >= t_crit * se_k1
+            t_k1 = abs(float(x_k1[7])) / se_k1 if se_k1 > 0.0 else math.inf
+            p_pinhole = float(2.0 * student_t.sf(t_k1, len(k1s) - 1))
         x_pin = solve(everything, False)
         x = x_k1 if use_k1 else x_pin
         if not use_k1 and len(poses) >= 3:
@@ -513,12 +563,18 @@ class GeometricModel(DepthModel):
         region = SupportedRegion(phase_rad=(lo - margin, hi + margin))
 
         def model(xm: F64, reg: SupportedRegion) -> GeometricModel:
-            return cls(xm[:3], np.array([xm[3], 0.0, xm[4]]), float(xm[5]), float(xm[6]),
+            return cls(xm[:3], np.array([xm[3], xm[8], xm[4]]), float(xm[5]), float(xm[6]),
                        float(xm[7]), w, k, reg)
 
         out = model(x, region)
         out.jackknife = [model(xj, SupportedRegion()) for xj in jack.get(use_k1, [])]
-        out.alternative = model(x_pin if use_k1 else x_k1, SupportedRegion())
+        # a k1 the data did not establish cannot place the lens's centre either: t_y held at 0
+        out.alternative = model(x_pin if use_k1 else solve(everything, True, free_ty=False),
+                                SupportedRegion())
+        # k1 chosen: the pinhole was rejected at p, and k1's own spread is in the jackknife;
+        # a pinhole chosen: k1 was not established, its whole difference may be the error
+        if use_k1 and True in jack:
+            out.alternative_weight = math.sqrt(p_pinhole * (1.0 - p_pinhole))
         out.data_phase_rad = (lo, hi)
         return out
 
@@ -624,6 +680,24 @@ def _point_on_ray(ray_xy: F64, height_mm: F64, plane: ReferencePlane) -> F64:
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (height_mm - plane.offset_mm) / (r @ np.asarray(plane.normal, np.float64))
     return np.asarray(r * s[:, None], np.float64)
+
+
+def _column_residuals_px(x: F64, x3: F64, xp: F64, radial: bool) -> F64:
+    """(n,) projector-coordinate residuals (px) of points ``x3`` (n, 3) mm seen at projector
+    coordinates ``xp`` (n,) px under the parameters ``x`` (9,): rotation vector, t_x, t_z mm,
+    focal length, principal point px, k1, t_y mm (``radial``: OpenCV's radial term; else the
+    inverse along x alone, without t_y)."""
+    r = _rotation(x[:3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = x3 @ r[2] + x[4]
+        xn = (x3 @ r[0] + x[3]) / z
+        k1 = x[7]
+        if radial:
+            yn = (x3 @ r[1] + x[8]) / z
+            return np.asarray(x[5] * xn * (1.0 + k1 * (xn * xn + yn * yn)) + x[6] - xp,
+                              np.float64)
+        xd = (xp - x[6]) / x[5]
+        return np.asarray(x[5] * (xd * (1.0 + k1 * xd * xd) - xn), np.float64)
 
 
 def _vec(name: str, value: Any) -> F64:

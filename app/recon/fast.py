@@ -53,6 +53,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit, prange
 
+from app.core.depth_model import COLUMN_ITERATIONS
 from app.core.reasons import Reason
 
 # All flags of fastmath=True except nnan/ninf (outputs carry NaN on purpose).
@@ -105,7 +106,8 @@ class PhaseArgs(NamedTuple):
 class HeightArgs(NamedTuple):
     """The height stage's inputs (float32 scalars): the model's
     :class:`~app.core.depth_model.HeightTables` (``u_norm``, ``row_coefs``, ``ray_coefs``,
-    ``phi0``, ``inv_sphi``, ``cubic``; ``use_rays`` when ``ray_coefs`` are not all zero), the
+    ``phi0``, ``inv_sphi``, ``cubic``, ``cross_coefs``, ``radial_k``; ``use_rays`` when
+    ``ray_coefs`` are not all zero, ``use_cross`` when ``radial_k`` is not zero), the
     volume ``lo``..``hi`` mm, ``sing_rtol``, ``ray_q`` (3, H, W): the ray quotients' planes
     (read when ``use_rays``; planar, so that the row loop loads each contiguously),
     the supported region (``region_lo``, ``region_hi`` (gh, W) height bounds mm per
@@ -114,7 +116,8 @@ class HeightArgs(NamedTuple):
     camera-field limit of :meth:`~app.core.depth_model.SupportedRegion.column_bounds`), the
     sensor noise (``read_var`` DN², ``gain`` DN/e⁻), ``max_sigma``
     mm, ``combine`` (noise-optimal phase), ``half_steps`` N/2 and ``inv_frames`` 1/F; the
-    model's own σ: ``sm_coefs`` (R, 5, W), ``sm_rows`` (H,), ``sm_mid`` and ``sm_inv_half`` of
+    model's own σ: ``sm_coefs`` (R, 5, W), ``sm_rows`` (H,), ``sm_weights`` (H,), ``sm_mid`` and
+    ``sm_inv_half`` of
     :class:`~app.recon.model_sigma.ModelSigmaTable`; the gross-error test's phasor tail
     (:mod:`app.recon.validity`, step 5): ``gross_sq`` g² mm² (0: no tail weight), ``tail_coefs``
     (4,) and ``tail_t_max`` of :func:`~app.recon.validity.phasor_tail_factor_sq`."""
@@ -126,6 +129,9 @@ class HeightArgs(NamedTuple):
     phi0: np.float32
     inv_sphi: np.float32
     cubic: np.float32
+    cross_coefs: npt.NDArray[np.float32]
+    radial_k: np.float32
+    use_cross: bool
     lo: np.float32
     hi: np.float32
     sing_rtol: np.float32
@@ -145,6 +151,7 @@ class HeightArgs(NamedTuple):
     inv_frames: np.float32
     sm_coefs: npt.NDArray[np.float32]
     sm_rows: npt.NDArray[np.int64]
+    sm_weights: npt.NDArray[np.float32]
     sm_mid: np.float32
     sm_inv_half: np.float32
     gross_sq: np.float32
@@ -181,6 +188,7 @@ _F1 = np.float32(1.0)
 _F3 = np.float32(3.0)
 _PI = np.float32(math.pi)
 _HALF_PI = np.float32(0.5 * math.pi)
+_COLUMN_ITERATIONS = COLUMN_ITERATIONS  # Newton steps of a radial projector lens
 _TWO_PI = np.float32(2.0 * math.pi)
 _INV_TWO_PI = np.float32(1.0 / (2.0 * math.pi))
 _TINY = np.float32(1e-30)
@@ -879,24 +887,36 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyped-def]
-               phi0, inv_sphi, cubic, sing_rtol, lo, hi,
+               phi0, inv_sphi, cubic, alpha, beta, radial_k, sing_rtol, lo, hi,
                p_lo, p_hi, read_var, gain, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
                max_sigma2, gross_sq, t1, t2, t3, t4, t_max):  # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
-    :mod:`app.core.depth_model`); ``c`` is the phase stage's reason. σ is the total: the sensor
+    :mod:`app.core.depth_model`; a radial projector lens ``radial_k`` on the pixel's epipolar
+    line (``alpha``, ``beta``) solved as :func:`~app.core.depth_model.column_term` solves it);
+    ``c`` is the phase stage's reason. σ is the total: the sensor
     noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k,
     x = (h − sm_mid)·sm_inv_half, :mod:`app.recon.model_sigma`); a model σ beyond the rule's
     bound (``max_sigma2`` = its square) is outside the calibrated field. The UNCERTAIN test
     weighs the noise variance by (θ_g/sin θ_g)², θ_g² = ``gross_sq``/slope² capped at
     ``t_max``, as 1 + Σ t_k·θ_g^2k (:func:`app.recon.validity.phasor_tail_factor_sq`)."""
     pp = (p - phi0) * inv_sphi
-    t = pp + cubic * (pp * pp * pp)
+    if radial_k != _F0:  # Newton on φ' = t·(1 + k·(t² + y²)), y = α + β·t, as column_term
+        y = alpha + beta * pp
+        t = pp * (_F1 - radial_k * (pp * pp + y * y))
+        dt = _F1
+        for _ in range(_COLUMN_ITERATIONS):
+            y = alpha + beta * t
+            dt = _F1 / (_F1 + radial_k * (_F3 * (t * t) + y * y
+                                          + np.float32(2.0) * (t * beta * y)))
+            t = t - (t * (_F1 + radial_k * (t * t + y * y)) - pp) * dt
+    else:
+        t = pp + cubic * (pp * pp * pp)
+        dt = _F1 + _F3 * cubic * (pp * pp)
     b1p = b1 * t
     dd = b0 + b1p
     inv_dd = _F1 / dd  # one division for the height and its slope
     h = (a0 + a1 * t) * inv_dd
-    slope = ((a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi
-             * (_F1 + np.float32(3.0) * cubic * (pp * pp)))
+    slope = (a1 * b0 - a0 * b1) * (inv_dd * inv_dd) * inv_sphi * dt
     x = (h - sm_mid) * sm_inv_half
     sm2 = max((((s4 * x + s3) * x + s2) * x + s1) * x + s0, _F0)
     slope2 = slope * slope
@@ -941,11 +961,19 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     t1, t2, t3, t4 = m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3]
     inv_frames = m.inv_frames
     un = m.u_norm
-    sc = m.sm_coefs[m.sm_rows[v]]  # (5, W): σ_model² = Σ s_k·x^k of every column
+    # (5, W) each: σ_model² = Σ s_k·x^k of every column, between two table rows
+    r0 = m.sm_rows[v]
+    sc = m.sm_coefs[r0]
+    sd = m.sm_coefs[min(r0 + 1, m.sm_coefs.shape[0] - 1)]
+    wv = m.sm_weights[v]
     sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
+    sn0, sn1, sn2, sn3, sn4 = sd[0], sd[1], sd[2], sd[3], sd[4]
     sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
     max_sigma2 = m.max_sigma * m.max_sigma
     qx, qy, qz = m.ray_q[0, v], m.ray_q[1, v], m.ray_q[2, v]  # (x, y, 1)/(n·r)
+    e = m.cross_coefs
+    e0, e1, e2, e3, e4, e5, e6, e7, e8 = e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8]
+    use_cross, radial_k = m.use_cross, m.radial_k
     # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
     combine, half_steps = m.combine, m.half_steps
     use_rays = m.use_rays
@@ -955,19 +983,27 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
         a1 = (k5 * x + k4) * x + k3
         b0 = (k8 * x + k7) * x + k6
         b1 = (k11 * x + k10) * x + k9
+        alpha = beta = _F0
         if use_rays:  # loop-invariant: the compiler makes two loops (an Eq. (5) model has none)
             q0, q1, q2 = qx[u], qy[u], qz[u]
             a0 += g0 * q0 + g1 * q1 + g2 * q2
             a1 += g3 * q0 + g4 * q1 + g5 * q2
             b0 += g6 * q0 + g7 * q1 + g8 * q2
             b1 += g9 * q0 + g10 * q1 + g11 * q2
+            if use_cross:  # the pixel's epipolar line in the projector
+                inv_d = _F1 / (e6 * q0 + e7 * q1 + e8 * q2)
+                alpha = (e0 * q0 + e1 * q1 + e2 * q2) * inv_d
+                beta = (e3 * q0 + e4 * q1 + e5 * q2) * inv_d
         vf = vfac[u] if combine else half_steps / m2[u]
         rl = r_lo[u] if f_lo <= u <= f_hi else _INF
         h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
                                rl, r_hi[u], code[u],
-                               phi0, inv_sphi, cubic, sing_rtol, lo, hi, p_lo, p_hi,
+                               phi0, inv_sphi, cubic, alpha, beta, radial_k, sing_rtol, lo, hi,
+                               p_lo, p_hi,
                                read_var, gain,
-                               sm0[u], sm1[u], sm2[u], sm3[u], sm4[u],
+                               sm0[u] + wv * (sn0[u] - sm0[u]), sm1[u] + wv * (sn1[u] - sm1[u]),
+                               sm2[u] + wv * (sn2[u] - sm2[u]), sm3[u] + wv * (sn3[u] - sm3[u]),
+                               sm4[u] + wv * (sn4[u] - sm4[u]),
                                sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
                                t_max)
         ok = c == _OK
@@ -1373,13 +1409,15 @@ def _warmup_locked(dt: np.dtype[np.generic]) -> None:
                    np.zeros((1, 7), np.float32), False)
     m = HeightArgs(
         np.zeros(3, np.float32), np.zeros((2, 12), np.float32), np.zeros(12, np.float32), False,
-        np.float32(0), np.float32(1), np.float32(0), np.float32(0), np.float32(1), np.float32(1e-5),
+        np.float32(0), np.float32(1), np.float32(0), np.zeros(9, np.float32), np.float32(0), False,
+        np.float32(0), np.float32(1), np.float32(1e-5),
         np.zeros((3, 2, 3), np.float32), np.full((1, 3), -np.inf, np.float32),
         np.full((1, 3), np.inf, np.float32),
         np.zeros(2, np.int64), np.float32(-np.inf), np.float32(np.inf),
         np.full(2, -np.inf, np.float32), np.full(2, np.inf, np.float32),
         np.float32(0), np.float32(0), np.float32(np.inf), False, np.float32(2), np.float32(0.25),
-        np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.float32(0), np.float32(1),
+        np.zeros((1, 5, 3), np.float32), np.zeros(2, np.int64), np.zeros(2, np.float32),
+        np.float32(0), np.float32(1),
         np.float32(0), np.zeros(4, np.float32), np.float32(1),
     )
     out = Outputs(np.empty((2, 3), np.float32), np.empty((2, 3), np.uint8),

@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from app.core.calibration import Calibration
-from app.core.depth_model import HeightTables
+from app.core.depth_model import HeightTables, column_term, epipolar_lines
 from app.core.eq5 import Eq5Model
 
 SINGULAR_RTOL = 1e-5
@@ -44,6 +44,9 @@ class ModelTables:
         a0, a1, b0, b1: (H, W) arrays (float32 or float64).
         phi0, inv_sphi: phase normalisation, ``φ' = (φ − phi0)·inv_sphi``.
         cubic: ``t = φ' + cubic·φ'³`` enters the rational form (0 for Eq. (5)).
+        radial_k, alpha, beta: a radial projector lens, ``radial_k`` on the (H, W) epipolar
+            lines ``y = α + β·t`` (:func:`~app.core.depth_model.column_term`; None where
+            ``radial_k`` is 0).
     """
 
     a0: npt.NDArray[Any]
@@ -53,6 +56,9 @@ class ModelTables:
     phi0: float
     inv_sphi: float
     cubic: float = 0.0
+    radial_k: float = 0.0
+    alpha: npt.NDArray[np.float64] | None = None
+    beta: npt.NDArray[np.float64] | None = None
 
 
 def model_tables(
@@ -123,8 +129,10 @@ def pixel_tables(tables: HeightTables, ray_q: npt.ArrayLike, *,
         if np.any(g[i]):
             row = row + np.nan_to_num(q @ g[i], nan=np.nan)
         out.append(np.asarray(row, dtype=dtype))
+    radial_k = float(tables.radial_k)
+    alpha, beta = epipolar_lines(tables.cross_coefs, q) if radial_k else (None, None)
     return ModelTables(out[0], out[1], out[2], out[3], float(tables.phi0), float(tables.inv_sphi),
-                       float(tables.cubic))
+                       float(tables.cubic), radial_k, alpha, beta)
 
 
 def _checked_model(
@@ -218,15 +226,16 @@ def evaluate_height_slope(
     if phi.shape != tables.a0.shape:
         raise ValueError(f"phase: shape {phi.shape} does not match the tables' {tables.a0.shape}")
     pp = (phi - tables.phi0) * tables.inv_sphi
-    t = pp + tables.cubic * pp**3
+    alpha = 0.0 if tables.alpha is None else tables.alpha
+    beta = 0.0 if tables.beta is None else tables.beta
+    t, dt = column_term(pp, tables.cubic, alpha, beta, tables.radial_k)
     b1p = tables.b1 * t
     den = tables.b0 + b1p
     num = tables.a0 + tables.a1 * t
     singular = np.abs(den) <= SINGULAR_RTOL * (np.abs(tables.b0) + np.abs(b1p))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         height = num / den
-        slope = (tables.a1 * tables.b0 - tables.a0 * tables.b1) / (den * den) * tables.inv_sphi * (
-            1.0 + 3.0 * tables.cubic * pp * pp)
+        slope = (tables.a1 * tables.b0 - tables.a0 * tables.b1) / (den * den) * tables.inv_sphi * dt
     return height, singular, slope
 
 

@@ -511,6 +511,7 @@ class Reconstructor:
             np.ascontiguousarray(t.u_norm, np.float32),
             np.ascontiguousarray(t.row_coefs, np.float32),
             np.ascontiguousarray(t.ray_coefs, np.float32), t.phi0, t.inv_sphi, t.cubic,
+            np.ascontiguousarray(t.cross_coefs, np.float32), t.radial_k,
         )
         q = ray_quotients(self._rays)
         return f32, q, np.ascontiguousarray(q.transpose(2, 0, 1))
@@ -750,13 +751,15 @@ class Reconstructor:
                              *self._lut_args(table))
         m = _fast.HeightArgs(
             tables.u_norm, tables.row_coefs, tables.ray_coefs, bool(np.any(tables.ray_coefs)),
-            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic), f32(lo), f32(hi),
+            f32(tables.phi0), f32(tables.inv_sphi), f32(tables.cubic),
+            tables.cross_coefs, f32(tables.radial_k), tables.radial_k != 0.0, f32(lo), f32(hi),
             f32(SINGULAR_RTOL),
             ray_planes, r_lo, r_hi, rows, f32(p_lo), f32(p_hi), u_lo, u_hi,
             f32(noise.read_noise_dn**2), f32(noise.gain_dn_per_e),
             f32(self._sigma_limit_mm if self._sigma_limit_mm is not None else np.inf),
             self.combine_frequencies, f32(cal.pattern.steps / 2.0), f32(1.0 / cal.pattern.n_frames),
             self._model_sigma_kernel.coefs, self._model_sigma_kernel.rows,
+            self._model_sigma_kernel.row_weights,
             f32(self._model_sigma_kernel.mid_mm), f32(self._model_sigma_kernel.inv_half_mm),
             f32(self._tail_gross_mm**2), _TAIL_COEFS, f32(PHASOR_TAIL_T_MAX),
         )

@@ -1,6 +1,6 @@
 """The joint (corners + phase) refinement is kept only while the corners stay within their noise.
 
-A projector the model lacks (radial lens distortion across the fringes, an uncorrected gamma)
+A projector the model lacks (a decentred lens, an uncorrected gamma)
 drags the joint fit's camera and poses toward its phase: the calibration must then keep the
 corners-only camera, say why, and its corner reprojection must stay within 1.1 x OpenCV's
 camera-only RMS on the same corners. A projector the model describes is still refined.
@@ -38,16 +38,21 @@ NOISE_PX = 0.05  # detected corners' noise per coordinate
 
 @dataclass
 class DefectProjectorRig(Rig):
-    """The analytic rig with radial distortion k1 of the projector lens (normalised coordinates):
-    the column of a point depends on its projector row too, which no model here describes."""
+    """The analytic rig whose projector lens has radial distortion k1 (which the depth model
+    describes) and a decentring (OpenCV's tangential p1, p2, normalised coordinates), which no
+    model here describes: the column of a point depends on its projector row the model cannot
+    follow."""
 
     proj_k1: float = 0.08
+    proj_p: tuple[float, float] = (0.01, 0.01)
 
     def phase_of_points(self, x: np.ndarray) -> np.ndarray:
         xp = (x - np.array(self.proj_center_mm)) @ rot(0, self.proj_yaw_deg).T
         xn, yn = xp[..., 0] / xp[..., 2], xp[..., 1] / xp[..., 2]
-        radial = 1.0 + self.proj_k1 * (xn * xn + yn * yn)
-        col = self.proj_f_px * xn * radial + self.schedule.width / 2
+        r2 = xn * xn + yn * yn
+        p1, p2 = self.proj_p
+        xd = xn * (1.0 + self.proj_k1 * r2) + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+        col = self.proj_f_px * xd + self.schedule.width / 2
         return 2 * math.pi * self.schedule.frequencies[-1] * col / self.schedule.width
 
 
@@ -96,6 +101,18 @@ def test_defect_projector_refinement_rejected_corners_only_camera_kept():
     assert ref.parameters == 4 + len(DISTORTION_TERMS[rep.camera.model]) + 6 * len(obs)
     assert "phase refinement rejected" in rep.table() and "corners-only camera" in rep.table()
     assert rep.calibration.extra["refinement"]["accepted"] is False
+
+
+def test_a_radial_projector_lens_is_now_described_and_refined():
+    """The same rig without the decentring: its radial lens bends each fringe along its length,
+    which the projector model follows since the radial k1 (before, this rig's refinement was
+    rejected); the projector's k1 comes back."""
+    rig = DefectProjectorRig(proj_p=(0.0, 0.0))
+    rep = fit_observations(_observations(rig), (rig.width, rig.height), rig.schedule)
+    ref = rep.refinement
+    assert ref is not None and ref.accepted is True, ref.reason
+    assert rep.camera is not None and rep.reprojection_px <= 1.1 * rep.camera.rms_px
+    assert rep.calibration.model.k1 == pytest.approx(rig.proj_k1, rel=0.05)
 
 
 def test_projector_the_model_describes_is_still_refined(standard_noisy_fit):

@@ -4,6 +4,7 @@ equal-phase intersections, the fit, serialisation and the supported region."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -289,6 +290,54 @@ def test_geometric_fit_keeps_a_real_projector_distortion():
     assert len(fitted.jackknife) == 6
 
 
+def test_a_radial_projector_lens_fitted_on_central_rows_holds_at_the_image_corners():
+    """A real projector lens is radial: it bends each fringe along its length. Boards over the
+    image's middle third of rows only (projector rows y_n ±0.10 of ±0.32): the radial k1 fitted
+    there predicts the heights at the image's corners to 0.01 mm; the lens along the fringe
+    axis alone (the model before), fitted to the same data, misses them by up to half a mm."""
+    rig = Rig()
+    truth = geometric_of(rig, k1=-0.05)
+    assert truth.k1_radial
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    s = band_samples(rig, truth, plane, (0.0, 30.0), 0.005, seed=3, n=4000)
+    central = s.subset((s.v > rig.height / 3) & (s.v < 2 * rig.height / 3))
+    radial = GeometricModel.fit(central, plane)
+    along = replace(truth, k1=-0.04, k1_radial=False).refit(central, plane)
+    u = np.array([5.0, rig.width / 2, rig.width - 5.0, 5.0, rig.width - 5.0])
+    v = np.array([5.0, 5.0, 5.0, rig.height - 5.0, rig.height - 5.0])
+    rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
+    r3 = np.concatenate([rays, np.ones((len(u), 1))], axis=1)
+    err_radial, err_along = [], []
+    for h in (5.0, 15.0, 25.0):
+        phi = projector_phase(truth, r3 * ((h - plane.offset_mm) / (r3 @ plane.normal))[:, None])
+        err_radial.append(radial.height_at(u, v, rays, phi, plane) - h)
+        err_along.append(along.height_at(u, v, rays, phi, plane) - h)
+    assert radial.k1 == pytest.approx(-0.05, abs=0.002)
+    assert np.max(np.abs(err_radial)) < 0.01, err_radial
+    assert np.max(np.abs(err_along)) > 0.3, err_along
+
+
+def test_the_projector_offset_across_the_fringes_is_fitted_with_a_radial_lens():
+    """A projector 5 mm off the camera's epipolar plane (t_y): the lens's bending across the
+    fringes shows it, so the fit recovers it and the image corners' heights hold to 0.005 mm
+    (held at 0 it left up to 0.08 mm there)."""
+    rig = Rig()
+    base = geometric_of(rig, k1=-0.05)
+    truth = replace(base, t_mm=base.t_mm + np.array([0.0, 5.0, 0.0]))
+    plane = ReferencePlane(rig.n, rig.plane_offset_mm)
+    s = band_samples(rig, truth, plane, (0.0, 30.0), 0.002, seed=3, n=4000)
+    fitted = GeometricModel.fit(s.subset((s.v > rig.height / 3) & (s.v < 2 * rig.height / 3)),
+                                plane)
+    assert fitted.t_mm[1] == pytest.approx(5.0, abs=0.5)
+    u = np.array([5.0, rig.width - 5.0, 5.0, rig.width - 5.0])
+    v = np.array([5.0, 5.0, rig.height - 5.0, rig.height - 5.0])
+    rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
+    r3 = np.concatenate([rays, np.ones((len(u), 1))], axis=1)
+    for h in (5.0, 15.0, 25.0):
+        phi = projector_phase(truth, r3 * ((h - plane.offset_mm) / (r3 @ plane.normal))[:, None])
+        assert np.max(np.abs(fitted.height_at(u, v, rays, phi, plane) - h)) < 0.005
+
+
 def test_geometric_fit_drops_an_insignificant_k1():
     """A pinhole projector and noisy phase: k1's estimate is noise, so the model stays a pinhole
     unless k1 is significant at 95 % (jackknife over poses): kept in at most 3 of 16 draws (the
@@ -321,12 +370,14 @@ def test_height_sigma_matches_the_monte_carlo_scatter_of_the_fit():
     u = np.array([20.0, rig.width / 2, rig.width - 20.0])
     v = np.array([20.0, rig.height / 2, rig.height - 20.0])
     rays = undistort_points(np.stack([u, v], 1), rig.K, np.zeros(5))
-    heights, sig, fitted = (5.0, 15.0, 30.0), [], []
+    heights, sig, fitted, kept_k1 = (5.0, 15.0, 30.0), [], [], 0
     for seed in range(24):
         m = GeometricModel.fit(
             band_samples(rig, truth, plane, (8.0, 22.0), 0.05, seed=100 + seed, n=1500), plane
         )
-        assert m.k1 == 0.0
+        if m.k1 != 0.0:  # the k1 test's 5 % false alarms: another model form, another scatter
+            kept_k1 += 1
+            continue
         row_s, row_h = [], []
         for h in heights:
             r3 = np.concatenate([rays, np.ones((3, 1))], axis=1)
@@ -338,6 +389,7 @@ def test_height_sigma_matches_the_monte_carlo_scatter_of_the_fit():
     mc = np.std(np.array(fitted), axis=0)  # (heights, pixels)
     jack = np.sqrt(np.mean(np.array(sig) ** 2, axis=0))
     ratio = jack / mc
+    assert kept_k1 <= 3  # K1_CONFIDENCE 0.95: P(more than 3 of 24) < 3 %
     assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
     assert np.all(mc[2] > mc[1])  # beyond the boards' heights the model is less certain
 

@@ -32,11 +32,17 @@ def rig_calibration(rig: Rig, model: DepthModel, dist: np.ndarray | None = None,
 
 def projector_phase(model: GeometricModel, x: np.ndarray) -> np.ndarray:
     """Forward model: camera-frame points (n, 3) mm → finest phase (n,) rad, through the
-    projector's distortion."""
+    projector's distortion: OpenCV's radial term, or for a ``k1_radial`` False model its inverse
+    along x (solved here by root finding)."""
     r = model.rotation
-    xn = (x @ r[0] + model.t_mm[0]) / (x @ r[2] + model.t_mm[2])
-    xd = np.array([brentq(lambda d, target=t: d * (1 + model.k1 * d * d) - target, -1.0, 1.0)
-                   for t in xn])
+    z = x @ r[2] + model.t_mm[2]
+    xn = (x @ r[0] + model.t_mm[0]) / z
+    if model.k1_radial:
+        yn = (x @ r[1] + model.t_mm[1]) / z
+        xd = xn * (1.0 + model.k1 * (xn * xn + yn * yn))
+    else:
+        xd = np.array([brentq(lambda d, target=t: d * (1 + model.k1 * d * d) - target, -1.0, 1.0)
+                       for t in xn])
     xp = model.focal_px * xd + model.principal_px
     return 2 * math.pi * model.fringes * xp / model.projector_width_px
 

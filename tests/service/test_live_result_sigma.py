@@ -20,7 +20,8 @@ def _table() -> ModelSigmaTable:
     coefs = np.zeros((1, DEGREE + 1, W), np.float32)
     coefs[0, 0] = 4e-4
     coefs[0, 1] = 2e-4
-    return ModelSigmaTable(coefs, np.zeros(H, np.int64), mid_mm=10.0, inv_half_mm=0.1)
+    return ModelSigmaTable(coefs, np.zeros(H, np.int64), np.zeros(H, np.float32), mid_mm=10.0,
+                           inv_half_mm=0.1)
 
 
 def _result(depth: np.ndarray, sigma: np.ndarray | None,
