@@ -38,7 +38,7 @@ TEST_WORKERS ?= 2
 test: $(VENV)/.installed-dev system-deps
 	$(BIN)/ruff check app tests benchmarks scripts
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=40
 
 test-parallel: $(VENV)/.installed-dev system-deps
 	@shared=$$(mktemp -d) && trap 'rm -rf "$$shared"' EXIT && export FRINGESCOPE_TEST_SHARED_DIR=$$shared \

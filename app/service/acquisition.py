@@ -320,6 +320,8 @@ class Acquisition:
     def _next_bracket_exposure(self, last_ms: float) -> None:
         """After a whole set at ``last_ms``: the next one at the bracket's other exposure."""
         with self._lock:
+            if not self.bracket:  # switched off since the caller looked: keep set_bracket's reset
+                return
             base = self.exposure_ms
             short = abs(last_ms - base) <= 1e-3 * base + 1e-3
             self._pending["exposure_ms"] = self.bracket_long_ms if short else base

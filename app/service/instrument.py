@@ -286,7 +286,10 @@ class Instrument:
         if self.pipeline.bracketing:  # a map per pair: a set at each exposure (frame time ∝ it)
             period *= 1.0 + acq.bracket_long_ms / acq.exposure_ms
         age = self._depth_age_s(now)
-        if age is not None and age <= 2 * period:
+        # a fault after the newest map: that map is from before it, so not yet running again
+        faulted_since_map = acq.last_error_s is not None and (
+            self._last_map_s is None or self._last_map_s <= acq.last_error_s)
+        if age is not None and age <= 2 * period and not faulted_since_map:
             return "running", self.pipeline.bracket_note()  # None unless bracketing: say why slower
         if self.calibration is None:
             return "stalled", "no calibration: load one (PUT /api/calibration/file) or calibrate"
@@ -376,6 +379,9 @@ class Instrument:
         acq, rec, s = self.acquisition, self.pipeline.reconstruction, self.settings
         now = time.monotonic()
         latency, recon = rec.latencies.median(), rec.recon_times.median()
+        # the error before the state: a fault between them then reads as a fault, not as a
+        # running instrument with an unresolved error
+        last_error, error_s, error_at = self._last_error()
         state, reason = self._state_reason(now)
         warnings = list(self.calibrations.warnings)
         n_frames = self.schedule.n_frames
@@ -395,7 +401,6 @@ class Instrument:
             warnings.append(collapse)
         if self.recorder.warning:
             warnings.append(self.recorder.warning)
-        last_error, error_s, error_at = self._last_error()
         phase, progress = None, None
         if state == "calibrating":
             phase, progress = self._calibration_phase()
