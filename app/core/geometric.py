@@ -60,6 +60,10 @@ PHASE_FLOOR_PX = 0.01  # projector px: held-out errors below this count as exact
 #: the G board poses (a pose's points share its systematic errors, so the points are not
 #: independent; the poses are)
 K1_CONFIDENCE = 0.95
+#: the projector's offset across the fringes (t_y) shows only through k1's bending, and as k1 → 0
+#: with k1·t_y² held it becomes a spurious 1/z² term (fits ran off to t_y ~ 60 m): a Gaussian
+#: prior of this fraction of the boards' mean distance from the projector keeps it physical
+PROJECTOR_OFFSET_PRIOR = 0.25
 #: the depth model's own uncertainty (1 σ, jackknife over poses) allowed at a supported (pixel,
 #: height): the bound of the gross-error rule on a pixel's total σ
 #: (``app.recon.validity.max_depth_sigma_mm()``: an error beyond 0.5 mm at most once in 1e6,
@@ -73,9 +77,16 @@ CELL_TEST_PIXELS = 3
 
 
 def _rotation(rvec: F64) -> F64:
-    from scipy.spatial.transform import Rotation
+    return _rotation_and_derivatives(rvec)[0]
 
-    return np.asarray(Rotation.from_rotvec(rvec).as_matrix(), np.float64)
+
+def _rotation_and_derivatives(rvec: F64) -> tuple[F64, F64]:
+    """The rotation matrix (3, 3) of a rotation vector (3,) rad and its derivatives (3, 3, 3):
+    ``[i]`` is d R / d rvec_i (OpenCV's Rodrigues)."""
+    import cv2
+
+    rot, jac = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))
+    return np.asarray(rot, np.float64), np.asarray(jac, np.float64).reshape(3, 3, 3)
 
 
 @dataclass
@@ -509,17 +520,36 @@ class GeometricModel(DepthModel):
         def residuals(x: F64) -> F64:
             return _column_residuals_px(x, x3, xp, True)
 
+        prior_row = 0.0  # px per mm of t_y: set after the first (pinhole) fit
+
         def solve(sel: npt.NDArray[np.bool_], with_k1: bool, free_ty: bool = True) -> F64:
-            # t_y shows only through k1's bending: free with k1, else 0
+            # t_y shows only through k1's bending: free with k1 (under its prior), else 0
             n_free = (9 if free_ty else 8) if with_k1 else 7
+            x3_sel, xp_sel = x3[sel], xp[sel]
 
             def res_k(x: F64) -> F64:
-                return residuals(np.concatenate([x, np.zeros(9 - n_free)]))[sel]
+                r = _column_residuals_px(np.concatenate([x, np.zeros(9 - n_free)]), x3_sel,
+                                         xp_sel, True)
+                return np.append(r, prior_row * x[8]) if n_free == 9 else r
 
-            r = least_squares(res_k, x0[:n_free], method="lm", x_scale="jac", max_nfev=5000)
+            def jac_k(x: F64) -> F64:
+                full = _column_jacobian_px(np.concatenate([x, np.zeros(9 - n_free)]), x3_sel)
+                if n_free < 9:
+                    return full[:, :n_free]
+                prior = np.zeros((1, 9))
+                prior[0, 8] = prior_row
+                return np.concatenate([full, prior])
+
+            r = least_squares(res_k, x0[:n_free], jac=jac_k, method="lm", x_scale="jac",
+                              max_nfev=5000)
             xs = r.x if np.all(np.isfinite(r.x)) else x0[:n_free]
             return np.concatenate([xs, np.zeros(9 - n_free)])
 
+        # t_y's prior in the residuals' units: the pinhole's RMS residual per prior σ
+        x_first = solve(np.ones(len(xp), bool), False)
+        first_res = float(np.sqrt(np.mean(residuals(x_first) ** 2)))
+        depth_mm = float(np.mean(x3 @ _rotation(x_first[:3])[2] + x_first[4]))
+        prior_row = max(first_res, PHASE_FLOOR_PX) / (PROJECTOR_OFFSET_PRIOR * abs(depth_mm))
         # Projector distortion by held-out phase: the outer parts of the boards' phase range
         # predicted by a fit to the inner part, with and without k1; k1 dropped if it predicts
         # worse.
@@ -698,6 +728,30 @@ def _column_residuals_px(x: F64, x3: F64, xp: F64, radial: bool) -> F64:
                               np.float64)
         xd = (xp - x[6]) / x[5]
         return np.asarray(x[5] * (xd * (1.0 + k1 * xd * xd) - xn), np.float64)
+
+
+def _column_jacobian_px(x: F64, x3: F64) -> F64:
+    """(n, 9) derivatives of :func:`_column_residuals_px` (``radial``) in its parameters ``x``
+    (9,): rotation vector, t_x, t_z mm, focal length, principal point px, k1, t_y mm."""
+    rot, d_rot = _rotation_and_derivatives(x[:3])
+    z = x3 @ rot[2] + x[4]
+    xn, yn = (x3 @ rot[0] + x[3]) / z, (x3 @ rot[1] + x[8]) / z
+    f, k1 = x[5], x[7]
+    rho = xn * xn + yn * yn
+    # the residual f·x_n·(1 + k1·ρ) + c − x_p through x_n (a) and y_n (b)
+    a = f * (1.0 + k1 * (rho + 2.0 * xn * xn))
+    b = f * 2.0 * k1 * xn * yn
+    out = np.empty((len(x3), 9))
+    for i in range(3):
+        dz = x3 @ d_rot[i][2]
+        out[:, i] = (a * (x3 @ d_rot[i][0] - xn * dz) + b * (x3 @ d_rot[i][1] - yn * dz)) / z
+    out[:, 3] = a / z
+    out[:, 4] = -(a * xn + b * yn) / z
+    out[:, 5] = xn * (1.0 + k1 * rho)
+    out[:, 6] = 1.0
+    out[:, 7] = f * xn * rho
+    out[:, 8] = b / z
+    return out
 
 
 def _vec(name: str, value: Any) -> F64:
