@@ -29,7 +29,13 @@ from app.calib.camera import (
     field_shortfall,
 )
 from app.calib.model import undistort_points
-from app.calib.refine import RefinedPoses, RefinementCheck, check_refinement, refine_board_poses
+from app.calib.refine import (
+    NoiseScales,
+    RefinedPoses,
+    RefinementCheck,
+    check_refinement,
+    refine_board_poses,
+)
 from app.capture.captureset import CaptureSet, read_capture_set
 from app.core.board import BoardSpec
 from app.core.calibration import Calibration
@@ -600,7 +606,7 @@ def fit_observations(
         joint = None
         if refined is not None:  # the refits repeat the joint fit the calibration kept
             joint = _JointFit(obs, schedule, DISTORTION_TERMS[camfit.model], cam, dist, rvecs,
-                              tvecs, refined.projector)
+                              tvecs, refined.projector, refined.noise_scales)
         geo.pipeline = _pipeline_jackknife(obj, img, image_size, camfit.model, samples, geo, joint)
         if geo.pipeline:
             geo.lens_alternative = _lens_alternative(obj, img, image_size, camfit.model, samples,
@@ -1026,7 +1032,8 @@ JACKKNIFE_REFINE_POINTS_PER_POSE = REFINE_POINTS_PER_POSE
 class _JointFit:
     """The joint (corners + phase) fit the calibration kept, for its refits to repeat: the
     poses' observations, the schedule, the free distortion terms and its solution (the camera,
-    the poses and the projector, (8,) as :attr:`RefinedPoses.projector`)."""
+    the poses and the projector, (8,) as :attr:`RefinedPoses.projector`) and the noise scales
+    it weighed the residuals by."""
 
     obs: list[PoseObservation | None]
     schedule: PatternSchedule
@@ -1036,6 +1043,7 @@ class _JointFit:
     rvecs: list[npt.NDArray[np.float64]]
     tvecs: list[npt.NDArray[np.float64]]
     projector: npt.NDArray[np.float64] | None = None
+    noise_scales: NoiseScales | None = None
 
 
 def _refit_camera(
@@ -1072,7 +1080,8 @@ def _refit_camera(
             joint.dist_coeffs, [joint.rvecs[k] for k in keep], [joint.tvecs[k] for k in keep],
             [pixels[k][0] for k in keep], [pixels[k][1] for k in keep],
             weights if len(weights) == len(keep) else None,
-            joint.free_dist, joint.projector)
+            joint.free_dist, joint.projector,
+            None if joint.noise_scales is None else joint.noise_scales.of_views(keep))
         if refined is not None:
             pose_of = {k: (refined.rvecs[i], refined.tvecs[i]) for i, k in enumerate(keep)}
             return refined.camera_matrix, refined.dist_coeffs, pose_of

@@ -47,6 +47,19 @@ MIN_PHASE_POINTS = 50  # per pose
 OUTLIER_SCALES = 5.0  # board pixels whose start residual exceeds 5 robust noise scales are dropped
 
 
+@dataclass(frozen=True)
+class NoiseScales:
+    """The joint fit's weights: the corners' noise scale (px) and per view the phase's
+    (projector px), each residual divided by its scale."""
+
+    corner_px: float
+    phase_px: tuple[float, ...]
+
+    def of_views(self, views: list[int]) -> NoiseScales:
+        """The scales of the views ``views`` (indices into :attr:`phase_px`), in that order."""
+        return NoiseScales(self.corner_px, tuple(self.phase_px[k] for k in views))
+
+
 @dataclass
 class RefinedPoses:
     """Result of :func:`refine_board_poses`: the camera (``camera_matrix`` (3, 3), ``dist_coeffs``
@@ -54,7 +67,8 @@ class RefinedPoses:
     corner as ``cv2.calibrateCamera`` reports it: √(Σ|Δuv|² / n)) and the board normals' change
     (mrad) per view, and the projector of the joint fit (8,): rotation vector, t_x, t_z (mm),
     focal length and principal point (px), k1 — what a refit of a subset of the views may start
-    from."""
+    from — and the noise scales it weighed the residuals by (:class:`NoiseScales`), which a refit
+    of a subset keeps."""
 
     camera_matrix: F64
     dist_coeffs: F64
@@ -63,6 +77,7 @@ class RefinedPoses:
     reprojection_px: float
     tilt_change_mrad: list[float]
     projector: F64 | None = None
+    noise_scales: NoiseScales | None = None
 
 
 def _plane_points(rays: F64, rvec: F64, tvec: F64) -> F64:
@@ -315,6 +330,7 @@ def refine_board_poses(
     weights: list[F64] | None = None,
     free_dist: tuple[int, ...] = (0,),
     projector_start: F64 | None = None,
+    noise_scales: NoiseScales | None = None,
 ) -> RefinedPoses | None:
     """Jointly refine the camera, the board poses and the projector from corners and the phase
     on the boards.
@@ -333,6 +349,11 @@ def refine_board_poses(
         projector_start: (8,) a projector (:attr:`RefinedPoses.projector`) the projector-only
             fit starts from instead of the direct linear start (e.g. the joint fit of all views
             when a subset of them is refitted); None: the direct linear start.
+        noise_scales: the residuals' scales (one phase scale per view) — a refit of a subset of
+            the views keeps its whole fit's (:attr:`RefinedPoses.noise_scales`), so that it is
+            the same weighted estimator with views left out: scales estimated again at that
+            fit's solution are the phase's misfit there, not its noise at the start (on
+            noise-free phase 500 × smaller). None: estimated from the start's residuals.
 
     Returns:
         :class:`RefinedPoses`, or None when the data do not allow it (too few phase points,
@@ -398,7 +419,9 @@ def refine_board_poses(
         return None
     x_init[:8] = start.x
     # noise scales; phase outliers (order slips, board edges) beyond OUTLIER_SCALES dropped
-    prob.s_corner = max(
+    if noise_scales is not None and len(noise_scales.phase_px) != nv:
+        raise ValueError(f"noise_scales: {len(noise_scales.phase_px)} phase scales for {nv} views")
+    prob.s_corner = noise_scales.corner_px if noise_scales is not None else max(
         float(np.sqrt(np.mean(np.concatenate(
             [prob.corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))),
         1e-3,
@@ -406,7 +429,8 @@ def refine_board_poses(
     s_phase = []
     for k in range(nv):
         r0 = prob.phase_res(x_init, k, rays0[k])
-        s = max(1.4826 * float(np.median(np.abs(r0))), 1e-4)
+        s = (noise_scales.phase_px[k] if noise_scales is not None
+             else max(1.4826 * float(np.median(np.abs(r0))), 1e-4))
         ok = np.abs(r0) <= OUTLIER_SCALES * s
         if int(ok.sum()) < MIN_PHASE_POINTS:
             return None
@@ -437,7 +461,8 @@ def refine_board_poses(
         )
         for a, b in zip(rvecs, out_r, strict=True)
     ]
-    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change, x[:8].copy())
+    return RefinedPoses(kd[0], kd[1], out_r, out_t, reproj, change, x[:8].copy(),
+                        NoiseScales(prob.s_corner, tuple(s_phase)))
 
 
 @dataclass
