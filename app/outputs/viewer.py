@@ -36,6 +36,7 @@ from app.outputs.cloud import (
 from app.outputs.encoding import DEFAULT_RANGE_MM
 from app.outputs.encoding import texture_u8 as _texture_u8
 from app.recon.colormap import depth_colormap
+from app.service.priority import lower_this_threads_priority
 from app.service.reconstruction import LiveResult
 from app.service.store import LatestSlot
 
@@ -276,6 +277,7 @@ class Viewer:
 
     # -- updates ---------------------------------------------------------------------
     def _run(self) -> None:
+        lower_this_threads_priority()  # bulk work: the event loop answers first
         last_push = -math.inf
         last_status = -math.inf
         shown: LiveResult | None = None

@@ -26,6 +26,7 @@ from app.recon.points import LazyPoints, PointRays
 from app.recon.reconstructor import PhaseErrorSource, split_noise
 from app.recon.sensor import NoiseSource, SensorNoise
 from app.service.framesets import FrameSet
+from app.service.priority import lower_this_threads_priority
 from app.service.sensor_noise import LiveNoise
 from app.service.store import LatestSlot, NewestQueue, RateMeter, RecentValues
 
@@ -230,6 +231,7 @@ class Reconstruction:
         return self._thread.is_alive()
 
     def _run(self) -> None:
+        lower_this_threads_priority()  # bulk work: the event loop answers first
         while not self._stop.is_set():
             fs = self.queue.get(timeout_s=0.1)
             if fs is None:
