@@ -363,6 +363,8 @@ def refine_board_poses(
     from scipy.spatial.transform import Rotation
 
     nv = len(obj)
+    if noise_scales is not None and len(noise_scales.phase_px) != nv:
+        raise ValueError(f"noise_scales: {len(noise_scales.phase_px)} phase scales for {nv} views")
     wts = weights if weights is not None else [np.ones(len(p)) for p in proj_x]
     keep = [np.isfinite(p) & np.isfinite(w) & (w > 0) for p, w in zip(proj_x, wts, strict=True)]
     if nv < 3 or any(int(k.sum()) < MIN_PHASE_POINTS for k in keep):
@@ -419,8 +421,6 @@ def refine_board_poses(
         return None
     x_init[:8] = start.x
     # noise scales; phase outliers (order slips, board edges) beyond OUTLIER_SCALES dropped
-    if noise_scales is not None and len(noise_scales.phase_px) != nv:
-        raise ValueError(f"noise_scales: {len(noise_scales.phase_px)} phase scales for {nv} views")
     prob.s_corner = noise_scales.corner_px if noise_scales is not None else max(
         float(np.sqrt(np.mean(np.concatenate(
             [prob.corner_res(x_init, k, kd0) for k in range(nv)]) ** 2))),
