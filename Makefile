@@ -32,8 +32,8 @@ system-deps:
 
 # The whole suite in one pytest process. `make test-parallel` runs it on $(TEST_WORKERS)
 # pytest-xdist workers (`serial` tests, which assert wall-clock times or rates, alone after);
-# on this 2-core machine that is ~20 min against ~23 but needs more memory in sum and has
-# shown load-dependent failures, so it is not the default yet.
+# on a 2-core machine it saves little, needs more memory in sum and has shown load-dependent
+# failures (figures in the README's Development section), so it is not the default.
 TEST_WORKERS ?= 2
 # The fused reconstruction kernel compiles ~45 s per frame dtype and a fresh checkout has no
 # kernel cache: uint8 compiles beside the type check, uint16 after it (staggered, so the two never

@@ -26,25 +26,27 @@ configure_numerics()  # before numba is imported: the settings the suite's proce
 
 import numpy as np  # noqa: E402
 
+from app.core.limits import full_scale  # noqa: E402
 from app.devices.sim.analytic_rig import Rig, bump_surface  # noqa: E402
 from app.recon import Reconstructor  # noqa: E402
 
-#: the frame dtypes the fused kernel is specialised for, with the full scale the set is rendered
-#: to (None: the dtype's own; a 12-bit camera in 16-bit words)
-FRAME_DTYPES: dict[str, tuple[type, int | None]] = {"uint8": (np.uint8, None),
-                                                    "uint16": (np.uint16, 4095)}
+#: the frame dtypes the fused kernel is specialised for, with the sensor bit depth the set is
+#: rendered at (a 12-bit camera in 16-bit words)
+FRAME_DTYPES: dict[str, tuple[type, int]] = {"uint8": (np.uint8, 8), "uint16": (np.uint16, 12)}
 
 
 def warm(dtype_name: str) -> float:
     """Reconstruct a 96 × 64 set of ``dtype_name`` frames once; returns the seconds taken."""
-    frame_type, top = FRAME_DTYPES[dtype_name]
-    scale = 1.0 if top is None else (top + 1) / 256
+    frame_type, bit_depth = FRAME_DTYPES[dtype_name]
+    top = full_scale(bit_depth)
+    scale = (top + 1) / 256
     rig = Rig(width=96, height=64, focal_px=120.0)
     t0 = time.perf_counter()
     frames = rig.render(bump_surface(rig), background=110 * scale, amplitude=90 * scale,
                         noise=1.0 * scale, dtype=frame_type, max_code=top)
     result = Reconstructor(rig.calibration(), max_code=top).run(frames)
-    assert result.valid.any(), "the warm-up set reconstructed no valid pixel"
+    if not result.valid.any():
+        raise RuntimeError("the warm-up set reconstructed no valid pixel")
     _ = result.points  # made on first read, by its own kernel
     return time.perf_counter() - t0
 
