@@ -885,20 +885,27 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
         prev[u] = wphi[u] / wsum[u] if wsum[u] > _F0 else _NAN
 
 
-@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+# Inlined in numba's IR: LLVM's own inliner found it too costly (525 against 250), and a call left
+# in the pixel loop kept the loop from being vectorised (the height stage then took 3-4x the CPU
+# of everything else in the kernel). Fewer than 30 arguments: CPython passes more as *args,
+# which numba's inliner does not take.
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True, inline="always")
 def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyped-def]
-               phi0, inv_sphi, cubic, alpha, beta, radial_k, sing_rtol, lo, hi,
-               p_lo, p_hi, read_var, gain, s0, s1, s2, s3, s4, sm_mid, sm_inv_half,
-               max_sigma2, gross_sq, t1, t2, t3, t4, t_max):  # pragma: no cover - compiled
+               alpha, beta, s0, s1, s2, s3, s4, row):  # pragma: no cover - compiled
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`; a radial projector lens ``radial_k`` on the pixel's epipolar
     line (``alpha``, ``beta``) solved as :func:`~app.core.depth_model.column_term` solves it);
+    ``row`` the row's constants (``phi0``, ``inv_sphi``, ``cubic``, ``radial_k``, ``sing_rtol``,
+    ``lo``, ``hi``, ``p_lo``, ``p_hi``, ``read_var``, ``gain``, ``sm_mid``, ``sm_inv_half``,
+    ``max_sigma2``, ``gross_sq``, ``t1``..``t4``, ``t_max``: :func:`_height_row`);
     ``c`` is the phase stage's reason. σ is the total: the sensor
     noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k,
     x = (h − sm_mid)·sm_inv_half, :mod:`app.recon.model_sigma`); a model σ beyond the rule's
     bound (``max_sigma2`` = its square) is outside the calibrated field. The UNCERTAIN test
     weighs the noise variance by (θ_g/sin θ_g)², θ_g² = ``gross_sq``/slope² capped at
     ``t_max``, as 1 + Σ t_k·θ_g^2k (:func:`app.recon.validity.phasor_tail_factor_sq`)."""
+    (phi0, inv_sphi, cubic, radial_k, sing_rtol, lo, hi, p_lo, p_hi, read_var, gain, sm_mid,
+     sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4, t_max) = row
     pp = (p - phi0) * inv_sphi
     if radial_k != _F0:  # Newton on φ' = t·(1 + k·(t² + y²)), y = α + β·t, as column_term
         y = alpha + beta * pp
@@ -935,13 +942,29 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyp
 
 
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
+def _lerp_row(out, a, b, w):  # type: ignore[no-untyped-def]  # pragma: no cover - compiled
+    """out = a + w·(b − a) over a row (float32)."""
+    for u in range(out.shape[0]):
+        out[u] = a[u] + w * (b[u] - a[u])
+
+
+@njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-def]
-                depth, sigma, reason, valid, modulation, texture, mod_scale):  # pragma: no cover
+                depth, sigma, reason, valid, modulation, texture, mod_scale,
+                sm_row):  # pragma: no cover
     """Height stage of row ``v`` (both paths): the final reason code and all the row's outputs
     but the phase: ``depth`` and ``sigma`` (float32, mm; NaN where invalid), ``reason`` (uint8),
     ``valid`` (bool), ``modulation`` B = ``mod_scale``·√m2 and ``texture`` Σ I/F + B (float32,
     codes). In the one pixel loop: a second pass over the block's rows for the last four cost
-    ~12 % of the kernel's CPU (re-reading m2, total and the codes).
+    ~12 % of the kernel's CPU (re-reading m2, total and the codes). ``code`` (the phase stage's
+    reason) is only read; ``sm_row`` (5, ≥ W) float32 scratch takes the row's σ_model
+    coefficients.
+
+    The loop is vectorised only while LLVM needs at most 128 run-time checks that its arrays do
+    not overlap (numba's arrays carry no ``noalias``; a check per written array and every other
+    one): hence the σ_model table's two rows interpolated into ``sm_row`` first (ten arrays read
+    in the loop become five), and ``code`` not written (the phase output selects by ``reason``).
+    ``tests/recon/test_fast.py`` checks the loop's float divisions are vector ones.
 
     ``m.region_lo``/``m.region_hi`` are (gh, W): each grid row's height bounds expanded to the
     columns (two contiguous rows, not interleaved pairs: that keeps the loop vectorised)."""
@@ -955,29 +978,29 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
     r_hi = m.region_hi[m.region_rows[v]]
     # outside the camera's supported field: no height bound holds
     f_lo, f_hi = m.field_u_lo[v], m.field_u_hi[v]
-    phi0, inv_sphi, cubic, sing_rtol, lo, hi = m.phi0, m.inv_sphi, m.cubic, m.sing_rtol, m.lo, m.hi
-    p_lo, p_hi, read_var, gain = m.phase_lo, m.phase_hi, m.read_var, m.gain
-    gross_sq, t_max = m.gross_sq, m.tail_t_max
-    t1, t2, t3, t4 = m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3]
     inv_frames = m.inv_frames
     un = m.u_norm
-    # (5, W) each: σ_model² = Σ s_k·x^k of every column, between two table rows
+    # σ_model² = Σ s_k·x^k of every column, between two table rows (5, W) each
     r0 = m.sm_rows[v]
     sc = m.sm_coefs[r0]
     sd = m.sm_coefs[min(r0 + 1, m.sm_coefs.shape[0] - 1)]
-    wv = m.sm_weights[v]
-    sm0, sm1, sm2, sm3, sm4 = sc[0], sc[1], sc[2], sc[3], sc[4]
-    sn0, sn1, sn2, sn3, sn4 = sd[0], sd[1], sd[2], sd[3], sd[4]
-    sm_mid, sm_inv_half = m.sm_mid, m.sm_inv_half
-    max_sigma2 = m.max_sigma * m.max_sigma
+    width = prev.shape[0]
+    for i in range(5):
+        _lerp_row(sm_row[i, :width], sc[i], sd[i], m.sm_weights[v])
+    s0, s1, s2, s3, s4 = (sm_row[0, :width], sm_row[1, :width], sm_row[2, :width],
+                          sm_row[3, :width], sm_row[4, :width])
+    row = (m.phi0, m.inv_sphi, m.cubic, m.radial_k, m.sing_rtol, m.lo, m.hi, m.phase_lo,
+           m.phase_hi, m.read_var, m.gain, m.sm_mid, m.sm_inv_half, m.max_sigma * m.max_sigma,
+           m.gross_sq, m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3],
+           m.tail_t_max)
     qx, qy, qz = m.ray_q[0, v], m.ray_q[1, v], m.ray_q[2, v]  # (x, y, 1)/(n·r)
     e = m.cross_coefs
     e0, e1, e2, e3, e4, e5, e6, e7, e8 = e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8]
-    use_cross, radial_k = m.use_cross, m.radial_k
+    use_cross = m.use_cross
     # var(φ)/σ_I²: N / (2·m2) of the finest frequency, or the combination's (in vfac)
     combine, half_steps = m.combine, m.half_steps
     use_rays = m.use_rays
-    for u in range(prev.shape[0]):
+    for u in range(width):
         x = un[u]
         a0 = (k2 * x + k1) * x + k0
         a1 = (k5 * x + k4) * x + k3
@@ -996,20 +1019,11 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
                 beta = (e3 * q0 + e4 * q1 + e5 * q2) * inv_d
         vf = vfac[u] if combine else half_steps / m2[u]
         rl = r_lo[u] if f_lo <= u <= f_hi else _INF
-        h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf,
-                               rl, r_hi[u], code[u],
-                               phi0, inv_sphi, cubic, alpha, beta, radial_k, sing_rtol, lo, hi,
-                               p_lo, p_hi,
-                               read_var, gain,
-                               sm0[u] + wv * (sn0[u] - sm0[u]), sm1[u] + wv * (sn1[u] - sm1[u]),
-                               sm2[u] + wv * (sn2[u] - sm2[u]), sm3[u] + wv * (sn3[u] - sm3[u]),
-                               sm4[u] + wv * (sn4[u] - sm4[u]),
-                               sm_mid, sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4,
-                               t_max)
+        h, sig, c = _height_px(prev[u], a0, a1, b0, b1, total[u] * inv_frames, vf, rl, r_hi[u],
+                               code[u], alpha, beta, s0[u], s1[u], s2[u], s3[u], s4[u], row)
         ok = c == _OK
         depth[u] = h if ok else _NAN
         sigma[u] = sig if ok else _NAN
-        code[u] = c
         reason[u] = c
         valid[u] = ok
         b = mod_scale * np.sqrt(m2[u])
@@ -1288,7 +1302,7 @@ def _refit_row(  # type: ignore[no-untyped-def]
 @njit(fastmath=FASTMATH, error_model="numpy", cache=True)
 def _select_row(out, values, code):  # type: ignore[no-untyped-def]  # pragma: no cover
     for u in range(out.shape[0]):
-        out[u] = values[u] if code[u] == 0 else _NAN
+        out[u] = values[u] if code[u] == _OK else _NAN
 
 
 @njit(parallel=True, nogil=True, fastmath=FASTMATH, error_model="numpy", cache=True)
@@ -1333,6 +1347,7 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
         # the saturation refit's spans
         rscratch = np.empty((10 + 3 * n_freq, REFIT_SPAN), np.float32)
         sums = np.empty((9, REFIT_SPAN), np.float32)
+        sm_row = np.empty((5, width), np.float32)  # the height stage's σ_model coefficients
         # clipping is spatially coherent: where the row above had much of it, one pass that phases
         # and refits every pixel is cheaper than refitting many spans after the plain pass
         wide_clip = False
@@ -1365,10 +1380,10 @@ def fused_kernel(frames, ph, m, out):  # type: ignore[no-untyped-def]  # pragma:
                 wide_clip = (n_refit + _count_saturated(code[r])) * 16 > width
             _height_row(v, prev[r], m2[r], total[r], vfac[r], code[r], m, out.depth[v],
                         out.sigma[v], out.reason[v], out.valid[v], out.modulation[v],
-                        out.texture[v], mod_scale)
+                        out.texture[v], mod_scale, sm_row)
         if want_phase:  # the one output the height stage does not write
             for r in range(n_rows):
-                _select_row(out.phase[v0 + r], prev[r], code[r])
+                _select_row(out.phase[v0 + r], prev[r], out.reason[v0 + r])
 
 
 @njit(nogil=True, error_model="numpy", cache=True)
