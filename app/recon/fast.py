@@ -885,6 +885,35 @@ def _combined_row(prev, wsum, wphi):  # type: ignore[no-untyped-def]  # pragma: 
         prev[u] = wphi[u] / wsum[u] if wsum[u] > _F0 else _NAN
 
 
+class HeightConstants(NamedTuple):
+    """One row's scalars of the height stage (float32), from :class:`HeightArgs`: the depth
+    model's ``phi0``, ``inv_sphi``, ``cubic``, ``radial_k``, ``sing_rtol``, the volume
+    ``lo``..``hi`` mm, the phase range ``p_lo``..``p_hi`` rad, the sensor noise ``read_var`` DN²
+    and ``gain`` DN/e⁻, σ_model's ``sm_mid`` and ``sm_inv_half``, the σ bound squared
+    ``max_sigma2`` mm², the gross-error test's ``gross_sq`` mm², ``t1``..``t4`` and ``t_max``."""
+
+    phi0: np.float32
+    inv_sphi: np.float32
+    cubic: np.float32
+    radial_k: np.float32
+    sing_rtol: np.float32
+    lo: np.float32
+    hi: np.float32
+    p_lo: np.float32
+    p_hi: np.float32
+    read_var: np.float32
+    gain: np.float32
+    sm_mid: np.float32
+    sm_inv_half: np.float32
+    max_sigma2: np.float32
+    gross_sq: np.float32
+    t1: np.float32
+    t2: np.float32
+    t3: np.float32
+    t4: np.float32
+    t_max: np.float32
+
+
 # Inlined in numba's IR: LLVM's own inliner found it too costly (525 against 250), and a call left
 # in the pixel loop kept the loop from being vectorised (the height stage then took 3-4x the CPU
 # of everything else in the kernel). Fewer than 30 arguments: CPython passes more as *args,
@@ -895,17 +924,18 @@ def _height_px(p, a0, a1, b0, b1, tot, vf, rlo, rhi, c,  # type: ignore[no-untyp
     """Height, σ and reason of one pixel from its closed-form coefficients (module docstring of
     :mod:`app.core.depth_model`; a radial projector lens ``radial_k`` on the pixel's epipolar
     line (``alpha``, ``beta``) solved as :func:`~app.core.depth_model.column_term` solves it);
-    ``row`` the row's constants (``phi0``, ``inv_sphi``, ``cubic``, ``radial_k``, ``sing_rtol``,
-    ``lo``, ``hi``, ``p_lo``, ``p_hi``, ``read_var``, ``gain``, ``sm_mid``, ``sm_inv_half``,
-    ``max_sigma2``, ``gross_sq``, ``t1``..``t4``, ``t_max``: :func:`_height_row`);
+    ``row`` the row's :class:`HeightConstants`;
     ``c`` is the phase stage's reason. σ is the total: the sensor
     noise through ∂z/∂φ ⊕ the model's own σ (σ_model² = Σ s_k·x^k,
     x = (h − sm_mid)·sm_inv_half, :mod:`app.recon.model_sigma`); a model σ beyond the rule's
     bound (``max_sigma2`` = its square) is outside the calibrated field. The UNCERTAIN test
     weighs the noise variance by (θ_g/sin θ_g)², θ_g² = ``gross_sq``/slope² capped at
     ``t_max``, as 1 + Σ t_k·θ_g^2k (:func:`app.recon.validity.phasor_tail_factor_sq`)."""
-    (phi0, inv_sphi, cubic, radial_k, sing_rtol, lo, hi, p_lo, p_hi, read_var, gain, sm_mid,
-     sm_inv_half, max_sigma2, gross_sq, t1, t2, t3, t4, t_max) = row
+    phi0, inv_sphi, cubic, radial_k = row.phi0, row.inv_sphi, row.cubic, row.radial_k
+    sing_rtol, lo, hi, p_lo, p_hi = row.sing_rtol, row.lo, row.hi, row.p_lo, row.p_hi
+    read_var, gain, sm_mid, sm_inv_half = row.read_var, row.gain, row.sm_mid, row.sm_inv_half
+    max_sigma2, gross_sq, t_max = row.max_sigma2, row.gross_sq, row.t_max
+    t1, t2, t3, t4 = row.t1, row.t2, row.t3, row.t4
     pp = (p - phi0) * inv_sphi
     if radial_k != _F0:  # Newton on φ' = t·(1 + k·(t² + y²)), y = α + β·t, as column_term
         y = alpha + beta * pp
@@ -989,10 +1019,10 @@ def _height_row(v, prev, m2, total, vfac, code, m,  # type: ignore[no-untyped-de
         _lerp_row(sm_row[i, :width], sc[i], sd[i], m.sm_weights[v])
     s0, s1, s2, s3, s4 = (sm_row[0, :width], sm_row[1, :width], sm_row[2, :width],
                           sm_row[3, :width], sm_row[4, :width])
-    row = (m.phi0, m.inv_sphi, m.cubic, m.radial_k, m.sing_rtol, m.lo, m.hi, m.phase_lo,
-           m.phase_hi, m.read_var, m.gain, m.sm_mid, m.sm_inv_half, m.max_sigma * m.max_sigma,
-           m.gross_sq, m.tail_coefs[0], m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3],
-           m.tail_t_max)
+    row = HeightConstants(m.phi0, m.inv_sphi, m.cubic, m.radial_k, m.sing_rtol, m.lo, m.hi,
+                          m.phase_lo, m.phase_hi, m.read_var, m.gain, m.sm_mid, m.sm_inv_half,
+                          m.max_sigma * m.max_sigma, m.gross_sq, m.tail_coefs[0],
+                          m.tail_coefs[1], m.tail_coefs[2], m.tail_coefs[3], m.tail_t_max)
     qx, qy, qz = m.ray_q[0, v], m.ray_q[1, v], m.ray_q[2, v]  # (x, y, 1)/(n·r)
     e = m.cross_coefs
     e0, e1, e2, e3, e4, e5, e6, e7, e8 = e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8]
