@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from app.recon.phase_kernels import nstep_estimates
+
 TWO_PI = 2.0 * math.pi
 #: Least modulation B of the default (noise-aware) rule, codes: see :mod:`app.recon.validity`
 #: (2 codes, less a margin that keeps the threshold off the lattice of integer frames' N-step
@@ -163,29 +165,19 @@ def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> Wr
     max_code, _ = resolve_levels(frames.dtype, max_code, 0.0)
     n_freq = frames.shape[0] // steps
     delta = TWO_PI * np.arange(steps) / steps
-    cos_d, sin_d = np.cos(delta), np.sin(delta)
     shape = (n_freq, *frames.shape[1:])
     phase = np.empty(shape)
     modulation = np.empty(shape)
-    total = np.zeros(frames.shape[1:])
-    clipped = np.zeros((n_freq, *frames.shape[1:]), np.int32)
-    for k in range(n_freq):
-        stack = frames[k * steps : (k + 1) * steps].astype(np.float64)
-        s = np.tensordot(sin_d, stack, axes=1)
-        c = np.tensordot(cos_d, stack, axes=1)
-        phase[k] = np.mod(np.arctan2(-s, c), TWO_PI)
-        modulation[k] = (2.0 / steps) * np.hypot(s, c)
-        total += stack.sum(axis=0)
-        clipped[k] = (frames[k * steps : (k + 1) * steps] >= max_code).sum(axis=0)
-    # np.mod can return exactly 2π for tiny negative inputs; keep the half-open range.
-    phase[phase >= TWO_PI] = 0.0
-    saturated: npt.NDArray[np.bool_] = np.asarray((clipped > steps - 3).any(axis=0))
-    recovered: npt.NDArray[np.bool_] = np.asarray((clipped > 0).any(axis=0) & ~saturated)
+    background = np.empty(frames.shape[1:])
+    saturated = np.empty(frames.shape[1:], np.bool_)
+    recovered = np.empty(frames.shape[1:], np.bool_)
+    nstep_estimates(np.ascontiguousarray(frames), steps, np.cos(delta), np.sin(delta), max_code,
+                    phase, modulation, background, saturated, recovered)
     vv, uu = np.nonzero(recovered)
     for k in range(n_freq):
-        some = clipped[k, vv, uu] > 0
+        samples = frames[k * steps : (k + 1) * steps, vv, uu].T  # (P, N)
+        some = (samples >= max_code).any(axis=1)
         if some.any():
-            samples = frames[k * steps : (k + 1) * steps, vv[some], uu[some]].T
             phase[k, vv[some], uu[some]], modulation[k, vv[some], uu[some]] = fit_unclipped(
-                samples, samples < max_code, delta)
-    return WrappedPhase(phase, modulation, total / frames.shape[0], saturated, recovered)
+                samples[some], samples[some] < max_code, delta)
+    return WrappedPhase(phase, modulation, background, saturated, recovered)
