@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from app.calib.levenberg import levenberg_marquardt
 from app.core.geometric import _decompose, _dlt_1d, _rotation
 
 F64 = npt.NDArray[np.float64]
@@ -245,7 +246,7 @@ class JointProblem:
         s_phase = self.s_phase or [1.0] * nv
         n_c = [2 * len(o) for o in self.obj]
         n_rows = sum(n_c) + sum(len(p) for p in self.pix)
-        # column-major: MINPACK's layout, which the solver would otherwise copy it to
+        # column-major: a view of its transpose is C-contiguous for BLAS's JᵀJ
         jac = np.zeros((n_rows, x.size), order="F")
         cam_cols = [6, 7, 8, 9] + [10 + i for i in self.free]  # projectPoints' f, c, dist
         row = 0
@@ -440,12 +441,10 @@ def refine_board_poses(
     prob._rays_of = None  # the pixels changed
 
     try:
-        res = least_squares(
-            prob.residuals, x_init, jac=prob.jacobian, method="lm", x_scale="jac", max_nfev=100
-        )
+        # MINPACK's method, its QR blocked (app.calib.levenberg): the Jacobian is ~60k × 55
+        x = levenberg_marquardt(prob.residuals, prob.jacobian, x_init, max_nfev=100).x
     except (ValueError, np.linalg.LinAlgError):
         return None
-    x = res.x
     if not np.all(np.isfinite(x)) or x[o_cam] <= 0 or x[o_cam + 1] <= 0:
         return None
     kd = prob.camera(x)
