@@ -36,6 +36,7 @@ import numpy.typing as npt
 from app.analysis.common import roi_mask
 
 F64 = npt.NDArray[np.float64]
+SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 @dataclass
@@ -466,12 +467,22 @@ def _edge_blur(tex: F64, coords: F64, labels: npt.NDArray[np.int32], comps: list
             band = ndtr((t - p[3]) / p[5]) - ndtr((t - p[4]) / p[5])
             return np.asarray(p[0] + p[1] * t + (p[2] - p[0]) * band - v, np.float64)
 
+        def misfit_jac(p: F64, t: F64 = rt) -> F64:
+            """(n, 6) exact derivatives of :func:`misfit` (finite differences cost 6 × more)."""
+            z1, z2 = (t - p[3]) / p[5], (t - p[4]) / p[5]
+            g1, g2 = np.exp(-0.5 * z1 * z1) / SQRT_2PI, np.exp(-0.5 * z2 * z2) / SQRT_2PI
+            band = ndtr(z1) - ndtr(z2)
+            step = (p[2] - p[0]) / p[5]
+            return np.column_stack([1.0 - band, t, band, -step * g1, step * g2,
+                                    step * (z2 * g2 - z1 * g1)])
+
         x0 = np.array([a0, 0.0, b0, lo, hi, 0.05 * width])
         lower = np.array([-np.inf, -np.inf, -np.inf, lo - width, lo, 1e-4 * width])
         upper = np.array([np.inf, np.inf, np.inf, hi, hi + width, width])
         try:
             fit = least_squares(misfit, np.clip(x0, lower + 1e-12, upper - 1e-12),
-                                bounds=(lower, upper), method="trf", x_scale="jac")
+                                jac=misfit_jac, bounds=(lower, upper), method="trf",
+                                x_scale="jac")
         except (ValueError, np.linalg.LinAlgError):
             continue
         dof = len(rv) - len(x0)
