@@ -21,13 +21,18 @@ saturated.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from app.recon.phase_kernels import nstep_estimates
+_nstep_kernel: Callable[..., None] | None
+try:  # one compiled pass; numpy (the same values within a few ulps) where numba is missing
+    from app.recon.phase_kernels import nstep_estimates as _nstep_kernel
+except ImportError:
+    _nstep_kernel = None
 
 TWO_PI = 2.0 * math.pi
 #: Least modulation B of the default (noise-aware) rule, codes: see :mod:`app.recon.validity`
@@ -145,6 +150,62 @@ def fit_unclipped(samples: npt.ArrayLike, ok: npt.ArrayLike,
     return phase, np.hypot(coef[:, 1], coef[:, 2])
 
 
+_Estimates = tuple[F64, F64, F64, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
+
+
+def nstep_estimates(frames: npt.NDArray[Any], steps: int, max_code: int) -> _Estimates:
+    """:func:`nstep_estimates_numpy` by the compiled pass (:mod:`app.recon.phase_kernels`),
+    or by numpy where numba is missing."""
+    if _nstep_kernel is None:
+        return nstep_estimates_numpy(frames, steps, max_code)
+    n_freq, shape = frames.shape[0] // steps, frames.shape[1:]
+    delta = TWO_PI * np.arange(steps) / steps
+    phase, modulation = np.empty((n_freq, *shape)), np.empty((n_freq, *shape))
+    background = np.empty(shape)
+    saturated, recovered = np.empty(shape, np.bool_), np.empty(shape, np.bool_)
+    _nstep_kernel(frames, steps, np.cos(delta), np.sin(delta), max_code, phase, modulation,
+                  background, saturated, recovered)
+    return phase, modulation, background, saturated, recovered
+
+
+def nstep_estimates_numpy(frames: npt.NDArray[Any], steps: int, max_code: int) -> _Estimates:
+    """Every frequency's N-step estimates before the clipped samples' refit, in numpy.
+
+    Args:
+        frames: (K·N, H, W) uint8/uint16, frequency-major, shift-minor.
+        steps: N ≥ 3.
+        max_code: samples at or above it are clipped.
+
+    Returns:
+        ``(phase, modulation, background, saturated, recovered)``: (K, H, W) float64 φ in
+        [0, 2π), rad, and B, codes; (H, W) float64 mean of every frame, codes; (H, W) bool
+        fewer than three unclipped samples in some frequency; (H, W) bool some sample clipped
+        but not saturated. The compiled pass, used where numba is installed, gives the same
+        within a few ulps (its atan2 is libm's, numpy's a SIMD one; BLAS sums in its order).
+    """
+    n_freq = frames.shape[0] // steps
+    delta = TWO_PI * np.arange(steps) / steps
+    cos_d, sin_d = np.cos(delta), np.sin(delta)
+    shape = (n_freq, *frames.shape[1:])
+    phase = np.empty(shape)
+    modulation = np.empty(shape)
+    total = np.zeros(frames.shape[1:])
+    clipped = np.zeros(shape, np.int32)
+    for k in range(n_freq):
+        stack = frames[k * steps : (k + 1) * steps].astype(np.float64)
+        s = np.tensordot(sin_d, stack, axes=1)
+        c = np.tensordot(cos_d, stack, axes=1)
+        phase[k] = np.mod(np.arctan2(-s, c), TWO_PI)
+        modulation[k] = (2.0 / steps) * np.hypot(s, c)
+        total += stack.sum(axis=0)
+        clipped[k] = (frames[k * steps : (k + 1) * steps] >= max_code).sum(axis=0)
+    # np.mod can return exactly 2π for tiny negative inputs; keep the half-open range.
+    phase[phase >= TWO_PI] = 0.0
+    saturated: npt.NDArray[np.bool_] = np.asarray((clipped > steps - 3).any(axis=0))
+    recovered: npt.NDArray[np.bool_] = np.asarray((clipped > 0).any(axis=0) & ~saturated)
+    return phase, modulation, total / frames.shape[0], saturated, recovered
+
+
 def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> WrappedPhase:
     """N-step wrapped phase of every frequency in a stack (float64, the oracle path).
 
@@ -165,14 +226,8 @@ def wrapped_phase(frames: Any, steps: int, *, max_code: int | None = None) -> Wr
     max_code, _ = resolve_levels(frames.dtype, max_code, 0.0)
     n_freq = frames.shape[0] // steps
     delta = TWO_PI * np.arange(steps) / steps
-    shape = (n_freq, *frames.shape[1:])
-    phase = np.empty(shape)
-    modulation = np.empty(shape)
-    background = np.empty(frames.shape[1:])
-    saturated = np.empty(frames.shape[1:], np.bool_)
-    recovered = np.empty(frames.shape[1:], np.bool_)
-    nstep_estimates(np.ascontiguousarray(frames), steps, np.cos(delta), np.sin(delta), max_code,
-                    phase, modulation, background, saturated, recovered)
+    phase, modulation, background, saturated, recovered = nstep_estimates(
+        np.ascontiguousarray(frames), steps, max_code)
     vv, uu = np.nonzero(recovered)
     for k in range(n_freq):
         samples = frames[k * steps : (k + 1) * steps, vv, uu].T  # (P, N)

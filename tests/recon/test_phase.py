@@ -104,3 +104,42 @@ def test_default_levels():
 def test_bad_input_names_argument(kwargs, name):
     with pytest.raises(ValueError, match=f"^{name}"):
         wrapped_phase(**kwargs)
+
+
+@pytest.mark.parametrize(("steps", "dtype", "max_code"),
+                         [(3, np.uint8, 255), (4, np.uint8, 200), (5, np.uint16, 4095),
+                          (8, np.uint16, 65535)])
+def test_the_compiled_pass_equals_numpy_within_a_few_ulps(steps, dtype, max_code):
+    from app.recon.phase import nstep_estimates, nstep_estimates_numpy
+
+    rng = np.random.default_rng(steps)
+    background = rng.uniform(0.3, 1.2, (37, 53)) * max_code  # the brightest clip in most shifts
+    phi = rng.uniform(0.0, 2 * math.pi, (3, 37, 53))  # three frequencies
+    sets = [_frames(p, background, 0.4 * max_code, steps, 0.01 * max_code, rng, np.int64)
+            for p in phi]
+    frames = np.clip(np.concatenate(sets), 0, max_code).astype(dtype)
+    got = nstep_estimates(frames, steps, max_code)
+    want = nstep_estimates_numpy(frames, steps, max_code)
+    assert got[3].any() and (got[4].any() or steps == 3)  # both flags occur (N = 3: no refit)
+    # BLAS sums the N products in another order: a few ulps (one ulp of 2π is 8.9e-16)
+    np.testing.assert_allclose(got[0], want[0], rtol=0, atol=4e-15)
+    for a, b in zip(got[1:3], want[1:3], strict=True):
+        np.testing.assert_allclose(a, b, rtol=4e-15, atol=4e-15 * max_code)
+    assert (got[0] >= 0).all() and (got[0] < 2 * math.pi).all()
+    for a, b in zip(got[3:], want[3:], strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_wrapped_phase_without_numba_is_the_numpy_pass(monkeypatch):
+    import app.recon.phase as mod
+
+    rng = np.random.default_rng(8)
+    phi = rng.uniform(0.0, 2 * math.pi, (20, 30))
+    frames = _frames(phi, 120.0, 140.0, 4, 2.0, rng, np.uint8)  # clipped above 255
+    compiled = wrapped_phase(frames, 4)
+    monkeypatch.setattr(mod, "_nstep_kernel", None)
+    plain = wrapped_phase(frames, 4)
+    assert plain.recovered.any()
+    np.testing.assert_allclose(plain.phase, compiled.phase, rtol=4e-16, atol=4e-15)
+    assert np.array_equal(plain.saturated, compiled.saturated)
+    assert np.array_equal(plain.background, compiled.background)
