@@ -441,7 +441,7 @@ def refine_board_poses(
     prob._rays_of = None  # the pixels changed
 
     try:
-        # MINPACK's method, its QR blocked (app.calib.levenberg): the Jacobian is ~60k × 55
+        # MINPACK's steps from JᵀJ, not its unblocked QR (app.calib.levenberg): J is ~60k × 55
         x = levenberg_marquardt(prob.residuals, prob.jacobian, x_init, max_nfev=100).x
     except (ValueError, np.linalg.LinAlgError):
         return None
