@@ -2,8 +2,9 @@
 in one pass over the frames.
 
 float64 and serial (``nogil``), without ``fastmath``: it is the oracle path's. It replaces a
-float64 copy of each frequency's stack, two ``tensordot`` passes and the (K, H, W) sums'
-temporaries, whose fresh pages alone cost more than the arithmetic.
+float64 copy of each frequency's stack, two ``tensordot`` passes and their (K, H, W)
+temporaries; it writes only the arrays it returns (sums kept in (K, H, W) arrays of their own
+cost 0.23 s a 1384 × 1032 set in fresh pages against 0.04 s in touched ones).
 """
 
 from __future__ import annotations
