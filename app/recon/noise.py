@@ -73,9 +73,11 @@ FIT_CHUNK = 1024
 #: the sums of squares is below ρ), and it bounds the normal equations' condition, so the
 #: kernel's sums in another order give the numpy solution to ~10⁻⁹
 HARMONIC_RIDGE = 1e-6
-#: the share of pixels beyond the noise (a trim beyond the 0.1 % that noise gives) after
-#: which the set's harmonics are fitted again without them
+#: the share of pixels whose trim changed (at first: beyond the 0.1 % that noise gives)
+#: after which the set's harmonics are fitted again on the pixels kept
 REFIT_SHARE = 0.01
+#: at most this many refits of the set's harmonics
+REFITS = 4
 #: the noise of rounding to whole codes, DN (uniform over one code: 1/√12)
 QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)
 #: a pixel whose residual variance exceeds its model's by the χ²_ν/ν quantile of this
@@ -206,15 +208,21 @@ def fit_sensor_noise(frames: Any, schedule: PatternSchedule, *,
     # var ≈ read²·a + gain·b (a = b/I = 1 where the harmonics are nil): the line through
     # (b/a, var/a) is the model in σ_I²(I) form, each y still model·χ²_ν/ν
     x, y = _line_form(var, design, usable)
-    coef, keep = _trimmed_fit(x, y, dof)
-    if keep.sum() < (1.0 - REFIT_SHARE) * x.size:  # the harmonics again, without the outliers
-        kept = np.zeros_like(usable)
-        kept[usable] = keep
-        _harmonic_fit(level, phasor, resid, basis, sources, kept, var, design, harmonics,
+    coef, keep = _trimmed_fit(x, y, dof, usable)
+    # the harmonics again without the outliers, until the pixels they are fitted on settle:
+    # a moving region that the first fit let in can carry the level terms (a tool at 5× the
+    # median level has t² = 16), and what those terms leave decides the next trim
+    fitted_keep = np.ones_like(keep)
+    for _ in range(REFITS):
+        if np.count_nonzero(keep != fitted_keep) < REFIT_SHARE * x.size:
+            break
+        fitted = np.zeros_like(usable)
+        fitted[usable] = keep
+        fitted_keep = keep
+        _harmonic_fit(level, phasor, resid, basis, sources, fitted, var, design, harmonics,
                       centre)
-        fitted = kept
         x, y = _line_form(var, design, usable)
-        coef, keep = _trimmed_fit(x, y, dof, start=coef)
+        coef, keep = _trimmed_fit(x, y, dof, usable, start=coef)
     if coef[1] < 0.0:  # no shot noise: the level alone (a set of one level leaves it free)
         coef = np.array([float(y[keep].mean()), 0.0])
     coef = coef / _chi2_limit(dof)[2]
@@ -528,9 +536,15 @@ def _chi2_limit(dof: int) -> tuple[float, float, float]:
 
 #: pixels the trimmed fit's robust start reads at most (medians of intensity bins)
 START_PIXELS = 8192
+#: side of the square blocks of the subsample (in subsample pixels) in which outliers are
+#: counted: a moving tool or a glint is a region, noise's outliers are scattered
+OUTLIER_BLOCK = 8
+#: a block holding more than this share of outliers is left out whole (noise alone puts
+#: 1 − :data:`OUTLIER_QUANTILE` = 0.1 % in each; 4 of 64 has probability ~6·10⁻⁷)
+OUTLIER_BLOCK_SHARE = 0.05
 
 
-def _trimmed_fit(intensity: F64, var: F64, dof: int,
+def _trimmed_fit(intensity: F64, var: F64, dof: int, grid: npt.NDArray[np.bool_] | None = None,
                  start: F64 | None = None) -> tuple[F64, npt.NDArray[np.bool_]]:
     """``(read², gain)`` of ``var ≈ read² + gain·intensity`` without the pixels that are not noise.
 
@@ -541,11 +555,29 @@ def _trimmed_fit(intensity: F64, var: F64, dof: int,
     pixels within the χ²_ν/ν quantile :data:`OUTLIER_QUANTILE` of the model so far, until
     the kept set settles (the trim removes 0.1 % of true noise: a bias below 1 %).
 
+    Two things keep a large moving region from carrying the fit (the twin anastomosis
+    at half the LED current: forceps over 15 % of the view, the brightest pixels nearly
+    all on them; the start's line through the bins' medians then fell below zero for
+    every pixel dimmer than the forceps, the trim kept only the 1,500 brightest pixels and
+    read a gain 56× the sensor's):
+
+    * the start is the repeated-median line (Siegel; ``scipy.stats.siegelslopes``)
+      through the bins' medians, which a minority of bins, however far off, cannot tilt;
+    * the model the trim compares with is never below the rounding's variance, and where
+      ``grid`` is given, a block of :data:`OUTLIER_BLOCK` × :data:`OUTLIER_BLOCK` pixels
+      holding more than :data:`OUTLIER_BLOCK_SHARE` outliers is left out whole: a moving
+      region's pixels whose residual happens to stay under the limit are its edges and
+      slow parts, not noise (whether a pixel goes depends on its neighbours, which are
+      independent of its own noise, so this leaves the kept pixels' χ² unbiased).
+
     Args:
         intensity, var: (P,) float64 mean intensity (DN) and residual variance (DN²).
         dof: ν, the residual's degrees of freedom per pixel.
-        start: (2,) a model to start from; None: the medians of equal-count intensity bins
-            of at most :data:`START_PIXELS` pixels (χ²_ν/ν's median divided out).
+        grid: (R, C) bool with P true values, where the P pixels sit in the subsample
+            (row-major); None: no blocks.
+        start: (2,) a model to start from; None: the repeated-median line through the
+            medians of equal-count intensity bins of at most :data:`START_PIXELS` pixels
+            (χ²_ν/ν's median divided out).
 
     Returns:
         ``(coef, keep)``: (2,) float64 read noise variance, DN², and gain, DN per electron
@@ -558,13 +590,15 @@ def _trimmed_fit(intensity: F64, var: F64, dof: int,
         bins = np.array_split(np.argsort(xs, kind="stable"), max(2, min(32, xs.size // 50)))
         med = np.array([np.median(vs[b]) for b in bins]) / median
         centre = np.array([xs[b].mean() for b in bins])
-        start_design = np.stack([np.ones(centre.size), centre], axis=1)
-        coef = np.linalg.lstsq(start_design, med, rcond=None)[0]
+        coef = _repeated_median_line(centre, med)
     else:
         coef = np.asarray(start, np.float64)
+    floor = QUANTISATION_NOISE_DN**2
     keep = np.zeros(intensity.size, bool)
     for _ in range(20):
-        new = var <= limit * np.maximum(coef[0] + coef[1] * intensity, 1e-3)
+        new = var <= limit * np.maximum(coef[0] + coef[1] * intensity, floor)
+        if grid is not None:
+            new &= ~_clustered(~new, grid)
         if new.sum() < 100 or np.array_equal(new, keep):
             break
         keep = new
@@ -573,6 +607,31 @@ def _trimmed_fit(intensity: F64, var: F64, dof: int,
         keep = np.ones(intensity.size, bool)
         coef = _line(intensity, var)
     return coef, keep
+
+
+def _repeated_median_line(x: F64, y: F64) -> F64:
+    """(intercept, slope) of Siegel's repeated-median line through (x, y) (breakdown 50 %)."""
+    if np.ptp(x) <= 0.0:  # one level: no slope to tell
+        return np.array([float(np.median(y)), 0.0])
+    from scipy.stats import siegelslopes
+
+    fit = siegelslopes(y, x)
+    return np.array([float(fit.intercept), float(fit.slope)])
+
+
+def _clustered(outlier: npt.NDArray[np.bool_],
+               grid: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """(P,) bool: the pixels in blocks of :data:`OUTLIER_BLOCK` subsample pixels whose share
+    of ``outlier`` (P,) among the block's ``grid`` pixels exceeds :data:`OUTLIER_BLOCK_SHARE`."""
+    rows, cols = grid.shape
+    b = OUTLIER_BLOCK
+    block_of = ((np.arange(rows)[:, None] // b) * (-(-cols // b))
+                + np.arange(cols)[None, :] // b)[grid]
+    n_blocks = -(-rows // b) * -(-cols // b)
+    count = np.bincount(block_of, minlength=n_blocks)
+    bad = np.bincount(block_of, weights=outlier.astype(np.float64), minlength=n_blocks)
+    share = bad / np.maximum(count, 1)
+    return np.asarray(share[block_of] > OUTLIER_BLOCK_SHARE, np.bool_)
 
 
 def _line(x: F64, y: F64) -> F64:
