@@ -28,6 +28,23 @@ def background_codes(result: Any) -> npt.NDArray[np.float64]:
     return np.asarray(result.texture, np.float64) - np.asarray(result.modulation, np.float64)
 
 
+#: a ninth's mean error may reach this where the calibration knows its heights well, mm
+BIAS_MM = 0.005
+#: σ_model (RMS over a ninth) below which the calibration counts as knowing its heights well, mm
+MODEL_SIGMA_SMALL_MM = 0.0025
+
+
+def bias_limit_mm(model_sigma_mm: float) -> float:
+    """The largest |mean error| (mm) a region of the image may show: :data:`BIAS_MM` where
+    the calibration's own σ (``model_sigma_mm``, the RMS of ``ReconResult.sigma_model`` over
+    the region's valid pixels) is at most :data:`MODEL_SIGMA_SMALL_MM`, else 2·σ_model — the
+    calibration's error there is one draw shared by the region's pixels, and 2σ holds it 95 %
+    of the time (NaN σ_model, i.e. none given: :data:`BIAS_MM`)."""
+    if not model_sigma_mm > MODEL_SIGMA_SMALL_MM:
+        return BIAS_MM
+    return 2.0 * float(model_sigma_mm)
+
+
 def _valid_share(result: Any, mask: npt.NDArray[np.bool_]) -> float:
     """Share of the ``mask`` pixels that ``result`` marks valid (NaN for an empty mask)."""
     return float(np.asarray(result.valid, bool)[mask].mean()) if mask.any() else math.nan
@@ -241,7 +258,8 @@ def supported_mask(region: SupportedRegion, truth_depth: npt.ArrayLike,
 def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tuple[float, float],
                   sigma_mm: npt.ArrayLike, *, lit: npt.ArrayLike | None = None,
                   gross_mm: float = 0.5, grid: tuple[int, int] = (3, 3),
-                  supported: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
+                  supported: npt.ArrayLike | None = None,
+                  sigma_model_mm: npt.ArrayLike | None = None) -> list[dict[str, Any]]:
     """Acceptance figures in each cell of a ``grid`` (rows, cols) split of the image
     — every ninth by default.
 
@@ -256,6 +274,8 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
         grid: (rows, cols) of the split.
         supported: optional (H, W) bool: pixels whose TRUE (height, phase) lie inside the
             calibration's supported region (:func:`supported_mask`); default: all.
+        sigma_model_mm: optional (H, W) the calibration's own 1-σ per pixel, mm
+            (``ReconResult.sigma_model``): each cell's ``model_sigma_mm`` and ``bias_limit_mm``.
 
     Returns:
         One dict per cell, row-major: ``row``, ``col``; inside (in the volume and the supported
@@ -265,7 +285,9 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
         (valid pixels with |error| > gross_mm), ``max_abs_error_mm``; outside the volume:
         ``outside_pixels``, ``outside_valid``, ``outside_gross``, ``outside_max_abs_error_mm``;
         in the volume but outside the supported region (lit): ``off_region_pixels``,
-        ``off_region_valid``, ``off_region_gross``, ``off_region_max_abs_error_mm``.
+        ``off_region_valid``, ``off_region_gross``, ``off_region_max_abs_error_mm``;
+        ``model_sigma_mm`` (RMS of ``sigma_model_mm`` over the valid inside pixels; NaN
+        without it) and ``bias_limit_mm`` (:func:`bias_limit_mm` of it).
         Figures of an empty set are NaN.
     """
     depth = np.asarray(result.depth, np.float64)
@@ -276,6 +298,9 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
         raise ValueError(f"truth_depth: shape {truth.shape} does not match depth {depth.shape}")
     if sig.shape != depth.shape:
         raise ValueError(f"sigma_mm: shape {sig.shape} does not match depth {depth.shape}")
+    model = None if sigma_model_mm is None else np.asarray(sigma_model_mm, np.float64)
+    if model is not None and model.shape != depth.shape:
+        raise ValueError(f"sigma_model_mm: shape {model.shape} does not match depth {depth.shape}")
     rows, cols = (int(g) for g in grid)
     if rows < 1 or cols < 1:
         raise ValueError(f"grid: need positive (rows, cols), got {grid}")
@@ -314,6 +339,8 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
             off_m = off_region[win]
             off_ok = off_m & valid[win]
             ef = np.abs(err[win][off_ok])
+            sm = nan if model is None else model[win][ok]
+            sm_rms = float(np.sqrt(np.mean(np.square(sm)))) if np.size(sm) else nan
             cells.append({
                 "row": r, "col": c, "pixels": int(ins.sum()),
                 "valid_fraction": float(ok.sum() / ins.sum()) if ins.any() else nan,
@@ -332,5 +359,7 @@ def ninths_report(result: Any, truth_depth: npt.ArrayLike, height_range_mm: tupl
                 "off_region_valid": int(off_ok.sum()),
                 "off_region_gross": int((ef > gross_mm).sum()),
                 "off_region_max_abs_error_mm": float(ef.max()) if ef.size else nan,
+                "model_sigma_mm": sm_rms,
+                "bias_limit_mm": bias_limit_mm(sm_rms),
             })
     return cells

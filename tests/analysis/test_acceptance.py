@@ -125,3 +125,27 @@ def test_ninths_count_only_the_supported_region_as_inside():
         ninths_report(res, truth, (0.0, 20.0), np.full((h, w), 0.01), supported=sup[:, :10])
     with pytest.raises(ValueError, match="phase_rad"):
         supported_mask(region, truth, phase[:, :10])
+
+
+def test_a_ninth_may_be_biased_by_twice_its_calibration_sigma_where_that_is_not_small():
+    """The issue's bias rule: 0.005 mm where the ninth's RMS σ_model is ≤ 2.5 µm, else 2σ_model."""
+    from app.analysis.acceptance import bias_limit_mm, ninths_report
+
+    assert bias_limit_mm(0.0) == 0.005
+    assert bias_limit_mm(0.0025) == 0.005
+    assert bias_limit_mm(0.004) == pytest.approx(0.008)
+    assert bias_limit_mm(float("nan")) == 0.005
+    h, w = 90, 120
+    truth = np.full((h, w), 5.0)
+    depth = truth + 0.006
+    sigma = np.full((h, w), 0.02)
+    model = np.full((h, w), 0.001)
+    model[:, 80:] = 0.004  # the right column of ninths: the calibration knows less there
+    res = _fake_result(depth, np.ones((h, w), bool))
+    cells = ninths_report(res, truth, (0.0, 20.0), sigma, sigma_model_mm=model)
+    assert [c["bias_limit_mm"] for c in cells] == pytest.approx([0.005, 0.005, 0.008] * 3)
+    assert cells[2]["model_sigma_mm"] == pytest.approx(0.004)
+    without = ninths_report(res, truth, (0.0, 20.0), sigma)
+    assert all(np.isnan(c["model_sigma_mm"]) and c["bias_limit_mm"] == 0.005 for c in without)
+    with pytest.raises(ValueError, match="sigma_model_mm"):
+        ninths_report(res, truth, (0.0, 20.0), sigma, sigma_model_mm=model[:10])
