@@ -56,6 +56,6 @@ def test_status_and_depth_rate_unchanged_by_50_streams(sim_calibration_file: Pat
     # the tail, by the same rule as p50: against the same run without streams (a stream holding
     # a worker thread made it 10x). The absolute target, p99 within 50 ms under the streams
     # (12 ms measured on a quiet 2-core machine), is the benchmark's to print: on this shared
-    # VM the tail without any stream ran 39-63 ms over three clean-clone runs and 48.6 ms
+    # VM the tail without any stream ran 39-63 ms in two clean-clone runs and 48.6 ms
     # alone, and under the streams 0.87-1.28x that
     assert load["p99_ms"] <= 2.0 * base["p99_ms"] + 20.0, fig
