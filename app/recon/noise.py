@@ -594,11 +594,12 @@ def _trimmed_fit(intensity: F64, var: F64, dof: int, grid: npt.NDArray[np.bool_]
     else:
         coef = np.asarray(start, np.float64)
     floor = QUANTISATION_NOISE_DN**2
+    blocks = None if grid is None else _block_layout(grid)  # fixed by the grid: once per fit
     keep = np.zeros(intensity.size, bool)
     for _ in range(20):
         new = var <= limit * np.maximum(coef[0] + coef[1] * intensity, floor)
-        if grid is not None:
-            new &= ~_clustered(~new, grid)
+        if blocks is not None:
+            new &= ~_clustered(~new, *blocks)
         if new.sum() < 100 or np.array_equal(new, keep):
             break
         keep = new
@@ -619,17 +620,22 @@ def _repeated_median_line(x: F64, y: F64) -> F64:
     return np.array([float(fit.intercept), float(fit.slope)])
 
 
-def _clustered(outlier: npt.NDArray[np.bool_],
-               grid: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
-    """(P,) bool: the pixels in blocks of :data:`OUTLIER_BLOCK` subsample pixels whose share
-    of ``outlier`` (P,) among the block's ``grid`` pixels exceeds :data:`OUTLIER_BLOCK_SHARE`."""
+def _block_layout(grid: npt.NDArray[np.bool_]) -> tuple[I64, I64]:
+    """For the P true pixels of ``grid`` (R, C), row-major: (P,) int64 the index of each one's
+    :data:`OUTLIER_BLOCK`-square block, and (blocks,) int64 how many grid pixels each holds."""
     rows, cols = grid.shape
     b = OUTLIER_BLOCK
-    block_of = ((np.arange(rows)[:, None] // b) * (-(-cols // b))
-                + np.arange(cols)[None, :] // b)[grid]
-    n_blocks = -(-rows // b) * -(-cols // b)
-    count = np.bincount(block_of, minlength=n_blocks)
-    bad = np.bincount(block_of, weights=outlier.astype(np.float64), minlength=n_blocks)
+    per_row = -(-cols // b)
+    block_of = ((np.arange(rows)[:, None] // b) * per_row + np.arange(cols)[None, :] // b)[grid]
+    count = np.bincount(block_of, minlength=-(-rows // b) * per_row)
+    return block_of.astype(np.int64), count.astype(np.int64)
+
+
+def _clustered(outlier: npt.NDArray[np.bool_], block_of: I64,
+               count: I64) -> npt.NDArray[np.bool_]:
+    """(P,) bool: the pixels in blocks (:func:`_block_layout`) whose share of ``outlier`` (P,)
+    among the block's pixels exceeds :data:`OUTLIER_BLOCK_SHARE`."""
+    bad = np.bincount(block_of, weights=outlier.astype(np.float64), minlength=count.size)
     share = bad / np.maximum(count, 1)
     return np.asarray(share[block_of] > OUTLIER_BLOCK_SHARE, np.bool_)
 
