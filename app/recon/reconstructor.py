@@ -176,11 +176,12 @@ class ReconResult:
             calibration carries no uncertainty (a file without a jackknife): σ_model is then 0.
         recovered: pixels with clipped samples whose phase was fitted from the rest
             (see :mod:`app.recon.phase`).
-        motion: with a motion test (``run(..., motion=...)``), the grown (H, W) bool motion
-            mask (:mod:`app.recon.motion`; those pixels are invalid with reason MOTION unless
-            saturated), else None; ``moved_pixels`` its count, ``scene_moved`` whether any
-            window was flagged, ``uncertain_moving_pixels`` valid pixels made UNCERTAIN by the
-            moving-scene σ bound, ``motion_ms`` the test's wall time, ms.
+        motion: with a motion test (``motion_test=True`` or ``run(..., motion=...)``), the
+            grown (H, W) bool motion mask (:mod:`app.recon.motion`; those pixels are invalid
+            with reason MOTION unless saturated), else None; ``moved_pixels`` its count,
+            ``scene_moved`` whether any window was flagged, ``uncertain_moving_pixels`` valid
+            pixels made UNCERTAIN by the moving-scene σ bound, ``motion_ms`` the test's wall
+            time, ms.
         noise: the camera noise model the set was reconstructed with.
         noise_source: where ``noise`` came from: ``"given"`` (passed to ``run`` or the
             constructor), ``"set"`` (fitted to this set's N-step residual, N > 3) or
@@ -394,6 +395,14 @@ class Reconstructor:
             (``fringescope gamma``) subtracted from every wrapped phase before unwrapping, on
             both paths; None: none. ``ValueError`` unless it was learned for the calibration's
             schedule.
+        motion_test: test every set of more than one frequency group for motion between its
+            groups (:mod:`app.recon.motion`, its default settings with this reconstructor's
+            ``gross_error_mm``) and invalidate the moved pixels, unless a run passes its own
+            test; False (the default): only runs given a test are tested. A scene that moves
+            while one set is projected shifts each group's phase differently: untested, the
+            wrong fringe order that can cause reaches tens of mm on pixels that look valid
+            (the twin's forceps at 20 ms). Not the default because on real still 4-step sets
+            the test still flags 14-26 % of the pixels (README, Rolling mode and motion).
         phase_error_series: whether the fused kernel may evaluate a phase-error table (this
             one, or a run's) as its Fourier series (:attr:`PhaseErrorLUT.series`, within
             ``gamma.SERIES_MAX_DEV_RAD`` of the table: on the twin's 1384 × 1032 sets the
@@ -423,6 +432,7 @@ class Reconstructor:
         order_max_motion_rad: float = DEFAULT_MAX_MOTION_RAD,
         phase_error: PhaseErrorLUT | None = None,
         phase_error_series: bool = True,
+        motion_test: bool = False,
     ) -> None:
         if not isinstance(calibration, Calibration):
             raise ValueError("calibration: expected a Calibration")
@@ -470,6 +480,9 @@ class Reconstructor:
         self.fast = bool(fast) and _fast is not None
         if fast and _fast is None:
             log.warning("fast=True requested but numba is unavailable; using numpy")
+        self.motion_test = bool(motion_test) and _fast is not None
+        if motion_test and _fast is None:
+            log.warning("the motion test needs numba, which is unavailable: sets are not tested")
         lo, hi = calibration.height_range_mm
         self._bounds_mm = (lo - self.height_margin_mm, hi + self.height_margin_mm)
         self._outputs = _OutputPool()
@@ -594,8 +607,10 @@ class Reconstructor:
             noise: the camera's noise model for this set (σ, the validity rule, the order
                 and motion tests); None → the constructor's, else fitted to this set
                 (:func:`app.recon.noise.resolve_set_noise`: N > 3, else the nominal).
-            motion: test the set for motion between its frequency groups
-                (:mod:`app.recon.motion`) and invalidate the moved pixels; None: no test.
+            motion: the settings of this set's motion test between its frequency groups
+                (:mod:`app.recon.motion`; the moved pixels are invalidated); None: the
+                default test where the constructor's ``motion_test`` is set (and the set has
+                more than one group), else none.
             phase_error: a projector-gamma table for this set, used where the constructor has
                 no learned one (a caller that fitted the set's noise itself passes the
                 table :func:`~app.recon.noise.resolve_set_noise` gave with it). None: where
@@ -612,10 +627,14 @@ class Reconstructor:
             sched = self.calibration.pattern
             phase_error.check_schedule(sched.steps, tuple(float(k) for k in sched.frequencies))
         if motion is not None:
-            from app.recon import motion as motion_test
+            from app.recon import motion as motion_module
 
-            if not isinstance(motion, motion_test.MotionTest):
+            if not isinstance(motion, motion_module.MotionTest):
                 raise ValueError("motion: expected a MotionTest")
+        elif self.motion_test and len(self.calibration.pattern.frequencies) > 1:
+            from app.recon import motion as motion_module
+
+            motion = motion_module.MotionTest(gross_error_mm=self.gross_error_mm)
         frames = check_stack(frames)
         self.calibration.check_frames(frames.shape)
         max_code, min_mod = resolve_levels(
@@ -644,7 +663,7 @@ class Reconstructor:
         res.uncertain_moving_pixels, res.motion_ms = 0, 0.0
         if motion is not None:
             # points not made yet follow the invalidated depth when they are
-            mp = motion_test.invalidate_motion(
+            mp = motion_module.invalidate_motion(
                 frames, len(self.calibration.pattern.frequencies), noise=camera, depth=res.depth,
                 points=LazyPoints.given(res), valid=res.valid, reason=res.reason, sigma=res.sigma,
                 test=motion, max_code=max_code)
