@@ -14,6 +14,7 @@ frames in the same process), with the set's own fitted noise (N > 3; nominal for
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from pathlib import Path
@@ -54,9 +55,13 @@ def load(scene: int, steps: int) -> npt.NDArray[np.uint8]:
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, nargs="+", default=[12, 6, 4, 3],
+                    choices=[12, 6, 4, 3], help="step counts: 12, or every 2nd/3rd/4th step")
+    args = ap.parse_args()
     print(f"bench_motion_real: CFPE still scenes from {CFPE}; flagged = share of pixels the "
           "motion test flags (before growth), default settings")
-    for steps in (12, 6, 4, 3):
+    for steps in args.steps:
         sched = PatternSchedule(frequencies=tuple(1920 / p for p in PERIODS_PX), steps=steps,
                                 width=1920, height=1080, unwrap="heterodyne")
         for scene in SCENES:
